@@ -1,0 +1,179 @@
+"""InsLog: the common, time-indexed frame every parser produces (DESIGN.md, "InsLog").
+
+``imu`` and ``nav`` are pandas DataFrames indexed by ``t_s`` (float64 seconds relative to
+``meta.t0_ns``); absolute time of a row is ``meta.t0_ns * 1e-9 + t_s`` (kept as int ns at the IO edge).
+Column names carry their units and frames (FRD body, NED navigation), see the constants below.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Literal
+
+import numpy as np
+import pandas as pd
+
+# ---- column names: the one place they are spelled -------------------------------------------
+T = "t_s"
+GYRO = ("gyro_x_rad_s", "gyro_y_rad_s", "gyro_z_rad_s")
+ACCEL = ("accel_x_m_s2", "accel_y_m_s2", "accel_z_m_s2")
+QUAT = ("quat_w", "quat_x", "quat_y", "quat_z")
+VEL = ("vel_n_m_s", "vel_e_m_s", "vel_d_m_s")
+POS = ("lat_deg", "lon_deg", "alt_m")
+IMU_COLUMNS = GYRO + ACCEL
+NAV_COLUMNS = QUAT + VEL + POS
+
+Clock = Literal["epoch", "boot", "unknown"]
+
+
+@dataclass(frozen=True)
+class ChannelInfo:
+    """One stream of a log: where it came from, how often and how many samples."""
+
+    rate_hz: float
+    count: int
+    source: str = ""  # e.g. "IMU2", "/xsens/imu_data", "HIGHRES_IMU"
+
+
+@dataclass(frozen=True)
+class LogMeta:
+    source_path: str
+    format: str
+    selector: str = ""
+    clock: Clock = "unknown"
+    t0_ns: int = 0
+    stamp_source: str = ""
+    channels: dict[str, ChannelInfo] = field(default_factory=dict)
+    warnings: tuple[str, ...] = ()
+
+    def with_warning(self, *msgs: str) -> "LogMeta":
+        return replace(self, warnings=self.warnings + tuple(msgs))
+
+
+def _empty(columns: tuple[str, ...]) -> pd.DataFrame:
+    return pd.DataFrame({c: np.zeros(0) for c in columns}, index=pd.Index(np.zeros(0), name=T))
+
+
+@dataclass(frozen=True)
+class InsLog:
+    """One unit's data. Treat the DataFrames as read-only; derive new logs with helpers below."""
+
+    imu: pd.DataFrame
+    nav: pd.DataFrame
+    meta: LogMeta
+
+    # -- construction ------------------------------------------------------------------------
+    @staticmethod
+    def from_arrays(
+        meta: LogMeta,
+        t_imu_s: np.ndarray | None = None,
+        gyro_rad_s: np.ndarray | None = None,
+        accel_m_s2: np.ndarray | None = None,
+        t_nav_s: np.ndarray | None = None,
+        quat_wxyz: np.ndarray | None = None,
+        vel_ned_m_s: np.ndarray | None = None,
+        lat_lon_alt: np.ndarray | None = None,
+    ) -> "InsLog":
+        """Build from arrays (times relative to ``meta.t0_ns``); absent groups are left out."""
+        imu_cols: dict[str, np.ndarray] = {}
+        if gyro_rad_s is not None:
+            imu_cols.update(zip(GYRO, np.asarray(gyro_rad_s, float).T))
+        if accel_m_s2 is not None:
+            imu_cols.update(zip(ACCEL, np.asarray(accel_m_s2, float).T))
+        nav_cols: dict[str, np.ndarray] = {}
+        if quat_wxyz is not None:
+            nav_cols.update(zip(QUAT, np.asarray(quat_wxyz, float).T))
+        if vel_ned_m_s is not None:
+            nav_cols.update(zip(VEL, np.asarray(vel_ned_m_s, float).T))
+        if lat_lon_alt is not None:
+            nav_cols.update(zip(POS, np.asarray(lat_lon_alt, float).T))
+        imu = (pd.DataFrame(imu_cols, index=pd.Index(np.asarray(t_imu_s, float), name=T))
+               if imu_cols else pd.DataFrame(index=pd.Index(np.zeros(0), name=T)))
+        nav = (pd.DataFrame(nav_cols, index=pd.Index(np.asarray(t_nav_s, float), name=T))
+               if nav_cols else pd.DataFrame(index=pd.Index(np.zeros(0), name=T)))
+        return InsLog(imu=imu, nav=nav, meta=meta)
+
+    # -- what the log holds ------------------------------------------------------------------
+    @property
+    def has_gyro(self) -> bool:
+        return all(c in self.imu.columns for c in GYRO) and len(self.imu) > 0
+
+    @property
+    def has_accel(self) -> bool:
+        return all(c in self.imu.columns for c in ACCEL) and len(self.imu) > 0
+
+    @property
+    def has_quat(self) -> bool:
+        return all(c in self.nav.columns for c in QUAT) and self.nav[list(QUAT)].notna().any().all()
+
+    @property
+    def has_vel(self) -> bool:
+        return all(c in self.nav.columns for c in VEL) and self.nav[list(VEL)].notna().any().all()
+
+    @property
+    def has_pos(self) -> bool:
+        return all(c in self.nav.columns for c in POS) and self.nav[list(POS)].notna().any().all()
+
+    # -- array views -------------------------------------------------------------------------
+    def t_imu_s(self) -> np.ndarray:
+        return self.imu.index.to_numpy(dtype=float)
+
+    def t_nav_s(self) -> np.ndarray:
+        return self.nav.index.to_numpy(dtype=float)
+
+    def gyro_rad_s(self) -> np.ndarray:
+        return self.imu[list(GYRO)].to_numpy(dtype=float)
+
+    def accel_m_s2(self) -> np.ndarray:
+        return self.imu[list(ACCEL)].to_numpy(dtype=float)
+
+    def nav_rows(self, cols: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+        """(t_s, values) for the nav rows where every column of ``cols`` is present."""
+        sub = self.nav[list(cols)]
+        ok = sub.notna().all(axis=1).to_numpy()
+        return self.nav.index.to_numpy(dtype=float)[ok], sub.to_numpy(dtype=float)[ok]
+
+    def quat_wxyz(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.nav_rows(QUAT)
+
+    def vel_ned_m_s(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.nav_rows(VEL)
+
+    def lat_lon_alt(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.nav_rows(POS)
+
+    # -- time --------------------------------------------------------------------------------
+    @property
+    def t0_s(self) -> float:
+        return self.meta.t0_ns * 1e-9
+
+    def span_s(self) -> tuple[float, float]:
+        """(first, last) relative time over all streams; (nan, nan) when empty."""
+        ts = [s for s in (self.t_imu_s(), self.t_nav_s()) if len(s)]
+        if not ts:
+            return (float("nan"), float("nan"))
+        return (min(float(s[0]) for s in ts), max(float(s[-1]) for s in ts))
+
+    @property
+    def duration_s(self) -> float:
+        a, b = self.span_s()
+        return float(b - a) if np.isfinite(a) else 0.0
+
+    def between(self, t_start_s: float, t_end_s: float) -> "InsLog":
+        """Rows with t_start_s <= t_s <= t_end_s (relative seconds); cheap (index slicing)."""
+        return replace(
+            self,
+            imu=self.imu.loc[t_start_s:t_end_s],
+            nav=self.nav.loc[t_start_s:t_end_s],
+        )
+
+    def rebased(self, t0_ns: int) -> "InsLog":
+        """Same data expressed relative to another origin ``t0_ns`` (exact integer shift)."""
+        d = (self.meta.t0_ns - int(t0_ns)) * 1e-9
+        imu = self.imu.set_axis(self.imu.index + d, axis=0)
+        nav = self.nav.set_axis(self.nav.index + d, axis=0)
+        imu.index.name = T
+        nav.index.name = T
+        return replace(self, imu=imu, nav=nav, meta=replace(self.meta, t0_ns=int(t0_ns)))
+
+    def with_meta(self, **changes) -> "InsLog":
+        return replace(self, meta=replace(self.meta, **changes))

@@ -1,0 +1,69 @@
+"""Result records passed from logtools to pipelines (report.json, HTML, rerun).
+
+These are the internal contracts between the numerics and the outputs. Fields may be added (with
+defaults); never renamed: report.json is built from them (DESIGN.md, "report.json contract").
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class MethodEstimate:
+    latency_s: float
+    sigma_s: float
+    note: str = ""
+
+
+@dataclass(frozen=True)
+class LatencyResult:
+    """Relative delay of the slave behind the master (DESIGN.md definition of ``latency_s``)."""
+
+    latency_s: float  # value at the middle of the analysed window
+    sigma_s: float
+    drift_ppm: float  # d(latency)/dt in microseconds per second
+    method: str
+    window_s: tuple[float, float]  # master stamps as logged (absolute: UNIX or boot seconds)
+    quality: dict = field(default_factory=dict)  # flags and figures: motion, periodicity, ...
+    methods: dict[str, MethodEstimate] = field(default_factory=dict)
+    # diagnostics for plots: lag grid (s) and normalised cost, per-window estimates
+    cost_lag_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    cost: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    window_centers_s: np.ndarray = field(default_factory=lambda: np.zeros(0))  # master relative t
+    window_latency_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    mounting_rpy_deg: tuple[float, float, float] | None = None  # rotation found from angular rate
+    t_mid_rel_s: float = 0.0  # middle of the window, master relative seconds (where latency_s holds)
+
+    def latency_at(self, t_master_rel_s: np.ndarray) -> np.ndarray:
+        """Latency (s) at master-relative instants, drift included."""
+        return self.latency_s + self.drift_ppm * 1e-6 * (np.asarray(t_master_rel_s) - self.t_mid_rel_s)
+
+
+@dataclass(frozen=True)
+class AlignmentResult:
+    """One transfer-alignment run (uncompensated or compensated)."""
+
+    filter: str
+    match: str
+    mounting_rpy_deg: tuple[float, float, float]
+    mounting_sigma_deg: tuple[float, float, float]
+    gyro_bias_dph: tuple[float, float, float]
+    accel_bias_mg: tuple[float, float, float]
+    converged_s: float | None  # seconds from start until mounting sigma < threshold; None if never
+    residual_rms: dict[str, float] = field(default_factory=dict)  # e.g. {"vel_m_s": .., "att_deg": ..}
+    gyro_bias_sigma_dph: tuple[float, float, float] | None = None
+    accel_bias_sigma_mg: tuple[float, float, float] | None = None
+    delay_s: float | None = None  # delay state estimate, for delay-augmented filters
+    delay_sigma_s: float | None = None
+    observability: dict[str, bool] = field(default_factory=dict)  # state group -> observable?
+    notes: tuple[str, ...] = ()
+    # time histories for plots: t_s (master relative), states (N, k) with names, sigmas (N, k)
+    history_t_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    history_names: tuple[str, ...] = ()
+    history_x: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    history_sigma: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    residual_t_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    residual_names: tuple[str, ...] = ()
+    residuals: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))

@@ -1,0 +1,96 @@
+"""What every format module provides, and small shared helpers for them."""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from logtools.errors import InputError
+from logtools.inslog import InsLog
+
+
+@dataclass(frozen=True)
+class Selector:
+    """Parsed ``PATH::key=value,...`` selector. Keys: imu, nav, att, vel, pos, clock, time ..."""
+
+    items: tuple[tuple[str, str], ...] = ()
+
+    @staticmethod
+    def parse(text: str) -> "Selector":
+        items = []
+        for part in filter(None, (p.strip() for p in text.split(","))):
+            if "=" not in part:
+                raise ValueError(f"selector item {part!r} is not key=value")
+            k, v = part.split("=", 1)
+            items.append((k.strip().lower(), v.strip()))
+        return Selector(tuple(items))
+
+    def get(self, key: str, default: str | None = None) -> str | None:
+        for k, v in self.items:
+            if k == key:
+                return v
+        return default
+
+    def __str__(self) -> str:
+        return ",".join(f"{k}={v}" for k, v in self.items)
+
+    def __bool__(self) -> bool:
+        return bool(self.items)
+
+
+@dataclass(frozen=True)
+class StreamInfo:
+    """One stream inside a log, as ``tapost inspect`` lists it."""
+
+    name: str  # message/topic name, e.g. "IMU2", "/xsens/imu_data", "HIGHRES_IMU"
+    kind: str  # "imu", "gyro", "accel", "att", "vel", "pos", "odom", "other"
+    count: int
+    rate_hz: float
+    start_s: float  # absolute seconds on the stream's clock
+    duration_s: float
+    clock: str = "unknown"
+    fields: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class Inventory:
+    path: str
+    format: str
+    streams: tuple[StreamInfo, ...]
+    selectors: tuple[str, ...]  # ready-to-use selectors, one per unit found ("imu=IMU,nav=NKF1")
+    warnings: tuple[str, ...] = ()
+    notes: tuple[str, ...] = field(default_factory=tuple)
+
+
+class FormatModule(Protocol):
+    NAME: str
+    EXTENSIONS: tuple[str, ...]
+
+    def sniff(self, head: bytes, path: str) -> bool: ...
+
+    def load(self, path: str, selector: Selector) -> InsLog: ...
+
+    def inventory(self, path: str) -> Inventory: ...
+
+
+def rate_of(t_s: np.ndarray) -> float:
+    """Robust sample rate (Hz) from stamps: median of positive steps."""
+    t = np.asarray(t_s, dtype=float)
+    if len(t) < 2:
+        return 0.0
+    d = np.diff(t)
+    d = d[d > 0]
+    return float(1.0 / np.median(d)) if len(d) else 0.0
+
+
+def check_readable(path: str) -> None:
+    if not os.path.exists(path):
+        raise InputError("no such file", path)
+    if os.path.isdir(path):
+        return
+    if not os.access(path, os.R_OK):
+        raise InputError("not readable (permission denied)", path)
+    if os.path.getsize(path) == 0:
+        raise InputError("empty file", path)

@@ -1,0 +1,178 @@
+"""The canonical tapost CSV (DESIGN.md, "CSV contract").
+
+Header ``time_s,gyro_x_rad_s,...,accel_z_m_s2,qw,qx,qy,qz,vel_n_m_s,vel_e_m_s,vel_d_m_s,lat_deg,lon_deg,alt_m``
+(FRD/NED), one row per sample, any column group may be absent or empty on a row. ``time_s`` is UNIX
+seconds or seconds since boot, written and read with full nanosecond precision (never via float64).
+"""
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pandas as pd
+
+from logtools.errors import InputError
+from logtools.inslog import ACCEL, GYRO, POS, QUAT, VEL, ChannelInfo, InsLog, LogMeta
+from parsers.atomic import atomic_path
+from parsers.base import Inventory, Selector, StreamInfo, rate_of
+
+NAME = "csv"
+EXTENSIONS = (".csv",)
+
+TIME = "time_s"
+CSV_GYRO = GYRO
+CSV_ACCEL = ACCEL
+CSV_QUAT = ("qw", "qx", "qy", "qz")
+CSV_VEL = VEL
+CSV_POS = POS
+HEADER = (TIME,) + CSV_GYRO + CSV_ACCEL + CSV_QUAT + CSV_VEL + CSV_POS
+#: epoch stamps are larger than this (2001-09-09); boot-relative stamps are smaller
+EPOCH_THRESHOLD_S = 1e9
+
+
+def sniff(head: bytes, path: str) -> bool:
+    first = head.split(b"\n", 1)[0].strip().lstrip(b"\xef\xbb\xbf").decode("utf-8", "replace")
+    cols = [c.strip() for c in first.split(",")]
+    return bool(cols) and cols[0] == TIME and any(c in HEADER[1:] for c in cols[1:])
+
+
+def seconds_text_to_ns(values: pd.Series) -> np.ndarray:
+    """Decimal seconds as text -> int64 ns, exactly (no float64 rounding of epoch stamps)."""
+    s = values.astype(str).str.strip()
+    neg = s.str.startswith("-").to_numpy()
+    s = s.str.lstrip("+-")
+    parts = s.str.split(".", n=1, expand=True)
+    whole = parts[0].replace("", "0")
+    frac = parts[1] if parts.shape[1] > 1 else pd.Series([""] * len(s), index=s.index)
+    frac = frac.fillna("").str.slice(0, 9).str.ljust(9, "0")
+    if not (whole.str.fullmatch(r"\d+").all() and frac.str.fullmatch(r"\d{9}").all()):
+        raise ValueError("time column holds values that are not decimal seconds")
+    ns = whole.astype(np.int64).to_numpy() * 1_000_000_000 + frac.astype(np.int64).to_numpy()
+    return np.where(neg, -ns, ns)
+
+
+def ns_to_seconds_text(ns: np.ndarray) -> np.ndarray:
+    ns = np.asarray(ns, dtype=np.int64)
+    sign = np.where(ns < 0, "-", "")
+    a = np.abs(ns)
+    return np.char.add(np.char.add(sign, np.char.mod("%d", a // 1_000_000_000)),
+                       np.char.mod(".%09d", a % 1_000_000_000))
+
+
+def _read_frame(path: str) -> pd.DataFrame:
+    try:
+        df = pd.read_csv(path, dtype={TIME: str}, skipinitialspace=True, on_bad_lines="warn")
+    except pd.errors.EmptyDataError:
+        raise InputError("empty CSV (no header)", path) from None
+    except (pd.errors.ParserError, UnicodeDecodeError) as exc:
+        raise InputError(f"malformed CSV: {str(exc).splitlines()[0]}", path) from None
+    df.columns = [c.strip() for c in df.columns]
+    if TIME not in df.columns:
+        raise InputError(f"no '{TIME}' column (canonical CSV header expected)", path)
+    return df
+
+
+def load(path: str, selector: Selector) -> InsLog:
+    df = _read_frame(path)
+    warnings: list[str] = []
+    df = df[df[TIME].notna()]
+    try:
+        t_ns = seconds_text_to_ns(df[TIME])
+    except ValueError as exc:
+        raise InputError(str(exc), path) from None
+    groups = {"gyro": CSV_GYRO, "accel": CSV_ACCEL, "quat": CSV_QUAT, "vel": CSV_VEL, "pos": CSV_POS}
+    present = {g: cols for g, cols in groups.items() if all(c in df.columns for c in cols)}
+    partial = [g for g, cols in groups.items() if g not in present and any(c in df.columns for c in cols)]
+    if partial:
+        warnings.append(f"incomplete column group(s) ignored: {', '.join(partial)}")
+    if not present:
+        raise InputError("no recognisable data columns (gyro/accel/quaternion/velocity/position)", path)
+    if len(t_ns) == 0:
+        raise InputError("no data rows", path)
+    order = np.argsort(t_ns, kind="stable")
+    if np.any(np.diff(t_ns) < 0):
+        warnings.append("rows not in time order: sorted")
+    t_ns = t_ns[order]
+    df = df.iloc[order]
+    dup = np.concatenate([[False], np.diff(t_ns) == 0])
+    if dup.any():
+        warnings.append(f"{int(dup.sum())} duplicate time stamps dropped")
+        t_ns, df = t_ns[~dup], df[~dup]
+    t0_ns = int(t_ns[0])
+    t_s = (t_ns - t0_ns) * 1e-9
+    clock = "epoch" if t0_ns * 1e-9 > EPOCH_THRESHOLD_S else "boot"
+
+    def block(cols):
+        return df[list(cols)].apply(pd.to_numeric, errors="coerce").to_numpy(dtype=float)
+
+    channels: dict[str, ChannelInfo] = {}
+    imu_mask = np.zeros(len(df), bool)
+    for g in ("gyro", "accel"):
+        if g in present:
+            imu_mask |= np.isfinite(block(present[g])).all(axis=1)
+    nav_mask = np.zeros(len(df), bool)
+    for g in ("quat", "vel", "pos"):
+        if g in present:
+            nav_mask |= np.isfinite(block(present[g])).all(axis=1)
+    kw: dict = {}
+    if imu_mask.any():
+        kw["t_imu_s"] = t_s[imu_mask]
+        if "gyro" in present:
+            kw["gyro_rad_s"] = block(CSV_GYRO)[imu_mask]
+        if "accel" in present:
+            kw["accel_m_s2"] = block(CSV_ACCEL)[imu_mask]
+        channels["imu"] = ChannelInfo(rate_of(t_s[imu_mask]), int(imu_mask.sum()), "csv")
+    if nav_mask.any():
+        kw["t_nav_s"] = t_s[nav_mask]
+        if "quat" in present:
+            kw["quat_wxyz"] = block(CSV_QUAT)[nav_mask]
+        if "vel" in present:
+            kw["vel_ned_m_s"] = block(CSV_VEL)[nav_mask]
+        if "pos" in present:
+            kw["lat_lon_alt"] = block(CSV_POS)[nav_mask]
+        channels["nav"] = ChannelInfo(rate_of(t_s[nav_mask]), int(nav_mask.sum()), "csv")
+    if not kw:
+        raise InputError("no complete data rows", path)
+    meta = LogMeta(source_path=path, format=NAME, selector=str(selector), clock=clock, t0_ns=t0_ns,
+                   stamp_source="csv time_s column", channels=channels, warnings=tuple(warnings))
+    return InsLog.from_arrays(meta, **kw)
+
+
+def inventory(path: str) -> Inventory:
+    log = load(path, Selector())
+    streams = []
+    for name, ch in log.meta.channels.items():
+        t = log.t_imu_s() if name == "imu" else log.t_nav_s()
+        streams.append(StreamInfo(name=name, kind=name, count=ch.count, rate_hz=ch.rate_hz,
+                                  start_s=log.t0_s + float(t[0]), duration_s=float(t[-1] - t[0]),
+                                  clock=log.meta.clock))
+    return Inventory(path=path, format=NAME, streams=tuple(streams), selectors=("",),
+                     warnings=log.meta.warnings)
+
+
+def write(path: str, log: InsLog) -> None:
+    """Write an InsLog as canonical CSV; imu and nav rows are merged on their (exact) stamps."""
+    frames = []
+    if len(log.imu):
+        frames.append(log.imu[[c for c in GYRO + ACCEL if c in log.imu.columns]])
+    if len(log.nav):
+        nav = log.nav[[c for c in QUAT + VEL + POS if c in log.nav.columns]]
+        frames.append(nav.rename(columns=dict(zip(QUAT, CSV_QUAT))))
+    # merge on integer ns so that equal stamps share a row
+    merged = None
+    for f in frames:
+        f = f.copy()
+        f.index = np.round(f.index.to_numpy(float) * 1e9).astype(np.int64)
+        f = f[~f.index.duplicated()]
+        merged = f if merged is None else merged.join(f, how="outer")
+    if merged is None:
+        raise InputError("nothing to write", path)
+    merged = merged.sort_index()
+    cols = [c for c in HEADER[1:] if c in merged.columns]
+    out = merged[cols]
+    time_txt = ns_to_seconds_text(merged.index.to_numpy() + log.meta.t0_ns)
+    buf = io.StringIO()
+    out.insert(0, TIME, time_txt)
+    out.to_csv(buf, index=False, float_format="%.17g", na_rep="")
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as fh:
+        fh.write(buf.getvalue())

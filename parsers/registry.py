@@ -1,0 +1,102 @@
+"""Format registry: detection by content (magic bytes), dispatch to the format's module."""
+from __future__ import annotations
+
+import importlib
+import os
+from types import ModuleType
+
+from logtools.errors import InputError
+from logtools.inslog import InsLog
+from parsers.base import Inventory, Selector, check_readable
+
+#: format modules, most specific sniffers first. Each has NAME, sniff, load, inventory (and may
+#: have write). A module that is not present (yet) is simply skipped.
+_MODULES = (
+    "parsers.mcap_ros",
+    "parsers.rosbag1",
+    "parsers.rosbag2",
+    "parsers.ulog",
+    "parsers.dataflash",
+    "parsers.mavlink_tlog",
+    "parsers.csv_vendor",
+    "parsers.csv_canonical",
+)
+
+HEAD_BYTES = 8192
+
+
+def formats() -> list[ModuleType]:
+    mods = []
+    for name in _MODULES:
+        try:
+            mods.append(importlib.import_module(name))
+        except ModuleNotFoundError as exc:
+            if exc.name != name:
+                raise
+    return mods
+
+
+def format_by_name(name: str) -> ModuleType:
+    for mod in formats():
+        if mod.NAME == name:
+            return mod
+    raise InputError(f"unknown format {name!r}; known: {', '.join(m.NAME for m in formats())}")
+
+
+def parse_log_arg(arg: str) -> tuple[str, Selector]:
+    """``PATH[::SELECTOR]`` -> (path, Selector)."""
+    path, sep, sel = arg.partition("::")
+    try:
+        return path, Selector.parse(sel) if sep else Selector()
+    except ValueError as exc:
+        raise InputError(f"bad selector: {exc}", path) from None
+
+
+def detect(path: str) -> ModuleType:
+    """The format module for ``path``, decided by content (a directory by its metadata)."""
+    check_readable(path)
+    head = b""
+    if not os.path.isdir(path):
+        with open(path, "rb") as fh:
+            head = fh.read(HEAD_BYTES)
+    for mod in formats():
+        try:
+            if mod.sniff(head, path):
+                return mod
+        except OSError:
+            continue
+    if os.path.isdir(path):
+        raise InputError("directory holds no recognised log (no metadata.yaml, no sensors.csv)", path)
+    raise InputError("unrecognised format (not MCAP, ROS bag, ULog, DataFlash, tlog or CSV)", path)
+
+
+def load(arg: str) -> InsLog:
+    """Read ``PATH[::SELECTOR]`` into an InsLog. Raises InputError with a one-line reason."""
+    path, selector = parse_log_arg(arg)
+    mod = detect(path)
+    try:
+        return mod.load(path, selector)
+    except InputError:
+        raise
+    except (MemoryError, KeyboardInterrupt):
+        raise
+    except Exception as exc:  # a library choking on damaged input: one line, not a traceback
+        raise InputError(f"cannot read as {mod.NAME}: {type(exc).__name__}: {exc}", path) from exc
+
+
+def inspect_log(path: str) -> Inventory:
+    mod = detect(path)
+    try:
+        return mod.inventory(path)
+    except InputError:
+        raise
+    except Exception as exc:
+        raise InputError(f"cannot read as {mod.NAME}: {type(exc).__name__}: {exc}", path) from exc
+
+
+def write(path: str, log: InsLog, fmt: str, **options) -> None:
+    """Write ``log`` to ``path`` in format ``fmt`` (atomically: temp file + rename)."""
+    mod = format_by_name(fmt)
+    if not hasattr(mod, "write"):
+        raise InputError(f"format {fmt} cannot be written", path)
+    mod.write(path, log, **options)

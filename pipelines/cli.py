@@ -1,0 +1,72 @@
+"""The ``tapost`` command line (DESIGN.md, "CLI contract").
+
+Each subcommand lives in its own module exposing ``add_arguments(parser)`` and ``run(args) -> int``.
+Known failures (``TapostError``) become one line on stderr and the error's exit code
+(0 success, 1 analysis failed, 2 bad usage or unreadable input); ``--debug`` shows tracebacks.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+
+from logtools import __version__
+from logtools.errors import TapostError
+
+COMMANDS = {
+    "inspect": ("pipelines.inspect_cmd", "list a log's channels, rates, durations, clocks, selectors"),
+    "analyze": ("pipelines.analyze", "latency + compensation + transfer alignment for one pair"),
+    "batch": ("pipelines.batch", "analyze every pair of a campaign folder or manifest"),
+    "simulate": ("pipelines.simulate_cmd", "write a synthetic master/slave pair with truth.json"),
+    "view": ("pipelines.view_cmd", "open a recording in the rerun viewer"),
+}
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str):  # one line, exit 2 (argparse's own code for usage errors)
+        self.exit(2, f"tapost: {message} (see '{self.prog} --help')\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="tapost", description="Latency and transfer alignment between two INS logs.")
+    p.add_argument("--version", action="version", version=f"tapost {__version__}")
+    p.add_argument("--debug", action="store_true", help="show full tracebacks on errors")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    for name, (modname, help_text) in COMMANDS.items():
+        mod = importlib.import_module(modname)
+        sp = sub.add_parser(name, help=help_text, description=help_text)
+        mod.add_arguments(sp)
+        sp.set_defaults(_run=mod.run)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "_run", None):
+        parser.print_help(sys.stderr)
+        return 2
+    debug = args.debug or bool(os.environ.get("TAPOST_DEBUG"))
+    try:
+        return int(args._run(args) or 0)
+    except TapostError as exc:
+        if debug:
+            raise
+        print(f"tapost: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print("tapost: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:
+        return 0
+    except Exception as exc:  # a bug: still one line, with a pointer to --debug
+        if debug:
+            raise
+        print(f"tapost: internal error: {type(exc).__name__}: {exc} (rerun with --debug for details)",
+              file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
