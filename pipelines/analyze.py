@@ -1,23 +1,398 @@
-"""``tapost analyze MASTER SLAVE``: (foundation stage) load both logs and say what was read."""
+"""``tapost analyze MASTER SLAVE``: parse both logs -> latency -> compensation -> transfer alignment
+(uncompensated: slave stamps at face value; compensated) -> report.json, report.html, recording.rrd.
+
+Every output is written atomically; report.json is written last, so its presence marks a finished
+analysis. A step the data cannot support is skipped with its reason (report.json "skipped" and the
+summary), never faked. A failed latency estimate (no overlap, no motion, NaNs) is exit 1 with the
+reason in one line; report.json (and report.html) still record the failure.
+
+Options come from the command line, else from ``--config FILE`` (TOML or JSON, same names as the
+long options with ``_`` for ``-``, top level or under an ``[analyze]`` table), else the defaults.
+"""
 from __future__ import annotations
 
 import argparse
+import json
+import os
+import sys
+import time
+import tomllib
+from dataclasses import asdict, dataclass, field
 
+import numpy as np
+
+from logtools.errors import AnalysisError, InputError
+from logtools.inslog import InsLog
+from logtools.results import AlignmentResult, LatencyResult
 from parsers import load
+from pipelines import report as rp
+from pipelines.progress import Progress, null_progress
+
+FILTERS = ("kf", "kf-delay", "kf-split", "hinf", "ahinf")
+MATCHES = ("auto", "vel", "att", "vel+att")
+COMPENSATIONS = ("interp", "shift", "poly2", "split")
+LATENCY_METHODS = ("tapost", "s000-rate-integral", "s002-attitude-shift", "xcorr-norm")
+REPORT, HTML, RECORDING = "report.json", "report.html", "recording.rrd"
+
+
+@dataclass(frozen=True)
+class AnalyzeOptions:
+    """What ``tapost analyze`` does. ``max_lag_s=None`` searches the whole overlap (``--max-lag auto``)."""
+
+    max_lag_s: float | None = 2.0
+    filter: str = "kf"
+    match: str = "auto"  # auto: vel+att when the master has both, else what it has
+    compensation: str = "interp"
+    smoother: bool = False
+    recording: bool = True
+    latency_method: str = "tapost"
+    compare: bool = True  # also run the seeds' latency methods (report.json latency.methods)
+    recording_max_rows: int = 100_000
+
+    def __post_init__(self):
+        for name, allowed in (("filter", FILTERS), ("match", MATCHES), ("compensation", COMPENSATIONS),
+                              ("latency_method", LATENCY_METHODS)):
+            if getattr(self, name) not in allowed:
+                raise InputError(f"{name} must be one of {', '.join(allowed)}, not {getattr(self, name)!r}")
+        if self.max_lag_s is not None and not (self.max_lag_s > 0 and np.isfinite(self.max_lag_s)):
+            raise InputError(f"max lag must be a positive number of seconds or 'auto', not {self.max_lag_s!r}")
+
+
+@dataclass
+class PairOutcome:
+    report: dict
+    out_dir: str
+    paths: dict[str, str | None]
+    summary: list[str] = field(default_factory=list)
+    exit_code: int = 0
+
+
+# ---- options --------------------------------------------------------------------------------
+def parse_max_lag(text) -> float | None:
+    if text is None:
+        return None
+    if isinstance(text, str) and text.strip().lower() == "auto":
+        return None
+    try:
+        v = float(text)
+    except (TypeError, ValueError):
+        raise InputError(f"--max-lag takes seconds or 'auto', not {text!r}") from None
+    if not (v > 0 and np.isfinite(v)):
+        raise InputError(f"--max-lag must be positive, not {text!r}")
+    return v
+
+
+def read_config(path: str) -> dict:
+    """TOML or JSON config -> {option: value}; top level or an ``analyze`` table."""
+    try:
+        with open(path, "rb") as fh:
+            raw = fh.read()
+    except OSError as exc:
+        raise InputError(f"cannot read config: {exc.strerror}", path) from None
+    try:
+        data = json.loads(raw) if raw.lstrip()[:1] in (b"{",) else tomllib.loads(raw.decode("utf-8"))
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise InputError(f"config is neither valid TOML nor JSON: {str(exc).splitlines()[0]}", path) from None
+    if isinstance(data.get("analyze"), dict):
+        data = {**{k: v for k, v in data.items() if k != "analyze"}, **data["analyze"]}
+    return {str(k).replace("-", "_"): v for k, v in data.items()}
+
+
+_CONFIG_KEYS = {"max_lag", "filter", "match", "compensation", "smoother", "no_recording", "recording",
+                "latency_method", "compare", "out", "recording_max_rows"}
+
+
+def options_from(cli: dict, config: dict | None = None) -> tuple[AnalyzeOptions, str | None]:
+    """Merge CLI values (None = not given) over config values over defaults -> (options, out dir)."""
+    config = dict(config or {})
+    unknown = set(config) - _CONFIG_KEYS
+    if unknown:
+        raise InputError(f"unknown config option(s): {', '.join(sorted(unknown))}; "
+                         f"known: {', '.join(sorted(_CONFIG_KEYS))}")
+    merged = {**config, **{k: v for k, v in cli.items() if v is not None}}
+    kw: dict = {}
+    if "max_lag" in merged:
+        kw["max_lag_s"] = parse_max_lag(merged["max_lag"])
+    for k in ("filter", "match", "compensation", "latency_method"):
+        if k in merged:
+            kw[k] = str(merged[k])
+    for k in ("smoother", "compare"):
+        if k in merged:
+            kw[k] = bool(merged[k])
+    if "recording" in merged:
+        kw["recording"] = bool(merged["recording"])
+    if merged.get("no_recording"):
+        kw["recording"] = False
+    if "recording_max_rows" in merged:
+        kw["recording_max_rows"] = int(merged["recording_max_rows"])
+    return AnalyzeOptions(**kw), merged.get("out")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("master", help="master log, PATH[::SELECTOR]")
     p.add_argument("slave", help="slave log, PATH[::SELECTOR]")
-    p.add_argument("-o", "--out", default="tapost_out", help="output directory")
+    p.add_argument("-o", "--out", default=None, help="output directory (default tapost_out/)")
+    p.add_argument("--max-lag", default=None, metavar="S|auto",
+                   help="latency search half-width in seconds (default 2), or 'auto' for the whole overlap")
+    p.add_argument("--filter", default=None, choices=FILTERS, help="alignment filter (default kf)")
+    p.add_argument("--match", default=None, choices=MATCHES,
+                   help="alignment measurements (default auto: vel+att when the master has both)")
+    p.add_argument("--compensation", default=None, choices=COMPENSATIONS,
+                   help="how the slave is put on the master's clock (default interp)")
+    p.add_argument("--smoother", action="store_const", const=True, default=None,
+                   help="run the RTS smoother after the filter")
+    p.add_argument("--latency-method", default=None, choices=LATENCY_METHODS,
+                   help="method whose estimate is used (default tapost)")
+    p.add_argument("--no-compare", dest="compare", action="store_const", const=False, default=None,
+                   help="do not also run the other latency methods")
+    p.add_argument("--no-recording", action="store_const", const=True, default=None,
+                   help="do not write recording.rrd")
+    p.add_argument("--config", default=None, metavar="FILE", help="TOML or JSON file with the same options")
+
+
+# ---- the pipeline -----------------------------------------------------------------------------
+def _span(t: np.ndarray) -> tuple[float, float]:
+    return (float(t[0]), float(t[-1])) if len(t) else (np.nan, np.nan)
+
+
+def _resolve_match(master: InsLog, requested: str) -> tuple[str | None, str | None]:
+    """(match, None) or (None, reason it cannot be done)."""
+    has_att, has_vel = master.has_quat, master.has_vel
+    if requested == "auto":
+        if has_att and has_vel:
+            return "vel+att", None
+        if has_vel:
+            return "vel", None
+        if has_att:
+            return "att", None
+        return None, "alignment needs the master's attitude and/or velocity (the master log has neither)"
+    need = {"vel": ("velocity",), "att": ("attitude",), "vel+att": ("velocity", "attitude")}[requested]
+    missing = [n for n in need if not {"velocity": has_vel, "attitude": has_att}[n]]
+    if missing:
+        return None, f"match {requested} needs the master's {' and '.join(missing)} (not in the master log)"
+    return requested, None
+
+
+def _alignment(master: InsLog, slave: InsLog, run: str, opts: AnalyzeOptions, progress) -> AlignmentResult | str:
+    """One alignment run, or the reason it could not be done (str)."""
+    if not (slave.has_gyro and slave.has_accel):
+        return "alignment needs the slave's IMU (angular rate and specific force)"
+    match, why = _resolve_match(master, opts.match)
+    if why:
+        return why
+    m0, m1 = master.span_s()
+    s0, s1 = _span(slave.t_imu_s())
+    overlap = min(m1, s1) - max(m0, s0)
+    if not overlap > 0:
+        hint = " (clocks unrelated? the compensated run uses the estimated latency)" if run == "uncompensated" else ""
+        return f"no time overlap between the master and the slave on {run} stamps{hint}"
+    try:
+        from logtools.alignment import run_alignment
+    except ImportError as exc:
+        return f"alignment is not available in this installation ({exc})"
+    try:
+        return run_alignment(master, slave, filter=opts.filter, match=match, smoother=opts.smoother,
+                             progress=progress)
+    except AnalysisError as exc:
+        return exc.problem
+
+
+def _fmt_ms(x: float | None) -> str:
+    return "n/a" if x is None or not np.isfinite(x) else f"{x * 1e3:+.3f} ms"
+
+
+def summary_lines(rep: dict, paths: dict[str, str | None]) -> list[str]:
+    """The short human summary printed on stdout."""
+    m, s, lat = rep["master"], rep["slave"], rep["latency"]
+    out = [f"master  {m['path']} [{m['format']}, {m['clock']} clock, {m['duration_s'] or 0:.1f} s]",
+           f"slave   {s['path']} [{s['format']}, {s['clock']} clock, {s['duration_s'] or 0:.1f} s]"]
+    if "failed" in lat:
+        out.append(f"latency FAILED: {lat['failed']}")
+    else:
+        sig = lat["sigma_s"]
+        out.append(f"latency {lat['latency_s'] * 1e3:+.3f} ms +/- {sig * 1e3 if sig is not None else float('nan'):.3f} ms (1 sigma), "
+                   f"drift {lat['drift_ppm'] if lat['drift_ppm'] is not None else float('nan'):+.2f} ppm  "
+                   f"[{lat['method']}, window {lat['window_s'][1] - lat['window_s'][0]:.1f} s]")
+        others = [f"{k} {_fmt_ms(v['latency_s'])}" for k, v in lat.get("methods", {}).items() if k != lat["method"]]
+        if others:
+            out.append("        other methods: " + ", ".join(others))
+        q = lat.get("quality") or {}
+        flags = [f"{k}={v}" for k, v in q.items() if isinstance(v, (bool, str, int, float)) and v is not None]
+        if flags:
+            out.append("quality " + ", ".join(flags[:8]))
+    for run in rp.RUNS:
+        a = rep["alignment"].get(run, {})
+        if "skipped" in a:
+            out.append(f"mounting ({run}): skipped: {a['skipped']}")
+            continue
+        rpy = " ".join(f"{x:+.3f}" if x is not None else "n/a" for x in a["mounting_rpy_deg"])
+        sig = " ".join(f"{x:.3f}" if x is not None else "n/a" for x in a["mounting_sigma_deg"])
+        conv = f"{a['converged_s']:.1f} s" if a.get("converged_s") is not None else "not converged"
+        out.append(f"mounting ({run}, {a['filter']}/{a['match']}): roll pitch yaw = {rpy} deg "
+                   f"+/- {sig} deg (1 sigma), {conv}")
+    for k, v in rep.get("skipped", {}).items():
+        if k == "recording":
+            out.append(f"skipped recording: {v}")
+    nwarn = len(m.get("warnings", [])) + len(s.get("warnings", []))
+    if nwarn:
+        out.append(f"warnings: {nwarn} (see report)")
+    out.append("outputs " + ", ".join(p for p in paths.values() if p))
+    return out
+
+
+def analyze_pair(master_arg: str, slave_arg: str, out_dir: str, opts: AnalyzeOptions | None = None,
+                 progress=None) -> PairOutcome:
+    """Run the whole analysis of one pair and write its outputs in ``out_dir``.
+
+    Raises InputError (unreadable input, exit 2) before anything is written, AnalysisError (exit 1)
+    when the latency cannot be estimated (after writing report.json/report.html with the failure).
+    """
+    opts = opts or AnalyzeOptions()
+    prog = progress if progress is not None else null_progress
+    scaled = getattr(prog, "scaled", None)
+    sub = (lambda lo, hi, st: scaled(lo, hi, st)) if scaled else (lambda lo, hi, st: null_progress)
+    tim: dict[str, float] = {}
+    t_all = time.perf_counter()
+
+    # -- parse
+    t = time.perf_counter()
+    prog(0.0, "parse master")
+    master = load(master_arg)
+    prog(0.08, "parse slave")
+    slave = load(slave_arg)
+    tim["parse"] = time.perf_counter() - t
+    try:
+        os.makedirs(out_dir, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"cannot create the output folder: {exc.strerror}", out_dir) from None
+    paths = {"report": os.path.join(out_dir, REPORT), "html": os.path.join(out_dir, HTML),
+             "recording": os.path.join(out_dir, RECORDING) if opts.recording else None}
+    an = rp.Analysis(master=master, slave=slave)
+    align_sections: dict[str, dict | AlignmentResult] = {}
+    extra: dict = {}
+
+    # -- latency
+    t = time.perf_counter()
+    lat_section: LatencyResult | dict
+    failure: str | None = None
+    missing = [role for role, log in (("master", master), ("slave", slave)) if not (log.has_gyro or log.has_quat)]
+    if missing:
+        failure = f"latency needs angular rate or attitude from both units; the {' and '.join(missing)} has neither"
+    else:
+        try:
+            from logtools.latency import estimate
+        except ImportError as exc:
+            raise AnalysisError(f"latency estimation is not available in this installation ({exc})") from None
+        try:
+            an.latency = estimate(master, slave, method=opts.latency_method, max_lag_s=opts.max_lag_s,
+                                  compare=opts.compare, progress=sub(0.15, 0.45, "latency"))
+        except AnalysisError as exc:
+            failure = exc.problem
+            face = slave.rebased(master.meta.t0_ns)
+            m0, m1 = master.span_s()
+            s0, s1 = face.span_s()
+            if opts.max_lag_s is not None and (master.meta.clock != slave.meta.clock or min(m1, s1) <= max(m0, s0)):
+                failure += (f" (clocks look unrelated: master {master.meta.clock}, slave {slave.meta.clock}, "
+                            "no overlap at face value; try --max-lag auto)")
+    tim["latency"] = time.perf_counter() - t
+    lat_section = an.latency if an.latency is not None else rp.latency_failed(failure or "unknown", opts.latency_method)
+
+    # -- compensation and alignment
+    t = time.perf_counter()
+    if an.latency is not None:
+        prog(0.45, "compensate")
+        try:
+            from logtools.compensate import compensate
+
+            an.slave_comp = compensate(slave, an.latency, master, method=opts.compensation)
+            extra["compensation"] = {"method": opts.compensation, "applied_latency_s": an.latency.latency_s,
+                                     "applied_drift_ppm": an.latency.drift_ppm}
+        except ImportError as exc:
+            extra["compensation"] = {"method": opts.compensation, "skipped": f"not available ({exc})"}
+        except AnalysisError as exc:
+            extra["compensation"] = {"method": opts.compensation, "skipped": exc.problem}
+    tim["compensate"] = time.perf_counter() - t
+    t = time.perf_counter()
+    face = an.slave_face_value()
+    runs = {"uncompensated": (face, sub(0.5, 0.7, "alignment (uncompensated)")),
+            "compensated": (an.slave_comp, sub(0.7, 0.9, "alignment (compensated)"))}
+    for run, (slog, p) in runs.items():
+        if slog is None:
+            why = ("latency failed" if an.latency is None
+                   else f"compensation failed: {extra.get('compensation', {}).get('skipped', 'unknown')}")
+            res: AlignmentResult | str = why
+        else:
+            p(0.0, "")
+            res = _alignment(master, slog, run, opts, p)
+        if isinstance(res, AlignmentResult):
+            an.alignment[run] = res
+            align_sections[run] = res
+        else:
+            an.alignment[run] = None
+            align_sections[run] = rp.alignment_skipped(res, opts.filter, opts.match)
+    tim["alignment"] = time.perf_counter() - t
+
+    # -- outputs: html, recording, then report.json last
+    t = time.perf_counter()
+    prog(0.9, "report")
+    options = {**asdict(opts), "master": master_arg, "slave": slave_arg}
+    extra["mounting_for_plots"] = an.mounting()[1]
+    extra["outputs"] = {k: (os.path.basename(v) if v else None) for k, v in paths.items()}
+
+    skipped_steps: dict[str, str] = {}
+
+    def build(timings):
+        r = rp.build_report(master, slave, latency=lat_section, alignment=align_sections,
+                            timings_s=timings, options=options, extra=extra)
+        if skipped_steps:
+            r["skipped"].update(skipped_steps)
+            if r["status"] == "ok":
+                r["status"] = "partial"
+        return r
+
+    rep = build({**tim, "report": 0.0, "recording": 0.0, "total": time.perf_counter() - t_all})
+    from pipelines.html import write_html
+
+    write_html(paths["html"], rep, an)
+    tim["report"] = time.perf_counter() - t
+    t = time.perf_counter()
+    if opts.recording and an.latency is not None:
+        prog(0.95, "recording")
+        try:
+            from pipelines.recording import write_recording
+
+            extra["recording"] = write_recording(paths["recording"], an, rep, max_rows=opts.recording_max_rows)
+        except (ImportError, OSError, RuntimeError, ValueError) as exc:
+            skipped_steps["recording"] = f"{type(exc).__name__}: {exc}"
+            paths["recording"] = None
+    elif opts.recording:
+        paths["recording"] = None
+    tim["recording"] = time.perf_counter() - t
+    extra["outputs"] = {k: (os.path.basename(v) if v else None) for k, v in paths.items()}
+    t = time.perf_counter()
+    tim["total"] = time.perf_counter() - t_all
+    rep = build(tim)
+    rp.write_report(paths["report"], rep)
+    tim["report"] += time.perf_counter() - t
+    prog.done() if hasattr(prog, "done") else None
+    outcome = PairOutcome(report=rep, out_dir=out_dir, paths=paths, summary=summary_lines(rep, paths))
+    if an.latency is None:
+        outcome.exit_code = 1
+        raise AnalysisError(f"latency failed: {failure} (report: {paths['report']})")
+    return outcome
 
 
 def run(args: argparse.Namespace) -> int:
-    for role, arg in (("master", args.master), ("slave", args.slave)):
-        log = load(arg)
-        m = log.meta
-        print(f"{role}: {m.source_path} [{m.format}] clock={m.clock} t0_ns={m.t0_ns} "
-              f"duration={log.duration_s:.1f}s channels="
-              + ", ".join(f"{k}:{v.rate_hz:.0f}Hz x{v.count}" for k, v in m.channels.items()))
-    print("analyze: latency and alignment stages are not implemented yet; stopped after loading.")
+    config = read_config(args.config) if args.config else None
+    cli = {"max_lag": args.max_lag, "filter": args.filter, "match": args.match,
+           "compensation": args.compensation, "smoother": args.smoother, "no_recording": args.no_recording,
+           "latency_method": args.latency_method, "compare": args.compare, "out": args.out}
+    opts, out = options_from(cli, config)
+    progress = Progress()
+    try:
+        outcome = analyze_pair(args.master, args.slave, out or "tapost_out", opts, progress=progress)
+    finally:
+        progress.done()
+    print("\n".join(outcome.summary))
+    sys.stdout.flush()
     return 0

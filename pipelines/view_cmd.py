@@ -1,4 +1,4 @@
-"""``tapost view DIR|FILE.rrd``: open a recording in the rerun viewer."""
+"""``tapost view DIR|FILE.rrd``: open a recording in the rerun viewer (native, or ``--web`` in a browser)."""
 from __future__ import annotations
 
 import argparse
@@ -12,6 +12,7 @@ from logtools.errors import InputError
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("target", help="an analyze output directory or a .rrd file")
+    p.add_argument("--web", action="store_true", help="serve the web viewer instead of the native one")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -23,4 +24,6 @@ def run(args: argparse.Namespace) -> int:
                          args.target)
     exe = shutil.which("rerun")
     cmd = [exe, path] if exe else [sys.executable, "-m", "rerun", path]
+    if getattr(args, "web", False):
+        cmd.append("--web-viewer")
     return subprocess.call(cmd)

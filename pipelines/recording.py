@@ -1,0 +1,270 @@
+"""recording.rrd: the analysis as a rerun recording (rerun-sdk 0.41), opened by ``tapost view``.
+
+Everything is sent column-wise (``send_columns`` with a time column), never one call per sample.
+Timeline ``time``: seconds since the master's first sample (master clock). Timeline ``lag``: the
+latency search grid (for the cost curve). Entity layout::
+
+    /rates/{x,y,z}/{master,slave_raw,slave_comp}   angular rate (deg/s), slave rotated into the
+                                                    master frame; slave_raw = stamps at face value
+    /world/track                                    master NED track (LineStrips3D, m, origin = start)
+    /world/master                                   master body pose (Transform3D, FRD in NED)
+    /latency/cost/<method>                          normalised cost vs lag (timeline ``lag``)
+    /latency/window                                 per-window latency (ms) vs time (drift)
+    /alignment/<run>/<state>/{value,upper,lower}    filter states with 3-sigma bounds
+    /alignment/<run>/residuals/<name>               residuals
+
+Downsampling rule (very long logs): a series longer than ``max_rows`` samples is reduced by an
+integer factor k = ceil(n / max_rows) with a block mean (average of k consecutive samples at the
+block's mean time: an anti-aliasing boxcar, not a plain stride); filter states, bounds and residuals
+(smooth, many series) use ``max_rows // 10``. Poses are sent at <= ``pose_rate_hz``.
+The factors used are returned and stored in report.json ("recording").
+"""
+from __future__ import annotations
+
+import math
+import os
+
+import numpy as np
+
+from logtools.conventions import quat_rotate
+from logtools.earth import radii_m
+from logtools.inslog import InsLog
+from pipelines.report import RUNS, Analysis, public_mode
+from parsers.atomic import atomic_path
+
+MAX_ROWS = 100_000
+POSE_RATE_HZ = 10.0
+AXES = ("x", "y", "z")
+COLORS = {"master": [30, 30, 30], "slave_raw": [230, 120, 20], "slave_comp": [31, 119, 180]}
+RUN_COLORS = {"uncompensated": [214, 39, 40], "compensated": [31, 119, 180]}
+
+
+def block_mean(t: np.ndarray, y: np.ndarray, max_rows: int = MAX_ROWS) -> tuple[np.ndarray, np.ndarray, int]:
+    """(t, y, k): ``y`` (n,) or (n, m) block-averaged by k = ceil(n / max_rows) (k = 1: unchanged)."""
+    n = len(t)
+    k = max(1, int(math.ceil(n / max_rows)))
+    if k == 1:
+        return t, y, 1
+    m = (n // k) * k
+    tb = t[:m].reshape(-1, k).mean(axis=1)
+    yb = y[:m].reshape((-1, k) + y.shape[1:]).mean(axis=1)
+    return tb, yb, k
+
+
+def _stride_to_rate(t: np.ndarray, rate_hz: float) -> np.ndarray:
+    """Indices keeping at most ``rate_hz`` samples per second."""
+    if len(t) < 2:
+        return np.arange(len(t))
+    dt = float(np.median(np.diff(t)))
+    k = max(1, int(round((1.0 / rate_hz) / dt))) if dt > 0 else 1
+    return np.arange(0, len(t), k)
+
+
+def ned_track(log: InsLog) -> tuple[np.ndarray, np.ndarray] | None:
+    """(t_s, NED metres from the first fix) from lat/lon/alt (local tangent plane), else None."""
+    if not log.has_pos:
+        return None
+    t, lla = log.lat_lon_alt()
+    if len(t) == 0:
+        return None
+    lat0 = np.radians(lla[0, 0])
+    rn, re = radii_m(np.array([lat0]))
+    n = np.radians(lla[:, 0] - lla[0, 0]) * (float(rn[0]) + lla[0, 2])
+    e = np.radians(lla[:, 1] - lla[0, 1]) * (float(re[0]) + lla[0, 2]) * np.cos(lat0)
+    d = -(lla[:, 2] - lla[0, 2])
+    return t, np.column_stack([n, e, d])
+
+
+def _send_scalars(rec, rr, path: str, t: np.ndarray, y: np.ndarray, max_rows: int,
+                  timeline: str = "time") -> int:
+    ok = np.isfinite(t) & np.isfinite(y)
+    t, y = t[ok], y[ok]
+    if len(t) == 0:
+        return 0
+    t, y, k = block_mean(t, y, max_rows)
+    rec.send_columns(path, indexes=[rr.TimeColumn(timeline, duration=t)],
+                     columns=rr.Scalars.columns(scalars=y))
+    return k
+
+
+def build(an: Analysis, rep: dict | None = None, *, max_rows: int = MAX_ROWS,
+          pose_rate_hz: float = POSE_RATE_HZ, application_id: str = "tapost"):
+    """Fill a RecordingStream (not yet saved). Returns (rec, info) with the downsampling factors."""
+    import rerun as rr
+    import rerun.blueprint as rrb
+
+    rec = rr.RecordingStream(application_id, recording_id=None, send_properties=True)
+    R, mount_src = an.mounting()
+    info: dict = {"max_rows": max_rows, "rule": "block mean by k = ceil(n / max_rows)",
+                  "factors": {}, "mounting_for_plots": mount_src}
+
+    # -- angular rates on one timeline
+    streams: list[tuple[str, InsLog]] = [("master", an.master), ("slave_raw", an.slave_face_value())]
+    if an.slave_comp is not None:
+        streams.append(("slave_comp", an.slave_comp))
+    for name, log in streams:
+        if not log.has_gyro:
+            continue
+        g = np.degrees(log.gyro_rad_s())
+        if name != "master":
+            g = g @ R  # rows of R.T @ w: slave rate in the master frame
+        t = log.t_imu_s()
+        for i, ax in enumerate(AXES):
+            path = f"/rates/{ax}/{name}"
+            rec.log(path, rr.SeriesLines(names=name, colors=[COLORS[name]], widths=1.0), static=True)
+            info["factors"][path] = _send_scalars(rec, rr, path, t, g[:, i], max_rows)
+
+    # -- 3D: track and attitude in NED
+    rec.log("/world", rr.ViewCoordinates.FRD, static=True)  # x north, y east, z down
+    trk = ned_track(an.master)
+    if trk is not None:
+        t_trk, ned = trk
+        _, ned_ds, k = block_mean(t_trk, ned, max_rows)
+        rec.log("/world/track", rr.LineStrips3D([ned_ds], colors=[[31, 119, 180]], radii=0.5), static=True)
+        info["factors"]["/world/track"] = k
+    if an.master.has_quat:
+        tq, q = an.master.quat_wxyz()
+        idx = _stride_to_rate(tq, pose_rate_hz)
+        tq, q = tq[idx], q[idx]
+        if trk is not None:
+            pos = np.column_stack([np.interp(tq, trk[0], trk[1][:, j]) for j in range(3)])
+        else:
+            pos = np.zeros((len(tq), 3))
+        span = float(np.ptp(trk[1], axis=0).max()) if trk is not None and len(trk[1]) else 10.0
+        rec.log("/world/master", rr.TransformAxes3D(axis_length=max(span / 20.0, 1.0)), static=True)
+        rec.send_columns("/world/master", indexes=[rr.TimeColumn("time", duration=tq)],
+                         columns=rr.Transform3D.columns(translation=pos, quaternion=q[:, [1, 2, 3, 0]]))
+        # the slave's body axes (master attitude composed with the mounting) as arrows
+        axes_m = np.eye(3) * max(span / 30.0, 0.7)
+        slave_axes_body = axes_m @ R  # rows: slave x/y/z axes expressed in the master body frame
+        rec.log("/world/master/slave_axes",
+                rr.Arrows3D(vectors=slave_axes_body, colors=[[230, 60, 60], [60, 180, 60], [60, 60, 230]]),
+                static=True)
+        info["factors"]["/world/master"] = int(idx[1] - idx[0]) if len(idx) > 1 else 1
+
+    # -- latency
+    lat = an.latency
+    if lat is not None and len(lat.cost_lag_s):
+        path = f"/latency/cost/{lat.method}"
+        rec.log(path, rr.SeriesLines(names=f"cost {lat.method}", colors=[[31, 119, 180]]), static=True)
+        _send_scalars(rec, rr, path, np.asarray(lat.cost_lag_s, float), np.asarray(lat.cost, float),
+                      max_rows, timeline="lag")
+        lag_ms = np.asarray(lat.cost_lag_s, float) * 1e3
+        cost = np.asarray(lat.cost, float)
+        stride = max(1, int(math.ceil(len(lag_ms) / 2000)))
+        width = float(np.median(np.diff(lag_ms[::stride]))) if len(lag_ms) > stride else 1.0
+        # static chart: visible whatever timeline is selected (x = lag in ms)
+        rec.log("/latency/cost_chart", rr.BarChart(np.nan_to_num(cost[::stride]), abscissa=lag_ms[::stride],
+                                                   widths=[width], color=[31, 119, 180]), static=True)
+        rec.log("/latency/estimate",
+                rr.TextDocument(f"latency {lat.latency_s * 1e3:+.3f} ms ± {lat.sigma_s * 1e3:.3f} ms (1σ), "
+                                f"drift {lat.drift_ppm:+.2f} ppm, method {lat.method}"), static=True)
+    if lat is not None and len(lat.window_latency_s):
+        rec.log("/latency/window", rr.SeriesPoints(names="per-window latency (ms)", marker_sizes=3.0),
+                static=True)
+        _send_scalars(rec, rr, "/latency/window", np.asarray(lat.window_centers_s, float),
+                      np.asarray(lat.window_latency_s, float) * 1e3, max_rows)
+        tt = np.asarray(lat.window_centers_s, float)
+        rec.log("/latency/fit", rr.SeriesLines(names="latency fit (ms)", colors=[[214, 39, 40]]), static=True)
+        _send_scalars(rec, rr, "/latency/fit", tt, lat.latency_at(tt) * 1e3, max_rows)
+
+    # -- alignment states with 3-sigma bounds, residuals
+    state_rows = max(1000, max_rows // 10)
+    info["max_rows_states"] = state_rows
+    for run in RUNS:
+        res = an.alignment.get(run)
+        if res is None:
+            continue
+        c = RUN_COLORS.get(run, [100, 100, 100])
+        if res.history_x.size:
+            t = np.asarray(res.history_t_s, float)
+            for i, name in enumerate(res.history_names):
+                base = f"/alignment/{run}/{rr.escape_entity_path_part(name)}"
+                x, s = res.history_x[:, i], res.history_sigma[:, i]
+                for part, y, w in (("value", x, 1.5), ("upper", x + 3 * s, 0.7), ("lower", x - 3 * s, 0.7)):
+                    rec.log(f"{base}/{part}", rr.SeriesLines(names=f"{name} {part if part != 'value' else ''}".strip(),
+                                                             colors=[c], widths=w), static=True)
+                    info["factors"][f"{base}/{part}"] = _send_scalars(rec, rr, f"{base}/{part}", t, y,
+                                                                       state_rows)
+        if res.residuals.size:
+            t = np.asarray(res.residual_t_s, float)
+            for i, name in enumerate(res.residual_names):
+                path = f"/alignment/{run}/residuals/{rr.escape_entity_path_part(name)}"
+                rec.log(path, rr.SeriesPoints(names=name, colors=[c], marker_sizes=1.5), static=True)
+                info["factors"][path] = _send_scalars(rec, rr, path, t, res.residuals[:, i], state_rows)
+
+    # -- summary text
+    if rep is not None:
+        lines = [f"# tapost {rep.get('status', '')}", "",
+                 f"master: {rep['master']['path']}", f"slave: {rep['slave']['path']}"]
+        for k, v in rep.get("skipped", {}).items():
+            lines.append(f"- skipped {k}: {v}")
+        rec.log("/summary", rr.TextDocument("\n".join(lines), media_type=rr.MediaType.MARKDOWN), static=True)
+
+    rec.send_blueprint(_blueprint(rrb, an))
+    return rec, info
+
+
+def _blueprint(rrb, an: Analysis):
+    rates = rrb.Vertical(*[rrb.TimeSeriesView(origin=f"/rates/{ax}", name=f"angular rate {ax} (deg/s)")
+                           for ax in AXES], name="rates")
+    right = [rrb.Spatial3DView(origin="/world", name="master track and attitude (NED)")]
+    if an.latency is not None:
+        right.append(rrb.BarChartView(origin="/latency/cost_chart", name="latency cost vs lag (ms)"))
+        right.append(rrb.TimeSeriesView(origin="/latency", contents=["/latency/window", "/latency/fit"],
+                                        name="latency per window (ms)"))
+    overview = rrb.Horizontal(rates, rrb.Vertical(*right), column_shares=[3, 2], name="overview")
+    tabs = [overview]
+    for run in RUNS:
+        res = an.alignment.get(run)
+        if res is None or not res.history_x.size:
+            continue
+        import rerun as rr
+
+        views = [rrb.TimeSeriesView(origin=f"/alignment/{run}/{rr.escape_entity_path_part(n)}", name=n)
+                 for n in res.history_names]
+        if res.residuals.size:
+            views.append(rrb.TimeSeriesView(origin=f"/alignment/{run}/residuals", name="residuals"))
+        tabs.append(rrb.Grid(*views, name=f"alignment {run}"))
+    return rrb.Blueprint(rrb.Tabs(*tabs, active_tab=0), rrb.TimePanel(state="collapsed"),
+                         collapse_panels=False)
+
+
+def write_recording(path: str, an: Analysis, rep: dict | None = None, *, max_rows: int = MAX_ROWS) -> dict:
+    """Build and save the recording to ``path`` atomically; returns the downsampling info."""
+    rec, info = build(an, rep, max_rows=max_rows)
+    with atomic_path(path) as tmp:
+        public_mode(tmp)
+        rec.save(tmp)
+        rec.flush(timeout_sec=120.0) if _flush_takes_timeout(rec) else rec.flush()
+        rec.disconnect()
+        if not os.path.getsize(tmp):
+            raise OSError(f"rerun wrote an empty recording: {path}")
+    return info
+
+
+def _flush_takes_timeout(rec) -> bool:
+    import inspect
+
+    try:
+        return "timeout_sec" in inspect.signature(rec.flush).parameters
+    except (TypeError, ValueError):
+        return False
+
+
+def read_entities(path: str) -> dict[str, dict]:
+    """{entity_path: {"rows": n_temporal_rows, "static": has_static, "timelines": [...]}} read back
+    with rerun's own reader (``rerun.chunk.RrdReader``). Used by tests and ``tapost view`` checks."""
+    from rerun.chunk import RrdReader
+
+    out: dict[str, dict] = {}
+    for ch in RrdReader(path).stream().to_chunks():
+        e = out.setdefault(str(ch.entity_path), {"rows": 0, "static": False, "timelines": set()})
+        if ch.is_static:
+            e["static"] = True
+        else:
+            e["rows"] += int(ch.num_rows)
+            e["timelines"].update(ch.timeline_names)
+    for e in out.values():
+        e["timelines"] = sorted(e["timelines"])
+    return out

@@ -1,0 +1,189 @@
+"""``tapost batch``: discovery rules, parallel runs (processes and Dask) give identical summaries,
+a corrupt pair is a failed row, a second run does no work, SIGINT leaves no half-written report.
+
+The orchestration tests use the stand-in numerics of test_analyze_cli (forked worker processes and
+an in-process Dask cluster inherit them); ``test_real_campaign`` runs the real numerics in spawned
+processes and on a multi-process Dask LocalCluster when logtools.sim/latency/compensate exist.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from pipelines import batch
+from pipelines import report as rp
+from pipelines.cli import main
+
+HERE = Path(__file__).parent
+sys.path.insert(0, str(HERE))
+from test_analyze_cli import fake_numerics, install_fake_numerics, write_fake_pair  # noqa: E402,F401
+
+COMPARE = ["pair", "status", "exit_code", "latency_s", "sigma_s", "drift_ppm", "mount_comp_roll_deg",
+           "mount_comp_pitch_deg", "mount_comp_yaw_deg", "mount_unc_yaw_deg"]
+
+
+def make_campaign(root: Path, n_good: int = 5, duration_s: float = 20.0) -> Path:
+    """n_good pairs (subfolders, plus one flat pair) and one corrupt pair."""
+    camp = root / "campaign"
+    camp.mkdir()
+    for i in range(n_good - 1):
+        d = camp / f"run{i}"
+        d.mkdir()
+        write_fake_pair(d, duration_s=duration_s + 2 * i, name=("master.csv", "slave.csv"))
+    write_fake_pair(camp, duration_s=duration_s, name=("flat.master.csv", "flat.slave.csv"))
+    bad = camp / "broken"
+    bad.mkdir()
+    (bad / "master.csv").write_text("time_s,gyro_x_rad_s,gyro_y_rad_s,gyro_z_rad_s\n1.0,abc,0,0\n2.x,,\n")
+    (bad / "slave.csv").write_bytes(b"\x89garbage\x00" * 50)
+    (camp / "notes.txt").write_text("not a pair")
+    return camp
+
+
+def snapshot(out: Path) -> dict[str, int]:
+    return {str(p.relative_to(out)): p.stat().st_mtime_ns for p in out.rglob("*")
+            if p.is_file() and p.parent != out}
+
+
+def test_discovery_rules(tmp_path):
+    camp = tmp_path / "c"
+    (camp / "a").mkdir(parents=True)
+    (camp / "a" / "master.bin").write_text("x")
+    (camp / "a" / "slave.tlog").write_text("x")
+    (camp / "lonely").mkdir()
+    (camp / "lonely" / "master.csv").write_text("x")
+    (camp / "other").mkdir()  # unrelated folder: ignored
+    (camp / "z.master.csv").write_text("x")
+    (camp / "z.slave.mcap").write_text("x")
+    jobs = {j.name: j for j in batch.discover(str(camp), str(tmp_path / "o"))}
+    assert set(jobs) == {"a", "lonely", "z"}
+    assert jobs["a"].master.endswith("a/master.bin") and jobs["a"].slave.endswith("a/slave.tlog")
+    assert "found 1 master" in jobs["lonely"].problem and "0 slave" in jobs["lonely"].problem
+    assert jobs["z"].slave.endswith("z.slave.mcap") and not jobs["z"].problem
+    man = tmp_path / "m.csv"
+    man.write_text("master,slave,options,name\nc/a/master.bin::imu=IMU2,c/a/slave.tlog,--max-lag auto,first\n"
+                   "/abs/m.csv,/abs/s.csv,,\n")
+    mj = batch.discover(str(man), str(tmp_path / "o"))
+    assert mj[0].name == "first" and mj[0].master == str(camp / "a" / "master.bin") + "::imu=IMU2"
+    assert mj[0].options == ("--max-lag", "auto") and mj[1].name == "pair002"
+    with pytest.raises(Exception, match="no pairs found"):
+        batch.discover(str(camp / "other"), str(tmp_path / "o"))
+
+
+def test_campaign_processes_and_dask_agree_and_rerun_does_nothing(tmp_path, fake_numerics, monkeypatch, capsys):
+    camp = make_campaign(tmp_path)
+    before = {str(p): p.stat().st_mtime_ns for p in camp.rglob("*")}
+    monkeypatch.setenv("TAPOST_MP_START", "fork")  # forked workers inherit the stand-in numerics
+    out1 = tmp_path / "out_jobs"
+    assert main(["batch", str(camp), "-o", str(out1), "--jobs", "2"]) == 0
+    s1 = pd.read_csv(out1 / "summary.csv")
+    assert len(s1) == 6
+    broken = s1.set_index("pair").loc["broken"]
+    assert broken.status == "failed" and broken.exit_code == 2 and isinstance(broken.reason, str)
+    good = s1[s1.pair != "broken"]
+    assert (good.status == "ok").all()
+    assert good.latency_s.sub(0.025).abs().max() < 1.5e-3
+    assert good.mount_comp_yaw_deg.sub(30.0).abs().max() < 0.05
+    for name in good.pair:
+        rp.validate(json.loads((out1 / name / "report.json").read_text()))
+        assert (out1 / name / "done.json").exists()
+    pd.testing.assert_frame_equal(pd.read_parquet(out1 / "summary.parquet")[COMPARE], s1[COMPARE], check_dtype=False)
+    index = (out1 / "index.html").read_text()
+    assert 'href="run0/report.html"' in index and "1 failed" in index
+    # inputs untouched
+    assert {str(p): p.stat().st_mtime_ns for p in camp.rglob("*")} == before
+
+    # the same campaign on a Dask cluster (in-process workers share the stand-in numerics)
+    from distributed import LocalCluster
+
+    out2 = tmp_path / "out_dask"
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as cl:
+        assert main(["batch", str(camp), "-o", str(out2), "--scheduler", cl.scheduler_address]) == 0
+        s2 = pd.read_csv(out2 / "summary.csv")
+        pd.testing.assert_frame_equal(s1[COMPARE], s2[COMPARE])
+        # a second run does no work: nothing rewritten in the pair folders
+        snap = snapshot(out2)
+        capsys.readouterr()
+        assert main(["batch", str(camp), "-o", str(out2), "--scheduler", cl.scheduler_address]) == 0
+        assert "0 run now, 6 already done" in capsys.readouterr().out
+        assert snapshot(out2) == snap
+    pd.testing.assert_frame_equal(pd.read_csv(out2 / "summary.csv")[COMPARE], s1[COMPARE])
+
+    # a changed input is redone, the rest is not
+    os.utime(camp / "run1" / "slave.csv", ns=(time.time_ns(), time.time_ns()))
+    assert main(["batch", str(camp), "-o", str(out1), "--jobs", "2"]) == 0
+    assert "1 run now, 5 already done" in capsys.readouterr().out
+
+
+def test_sigint_leaves_no_half_written_report_and_rerun_completes(tmp_path):
+    camp = make_campaign(tmp_path, n_good=5, duration_s=30.0)
+    out = tmp_path / "out"
+    code = ("import sys; sys.path.insert(0, %r); from test_analyze_cli import install_fake_numerics; "
+            "install_fake_numerics(); from pipelines.cli import main; sys.exit(main(sys.argv[1:]))" % str(HERE))
+    argv = [sys.executable, "-c", code, "batch", str(camp), "-o", str(out), "--jobs", "1"]
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=tmp_path)
+    deadline = time.time() + 60
+    while time.time() < deadline and len(list(out.glob("*/done.json"))) < 2:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err.decode()
+    assert err.decode().strip().splitlines()[-1] == "tapost: interrupted"
+    done = sorted(p.parent.name for p in out.glob("*/done.json"))
+    assert 2 <= len(done) < 6
+    assert not list(out.rglob("*.tmp"))  # no temp file left behind
+    for rep in out.glob("*/report.json"):  # whatever exists is complete
+        rp.validate(json.loads(rep.read_text()))
+    summary = pd.read_csv(out / "summary.csv")
+    assert (summary.status == "pending").sum() == 6 - len(done)
+    first = {d: (out / d / "done.json").stat().st_mtime_ns for d in done}
+    # the next run completes the rest without redoing what was done
+    proc2 = subprocess.run(argv, capture_output=True, timeout=120)
+    assert proc2.returncode == 0, proc2.stderr.decode()
+    assert len(list(out.glob("*/done.json"))) == 6
+    assert {d: (out / d / "done.json").stat().st_mtime_ns for d in done} == first
+    assert (pd.read_csv(out / "summary.csv").status != "pending").all()
+
+
+def test_real_campaign(tmp_path):
+    """Real numerics, mixed formats, spawned processes vs a multi-process Dask LocalCluster."""
+    sim = pytest.importorskip("logtools.sim")
+    pytest.importorskip("logtools.latency")
+    pytest.importorskip("logtools.compensate")
+    from distributed import LocalCluster
+
+    from parsers import registry
+
+    fmts = [f for f in ("csv", "tlog", "mcap", "ulog") if _writable(f)]
+    camp = tmp_path / "camp"
+    for i in range(6):
+        d = camp / f"p{i}"
+        d.mkdir(parents=True)
+        pair = sim.simulate(sim.scenario_config(("aircraft", "vehicle", "ship")[i % 3], duration_s=90.0, seed=i))
+        fm, fs = fmts[i % len(fmts)], fmts[(i + 1) % len(fmts)]
+        registry.write(str(d / f"master{registry.format_by_name(fm).EXTENSIONS[0]}"), pair.master, fm)
+        registry.write(str(d / f"slave{registry.format_by_name(fs).EXTENSIONS[0]}"), pair.slave, fs)
+    (camp / "p5" / "slave.csv").write_bytes(b"time_s,gyro_x_rad_s\n" + b"\x00" * 100) if fmts == ["csv"] else None
+    out1, out2 = tmp_path / "o1", tmp_path / "o2"
+    assert main(["batch", str(camp), "-o", str(out1), "--jobs", "2", ]) == 0
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cl:
+        assert main(["batch", str(camp), "-o", str(out2), "--scheduler", cl.scheduler_address]) == 0
+    s1, s2 = pd.read_csv(out1 / "summary.csv"), pd.read_csv(out2 / "summary.csv")
+    pd.testing.assert_frame_equal(s1[COMPARE], s2[COMPARE])
+    assert len(s1) == 6
+
+
+def _writable(fmt: str) -> bool:
+    from parsers.registry import format_by_name
+
+    try:
+        return hasattr(format_by_name(fmt), "write")
+    except Exception:
+        return False

@@ -1,0 +1,89 @@
+"""report.html: self-contained (no network), the expected sections, and it renders in a real
+headless browser (Debian chromium; skipped with a reason when chromium is not installed)."""
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipelines import report as rp
+from pipelines.html import render, write_html
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_report import fake_report, make_fake_analysis  # noqa: E402
+
+SECTIONS = ("summary", "rates", "latency", "drift", "alignment", "residuals", "warnings", "timings")
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
+
+
+@pytest.fixture(scope="module")
+def page(tmp_path_factory):
+    an = make_fake_analysis(duration_s=60)
+    rep = fake_report(an)
+    path = tmp_path_factory.mktemp("html") / "report.html"
+    write_html(str(path), rep, an)
+    return path, rep
+
+
+def test_self_contained_with_all_sections(page):
+    path, rep = page
+    text = path.read_text()
+    for s in SECTIONS:
+        assert f'<section id="{s}">' in text
+    # offline: no external resource at all
+    assert not re.search(r"""(src|href)\s*=\s*["']?(https?:)?//""", text)
+    assert "<script" not in text.lower()
+    imgs = re.findall(r'src="data:image/png;base64,([A-Za-z0-9+/=]+)"', text)
+    assert len(imgs) >= 7  # rates, cost, drift, 3 state groups, residuals
+    import base64
+    assert all(base64.b64decode(b)[:8] == b"\x89PNG\r\n\x1a\n" for b in imgs)
+    assert "+25.000 ms" in text  # the latency in the summary table
+    assert "master warning example" in text
+    assert oct(path.stat().st_mode & 0o777) != "0o600"  # a normal, shareable file
+
+
+def test_skipped_and_failed_runs_are_stated_not_plotted():
+    an = make_fake_analysis(duration_s=20, with_alignment=False)
+    an.latency = None
+    an.slave_comp = None
+    rep = rp.build_report(an.master, an.slave, latency=rp.latency_failed("no overlap between the logs"),
+                          alignment={r: rp.alignment_skipped("latency failed", "kf", "vel+att") for r in rp.RUNS},
+                          timings_s={})
+    text = render(rep, an)
+    assert "failed: no overlap between the logs" in text
+    assert "skipped: latency failed" in text
+    assert "Not available: latency was not estimated." in text
+    assert text.count("data:image/png") == 1  # only the rates (before), nothing invented
+
+
+def _chromium(args, tmp_path):
+    cmd = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+           "--disable-component-update", "--disable-sync", "--no-first-run",
+           f"--user-data-dir={tmp_path / 'profile'}", *args]
+    return subprocess.run(cmd, capture_output=True, timeout=90)
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="chromium not installed (apt-get install -y chromium)")
+def test_renders_in_headless_chromium(page, tmp_path):
+    path, _ = page
+    shot = tmp_path / "out.png"
+    _chromium([f"--screenshot={shot}", "--window-size=1280,4000", path.as_uri()], tmp_path)
+    assert shot.exists() and shot.stat().st_size > 50_000
+    import matplotlib.image as mpimg
+
+    img = mpimg.imread(str(shot))[..., :3]
+    assert img.shape[0] >= 3000 and img.shape[1] == 1280
+    # not blank: many distinct colours, plots drawn across the page height
+    assert img.std() > 0.05
+    rows_with_ink = (img.std(axis=(1, 2)) > 0.02).mean()
+    assert rows_with_ink > 0.5
+    dom = _chromium(["--dump-dom", path.as_uri()], tmp_path).stdout.decode()
+    for s in SECTIONS:
+        assert f'id="{s}"' in dom
+    assert dom.count("<img") >= 7
+    assert "tapost latency and transfer-alignment report" in dom
