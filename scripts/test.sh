@@ -1,0 +1,16 @@
+#!/usr/bin/env bash
+# The README's test command: install tapost with its test extras, make sure a headless Chromium is there
+# for the report's browser test (Debian package, best effort: needs root and apt-get), run the suite.
+# pytest's exit 5 ("no tests collected") is a failure here.
+set -uo pipefail
+cd "$(dirname "$0")/.."
+python -m pip install -q -e ".[test]" || exit 1
+if ! command -v chromium >/dev/null 2>&1 && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+  echo "test.sh: installing Debian chromium for the HTML report test" >&2
+  { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium; } >/dev/null 2>&1 \
+    || echo "test.sh: chromium could not be installed; the browser test will be skipped" >&2
+fi
+python -m pytest -q -p no:cacheprovider "$@"
+rc=$?
+if [ "$rc" -eq 5 ]; then echo "test.sh: pytest collected no tests" >&2; exit 1; fi
+exit "$rc"
