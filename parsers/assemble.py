@@ -30,7 +30,8 @@ class Stream:
 def clean_stream(name: str, s: Stream, warnings: list[str]) -> Stream:
     """Sort by time, drop non-finite and duplicate stamps; report what was done."""
     t = np.asarray(s.t_ns, dtype=np.int64)
-    v = np.asarray(s.values, dtype=float).reshape(len(t), -1)
+    v = np.asarray(s.values, dtype=float)
+    v = v.reshape(len(t), -1) if len(t) else v.reshape(0, v.shape[-1] if v.ndim > 1 else 0)
     finite = np.isfinite(v).all(axis=1)
     if not finite.all():
         warnings.append(f"{name} ({s.source}): {int((~finite).sum())} samples with NaN/inf dropped")

@@ -15,6 +15,7 @@ from logtools.errors import InputError
 from logtools.inslog import ACCEL, GYRO, POS, QUAT, VEL, ChannelInfo, InsLog, LogMeta
 from parsers.atomic import atomic_path
 from parsers.base import Inventory, Selector, StreamInfo, rate_of
+from parsers.csvtable import decimal_text_to_int, read_table
 
 NAME = "csv"
 EXTENSIONS = (".csv",)
@@ -38,17 +39,10 @@ def sniff(head: bytes, path: str) -> bool:
 
 def seconds_text_to_ns(values: pd.Series) -> np.ndarray:
     """Decimal seconds as text -> int64 ns, exactly (no float64 rounding of epoch stamps)."""
-    s = values.astype(str).str.strip()
-    neg = s.str.startswith("-").to_numpy()
-    s = s.str.lstrip("+-")
-    parts = s.str.split(".", n=1, expand=True)
-    whole = parts[0].replace("", "0")
-    frac = parts[1] if parts.shape[1] > 1 else pd.Series([""] * len(s), index=s.index)
-    frac = frac.fillna("").str.slice(0, 9).str.ljust(9, "0")
-    if not (whole.str.fullmatch(r"\d+").all() and frac.str.fullmatch(r"\d{9}").all()):
+    ns, ok = decimal_text_to_int(values, 9)
+    if not ok.all():
         raise ValueError("time column holds values that are not decimal seconds")
-    ns = whole.astype(np.int64).to_numpy() * 1_000_000_000 + frac.astype(np.int64).to_numpy()
-    return np.where(neg, -ns, ns)
+    return ns
 
 
 def ns_to_seconds_text(ns: np.ndarray) -> np.ndarray:
@@ -59,22 +53,17 @@ def ns_to_seconds_text(ns: np.ndarray) -> np.ndarray:
                        np.char.mod(".%09d", a % 1_000_000_000))
 
 
-def _read_frame(path: str) -> pd.DataFrame:
-    try:
-        df = pd.read_csv(path, dtype={TIME: str}, skipinitialspace=True, on_bad_lines="warn")
-    except pd.errors.EmptyDataError:
-        raise InputError("empty CSV (no header)", path) from None
-    except (pd.errors.ParserError, UnicodeDecodeError) as exc:
-        raise InputError(f"malformed CSV: {str(exc).splitlines()[0]}", path) from None
-    df.columns = [c.strip() for c in df.columns]
+def _read_frame(path: str) -> tuple[pd.DataFrame, list[str]]:
+    df, warnings = read_table(path, TIME)
     if TIME not in df.columns:
         raise InputError(f"no '{TIME}' column (canonical CSV header expected)", path)
-    return df
+    return df, warnings
 
 
 def load(path: str, selector: Selector) -> InsLog:
-    df = _read_frame(path)
-    warnings: list[str] = []
+    if selector:
+        raise InputError(f"a canonical CSV holds one unit: selector '{selector}' does not apply", path)
+    df, warnings = _read_frame(path)
     df = df[df[TIME].notna()]
     try:
         t_ns = seconds_text_to_ns(df[TIME])

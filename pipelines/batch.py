@@ -330,7 +330,6 @@ def write_summary(out_root: str, rows: list[dict]) -> dict[str, str]:
     rp.write_text_atomic(paths["csv"], buf.getvalue())
     with atomic_path(paths["parquet"]) as tmp:
         df.to_parquet(tmp, index=False)
-        rp.public_mode(tmp)
     rp.write_text_atomic(paths["index"], index_html(df))
     return paths
 

@@ -1,34 +1,106 @@
-"""``tapost inspect LOG``: what a log holds and the selectors that pick each unit."""
+"""``tapost inspect LOG``: what a log holds and the selectors that pick each unit.
+
+Works on every format's :class:`parsers.base.Inventory`: one row per stream (name, kind, count,
+rate, start on the stream's own clock, duration, clock), then the ready-to-use selectors, warnings
+(damage, gaps...) and notes. ``--json`` prints the same as one JSON object (schema
+``tapost.inventory/1``; non-finite numbers become null).
+
+``tapost inspect PATH::SELECTOR`` also loads what the selector picks and shows it (channels, clock,
+stamp source, warnings), so a selector can be checked before an analysis; a selector naming something
+the log does not hold is the usual one-line error (exit 2).
+"""
 from __future__ import annotations
 
 import argparse
 import json
+import math
 from dataclasses import asdict
 
-from parsers import inspect_log
+from logtools.inslog import InsLog
+from parsers import inspect_log, load, parse_log_arg
+from parsers.base import Inventory
+
+SCHEMA = "tapost.inventory/1"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("log", help="log file or bag directory")
-    p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.add_argument("log", help="log file or bag/session directory, optionally PATH::SELECTOR")
+    p.add_argument("--json", action="store_true", help="machine-readable output (one JSON object)")
+    p.add_argument("--fields", action="store_true", help="also list each stream's fields")
+
+
+def _finite(x):
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite(v) for v in x]
+    return x
+
+
+def inventory_dict(inv: Inventory) -> dict:
+    """The JSON form of an inventory (what ``--json`` prints)."""
+    d = _finite(asdict(inv))
+    return {"schema": SCHEMA, **d}
+
+
+def format_inventory(inv: Inventory, *, fields: bool = False) -> list[str]:
+    """The text form, one line per item."""
+    out = [f"{inv.path}: {inv.format}"]
+    w = max([32] + [len(s.name) for s in inv.streams])
+    out.append(f"  {'stream':<{w}} {'kind':<6} {'count':>8} {'rate_hz':>8} {'start_s':>16} {'dur_s':>9} clock")
+    for s in inv.streams:
+        rate = f"{s.rate_hz:>8.2f}" if math.isfinite(s.rate_hz) else f"{'-':>8}"
+        out.append(f"  {s.name:<{w}} {s.kind:<6} {s.count:>8d} {rate} {s.start_s:>16.3f} "
+                   f"{s.duration_s:>9.2f} {s.clock}")
+        if fields and s.fields:
+            out.append(f"  {'':<{w}}   fields: {', '.join(s.fields)}")
+    if not inv.streams:
+        out.append("  (no streams)")
+    if inv.selectors and any(inv.selectors):
+        out.append("  selectors (use as PATH::SELECTOR):")
+        for sel in inv.selectors:
+            out.append(f"    {inv.path}::{sel}" if sel else f"    {inv.path}   (no selector needed)")
+    for warning in inv.warnings:
+        out.append(f"  warning: {warning}")
+    for n in inv.notes:
+        out.append(f"  note: {n}")
+    return out
+
+
+def selection_dict(log: InsLog) -> dict:
+    """What a selector picked: the loaded unit's meta in brief."""
+    m = log.meta
+    return _finite({"selector": m.selector, "clock": m.clock, "stamp_source": m.stamp_source, "t0_ns": m.t0_ns,
+                    "duration_s": log.duration_s,
+                    "channels": {k: {"rate_hz": c.rate_hz, "count": c.count, "source": c.source}
+                                 for k, c in m.channels.items()},
+                    "warnings": list(m.warnings)})
+
+
+def format_selection(sel: dict) -> list[str]:
+    out = [f"  selected ({sel['selector'] or 'default'}): clock {sel['clock']}, {sel['duration_s']:.2f} s, "
+           f"stamps: {sel['stamp_source']}"]
+    for k, c in sel["channels"].items():
+        rate = f"{c['rate_hz']:.2f}" if c["rate_hz"] is not None else "-"
+        out.append(f"    {k:<6} {c['count']:>8d} samples {rate:>8} Hz  from {c['source']}")
+    out += [f"    warning: {w}" for w in sel["warnings"]]
+    return out
 
 
 def run(args: argparse.Namespace) -> int:
-    inv = inspect_log(args.log)
+    path, selector = parse_log_arg(args.log)
+    inv = inspect_log(path)
+    sel = selection_dict(load(args.log)) if "::" in args.log else None
     if args.json:
-        print(json.dumps(asdict(inv), indent=2))
+        d = inventory_dict(inv)
+        if sel is not None:
+            d["selection"] = sel
+        print(json.dumps(d, indent=2))
         return 0
-    print(f"{inv.path}: {inv.format}")
-    print(f"  {'stream':<32} {'kind':<6} {'count':>8} {'rate_hz':>8} {'start_s':>16} {'dur_s':>9} clock")
-    for s in inv.streams:
-        print(f"  {s.name:<32} {s.kind:<6} {s.count:>8d} {s.rate_hz:>8.2f} {s.start_s:>16.3f} "
-              f"{s.duration_s:>9.2f} {s.clock}")
-    if inv.selectors and any(inv.selectors):
-        print("  selectors (use as PATH::SELECTOR):")
-        for sel in inv.selectors:
-            print(f"    {inv.path}::{sel}")
-    for w in inv.warnings:
-        print(f"  warning: {w}")
-    for n in inv.notes:
-        print(f"  note: {n}")
+    lines = format_inventory(inv, fields=getattr(args, "fields", False))
+    if sel is not None:
+        lines += format_selection(sel)
+    print("\n".join(lines))
     return 0

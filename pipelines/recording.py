@@ -29,7 +29,7 @@ import numpy as np
 from logtools.conventions import quat_rotate
 from logtools.earth import radii_m
 from logtools.inslog import InsLog
-from pipelines.report import RUNS, Analysis, public_mode
+from pipelines.report import RUNS, Analysis
 from parsers.atomic import atomic_path
 
 MAX_ROWS = 100_000
@@ -234,7 +234,6 @@ def write_recording(path: str, an: Analysis, rep: dict | None = None, *, max_row
     """Build and save the recording to ``path`` atomically; returns the downsampling info."""
     rec, info = build(an, rep, max_rows=max_rows)
     with atomic_path(path) as tmp:
-        public_mode(tmp)
         rec.save(tmp)
         rec.flush(timeout_sec=120.0) if _flush_takes_timeout(rec) else rec.flush()
         rec.disconnect()

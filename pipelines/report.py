@@ -215,21 +215,11 @@ def dumps(report: dict) -> str:
     return json.dumps(json_safe(report), indent=2, allow_nan=False) + "\n"
 
 
-def public_mode(tmp: str) -> None:
-    """Give a temp file (mkstemp: 0600) the mode a normally created file would have (umask)."""
-    import os
-
-    mask = os.umask(0)
-    os.umask(mask)
-    os.chmod(tmp, 0o666 & ~mask)
-
-
 def write_text_atomic(path: str, text: str) -> None:
     """Write a text file atomically (temp file + rename), with the usual permissions."""
     with atomic_path(path) as tmp:
         with open(tmp, "w", encoding="utf-8") as fh:
             fh.write(text)
-        public_mode(tmp)
 
 
 def write_report(path: str, report: dict) -> None:

@@ -1,0 +1,545 @@
+"""Vendor CSVs (anything that is not the canonical tapost CSV) through a column map with units.
+
+Three ways to get a column map, tried in this order:
+
+1. ``PATH::map=FILE.json`` or a sidecar ``PATH.map.json`` next to the CSV: a JSON object
+   ``{column: [canonical_name, unit], ...}``; canonical names are ``time``, ``gyro_x|y|z``,
+   ``accel_x|y|z``, ``quat_w|x|y|z``, ``vel_n|e|d``, ``lat``, ``lon``, ``alt``. Optional keys:
+   ``"_body_frame": "FRD"|"FLU"|"ZUP"``, ``"_nav_frame": "NED"|"ENU"|"NWU"``,
+   ``"_quat": "body_to_nav"|"nav_to_body"`` (defaults FRD, NED, body_to_nav).
+2. The NGIMU profile (x-io Technologies NGIMU logs: ``sensors.csv`` with ``Time (s)``,
+   ``Gyroscope X (deg/s)``, ``Accelerometer X (g)``..., plus ``quaternion.csv`` ``Time (s),W,X,Y,Z``
+   next to it). A directory holding ``sensors.csv`` is one log; a session directory whose
+   sub-directories hold ``sensors.csv`` is several units (selector ``unit=NAME``).
+3. The header alone, when every needed column names its quantity, axis and unit unambiguously
+   (``Gyro X (deg/s)``, ``gyro_x [rad/s]``, ``accel_z_m_s2``, ``wx (dps)``, ``timestamp (us)``...).
+   Anything else is an InputError naming the columns found and how to write a map.
+
+Units understood (header ``(unit)``/``[unit]`` or a snake-case suffix): rad/s, deg/s, dps, mrad/s,
+deg/h; m/s^2, m/s2, m/s², g, mg, ug; s, ms, us, ns; m/s, km/h, cm/s, mm/s, kn; deg, rad, degE7;
+m, cm, mm, ft.
+
+Frames. Generic CSVs without a stated frame are taken as FRD/NED (said in the warnings).
+
+NGIMU conventions, settled here and nowhere else. x-io's AHRS code (the Fusion library's
+FusionConvention.h, found with the search tool) offers NWU / ENU / NED earth axes with North-West-Up
+first; the NGIMU documentation itself was not reachable, so the convention was checked on the real
+logs in ``shared/realdata/ngimu_session`` (three units, MANIFEST.md) and tests keep checking it:
+* at rest the accelerometer reads about +1 g on z: the sensor frame is right-handed, z up
+  (x forward, y left: FLU-like), so FRD = (x, -y, -z);
+* rotating the accelerometer by the *conjugate* of the logged quaternion gives +1 g on the earth z
+  axis (earth z up) and the magnetic field rotated the same way has ~0 y and positive x (x = magnetic
+  north, y = west): the earth frame is NWU;
+* body-frame gyro integration matches the conjugate's changes within a few degrees over +-150 deg
+  swings and misses the logged quaternion's by up to 150 deg: the logged ``W,X,Y,Z`` rotates earth ->
+  sensor (the conjugate of a Hamilton sensor -> earth quaternion).
+Hence ``q_ned_frd = A conj(q) B^T`` with A = B = diag(1, -1, -1): ``(W, -X, Y, Z)``.
+"""
+from __future__ import annotations
+
+import json
+import os
+import re
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+
+from logtools.conventions import DEG, G0_M_S2, quat_conj, quat_from_dcm, quat_mul
+from logtools.errors import InputError
+from logtools.inslog import InsLog
+from parsers import csv_canonical
+from parsers.assemble import Stream, build_inslog
+from parsers.base import Inventory, Selector, StreamInfo
+from parsers.csvtable import decimal_text_to_int, delimiter as _delimiter, read_table as _read_table
+
+NAME = "csv-vendor"
+EXTENSIONS = (".csv", ".txt")
+
+CANONICAL = ("time", "gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z",
+             "quat_w", "quat_x", "quat_y", "quat_z", "vel_n", "vel_e", "vel_d", "lat", "lon", "alt")
+GROUPS = {"gyro": ("gyro_x", "gyro_y", "gyro_z"), "accel": ("accel_x", "accel_y", "accel_z"),
+          "quat": ("quat_w", "quat_x", "quat_y", "quat_z"), "vel": ("vel_n", "vel_e", "vel_d"),
+          "pos": ("lat", "lon", "alt")}
+#: quantity of each canonical name (decides which units are acceptable)
+QUANTITY = {"time": "time", **{c: "rate" for c in GROUPS["gyro"]}, **{c: "accel" for c in GROUPS["accel"]},
+            **{c: "unitless" for c in GROUPS["quat"]}, **{c: "speed" for c in GROUPS["vel"]},
+            "lat": "angle", "lon": "angle", "alt": "length"}
+#: unit text (normalised) -> (quantity, factor to SI; time in ns; angles in degrees)
+UNITS: dict[str, tuple[str, float]] = {
+    "s": ("time", 1e9), "sec": ("time", 1e9), "ms": ("time", 1e6), "us": ("time", 1e3), "ns": ("time", 1.0),
+    "rad/s": ("rate", 1.0), "deg/s": ("rate", DEG), "dps": ("rate", DEG), "mrad/s": ("rate", 1e-3),
+    "deg/h": ("rate", DEG / 3600.0), "rad/sec": ("rate", 1.0), "deg/sec": ("rate", DEG),
+    "m/s^2": ("accel", 1.0), "m/s2": ("accel", 1.0), "ms^-2": ("accel", 1.0), "m/s/s": ("accel", 1.0),
+    "g": ("accel", G0_M_S2), "mg": ("accel", 1e-3 * G0_M_S2), "ug": ("accel", 1e-6 * G0_M_S2),
+    "m/s": ("speed", 1.0), "km/h": ("speed", 1 / 3.6), "cm/s": ("speed", 0.01), "mm/s": ("speed", 1e-3),
+    "kn": ("speed", 0.514444), "knots": ("speed", 0.514444),
+    "deg": ("angle", 1.0), "rad": ("angle", 180.0 / np.pi), "dege7": ("angle", 1e-7),
+    "m": ("length", 1.0), "cm": ("length", 0.01), "mm": ("length", 1e-3), "ft": ("length", 0.3048),
+    "": ("unitless", 1.0), "-": ("unitless", 1.0), "1": ("unitless", 1.0),
+}
+#: snake-case unit suffixes (token tuples at the end of a name) -> unit text
+SUFFIX_UNITS = {("rad", "s"): "rad/s", ("deg", "s"): "deg/s", ("dps",): "dps", ("m", "s2"): "m/s^2",
+                ("m", "s", "2"): "m/s^2", ("mps2",): "m/s^2", ("mg",): "mg", ("g",): "g", ("m", "s"): "m/s",
+                ("s",): "s", ("ms",): "ms", ("us",): "us", ("ns",): "ns", ("deg",): "deg", ("m",): "m"}
+
+BODY_FRAMES = {"FRD": np.eye(3), "FLU": np.diag([1.0, -1.0, -1.0]), "ZUP": np.diag([1.0, -1.0, -1.0])}
+NAV_FRAMES = {"NED": np.eye(3), "ENU": np.array([[0.0, 1, 0], [1, 0, 0], [0, 0, -1]]),
+              "NWU": np.diag([1.0, -1.0, -1.0])}
+
+NGIMU_SENSORS = "sensors.csv"
+NGIMU_QUAT = "quaternion.csv"
+_NGIMU_HEAD = ("Time (s)", "Gyroscope X (deg/s)", "Gyroscope Y (deg/s)", "Gyroscope Z (deg/s)",
+               "Accelerometer X (g)", "Accelerometer Y (g)", "Accelerometer Z (g)")
+
+
+@dataclass(frozen=True)
+class ColumnMap:
+    """csv column -> (canonical name, unit), the frames the data are in, and where the map came from."""
+
+    columns: dict[str, tuple[str, str]]
+    body_frame: str = "FRD"
+    nav_frame: str = "NED"
+    quat: str = "body_to_nav"
+    origin: str = "header"
+    frame_stated: bool = False
+    ignored: tuple[str, ...] = field(default_factory=tuple)
+
+    def column_for(self, canonical: str) -> str | None:
+        return next((c for c, (n, _) in self.columns.items() if n == canonical), None)
+
+
+# ============================================================================================
+# header -> column map
+# ============================================================================================
+_UNIT_RE = re.compile(r"^(?P<name>.*?)\s*[\(\[](?P<unit>[^\)\]]*)[\)\]]\s*$")
+_AXIS = {"x": "x", "y": "y", "z": "z"}
+_GYRO_WORDS = {"gyro", "gyroscope", "gyr", "omega", "angular", "angularrate", "angularvelocity", "rate"}
+_ACC_WORDS = {"accel", "accelerometer", "acc", "specificforce"}
+_QUAT_WORDS = {"quat", "quaternion", "q", "orientation"}
+_VEL_WORDS = {"vel", "velocity", "v", "speed"}
+_NOT_RAW = {"linear", "earth", "filtered", "bias", "std", "sigma", "var", "cov", "error", "err", "mag",
+            "magnetometer", "raw", "setpoint", "sp", "cmd", "target"}
+
+
+def norm_unit(text: str) -> str:
+    u = text.strip().lower().replace("²", "^2").replace("°", "deg").replace("µ", "u").replace("μ", "u")
+    u = u.replace(" ", "").replace("sec", "s") if u not in ("sec",) else u
+    u = u.replace("degrees", "deg").replace("degree", "deg").replace("rads", "rad")
+    return {"deg/s": "deg/s", "rad/s": "rad/s", "s": "s"}.get(u, u)
+
+
+def _tokens(name: str) -> list[str]:
+    n = re.sub(r"([a-z])([A-Z])", r"\1 \2", name.strip())
+    return [t for t in re.split(r"[^A-Za-z0-9]+", n.lower()) if t]
+
+
+def split_name_unit(col: str) -> tuple[list[str], str | None]:
+    """``'Gyroscope X (deg/s)'`` -> (['gyroscope', 'x'], 'deg/s'); ``'accel_z_m_s2'`` -> (['accel', 'z'], 'm/s^2')."""
+    m = _UNIT_RE.match(col)
+    if m:
+        return _tokens(m.group("name")), norm_unit(m.group("unit"))
+    toks = _tokens(col)
+    for n in (3, 2, 1):
+        if len(toks) > n and tuple(toks[-n:]) in SUFFIX_UNITS:
+            return toks[:-n], SUFFIX_UNITS[tuple(toks[-n:])]
+    return toks, None
+
+
+def classify(tokens: list[str], quat_file: bool = False) -> str | None:
+    """Canonical name a column's name tokens stand for, or None."""
+    if not tokens or set(tokens) & _NOT_RAW:
+        return None
+    t = tokens
+    joined = "".join(t)
+    if joined in ("time", "timestamp", "t", "stamp", "timeus", "times", "sampletime"):
+        return "time"
+    if joined in ("lat", "latitude"):
+        return "lat"
+    if joined in ("lon", "lng", "long", "longitude"):
+        return "lon"
+    if joined in ("alt", "altitude", "height", "altmsl", "altitudemsl"):
+        return "alt"
+    if quat_file and len(t) == 1 and t[0] in ("w", "x", "y", "z"):
+        return f"quat_{t[0]}"
+    head, axis = t[:-1], t[-1]
+    if not head and len(axis) >= 2:  # single token like 'wx', 'gyrox', 'accz', 'qw', 'vn'
+        for pre, kind in (("gyro", "gyro"), ("gyr", "gyro"), ("w", "gyro"), ("omega", "gyro"),
+                          ("accel", "accel"), ("acc", "accel"), ("a", "accel"), ("q", "quat"), ("quat", "quat"),
+                          ("v", "vel")):
+            if axis.startswith(pre) and len(axis) == len(pre) + 1:
+                head, axis = [kind], axis[len(pre):]
+                break
+    words = set(head)
+    if words & _GYRO_WORDS or head == ["gyro"]:
+        return f"gyro_{axis}" if axis in _AXIS else None
+    if words & _ACC_WORDS or head == ["accel"]:
+        return f"accel_{axis}" if axis in _AXIS else None
+    if words & _QUAT_WORDS or head == ["quat"]:
+        return f"quat_{axis}" if axis in ("w", "x", "y", "z") else None
+    if words & _VEL_WORDS or head == ["vel"]:
+        ax = {"n": "n", "north": "n", "e": "e", "east": "e", "d": "d", "down": "d"}.get(axis)
+        return f"vel_{ax}" if ax else None
+    return None
+
+
+class MapError(ValueError):
+    """Why the header cannot be mapped on its own."""
+
+
+def map_from_header(columns: list[str], *, quat_file: bool = False) -> ColumnMap:
+    """Build a column map from the header alone; MapError (with the reason) when not unambiguous."""
+    found: dict[str, tuple[str, str]] = {}
+    by_target: dict[str, list[str]] = {}
+    no_unit: list[str] = []
+    bad_unit: list[str] = []
+    ignored = []
+    for col in columns:
+        toks, unit = split_name_unit(col)
+        target = classify(toks, quat_file=quat_file)
+        if target is None:
+            ignored.append(col)
+            continue
+        q = QUANTITY[target]
+        if unit is None:
+            if q == "unitless":
+                unit = ""
+            else:
+                no_unit.append(col)
+                continue
+        if UNITS.get(unit, ("?",))[0] != q:
+            bad_unit.append(f"{col} ({unit!r} is not a {q} unit)")
+            continue
+        found[col] = (target, unit)
+        by_target.setdefault(target, []).append(col)
+    dup = {t: cs for t, cs in by_target.items() if len(cs) > 1}
+    if dup:
+        t, cs = next(iter(dup.items()))
+        raise MapError(f"columns {', '.join(cs)} all look like {t}")
+    if bad_unit:
+        raise MapError(f"unit not understood: {bad_unit[0]}")
+    if "time" not in by_target:
+        raise MapError("no time column with a unit" + (f" ({no_unit[0]} has no unit)" if no_unit else ""))
+    if no_unit:
+        raise MapError(f"no unit for column(s) {', '.join(no_unit[:4])}")
+    complete = [g for g, names in GROUPS.items() if all(n in by_target for n in names)]
+    partial = [g for g, names in GROUPS.items() if g not in complete and any(n in by_target for n in names)]
+    if partial:
+        raise MapError(f"incomplete column group(s): {', '.join(partial)}")
+    if not complete:
+        raise MapError("no complete gyro/accel/quaternion/velocity/position column group")
+    return ColumnMap(found, ignored=tuple(ignored))
+
+
+def load_map_file(map_path: str, csv_path: str) -> ColumnMap:
+    try:
+        with open(map_path) as fh:
+            raw = json.load(fh)
+    except OSError as exc:
+        raise InputError(f"column map {map_path}: {exc.strerror}", csv_path) from None
+    except json.JSONDecodeError as exc:
+        raise InputError(f"column map {map_path} is not valid JSON: {exc.msg} (line {exc.lineno})", csv_path) from None
+    if not isinstance(raw, dict):
+        raise InputError(f"column map {map_path} must be a JSON object {{column: [name, unit]}}", csv_path)
+    cols: dict[str, tuple[str, str]] = {}
+    for col, spec in raw.items():
+        if col.startswith("_"):
+            continue
+        if (not isinstance(spec, (list, tuple)) or len(spec) != 2 or spec[0] not in CANONICAL
+                or not isinstance(spec[1], str)):
+            raise InputError(f"column map {map_path}: entry {col!r} must be [canonical_name, unit] with a name "
+                             f"from {', '.join(CANONICAL)}", csv_path)
+        unit = norm_unit(spec[1])
+        if UNITS.get(unit, ("?",))[0] != QUANTITY[spec[0]]:
+            raise InputError(f"column map {map_path}: unit {spec[1]!r} of {col!r} is not a "
+                             f"{QUANTITY[spec[0]]} unit", csv_path)
+        cols[col] = (spec[0], unit)
+    body = str(raw.get("_body_frame", "FRD")).upper()
+    nav = str(raw.get("_nav_frame", "NED")).upper()
+    quat = str(raw.get("_quat", "body_to_nav")).lower()
+    if body not in BODY_FRAMES or nav not in NAV_FRAMES or quat not in ("body_to_nav", "nav_to_body"):
+        raise InputError(f"column map {map_path}: _body_frame must be one of {', '.join(BODY_FRAMES)}, "
+                         f"_nav_frame one of {', '.join(NAV_FRAMES)}, _quat body_to_nav|nav_to_body", csv_path)
+    if not any(n == "time" for n, _ in cols.values()):
+        raise InputError(f"column map {map_path} maps no column to 'time'", csv_path)
+    stated = any(k in raw for k in ("_body_frame", "_nav_frame"))
+    return ColumnMap(cols, body, nav, quat, origin=f"map {os.path.basename(map_path)}", frame_stated=stated)
+
+
+def _ngimu_map(columns: list[str]) -> ColumnMap | None:
+    if tuple(columns[:len(_NGIMU_HEAD)]) != _NGIMU_HEAD:
+        return None
+    cmap = map_from_header(columns)
+    return ColumnMap(cmap.columns, body_frame="ZUP", nav_frame="NWU", quat="nav_to_body", origin="NGIMU profile",
+                     frame_stated=True, ignored=cmap.ignored)
+
+
+# ============================================================================================
+# files and directories
+# ============================================================================================
+def _header_of(path: str) -> list[str]:
+    with open(path, "rb") as fh:
+        line = fh.readline(65536)
+    text = line.lstrip(b"\xef\xbb\xbf").decode("utf-8", "replace").strip()
+    return [c.strip().strip('"') for c in text.split(_delimiter(text))]
+
+
+def _looks_like_csv_header(head: bytes) -> bool:
+    first = head.split(b"\n", 1)[0].lstrip(b"\xef\xbb\xbf").rstrip(b"\r")
+    if not first or len(first) > 8000:
+        return False
+    try:
+        text = first.decode("utf-8")
+    except UnicodeDecodeError:
+        return False
+    if not text.replace("\t", " ").isprintable() or not any(d in text for d in (",", ";", "\t")):
+        return False
+    cells = [c.strip() for c in text.split(_delimiter(text))]
+    # a header has named cells: most are not numbers
+    named = sum(1 for c in cells if c and not re.fullmatch(r"[-+0-9.eE]+", c))
+    return named >= max(1, len(cells) // 2)
+
+
+def _unit_dirs(path: str) -> list[str]:
+    """Sub-directories of a session directory that hold a sensors.csv (sorted)."""
+    try:
+        names = sorted(os.listdir(path))
+    except OSError:
+        return []
+    return [n for n in names if os.path.isfile(os.path.join(path, n, NGIMU_SENSORS))]
+
+
+def sniff(head: bytes, path: str) -> bool:
+    if os.path.isdir(path):
+        return os.path.isfile(os.path.join(path, NGIMU_SENSORS)) or bool(_unit_dirs(path))
+    if csv_canonical.sniff(head, path):
+        return False
+    return _looks_like_csv_header(head)
+
+
+@dataclass(frozen=True)
+class _Source:
+    """What one log of this format is made of."""
+
+    table: str  # the CSV with time (+ gyro/accel...)
+    quat_table: str | None  # a separate quaternion CSV (NGIMU) or None
+    unit: str  # unit name ('' for a single log)
+
+
+def _resolve(path: str, selector: Selector) -> _Source:
+    unit = selector.get("unit")
+    if os.path.isdir(path):
+        if os.path.isfile(os.path.join(path, NGIMU_SENSORS)) and unit is None:
+            d = path
+            unit = ""
+        else:
+            units = _unit_dirs(path)
+            if not units:
+                raise InputError("directory holds no sensors.csv (nor unit folders with one)", path)
+            if unit is None:
+                unit = units[0]
+            elif unit not in units:
+                raise InputError(f"no unit {unit!r} in session (has: {', '.join(units)})", path)
+            d = os.path.join(path, unit)
+        table = os.path.join(d, NGIMU_SENSORS)
+    else:
+        if unit is not None:
+            raise InputError("unit= selects a unit folder of a session directory; this is a single CSV", path)
+        table, unit = path, ""
+    q = os.path.join(os.path.dirname(table), NGIMU_QUAT)
+    quat_table = q if os.path.basename(table) == NGIMU_SENSORS and os.path.isfile(q) else None
+    return _Source(table, quat_table, unit)
+
+
+def column_map_for(src: _Source, selector: Selector) -> ColumnMap:
+    columns = _header_of(src.table)
+    map_file = selector.get("map")
+    if map_file is None and os.path.isfile(src.table + ".map.json"):
+        map_file = src.table + ".map.json"
+    if map_file is not None:
+        cmap = load_map_file(map_file, src.table)
+        missing = [c for c in cmap.columns if c not in columns]
+        if missing:
+            raise InputError(f"column map names column(s) not in the CSV: {', '.join(missing[:4])} "
+                             f"(CSV has: {', '.join(columns[:12])})", src.table)
+        return cmap
+    ng = _ngimu_map(columns)
+    if ng is not None:
+        return ng
+    try:
+        return map_from_header(columns)
+    except MapError as why:
+        shown = ", ".join(repr(c) for c in columns[:10]) + (", ..." if len(columns) > 10 else "")
+        raise InputError(
+            f"cannot map CSV columns unambiguously ({why}); columns found: {shown}; write a column map "
+            f"JSON {{column: [canonical_name, unit]}} (names: time, gyro_x.., accel_x.., quat_w.., vel_n.., "
+            f"lat, lon, alt) and pass PATH::map=FILE.json or save it as "
+            f"{os.path.basename(src.table)}.map.json", src.table) from None
+
+
+_SCALE_POW10 = {"s": 9, "sec": 9, "ms": 6, "us": 3, "ns": 0}
+
+
+def time_to_ns(text: pd.Series, unit: str) -> tuple[np.ndarray, np.ndarray]:
+    """Time column text -> (int64 ns, valid mask), from the decimal text exactly (no float rounding)."""
+    ns, ok = decimal_text_to_int(text, _SCALE_POW10[unit])
+    if len(ok) and not ok.any():  # e.g. scientific notation: float64 is all the text offers
+        v = pd.to_numeric(text, errors="coerce").to_numpy(float) * UNITS[unit][1]
+        ok = np.isfinite(v) & (np.abs(v) < 9e18)
+        ns = np.where(ok, np.round(np.where(ok, v, 0.0)), 0).astype(np.int64)
+    return ns, ok
+
+
+def _rotate_rows(m: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``v @ m.T`` for (N, 3) rows, as three scaled column sums (a BLAS matmul with threads is slower
+    than this on a busy machine)."""
+    if np.array_equal(m, np.eye(3)):
+        return v
+    return np.stack([m[i, 0] * v[:, 0] + m[i, 1] * v[:, 1] + m[i, 2] * v[:, 2] for i in range(3)], axis=1)
+
+
+def _convert_frames(cmap: ColumnMap, groups: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    b = BODY_FRAMES[cmap.body_frame]
+    a = NAV_FRAMES[cmap.nav_frame]
+    out = dict(groups)
+    for g in ("gyro", "accel"):
+        if g in out:
+            out[g] = _rotate_rows(b, out[g])
+    if "vel" in out:
+        out["vel"] = _rotate_rows(a, out["vel"])
+    if "quat" in out:
+        q = out["quat"]
+        if cmap.quat == "nav_to_body":
+            q = quat_conj(q)
+        if cmap.body_frame != "FRD" or cmap.nav_frame != "NED":
+            # R_ned_frd = A R B^T  <=>  q_ned_frd = q(A) q q(B)^-1 (A, B proper rotations): a constant
+            # linear map of q's components, applied as column sums
+            qa, qb_inv = quat_from_dcm(a), quat_conj(quat_from_dcm(b))
+            m = np.stack([quat_mul(quat_mul(qa, e), qb_inv) for e in np.eye(4)], axis=1)
+            q = np.stack([sum(m[i, k] * q[:, k] for k in range(4) if m[i, k] != 0.0) + 0.0 * q[:, 0]
+                          for i in range(4)], axis=1)
+        out["quat"] = q
+    return out
+
+
+def _streams_from_table(path: str, cmap: ColumnMap, groups_wanted: tuple[str, ...],
+                        warns: list[str]) -> dict[str, Stream]:
+    time_col = cmap.column_for("time")
+    df, w = _read_table(path, time_col)
+    warns.extend(w)
+    if time_col not in df.columns:
+        raise InputError(f"no column {time_col!r} in CSV", path)
+    if len(df) == 0:
+        raise InputError("no data rows", path)
+    t_ns, ok_t = time_to_ns(df[time_col], cmap.columns[time_col][1])
+    groups: dict[str, np.ndarray] = {}
+    masks: dict[str, np.ndarray] = {}
+    damaged = ~ok_t
+    for g in groups_wanted:
+        cols = [cmap.column_for(n) for n in GROUPS[g]]
+        if any(c is None for c in cols):
+            continue
+        missing = [c for c in cols if c not in df.columns]
+        if missing:
+            raise InputError(f"no column(s) {', '.join(missing)} in CSV", path)
+        parts = []
+        for c in cols:
+            num = pd.to_numeric(df[c], errors="coerce")
+            damaged |= (df[c].notna() & num.isna()).to_numpy()  # text where a number belongs
+            parts.append(num.to_numpy(float) * UNITS[cmap.columns[c][1]][1])
+        vals = np.stack(parts, axis=1)
+        fin = np.isfinite(vals)
+        damaged |= fin.any(axis=1) & ~fin.all(axis=1)  # a group cut short
+        groups[g] = vals
+        masks[g] = ok_t & fin.all(axis=1)
+    if not groups:
+        raise InputError("no complete gyro/accel/quaternion/velocity/position column group mapped", path)
+    n_bad = int(damaged.sum())
+    if n_bad:
+        warns.append(f"{os.path.basename(path)}: {n_bad} row(s) with unparseable or missing values dropped "
+                     f"(damaged or truncated file?)")
+    groups = _convert_frames(cmap, groups)
+    streams = {g: Stream(t_ns[masks[g]], v[masks[g]], f"{os.path.basename(path)}:{g}") for g, v in groups.items()
+               if masks[g].any()}
+    if not streams:
+        raise InputError(f"no row with a valid time and complete values ({int(ok_t.sum())} valid times "
+                         f"in {len(ok_t)} rows)", path)
+    return streams
+
+
+def _time_note(cmap: ColumnMap, path: str) -> str:
+    col = cmap.column_for("time")
+    return f"{os.path.basename(path)} column {col!r} ({cmap.columns[col][1]})"
+
+
+def load(path: str, selector: Selector) -> InsLog:
+    bad = [k for k, _ in selector.items if k not in ("map", "unit")]
+    if bad:
+        raise InputError(f"unknown selector key(s) {', '.join(bad)} for vendor CSV (use map=FILE.json, unit=NAME)",
+                         path)
+    src = _resolve(path, selector)
+    cmap = column_map_for(src, selector)
+    warns: list[str] = []
+    streams = _streams_from_table(src.table, cmap, tuple(GROUPS), warns)
+    stamp = _time_note(cmap, src.table)
+    if src.quat_table is not None and "quat" not in streams:
+        qcols = _header_of(src.quat_table)
+        try:
+            qmap = map_from_header(qcols, quat_file=True)
+        except MapError as why:
+            raise InputError(f"quaternion file not understood ({why}); columns: {', '.join(qcols[:6])}",
+                             src.quat_table) from None
+        qmap = ColumnMap(qmap.columns, cmap.body_frame, cmap.nav_frame, cmap.quat, cmap.origin, cmap.frame_stated)
+        streams.update(_streams_from_table(src.quat_table, qmap, ("quat",), warns))
+        stamp += f"; attitude: {_time_note(qmap, src.quat_table)}"
+    if not cmap.frame_stated:
+        warns.append("axes taken as FRD body / NED (no frame stated: add _body_frame/_nav_frame to a column map "
+                     "to convert from FLU/ENU)")
+    t_first = min((int(s.t_ns[0]) for s in streams.values() if len(s.t_ns)), default=0)
+    clock = "epoch" if t_first * 1e-9 > csv_canonical.EPOCH_THRESHOLD_S else "boot"
+    if cmap.origin == "NGIMU profile":
+        stamp += " (NGIMU: seconds from the logging session start, shared by the session's units)"
+    sel = [f"unit={src.unit}"] if src.unit else []
+    sel += [f"map={selector.get('map')}"] if selector.get("map") else []
+    if os.path.isdir(path) and not selector.get("unit") and src.unit:
+        warns.append(f"no selector given: picked unit={src.unit}")
+    return build_inslog(path=path, fmt=NAME, selector=",".join(sel), clock=clock,
+                        stamp_source=f"{stamp}; columns via {cmap.origin}",
+                        gyro=streams.get("gyro"), accel=streams.get("accel"), quat=streams.get("quat"),
+                        vel=streams.get("vel"), pos=streams.get("pos"), warnings=warns)
+
+
+def inventory(path: str) -> Inventory:
+    units = [""]
+    if os.path.isdir(path) and not os.path.isfile(os.path.join(path, NGIMU_SENSORS)):
+        units = _unit_dirs(path)
+    streams: list[StreamInfo] = []
+    selectors: list[str] = []
+    warns: list[str] = []
+    notes: list[str] = []
+    for unit in units:
+        sel = Selector((("unit", unit),)) if unit else Selector()
+        log = load(path, sel)
+        src = _resolve(path, sel)
+        prefix = f"{unit}/" if unit else ""
+        for ch, info in log.meta.channels.items():
+            if ch == "accel" and "gyro" in log.meta.channels:
+                continue
+            t = log.t_imu_s() if ch in ("gyro", "accel") else log.nav_rows(
+                {"att": ("quat_w",), "vel": ("vel_n_m_s",), "pos": ("lat_deg",)}[ch])[0]
+            name = info.source.split(":")[0]
+            kind = "imu" if ch == "gyro" and "accel" in log.meta.channels else ch
+            streams.append(StreamInfo(name=prefix + name + ("" if ch in ("gyro", "accel") else f":{ch}"),
+                                      kind=kind,
+                                      count=info.count, rate_hz=info.rate_hz,
+                                      start_s=log.t0_s + float(t[0]) if len(t) else 0.0,
+                                      duration_s=float(t[-1] - t[0]) if len(t) > 1 else 0.0, clock=log.meta.clock))
+        selectors.append(f"unit={unit}" if unit else "")
+        warns.extend(f"{prefix}{w}" for w in log.meta.warnings if not w.startswith("no selector given"))
+        cmap = column_map_for(src, Selector())
+        if cmap.ignored and unit == units[0]:
+            notes.append(f"columns not used: {', '.join(cmap.ignored[:8])}" + (" ..." if len(cmap.ignored) > 8 else ""))
+        if unit == units[0]:
+            notes.append(f"stamps: {log.meta.stamp_source}")
+    return Inventory(path=path, format=NAME, streams=tuple(streams), selectors=tuple(selectors),
+                     warnings=tuple(warns), notes=tuple(notes))

@@ -1,0 +1,141 @@
+"""What every CSV reader shares: a tolerant table read (delimiter, malformed and cut-short rows reported)
+and decimal text -> exact int64 for time columns (no float64 rounding of epoch stamps; a compiled scan,
+numba imported lazily and cached on disk)."""
+from __future__ import annotations
+
+import os
+import warnings as _warnings
+
+import numpy as np
+import pandas as pd
+
+from logtools.errors import InputError
+
+
+def _decimal_to_ns(chars, scale_pow10):  # pragma: no cover - compiled
+    """Fixed-width ASCII decimals (rows of ``chars``, NUL padded) -> int64 value * 10**scale_pow10,
+    exactly (digits beyond the scale are truncated), and a validity mask. At most 18 significant
+    digits before the scale point fit int64."""
+    n, w = chars.shape
+    limit = np.int64(9223372036854775807)
+    for _ in range(scale_pow10):
+        limit //= 10
+    limit -= 1
+    out = np.zeros(n, np.int64)
+    ok = np.zeros(n, np.bool_)
+    for i in range(n):
+        j = 0
+        while j < w and chars[i, j] == 32:
+            j += 1
+        neg = False
+        if j < w and (chars[i, j] == 45 or chars[i, j] == 43):
+            neg = chars[i, j] == 45
+            j += 1
+        whole = np.int64(0)
+        frac = np.int64(0)
+        nfrac = 0
+        ndig = 0
+        seen_dot = False
+        good = True
+        while j < w and chars[i, j] != 0 and chars[i, j] != 32:
+            c = chars[i, j]
+            if c == 46 and not seen_dot:
+                seen_dot = True
+            elif 48 <= c <= 57:
+                ndig += 1
+                if seen_dot:
+                    if nfrac < scale_pow10:
+                        frac = frac * 10 + (c - 48)
+                        nfrac += 1
+                else:
+                    whole = whole * 10 + (c - 48)
+                    if whole > limit:  # would overflow int64 once scaled
+                        good = False
+                        whole = 0
+            else:
+                good = False
+            j += 1
+        while j < w and chars[i, j] == 32:
+            j += 1
+        if j < w and chars[i, j] != 0:
+            good = False
+        if good and ndig > 0:
+            v = whole
+            for _ in range(scale_pow10):
+                v *= 10
+            f = frac
+            for _ in range(scale_pow10 - nfrac):
+                f *= 10
+            v += f
+            out[i] = -v if neg else v
+            ok[i] = True
+    return out, ok
+
+
+_DECIMAL_TO_NS = []
+
+
+def _decimal_kernel():
+    """``_decimal_to_ns`` compiled with numba on first use (cached on disk; numba is imported lazily)."""
+    if not _DECIMAL_TO_NS:
+        import numba
+
+        _DECIMAL_TO_NS.append(numba.njit(cache=True)(_decimal_to_ns))
+    return _DECIMAL_TO_NS[0]
+
+
+def _decimal_kernel():
+    """``_decimal_to_ns`` compiled with numba on first use (cached on disk; numba is imported lazily)."""
+    if not _DECIMAL_TO_NS:
+        import numba
+
+        _DECIMAL_TO_NS.append(numba.njit(cache=True)(_decimal_to_ns))
+    return _DECIMAL_TO_NS[0]
+
+
+def decimal_text_to_int(text: pd.Series, scale_pow10: int) -> tuple[np.ndarray, np.ndarray]:
+    """Decimal numbers as text -> (int64 value * 10**scale_pow10, valid mask), exactly."""
+    t = text.fillna("").astype(str)
+    width = max(1, int(t.str.len().max())) if len(t) else 1
+    try:
+        chars = t.to_numpy(dtype=f"S{width}")
+    except UnicodeEncodeError:  # non-ASCII bytes from a damaged file: they make their rows invalid
+        chars = np.char.encode(t.to_numpy(dtype=str), "ascii", "replace").astype(f"S{width}")
+    raw = np.frombuffer(chars.tobytes(), np.uint8).reshape(len(t), width) if len(t) else np.zeros((0, 1), np.uint8)
+    return _decimal_kernel()(raw, scale_pow10)
+
+
+def delimiter(header: str) -> str:
+    counts = {d: header.count(d) for d in (",", ";", "\t")}
+    return max(counts, key=counts.get)
+
+
+def read_table(path: str, time_col: str) -> tuple[pd.DataFrame, list[str]]:
+    warns: list[str] = []
+    with open(path, "rb") as fh:
+        first = fh.readline(65536).decode("utf-8", "replace")
+    sep = delimiter(first)
+    with _warnings.catch_warnings(record=True) as caught:
+        _warnings.simplefilter("always")
+        try:
+            df = pd.read_csv(path, sep=sep, dtype={time_col: str}, skipinitialspace=True, on_bad_lines="warn",
+                             encoding_errors="replace")
+        except pd.errors.EmptyDataError:
+            raise InputError("empty CSV (no header)", path) from None
+        except pd.errors.ParserError as exc:
+            raise InputError(f"malformed CSV: {str(exc).splitlines()[0]}", path) from None
+    bad = [w for w in caught if "Skipping line" in str(w.message) or "expected" in str(w.message)]
+    if bad:
+        n = sum(str(w.message).count("Skipping line") or 1 for w in bad)
+        first_msg = str(bad[0].message).strip().splitlines()[0]
+        warns.append(f"{os.path.basename(path)}: {n} malformed line(s) skipped (first: {first_msg})")
+    df.columns = [str(c).strip().strip('"') for c in df.columns]
+    with open(path, "rb") as fh:
+        fh.seek(max(0, os.path.getsize(path) - 65536))
+        tail = fh.read()
+    if tail and not tail.endswith(b"\n") and len(df):
+        last = tail.rsplit(b"\n", 1)[-1].decode("utf-8", "replace")
+        if last.count(sep) < len(df.columns) - 1:
+            warns.append(f"{os.path.basename(path)}: last row cut short (file truncated?): dropped")
+            df = df.iloc[:-1]
+    return df, warns

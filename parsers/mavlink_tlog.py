@@ -1,0 +1,834 @@
+"""MAVLink telemetry logs (``.tlog``, as Mission Planner / QGroundControl / MAVProxy record them).
+
+A tlog is a sequence of records ``[8-byte big-endian uint64 receive time, UNIX us][MAVLink v1 (0xFE)
+or v2 (0xFD) frame]``. MAVLink is NED / FRD already: no axis conversion here.
+
+Streams read (units converted to SI here, and only here):
+
+* IMU: ``HIGHRES_IMU`` (rad/s, m/s^2, ``time_usec``; instance ``id``), ``SCALED_IMU``,
+  ``SCALED_IMU2``, ``SCALED_IMU3`` (mG, mrad/s, ``time_boot_ms``), ``RAW_IMU`` (ArduPilot sends it in
+  mG / mrad/s like SCALED_IMU, ``time_usec``).
+* attitude: ``ATTITUDE_QUATERNION`` (q1..q4 = w,x,y,z), ``ATTITUDE`` (roll/pitch/yaw rad),
+  ``AHRS2`` / ``AHRS3`` (roll/pitch/yaw rad; no time field: their receive stamp is mapped onto the
+  unit's clock, with a warning).
+* velocity: ``GLOBAL_POSITION_INT`` (vx/vy/vz cm/s NED), ``LOCAL_POSITION_NED`` (vx/vy/vz m/s).
+* position: ``GLOBAL_POSITION_INT`` (degE7, alt mm MSL), ``AHRS2``/``AHRS3`` (degE7, m),
+  ``GPS_RAW_INT`` (degE7, mm).
+
+Clocks (selector ``time=``):
+
+* ``time=message`` (default): each message's own time field. ``time_usec`` is UNIX time when larger
+  than 1e15 us, time since boot otherwise (MAVLink spec); ``time_boot_ms`` is boot time.
+  ``SYSTEM_TIME`` (time_unix_usec, time_boot_ms) of the same system relates boot to UNIX time, so all
+  of one unit's streams land on one clock: ``epoch`` when SYSTEM_TIME carries UNIX time, else ``boot``.
+  Reported in ``meta.stamp_source``.
+* ``time=receive``: the tlog's receive stamps (the ground station's UNIX clock, includes the
+  telemetry link's delay and jitter).
+
+Selector keys: ``imu=HIGHRES_IMU|HIGHRES_IMU[1]|SCALED_IMU|SCALED_IMU2|SCALED_IMU3|RAW_IMU``,
+``att=ATTITUDE_QUATERNION|ATTITUDE|AHRS2|AHRS3``, ``vel=GLOBAL_POSITION_INT|LOCAL_POSITION_NED``,
+``pos=GLOBAL_POSITION_INT|AHRS2|AHRS3|GPS_RAW_INT``, ``time=message|receive``, ``sysid=N``,
+``compid=N``; ``nav=X`` sets att/vel/pos to X where X has them; ``none`` drops a group.
+
+Decoding is vectorised: frames are walked once (numba), CRCs checked column-wise, payloads gathered
+per message id and viewed through numpy structured dtypes built from pymavlink's own message classes
+(field order, types, CRC_EXTRA). pymavlink stays the reference the tests compare against.
+"""
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from logtools.conventions import euler_from_quat, quat_from_euler
+from logtools.errors import InputError
+from logtools.inslog import InsLog
+from parsers.assemble import Stream, build_inslog
+from parsers.atomic import atomic_path
+from parsers.base import Inventory, Selector, StreamInfo, check_readable, rate_of
+from parsers.mavlink_common import (dtype_from_struct, gather_rows, index_tlog_frames, records_view,
+                                    scatter_rows, walk_tlog, x25_crc_block)
+
+NAME = "tlog"
+EXTENSIONS = (".tlog",)
+
+G0 = 9.80665
+EPOCH_US_THRESHOLD = 1e15  # MAVLink: time_usec above this is UNIX time
+MG_TO_M_S2 = G0 * 1e-3
+MRAD_TO_RAD = 1e-3
+
+IMU_PREF = ("HIGHRES_IMU", "SCALED_IMU", "RAW_IMU", "SCALED_IMU2", "SCALED_IMU3")
+ATT_PREF = ("ATTITUDE_QUATERNION", "ATTITUDE", "AHRS2", "AHRS3")
+VEL_PREF = ("GLOBAL_POSITION_INT", "LOCAL_POSITION_NED")
+POS_PREF = ("GLOBAL_POSITION_INT", "AHRS2", "AHRS3", "GPS_RAW_INT")
+#: name -> (gyro scale to rad/s, accel scale to m/s^2)
+IMU_SCALE = {"HIGHRES_IMU": (1.0, 1.0), "SCALED_IMU": (MRAD_TO_RAD, MG_TO_M_S2),
+             "SCALED_IMU2": (MRAD_TO_RAD, MG_TO_M_S2), "SCALED_IMU3": (MRAD_TO_RAD, MG_TO_M_S2),
+             "RAW_IMU": (MRAD_TO_RAD, MG_TO_M_S2)}
+#: attitude messages whose body rates (rollspeed, pitchspeed, yawspeed; rad/s) can stand in for a
+#: gyro when a tlog has no IMU message (``imu=ATTITUDE``): angular rate only, no specific force
+RATE_ONLY = ("ATTITUDE", "ATTITUDE_QUATERNION")
+KIND = {**{n: "imu" for n in IMU_PREF}, "ATTITUDE_QUATERNION": "att", "ATTITUDE": "att",
+        "AHRS2": "att", "AHRS3": "att", "GLOBAL_POSITION_INT": "vel", "LOCAL_POSITION_NED": "vel",
+        "GPS_RAW_INT": "pos", "SYSTEM_TIME": "other"}
+DEFAULT_TIME = "message"
+
+
+# ---- pymavlink message definitions -> numpy --------------------------------------------------
+@lru_cache(maxsize=1)
+def _dialect():
+    from pymavlink.dialects.v20 import ardupilotmega
+    return ardupilotmega
+
+
+@dataclass(frozen=True)
+class MsgDef:
+    id: int
+    name: str
+    crc_extra: int
+    dtype: np.dtype  # wire layout (ordered fields), packed little-endian
+    wire_len: int
+
+
+@lru_cache(maxsize=None)
+def msgdef_by_id(msgid: int) -> MsgDef | None:
+    cls = _dialect().mavlink_map.get(int(msgid))
+    if cls is None:
+        return None
+    dt = dtype_from_struct(cls.unpacker.format, list(cls.ordered_fieldnames))
+    return MsgDef(cls.id, cls.msgname, int(cls.crc_extra), dt, dt.itemsize)
+
+
+@lru_cache(maxsize=None)
+def msgdef(name: str) -> MsgDef:
+    mid = getattr(_dialect(), f"MAVLINK_MSG_ID_{name}", None)
+    d = msgdef_by_id(mid) if mid is not None else None
+    if d is None:
+        raise KeyError(name)
+    return d
+
+
+@lru_cache(maxsize=1)
+def _crc_extra_table() -> np.ndarray:
+    tab = np.full(max(_dialect().mavlink_map) + 1, -1, dtype=np.int16)
+    for mid, cls in _dialect().mavlink_map.items():
+        tab[mid] = cls.crc_extra
+    return tab
+
+
+# ---- frames ------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Frames:
+    """Every valid frame of a tlog, columnar. ``pay`` is the payload offset in ``buf``."""
+
+    buf: np.ndarray
+    recv_us: np.ndarray
+    v2: np.ndarray
+    plen: np.ndarray
+    sysid: np.ndarray
+    compid: np.ndarray
+    msgid: np.ndarray
+    pay: np.ndarray
+    warnings: tuple[str, ...]
+    n_corrupt: int
+
+    def rows(self, msgid: int, sysid: int | None = None, compid: int | None = None) -> np.ndarray:
+        m = self.msgid == msgid
+        if sysid is not None:
+            m &= self.sysid == sysid
+        if compid is not None:
+            m &= self.compid == compid
+        return np.flatnonzero(m)
+
+    def decode(self, rows: np.ndarray, d: MsgDef) -> np.ndarray:
+        """Structured records (wire dtype) of the frames ``rows`` (zero-padded like pymavlink)."""
+        block = gather_rows(self.buf, self.pay[rows], d.wire_len,
+                            np.minimum(self.plen[rows], d.wire_len))
+        return records_view(block, d.dtype)
+
+
+def read_frames(path: str, buf: np.ndarray | None = None, engine: str = "auto") -> Frames:
+    """Walk, CRC-check and index every frame of a tlog; damage goes into ``warnings``.
+    ``engine``: auto (numba when installed) | numba | numpy (column-wise CRC per message group)."""
+    if buf is None:
+        buf = np.fromfile(path, dtype=np.uint8)
+    if len(buf) == 0:
+        raise InputError("empty file", path)
+    starts, skipped, resyncs, tail = walk_tlog(buf)
+    warns: list[str] = []
+    if len(starts) == 0:
+        raise InputError("no MAVLink frames found (not a tlog, or damaged beyond use)", path)
+    recv, v2, plen, sysid, compid, msgid, pay, status = index_tlog_frames(
+        buf, starts, _crc_extra_table(), engine)
+    ok = status == 0
+    known = status != 2
+    n_bad = int((known & ~ok).sum())
+    n_unknown = int((~known).sum())
+    if skipped:
+        warns.append(f"damaged tlog: skipped {skipped} bad bytes ({resyncs + (0 if resyncs else 1)} "
+                     f"place(s)) and resynchronised")
+    if n_bad:
+        warns.append(f"damaged tlog: {n_bad} frame(s) with bad CRC dropped")
+    if tail:
+        warns.append(f"truncated tlog: last {tail} byte(s) hold an incomplete frame")
+    if n_unknown:
+        warns.append(f"{n_unknown} frame(s) of message ids unknown to the dialect ignored")
+    keep = ok
+    return Frames(buf=buf, recv_us=recv[keep], v2=v2[keep], plen=plen[keep], sysid=sysid[keep],
+                  compid=compid[keep], msgid=msgid[keep], pay=pay[keep],
+                  warnings=tuple(warns), n_corrupt=n_bad + (1 if skipped else 0))
+
+
+# ---- sniff -------------------------------------------------------------------------------------
+def sniff(head: bytes, path: str) -> bool:
+    """A tlog: at offset 0, records chain with valid magic and plausible, close receive stamps."""
+    buf = np.frombuffer(head, dtype=np.uint8)
+    n = len(buf)
+    i, good, prev = 0, 0, None
+    while good < 4 and i + 16 <= n:
+        magic = buf[i + 8]
+        if magic not in (0xFE, 0xFD):
+            return False
+        plen = int(buf[i + 9])
+        size = 16 + plen if magic == 0xFE else 20 + plen + (13 if buf[i + 10] & 1 else 0)
+        t = int.from_bytes(bytes(buf[i:i + 8]), "big")
+        if t >= 1 << 62 or (prev is not None and not (prev - 60e6 <= t <= prev + 86400e6)):
+            return False
+        prev = t
+        good += 1
+        i += size
+    return good >= 4 or (good >= 1 and i >= n)
+
+
+# ---- streams and clocks ------------------------------------------------------------------------
+@dataclass(frozen=True)
+class RawStream:
+    """One message stream of one (sysid, compid): decoded records + receive stamps."""
+
+    name: str
+    sysid: int
+    compid: int
+    rec: np.ndarray
+    recv_ns: np.ndarray
+
+
+def _time_field(name: str) -> str | None:
+    fields = msgdef(name).dtype.names
+    for f in ("time_usec", "time_boot_ms"):
+        if f in fields:
+            return f
+    return None
+
+
+def _msg_time(s: RawStream) -> tuple[np.ndarray, np.ndarray]:
+    """(kind, t_ns) per sample: kind 0 = boot, 1 = epoch, 2 = receive (no time field)."""
+    tf = _time_field(s.name)
+    n = len(s.rec)
+    if tf is None:
+        return np.full(n, 2, np.int8), s.recv_ns.copy()
+    if tf == "time_boot_ms":
+        return np.zeros(n, np.int8), s.rec[tf].astype(np.int64) * 1_000_000
+    us = s.rec[tf].astype(np.uint64)
+    epoch = us > EPOCH_US_THRESHOLD
+    return epoch.astype(np.int8), us.astype(np.int64) * 1000
+
+
+def _system_time_offset_ns(fr: Frames, sysid: int, compid: int) -> int | None:
+    """UNIX ns - boot ns from SYSTEM_TIME of this system (same component preferred)."""
+    d = msgdef("SYSTEM_TIME")
+    rows = fr.rows(d.id, sysid, compid)
+    if len(rows) == 0:
+        rows = fr.rows(d.id, sysid)
+    if len(rows) == 0:
+        return None
+    r = fr.decode(rows, d)
+    unix = r["time_unix_usec"].astype(np.int64)
+    good = unix > EPOCH_US_THRESHOLD
+    if not good.any():
+        return None
+    off = unix[good] * 1000 - r["time_boot_ms"][good].astype(np.int64) * 1_000_000
+    return int(np.sort(off)[len(off) // 2])  # integer median (float64 loses ns at 1e18)
+
+
+@dataclass(frozen=True)
+class ClockPlan:
+    clock: str
+    source: str
+    warnings: tuple[str, ...]
+    #: offset (ns) added to a sample of kind k (0 boot, 1 epoch, 2 receive) to put it on ``clock``
+    add_ns: tuple[int, int, int]
+
+
+def _low(x: np.ndarray) -> int:
+    return int(np.sort(x)[len(x) // 100]) if len(x) else 0  # 1st percentile, in integers
+
+
+def plan_clock(streams: list[tuple[np.ndarray, np.ndarray, np.ndarray]], sys_off: int | None,
+               mode: str) -> ClockPlan:
+    """``streams``: (kind, t_ns, recv_ns) per selected stream -> how to put all on one clock."""
+    if mode == "receive":
+        return ClockPlan("epoch", "tlog receive time (ground station UNIX clock, includes link delay)",
+                         (), (0, 0, 0))
+    kinds = set()
+    for k, _, _ in streams:
+        kinds |= set(np.unique(k).tolist())
+    # receive - message time, per kind: how far the ground station's clock is from each clock
+    lag = {}
+    for kind in (0, 1):
+        d = [r[k == kind] - t[k == kind] for k, t, r in streams if np.any(k == kind)]
+        if d:
+            lag[kind] = _low(np.concatenate(d))
+    warns: list[str] = []
+    if sys_off is not None:
+        clock, add = "epoch", {0: sys_off, 1: 0}
+        src = "MAVLink message time fields; boot time mapped to UNIX time by SYSTEM_TIME"
+    elif kinds <= {1, 2} and 1 in kinds:
+        clock, add = "epoch", {0: 0, 1: 0}
+        src = "MAVLink message time fields (time_usec, UNIX time)"
+    elif 0 in kinds:
+        clock, add = "boot", {0: 0, 1: 0}
+        src = "MAVLink message time fields (time since boot)"
+        if 1 in kinds:
+            add[1] = lag[1] - lag[0]
+            warns.append("streams mix UNIX and boot time and there is no SYSTEM_TIME: UNIX stamps "
+                         "mapped to boot time through the receive stamps (link delay jitter)")
+    else:
+        return ClockPlan("epoch", "tlog receive time (selected messages have no time field)", (),
+                         (0, 0, 0))
+    if 2 in kinds:
+        ref = 0 if 0 in lag else 1
+        # receive -> clock: t_clock = recv - lag[ref] + add[ref]
+        add2 = -lag[ref] + add[ref]
+        warns.append("message(s) without a time field (AHRS2/AHRS3) stamped with receive time mapped "
+                     "onto the unit's clock (link delay jitter remains)")
+    else:
+        add2 = 0
+    return ClockPlan(clock, src, tuple(warns), (int(add[0]), int(add[1]), int(add2)))
+
+
+def apply_clock(plan: ClockPlan, kind: np.ndarray, t_ns: np.ndarray, recv_ns: np.ndarray,
+                mode: str) -> np.ndarray:
+    if mode == "receive":
+        return recv_ns
+    return t_ns + np.asarray(plan.add_ns, dtype=np.int64)[kind]
+
+
+# ---- selection ---------------------------------------------------------------------------------
+_INST = re.compile(r"^([A-Z0-9_]+)(?:\[(\d+)\])?$")
+
+
+def _parse_name(text: str, allowed: tuple[str, ...], key: str, path: str) -> tuple[str, int | None]:
+    m = _INST.match(text.strip().upper())
+    if not m or m.group(1) not in allowed:
+        raise InputError(f"selector {key}={text}: not one of {', '.join(allowed)}", path)
+    return m.group(1), (int(m.group(2)) if m.group(2) else None)
+
+
+@dataclass(frozen=True)
+class Catalog:
+    """Which (sysid, compid, message) streams a tlog holds, with counts."""
+
+    counts: dict[tuple[int, int, str], int]
+
+    def units(self) -> list[tuple[int, int]]:
+        return sorted({(s, c) for (s, c, n) in self.counts if KIND.get(n) in ("imu", "att")})
+
+    def has(self, sysid: int, compid: int, name: str) -> bool:
+        return self.counts.get((sysid, compid, name), 0) > 0
+
+
+def catalog(fr: Frames) -> Catalog:
+    counts: dict[tuple[int, int, str], int] = {}
+    if len(fr.msgid) == 0:
+        return Catalog(counts)
+    key = (fr.sysid << 32) | (fr.compid << 24) | fr.msgid
+    u, c = np.unique(key, return_counts=True)
+    for k, n in zip(u.tolist(), c.tolist()):
+        d = msgdef_by_id(k & 0xFFFFFF)
+        if d is not None and d.name in KIND:
+            counts[(k >> 32, (k >> 24) & 0xFF, d.name)] = n
+    return Catalog(counts)
+
+
+def unit_selectors(cat: Catalog) -> list[dict[str, str]]:
+    """Ready selectors, one per unit: IMU k paired with attitude source k of each system."""
+    out = []
+    units = cat.units()
+    multi = len(units) > 1
+    for sysid, compid in units:
+        def have(n):
+            return cat.has(sysid, compid, n)
+        imus = [n for n in ("HIGHRES_IMU",) if have(n)]
+        first = next((n for n in ("SCALED_IMU", "RAW_IMU") if have(n)), None)
+        imus += ([first] if first else []) + [n for n in ("SCALED_IMU2", "SCALED_IMU3") if have(n)]
+        main_att = next((n for n in ("ATTITUDE_QUATERNION", "ATTITUDE") if have(n)), None)
+        atts = ([main_att] if main_att else []) + [n for n in ("AHRS2", "AHRS3") if have(n)]
+        vel = next((n for n in VEL_PREF if have(n)), None)
+        pos = next((n for n in POS_PREF if have(n)), None)
+        for k in range(max(len(imus), len(atts))):
+            sel: dict[str, str] = {}
+            if multi:
+                sel["sysid"] = str(sysid)
+                sel["compid"] = str(compid)
+            if k < len(imus):
+                sel["imu"] = imus[k]
+            if k < len(atts):
+                sel["att"] = atts[k]
+            if k == 0:
+                if vel:
+                    sel["vel"] = vel
+                if pos:
+                    sel["pos"] = pos
+            if "imu" in sel or "att" in sel:
+                out.append(sel)
+    return out
+
+
+def _sel_text(sel: dict[str, str]) -> str:
+    return ",".join(f"{k}={v}" for k, v in sel.items())
+
+
+def _resolve(path: str, selector: Selector, cat: Catalog) -> tuple[dict[str, str], list[str]]:
+    """Selector -> dict(sysid, compid, imu, att, vel, pos, time); default unit when empty."""
+    notes: list[str] = []
+    allowed = {"imu", "att", "vel", "pos", "nav", "time", "sysid", "compid", "clock"}
+    for k, _ in selector.items:
+        if k not in allowed:
+            raise InputError(f"selector key {k!r} not understood by tlog (use {', '.join(sorted(allowed))})",
+                             path)
+    units = cat.units()
+    if not units:
+        raise InputError("no IMU or attitude messages (HIGHRES_IMU, SCALED_IMU*, RAW_IMU, ATTITUDE*, "
+                         "AHRS2/3) in this tlog", path)
+    sysid = selector.get("sysid")
+    compid = selector.get("compid")
+    try:
+        sysid_i = int(sysid) if sysid is not None else None
+        compid_i = int(compid) if compid is not None else None
+    except ValueError:
+        raise InputError(f"selector sysid/compid must be integers, got {sysid!r}/{compid!r}", path) from None
+    cands = [u for u in units if (sysid_i is None or u[0] == sysid_i) and (compid_i is None or u[1] == compid_i)]
+    if not cands:
+        raise InputError(f"no IMU/attitude messages from sysid={sysid} compid={compid} "
+                         f"(present: {', '.join(f'{s}/{c}' for s, c in units)})", path)
+    explicit = {k for k, _ in selector.items if k in ("imu", "att", "vel", "pos", "nav")}
+    out: dict[str, str] = {}
+    if not explicit:
+        presets = [s for s in unit_selectors(cat)
+                   if all(str(v) == s.get(k, str(v)) for k, v in (("sysid", sysid_i), ("compid", compid_i))
+                          if v is not None)]
+        complete = [s for s in presets if "imu" in s and "att" in s]
+        pick = (complete or presets)[0]
+        out.update({k: v for k, v in pick.items() if k in ("imu", "att", "vel", "pos")})
+        s_c = next(u for u in cands if all(str(x) == pick.get(k, str(x)) for k, x in
+                                           (("sysid", u[0]), ("compid", u[1]))))
+        out["sysid"], out["compid"] = str(s_c[0]), str(s_c[1])
+        if len(presets) > 1 or len(units) > 1:
+            others = [_sel_text(s) for s in unit_selectors(cat) if _sel_text(s) != _sel_text(pick)]
+            notes.append(f"no selector given: picked sysid={s_c[0]} {_sel_text(pick)}"
+                         + (f" (other units: {'; '.join(others)})" if others else ""))
+    else:
+        nav = selector.get("nav")
+        for key, allowed_names in (("imu", IMU_PREF + RATE_ONLY), ("att", ATT_PREF), ("vel", VEL_PREF),
+                                   ("pos", POS_PREF)):
+            v = selector.get(key)
+            if v is None and nav is not None and _INST.match(nav.upper()) and \
+                    _INST.match(nav.upper()).group(1) in allowed_names:
+                v = nav
+            if v is None or v.lower() == "none":
+                continue
+            _parse_name(v, allowed_names, key, path)
+            out[key] = v.upper()
+        # the unit: the system/component holding the selected streams
+        names = [_INST.match(v).group(1) for k, v in out.items() if k in ("imu", "att", "vel", "pos")]
+        holding = [u for u in cands if all(cat.has(u[0], u[1], n) for n in names)]
+        if not holding:
+            missing = [n for n in names if not any(cat.has(u[0], u[1], n) for u in cands)]
+            raise InputError(f"selector {selector}: no {', '.join(missing) or 'matching'} stream in this "
+                             f"tlog (use `tapost inspect` to list streams)", path)
+        out["sysid"], out["compid"] = str(holding[0][0]), str(holding[0][1])
+    mode = (selector.get("time") or selector.get("clock") or DEFAULT_TIME).lower()
+    if mode not in ("message", "receive"):
+        raise InputError(f"selector time={mode}: use time=message or time=receive", path)
+    out["time"] = mode
+    return out, notes
+
+
+def _raw(fr: Frames, name: str, sysid: int, compid: int) -> RawStream:
+    d = msgdef(name)
+    rows = fr.rows(d.id, sysid, compid)
+    return RawStream(name, sysid, compid, fr.decode(rows, d), fr.recv_us[rows] * 1000)
+
+
+def _instance_filter(s: RawStream, inst: int | None, notes: list[str]) -> RawStream:
+    field = "id" if "id" in s.rec.dtype.names else None
+    if field is None or len(s.rec) == 0:
+        return s
+    ids = s.rec[field]
+    present = np.unique(ids)
+    if inst is None:
+        if len(present) <= 1:
+            return s
+        inst = int(present[0])
+        notes.append(f"{s.name} holds instances {present.tolist()}: picked {s.name}[{inst}]")
+    keep = ids == inst
+    if not keep.any():
+        raise InputError(f"{s.name}[{inst}]: no such instance (present: {present.tolist()})")
+    return RawStream(s.name, s.sysid, s.compid, s.rec[keep], s.recv_ns[keep])
+
+
+def _imu_values(s: RawStream) -> tuple[np.ndarray, np.ndarray]:
+    g_s, a_s = IMU_SCALE[s.name]
+    r = s.rec
+    gyro = np.column_stack([r["xgyro"], r["ygyro"], r["zgyro"]]).astype(float) * g_s
+    acc = np.column_stack([r["xacc"], r["yacc"], r["zacc"]]).astype(float) * a_s
+    return gyro, acc
+
+
+def _quat_values(s: RawStream) -> np.ndarray:
+    r = s.rec
+    if s.name == "ATTITUDE_QUATERNION":
+        return np.column_stack([r["q1"], r["q2"], r["q3"], r["q4"]]).astype(float)
+    rpy = np.column_stack([r["roll"], r["pitch"], r["yaw"]]).astype(float)
+    return quat_from_euler(rpy)
+
+
+def _vel_values(s: RawStream) -> np.ndarray:
+    r = s.rec
+    v = np.column_stack([r["vx"], r["vy"], r["vz"]]).astype(float)
+    return v * 0.01 if s.name == "GLOBAL_POSITION_INT" else v
+
+
+def _pos_values(s: RawStream) -> tuple[np.ndarray, np.ndarray]:
+    r = s.rec
+    if s.name in ("AHRS2", "AHRS3"):
+        lat, lon, alt = r["lat"] * 1e-7, r["lng"] * 1e-7, r["altitude"].astype(float)
+    else:
+        lat, lon, alt = r["lat"] * 1e-7, r["lon"] * 1e-7, r["alt"] * 1e-3
+    vals = np.column_stack([lat, lon, alt]).astype(float)
+    valid = ~((r["lat"] == 0) & ((r["lng"] if "lng" in r.dtype.names else r["lon"]) == 0))
+    return vals, valid
+
+
+def load(path: str, selector: Selector) -> InsLog:
+    check_readable(path)
+    fr = read_frames(path)
+    cat = catalog(fr)
+    sel, notes = _resolve(path, selector, cat)
+    sysid, compid, mode = int(sel["sysid"]), int(sel["compid"]), sel["time"]
+    warns = list(fr.warnings) + notes
+    picked: dict[str, RawStream] = {}
+    for key in ("imu", "att", "vel", "pos"):
+        if key not in sel:
+            continue
+        m = _INST.match(sel[key])
+        name, inst = m.group(1), (int(m.group(2)) if m.group(2) else None)
+        s = _raw(fr, name, sysid, compid)
+        if len(s.rec) == 0:
+            raise InputError(f"no {name} messages from sysid={sysid} compid={compid}", path)
+        try:
+            picked[key] = _instance_filter(s, inst, warns)
+        except InputError as exc:
+            raise InputError(exc.problem, path) from None
+    timing = {k: _msg_time(s) for k, s in picked.items()}
+    plan = plan_clock([(k_, t_, s.recv_ns) for (k_, t_), s in
+                       ((timing[k], picked[k]) for k in picked)],
+                      _system_time_offset_ns(fr, sysid, compid), mode)
+    warns += list(plan.warnings)
+
+    def stamps(key):
+        k_, t_ = timing[key]
+        return apply_clock(plan, k_, t_, picked[key].recv_ns, mode)
+
+    kw: dict[str, Stream] = {}
+    if "imu" in picked:
+        s = picked["imu"]
+        t = stamps("imu")
+        if s.name in RATE_ONLY:
+            r = s.rec
+            gyro = np.column_stack([r["rollspeed"], r["pitchspeed"], r["yawspeed"]]).astype(float)
+            kw["gyro"] = Stream(t, gyro, f"{s.name} body rates")
+            warns.append(f"gyro from {s.name} rollspeed/pitchspeed/yawspeed (estimator output, no accel)")
+        else:
+            gyro, acc = _imu_values(s)
+            kw["gyro"] = Stream(t, gyro, s.name)
+            kw["accel"] = Stream(t, acc, s.name)
+    if "att" in picked:
+        s = picked["att"]
+        kw["quat"] = Stream(stamps("att"), _quat_values(s), s.name)
+    if "vel" in picked:
+        s = picked["vel"]
+        kw["vel"] = Stream(stamps("vel"), _vel_values(s), s.name)
+    if "pos" in picked:
+        s = picked["pos"]
+        vals, valid = _pos_values(s)
+        if not valid.all():
+            warns.append(f"{s.name}: {int((~valid).sum())} samples without a position fix (0,0) dropped")
+        if valid.any():
+            kw["pos"] = Stream(stamps("pos")[valid], vals[valid], s.name)
+    eff = ",".join(f"{k}={sel[k]}" for k in ("imu", "att", "vel", "pos") if k in sel)
+    eff = f"sysid={sysid},compid={compid},{eff},time={mode}"
+    return build_inslog(path=path, fmt=NAME, selector=eff, clock=plan.clock, stamp_source=plan.source,
+                        warnings=warns, **kw)
+
+
+def _stream_rate(t_sorted_ns: np.ndarray, receive: bool) -> float:
+    """Median-step rate; for receive stamps (bursty: the link delivers in packets) count/span."""
+    if len(t_sorted_ns) < 2:
+        return 0.0
+    if receive:
+        span = (t_sorted_ns[-1] - t_sorted_ns[0]) * 1e-9
+        return float((len(t_sorted_ns) - 1) / span) if span > 0 else 0.0
+    return rate_of((t_sorted_ns - t_sorted_ns[0]) * 1e-9)
+
+
+def inventory(path: str) -> Inventory:
+    check_readable(path)
+    fr = read_frames(path)
+    cat = catalog(fr)
+    streams = []
+    systems = {(s, c) for (s, c, _) in cat.counts}
+    multi = len(systems) > 1
+    for (sysid, compid, name) in sorted(cat.counts, key=lambda k: (k[0], k[1], IMU_PREF.index(k[2])
+                                                                  if k[2] in IMU_PREF else 9, k[2])):
+        s = _raw(fr, name, sysid, compid)
+        kind_arr, t_ns = _msg_time(s)
+        if np.all(kind_arr == 2):
+            clock = "receive (no time field)"
+        elif np.all(kind_arr == 1):
+            clock = "epoch (time_usec)"
+        elif np.all(kind_arr == 0):
+            clock = "boot (" + (_time_field(name) or "") + ")"
+        else:
+            clock = "mixed boot/epoch"
+        t_sorted = np.sort(t_ns)
+        t_s = t_sorted * 1e-9
+        label = name if not multi else f"{name} (sys {sysid} comp {compid})"
+        streams.append(StreamInfo(name=label, kind=KIND[name], count=len(t_s),
+                                  rate_hz=_stream_rate(t_sorted, receive=bool(np.all(kind_arr == 2))),
+                                  start_s=float(t_s[0]) if len(t_s) else 0.0,
+                                  duration_s=float(t_sorted[-1] - t_sorted[0]) * 1e-9 if len(t_s) else 0.0,
+                                  clock=clock, fields=tuple(s.rec.dtype.names)))
+    sels = tuple(_sel_text(s) for s in unit_selectors(cat))
+    notes = [f"{len(fr.msgid)} valid frames; default clock time=message (message time fields, "
+             f"SYSTEM_TIME maps boot to UNIX time); time=receive uses the tlog receive stamps"]
+    return Inventory(path=path, format=NAME, streams=tuple(streams), selectors=sels,
+                     warnings=fr.warnings, notes=tuple(notes))
+
+
+# ---- reference decoder (pymavlink) ---------------------------------------------------------------
+def reference_messages(path: str, types: list[str] | None = None) -> list:
+    """pymavlink's own decode of a tlog (the slow reference the fast path is tested against)."""
+    import os
+
+    os.environ.setdefault("MAVLINK20", "1")
+    from pymavlink import mavutil
+    conn = mavutil.mavlink_connection(path, dialect="ardupilotmega", robust_parsing=True)
+    out = []
+    try:
+        while True:
+            m = conn.recv_match(type=types)
+            if m is None:
+                break
+            if m.get_type() != "BAD_DATA":
+                out.append(m)
+    finally:
+        conn.close()
+    return out
+
+
+# ---- writer --------------------------------------------------------------------------------------
+BOOT_LEAD_S = 30  # boot time of the first sample when writing an epoch-clocked log
+RECEIVE_EPOCH_NS = 1_735_689_600 * 1_000_000_000  # 2025-01-01: receive clock of boot-clocked logs
+
+
+@dataclass
+class _Pending:
+    d: MsgDef
+    rec: np.ndarray  # structured, wire dtype
+    recv_us: np.ndarray
+
+
+def _records(name: str, n: int) -> tuple[MsgDef, np.ndarray]:
+    d = msgdef(name)
+    return d, np.zeros(n, dtype=d.dtype)
+
+
+def pack_frames(d: MsgDef, rec: np.ndarray, seq: np.ndarray, sysid: int, compid: int,
+                recv_us: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Vectorised MAVLink 2 packing of N messages of one type, with tlog receive stamps.
+    Returns (rows (N, W) uint8, lengths (N,)): row i's first lengths[i] bytes are its tlog record.
+    Byte-identical to pymavlink's ``msg.pack(mav)`` (trailing-zero payload truncation included)."""
+    n = len(rec)
+    payload = np.ascontiguousarray(rec).view(np.uint8).reshape(n, d.wire_len)
+    nz = payload != 0
+    last = np.where(nz.any(axis=1), d.wire_len - np.argmax(nz[:, ::-1], axis=1), 0)
+    plen = np.maximum(last, 1).astype(np.int64)
+    hdr = np.zeros((n, 9), dtype=np.uint8)  # len, incompat, compat, seq, sys, comp, id0..2
+    hdr[:, 0] = plen
+    hdr[:, 3] = seq & 0xFF
+    hdr[:, 4] = sysid
+    hdr[:, 5] = compid
+    hdr[:, 6] = d.id & 0xFF
+    hdr[:, 7] = (d.id >> 8) & 0xFF
+    hdr[:, 8] = (d.id >> 16) & 0xFF
+    w = 8 + 10 + d.wire_len + 2
+    rows = np.zeros((n, w), dtype=np.uint8)
+    rows[:, :8] = np.ascontiguousarray(recv_us.astype(">u8")).view(np.uint8).reshape(n, 8)
+    rows[:, 8] = 0xFD
+    rows[:, 9:18] = hdr
+    rows[:, 18:18 + d.wire_len] = payload
+    crc = x25_crc_block(rows, 9, 9 + plen, extra=d.crc_extra)
+    ar = np.arange(n)
+    rows[ar, 18 + plen] = (crc & 0xFF).astype(np.uint8)
+    rows[ar, 19 + plen] = (crc >> 8).astype(np.uint8)
+    return rows, 20 + plen
+
+
+def _abs_ns(log: InsLog, t_s: np.ndarray) -> np.ndarray:
+    return log.meta.t0_ns + np.round(np.asarray(t_s, float) * 1e9).astype(np.int64)
+
+
+def write(path: str, log: InsLog, *, sysid: int = 1, compid: int = 1, transport_delay_s: float = 0.005,
+          boot_epoch_ns: int | None = None) -> None:
+    """Write ``log`` (FRD/NED) as a tlog a ground station would record.
+
+    HIGHRES_IMU (time_usec: UNIX us if ``log.meta.clock == "epoch"`` else boot us), ATTITUDE_QUATERNION
+    and ATTITUDE (time_boot_ms), GLOBAL_POSITION_INT (when the log has position; LOCAL_POSITION_NED
+    when it has velocity only), SYSTEM_TIME and HEARTBEAT at 1 Hz. Receive stamps = message time +
+    ``transport_delay_s``. Boot time 0 is ``boot_epoch_ns`` (UNIX ns; default: 30 s before the first
+    sample, on a whole millisecond) for epoch logs; boot-clocked logs keep their stamps as boot time
+    and SYSTEM_TIME carries time_unix_usec = 0 (no UNIX time known).
+    """
+    epoch = log.meta.clock == "epoch"
+    a, b = log.span_s()
+    if not np.isfinite(a):
+        raise InputError("nothing to write (empty log)", path)
+    first_ns, last_ns = _abs_ns(log, [a])[0], _abs_ns(log, [b])[0]
+    if epoch:
+        if boot_epoch_ns is None:
+            boot_epoch_ns = (first_ns // 1_000_000 - BOOT_LEAD_S * 1000) * 1_000_000
+        boot_of = lambda t_ns: t_ns - boot_epoch_ns  # noqa: E731
+        recv_epoch_of = lambda t_ns: t_ns  # noqa: E731
+    else:
+        if first_ns < 0:
+            raise InputError("boot-clocked log with negative stamps cannot be written as tlog", path)
+        boot_of = lambda t_ns: t_ns  # noqa: E731
+        recv_epoch_of = lambda t_ns: t_ns + RECEIVE_EPOCH_NS  # noqa: E731
+    delay_ns = int(round(transport_delay_s * 1e9))
+    pend: list[_Pending] = []
+
+    def add(d, rec, t_abs_ns):
+        pend.append(_Pending(d, rec, (recv_epoch_of(t_abs_ns) + delay_ns) // 1000))
+
+    def boot_ms(t_ns):
+        return np.round(boot_of(t_ns) / 1e6).astype(np.int64)
+
+    t_imu_ns = None
+    if log.has_gyro or log.has_accel:
+        t_imu_ns = _abs_ns(log, log.t_imu_s())
+        d, r = _records("HIGHRES_IMU", len(t_imu_ns))
+        r["time_usec"] = np.round((t_imu_ns if epoch else boot_of(t_imu_ns)) / 1e3).astype(np.uint64)
+        bits = 0
+        if log.has_accel:
+            acc = log.accel_m_s2()
+            r["xacc"], r["yacc"], r["zacc"] = acc.T
+            bits |= 0x7
+        if log.has_gyro:
+            gyr = log.gyro_rad_s()
+            r["xgyro"], r["ygyro"], r["zgyro"] = gyr.T
+            bits |= 0x38
+        r["fields_updated"] = bits
+        add(d, r, t_imu_ns)
+    if log.has_quat:
+        t_q, q = log.quat_wxyz()
+        tq_ns = _abs_ns(log, t_q)
+        rates = np.zeros((len(q), 3))
+        if log.has_gyro and t_imu_ns is not None and len(t_imu_ns) > 1:
+            gyr = log.gyro_rad_s()
+            ti = (t_imu_ns - t_imu_ns[0]) * 1e-9
+            tqr = (tq_ns - t_imu_ns[0]) * 1e-9
+            rates = np.column_stack([np.interp(tqr, ti, g) for g in gyr.T])
+        d, r = _records("ATTITUDE_QUATERNION", len(q))
+        r["time_boot_ms"] = boot_ms(tq_ns)
+        r["q1"], r["q2"], r["q3"], r["q4"] = q.T
+        r["rollspeed"], r["pitchspeed"], r["yawspeed"] = rates.T
+        add(d, r, tq_ns)
+        d, r2 = _records("ATTITUDE", len(q))
+        rpy = euler_from_quat(q)
+        r2["time_boot_ms"] = r["time_boot_ms"]
+        r2["roll"], r2["pitch"], r2["yaw"] = rpy.T
+        r2["rollspeed"], r2["pitchspeed"], r2["yawspeed"] = rates.T
+        add(d, r2, tq_ns)
+    if log.has_pos:
+        t_p, p = log.lat_lon_alt()
+        tp_ns = _abs_ns(log, t_p)
+        d, r = _records("GLOBAL_POSITION_INT", len(p))
+        r["time_boot_ms"] = boot_ms(tp_ns)
+        r["lat"] = np.round(p[:, 0] * 1e7).astype(np.int32)
+        r["lon"] = np.round(p[:, 1] * 1e7).astype(np.int32)
+        r["alt"] = np.round(p[:, 2] * 1e3).astype(np.int32)
+        r["relative_alt"] = np.round((p[:, 2] - p[0, 2]) * 1e3).astype(np.int32)
+        r["hdg"] = 65535
+        if log.has_vel:
+            t_v, v = log.vel_ned_m_s()
+            tv_ns = _abs_ns(log, t_v)
+            idx = np.searchsorted(tv_ns, tp_ns)
+            same = (idx < len(tv_ns)) & (tv_ns[np.minimum(idx, len(tv_ns) - 1)] == tp_ns)
+            if not same.all():  # velocity at other stamps: interpolate onto the position stamps
+                vv = np.column_stack([np.interp((tp_ns - tv_ns[0]) * 1e-9, (tv_ns - tv_ns[0]) * 1e-9, c)
+                                      for c in v.T])
+            else:
+                vv = v[idx]
+            cms = np.clip(np.round(vv * 100.0), -32768, 32767).astype(np.int16)
+            r["vx"], r["vy"], r["vz"] = cms.T
+        add(d, r, tp_ns)
+    elif log.has_vel:
+        t_v, v = log.vel_ned_m_s()
+        tv_ns = _abs_ns(log, t_v)
+        d, r = _records("LOCAL_POSITION_NED", len(v))
+        r["time_boot_ms"] = boot_ms(tv_ns)
+        r["vx"], r["vy"], r["vz"] = v.T
+        add(d, r, tv_ns)
+    # 1 Hz housekeeping on whole boot milliseconds
+    b0 = int(np.ceil(boot_of(first_ns) / 1e9))
+    b1 = int(np.floor(boot_of(last_ns) / 1e9))
+    sec_boot_ns = np.arange(b0, b1 + 1, dtype=np.int64) * 1_000_000_000
+    if len(sec_boot_ns):
+        t_abs = sec_boot_ns + (boot_epoch_ns if epoch else 0)
+        d, r = _records("SYSTEM_TIME", len(sec_boot_ns))
+        r["time_boot_ms"] = sec_boot_ns // 1_000_000
+        r["time_unix_usec"] = (t_abs // 1000).astype(np.uint64) if epoch else 0
+        add(d, r, t_abs)
+        d, r = _records("HEARTBEAT", len(sec_boot_ns))
+        r["type"], r["autopilot"], r["base_mode"], r["system_status"], r["mavlink_version"] = 1, 3, 81, 4, 3
+        add(d, r, t_abs)
+    if not pend:
+        raise InputError("nothing to write (no IMU, attitude, velocity or position)", path)
+    # global order by receive time (ties: the order added), then sequence numbers, then pack
+    recv = np.concatenate([p.recv_us for p in pend])
+    which = np.concatenate([np.full(len(p.recv_us), i) for i, p in enumerate(pend)])
+    order = np.lexsort((which, recv))
+    seq = np.empty(len(recv), dtype=np.int64)
+    seq[order] = np.arange(len(recv)) & 0xFF
+    packed = []
+    lens = np.empty(len(recv), dtype=np.int64)
+    o = 0
+    for p in pend:
+        n = len(p.recv_us)
+        rows, ln = pack_frames(p.d, p.rec, seq[o:o + n], sysid, compid, p.recv_us)
+        packed.append(rows)
+        lens[o:o + n] = ln
+        o += n
+    pos = np.empty(len(recv), dtype=np.int64)
+    pos[order] = np.concatenate([[0], np.cumsum(lens[order])[:-1]])
+    out = np.empty(int(lens.sum()), dtype=np.uint8)
+    o = 0
+    for rows in packed:
+        n = len(rows)
+        scatter_rows(out, rows, pos[o:o + n], lens[o:o + n])
+        o += n
+    with atomic_path(path) as tmp:
+        out.tofile(tmp)

@@ -1,0 +1,327 @@
+"""PX4 ULog: round trips through our writer, pyulog as the reference reader, selectors, damage, real log."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from logtools.conventions import G0_M_S2, quat_from_euler, quat_rotate
+from logtools.errors import InputError
+from logtools.inslog import InsLog, LogMeta
+from parsers import registry, ulog
+from parsers.base import Selector
+
+REAL = Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
+PX4_SAMPLE = REAL / "px4_sample.ulg"
+EPOCH_T0_NS = 1_700_000_000_123_456_000
+
+
+def make_log(duration_s: float = 20.0, clock: str = "epoch", imu_hz: float = 200.0, nav_hz: float = 50.0,
+             t0_ns: int = EPOCH_T0_NS) -> InsLog:
+    """A small InsLog with motion on every channel (truth for the round trips)."""
+    ti = np.arange(0.0, duration_s, 1.0 / imu_hz)
+    tn = np.arange(0.0, duration_s, 1.0 / nav_hz)
+    gyro = np.c_[0.3 * np.sin(ti), 0.2 * np.cos(0.7 * ti), 0.1 * np.sin(0.3 * ti)]
+    acc = np.c_[0.5 * np.cos(ti), 0.2 * np.sin(ti), -G0_M_S2 + 0.1 * np.sin(2 * ti)]
+    q = quat_from_euler(np.c_[0.1 * np.sin(tn), 0.2 * np.cos(tn), 0.05 * tn])
+    vel = np.c_[5 * np.sin(0.1 * tn), 5 * np.cos(0.1 * tn), 0.1 * tn]
+    llh = np.c_[45.0 + 1e-5 * tn, 7.0 + 2e-5 * tn, 120.0 - 0.1 * tn]
+    meta = LogMeta(source_path="sim", format="sim", clock=clock, t0_ns=t0_ns if clock == "epoch" else 5_000_000_000)
+    return InsLog.from_arrays(meta, ti, gyro, acc, tn, q, vel, llh)
+
+
+@pytest.fixture(scope="module")
+def written(tmp_path_factory):
+    log = make_log()
+    path = tmp_path_factory.mktemp("ulog") / "sim.ulg"
+    registry.write(str(path), log, "ulog")
+    return log, path
+
+
+def _compare(a: InsLog, b: InsLog, t_tol_s: float = 1.5e-6) -> None:
+    """b (read back) holds a's numbers to the format's precision (float32, 1 us stamps)."""
+    d = (b.meta.t0_ns - a.meta.t0_ns) * 1e-9 if a.meta.clock == b.meta.clock else 0.0
+    np.testing.assert_allclose(b.t_imu_s() + d, a.t_imu_s(), atol=t_tol_s)
+    np.testing.assert_allclose(b.gyro_rad_s(), a.gyro_rad_s(), rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(b.accel_m_s2(), a.accel_m_s2(), rtol=1e-6, atol=1e-6)
+    ta, qa = a.quat_wxyz()
+    tb, qb = b.quat_wxyz()
+    np.testing.assert_allclose(tb + d, ta, atol=t_tol_s)
+    np.testing.assert_allclose(qb * np.sign(np.sum(qa * qb, axis=1))[:, None], qa, atol=1e-6)
+    np.testing.assert_allclose(b.vel_ned_m_s()[1], a.vel_ned_m_s()[1], atol=1e-5)
+    pa, pb = a.lat_lon_alt()[1], b.lat_lon_alt()[1]
+    np.testing.assert_allclose(pb[:, :2], pa[:, :2], atol=1e-9)  # float64 lat/lon
+    np.testing.assert_allclose(pb[:, 2], pa[:, 2], atol=1e-4)  # float32 alt
+
+
+def test_sniff_by_magic(written):
+    _, path = written
+    assert ulog.sniff(path.read_bytes()[:64], str(path))
+    assert not ulog.sniff(b"time_s,gyro_x_rad_s\n", "x.ulg")
+
+
+def test_round_trip_boot_clock(written):
+    log, path = written
+    back = registry.load(str(path))
+    assert back.meta.format == "ulog" and back.meta.clock == "boot"
+    assert "timestamp" in back.meta.stamp_source
+    assert back.meta.t0_ns == 10_000_000_000  # an epoch log is written with boot time from 10 s
+    assert "imu=sensor_combined" in back.meta.selector and "pos=vehicle_global_position" in back.meta.selector
+    _compare(log, back)
+
+
+def test_round_trip_epoch_clock_from_gps_time(written):
+    log, path = written
+    back = registry.load(f"{path}::clock=epoch")
+    assert back.meta.clock == "epoch" and "time_utc_usec" in back.meta.stamp_source
+    assert abs(back.meta.t0_ns - log.meta.t0_ns) <= 1000
+    _compare(log, back)
+
+
+def test_round_trip_boot_log_keeps_its_stamps(tmp_path):
+    log = make_log(clock="boot", duration_s=5.0)
+    p = tmp_path / "boot.ulg"
+    ulog.write(str(p), log)
+    back = ulog.load(str(p), Selector())
+    assert back.meta.t0_ns == log.meta.t0_ns
+    _compare(log, back)
+    with pytest.raises(InputError, match="GPS time"):
+        ulog.load(str(p), Selector.parse("clock=epoch"))
+
+
+def test_position_from_local_position_reference(tmp_path):
+    log = make_log(duration_s=5.0)
+    p = tmp_path / "local.ulg"
+    ulog.write(str(p), log, global_position=False)
+    back = ulog.load(str(p), Selector())
+    assert "pos=vehicle_local_position" in back.meta.selector
+    llh_a, llh_b = log.lat_lon_alt()[1], back.lat_lon_alt()[1]
+    # float32 x/y/z from the reference: better than a centimetre here
+    np.testing.assert_allclose((llh_b[:, :2] - llh_a[:, :2]) * 111_000.0, 0.0, atol=0.01)
+    np.testing.assert_allclose(llh_b[:, 2], llh_a[:, 2], atol=0.01)
+
+
+def test_pyulog_reads_our_file(written):
+    from pyulog import ULog
+
+    log, path = written
+    u = ULog(str(path))
+    assert not u.file_corruption
+    names = {d.name: d for d in u.data_list}
+    assert set(names) >= {"sensor_combined", "vehicle_attitude", "vehicle_local_position",
+                          "vehicle_global_position", "vehicle_gps_position"}
+    sc = names["sensor_combined"].data
+    assert len(sc["timestamp"]) == len(log.imu)
+    np.testing.assert_allclose(np.c_[sc["gyro_rad[0]"], sc["gyro_rad[1]"], sc["gyro_rad[2]"]],
+                               log.gyro_rad_s(), rtol=1e-6, atol=1e-7)
+    va = names["vehicle_attitude"].data
+    np.testing.assert_allclose(va["q[0]"], log.quat_wxyz()[1][:, 0], atol=1e-6)
+    assert u.msg_info_dict["sys_name"] == "tapost"
+
+
+def _same_topics(a: ulog.ULogTopics, b: ulog.ULogTopics) -> None:
+    assert a.topics.keys() == b.topics.keys()
+    for k in a.topics:
+        assert a.topics[k].keys() == b.topics[k].keys()
+        for f in a.topics[k]:
+            x, y = a.topics[k][f], b.topics[k][f]
+            assert x.dtype == y.dtype and np.array_equal(x, y, equal_nan=True), (k, f)
+
+
+def test_fast_path_equals_pyulog_message_for_message(written):
+    _, path = written
+    fast = ulog.read_topics(str(path), None, engine="fast")
+    ref = ulog.read_topics(str(path), None, engine="pyulog")
+    assert fast.engine == "fast" and ref.engine == "pyulog"
+    _same_topics(fast, ref)
+
+
+@pytest.mark.skipif(not PX4_SAMPLE.exists(), reason="shared/realdata absent")
+def test_fast_path_equals_pyulog_on_real_log():
+    fast = ulog.read_topics(str(PX4_SAMPLE), None, engine="fast")
+    ref = ulog.read_topics(str(PX4_SAMPLE), None, engine="pyulog")
+    _same_topics(fast, ref)
+    assert any("dropout" in w for w in fast.warnings) and any("dropout" in w for w in ref.warnings)
+
+
+# ---- multi-instance and newer PX4 topics ------------------------------------------------------
+_XYZ = [("uint64_t", "timestamp"), ("uint64_t", "timestamp_sample"), ("uint32_t", "device_id"),
+        ("float", "x"), ("float", "y"), ("float", "z"), ("float", "temperature")]
+_VEHICLE_IMU = [("uint64_t", "timestamp"), ("uint64_t", "timestamp_sample"), ("uint32_t", "accel_device_id"),
+                ("uint32_t", "gyro_device_id"), ("float[3]", "delta_angle"), ("float[3]", "delta_velocity"),
+                ("uint16_t", "delta_angle_dt"), ("uint16_t", "delta_velocity_dt"),
+                ("uint8_t", "delta_angle_clipping"), ("uint8_t", "delta_velocity_clipping")]
+
+
+def _multi_imu_file(path: Path) -> dict:
+    t_us = 1_000_000 + np.arange(2000, dtype=np.int64) * 2500  # 400 Hz, 5 s
+    ts = t_us * 1e-6
+    truth = {}
+    topics = []
+    for inst in (0, 1):
+        w = np.c_[np.sin(ts + inst), np.cos(ts), 0.1 * ts + inst]
+        f = np.c_[0.2 * ts, -np.sin(ts), -G0_M_S2 + inst * np.ones_like(ts)]
+        truth[inst] = (t_us, w, f)
+        for name, vals in (("sensor_gyro", w), ("sensor_accel", f)):
+            t = ulog.TopicRows.empty(name, _XYZ, len(t_us), multi_id=inst)
+            t.rows["timestamp"] = t_us + 300
+            t.rows["timestamp_sample"] = t_us
+            t.rows["x"], t.rows["y"], t.rows["z"] = vals.T
+            topics.append(t)
+    # vehicle_imu[0]: 200 Hz deltas over 5 ms intervals ending at timestamp_sample, constant rate per interval
+    tv_us = 1_000_000 + np.arange(1, 1000, dtype=np.int64) * 5000
+    rate = np.c_[0.5 + 0.1 * np.arange(len(tv_us)) % 3, np.full(len(tv_us), -0.2), np.full(len(tv_us), 0.05)]
+    spf = np.c_[np.zeros(len(tv_us)), np.full(len(tv_us), 0.3), np.full(len(tv_us), -G0_M_S2)]
+    v = ulog.TopicRows.empty("vehicle_imu", _VEHICLE_IMU, len(tv_us))
+    v.rows["timestamp"] = tv_us + 100
+    v.rows["timestamp_sample"] = tv_us
+    v.rows["delta_angle"] = rate * 0.005
+    v.rows["delta_velocity"] = spf * 0.005
+    v.rows["delta_angle_dt"] = v.rows["delta_velocity_dt"] = 5000
+    topics.append(v)
+    truth["vehicle_imu"] = (tv_us, rate, spf)
+    ulog.encode(topics).tofile(path)
+    return truth
+
+
+def test_sensor_gyro_instance_selector_pairs_accel_of_same_instance(tmp_path):
+    p = tmp_path / "multi.ulg"
+    truth = _multi_imu_file(p)
+    for inst in (0, 1):
+        sel = "imu=sensor_gyro[1]" if inst else "imu=sensor_gyro"
+        log = registry.load(f"{p}::{sel}")
+        t_us, w, f = truth[inst]
+        np.testing.assert_allclose(log.gyro_rad_s(), w, atol=1e-6)
+        np.testing.assert_allclose(log.accel_m_s2(), f, atol=1e-5)
+        assert log.meta.t0_ns == (t_us[0] + 300) * 1000  # 'timestamp' by default
+    sample = registry.load(f"{p}::imu=sensor_gyro[1],time=sample")
+    assert sample.meta.t0_ns == truth[1][0][0] * 1000 and "timestamp_sample" in sample.meta.stamp_source
+    inv = registry.inspect_log(str(p))
+    assert {"imu=sensor_gyro", "imu=sensor_gyro[1]", "imu=vehicle_imu"} <= set(inv.selectors)
+    kinds = {s.name: s.kind for s in inv.streams}
+    assert kinds["sensor_gyro[1]"] == "gyro" and kinds["sensor_accel[1]"] == "accel" and kinds["vehicle_imu"] == "imu"
+
+
+def test_vehicle_imu_deltas_become_rates_at_interval_midpoints(tmp_path):
+    p = tmp_path / "vimu.ulg"
+    truth = _multi_imu_file(p)
+    log = registry.load(f"{p}::imu=vehicle_imu")
+    t_us, rate, spf = truth["vehicle_imu"]
+    np.testing.assert_allclose(log.gyro_rad_s(), rate, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(log.accel_m_s2(), spf, rtol=1e-5, atol=1e-5)
+    assert log.meta.t0_ns == (t_us[0] - 2500) * 1000  # mid-point of the first 5 ms interval
+    assert "dt/2" in log.meta.stamp_source
+
+
+def test_selector_errors_are_one_line(tmp_path, written):
+    _, path = written
+    with pytest.raises(InputError, match=r"no topic sensor_gyro\[3\].*has: sensor_combined") as e:
+        registry.load(f"{path}::imu=sensor_gyro[3]")
+    assert "\n" not in str(e.value)
+    with pytest.raises(InputError, match="unknown selector key"):
+        registry.load(f"{path}::bogus=1")
+    with pytest.raises(InputError, match="not an IMU topic"):
+        registry.load(f"{path}::imu=vehicle_attitude")
+    with pytest.raises(InputError, match="clock=boot or clock=epoch"):
+        registry.load(f"{path}::clock=gps")
+    no_att = registry.load(f"{path}::att=none,vel=none,pos=none")
+    assert not no_att.has_quat and not no_att.has_vel and no_att.has_gyro
+
+
+# ---- damage -----------------------------------------------------------------------------------
+def test_truncated_file_uses_readable_part_and_warns(tmp_path, written):
+    log, path = written
+    data = path.read_bytes()
+    cut = tmp_path / "cut.ulg"
+    cut.write_bytes(data[: int(len(data) * 0.6) + 7])  # mid-message
+    back = registry.load(str(cut))
+    assert any("truncated" in w for w in back.meta.warnings)
+    assert 0.5 * len(log.imu) < len(back.imu) < 0.7 * len(log.imu)
+    n = len(back.imu)
+    np.testing.assert_allclose(back.gyro_rad_s(), log.gyro_rad_s()[:n], rtol=1e-6, atol=1e-7)
+
+
+def test_flipped_header_byte_is_reported_and_rest_read(tmp_path, written):
+    log, path = written
+    buf = np.fromfile(path, np.uint8)
+    offsets, sizes, types, _, status = ulog.kernel("_walk")(buf, 16, ulog._KNOWN_TYPES, ulog._MAX_MSG_SIZE)
+    assert status == 0
+    i = int(np.searchsorted(offsets, len(buf) // 2))
+    bad = buf.copy()
+    bad[offsets[i] + 2] = 0  # message type of a message in the middle -> 0
+    p = tmp_path / "flip.ulg"
+    bad.tofile(p)
+    back = registry.load(str(p))
+    assert any("damaged" in w or "corrupt" in w for w in back.meta.warnings)
+    # pyulog resynchronises at the next sync message (our writer puts one every second)
+    assert len(back.imu) >= len(log.imu) - 1.1 * 200
+    assert back.duration_s == pytest.approx(log.duration_s, abs=0.01)
+
+
+def test_garbage_and_header_only_inputs(tmp_path, written):
+    _, path = written
+    junk = tmp_path / "junk.ulg"
+    junk.write_bytes(ulog.MAGIC + b"\x01")
+    with pytest.raises(InputError, match="truncated ULog"):
+        ulog.load(str(junk), Selector())
+    head_only = tmp_path / "head.ulg"
+    data = path.read_bytes()
+    head_only.write_bytes(data[:200])  # definitions only, no data
+    with pytest.raises(InputError, match="no IMU, attitude"):
+        registry.load(str(head_only))
+
+
+# ---- the real PX4 log -------------------------------------------------------------------------
+@pytest.mark.skipif(not PX4_SAMPLE.exists(), reason="shared/realdata absent")
+def test_real_px4_sample_rates_durations_and_frames():
+    inv = registry.inspect_log(str(PX4_SAMPLE))
+    assert inv.format == "ulog"
+    by = {s.name: s for s in inv.streams}
+    assert by["sensor_combined"].rate_hz == pytest.approx(248, rel=0.02)
+    assert by["vehicle_attitude"].rate_hz == pytest.approx(94, rel=0.03)
+    assert by["vehicle_local_position"].rate_hz == pytest.approx(10, rel=0.05)
+    assert by["sensor_combined"].duration_s == pytest.approx(69, abs=0.5)
+    assert inv.selectors[0].startswith("imu=sensor_combined,att=vehicle_attitude")
+    log = registry.load(str(PX4_SAMPLE))
+    assert log.meta.clock == "boot" and log.has_gyro and log.has_accel and log.has_quat
+    assert log.duration_s == pytest.approx(69, abs=0.5)
+    assert any("velocity flagged invalid" in w for w in log.meta.warnings)  # no GPS: never silently zero
+    # FRD/NED consistency: specific force rotated by the attitude points up (-D) with gravity's size
+    t_q, q = log.quat_wxyz()
+    idx = np.searchsorted(log.t_imu_s(), t_q).clip(0, len(log.imu) - 1)
+    f_ned = quat_rotate(q, log.accel_m_s2()[idx])
+    np.testing.assert_allclose(np.median(f_ned, axis=0), [0, 0, -G0_M_S2], atol=0.4)
+    with pytest.raises(InputError, match="GPS time"):
+        registry.load(f"{PX4_SAMPLE}::clock=epoch")
+
+
+def test_vehicle_angular_velocity_pairs_vehicle_acceleration(tmp_path):
+    fields = [("uint64_t", "timestamp"), ("uint64_t", "timestamp_sample"), ("float[3]", "xyz")]
+    t_us = 2_000_000 + np.arange(800, dtype=np.int64) * 1250  # 800 Hz
+    w = np.c_[np.sin(t_us * 1e-6), np.zeros(800), np.ones(800)]
+    f = np.c_[np.zeros(800), np.cos(t_us * 1e-6), np.full(800, -G0_M_S2)]
+    topics = []
+    for name, vals in (("vehicle_angular_velocity", w), ("vehicle_acceleration", f)):
+        t = ulog.TopicRows.empty(name, fields, len(t_us))
+        t.rows["timestamp"] = t.rows["timestamp_sample"] = t_us
+        t.rows["xyz"] = vals
+        topics.append(t)
+    p = tmp_path / "vav.ulg"
+    ulog.encode(topics).tofile(p)
+    log = registry.load(f"{p}::imu=vehicle_angular_velocity")
+    np.testing.assert_allclose(log.gyro_rad_s(), w, atol=1e-6)
+    np.testing.assert_allclose(log.accel_m_s2(), f, atol=1e-5)
+    assert registry.load(str(p)).meta.selector == "imu=vehicle_angular_velocity"
+
+
+def test_gyro_only_log_round_trips_without_accel(tmp_path):
+    from dataclasses import replace
+
+    log = make_log(duration_s=2.0)
+    gyro_only = replace(log, imu=log.imu[["gyro_x_rad_s", "gyro_y_rad_s", "gyro_z_rad_s"]])
+    p = tmp_path / "g.ulg"
+    ulog.write(str(p), gyro_only)
+    back = ulog.load(str(p), Selector())
+    assert back.has_gyro and not back.has_accel
+    assert any("invalid relative stamp" in w for w in back.meta.warnings)

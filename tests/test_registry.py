@@ -1,0 +1,253 @@
+"""Registry: detection by content for every format, selector parsing, and bad input through the CLI
+(``tapost inspect``): one line on stderr naming the file, exit 2, never a traceback."""
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from logtools.errors import InputError
+from parsers import registry
+from parsers.base import Selector
+from pipelines.cli import main
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_parsers_ulog import make_log  # noqa: E402
+
+REAL = Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
+FORMATS = ("csv", "tlog", "dataflash", "rosbag1", "rosbag2", "mcap", "ulog", "csv-vendor")
+VENDOR_HEADER = ("Time (s),Gyroscope X (deg/s),Gyroscope Y (deg/s),Gyroscope Z (deg/s),"
+                 "Accelerometer X (g),Accelerometer Y (g),Accelerometer Z (g)")
+
+
+def _module(name: str):
+    try:
+        return registry.format_by_name(name)
+    except InputError:
+        return None
+
+
+def _vendor_text(n: int = 500) -> str:
+    t = np.arange(n) * 0.02
+    rows = np.c_[t, 10 * np.sin(t), 5 * np.cos(t), t, 0.01 * t, -0.02 * t, np.ones(n)]
+    return VENDOR_HEADER + "\n" + "\n".join(",".join(f"{v:.9f}" for v in r) for r in rows) + "\n"
+
+
+@pytest.fixture(scope="module")
+def all_samples(tmp_path_factory) -> dict[str, Path | Exception]:
+    """One small log per existing format, saved under a name whose extension says nothing ('.dat')."""
+    d = tmp_path_factory.mktemp("formats")
+    log = make_log(duration_s=3.0)
+    out = {}
+    for name in FORMATS:
+        mod = _module(name)
+        if mod is None:
+            continue
+        p = d / f"sample_{name.replace('-', '_')}.dat"
+        if name == "csv-vendor":
+            p.write_text(_vendor_text())
+        elif hasattr(mod, "write"):
+            try:
+                registry.write(str(p), log, name)
+            except Exception as exc:  # one broken writer must not take every format's tests down
+                out[name] = exc
+                continue
+        else:
+            continue
+        out[name] = p
+    return out
+
+
+@pytest.fixture()
+def samples(all_samples, request) -> dict[str, Path]:
+    """The samples; a test parametrized by format name skips an absent format and fails on a broken writer."""
+    name = request.node.callspec.params.get("name") if hasattr(request.node, "callspec") else None
+    if name is not None:
+        got = all_samples.get(name)
+        if got is None:
+            pytest.skip(f"format {name} not available")
+        if isinstance(got, Exception):
+            pytest.fail(f"writing a {name} sample failed: {type(got).__name__}: {got}")
+    return all_samples
+
+
+def _storage_file(p: Path) -> Path:
+    """The data file of a log: the file itself, or a directory log's storage file."""
+    if p.is_dir():
+        return next(f for f in sorted(p.iterdir()) if not f.name.endswith((".yaml", ".json")))
+    return p
+
+
+def _variant(samples, name: str, tmp_path: Path, tag: str, data: bytes) -> Path:
+    src = samples[name]
+    if src.is_dir():
+        dst = tmp_path / f"{tag}_{src.name}"
+        shutil.copytree(src, dst)
+        (dst / _storage_file(src).name).write_bytes(data)
+        return dst
+    dst = tmp_path / f"{tag}_{src.name}"
+    dst.write_bytes(data)
+    return dst
+
+
+def _inspect(capsys, arg: str) -> tuple[int, str, str]:
+    rc = main(["inspect", arg])
+    cap = capsys.readouterr()
+    return rc, cap.out, cap.err
+
+
+def _one_line_error(rc: int, err: str, path: Path) -> None:
+    assert rc == 2, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert str(path) in lines[0] or path.name in lines[0]
+    assert "Traceback" not in err and "internal error" not in err
+
+
+# ---- detection by content ------------------------------------------------------------------------
+@pytest.mark.parametrize("name", FORMATS)
+def test_detection_by_content_not_extension(samples, name, tmp_path):
+    p = samples[name]
+    assert registry.detect(str(p)).NAME == name
+    # under another format's extension
+    other = ".ulg" if name != "ulog" else ".bag"
+    q = tmp_path / (p.stem + other)
+    (shutil.copytree if p.is_dir() else shutil.copy)(p, q)
+    assert registry.detect(str(q)).NAME == name
+    log = registry.load(str(q))
+    assert log.meta.format == name and (log.has_gyro or log.has_quat)
+
+
+@pytest.mark.skipif(not REAL.exists(), reason="shared/realdata absent")
+@pytest.mark.parametrize("fname,fmt", [("px4_sample.ulg", "ulog"), ("ngimu_session", "csv-vendor"),
+                                       ("ngimu_session/blue/sensors.csv", "csv-vendor"),
+                                       ("sitl_vtol.tlog", "tlog"), ("arduplane_elevator.BIN", "dataflash"),
+                                       ("car_xsens_stereo_test1.bag", "rosbag1")])
+def test_real_logs_detected(fname, fmt):
+    if _module(fmt) is None:
+        pytest.skip(f"format {fmt} not available")
+    assert registry.detect(str(REAL / fname)).NAME == fmt
+
+
+def test_registry_order_keeps_canonical_csv_for_csv_module():
+    names = [m.NAME for m in registry.formats()]
+    if "csv-vendor" in names and "csv" in names:
+        assert names.index("csv-vendor") < names.index("csv")
+
+
+# ---- selectors -----------------------------------------------------------------------------------
+def test_selector_parsing():
+    s = Selector.parse("imu=IMU2, NAV=NKF6,,clock=epoch")
+    assert s.items == (("imu", "IMU2"), ("nav", "NKF6"), ("clock", "epoch"))
+    assert s.get("nav") == "NKF6" and s.get("att") is None and str(s) == "imu=IMU2,nav=NKF6,clock=epoch"
+    assert not Selector.parse("") and bool(s)
+    path, sel = registry.parse_log_arg("/a/b.mcap::imu=/vn100/imu,vel=/vn100/velocity")
+    assert path == "/a/b.mcap" and sel.get("imu") == "/vn100/imu" and sel.get("vel") == "/vn100/velocity"
+    path, sel = registry.parse_log_arg("new.bin::imu=IMU[1]")
+    assert sel.get("imu") == "IMU[1]"
+    assert registry.parse_log_arg("plain.ulg") == ("plain.ulg", Selector())
+    with pytest.raises(InputError, match="bad selector"):
+        registry.parse_log_arg("x.ulg::imu")
+
+
+def test_bad_selector_through_cli(samples, capsys):
+    p = samples["ulog"]
+    rc, _, err = _inspect(capsys, f"{p}::imu")
+    _one_line_error(rc, err, p)
+    assert "bad selector" in err
+
+
+@pytest.mark.parametrize("name", [n for n in FORMATS if n != "csv"])
+def test_missing_selector_target_is_one_line(samples, name, capsys):
+    p = samples[name]
+    key = "unit" if name == "csv-vendor" else "imu"
+    rc, _, err = _inspect(capsys, f"{p}::{key}=NO_SUCH_STREAM")
+    _one_line_error(rc, err, p)
+
+
+def test_inspect_json_and_selection(samples, capsys):
+    p = samples["ulog"]
+    rc, out, _ = _inspect(capsys, f"{p}::imu=sensor_combined,clock=epoch")
+    assert rc == 0 and "selected (imu=sensor_combined" in out and "clock epoch" in out
+    rc = main(["inspect", "--json", str(p)])
+    d = json.loads(capsys.readouterr().out)
+    assert rc == 0 and d["schema"] == "tapost.inventory/1" and d["format"] == "ulog"
+    assert {s["name"] for s in d["streams"]} >= {"sensor_combined", "vehicle_attitude"}
+    assert all({"kind", "clock", "rate_hz", "count"} <= set(s) for s in d["streams"])
+
+
+@pytest.mark.parametrize("name", FORMATS)
+def test_inspect_lists_every_format(samples, name, capsys):
+    rc = main(["inspect", "--json", str(samples[name])])
+    d = json.loads(capsys.readouterr().out)
+    assert rc == 0 and d["format"] == name and d["streams"]
+    assert all(s["count"] > 0 and s["kind"] for s in d["streams"])
+    rc, out, _ = _inspect(capsys, str(samples[name]))
+    assert rc == 0 and out.splitlines()[0].endswith(name)
+
+
+# ---- bad input ---------------------------------------------------------------------------------------
+@pytest.mark.parametrize("name", FORMATS)
+def test_empty_and_random_bytes_are_one_line_exit_2(samples, name, tmp_path, capsys):
+    rng = np.random.default_rng(7)
+    for tag, data in (("empty", b""), ("random", rng.bytes(4096))):
+        p = _variant(samples, name, tmp_path, tag, data)
+        rc, _, err = _inspect(capsys, str(p))
+        _one_line_error(rc, err, p if not p.is_dir() else _storage_file(p))
+
+
+@pytest.mark.parametrize("name", FORMATS)
+def test_truncated_file_is_reported(samples, name, tmp_path, capsys):
+    data = _storage_file(samples[name]).read_bytes()
+    # (a cut that lands exactly on a record boundary cannot be noticed: this one does not, for any format)
+    p = _variant(samples, name, tmp_path, "trunc", data[: int(len(data) * 0.6) + 7])
+    rc, out, err = _inspect(capsys, str(p))
+    if rc == 2:  # nothing readable: one line
+        _one_line_error(rc, err, p if not p.is_dir() else _storage_file(p))
+    else:  # the readable part is used and the damage said
+        assert rc == 0 and "Traceback" not in err
+        assert "warning:" in out and any(w in out.lower() for w in ("truncat", "damag", "incomplete", "dropped"))
+
+
+@pytest.mark.parametrize("name", FORMATS)
+def test_flipped_byte_never_crashes(samples, name, tmp_path, capsys):
+    """A flipped byte in a payload is undetectable in formats without checksums (ULog, DataFlash,
+    ROS 1 bag): then the file reads; otherwise one line, exit 2. Never a traceback."""
+    data = bytearray(_storage_file(samples[name]).read_bytes())
+    for frac in (0.5, 0.3):
+        flipped = bytearray(data)
+        flipped[int(len(data) * frac)] ^= 0xFF
+        p = _variant(samples, name, tmp_path, f"flip{int(frac * 10)}", bytes(flipped))
+        rc, out, err = _inspect(capsys, str(p))
+        if rc == 2:
+            _one_line_error(rc, err, p if not p.is_dir() else _storage_file(p))
+        else:
+            assert rc == 0 and "Traceback" not in err and out.splitlines()[0].endswith(name)
+
+
+def test_directory_without_metadata_and_missing_file(tmp_path, capsys):
+    empty = tmp_path / "empty_dir"
+    empty.mkdir()
+    (empty / "notes.txt").write_text("hello")
+    rc, _, err = _inspect(capsys, str(empty))
+    _one_line_error(rc, err, empty)
+    rc, _, err = _inspect(capsys, str(tmp_path / "nope.ulg"))
+    _one_line_error(rc, err, tmp_path / "nope.ulg")
+    assert "no such file" in err
+
+
+def test_rosbag2_directory_without_metadata(samples, tmp_path, capsys):
+    if not isinstance(samples.get("rosbag2"), Path) or not samples["rosbag2"].is_dir():
+        pytest.skip("rosbag2 not available")
+    d = tmp_path / "nometa"
+    shutil.copytree(samples["rosbag2"], d)
+    (d / "metadata.yaml").unlink()
+    rc, out, err = _inspect(capsys, str(d))
+    if rc == 0:  # a reader may rebuild the metadata from the storage: then it must say so
+        assert "warning:" in out or "note:" in out
+    else:
+        _one_line_error(rc, err, d)
