@@ -1,0 +1,315 @@
+"""Bare MCAP files holding ROS messages (ROS 2 CDR or ROS 1 encoding).
+
+Reading: a linear scan of the MCAP records (own code, no per-message objects), chunks decompressed
+(zstd/lz4) and CRC-checked, raw message bytes + log times collected per channel; message definitions
+from the Schema records (``ros2msg``, ``ros2idl``, ``ros1msg``) registered in a rosbags typestore.
+The content is decoded by :mod:`parsers.ros_common` (vectorised, library fallback). A damaged file
+(truncated, bad chunk CRC, undecompressible chunk, broken record) gives the readable part plus a
+warning in ``meta.warnings``; the ``mcap`` package's reader and ``mcap_ros2``/``mcap_ros1`` decoders are
+the reference the tests compare against.
+
+Writing (``write(path, log, encoding="cdr"|"ros1", log_delay_ns=0, compression="zstd"|"lz4"|"none")``): /imu sensor_msgs/Imu,
+/velocity geometry_msgs/TwistStamped (ENU world, frame "map"), /fix sensor_msgs/NavSatFix, and
+/attitude geometry_msgs/QuaternionStamped when the attitude is not at the IMU stamps; NED/FRD
+converted to ENU/FLU; header stamps = t0_ns + t_s (exact ns); log time = stamp + log_delay_ns.
+"""
+from __future__ import annotations
+
+import struct
+import zlib
+from collections.abc import Callable
+
+from logtools.errors import InputError
+from logtools.inslog import InsLog
+from parsers import ros_common as rc
+from parsers.atomic import atomic_path
+from parsers.base import Inventory, Selector, check_readable
+
+NAME = "mcap"
+EXTENSIONS = (".mcap",)
+MAGIC = b"\x89MCAP0\r\n"
+
+_OP_HEADER, _OP_FOOTER, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK = 1, 2, 3, 4, 5, 6
+_OP_DATA_END = 15
+_REC = struct.Struct("<BQ")
+_MSG = struct.Struct("<BQHIQ")  # opcode, length, channel_id, sequence, log_time
+_U16 = struct.Struct("<H")
+_U32 = struct.Struct("<I")
+_U64 = struct.Struct("<Q")
+_ENCODINGS = {"cdr": "cdr", "ros1": "ros1"}
+
+
+def sniff(head: bytes, path: str) -> bool:
+    return head.startswith(MAGIC)
+
+
+class _Damage(Exception):
+    pass
+
+
+def _string(buf, off: int) -> tuple[str, int]:
+    (n,) = _U32.unpack_from(buf, off)
+    off += 4
+    if off + n > len(buf):
+        raise _Damage("string runs past its record")
+    return bytes(buf[off:off + n]).decode("utf-8", "replace"), off + n
+
+
+def _decompress(kind: str, data: bytes, size: int) -> bytes:
+    if kind == "":
+        return data
+    if kind == "zstd":
+        import zstandard
+
+        return zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
+    if kind == "lz4":
+        import lz4.frame
+
+        return lz4.frame.decompress(data)
+    raise _Damage(f"unsupported chunk compression {kind!r}")
+
+
+class _Scan:
+    """State of one MCAP scan: schemas, channels, per-channel raw messages."""
+
+    def __init__(self, keep: Callable[[str, str], bool]):
+        self.keep = keep
+        self.schemas: dict[int, tuple[str, str, bytes]] = {}
+        self.channels: dict[int, tuple[str, int, str]] = {}
+        self.times: dict[int, list[int]] = {}
+        self.data: dict[int, list[bytes] | None] = {}
+        self.warnings: list[str] = []
+
+    def schema(self, buf, off: int, end: int) -> None:
+        (sid,) = _U16.unpack_from(buf, off)
+        name, o = _string(buf, off + 2)
+        enc, o = _string(buf, o)
+        (n,) = _U32.unpack_from(buf, o)
+        if o + 4 + n > end:
+            raise _Damage("schema data runs past its record")
+        self.schemas.setdefault(sid, (name, enc, bytes(buf[o + 4:o + 4 + n])))
+
+    def channel(self, buf, off: int) -> None:
+        cid, sid = struct.unpack_from("<HH", buf, off)
+        topic, o = _string(buf, off + 4)
+        enc, o = _string(buf, o)
+        if cid in self.channels:
+            return
+        self.channels[cid] = (topic, sid, enc)
+        self.times[cid] = []
+        msgtype = self.schemas.get(sid, ("", "", b""))[0]
+        self.data[cid] = [] if self.keep(topic, msgtype) else None
+
+    def records(self, buf, start: int, end: int, where: str) -> None:
+        """Walk the records in ``buf[start:end]`` (a chunk's content or the top level)."""
+        off = start
+        times, data = self.times, self.data
+        msg_unpack, rec_unpack = _MSG.unpack_from, _REC.unpack_from
+        while off < end:
+            if off + 9 > end:
+                raise _Damage(f"{where}: record header cut at byte {off}")
+            op = buf[off]
+            if op == _OP_MESSAGE and off + 31 <= end:
+                _op, ln, cid, _seq, t = msg_unpack(buf, off)
+                nxt = off + 9 + ln
+                if nxt > end or ln < 22:
+                    raise _Damage(f"{where}: message record at byte {off} runs past its container")
+                lst = times.get(cid)
+                if lst is None:
+                    raise _Damage(f"{where}: message for unknown channel {cid} at byte {off}")
+                lst.append(t)
+                d = data[cid]
+                if d is not None:
+                    d.append(buf[off + 31:nxt])
+                off = nxt
+                continue
+            _op, ln = rec_unpack(buf, off)
+            nxt = off + 9 + ln
+            if nxt > end:
+                raise _Damage(f"{where}: record (opcode {op}) at byte {off} runs past its container")
+            if op == _OP_SCHEMA:
+                self.schema(buf, off + 9, nxt)
+            elif op == _OP_CHANNEL:
+                self.channel(buf, off + 9)
+            elif op == 0 or op > 0x0F:
+                raise _Damage(f"{where}: invalid record opcode {op} at byte {off}")
+            off = nxt
+
+
+def read_raw(path: str, keep: Callable[[str, str], bool] = rc.keep_supported, fmt: str = NAME) -> rc.RawLog:
+    """Scan an MCAP file into a :class:`ros_common.RawLog` (readable part + warnings if damaged)."""
+    check_readable(path)
+    with open(path, "rb") as fh:
+        buf = fh.read()
+    if not buf.startswith(MAGIC):
+        raise InputError("not an MCAP file (bad magic)", path)
+    scan = _Scan(keep)
+    off, end = len(MAGIC), len(buf)
+    footer = False
+    n_chunks = 0
+    while off < end:
+        if off + 9 > end:
+            scan.warnings.append(f"file truncated at byte {off} of {end} (no footer): readable part used")
+            break
+        op, ln = _REC.unpack_from(buf, off)
+        nxt = off + 9 + ln
+        if op == 0 or op > 0x0F:
+            scan.warnings.append(f"damaged: invalid record opcode {op} at byte {off}; rest of file ignored")
+            break
+        if nxt > end:
+            scan.warnings.append(f"file truncated at byte {end}: record at byte {off} (opcode {op}) incomplete; "
+                                 "readable part used")
+            break
+        try:
+            if op == _OP_CHUNK:
+                n_chunks += 1
+                _t0, _t1, usize, crc = struct.unpack_from("<QQQI", buf, off + 9)
+                comp, o = _string(buf, off + 9 + 28)
+                (clen,) = _U64.unpack_from(buf, o)
+                if o + 8 + clen > nxt:
+                    raise _Damage(f"chunk at byte {off}: records run past the chunk")
+                try:
+                    content = _decompress(comp, buf[o + 8:o + 8 + clen], usize)
+                except _Damage:
+                    raise
+                except Exception as exc:
+                    raise _Damage(f"chunk at byte {off} cannot be decompressed ({type(exc).__name__})") from None
+                if len(content) != usize:
+                    raise _Damage(f"chunk at byte {off}: size {len(content)} != {usize}")
+                if crc and zlib.crc32(content) != crc:
+                    raise _Damage(f"chunk at byte {off}: CRC mismatch")
+                before = {k: len(v) for k, v in scan.times.items()}
+                try:
+                    scan.records(content, 0, len(content), f"chunk at byte {off}")
+                except _Damage:
+                    for k, v in scan.times.items():  # drop the partial chunk
+                        n0 = before.get(k, 0)
+                        del v[n0:]
+                        if scan.data[k] is not None:
+                            del scan.data[k][n0:]
+                    raise
+            elif op == _OP_MESSAGE:
+                scan.records(buf, off, nxt, "data section")
+            elif op == _OP_SCHEMA:
+                scan.schema(buf, off + 9, nxt)
+            elif op == _OP_CHANNEL:
+                scan.channel(buf, off + 9)
+            elif op == _OP_FOOTER:
+                footer = True
+                break
+        except (_Damage, struct.error, UnicodeDecodeError) as exc:
+            msg = str(exc) if isinstance(exc, _Damage) else f"record at byte {off} unreadable ({exc})"
+            scan.warnings.append(f"damaged: {msg}; its messages dropped")
+        off = nxt
+    if not footer and not any("truncated" in w or "rest of file" in w for w in scan.warnings):
+        scan.warnings.append("no MCAP footer (file truncated?): readable part used")
+    return _rawlog(path, fmt, scan)
+
+
+def _rawlog(path: str, fmt: str, scan: _Scan) -> rc.RawLog:
+    from rosbags.typesys import Stores, get_typestore
+
+    typestore = get_typestore(Stores.EMPTY)
+    topics: dict[str, rc.RawTopic] = {}
+    encodings = set()
+    for cid, (topic, sid, enc) in scan.channels.items():
+        name, senc, text = scan.schemas.get(sid, ("", "", b""))
+        msgtype = rc.normalize_msgtype(name) if name else ""
+        encoding = _ENCODINGS.get(enc, enc)
+        keep = scan.data[cid] is not None
+        if keep and text and senc in ("ros2msg", "ros1msg", "ros2idl"):
+            try:
+                rc.register_msgdef(typestore, msgtype, text.decode("utf-8", "replace"),
+                                   "idl" if senc == "ros2idl" else "msg")
+            except Exception as exc:
+                scan.warnings.append(f"{topic}: message definition of {msgtype} unusable ({type(exc).__name__}); "
+                                     "using the built-in one")
+        if keep:
+            encodings.add(encoding)
+        if encoding not in ("cdr", "ros1"):
+            keep = False
+            if msgtype in rc.SUPPORTED:
+                scan.warnings.append(f"{topic}: message encoding {enc!r} not supported; topic ignored")
+        raw = rc.RawTopic(topic, msgtype, encoding, scan.times[cid], scan.data[cid] if keep else [])
+        if topic in topics:  # same topic on several channels: merge
+            old = topics[topic]
+            old.log_ns.extend(raw.log_ns)
+            if keep and len(old.data) == len(old.log_ns) - len(raw.log_ns):
+                old.data.extend(raw.data)
+            continue
+        topics[topic] = raw
+    for enc in encodings:  # types without a definition in the file: the built-in ones
+        base = rc.default_typestore(enc)
+        missing = {t.msgtype for t in topics.values() if t.encoding == enc and t.msgtype in rc.SUPPORTED
+                   and t.msgtype not in typestore.fielddefs}
+        if missing:
+            need = _closure(base, missing)
+            try:
+                typestore.register({k: base.fielddefs[k] for k in need if k not in typestore.fielddefs})
+            except Exception as exc:
+                scan.warnings.append(f"built-in message definitions not usable: {exc}")
+    return rc.RawLog(path=path, fmt=fmt, topics=topics, typestore=typestore, warnings=scan.warnings)
+
+
+def _closure(store, names: set[str]) -> set[str]:
+    out: set[str] = set()
+    todo = [n for n in names if n in store.fielddefs]
+    while todo:
+        n = todo.pop()
+        if n in out:
+            continue
+        out.add(n)
+        for _f, (nt, detail) in store.fielddefs[n][1]:
+            nt = int(nt)
+            if nt == 2:
+                todo.append(detail)
+            elif nt in (3, 4) and int(detail[0][0]) == 2:
+                todo.append(detail[0][1])
+    return out
+
+
+def load(path: str, selector: Selector) -> InsLog:
+    return rc.to_inslog(read_raw(path), selector)
+
+
+def inventory(path: str) -> Inventory:
+    return rc.to_inventory(read_raw(path, keep=rc.keep_supported))
+
+
+# ---- writing ---------------------------------------------------------------------------------
+def write_topics(stream, topics: list[rc.OutTopic], typestore, encoding: str, log_delay_ns: int = 0,
+                 compression: str = "zstd") -> None:
+    """Write ROS messages to an open binary stream as MCAP (chunks with CRCs and indexes)."""
+    from mcap.writer import CompressionType, Writer
+
+    w = Writer(stream, compression=CompressionType[compression.upper()])
+    w.start(profile="ros2" if encoding == "cdr" else "ros1", library="tapost")
+    chans = []
+    for tp in topics:
+        if encoding == "cdr":
+            text, sname, senc = typestore.generate_msgdef(tp.msgtype, ros_version=2)[0], tp.msgtype, "ros2msg"
+        else:
+            text, sname, senc = (typestore.generate_msgdef(tp.msgtype, ros_version=1)[0],
+                                 tp.msgtype.replace("/msg/", "/"), "ros1msg")
+        sid = w.register_schema(name=sname, encoding=senc, data=text.encode())
+        chans.append(w.register_channel(topic=tp.name, message_encoding=encoding, schema_id=sid))
+    seq = [0] * len(topics)
+    for t, k, i in rc.merged_order(topics, log_delay_ns):
+        w.add_message(channel_id=chans[k], log_time=t, data=topics[k].data[i],
+                      publish_time=int(topics[k].stamp_ns[i]), sequence=seq[k])
+        seq[k] += 1
+    w.finish()
+
+
+def write(path: str, log: InsLog, *, encoding: str = "cdr", log_delay_ns: int = 0,
+          compression: str = "zstd") -> None:
+    """Write ``log`` as a ROS MCAP file (``encoding`` "cdr" = ROS 2, "ros1" = ROS 1;
+    ``compression`` zstd, lz4 or none)."""
+    if encoding not in ("cdr", "ros1"):
+        raise InputError(f"mcap encoding must be cdr or ros1, not {encoding!r}", path)
+    if compression not in ("zstd", "lz4", "none"):
+        raise InputError(f"mcap compression must be zstd, lz4 or none, not {compression!r}", path)
+    typestore = rc.default_typestore(encoding)
+    topics = rc.ros_topics_from_inslog(log, typestore, encoding)
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        write_topics(fh, topics, typestore, encoding, log_delay_ns, compression)

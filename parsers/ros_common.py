@@ -1,0 +1,927 @@
+"""Shared by the ROS format modules (rosbag1, rosbag2, mcap_ros): raw messages -> InsLog.
+
+The readers (``rosbag1``, ``rosbag2``, ``mcap_ros``) only deliver raw serialised messages per topic
+(:class:`RawLog`: bytes + log/record time + the message definitions as a rosbags ``Typestore``).
+Everything ROS-specific about the *content* lives here:
+
+* **Vectorised decode** (:func:`decode_topic`). Messages of one topic that have the same length
+  (Imu, TwistStamped, NavSatFix, Odometry... whose only variable part is the ``frame_id`` string)
+  are decoded as one group with ``np.frombuffer`` on a numpy structured dtype built from the message
+  definition (:func:`build_layout`: CDR alignment relative to the payload after the 4-byte
+  encapsulation header; ROS 1 packed little-endian). String/sequence lengths are read from a sample
+  message and checked on every message of the group; anything that does not fit is decoded by the
+  rosbags deserialiser (the reference implementation), message by message.
+* **Frames** (REP-103/105): ROS world frames are ENU, body frames FLU. Converted here (and only
+  here) to NED/FRD with :mod:`logtools.conventions`:
+  ``sensor_msgs/Imu``: angular_velocity, linear_acceleration FLU -> FRD; orientation (FLU body in ENU
+  world) -> body FRD to NED. ``covariance[0] == -1`` marks a field as absent (REP-145).
+  ``nav_msgs/Odometry``: pose orientation as attitude, twist in ``child_frame_id`` = body (REP-105):
+  twist.angular is a body rate (usable as gyro), twist.linear is rotated to NED with the message's
+  own pose orientation. ``geometry_msgs/TwistStamped``, ``TwistWithCovarianceStamped``,
+  ``Vector3Stamped``: velocity, **assumed ENU world** unless the selector says ``vel_frame=body``
+  (then FLU body, rotated to NED with the selected attitude). ``sensor_msgs/NavSatFix``: lat, lon,
+  alt (status < 0 = no fix, dropped). ``geometry_msgs/QuaternionStamped``, ``PoseStamped``,
+  ``PoseWithCovarianceStamped``: attitude (FLU body in ENU world).
+* **Clock**: ``header.stamp`` by default (``stamp_source`` says so); ``time=log`` uses the bag's
+  log/record time. Epoch or sim/boot time is decided by magnitude (> 1e9 s = epoch). A topic whose
+  header stamps are all zero falls back to log time, with a warning.
+* **Selector** keys: ``imu=/topic`` (sensor_msgs/Imu), ``odom=/topic`` (Odometry: gyro from
+  twist.angular, attitude, velocity), ``att=/topic``, ``vel=/topic``, ``pos=/topic``,
+  ``time=header|log``, ``vel_frame=enu|body``. Without a selector: the first Imu topic (in the log's order) and
+  the best navigation topics; the choice is reported in ``meta.warnings`` ("selected: ...").
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from logtools.conventions import (
+    dcm_from_quat,
+    enu_to_ned,
+    flu_to_frd,
+    ned_to_enu,
+    frd_to_flu,
+    quat_mul,
+    quat_slerp,
+    quat_make_continuous,
+)
+from logtools.errors import InputError
+from logtools.inslog import InsLog
+from parsers.assemble import Stream, build_inslog
+from parsers.base import Inventory, Selector, StreamInfo, rate_of
+
+# ---- message types --------------------------------------------------------------------------
+IMU = "sensor_msgs/msg/Imu"
+ODOM = "nav_msgs/msg/Odometry"
+TWIST = "geometry_msgs/msg/TwistStamped"
+TWIST_COV = "geometry_msgs/msg/TwistWithCovarianceStamped"
+VEC3 = "geometry_msgs/msg/Vector3Stamped"
+FIX = "sensor_msgs/msg/NavSatFix"
+QUAT_STAMPED = "geometry_msgs/msg/QuaternionStamped"
+POSE = "geometry_msgs/msg/PoseStamped"
+POSE_COV = "geometry_msgs/msg/PoseWithCovarianceStamped"
+
+#: the kind of stream each supported type provides (StreamInfo.kind)
+KIND = {IMU: "imu", ODOM: "odom", TWIST: "vel", TWIST_COV: "vel", VEC3: "vel", FIX: "pos",
+        QUAT_STAMPED: "att", POSE: "att", POSE_COV: "att"}
+SUPPORTED = frozenset(KIND)
+
+_Q = ("x", "y", "z", "w")
+_V = ("x", "y", "z")
+#: field paths (dotted; a trailing integer indexes a fixed array) extracted per type
+FIELDS: dict[str, dict[str, str]] = {
+    IMU: {**{f"q{c}": f"orientation.{c}" for c in _Q},
+          **{f"g{c}": f"angular_velocity.{c}" for c in _V},
+          **{f"a{c}": f"linear_acceleration.{c}" for c in _V},
+          "q_cov0": "orientation_covariance.0", "g_cov0": "angular_velocity_covariance.0",
+          "a_cov0": "linear_acceleration_covariance.0"},
+    ODOM: {**{f"q{c}": f"pose.pose.orientation.{c}" for c in _Q},
+           **{f"p{c}": f"pose.pose.position.{c}" for c in _V},
+           **{f"v{c}": f"twist.twist.linear.{c}" for c in _V},
+           **{f"g{c}": f"twist.twist.angular.{c}" for c in _V}},
+    TWIST: {**{f"v{c}": f"twist.linear.{c}" for c in _V}, **{f"g{c}": f"twist.angular.{c}" for c in _V}},
+    TWIST_COV: {**{f"v{c}": f"twist.twist.linear.{c}" for c in _V},
+                **{f"g{c}": f"twist.twist.angular.{c}" for c in _V}},
+    VEC3: {f"v{c}": f"vector.{c}" for c in _V},
+    FIX: {"lat": "latitude", "lon": "longitude", "alt": "altitude", "status": "status.status"},
+    QUAT_STAMPED: {f"q{c}": f"quaternion.{c}" for c in _Q},
+    POSE: {**{f"q{c}": f"pose.orientation.{c}" for c in _Q}, **{f"p{c}": f"pose.position.{c}" for c in _V}},
+    POSE_COV: {**{f"q{c}": f"pose.pose.orientation.{c}" for c in _Q},
+               **{f"p{c}": f"pose.pose.position.{c}" for c in _V}},
+}
+STAMP_FIELDS = {"sec": "header.stamp.sec", "nsec": "header.stamp.nanosec"}
+
+#: stamps above this many seconds are UNIX epoch, below it sim/boot time
+EPOCH_THRESHOLD_S = 1e9
+SELECTOR_KEYS = ("imu", "odom", "att", "vel", "pos", "nav", "time", "vel_frame")
+
+
+def normalize_msgtype(name: str) -> str:
+    """``sensor_msgs/Imu`` (ROS 1 / schema names) -> ``sensor_msgs/msg/Imu``."""
+    parts = name.strip().split("/")
+    if len(parts) == 2:
+        return f"{parts[0]}/msg/{parts[1]}"
+    return name.strip()
+
+
+# ---- raw messages, as the readers deliver them ----------------------------------------------
+@dataclass
+class RawTopic:
+    """One topic's raw messages. ``data`` is empty for topics whose content was not kept."""
+
+    name: str
+    msgtype: str  # normalised, e.g. sensor_msgs/msg/Imu
+    encoding: str  # "cdr" or "ros1"
+    log_ns: list[int] = field(default_factory=list)
+    data: list[bytes] = field(default_factory=list)
+
+    @property
+    def count(self) -> int:
+        return len(self.log_ns)
+
+
+@dataclass
+class RawLog:
+    """A whole ROS log as raw messages; ``typestore`` knows every kept message type."""
+
+    path: str
+    fmt: str
+    topics: dict[str, RawTopic]
+    typestore: object
+    warnings: list[str] = field(default_factory=list)
+
+
+def keep_supported(topic: str, msgtype: str) -> bool:
+    """Default predicate for readers: keep the content of the types this module decodes."""
+    return normalize_msgtype(msgtype) in SUPPORTED
+
+
+def default_typestore(encoding: str):
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS1_NOETIC if encoding == "ros1" else Stores.ROS2_HUMBLE)
+
+
+def register_msgdef(typestore, msgtype: str, text: str, fmt: str = "msg") -> None:
+    """Register a message definition (``msg`` text with ``MSG:`` sections, or ``idl``)."""
+    from rosbags.typesys import get_types_from_idl, get_types_from_msg
+
+    if fmt == "idl":
+        typs: dict = {}
+        sep = "=" * 80 + "\n"
+        if text.startswith(f"{sep}IDL: "):
+            for part in text.split(sep)[1:]:
+                _hdr, idl = part.split("\n", 1)
+                typs.update(get_types_from_idl(idl))
+        else:
+            typs.update(get_types_from_idl(text))
+    else:
+        typs = get_types_from_msg(text, normalize_msgtype(msgtype))
+    typs = {k: v for k, v in typs.items() if k not in typestore.fielddefs}
+    if typs:
+        typestore.register(typs)
+
+
+# ---- vectorised decode: numpy structured dtypes from message definitions ---------------------
+_BASE_DT = {"bool": "u1", "byte": "u1", "char": "u1", "int8": "i1", "uint8": "u1", "int16": "i2",
+            "uint16": "u2", "int32": "i4", "uint32": "u4", "int64": "i8", "uint64": "u8",
+            "float32": "f4", "float64": "f8"}
+
+
+class _NoLayout(Exception):
+    """The message cannot be described by one fixed layout (caller falls back to the library)."""
+
+
+@dataclass(frozen=True)
+class Layout:
+    """A fixed byte layout of one message length: structured dtype + the length fields to check."""
+
+    dtype: np.dtype
+    checks: tuple[tuple[str, int], ...]  # (field name, value every message must hold)
+
+
+def build_layout(typestore, msgtype: str, sample: bytes, encoding: str) -> Layout | None:
+    """Structured dtype describing ``sample`` (and every message of the same shape), or None.
+
+    CDR: 4-byte encapsulation header (``00 01`` little endian, ``00 00`` big endian), primitives
+    aligned to their size relative to the payload start; strings ``uint32 n`` (incl. NUL) + bytes.
+    ROS 1: packed little endian, strings ``uint32 n`` + bytes. Fixed arrays inline; sequences
+    ``uint32 count`` + elements. String and sequence lengths come from ``sample`` and become checks.
+    """
+    names: list[str] = []
+    formats: list = []
+    offsets: list[int] = []
+    checks: list[tuple[str, int]] = []
+    if encoding == "cdr":
+        if len(sample) < 4 or sample[0] != 0 or sample[1] not in (0, 1):
+            return None
+        endian, base, pos = ("<" if sample[1] == 1 else ">"), 4, 4
+        names.append("__encap")
+        formats.append(">u2")
+        offsets.append(0)
+        checks.append(("__encap", int.from_bytes(sample[:2], "big")))
+    elif encoding == "ros1":
+        endian, base, pos = "<", 0, 0
+    else:
+        return None
+    cdr = encoding == "cdr"
+    # rosbags Nodetype values: BASE=1, NAME=2, ARRAY=3, SEQUENCE=4
+
+    def align(p: int, a: int) -> int:
+        return p if not cdr or a <= 1 else base + -(-(p - base) // a) * a
+
+    def u32(p: int) -> int:
+        if p + 4 > len(sample):
+            raise _NoLayout
+        return int.from_bytes(sample[p:p + 4], "little" if endian == "<" else "big")
+
+    def add(name: str, fmt, p: int) -> None:
+        names.append(name)
+        formats.append(fmt)
+        offsets.append(p)
+
+    def walk(typename: str, p: int, prefix: str) -> int:
+        try:
+            fields = typestore.fielddefs[typename][1]
+        except KeyError:
+            raise _NoLayout from None
+        for fname, desc in fields:
+            p = one(desc, p, prefix + fname)
+        return p
+
+    def one(desc, p: int, name: str) -> int:
+        nt, detail = desc
+        nt = int(nt)
+        if nt == 2:  # NAME
+            return walk(detail, p, name + ".")
+        if nt == 1:  # BASE
+            tname = detail[0]
+            if tname == "string":
+                p = align(p, 4)
+                n = u32(p)
+                add(name + ".len", endian + "u4", p)
+                checks.append((name + ".len", n))
+                p += 4
+                if n:
+                    add(name, f"V{n}", p)
+                    if cdr:  # CDR strings end with NUL (the library insists too)
+                        add(name + ".nul", "u1", p + n - 1)
+                        checks.append((name + ".nul", 0))
+                return p + n
+            dt = _BASE_DT.get(tname)
+            if dt is None:
+                raise _NoLayout
+            size = int(dt[1])
+            p = align(p, size)
+            add(name, endian + dt, p)
+            return p + size
+        if nt in (3, 4):  # ARRAY, SEQUENCE
+            sub, count = detail
+            if nt == 4:
+                p = align(p, 4)
+                count = u32(p)
+                add(name + ".count", endian + "u4", p)
+                checks.append((name + ".count", count))
+                p += 4
+            if int(sub[0]) == 1 and sub[1][0] in _BASE_DT:
+                dt = _BASE_DT[sub[1][0]]
+                size = int(dt[1])
+                if count:
+                    p = align(p, size)
+                    add(name, (endian + dt, (count,)), p)
+                return p + size * count
+            for i in range(count):
+                p = one(sub, p, f"{name}.{i}")
+            return p
+        raise _NoLayout
+
+    try:
+        end = walk(msgtype, pos, "")
+    except (_NoLayout, KeyError, ValueError, TypeError):
+        return None
+    if end > len(sample) or (not cdr and end != len(sample)) or (cdr and len(sample) - end > 8):
+        return None
+    dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": len(sample)})
+    return Layout(dtype, tuple(checks))
+
+
+def _take(arr: np.ndarray, path: str) -> np.ndarray:
+    head, _, last = path.rpartition(".")
+    if last.isdigit() and head in arr.dtype.names:
+        return arr[head][:, int(last)]
+    return arr[path]
+
+
+def _getpath(msg, path: str):
+    for part in path.split("."):
+        msg = msg[int(part)] if part.isdigit() else getattr(msg, part)
+    return msg
+
+
+@dataclass(frozen=True)
+class Decoded:
+    """Decoded columns of one topic (message order), and how many took the fast path."""
+
+    columns: dict[str, np.ndarray]
+    n_fast: int
+    n_slow: int
+
+
+def library_decode(typestore, raw: RawTopic, paths: dict[str, str], index=None) -> dict[str, np.ndarray]:
+    """Reference decode with the rosbags deserialiser, message by message. A message the library
+    cannot decode (damaged) gives NaN in every column."""
+    idx = range(raw.count) if index is None else index
+    deser = typestore.deserialize_cdr if raw.encoding == "cdr" else typestore.deserialize_ros1
+    cols: dict[str, list] = {k: [] for k in paths}
+    for i in idx:
+        try:
+            msg = deser(raw.data[i], raw.msgtype)
+            vals = [float(_getpath(msg, p)) for p in paths.values()]
+        except Exception:  # damaged message: the library's own error is not ours to raise
+            vals = [math.nan] * len(paths)
+        for k, v in zip(cols, vals):
+            cols[k].append(v)
+    return {k: np.asarray(v, dtype=float) for k, v in cols.items()}
+
+
+def decode_topic(typestore, raw: RawTopic, paths: dict[str, str], *, fast: bool = True) -> Decoded:
+    """Columns ``paths`` of every message of ``raw`` (float64), vectorised where possible.
+
+    Messages are grouped by length; each group is decoded with the layout of its first message, the
+    messages that fail the layout's checks get another try with the layout of the first of them (a
+    few times); a message without a layout, and whatever is left, go to the library."""
+    n = raw.count
+    out = {k: np.full(n, np.nan) for k in paths}
+    if n == 0:
+        return Decoded(out, 0, 0)
+    if len(raw.data) != n:
+        raise InputError(f"topic {raw.name}: message content was not read")
+    lens = np.fromiter(map(len, raw.data), dtype=np.int64, count=n)
+    slow_idx: list[np.ndarray] = []
+    n_fast = 0
+    groups = np.unique(lens) if fast else []
+    if fast and len(groups) > 64:  # a zoo of lengths: not a fixed-layout stream
+        groups, slow_idx = [], [np.arange(n)]
+    elif not fast:
+        slow_idx = [np.arange(n)]
+    for length in groups:
+        idx = np.flatnonzero(lens == length) if len(groups) > 1 else np.arange(n)
+        blob = b"".join(raw.data) if len(idx) == n else b"".join([raw.data[i] for i in idx.tolist()])
+        left = np.ones(len(idx), bool)
+        for _attempt in range(6):
+            first = int(np.argmax(left))
+            layout = build_layout(typestore, raw.msgtype, raw.data[idx[first]], raw.encoding)
+            if layout is None:  # this message is odd: the library's turn; try the next one
+                slow_idx.append(idx[first:first + 1])
+                left[first] = False
+                if not left.any():
+                    break
+                continue
+            arr = np.frombuffer(blob, dtype=layout.dtype)
+            ok = left.copy()
+            for name, value in layout.checks:
+                ok &= arr[name] == value
+            if not ok.any():
+                break
+            try:
+                if len(idx) == n and ok.all():  # the common case: one layout for the whole topic
+                    for k, p in paths.items():
+                        out[k] = _take(arr, p).astype(float)
+                else:
+                    sel = idx[ok]
+                    for k, p in paths.items():
+                        out[k][sel] = _take(arr, p)[ok]
+            except (KeyError, ValueError, IndexError):
+                break
+            n_fast += int(ok.sum())
+            left &= ~ok
+            if not left.any():
+                break
+        if left.any():
+            slow_idx.append(idx[left])
+    n_slow = 0
+    if slow_idx:
+        idx = np.sort(np.concatenate(slow_idx))
+        vals = library_decode(typestore, raw, paths, idx.tolist())
+        for k in paths:
+            out[k][idx] = vals[k]
+        n_slow = len(idx)
+    return Decoded(out, n_fast, n_slow)
+
+
+def encode_messages(typestore, msgtype: str, template, encoding: str, columns: dict[str, np.ndarray]) -> list[bytes]:
+    """Serialise many messages at once: ``template`` (a message object) fixes strings and constant
+    fields; ``columns`` (field path -> array, one value per message) fill the rest."""
+    ser = typestore.serialize_cdr if encoding == "cdr" else typestore.serialize_ros1
+    sample = bytes(ser(template, msgtype))
+    layout = build_layout(typestore, msgtype, sample, encoding)
+    if layout is None:
+        raise ValueError(f"cannot build a layout for {msgtype}")
+    n = len(next(iter(columns.values())))
+    arr = np.empty(n, dtype=layout.dtype)
+    raw = arr.view(np.uint8).reshape(n, len(sample))
+    raw[:] = np.frombuffer(sample, np.uint8)
+    for path, vals in columns.items():
+        head, _, last = path.rpartition(".")
+        if last.isdigit() and head in layout.dtype.names:
+            arr[head][:, int(last)] = vals
+        else:
+            arr[path] = vals
+    blob = arr.tobytes()
+    size = len(sample)
+    return [blob[i:i + size] for i in range(0, n * size, size)]
+
+
+# ---- stamps and clocks ----------------------------------------------------------------------
+def clock_of(t_ns: np.ndarray) -> str:
+    if len(t_ns) == 0:
+        return "unknown"
+    return "epoch" if float(np.median(t_ns)) * 1e-9 > EPOCH_THRESHOLD_S else "boot"
+
+
+@dataclass(frozen=True)
+class TopicData:
+    """One decoded topic: stamps (int64 ns) on the chosen clock, and its columns."""
+
+    name: str
+    msgtype: str
+    t_ns: np.ndarray
+    cols: dict[str, np.ndarray]
+    stamp_source: str
+    frame_id: str = ""
+
+
+def _frame_id(typestore, raw: RawTopic) -> str:
+    try:
+        deser = typestore.deserialize_cdr if raw.encoding == "cdr" else typestore.deserialize_ros1
+        return str(deser(raw.data[0], raw.msgtype).header.frame_id)
+    except Exception:
+        return ""
+
+
+def topic_data(rawlog: RawLog, name: str, time_mode: str, warnings: list[str],
+               keys: tuple[str, ...] | None = None) -> TopicData:
+    raw = rawlog.topics[name]
+    paths = dict(FIELDS[raw.msgtype])
+    if keys is not None:
+        paths = {k: v for k, v in paths.items() if k in keys}
+    dec = decode_topic(rawlog.typestore, raw, {**paths, **STAMP_FIELDS})
+    if dec.n_slow:
+        warnings.append(f"{name}: {dec.n_slow} of {raw.count} messages decoded by the library "
+                        "(not the fixed-layout fast path)")
+    cols = dec.columns
+    log_ns = np.asarray(raw.log_ns, dtype=np.int64)
+    bad = np.isnan(cols["sec"]) | np.isnan(cols["nsec"])
+    if bad.any():
+        warnings.append(f"{name}: {int(bad.sum())} of {raw.count} messages undecodable (damaged); dropped")
+        cols = {k: v[~bad] for k, v in cols.items()}
+        log_ns = log_ns[~bad]
+    stamp_ns = cols.pop("sec").astype(np.int64) * 1_000_000_000 + cols.pop("nsec").astype(np.int64)
+    if time_mode == "log":
+        t_ns, src = log_ns, "log time"
+    elif raw.count and not np.any(stamp_ns):
+        warnings.append(f"{name}: header stamps are all zero; log time used instead")
+        t_ns, src = log_ns, "log time"
+    else:
+        t_ns, src = stamp_ns, "header.stamp"
+    return TopicData(name, raw.msgtype, t_ns, cols, src, _frame_id(rawlog.typestore, raw) if raw.count else "")
+
+
+# ---- ROS (ENU/FLU) -> tapost (NED/FRD) --------------------------------------------------------
+#: the axis swaps as rotation quaternions (both 180 deg rotations, each its own inverse):
+#: NED <- ENU about (1, 1, 0)/sqrt(2), FLU <- FRD about x. ``a * q * b`` is the same similarity
+#: transform as ``conventions.quat_enu_flu_to_ned_frd`` (tested) at a sixth of the cost.
+_Q_NED_ENU = np.array([0.0, math.sqrt(0.5), math.sqrt(0.5), 0.0])
+_Q_FLU_FRD = np.array([0.0, 1.0, 0.0, 0.0])
+
+
+def quat_enu_flu_to_ned_frd_fast(q_wxyz: np.ndarray) -> np.ndarray:
+    """FLU->ENU attitude quaternions -> FRD->NED (and back: the transform is an involution)."""
+    return quat_mul(quat_mul(_Q_NED_ENU, q_wxyz), _Q_FLU_FRD)
+
+
+def quat_ros_to_ned_frd(cols: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """ROS (x, y, z, w) FLU->ENU columns -> (quat_wxyz FRD->NED, valid mask)."""
+    q = np.stack([cols["qw"], cols["qx"], cols["qy"], cols["qz"]], axis=-1)
+    norm = np.linalg.norm(q, axis=-1)
+    ok = np.isfinite(norm) & (np.abs(norm - 1.0) < 0.1)
+    out = np.full_like(q, np.nan)
+    if ok.any():
+        out[ok] = quat_enu_flu_to_ned_frd_fast(q[ok] / norm[ok, None])
+    return out, ok
+
+
+def _vec(cols: dict[str, np.ndarray], prefix: str) -> np.ndarray:
+    return np.stack([cols[prefix + c] for c in _V], axis=-1)
+
+
+def _quat_at(t_ns: np.ndarray, q_t_ns: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Attitude interpolated (slerp) at ``t_ns``; NaN outside the attitude's span."""
+    out = np.full((len(t_ns), 4), np.nan)
+    if len(q_t_ns) < 2:
+        return out
+    order = np.argsort(q_t_ns, kind="stable")
+    qt, qq = q_t_ns[order], quat_make_continuous(q[order])
+    i = np.searchsorted(qt, t_ns, side="right") - 1
+    ok = (i >= 0) & (t_ns <= qt[-1])
+    i = np.clip(i, 0, len(qt) - 2)
+    frac = (t_ns - qt[i]) / np.maximum(qt[i + 1] - qt[i], 1)
+    res = quat_slerp(qq[i], qq[i + 1], np.clip(frac, 0.0, 1.0))
+    out[ok] = res[ok]
+    return out
+
+
+def body_to_ned(v_frd: np.ndarray, q_ned_frd: np.ndarray) -> np.ndarray:
+    return np.einsum("nij,nj->ni", dcm_from_quat(q_ned_frd), v_frd)
+
+
+# ---- unit selection ---------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Plan:
+    imu: str | None = None  # Imu topic (gyro + accel)
+    gyro_odom: str | None = None  # Odometry topic used as gyro (twist.angular)
+    att: str | None = None
+    vel: str | None = None
+    pos: str | None = None
+    time_mode: str = "header"
+    vel_frame: str | None = None  # None = by type (Odometry body, others enu)
+
+
+def _topics_of(rawlog: RawLog, *types: str) -> list[str]:
+    """Topics of these types holding messages, in the order the log declares them."""
+    return [n for n, t in rawlog.topics.items() if t.msgtype in types and t.count]
+
+
+def _need(rawlog: RawLog, key: str, topic: str, types: tuple[str, ...]) -> str:
+    t = rawlog.topics.get(topic)
+    if t is None:
+        have = ", ".join(sorted(rawlog.topics)) or "none"
+        raise InputError(f"selector {key}={topic}: no such topic (topics: {have})", rawlog.path)
+    if t.msgtype not in types:
+        raise InputError(f"selector {key}={topic}: topic is {t.msgtype}, expected "
+                         f"{' or '.join(types)}", rawlog.path)
+    if t.count == 0:
+        damage = [w for w in rawlog.warnings if not w.startswith("note")]
+        raise InputError(f"selector {key}={topic}: topic holds no messages"
+                         + (f" ({damage[0]})" if damage else ""), rawlog.path)
+    return topic
+
+
+def _imu_has_orientation(rawlog: RawLog, topic: str) -> bool:
+    raw = rawlog.topics[topic]
+    sub = RawTopic(raw.name, raw.msgtype, raw.encoding, raw.log_ns[:20], raw.data[:20])
+    c = decode_topic(rawlog.typestore, sub, {k: FIELDS[IMU][k] for k in ("qx", "qy", "qz", "qw", "q_cov0")}).columns
+    _q, ok = quat_ros_to_ned_frd(c)
+    return bool(np.any(ok & (c["q_cov0"] != -1)))
+
+
+def plan_unit(rawlog: RawLog, selector: Selector) -> tuple[Plan, list[str]]:
+    """Decide the topics of the unit (selector, else defaults); notes say what was picked."""
+    notes: list[str] = []
+    for k, _v in selector.items:
+        if k not in SELECTOR_KEYS:
+            raise InputError(f"unknown selector key {k!r} for a ROS log (keys: {', '.join(SELECTOR_KEYS)})",
+                             rawlog.path)
+    time_mode = (selector.get("time") or "header").lower()
+    if time_mode not in ("header", "log"):
+        raise InputError(f"selector time={time_mode}: expected header or log", rawlog.path)
+    vel_frame = selector.get("vel_frame")
+    if vel_frame is not None and vel_frame.lower() not in ("enu", "body"):
+        raise InputError(f"selector vel_frame={vel_frame}: expected enu or body", rawlog.path)
+    vel_frame = vel_frame.lower() if vel_frame else None
+    imu = selector.get("imu")
+    odom = selector.get("odom")
+    att, vel, pos = selector.get("att"), selector.get("vel"), selector.get("pos")
+    nav = selector.get("nav")
+    if nav:
+        t = rawlog.topics.get(nav)
+        _need(rawlog, "nav", nav, tuple(SUPPORTED))
+        kind = KIND[t.msgtype]
+        if kind == "odom":
+            odom = odom or nav
+        elif kind == "pos":
+            pos = pos or nav
+        elif kind == "vel":
+            vel = vel or nav
+        else:
+            att = att or nav
+    if imu:
+        _need(rawlog, "imu", imu, (IMU,))
+    if odom:
+        _need(rawlog, "odom", odom, (ODOM,))
+    if att:
+        _need(rawlog, "att", att, (IMU, ODOM, QUAT_STAMPED, POSE, POSE_COV))
+    if vel:
+        _need(rawlog, "vel", vel, (ODOM, TWIST, TWIST_COV, VEC3))
+    if pos:
+        _need(rawlog, "pos", pos, (FIX,))
+    explicit = bool(selector and any(k in ("imu", "odom", "att", "vel", "pos", "nav") for k, _ in selector.items))
+    gyro_odom = None
+    if not imu:
+        if odom:
+            gyro_odom = odom
+        elif not explicit:
+            imus = _topics_of(rawlog, IMU)
+            if imus:
+                imu = imus[0]
+                more = f" (other Imu topics: {', '.join(imus[1:])})" if len(imus) > 1 else ""
+                notes.append(f"selected imu={imu}{more}")
+            else:
+                odoms = _topics_of(rawlog, ODOM)
+                if odoms:
+                    gyro_odom = odom = odoms[0]
+                    notes.append(f"no sensor_msgs/Imu topic: gyro from odom={odom} twist.angular")
+    if not att:
+        if odom:
+            att = odom
+        elif imu and _imu_has_orientation(rawlog, imu):
+            att = imu
+        elif not explicit:
+            cands = _topics_of(rawlog, QUAT_STAMPED, POSE, POSE_COV)
+            if cands:
+                att = cands[0]
+        if att and not explicit:
+            notes.append(f"selected att={att}")
+    if not vel:
+        if odom:
+            vel = odom
+        elif not explicit:
+            cands = _topics_of(rawlog, TWIST, TWIST_COV, VEC3) or _topics_of(rawlog, ODOM)
+            if cands:
+                vel = cands[0]
+                notes.append(f"selected vel={vel}" + (" (TwistStamped/Vector3Stamped assumed ENU world frame; "
+                                                      "override with vel_frame=body)"
+                                                      if rawlog.topics[vel].msgtype != ODOM else
+                                                      " (Odometry twist.linear in child frame, rotated "
+                                                      "with its pose orientation)"))
+    if not pos and not explicit:
+        cands = _topics_of(rawlog, FIX)
+        if cands:
+            pos = cands[0]
+            notes.append(f"selected pos={pos}")
+    if not (imu or gyro_odom or att or vel or pos):
+        damage = [w for w in rawlog.warnings if not w.startswith("note")]
+        if damage:
+            raise InputError(f"no readable INS messages left; {damage[0]}", rawlog.path)
+        have = ", ".join(f"{n} ({t.msgtype}, {t.count} msgs)" for n, t in rawlog.topics.items()) or "no topics"
+        raise InputError(f"no INS messages (Imu, Odometry, TwistStamped, NavSatFix...) in topics: {have}",
+                         rawlog.path)
+    return Plan(imu, gyro_odom, att, vel, pos, time_mode, vel_frame), notes
+
+
+def unit_selector(plan: Plan) -> str:
+    items = []
+    if plan.imu:
+        items.append(f"imu={plan.imu}")
+    if plan.gyro_odom:
+        items.append(f"odom={plan.gyro_odom}")
+    for k in ("att", "vel", "pos"):
+        v = getattr(plan, k)
+        if v and v not in (plan.gyro_odom,) and not (k == "att" and v == plan.imu):
+            items.append(f"{k}={v}")
+    if plan.time_mode != "header":
+        items.append(f"time={plan.time_mode}")
+    if plan.vel_frame:
+        items.append(f"vel_frame={plan.vel_frame}")
+    return ",".join(items)
+
+
+def to_inslog(rawlog: RawLog, selector: Selector) -> InsLog:
+    """Decode the selected unit of ``rawlog`` into an InsLog (NED/FRD, header stamps by default)."""
+    plan, notes = plan_unit(rawlog, selector)
+    warnings = list(rawlog.warnings)
+    warnings += [f"note: {n}" for n in notes]
+    cache: dict[str, TopicData] = {}
+
+    def get(name: str) -> TopicData:
+        if name not in cache:
+            cache[name] = topic_data(rawlog, name, plan.time_mode, warnings)
+        return cache[name]
+
+    gyro = accel = quat = vel = pos = None
+    sources: list[str] = []
+    if plan.imu:
+        d = get(plan.imu)
+        c = d.cols
+        if np.all(c["g_cov0"] == -1):
+            warnings.append(f"{d.name}: angular_velocity marked absent (covariance[0] = -1)")
+        else:
+            gyro = Stream(d.t_ns, flu_to_frd(_vec(c, "g")), d.name)
+        if np.all(c["a_cov0"] == -1):
+            warnings.append(f"{d.name}: linear_acceleration marked absent (covariance[0] = -1)")
+        else:
+            accel = Stream(d.t_ns, flu_to_frd(_vec(c, "a")), d.name)
+        sources.append(f"{d.stamp_source} ({d.name})")
+    if plan.gyro_odom:
+        d = get(plan.gyro_odom)
+        gyro = Stream(d.t_ns, flu_to_frd(_vec(d.cols, "g")), d.name + " twist.angular")
+        sources.append(f"{d.stamp_source} ({d.name})")
+    q_t = q_v = None
+    if plan.att:
+        d = get(plan.att)
+        q, ok = quat_ros_to_ned_frd(d.cols)
+        if d.msgtype == IMU:
+            ok &= d.cols["q_cov0"] != -1
+        if not ok.all():
+            warnings.append(f"{d.name}: {int((~ok).sum())} of {len(ok)} orientations absent or not unit "
+                            "quaternions; dropped")
+        if ok.any():
+            q_t, q_v = d.t_ns[ok], q[ok]
+            quat = Stream(q_t, q_v, d.name)
+        if plan.att not in (plan.imu, plan.gyro_odom):
+            sources.append(f"{d.stamp_source} ({d.name})")
+    if plan.vel:
+        d = get(plan.vel)
+        v = _vec(d.cols, "v")
+        body = d.msgtype == ODOM if plan.vel_frame is None else plan.vel_frame == "body"
+        if body:
+            if d.msgtype == ODOM and plan.vel_frame is None:
+                qv, okq = quat_ros_to_ned_frd(d.cols)
+                qv[~okq] = np.nan
+            else:
+                if q_t is None:
+                    raise InputError(f"vel={d.name} in body frame needs an attitude (att=/topic)", rawlog.path)
+                qv = _quat_at(d.t_ns, q_t, q_v)
+            v_ned = body_to_ned(flu_to_frd(v), qv)
+        else:
+            v_ned = enu_to_ned(v)
+        vel = Stream(d.t_ns, v_ned, d.name + (" (body)" if body else " (ENU)"))
+        if plan.vel not in (plan.imu, plan.gyro_odom, plan.att):
+            sources.append(f"{d.stamp_source} ({d.name})")
+    if plan.pos:
+        d = get(plan.pos)
+        fix = d.cols["status"] >= 0
+        if not fix.all():
+            warnings.append(f"{d.name}: {int((~fix).sum())} messages without a fix (status < 0) dropped")
+        pos = Stream(d.t_ns[fix], np.stack([d.cols["lat"], d.cols["lon"], d.cols["alt"]], axis=-1)[fix], d.name)
+        sources.append(f"{d.stamp_source} ({d.name})")
+    by_src: dict[str, list[str]] = {}
+    for item in dict.fromkeys(sources):
+        src, _, topic = item.partition(" (")
+        by_src.setdefault(src, []).append(topic.rstrip(")"))
+    stamp_source = "; ".join(f"{src} ({', '.join(topics)})" for src, topics in by_src.items())
+    all_t = [s.t_ns for s in (gyro, accel, quat, vel, pos) if s is not None and len(s.t_ns)]
+    clock = clock_of(np.concatenate(all_t)) if all_t else "unknown"
+    sel = str(selector) if selector else unit_selector(plan)
+    return build_inslog(path=rawlog.path, fmt=rawlog.fmt, selector=sel, clock=clock, stamp_source=stamp_source,
+                        gyro=gyro, accel=accel, quat=quat, vel=vel, pos=pos, warnings=warnings)
+
+
+def to_inventory(rawlog: RawLog) -> Inventory:
+    """Topics, types, counts, rates, durations, clocks and ready selectors (one per unit)."""
+    streams: list[StreamInfo] = []
+    warnings = list(rawlog.warnings)
+    notes: list[str] = []
+    if not any(t.count for t in rawlog.topics.values()):
+        damage = [w for w in rawlog.warnings if not w.startswith("note")]
+        raise InputError("no readable messages" + (f"; {damage[0]}" if damage else " (empty log)"), rawlog.path)
+    for name in sorted(rawlog.topics):
+        raw = rawlog.topics[name]
+        if raw.msgtype in SUPPORTED and len(raw.data) == raw.count and raw.count:
+            d = topic_data(rawlog, name, "header", warnings, keys=())
+            t_ns, src = d.t_ns, d.stamp_source
+            fields = tuple(FIELDS[raw.msgtype])
+        else:
+            t_ns, src, fields = np.asarray(raw.log_ns, np.int64), "log time", ()
+        t_sorted = np.sort(t_ns)
+        kind = KIND.get(raw.msgtype, "other")
+        streams.append(StreamInfo(
+            name=name, kind=kind, count=raw.count, rate_hz=rate_of((t_sorted - t_sorted[0]) * 1e-9) if raw.count else 0.0,
+            start_s=float(t_sorted[0]) * 1e-9 if raw.count else float("nan"),
+            duration_s=float(t_sorted[-1] - t_sorted[0]) * 1e-9 if raw.count else 0.0,
+            clock=f"{clock_of(t_ns)} ({src})", fields=(raw.msgtype,) + fields))
+    selectors: list[str] = []
+    nav_extra = []
+    vels = _topics_of(rawlog, TWIST, TWIST_COV, VEC3)
+    fixes = _topics_of(rawlog, FIX)
+    atts = _topics_of(rawlog, QUAT_STAMPED, POSE, POSE_COV)
+    if vels:
+        nav_extra.append(f"vel={vels[0]}")
+    if fixes:
+        nav_extra.append(f"pos={fixes[0]}")
+    for imu in _topics_of(rawlog, IMU):
+        items = [f"imu={imu}"]
+        if atts and not _imu_has_orientation(rawlog, imu):
+            items.append(f"att={atts[0]}")
+        selectors.append(",".join(items + nav_extra))
+    for odom in _topics_of(rawlog, ODOM):
+        selectors.append(f"odom={odom}")
+    if not selectors and (vels or fixes or atts):
+        selectors.append(",".join(([f"att={atts[0]}"] if atts else []) + nav_extra))
+    if len(vels) > 1 or len(fixes) > 1:
+        notes.append("several velocity/fix topics: change vel=/pos= in the selectors as needed")
+    if vels:
+        notes.append("TwistStamped/Vector3Stamped velocity is taken as ENU world frame; "
+                     "add vel_frame=body if it is in the body (FLU) frame")
+    notes.append("types: " + ", ".join(f"{n} {t.msgtype or '?'}" for n, t in rawlog.topics.items()))
+    notes.append("clock: header.stamp by default; add time=log to use the bag's record time")
+    return Inventory(path=rawlog.path, format=rawlog.fmt, streams=tuple(streams), selectors=tuple(selectors),
+                     warnings=tuple(warnings), notes=tuple(notes))
+
+
+# ---- InsLog (NED/FRD) -> ROS messages (ENU/FLU), for the writers -----------------------------
+@dataclass(frozen=True)
+class OutTopic:
+    name: str
+    msgtype: str
+    stamp_ns: np.ndarray
+    data: list[bytes]
+
+
+def _stamp_cols(t_ns: np.ndarray) -> dict[str, np.ndarray]:
+    t_ns = np.asarray(t_ns, np.int64)
+    return {"header.stamp.sec": t_ns // 1_000_000_000, "header.stamp.nanosec": t_ns % 1_000_000_000}
+
+
+def _abs_ns(log: InsLog, t_s: np.ndarray) -> np.ndarray:
+    return int(log.meta.t0_ns) + np.round(np.asarray(t_s, float) * 1e9).astype(np.int64)
+
+
+def _template(typestore, msgtype: str, frame_id: str, encoding: str):
+    """A zero message of ``msgtype`` with ``frame_id`` in its header (built generically)."""
+    def make(typename: str, depth: int = 0):
+        cls = typestore.types[typename]
+        kwargs = {}
+        for fname, (nt, detail) in typestore.fielddefs[typename][1]:
+            nt = int(nt)
+            if nt == 2:
+                kwargs[fname] = make(detail, depth + 1)
+            elif nt == 1:
+                kwargs[fname] = "" if detail[0] == "string" else (False if detail[0] == "bool" else 0)
+            elif nt == 3:
+                sub, count = detail
+                dt = _BASE_DT.get(sub[1][0], "f8") if int(sub[0]) == 1 else None
+                kwargs[fname] = np.zeros(count, dtype=dt) if dt else [make(sub[1]) for _ in range(count)]
+            else:
+                sub = detail[0]
+                dt = _BASE_DT.get(sub[1][0], "f8") if int(sub[0]) == 1 else None
+                kwargs[fname] = np.zeros(0, dtype=dt) if dt else []
+        return cls(**kwargs)
+
+    msg = make(msgtype)
+    msg.header.frame_id = frame_id
+    return msg
+
+
+def ros_topics_from_inslog(log: InsLog, typestore, encoding: str, *, imu_topic: str = "/imu",
+                           vel_topic: str = "/velocity", fix_topic: str = "/fix", att_topic: str = "/attitude",
+                           body_frame: str = "base_link", world_frame: str = "map") -> list[OutTopic]:
+    """The messages a writer stores for ``log``: /imu (Imu; orientation when the log has attitude at
+    the IMU stamps, else orientation_covariance[0] = -1 and a separate /attitude QuaternionStamped),
+    /velocity (TwistStamped, ENU world frame), /fix (NavSatFix). NED/FRD -> ENU/FLU."""
+    out: list[OutTopic] = []
+    t_q, q = log.quat_wxyz() if log.has_quat else (np.zeros(0), np.zeros((0, 4)))
+    q_ns = _abs_ns(log, t_q)
+    q_enu = quat_enu_flu_to_ned_frd_fast(q) if len(q) else np.zeros((0, 4))
+    att_in_imu = False
+    if log.has_gyro or log.has_accel:
+        t_ns = _abs_ns(log, log.t_imu_s())
+        n = len(t_ns)
+        cols = _stamp_cols(t_ns)
+        g = frd_to_flu(log.gyro_rad_s()) if log.has_gyro else np.zeros((n, 3))
+        a = frd_to_flu(log.accel_m_s2()) if log.has_accel else np.zeros((n, 3))
+        for i, c in enumerate(_V):
+            cols[f"angular_velocity.{c}"] = g[:, i]
+            cols[f"linear_acceleration.{c}"] = a[:, i]
+        if not log.has_gyro:
+            cols["angular_velocity_covariance.0"] = np.full(n, -1.0)
+        if not log.has_accel:
+            cols["linear_acceleration_covariance.0"] = np.full(n, -1.0)
+        qi = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
+        if len(q_ns) and np.isin(t_ns, q_ns).all() and len(q_ns) == n:
+            att_in_imu = True
+            pos_idx = np.searchsorted(q_ns, t_ns)
+            qi = q_enu[pos_idx]
+        else:
+            cols["orientation_covariance.0"] = np.full(n, -1.0)
+        for i, c in enumerate(("w", "x", "y", "z")):
+            cols[f"orientation.{c}"] = qi[:, i]
+        tmpl = _template(typestore, IMU, body_frame, encoding)
+        out.append(OutTopic(imu_topic, IMU, t_ns, encode_messages(typestore, IMU, tmpl, encoding, cols)))
+    if len(q_ns) and not att_in_imu:
+        cols = _stamp_cols(q_ns)
+        for i, c in enumerate(("w", "x", "y", "z")):
+            cols[f"quaternion.{c}"] = q_enu[:, i]
+        tmpl = _template(typestore, QUAT_STAMPED, world_frame, encoding)
+        out.append(OutTopic(att_topic, QUAT_STAMPED, q_ns,
+                            encode_messages(typestore, QUAT_STAMPED, tmpl, encoding, cols)))
+    if log.has_vel:
+        t_v, v = log.vel_ned_m_s()
+        t_ns = _abs_ns(log, t_v)
+        cols = _stamp_cols(t_ns)
+        v_enu = ned_to_enu(v)
+        for i, c in enumerate(_V):
+            cols[f"twist.linear.{c}"] = v_enu[:, i]
+        tmpl = _template(typestore, TWIST, world_frame, encoding)
+        out.append(OutTopic(vel_topic, TWIST, t_ns, encode_messages(typestore, TWIST, tmpl, encoding, cols)))
+    if log.has_pos:
+        t_p, p = log.lat_lon_alt()
+        t_ns = _abs_ns(log, t_p)
+        cols = _stamp_cols(t_ns)
+        cols.update({"latitude": p[:, 0], "longitude": p[:, 1], "altitude": p[:, 2]})
+        tmpl = _template(typestore, FIX, "gps", encoding)
+        tmpl.status.service = 1
+        out.append(OutTopic(fix_topic, FIX, t_ns, encode_messages(typestore, FIX, tmpl, encoding, cols)))
+    if not out:
+        raise InputError("nothing to write (the log has no IMU, attitude, velocity or position)",
+                         log.meta.source_path)
+    return out
+
+
+def merged_order(topics: list[OutTopic], log_delay_ns: int = 0) -> list[tuple[int, int, int]]:
+    """(log time ns, topic index, message index) of every message, in log-time order."""
+    t = np.concatenate([tp.stamp_ns + int(log_delay_ns) for tp in topics])
+    ti = np.concatenate([np.full(len(tp.stamp_ns), k) for k, tp in enumerate(topics)])
+    mi = np.concatenate([np.arange(len(tp.stamp_ns)) for tp in topics])
+    order = np.lexsort((ti, t))
+    return list(zip(t[order].tolist(), ti[order].tolist(), mi[order].tolist()))
+
+
+__all__ = [
+    "IMU", "ODOM", "TWIST", "TWIST_COV", "VEC3", "FIX", "QUAT_STAMPED", "POSE", "POSE_COV", "KIND",
+    "FIELDS", "RawTopic", "RawLog", "Layout", "build_layout", "decode_topic", "library_decode",
+    "encode_messages", "to_inslog", "to_inventory", "ros_topics_from_inslog", "merged_order",
+    "normalize_msgtype", "register_msgdef", "default_typestore", "keep_supported", "plan_unit",
+]

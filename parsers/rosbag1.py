@@ -1,0 +1,281 @@
+"""ROS 1 bags (``#ROSBAG V2.0``).
+
+Reading: a linear scan of the bag's records (own code: the index at the end is not needed, so a
+bag cut off while recording still gives its readable part), chunks decompressed (none/bz2/lz4),
+raw message bytes + record times collected per connection, message definitions from the connection
+records registered in a rosbags typestore. Content decoded by :mod:`parsers.ros_common` (vectorised,
+with the rosbags deserialiser as reference and fallback). Damage (truncation, a chunk that does not
+decompress, a broken record) is reported in ``meta.warnings`` and the readable part is used.
+
+Writing (``write(path, log, log_delay_ns=0, compression="none"|"bz2"|"lz4")``) with ``rosbags.rosbag1.Writer``: same topics as
+:mod:`parsers.mcap_ros` (/imu, /velocity, /fix, /attitude), ENU/FLU, header stamps exact ns.
+"""
+from __future__ import annotations
+
+import bz2
+import os
+import struct
+from collections.abc import Callable
+
+from logtools.errors import InputError
+from logtools.inslog import InsLog
+from parsers import ros_common as rc
+from parsers.atomic import atomic_path
+from parsers.base import Inventory, Selector, check_readable
+
+NAME = "rosbag1"
+EXTENSIONS = (".bag",)
+MAGIC = b"#ROSBAG V2.0\n"
+
+_OP_MSG, _OP_BAGHEADER, _OP_INDEX, _OP_CHUNK, _OP_CHUNKINFO, _OP_CONN = 2, 3, 4, 5, 6, 7
+_U32 = struct.Struct("<I")
+_TIME = struct.Struct("<II")
+
+
+def sniff(head: bytes, path: str) -> bool:
+    return head.startswith(MAGIC)
+
+
+class _Damage(Exception):
+    pass
+
+
+def _fields(header: bytes) -> dict[str, bytes]:
+    out: dict[str, bytes] = {}
+    off, n = 0, len(header)
+    while off < n:
+        if off + 4 > n:
+            raise _Damage("header field cut")
+        (ln,) = _U32.unpack_from(header, off)
+        off += 4
+        if off + ln > n:
+            raise _Damage("header field runs past its header")
+        name, sep, value = header[off:off + ln].partition(b"=")
+        if not sep:
+            raise _Damage("header field without '='")
+        out[name.decode("ascii", "replace")] = value
+        off += ln
+    return out
+
+
+class _Scan:
+    def __init__(self, keep: Callable[[str, str], bool]):
+        self.keep = keep
+        self.conns: dict[int, tuple[str, str, str]] = {}  # id -> topic, msgtype, msgdef
+        self.times: dict[int, list[int]] = {}
+        self.data: dict[int, list[bytes] | None] = {}
+        self.warnings: list[str] = []
+        self.layout: dict[int, tuple[int, int, int] | None] = {}  # header length -> op/conn/time offsets
+
+    def connection(self, header: dict[str, bytes], data: bytes) -> None:
+        (cid,) = _U32.unpack_from(header["conn"], 0)
+        if cid in self.conns:
+            return
+        f = _fields(data)
+        topic = (f.get("topic") or header.get("topic") or b"").decode("utf-8", "replace")
+        msgtype = rc.normalize_msgtype(f.get("type", b"").decode("utf-8", "replace"))
+        msgdef = f.get("message_definition", b"").decode("utf-8", "replace")
+        self.conns[cid] = (topic, msgtype, msgdef)
+        self.times[cid] = []
+        self.data[cid] = [] if self.keep(topic, msgtype) else None
+
+    def _msg_layout(self, hdr: bytes) -> tuple[int, int, int] | None:
+        """Offsets (inside the header) of the op, conn and time values of a MSG_DATA header."""
+        pos: dict[str, int] = {}
+        off = 0
+        while off < len(hdr):
+            (ln,) = _U32.unpack_from(hdr, off)
+            eq = hdr.index(b"=", off + 4, off + 4 + ln)
+            pos[hdr[off + 4:eq].decode("ascii", "replace")] = eq + 1
+            off += 4 + ln
+        if set(pos) != {"op", "conn", "time"}:
+            return None
+        return pos["op"], pos["conn"], pos["time"]
+
+    def records(self, buf: bytes, start: int, end: int, where: str) -> None:
+        off = start
+        u32 = _U32.unpack_from
+        tm = _TIME.unpack_from
+        layouts = self.layout
+        times, data = self.times, self.data
+        while off < end:
+            if off + 4 > end:
+                raise _Damage(f"{where}: record cut at byte {off}")
+            (hlen,) = u32(buf, off)
+            h0 = off + 4
+            if h0 + hlen + 4 > end:
+                raise _Damage(f"{where}: record header at byte {off} runs past its container")
+            (dlen,) = u32(buf, h0 + hlen)
+            d0 = h0 + hlen + 4
+            nxt = d0 + dlen
+            if nxt > end:
+                raise _Damage(f"{where}: record data at byte {off} runs past its container")
+            lay = layouts.get(hlen, 0)
+            if lay == 0:
+                try:
+                    lay = self._msg_layout(buf[h0:h0 + hlen])
+                except (ValueError, struct.error):
+                    lay = None
+                layouts[hlen] = lay
+            if lay is not None and buf[h0 + lay[0]] == _OP_MSG and buf[h0 + lay[0] - 3:h0 + lay[0]] == b"op=":
+                (cid,) = u32(buf, h0 + lay[1])
+                sec, nsec = tm(buf, h0 + lay[2])
+                lst = times.get(cid)
+                if lst is None:
+                    raise _Damage(f"{where}: message for unknown connection {cid} at byte {off}")
+                lst.append(sec * 1_000_000_000 + nsec)
+                d = data[cid]
+                if d is not None:
+                    d.append(buf[d0:nxt])
+                off = nxt
+                continue
+            header = _fields(buf[h0:h0 + hlen])
+            op = header.get("op", b"\xff")[:1]
+            if op == bytes([_OP_CONN]):
+                self.connection(header, buf[d0:nxt])
+            elif op == bytes([_OP_MSG]):
+                (cid,) = _U32.unpack_from(header["conn"], 0)
+                sec, nsec = _TIME.unpack_from(header["time"], 0)
+                if cid not in times:
+                    raise _Damage(f"{where}: message for unknown connection {cid} at byte {off}")
+                times[cid].append(sec * 1_000_000_000 + nsec)
+                if data[cid] is not None:
+                    data[cid].append(buf[d0:nxt])
+            elif op == bytes([_OP_CHUNK]):
+                self.chunk(header, buf, d0, nxt, off)
+            elif op not in (bytes([_OP_BAGHEADER]), bytes([_OP_INDEX]), bytes([_OP_CHUNKINFO])):
+                raise _Damage(f"{where}: unknown record op {op!r} at byte {off}")
+            off = nxt
+
+    def chunk(self, header: dict[str, bytes], buf: bytes, d0: int, d1: int, where: int) -> None:
+        comp = header.get("compression", b"none").decode("ascii", "replace")
+        size = _U32.unpack_from(header.get("size", b"\0\0\0\0"), 0)[0]
+        raw = buf[d0:d1]
+        try:
+            if comp == "none":
+                content = raw
+            elif comp == "bz2":
+                content = bz2.decompress(raw)
+            elif comp == "lz4":
+                import lz4.frame
+
+                content = lz4.frame.decompress(raw)
+            else:
+                raise _Damage(f"chunk at byte {where}: unsupported compression {comp!r}")
+        except _Damage:
+            raise
+        except Exception as exc:
+            raise _Damage(f"chunk at byte {where} cannot be decompressed ({type(exc).__name__})") from None
+        if len(content) != size:
+            raise _Damage(f"chunk at byte {where}: size {len(content)} != {size}")
+        before = {k: len(v) for k, v in self.times.items()}
+        try:
+            self.records(content, 0, len(content), f"chunk at byte {where}")
+        except (_Damage, struct.error, KeyError, ValueError) as exc:  # keep what was read before
+            n_new = sum(len(v) - before.get(k, 0) for k, v in self.times.items())
+            text = str(exc) if isinstance(exc, _Damage) else f"chunk at byte {where}: {type(exc).__name__} {exc}"
+            raise _Damage(f"{text} (kept the {n_new} messages of that chunk before the damage)") from None
+
+
+def read_raw(path: str, keep: Callable[[str, str], bool] = rc.keep_supported, fmt: str = NAME) -> rc.RawLog:
+    check_readable(path)
+    with open(path, "rb") as fh:
+        buf = fh.read()
+    if not buf.startswith(MAGIC):
+        raise InputError("not a ROS 1 bag (magic '#ROSBAG V2.0' missing)", path)
+    scan = _Scan(keep)
+    off, end = len(MAGIC), len(buf)
+    index_pos = None
+    while off < end:
+        try:
+            if off + 4 > end:
+                raise _Damage(f"file truncated at byte {end}: record at byte {off} incomplete")
+            (hlen,) = _U32.unpack_from(buf, off)
+            if off + 8 + hlen > end:
+                raise _Damage(f"file truncated at byte {end}: record at byte {off} incomplete")
+            (dlen,) = _U32.unpack_from(buf, off + 4 + hlen)
+            nxt = off + 8 + hlen + dlen
+            if nxt > end:
+                raise _Damage(f"file truncated at byte {end}: record at byte {off} incomplete")
+            header = _fields(buf[off + 4:off + 4 + hlen])
+            op = header.get("op", b"\xff")[:1]
+        except (_Damage, struct.error) as exc:
+            scan.warnings.append(f"{exc}; readable part used" if "truncated" in str(exc)
+                                 else f"damaged at byte {off} ({exc}); rest of file ignored")
+            break
+        try:
+            if op == bytes([_OP_BAGHEADER]):
+                (index_pos,) = struct.unpack_from("<Q", header.get("index_pos", b"\0" * 8), 0)
+            elif op == bytes([_OP_CHUNK]):
+                scan.chunk(header, buf, off + 8 + hlen, nxt, off)
+            elif op in (bytes([_OP_CONN]), bytes([_OP_MSG])):
+                scan.records(buf, off, nxt, "top level")
+            elif op not in (bytes([_OP_INDEX]), bytes([_OP_CHUNKINFO])):
+                raise _Damage(f"unknown record op {op!r} at byte {off}")
+        except (_Damage, struct.error, KeyError, ValueError) as exc:
+            scan.warnings.append(f"damaged: {exc}; its messages dropped" if not isinstance(exc, _Damage)
+                                 else f"damaged: {exc}")
+        off = nxt
+    if index_pos == 0:
+        scan.warnings.append("bag has no index (recording interrupted?): messages read by a linear scan")
+    return _rawlog(path, fmt, scan)
+
+
+def _rawlog(path: str, fmt: str, scan: _Scan) -> rc.RawLog:
+    from rosbags.typesys import Stores, get_typestore
+
+    typestore = get_typestore(Stores.EMPTY)
+    topics: dict[str, rc.RawTopic] = {}
+    for cid, (topic, msgtype, msgdef) in scan.conns.items():
+        keep = scan.data[cid] is not None
+        if keep and msgdef and msgtype not in typestore.fielddefs:
+            try:
+                rc.register_msgdef(typestore, msgtype, msgdef, "msg")
+            except Exception as exc:
+                scan.warnings.append(f"{topic}: message definition of {msgtype} unusable ({type(exc).__name__})")
+        if keep and msgtype not in typestore.fielddefs and msgtype in rc.SUPPORTED:
+            base = rc.default_typestore("ros1")
+            from parsers.mcap_ros import _closure
+
+            typestore.register({k: base.fielddefs[k] for k in _closure(base, {msgtype})
+                                if k not in typestore.fielddefs})
+        raw = rc.RawTopic(topic, msgtype, "ros1", scan.times[cid], scan.data[cid] if keep else [])
+        if topic in topics:
+            old = topics[topic]
+            merged = sorted(zip(old.log_ns + raw.log_ns, range(old.count + raw.count)))
+            data = old.data + raw.data if keep and old.data is not None else []
+            old.log_ns = [t for t, _ in merged]
+            old.data = [data[i] for _, i in merged] if data else []
+            continue
+        topics[topic] = raw
+    return rc.RawLog(path=path, fmt=fmt, topics=topics, typestore=typestore, warnings=scan.warnings)
+
+
+def load(path: str, selector: Selector) -> InsLog:
+    if os.path.isdir(path):
+        raise InputError("is a directory, not a ROS 1 bag", path)
+    return rc.to_inslog(read_raw(path), selector)
+
+
+def inventory(path: str) -> Inventory:
+    return rc.to_inventory(read_raw(path))
+
+
+def write(path: str, log: InsLog, *, log_delay_ns: int = 0, compression: str = "none") -> None:
+    """Write ``log`` as a ROS 1 bag (rosbags.rosbag1.Writer), ENU/FLU, exact ns stamps;
+    ``compression`` none, bz2 or lz4 (chunks)."""
+    from rosbags.rosbag1 import Writer
+
+    if compression not in ("none", "bz2", "lz4"):
+        raise InputError(f"rosbag1 compression must be none, bz2 or lz4, not {compression!r}", path)
+    typestore = rc.default_typestore("ros1")
+    topics = rc.ros_topics_from_inslog(log, typestore, "ros1")
+    with atomic_path(path) as tmp:
+        os.remove(tmp)  # the rosbags writer refuses to overwrite
+        w = Writer(tmp)
+        if compression != "none":
+            w.set_compression(Writer.CompressionFormat[compression.upper()])
+        with w:
+            conns = [w.add_connection(tp.name, tp.msgtype, typestore=typestore) for tp in topics]
+            for t, k, i in rc.merged_order(topics, log_delay_ns):
+                w.write(conns[k], t, topics[k].data[i])

@@ -1,0 +1,237 @@
+"""ROS 2 bags: a directory with ``metadata.yaml`` and its storage files (sqlite3 ``.db3`` or ``.mcap``).
+
+Accepted paths: the bag directory, its ``metadata.yaml``, or one ``.db3`` file (with or without the
+metadata next to it). Detected by content: a directory by its ``metadata.yaml``
+(``rosbag2_bagfile_information``), a file by the YAML key or the SQLite magic.
+
+Reading: sqlite3 storage straight from the ``messages`` table (raw CDR + record timestamps, read in
+batches: a damaged database gives the rows read before the damage, with a warning); message
+definitions from the ``message_definitions`` table when present, else the built-in ROS 2 (humble)
+definitions. mcap storage through :func:`parsers.mcap_ros.read_raw`. Content decoded by
+:mod:`parsers.ros_common`.
+
+Writing (``write(path, log, storage="sqlite3"|"mcap", log_delay_ns=0)``) with
+``rosbags.rosbag2.Writer``: same topics as :mod:`parsers.mcap_ros`; written into a temporary
+directory next to ``path`` and renamed into place.
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import sqlite3
+import tempfile
+from collections.abc import Callable
+
+import numpy as np
+
+from logtools.errors import InputError
+from logtools.inslog import InsLog
+from parsers import ros_common as rc
+from parsers.base import Inventory, Selector, check_readable
+
+NAME = "rosbag2"
+EXTENSIONS = (".db3", ".yaml")
+SQLITE_MAGIC = b"SQLite format 3\x00"
+YAML_KEY = b"rosbag2_bagfile_information"
+_BATCH = 2_000
+
+
+def sniff(head: bytes, path: str) -> bool:
+    if os.path.isdir(path):
+        return os.path.isfile(os.path.join(path, "metadata.yaml"))
+    return head.startswith(SQLITE_MAGIC) or YAML_KEY in head[:4096]
+
+
+def _resolve(path: str) -> tuple[str, dict | None, list[str]]:
+    """(bag directory, metadata dict or None, storage files)."""
+    if os.path.isdir(path):
+        bagdir, meta_path = path, os.path.join(path, "metadata.yaml")
+        if not os.path.isfile(meta_path):
+            raise InputError("directory has no metadata.yaml (not a ROS 2 bag)", path)
+    elif path.endswith((".yaml", ".yml")):
+        bagdir, meta_path = os.path.dirname(os.path.abspath(path)), path
+    else:  # a storage file
+        bagdir = os.path.dirname(os.path.abspath(path))
+        meta_path = os.path.join(bagdir, "metadata.yaml")
+        return bagdir, _read_meta(meta_path) if os.path.isfile(meta_path) else None, [path]
+    meta = _read_meta(meta_path)
+    if meta is None:
+        raise InputError("metadata.yaml is not a rosbag2 description", meta_path)
+    files = [os.path.join(bagdir, f) for f in meta.get("relative_file_paths") or []]
+    if not files:
+        files = sorted(os.path.join(bagdir, f) for f in os.listdir(bagdir) if f.endswith((".db3", ".mcap")))
+    missing = [f for f in files if not os.path.isfile(f)]
+    if missing:
+        raise InputError(f"storage file(s) listed in metadata.yaml are missing: "
+                         f"{', '.join(os.path.basename(m) for m in missing)}", bagdir)
+    if not files:
+        raise InputError("bag directory holds no storage file (.db3 or .mcap)", bagdir)
+    return bagdir, meta, files
+
+
+def _read_meta(meta_path: str) -> dict | None:
+    import yaml
+
+    try:
+        with open(meta_path, encoding="utf-8") as fh:
+            doc = yaml.safe_load(fh)
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
+        raise InputError(f"metadata.yaml unreadable: {str(exc).splitlines()[0]}", meta_path) from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("rosbag2_bagfile_information"), dict):
+        return None
+    return doc["rosbag2_bagfile_information"]
+
+
+def _read_sqlite(path: str, keep: Callable[[str, str], bool], typestore, warnings: list[str],
+                 topics: dict[str, rc.RawTopic]) -> None:
+    check_readable(path)
+    with open(path, "rb") as fh:
+        if not fh.read(16).startswith(SQLITE_MAGIC):
+            raise InputError("storage file is not an SQLite database", path)
+    try:
+        con = sqlite3.connect(f"file:{path}?mode=ro&immutable=1", uri=True)
+    except sqlite3.Error as exc:
+        raise InputError(f"cannot open sqlite3 storage: {exc}", path) from None
+    try:
+        try:
+            trows = con.execute("SELECT id, name, type, serialization_format FROM topics ORDER BY id").fetchall()
+        except sqlite3.DatabaseError as exc:
+            raise InputError(f"sqlite3 storage damaged (topics table unreadable: {exc})", path) from None
+        try:
+            for ttype, enc, text in con.execute(
+                    "SELECT topic_type, encoding, encoded_message_definition FROM message_definitions"):
+                mt = rc.normalize_msgtype(ttype)
+                if text and mt not in typestore.fielddefs and mt in rc.SUPPORTED:
+                    try:
+                        rc.register_msgdef(typestore, mt, text, "idl" if "idl" in enc else "msg")
+                    except Exception as exc:
+                        warnings.append(f"message definition of {mt} unusable ({type(exc).__name__})")
+        except sqlite3.DatabaseError:
+            pass  # older bags: no message_definitions table
+        by_id: dict[int, rc.RawTopic] = {}
+        for tid, name, ttype, fmt in trows:
+            mt = rc.normalize_msgtype(ttype)
+            raw = topics.get(name) or rc.RawTopic(name, mt, "cdr" if fmt == "cdr" else str(fmt))
+            topics[name] = raw
+            by_id[tid] = raw
+            if fmt != "cdr" and mt in rc.SUPPORTED:
+                warnings.append(f"{name}: serialization format {fmt!r} not supported; topic ignored")
+        keep_ids = {tid for tid, r in by_id.items() if r.encoding == "cdr" and keep(r.name, r.msgtype)}
+        _read_messages(con, path, by_id, keep_ids, warnings)
+    finally:
+        con.close()
+
+
+def _read_messages(con, path: str, by_id: dict, keep_ids: set, warnings: list[str]) -> None:
+    """Messages in rowid batches, so that a damaged page loses only its batch (reported)."""
+    try:
+        (max_id,) = con.execute("SELECT max(id) FROM messages").fetchone()
+    except sqlite3.DatabaseError as exc:
+        warnings.append(f"{os.path.basename(path)}: sqlite3 messages table damaged ({exc}); nothing read")
+        return
+    lost: list[tuple[int, int]] = []
+    touched = set()
+    for a in range(0, int(max_id or 0) + 1, _BATCH):
+        try:
+            rows = con.execute("SELECT topic_id, timestamp, data FROM messages WHERE id >= ? AND id < ?",
+                               (a, a + _BATCH)).fetchall()
+        except sqlite3.DatabaseError:
+            lost.append((a, a + _BATCH - 1))
+            continue
+        for tid, ts, data in rows:
+            raw = by_id.get(tid)
+            if raw is None:
+                continue
+            touched.add(tid)
+            raw.log_ns.append(ts)
+            if tid in keep_ids:
+                raw.data.append(data)
+    if lost:
+        warnings.append(f"{os.path.basename(path)}: sqlite3 storage damaged: message rows "
+                        + ", ".join(f"{x}-{y}" for x, y in lost) + " unreadable; readable part used")
+    for tid in touched:  # rowid order is insertion order; make it log-time order
+        raw = by_id[tid]
+        t = np.asarray(raw.log_ns, np.int64)
+        if len(t) > 1 and np.any(np.diff(t) < 0):
+            order = np.argsort(t, kind="stable")
+            raw.log_ns = t[order].tolist()
+            if raw.data:
+                raw.data = [raw.data[i] for i in order.tolist()]
+
+
+def read_raw(path: str, keep: Callable[[str, str], bool] = rc.keep_supported) -> rc.RawLog:
+    from rosbags.typesys import Stores, get_typestore
+
+    check_readable(path)
+    bagdir, meta, files = _resolve(path)
+    storage = (meta or {}).get("storage_identifier") or ""
+    warnings: list[str] = []
+    topics: dict[str, rc.RawTopic] = {}
+    typestore = get_typestore(Stores.EMPTY)
+    from parsers import mcap_ros
+
+    for f in files:
+        if f.endswith(".mcap") or storage == "mcap":
+            part = mcap_ros.read_raw(f, keep, fmt=NAME)
+            warnings += [f"{os.path.basename(f)}: {w}" for w in part.warnings]
+            for name, t in part.topics.items():
+                if t.msgtype in part.typestore.fielddefs and t.msgtype not in typestore.fielddefs:
+                    need = mcap_ros._closure(part.typestore, {t.msgtype})
+                    typestore.register({k: part.typestore.fielddefs[k] for k in need
+                                        if k not in typestore.fielddefs})
+                if name in topics:
+                    topics[name].log_ns.extend(t.log_ns)
+                    topics[name].data.extend(t.data)
+                else:
+                    topics[name] = t
+        else:
+            _read_sqlite(f, keep, typestore, warnings, topics)
+    missing = {t.msgtype for t in topics.values() if t.msgtype in rc.SUPPORTED and t.data
+               and t.msgtype not in typestore.fielddefs}
+    if missing:
+        base = rc.default_typestore("cdr")
+        typestore.register({k: base.fielddefs[k] for k in mcap_ros._closure(base, missing)
+                            if k not in typestore.fielddefs})
+    if meta is not None:
+        declared = int(meta.get("message_count") or 0)
+        have = sum(t.count for t in topics.values())
+        if declared and have < declared:
+            warnings.append(f"read {have} of the {declared} messages metadata.yaml declares")
+    return rc.RawLog(path=path, fmt=NAME, topics=topics, typestore=typestore, warnings=warnings)
+
+
+def load(path: str, selector: Selector) -> InsLog:
+    return rc.to_inslog(read_raw(path), selector)
+
+
+def inventory(path: str) -> Inventory:
+    return rc.to_inventory(read_raw(path))
+
+
+def write(path: str, log: InsLog, *, storage: str = "sqlite3", log_delay_ns: int = 0) -> None:
+    """Write ``log`` as a ROS 2 bag directory (``storage`` "sqlite3" or "mcap"), atomically."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    plugin = {"sqlite3": StoragePlugin.SQLITE3, "mcap": StoragePlugin.MCAP}.get(storage)
+    if plugin is None:
+        raise InputError(f"rosbag2 storage must be sqlite3 or mcap, not {storage!r}", path)
+    typestore = rc.default_typestore("cdr")
+    topics = rc.ros_topics_from_inslog(log, typestore, "cdr")
+    parent = os.path.dirname(os.path.abspath(path)) or "."
+    os.makedirs(parent, exist_ok=True)
+    tmpdir = tempfile.mkdtemp(prefix="." + os.path.basename(path) + ".", dir=parent)
+    tmp = os.path.join(tmpdir, "bag")
+    try:
+        with Writer(tmp, version=9, storage_plugin=plugin) as w:
+            conns = [w.add_connection(tp.name, tp.msgtype, typestore=typestore) for tp in topics]
+            for t, k, i in rc.merged_order(topics, log_delay_ns):
+                w.write(conns[k], t, topics[k].data[i])
+        old = None
+        if os.path.exists(path):
+            old = tmpdir + ".old"
+            os.rename(path, old)
+        os.rename(tmp, path)
+        if old:
+            shutil.rmtree(old, ignore_errors=True) if os.path.isdir(old) else os.remove(old)
+    finally:
+        shutil.rmtree(tmpdir, ignore_errors=True)
