@@ -281,7 +281,7 @@ main{max-width:1280px;margin:0 auto;padding:16px 32px 40px}
 section{background:#fff;border:1px solid #dde3ea;border-radius:6px;padding:14px 20px;margin:16px 0}
 h2{font-size:17px;margin:4px 0 10px;color:#1d3557;border-bottom:2px solid #e63946;display:inline-block;padding-bottom:2px}
 table{border-collapse:collapse;font-size:13px;margin:6px 0}
-th,td{border:1px solid #dde3ea;padding:4px 10px;text-align:left;vertical-align:top}
+th,td{border:1px solid #dde3ea;padding:4px 10px;text-align:left;vertical-align:top;overflow-wrap:anywhere}
 th{background:#eef2f6;font-weight:600} td.num{text-align:right;font-family:Menlo,Consolas,monospace}
 img{max-width:100%;display:block;margin:8px 0}
 .ok{color:#2a9d8f;font-weight:600} .warn{color:#e76f51;font-weight:600} .fail{color:#c1121f;font-weight:600}

@@ -1,0 +1,831 @@
+"""Transfer-alignment filters: the time loop at the measurement rate with the slave mechanised between
+updates (closed loop), the Kalman update (Joseph form, Cholesky solves), the delay-augmented KF
+("kf-delay"), S004's split ("kf-split": the constant part shifted before the filter, the residual as a
+delay state restricted to one update period), the H-infinity updates of ``hinf.py`` ("hinf", "ahinf")
+and a Rauch-Tung-Striebel smoother over the stored forward pass.
+
+Closed loop: after every update the attitude, velocity, mounting, lever-arm and delay estimates are fed
+back into the nominal (slave mechanisation, mounting R_hat, lever arm, tau_hat) and those error states
+reset to zero; gyro/accel biases and flexure stay in the state (their model is linear: exact).
+The smoother runs on the error state relative to the post-feedback nominal of each epoch; the error of
+the smoothed state at epoch k+1 relative to the pre-feedback nominal is x_s + fb_{k+1} (first order).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+from scipy.linalg import cho_factor, cho_solve
+
+from logtools import earth
+from logtools.conventions import dcm_from_quat, quat_from_dcm
+from logtools.errors import AnalysisError
+from logtools.strapdown import _WIE, _radii, nav_step, njit
+
+from .model import StateLayout, _discretise, _fill_dynamics, _fill_h, att_residual, exp_so3, rotvec_small
+
+FILTERS = ("kf", "kf-delay", "kf-split", "hinf", "ahinf")
+
+
+# ---- measurement updates ------------------------------------------------------------------------
+def kf_update(x: np.ndarray, P: np.ndarray, z: np.ndarray, H: np.ndarray, R: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Kalman update, Joseph form; gain from a Cholesky solve of the innovation covariance.
+    Returns (x_post, P_post, info) with info = {innovation, nis}."""
+    e = z - H @ x
+    ph = P @ H.T
+    s = H @ ph + R
+    cf = cho_factor(s, lower=True, check_finite=False)
+    k = cho_solve(cf, ph.T, check_finite=False).T
+    x_post = x + k @ e
+    ikh = np.eye(len(x)) - k @ H
+    p_post = ikh @ P @ ikh.T + k @ R @ k.T
+    p_post = 0.5 * (p_post + p_post.T)
+    nis = float(e @ cho_solve(cf, e, check_finite=False))
+    return x_post, p_post, {"innovation": e, "nis": nis}
+
+
+@njit
+def _chol_solve(l, b):
+    """Solve (L L^T) X = B for lower-triangular L (forward then back substitution)."""
+    m = l.shape[0]
+    y = np.empty_like(b)
+    for c in range(b.shape[1]):
+        for i in range(m):
+            acc = b[i, c]
+            for k in range(i):
+                acc -= l[i, k] * y[k, c]
+            y[i, c] = acc / l[i, i]
+        for i in range(m - 1, -1, -1):
+            acc = y[i, c]
+            for k in range(i + 1, m):
+                acc -= l[k, i] * y[k, c]
+            y[i, c] = acc / l[i, i]
+    return y
+
+
+@njit
+def _chol(s):
+    """Cholesky factor (lower) of a small SPD matrix (a loop: cheaper to compile than LAPACK)."""
+    m = s.shape[0]
+    l = np.zeros_like(s)
+    for j in range(m):
+        d = s[j, j]
+        for k in range(j):
+            d -= l[j, k] * l[j, k]
+        if d <= 0.0:
+            d = 1e-300
+        l[j, j] = np.sqrt(d)
+        for i in range(j + 1, m):
+            acc = s[i, j]
+            for k in range(j):
+                acc -= l[i, k] * l[j, k]
+            l[i, j] = acc / l[j, j]
+    return l
+
+
+@njit
+def kf_step_nb(x, P, phi, qd, z, H, r_diag, e_out):
+    """Compiled predict (when phi has rows) + Joseph update; same algebra as :func:`kf_update`.
+    Updates x, P in place, writes the prior innovation into e_out, returns the NIS."""
+    n = x.shape[0]
+    if phi.shape[0] == n:
+        xn = phi @ x
+        pn = phi @ P @ phi.T + qd
+        x[:] = xn
+        P[:, :] = pn
+    e = z - H @ x
+    e_out[:] = e
+    ph = P @ H.T
+    s = H @ ph
+    for i in range(len(r_diag)):
+        s[i, i] += r_diag[i]
+    l = _chol(s)
+    kt = _chol_solve(l, np.ascontiguousarray(ph.T))
+    k = kt.T.copy()
+    x += k @ e
+    ikh = -k @ H
+    for i in range(n):
+        ikh[i, i] += 1.0
+    kr = k * r_diag
+    pp = ikh @ P @ ikh.T + kr @ k.T
+    for i in range(n):
+        for j in range(n):
+            P[i, j] = 0.5 * (pp[i, j] + pp[j, i])
+    se = _chol_solve(l, e.reshape(-1, 1).copy())
+    nis = 0.0
+    for i in range(len(e)):
+        nis += e[i] * se[i, 0]
+    return nis
+
+
+@njit
+def _dcm(q):
+    w, x, y, z = q[0], q[1], q[2], q[3]
+    nn = w * w + x * x + y * y + z * z
+    w, x, y, z = w / np.sqrt(nn), x / np.sqrt(nn), y / np.sqrt(nn), z / np.sqrt(nn)
+    m = np.empty((3, 3))
+    m[0, 0] = 1 - 2 * (y * y + z * z)
+    m[0, 1] = 2 * (x * y - w * z)
+    m[0, 2] = 2 * (x * z + w * y)
+    m[1, 0] = 2 * (x * y + w * z)
+    m[1, 1] = 1 - 2 * (x * x + z * z)
+    m[1, 2] = 2 * (y * z - w * x)
+    m[2, 0] = 2 * (x * z - w * y)
+    m[2, 1] = 2 * (y * z + w * x)
+    m[2, 2] = 1 - 2 * (x * x + y * y)
+    return m
+
+
+@njit
+def _q_left_rotvec(rv, q):
+    """q(rv) * q, normalised"""
+    ang = np.sqrt(rv[0] ** 2 + rv[1] ** 2 + rv[2] ** 2)
+    k = np.sin(0.5 * ang) / ang if ang > 1e-8 else 0.5 - ang * ang / 48.0
+    pw, px, py, pz = np.cos(0.5 * ang), rv[0] * k, rv[1] * k, rv[2] * k
+    qw, qx, qy, qz = q[0], q[1], q[2], q[3]
+    out = np.empty(4)
+    out[0] = pw * qw - px * qx - py * qy - pz * qz
+    out[1] = pw * qx + px * qw + py * qz - pz * qy
+    out[2] = pw * qy - px * qz + py * qw + pz * qx
+    out[3] = pw * qz + px * qy - py * qx + pz * qw
+    return out / np.sqrt((out * out).sum())
+
+
+@njit
+def _lerp_row(arr, i, a):
+    return (1.0 - a) * arr[i] + a * arr[i + 1]
+
+
+# ---- inputs ---------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class MasterSeries:
+    """Master quantities on the master's stamps (relative seconds), linearly interpolated on demand."""
+
+    t_s: np.ndarray
+    quat: np.ndarray | None  # (K, 4) continuous sign
+    vel: np.ndarray | None  # (K, 3)
+    acc: np.ndarray | None  # (K, 3) d(vel)/dt
+    w_nm_m: np.ndarray | None  # (K, 3) master body rate relative to NED, master frame (lever arm)
+    valid: np.ndarray | None = None  # (K,) False where the master's output is unusable (frozen, jumps)
+    reset_t_s: np.ndarray = field(default_factory=lambda: np.zeros(0))  # attitude resets (jumps)
+
+    def usable(self, t: float) -> bool:
+        """Both master samples around t are valid."""
+        if self.valid is None:
+            return True
+        i, _ = self._idx(t)
+        return bool(self.valid[i] and self.valid[i + 1])
+
+    def _idx(self, t: float) -> tuple[int, float]:
+        ts = self.t_s
+        i = int(np.searchsorted(ts, t, side="right")) - 1
+        i = min(max(i, 0), len(ts) - 2)
+        a = (t - ts[i]) / (ts[i + 1] - ts[i])
+        return i, min(max(a, -1.0), 2.0)
+
+    def sample(self, t: float) -> tuple:
+        """(C_nm or None, v or None, a or None, w_nm_m or None) at relative time t."""
+        i, a = self._idx(t)
+        b = 1.0 - a
+        c_nm = v = acc = w = None
+        if self.quat is not None:
+            c_nm = _dcm(_lerp_row(self.quat, i, a))
+        if self.vel is not None:
+            v = b * self.vel[i] + a * self.vel[i + 1]
+            acc = b * self.acc[i] + a * self.acc[i + 1]
+        if self.w_nm_m is not None:
+            w = b * self.w_nm_m[i] + a * self.w_nm_m[i + 1]
+        return c_nm, v, acc, w
+
+
+@dataclass(frozen=True)
+class AlignInputs:
+    """Everything the time loop needs, prepared by run.py (vectorised)."""
+
+    t_epoch_s: np.ndarray  # (M+1,) slave stamps of the updates (relative to the master's t0)
+    seg_dq: np.ndarray  # (M, 4) slave body rotation over each segment
+    seg_dv_b: np.ndarray  # (M, 3) slave velocity increment, body frame at segment start
+    seg_dt_s: np.ndarray  # (M,)
+    master: MasterSeries
+    q0: np.ndarray  # slave initial attitude (body->NED)
+    v0: np.ndarray
+    llh0: np.ndarray  # lat rad, lon rad, alt m
+    r0: np.ndarray  # coarse mounting R (v_slave = R v_master)
+    lever0_m: np.ndarray = field(default_factory=lambda: np.zeros(3))  # master frame, master -> slave
+    tau0_s: float = 0.0  # initial delay estimate (known constant part for kf-split)
+
+
+@dataclass(frozen=True)
+class FilterSettings:
+    kind: str
+    layout: StateLayout
+    p0_sigma: np.ndarray  # (n,) initial sigmas
+    qc: np.ndarray  # (n,) continuous process noise densities^2 on each state
+    r_vel_m_s: float
+    r_att_rad: float
+    flex_beta: float = 0.0
+    delay_bounds_s: tuple[float, float] = (-1.0, 1.0)
+    hinf_gamma: float = 1.0
+    smoother: bool = False
+
+
+@dataclass
+class FilterRun:
+    """Forward pass (and smoother) output. Arrays over epochs k = 0..M."""
+
+    t_s: np.ndarray
+    x: np.ndarray  # (M+1, n) posterior error state before feedback (biases, flexure: the estimate)
+    p_diag: np.ndarray  # (M+1, n)
+    r_hat: np.ndarray  # (M+1, 3, 3) mounting estimate after feedback
+    p_mount: np.ndarray  # (M+1, 3, 3) covariance of the mounting error (slave frame) or of phi (vel)
+    tau_hat: np.ndarray  # (M+1,)
+    lever_hat: np.ndarray  # (M+1, 3)
+    innov: np.ndarray  # (M+1, m) innovations (nan at epochs without update)
+    nis: np.ndarray  # (M+1,)
+    c_ns: np.ndarray  # (M+1, 3, 3) slave attitude after feedback
+    c_nm: np.ndarray | None  # (M+1, 3, 3) master attitude at the measurement instants
+    gamma: np.ndarray  # (M+1,) H-infinity gamma used (inf for the KF)
+    n_skipped: int = 0  # epochs without a usable master sample (prediction only)
+    n_reinit: int = 0  # slave attitude restarts at master attitude resets
+    smoothed: bool = False
+    p_mount_fwd: np.ndarray | None = None  # forward-filter p_mount (kept when smoothed)
+
+
+def _initial_cov(s: FilterSettings) -> np.ndarray:
+    return np.diag(np.asarray(s.p0_sigma, float) ** 2)
+
+
+def run_filter(inp: AlignInputs, s: FilterSettings, *, progress: Callable | None = None,
+               compiled: bool = True) -> FilterRun:
+    """The forward pass (closed loop). Raises AnalysisError when the filter diverges (non-finite).
+    The KF kinds run as one compiled loop (``compiled=True``, the default); this Python loop is the
+    reference and runs the H-infinity kinds."""
+    if compiled and s.kind in ("kf", "kf-delay", "kf-split"):
+        run = run_filter_compiled(inp, s)
+        if progress is not None:
+            progress(1.0, "alignment filter")
+        return run
+    lay = s.layout
+    n, m_meas = lay.n, lay.n_meas
+    m_seg = len(inp.seg_dt_s)
+    ne = m_seg + 1
+    if s.kind in ("hinf", "ahinf"):
+        try:
+            from . import hinf as _hinf
+        except ImportError as exc:  # pragma: no cover
+            raise AnalysisError(f"filter {s.kind} not available ({exc})") from exc
+    gstate = None
+    if s.kind == "ahinf":
+        gstate = _hinf.initial_gamma_state(sigma0=s.p0_sigma)
+
+    # output storage
+    xs = np.zeros((ne, n))
+    pd = np.zeros((ne, n))
+    r_hist = np.zeros((ne, 3, 3))
+    pm_hist = np.zeros((ne, 3, 3))
+    tau_hist = np.zeros(ne)
+    lev_hist = np.zeros((ne, 3))
+    innov = np.full((ne, m_meas), np.nan)
+    nis = np.full(ne, np.nan)
+    q_hist = np.zeros((ne, 4))
+    cnm_hist = np.zeros((ne, 3, 3)) if lay.uses_att or inp.master.quat is not None else None
+    gam = np.full(ne, np.inf)
+    keep = s.smoother
+    if keep:
+        sm_phi = np.zeros((ne, n, n))
+        sm_xpred = np.zeros((ne, n))
+        sm_ppred = np.zeros((ne, n, n))
+        sm_xf = np.zeros((ne, n))
+        sm_pf = np.zeros((ne, n, n))
+        sm_fb = np.zeros((ne, n))
+
+    # nominal
+    q = np.array(inp.q0, float)
+    v = np.array(inp.v0, float)
+    llh = np.array(inp.llh0, float)
+    q_new = np.empty(4)
+    v_new = np.empty(3)
+    llh_new = np.empty(3)
+    r_hat = np.array(inp.r0, float)
+    r_fej = r_hat.copy()
+    lever = np.array(inp.lever0_m, float)
+    tau = float(inp.tau0_s)
+    x = np.zeros(n)
+    P = np.ascontiguousarray(_initial_cov(s))
+    qc = np.asarray(s.qc, float)
+    r_diag = np.concatenate([[s.r_vel_m_s**2] * 3 if lay.uses_vel else [],
+                             [s.r_att_rad**2] * 3 if lay.uses_att else []])
+    R = np.diag(r_diag)
+    fb_idx = np.zeros(n, bool)
+    for sl in (lay.att, lay.vel, lay.mount, lay.lever):
+        if sl is not None:
+            fb_idx[sl] = True
+    if lay.delay is not None:
+        fb_idx[lay.delay] = True
+    gyro = lay.gyro
+    eye_n = np.eye(n)
+    lo_tau, hi_tau = s.delay_bounds_s
+    master = inp.master
+    prog_every = max(ne // 50, 1)
+
+    is_kf = s.kind in ("kf", "kf-delay", "kf-split")
+    n_resets = len(master.reset_t_s)
+    n_reinit = 0
+    n_skipped = 0
+    offs = lay.offsets
+    no_phi = np.zeros((0, 0))
+    e_buf = np.zeros(m_meas)
+    h_buf = np.zeros((m_meas, n))
+    f_buf = np.zeros((n, n))
+    z3 = np.zeros(3)
+    eye3 = np.eye(3)
+    w_ie = np.zeros(3)
+    w_en = np.zeros(3)
+    mav = np.zeros((3, 3))
+    att_sl, vel_sl, mount_sl, lev_sl, d_i = lay.att, lay.vel, lay.mount, lay.lever, lay.delay
+    for k in range(ne):
+        c_ns = _dcm(q)
+        phi_k, qd_k = no_phi, no_phi
+        if k > 0:
+            j = k - 1
+            dt = float(inp.seg_dt_s[j])
+            # --- error dynamics at the segment start
+            lat, h = llh[0], llh[2]
+            r_m, r_n = earth.radii_m(lat)
+            cl, sl_, tl = np.cos(lat), np.sin(lat), np.tan(lat)
+            w_ie[0], w_ie[2] = earth.OMEGA_IE_RAD_S * cl, -earth.OMEGA_IE_RAD_S * sl_
+            w_en[0], w_en[1], w_en[2] = v[1] / (r_n + h), -v[0] / (r_m + h), -v[1] * tl / (r_n + h)
+            mav[0, 1], mav[1, 0], mav[2, 1] = 1.0 / (r_n + h), -1.0 / (r_m + h), -tl / (r_n + h)
+            f_n = c_ns @ (inp.seg_dv_b[j] / dt)
+            f_buf[:] = 0.0
+            _fill_dynamics(f_buf, offs, c_ns, f_n, w_ie, w_en, v, mav, s.flex_beta)
+            phi_k = np.empty((n, n))
+            qd_k = np.empty((n, n))
+            _discretise(f_buf, qc, dt, phi_k, qd_k)
+            # --- mechanise the slave over the segment
+            nav_step(q, v, llh, inp.seg_dq[j], inp.seg_dv_b[j], dt, q_new, v_new, llh_new)
+            q, q_new = q_new, q
+            v, v_new = v_new, v
+            llh, llh_new = llh_new, llh
+            c_ns = _dcm(q)
+        # --- measurement at t_k (master read at t_k - tau_hat)
+        tk = float(inp.t_epoch_s[k])
+        c_nm, v_m, a_m, w_m = master.sample(tk - tau)
+        if n_resets and k > 0:
+            t_prev = float(inp.t_epoch_s[k - 1]) - tau
+            if np.any((master.reset_t_s > t_prev) & (master.reset_t_s <= tk - tau)) and c_nm is not None:
+                # the master's attitude jumped (EKF reset): restart the slave attitude from it
+                q = quat_from_dcm(c_nm @ r_hat.T)
+                c_ns = _dcm(q)
+                P[att_sl, :] = 0.0
+                P[:, att_sl] = 0.0
+                P[att_sl, att_sl] = np.diag(np.asarray(s.p0_sigma)[att_sl] ** 2)
+                x[att_sl] = 0.0
+                n_reinit += 1
+        if not master.usable(tk - tau):
+            # no usable master sample: prediction only
+            if k > 0:
+                x = phi_k @ x
+                P = phi_k @ P @ phi_k.T + qd_k
+            if keep and k > 0:
+                sm_phi[k] = phi_k
+                sm_xpred[k] = x
+                sm_ppred[k] = P
+            xs[k] = x
+            pd[k] = np.diag(P)
+            r_hist[k] = r_hat
+            if mount_sl is not None:
+                pm_hist[k] = P[mount_sl, mount_sl]
+            else:
+                cq = _dcm(q)
+                pm_hist[k] = cq.T @ P[att_sl, att_sl] @ cq
+            tau_hist[k] = tau
+            lev_hist[k] = lever
+            q_hist[k] = q
+            if cnm_hist is not None and c_nm is not None:
+                cnm_hist[k] = c_nm
+            if keep:
+                sm_xf[k] = x
+                sm_pf[k] = P
+                sm_fb[k] = 0.0
+            n_skipped += 1
+            continue
+        zs = []
+        if lay.uses_vel:
+            wl = w_m if w_m is not None else z3
+            cm = c_nm if c_nm is not None else eye3
+            zs.append(v - v_m - cm @ _cross3(wl, lever))
+        if lay.uses_att:
+            zs.append(att_residual(c_ns, c_nm, r_hat))
+        z = np.concatenate(zs) if len(zs) > 1 else zs[0]
+        w_ns_n = z3
+        if d_i is not None and lay.uses_att:
+            # slave rate relative to NED in NED: the segment's mean body rate (bias removed) minus w_in
+            j = max(k - 1, 0)
+            w_b = _rotvec_q(inp.seg_dq[j]) / float(inp.seg_dt_s[j]) - x[gyro]
+            lat, h = llh[0], llh[2]
+            r_m, r_n = earth.radii_m(lat)
+            w_in = np.array([earth.OMEGA_IE_RAD_S * np.cos(lat) + v[1] / (r_n + h), -v[0] / (r_m + h),
+                             -earth.OMEGA_IE_RAD_S * np.sin(lat) - v[1] * np.tan(lat) / (r_n + h)])
+            w_ns_n = c_ns @ w_b - w_in
+        # first-estimate Jacobian: the mounting enters H through the coarse mounting r0, not the running
+        # r_hat; feeding back along an unobservable direction would otherwise rotate H and invent
+        # information (the EKF inconsistency known from SLAM heading)
+        c_ref = (c_nm @ r_fej.T) if c_nm is not None else c_ns
+        h_buf[:] = 0.0
+        _fill_h(h_buf, offs, c_ref, c_nm if c_nm is not None else eye3, w_m if w_m is not None else z3,
+                w_ns_n, a_m if a_m is not None else z3)
+        H = h_buf
+        if is_kf:
+            nis_k = kf_step_nb(x, P, phi_k, qd_k, z, H, r_diag, e_buf)
+            e_prior = e_buf.copy()
+        else:
+            if k > 0:
+                x = phi_k @ x
+                P = phi_k @ P @ phi_k.T + qd_k
+            e_prior = z - H @ x
+            if s.kind == "hinf":
+                x, P, info = _hinf.hinf_update(x, P, z, H, R, s.hinf_gamma, weight=gstate_weight(s))
+            else:
+                x, P, gstate, info = _hinf.ahinf_update(x, P, z, H, R, gstate)
+            gam[k] = info["gamma"]
+            nis_k = info["nis"]
+        if keep and k > 0:
+            sm_phi[k] = phi_k
+            sm_xpred[k] = phi_k @ sm_xf[k - 1]
+            sm_ppred[k] = phi_k @ sm_pf[k - 1] @ phi_k.T + qd_k
+        innov[k] = e_prior
+        nis[k] = nis_k
+        if not (np.isfinite(x).all() and np.isfinite(P).all()):
+            raise AnalysisError(f"alignment filter diverged at t = {tk:.2f} s (non-finite state)")
+        xs[k] = x
+        pd[k] = np.diag(P)
+        # --- feedback into the nominal
+        fb = np.where(fb_idx, x, 0.0)
+        q = _q_left_rotvec(x[att_sl], q)
+        if vel_sl is not None:
+            v = v - x[vel_sl]
+        if mount_sl is not None:
+            r_hat = exp_so3(-x[mount_sl]) @ r_hat
+        if lev_sl is not None:
+            lever = lever + x[lev_sl]
+        if d_i is not None:
+            t_new = min(max(tau + x[d_i], lo_tau), hi_tau)
+            fb[d_i] = t_new - tau
+            tau = t_new
+        x = np.where(fb_idx, 0.0, x)
+        r_hist[k] = r_hat
+        if mount_sl is not None:
+            pm_hist[k] = P[mount_sl, mount_sl]
+        else:
+            cq = _dcm(q)
+            pm_hist[k] = cq.T @ P[att_sl, att_sl] @ cq
+        tau_hist[k] = tau
+        lev_hist[k] = lever
+        q_hist[k] = q
+        if cnm_hist is not None and c_nm is not None:
+            cnm_hist[k] = c_nm
+        if keep:
+            sm_xf[k] = x
+            sm_pf[k] = P
+            sm_fb[k] = fb
+        if progress is not None and k % prog_every == 0:
+            progress(k / ne, "alignment filter")
+
+    cns_hist = dcm_from_quat(q_hist)
+    if n_skipped == ne:
+        raise AnalysisError("the master's attitude/velocity is unusable (frozen or jumping) over the whole overlap")
+    run = FilterRun(inp.t_epoch_s.copy(), xs, pd, r_hist, pm_hist, tau_hist, lev_hist, innov, nis, cns_hist,
+                    cnm_hist if (cnm_hist is not None and master.quat is not None) else None, gam,
+                    n_skipped=n_skipped, n_reinit=n_reinit)
+    if keep:
+        run.p_mount_fwd = run.p_mount.copy()
+        _rts(run, lay, sm_phi, sm_xpred, sm_ppred, sm_xf, sm_pf, sm_fb)
+    return run
+
+
+def _cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+def gstate_weight(s: FilterSettings) -> np.ndarray:
+    """H-infinity weight S_bar = diag(1 / sigma0^2): every state measured in units of its prior."""
+    sg = np.asarray(s.p0_sigma, float)
+    return np.diag(1.0 / np.where(sg > 0, sg, 1.0) ** 2)
+
+
+def _rotvec_q(q: np.ndarray) -> np.ndarray:
+    w = q[0]
+    vn = np.sqrt(q[1] ** 2 + q[2] ** 2 + q[3] ** 2)
+    if vn < 1e-12:
+        return 2.0 * q[1:] / max(w, 1e-300)
+    ang = 2.0 * np.arctan2(vn, w)
+    return q[1:] * (ang / vn)
+
+
+def _rts(run: FilterRun, lay: StateLayout, phi, xpred, ppred, xf, pf, fb) -> None:
+    """Rauch-Tung-Striebel smoother over the stored forward pass (in place on ``run``)."""
+    ne, n = xf.shape
+    xs = xf.copy()
+    ps = pf.copy()
+    for k in range(ne - 2, -1, -1):
+        pp = ppred[k + 1]
+        cf = cho_factor(0.5 * (pp + pp.T), lower=True, check_finite=False)
+        c = cho_solve(cf, phi[k + 1] @ pf[k], check_finite=False).T  # P_f Phi^T P_pred^-1
+        x_next = xs[k + 1] + fb[k + 1]
+        xs[k] = xf[k] + c @ (x_next - xpred[k + 1])
+        pk = pf[k] + c @ (ps[k + 1] - pp) @ c.T
+        ps[k] = 0.5 * (pk + pk.T)
+    # smoothed totals: nominal after feedback at k combined with the smoothed error
+    for k in range(ne):
+        if lay.mount is not None:
+            run.r_hat[k] = exp_so3(-xs[k, lay.mount]) @ run.r_hat[k]
+            run.p_mount[k] = ps[k][lay.mount, lay.mount]
+        else:
+            c = run.c_ns[k]
+            run.c_ns[k] = exp_so3(xs[k, lay.att]) @ c
+            run.p_mount[k] = c.T @ ps[k][lay.att, lay.att] @ c
+        if lay.lever is not None:
+            run.lever_hat[k] = run.lever_hat[k] + xs[k, lay.lever]
+        if lay.delay is not None:
+            run.tau_hat[k] = run.tau_hat[k] + xs[k, lay.delay]
+    run.x = xs
+    run.p_diag = np.einsum("kii->ki", ps)
+    run.smoothed = True
+
+
+# ---- the compiled time loop (KF kinds). Same algebra as the Python loop above, which stays the
+# reference (H-infinity kinds, compiled=False); tests/test_alignment.py checks they agree. -------------
+@njit
+def _quat_from_dcm_nb(m):
+    tr = m[0, 0] + m[1, 1] + m[2, 2]
+    q = np.empty(4)
+    if tr > max(m[0, 0], m[1, 1], m[2, 2]):
+        s = np.sqrt(1.0 + tr) * 2.0
+        q[0] = 0.25 * s
+        q[1] = (m[2, 1] - m[1, 2]) / s
+        q[2] = (m[0, 2] - m[2, 0]) / s
+        q[3] = (m[1, 0] - m[0, 1]) / s
+    elif m[0, 0] >= m[1, 1] and m[0, 0] >= m[2, 2]:
+        s = np.sqrt(max(1.0 + m[0, 0] - m[1, 1] - m[2, 2], 0.0)) * 2.0
+        q[0] = (m[2, 1] - m[1, 2]) / s
+        q[1] = 0.25 * s
+        q[2] = (m[0, 1] + m[1, 0]) / s
+        q[3] = (m[0, 2] + m[2, 0]) / s
+    elif m[1, 1] >= m[2, 2]:
+        s = np.sqrt(max(1.0 - m[0, 0] + m[1, 1] - m[2, 2], 0.0)) * 2.0
+        q[0] = (m[0, 2] - m[2, 0]) / s
+        q[1] = (m[0, 1] + m[1, 0]) / s
+        q[2] = 0.25 * s
+        q[3] = (m[1, 2] + m[2, 1]) / s
+    else:
+        s = np.sqrt(max(1.0 - m[0, 0] - m[1, 1] + m[2, 2], 0.0)) * 2.0
+        q[0] = (m[1, 0] - m[0, 1]) / s
+        q[1] = (m[0, 2] + m[2, 0]) / s
+        q[2] = (m[1, 2] + m[2, 1]) / s
+        q[3] = 0.25 * s
+    return q / np.sqrt((q * q).sum())
+
+
+@njit
+def _kf_loop(t_ep, seg_dq, seg_dv, seg_dt, mt, mq, mv, ma, mw, mvalid, resets, has_q, has_v, has_w,
+             q0, v0, llh0, r0, lever0, tau0, offs, n, m_meas, p0, qc, r_diag, beta, lo_tau, hi_tau, fb_mask,
+             keep, xs, pd, r_hist, pm_hist, tau_hist, lev_hist, innov, nis, q_hist, cnm_hist,
+             sm_phi, sm_xpred, sm_ppred, sm_xf, sm_pf, sm_fb, counters):
+    ne = len(t_ep)
+    a0, v_off, g0, mo, lev, d_i = offs[0], offs[1], offs[2], offs[4], offs[7], offs[8]
+    uses_vel, uses_att = offs[9] == 1, offs[10] == 1
+    q = q0.copy()
+    v = v0.copy()
+    llh = llh0.copy()
+    q_new = np.empty(4)
+    v_new = np.empty(3)
+    llh_new = np.empty(3)
+    r_hat = r0.copy()
+    r_fej = r0.copy()
+    lever = lever0.copy()
+    tau = tau0
+    x = np.zeros(n)
+    P = p0.copy()
+    f_buf = np.zeros((n, n))
+    h_buf = np.zeros((m_meas, n))
+    e_buf = np.zeros(m_meas)
+    z = np.zeros(m_meas)
+    phi_k = np.eye(n)
+    qd_k = np.zeros((n, n))
+    no_phi = np.zeros((0, 0))
+    w_ie = np.zeros(3)
+    w_en = np.zeros(3)
+    mav = np.zeros((3, 3))
+    eye3 = np.eye(3)
+    c_nm = eye3.copy()
+    v_m = np.zeros(3)
+    a_m = np.zeros(3)
+    w_m = np.zeros(3)
+    w_ns = np.zeros(3)
+    n_skip = 0
+    n_reinit = 0
+    km = len(mt)
+    for k in range(ne):
+        c_ns = _dcm(q)
+        if k > 0:
+            j = k - 1
+            dt = seg_dt[j]
+            lat, h = llh[0], llh[2]
+            r_m, r_n = _radii(lat)
+            cl, sl, tl = np.cos(lat), np.sin(lat), np.tan(lat)
+            w_ie[0], w_ie[2] = _WIE * cl, -_WIE * sl
+            w_en[0], w_en[1], w_en[2] = v[1] / (r_n + h), -v[0] / (r_m + h), -v[1] * tl / (r_n + h)
+            mav[0, 1], mav[1, 0], mav[2, 1] = 1.0 / (r_n + h), -1.0 / (r_m + h), -tl / (r_n + h)
+            f_n = c_ns @ (seg_dv[j] / dt)
+            f_buf[:, :] = 0.0
+            _fill_dynamics(f_buf, offs, c_ns, f_n, w_ie, w_en, v, mav, beta)
+            _discretise(f_buf, qc, dt, phi_k, qd_k)
+            nav_step(q, v, llh, seg_dq[j], seg_dv[j], dt, q_new, v_new, llh_new)
+            q[:] = q_new
+            v[:] = v_new
+            llh[:] = llh_new
+            c_ns = _dcm(q)
+        tk = t_ep[k]
+        tm_ = tk - tau
+        i = np.searchsorted(mt, tm_, side="right") - 1
+        i = min(max(i, 0), km - 2)
+        al = (tm_ - mt[i]) / (mt[i + 1] - mt[i])
+        al = min(max(al, -1.0), 2.0)
+        if has_q:
+            c_nm = _dcm((1.0 - al) * mq[i] + al * mq[i + 1])
+        if has_v:
+            v_m = (1.0 - al) * mv[i] + al * mv[i + 1]
+            a_m = (1.0 - al) * ma[i] + al * ma[i + 1]
+        if has_w:
+            w_m = (1.0 - al) * mw[i] + al * mw[i + 1]
+        # master attitude reset since the last epoch: restart the slave attitude from it
+        if k > 0 and len(resets) > 0 and has_q:
+            t_prev = t_ep[k - 1] - tau
+            hit = False
+            for rr in range(len(resets)):
+                if resets[rr] > t_prev and resets[rr] <= tm_:
+                    hit = True
+            if hit:
+                q = _quat_from_dcm_nb(c_nm @ r_hat.T)
+                c_ns = _dcm(q)
+                for ii in range(3):
+                    for jj in range(n):
+                        P[a0 + ii, jj] = 0.0
+                        P[jj, a0 + ii] = 0.0
+                    P[a0 + ii, a0 + ii] = p0[a0 + ii, a0 + ii]
+                    x[a0 + ii] = 0.0
+                n_reinit += 1
+        usable = mvalid[i] and mvalid[i + 1]
+        if not usable:
+            if k > 0:
+                x = phi_k @ x
+                P = phi_k @ P @ phi_k.T + qd_k
+                if keep:
+                    sm_phi[k] = phi_k
+                    sm_xpred[k] = x
+                    sm_ppred[k] = P
+            for ii in range(m_meas):
+                innov[k, ii] = np.nan
+            nis[k] = np.nan
+            n_skip += 1
+        else:
+            row = 0
+            if uses_vel:
+                lt = np.array([w_m[1] * lever[2] - w_m[2] * lever[1], w_m[2] * lever[0] - w_m[0] * lever[2],
+                               w_m[0] * lever[1] - w_m[1] * lever[0]])
+                zv = v - v_m - c_nm @ lt
+                z[0], z[1], z[2] = zv[0], zv[1], zv[2]
+                row = 3
+            if uses_att:
+                za = rotvec_small(c_nm @ r_hat.T @ c_ns.T)
+                z[row], z[row + 1], z[row + 2] = za[0], za[1], za[2]
+            if d_i >= 0 and uses_att:
+                jj = max(k - 1, 0)
+                w_b = _rotvec_nb(seg_dq[jj]) / seg_dt[jj] - x[g0:g0 + 3]
+                lat, h = llh[0], llh[2]
+                r_m, r_n = _radii(lat)
+                w_in = np.array([_WIE * np.cos(lat) + v[1] / (r_n + h), -v[0] / (r_m + h),
+                                 -_WIE * np.sin(lat) - v[1] * np.tan(lat) / (r_n + h)])
+                w_ns = c_ns @ w_b - w_in
+            c_ref = c_nm @ r_fej.T if has_q else c_ns
+            h_buf[:, :] = 0.0
+            _fill_h(h_buf, offs, c_ref, c_nm, w_m, w_ns, a_m)
+            nis[k] = kf_step_nb(x, P, phi_k if k > 0 else no_phi, qd_k, z, h_buf, r_diag, e_buf)
+            innov[k] = e_buf
+            if keep and k > 0:
+                sm_phi[k] = phi_k
+                sm_xpred[k] = phi_k @ sm_xf[k - 1]
+                sm_ppred[k] = phi_k @ sm_pf[k - 1] @ phi_k.T + qd_k
+        ok = True
+        for ii in range(n):
+            if not np.isfinite(x[ii]) or not np.isfinite(P[ii, ii]):
+                ok = False
+        if not ok:
+            counters[2] = k
+            return
+        xs[k] = x
+        for ii in range(n):
+            pd[k, ii] = P[ii, ii]
+        if usable:
+            # feedback into the nominal
+            q = _q_left_rotvec(x[a0:a0 + 3].copy(), q)
+            if v_off >= 0:
+                v = v - x[v_off:v_off + 3]
+            if mo >= 0:
+                r_hat = exp_so3(-x[mo:mo + 3].copy()) @ r_hat
+            if lev >= 0:
+                lever = lever + x[lev:lev + 3]
+            if keep:
+                for ii in range(n):
+                    sm_fb[k, ii] = x[ii] if fb_mask[ii] else 0.0
+            if d_i >= 0:
+                t_new = min(max(tau + x[d_i], lo_tau), hi_tau)
+                if keep:
+                    sm_fb[k, d_i] = t_new - tau
+                tau = t_new
+            for ii in range(n):
+                if fb_mask[ii]:
+                    x[ii] = 0.0
+        r_hist[k] = r_hat
+        if mo >= 0:
+            pm_hist[k] = P[mo:mo + 3, mo:mo + 3]
+        else:
+            cq = _dcm(q)
+            pm_hist[k] = cq.T @ np.ascontiguousarray(P[a0:a0 + 3, a0:a0 + 3]) @ cq
+        tau_hist[k] = tau
+        lev_hist[k] = lever
+        q_hist[k] = q
+        cnm_hist[k] = c_nm
+        if keep:
+            sm_xf[k] = x
+            sm_pf[k] = P
+    counters[0] = n_skip
+    counters[1] = n_reinit
+    counters[2] = -1
+
+
+@njit
+def _rotvec_nb(q):
+    vn = np.sqrt(q[1] ** 2 + q[2] ** 2 + q[3] ** 2)
+    if vn < 1e-12:
+        return 2.0 * q[1:] / max(q[0], 1e-300)
+    return q[1:] * (2.0 * np.arctan2(vn, q[0]) / vn)
+
+
+def run_filter_compiled(inp: AlignInputs, s: FilterSettings) -> FilterRun:
+    """The KF kinds' forward pass as one compiled loop (same results as :func:`run_filter`)."""
+    lay = s.layout
+    n, m_meas = lay.n, lay.n_meas
+    ne = len(inp.seg_dt_s) + 1
+    ms = inp.master
+    k_m = len(ms.t_s)
+    z4, z3 = np.zeros((k_m, 4)), np.zeros((k_m, 3))
+    xs, pd = np.zeros((ne, n)), np.zeros((ne, n))
+    r_hist, pm_hist = np.zeros((ne, 3, 3)), np.zeros((ne, 3, 3))
+    tau_hist, lev_hist = np.zeros(ne), np.zeros((ne, 3))
+    innov, nis = np.full((ne, m_meas), np.nan), np.full(ne, np.nan)
+    q_hist, cnm_hist = np.zeros((ne, 4)), np.zeros((ne, 3, 3))
+    keep = bool(s.smoother)
+    kk = ne if keep else 0
+    sm = (np.zeros((kk, n, n)), np.zeros((kk, n)), np.zeros((kk, n, n)), np.zeros((kk, n)),
+          np.zeros((kk, n, n)), np.zeros((kk, n)))
+    fb_mask = np.zeros(n, np.bool_)
+    for sl in (lay.att, lay.vel, lay.mount, lay.lever):
+        if sl is not None:
+            fb_mask[sl] = True
+    if lay.delay is not None:
+        fb_mask[lay.delay] = True
+    r_diag = np.concatenate([[s.r_vel_m_s**2] * 3 if lay.uses_vel else [],
+                             [s.r_att_rad**2] * 3 if lay.uses_att else []]).astype(float)
+    counters = np.zeros(3, np.int64)
+    valid = ms.valid if ms.valid is not None else np.ones(k_m, np.bool_)
+    _kf_loop(np.ascontiguousarray(inp.t_epoch_s, float), np.ascontiguousarray(inp.seg_dq, float),
+             np.ascontiguousarray(inp.seg_dv_b, float), np.ascontiguousarray(inp.seg_dt_s, float),
+             np.ascontiguousarray(ms.t_s, float),
+             np.ascontiguousarray(ms.quat if ms.quat is not None else z4, float),
+             np.ascontiguousarray(ms.vel if ms.vel is not None else z3, float),
+             np.ascontiguousarray(ms.acc if ms.acc is not None else z3, float),
+             np.ascontiguousarray(ms.w_nm_m if ms.w_nm_m is not None else z3, float),
+             np.ascontiguousarray(valid, np.bool_), np.ascontiguousarray(ms.reset_t_s, float),
+             ms.quat is not None, ms.vel is not None, ms.w_nm_m is not None,
+             np.asarray(inp.q0, float).copy(), np.asarray(inp.v0, float).copy(),
+             np.asarray(inp.llh0, float).copy(), np.ascontiguousarray(inp.r0, float),
+             np.asarray(inp.lever0_m, float).copy(), float(inp.tau0_s), lay.offsets, n, m_meas,
+             np.ascontiguousarray(_initial_cov(s)), np.asarray(s.qc, float), r_diag, float(s.flex_beta),
+             float(s.delay_bounds_s[0]), float(s.delay_bounds_s[1]), fb_mask, keep,
+             xs, pd, r_hist, pm_hist, tau_hist, lev_hist, innov, nis, q_hist, cnm_hist, *sm, counters)
+    if counters[2] >= 0:
+        raise AnalysisError(f"alignment filter diverged at t = {inp.t_epoch_s[counters[2]]:.2f} s "
+                            "(non-finite state)")
+    if counters[0] == ne:
+        raise AnalysisError("the master's attitude/velocity is unusable (frozen or jumping) over the whole overlap")
+    run = FilterRun(inp.t_epoch_s.copy(), xs, pd, r_hist, pm_hist, tau_hist, lev_hist, innov, nis,
+                    dcm_from_quat(q_hist), cnm_hist if ms.quat is not None else None, np.full(ne, np.inf),
+                    n_skipped=int(counters[0]), n_reinit=int(counters[1]))
+    if keep:
+        run.p_mount_fwd = run.p_mount.copy()
+        _rts(run, lay, *sm)
+    return run

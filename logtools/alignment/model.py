@@ -1,0 +1,283 @@
+"""Transfer-alignment error-state model: state layout per matching mode, continuous dynamics F,
+measurement functions and their analytic Jacobians H (tested against finite differences).
+
+Definitions (NED navigation frame n, slave body s, master body m; DESIGN.md mounting R = C_sm):
+
+* slave attitude error phi (n frame):  C_ns_hat = (I - [phi x]) C_ns            (phi-angle model)
+* velocity error:                      dv = v_hat - v
+* gyro drift eps, accel bias nabla (s frame): measured = true + bias
+* mounting error mu (s frame): with the running mounting estimate R_hat,  R = (I - [mu x]) R_hat
+* flexure (S000 eq 8): angle lam (s frame) and rate w_f, second-order Markov
+  lam' = w_f,  w_f' = -beta^2 lam - 2 beta w_f + eta; the effective mounting is mu + lam
+* lever arm error dl (m frame): l = l_hat + dl, slave velocity v_s = v_m + C_nm (w_nm^m x l)  (S003 eq 3)
+* delay dtau (s): the slave's data stamped t describe the physical instant t - tau (tau > 0: slave
+  stamps late, DESIGN.md latency); the master is read at t - tau_hat and dtau = tau - tau_hat. The
+  measurement is linearised in the delay (S001/S004): dz/dtau = -(rate of the master quantity).
+
+Dynamics (phi-angle model, position errors neglected):
+  phi' = -w_in x phi + M_av dv - C_ns eps
+  dv'  = f^n x phi + C_ns nabla - (2 w_ie + w_en) x dv + v x (M_av dv)
+Measurements:
+  attitude  z_att = rotvec(C_ns_ref C_ns_hat^T),  C_ns_ref = C_nm R_hat^T (master with the mounting
+            estimate); z_att = phi - C_ns (mu + lam) + w_ns^n dtau
+  velocity  z_vel = v_hat - (v_m + C_nm (w x l_hat)) = dv + C_nm [w x] dl - a_m^n dtau
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from logtools.strapdown import njit
+
+MATCHES = ("vel", "att", "vel+att")
+
+
+@dataclass(frozen=True)
+class StateLayout:
+    """Which states the filter carries and where. Slices index the state vector; None = absent."""
+
+    match: str
+    names: tuple[str, ...]
+    att: slice
+    vel: slice | None
+    gyro: slice
+    accel: slice | None
+    mount: slice | None
+    flex_ang: slice | None
+    flex_rate: slice | None
+    lever: slice | None
+    delay: int | None
+
+    @property
+    def n(self) -> int:
+        return len(self.names)
+
+    @property
+    def uses_vel(self) -> bool:
+        return "vel" in self.match
+
+    @property
+    def uses_att(self) -> bool:
+        return "att" in self.match
+
+    @property
+    def n_meas(self) -> int:
+        return 3 * (self.uses_vel + self.uses_att)
+
+    @property
+    def offsets(self) -> np.ndarray:
+        """Start index of each group (-1 when absent), for the compiled kernels:
+        [att, vel, gyro, accel, mount, flex_ang, flex_rate, lever, delay, uses_vel, uses_att]."""
+        def o(s):
+            return -1 if s is None else s.start
+        return np.array([o(self.att), o(self.vel), o(self.gyro), o(self.accel), o(self.mount),
+                         o(self.flex_ang), o(self.flex_rate), o(self.lever),
+                         -1 if self.delay is None else self.delay, int(self.uses_vel), int(self.uses_att)],
+                        dtype=np.int64)
+
+
+def make_layout(match: str, *, flexure: bool = False, lever_arm: bool = False, delay: bool = False
+                ) -> StateLayout:
+    """State layout per matching mode. Velocity states (and the accel bias, which only acts through
+    them) are carried when velocity is matched; mounting (and flexure) when attitude is matched."""
+    if match not in MATCHES:
+        raise ValueError(f"match must be one of {MATCHES}, not {match!r}")
+    names: list[str] = []
+
+    def add(prefix: str, axes: str = "xyz") -> slice:
+        s = slice(len(names), len(names) + len(axes))
+        names.extend(f"{prefix}_{a}" for a in axes)
+        return s
+
+    use_vel = "vel" in match
+    use_att = "att" in match
+    att = add("att_err", "ned")
+    vel = add("vel_err", "ned") if use_vel else None
+    gyro = add("gyro_bias")
+    accel = add("accel_bias") if use_vel else None
+    mount = None
+    if use_att:
+        mount = slice(len(names), len(names) + 3)
+        names.extend(["mount_roll", "mount_pitch", "mount_yaw"])
+    flex_ang = add("flex_ang") if (flexure and use_att) else None
+    flex_rate = add("flex_rate") if (flexure and use_att) else None
+    lever = add("lever_arm") if (lever_arm and use_vel) else None
+    d = None
+    if delay:
+        d = len(names)
+        names.append("delay")
+    return StateLayout(match, tuple(names), att, vel, gyro, accel, mount, flex_ang, flex_rate, lever, d)
+
+
+def m_av(lat_rad: float, alt_m: float, r_m: float, r_n: float) -> np.ndarray:
+    """d(omega_en^n)/d(v^n) (position errors neglected)."""
+    return np.array([[0.0, 1.0 / (r_n + alt_m), 0.0],
+                     [-1.0 / (r_m + alt_m), 0.0, 0.0],
+                     [0.0, -np.tan(lat_rad) / (r_n + alt_m), 0.0]])
+
+
+def dynamics_matrix(lay: StateLayout, c_ns: np.ndarray, f_n: np.ndarray, w_ie_n: np.ndarray,
+                    w_en_n: np.ndarray, vel_n: np.ndarray, mav: np.ndarray,
+                    flex_beta: float = 0.0) -> np.ndarray:
+    """Continuous-time error dynamics F (n x n)."""
+    f = np.zeros((lay.n, lay.n))
+    _fill_dynamics(f, lay.offsets, np.ascontiguousarray(c_ns, float), np.asarray(f_n, float),
+                   np.asarray(w_ie_n, float), np.asarray(w_en_n, float), np.asarray(vel_n, float),
+                   np.ascontiguousarray(mav, float), float(flex_beta))
+    return f
+
+
+@njit
+def _sk(v, out, r0, c0, sign):
+    """out[r0:r0+3, c0:c0+3] = sign * [v x]"""
+    out[r0, c0 + 1] = -sign * v[2]
+    out[r0, c0 + 2] = sign * v[1]
+    out[r0 + 1, c0] = sign * v[2]
+    out[r0 + 1, c0 + 2] = -sign * v[0]
+    out[r0 + 2, c0] = -sign * v[1]
+    out[r0 + 2, c0 + 1] = sign * v[0]
+
+
+@njit
+def _fill_dynamics(f, off, c_ns, f_n, w_ie, w_en, vel, mav, beta):
+    a, v, g, acc = off[0], off[1], off[2], off[3]
+    fa, fr = off[5], off[6]
+    w_in = w_ie + w_en
+    _sk(w_in, f, a, a, -1.0)
+    for i in range(3):
+        for j in range(3):
+            f[a + i, g + j] = -c_ns[i, j]
+    if v >= 0:
+        _sk(f_n, f, v, a, 1.0)
+        cor = 2.0 * w_ie + w_en
+        _sk(cor, f, v, v, -1.0)
+        # + [vel x] mav
+        for i in range(3):
+            for j in range(3):
+                f[a + i, v + j] = mav[i, j]
+                f[v + i, acc + j] = c_ns[i, j]
+        vm = np.zeros((3, 3))
+        vm[0, 1] = -vel[2]
+        vm[0, 2] = vel[1]
+        vm[1, 0] = vel[2]
+        vm[1, 2] = -vel[0]
+        vm[2, 0] = -vel[1]
+        vm[2, 1] = vel[0]
+        t = vm @ mav
+        for i in range(3):
+            for j in range(3):
+                f[v + i, v + j] += t[i, j]
+    if fa >= 0:
+        for i in range(3):
+            f[fa + i, fr + i] = 1.0
+            f[fr + i, fa + i] = -beta * beta
+            f[fr + i, fr + i] = -2.0 * beta
+
+
+def discretise(f: np.ndarray, qc_diag: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Phi = I + F T + (F T)^2 / 2; Qd by the trapezoid (Qc + Phi Qc Phi^T) T / 2 (Qc diagonal)."""
+    phi = np.empty_like(f)
+    qd = np.empty_like(f)
+    _discretise(np.ascontiguousarray(f), np.asarray(qc_diag, float), float(dt_s), phi, qd)
+    return phi, qd
+
+
+@njit
+def _discretise(f, qc, dt, phi, qd):
+    n = f.shape[0]
+    ft = f * dt
+    p = ft @ ft
+    for i in range(n):
+        for j in range(n):
+            phi[i, j] = ft[i, j] + 0.5 * p[i, j]
+        phi[i, i] += 1.0
+    pq = phi * qc  # scales columns
+    q = pq @ phi.T
+    for i in range(n):
+        q[i, i] += qc[i]
+    for i in range(n):
+        for j in range(n):
+            qd[i, j] = 0.5 * dt * q[i, j]
+
+
+def measurement_matrix(lay: StateLayout, c_ns: np.ndarray, *, c_nm: np.ndarray | None = None,
+                       w_lever_m: np.ndarray | None = None, w_ns_n: np.ndarray | None = None,
+                       a_m_n: np.ndarray | None = None) -> np.ndarray:
+    """H for the stacked measurement [z_vel (if matched), z_att (if matched)].
+    c_ns: slave attitude (reference, from the master and the mounting estimate); c_nm: master attitude
+    (lever arm); w_lever_m: master angular rate used for the lever arm (rad/s, m frame);
+    w_ns_n: slave angular rate relative to n, in n (delay); a_m_n: master acceleration in n (delay)."""
+    h = np.zeros((lay.n_meas, lay.n))
+    z3 = np.zeros(3)
+    _fill_h(h, lay.offsets, np.ascontiguousarray(c_ns, float),
+            np.eye(3) if c_nm is None else np.ascontiguousarray(c_nm, float),
+            z3 if w_lever_m is None else np.asarray(w_lever_m, float),
+            z3 if w_ns_n is None else np.asarray(w_ns_n, float),
+            z3 if a_m_n is None else np.asarray(a_m_n, float))
+    return h
+
+
+@njit
+def _fill_h(h, off, c_ns, c_nm, w_l, w_ns, a_m):
+    a, v, mo, fa, lev, d = off[0], off[1], off[4], off[5], off[7], off[8]
+    row = 0
+    if off[9]:
+        for i in range(3):
+            h[i, v + i] = 1.0
+        if lev >= 0:
+            sk = np.zeros((3, 3))
+            _sk(w_l, sk, 0, 0, 1.0)
+            t = c_nm @ sk
+            for i in range(3):
+                for j in range(3):
+                    h[i, lev + j] = t[i, j]
+        if d >= 0:
+            for i in range(3):
+                h[i, d] = -a_m[i]
+        row = 3
+    if off[10]:
+        for i in range(3):
+            h[row + i, a + i] = 1.0
+            for j in range(3):
+                h[row + i, mo + j] = -c_ns[i, j]
+                if fa >= 0:
+                    h[row + i, fa + j] = -c_ns[i, j]
+            if d >= 0:
+                h[row + i, d] = w_ns[i]
+    return h
+
+
+# ---- nonlinear measurement functions (what the filter feeds in; Jacobians above are their derivatives)
+@njit
+def rotvec_small(m: np.ndarray) -> np.ndarray:
+    """Rotation vector of a DCM close to identity (exact log map for angles < pi)."""
+    c = min(max((m[0, 0] + m[1, 1] + m[2, 2] - 1.0) / 2.0, -1.0), 1.0)
+    ang = np.arccos(c)
+    w = np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]])
+    k = 0.5 if ang < 1e-6 else ang / (2.0 * np.sin(ang))
+    return w * k
+
+
+def att_residual(c_ns_hat: np.ndarray, c_nm: np.ndarray, r_hat: np.ndarray) -> np.ndarray:
+    """z_att = rotvec(C_ns_ref C_ns_hat^T), C_ns_ref = C_nm R_hat^T."""
+    return rotvec_small(c_nm @ r_hat.T @ c_ns_hat.T)
+
+
+def vel_residual(v_hat_n: np.ndarray, v_m_n: np.ndarray, c_nm: np.ndarray, w_lever_m: np.ndarray,
+                 lever_m: np.ndarray) -> np.ndarray:
+    """z_vel = v_hat - (v_m + C_nm (w x l_hat))."""
+    return v_hat_n - v_m_n - c_nm @ np.cross(w_lever_m, lever_m)
+
+
+@njit
+def exp_so3(rv: np.ndarray) -> np.ndarray:
+    """DCM of a rotation vector (Rodrigues)."""
+    ang = np.sqrt(rv[0] ** 2 + rv[1] ** 2 + rv[2] ** 2)
+    k = np.zeros((3, 3))
+    _sk(rv, k, 0, 0, 1.0)
+    if ang < 1e-9:
+        a, b = 1.0, 0.5
+    else:
+        a, b = np.sin(ang) / ang, (1.0 - np.cos(ang)) / ang**2
+    return np.eye(3) + a * k + b * (k @ k)
