@@ -1,0 +1,952 @@
+"""Latency (and clock drift) of the slave unit behind the master, from angular rate.
+
+``estimate(master, slave)`` returns a :class:`~logtools.results.LatencyResult` whose ``latency_s``
+follows DESIGN.md: positive when the slave's stamps are late, i.e. the slave sample stamped ``t + d``
+shows the motion the master stamped ``t``.  Model (both units on the master's relative clock)::
+
+    w_slave(t + d(t)) = R w_master(t) + b + noise,    d(t) = L + drift * (t - t_mid)
+
+with R the unknown relative mounting (``v_slave = R v_master``, any rotation), b the difference of the
+gyro biases, L the latency at the middle ``t_mid`` of the analysed window and ``drift`` the relative clock
+rate (``drift_ppm`` = drift * 1e6).
+
+tapost's method ("tapost")
+  0. inputs: each unit's gyro (or body rate from its attitude quaternions), on the master's relative
+     clock (``slave.rebased(master.meta.t0_ns)``, exact), each on its own uniform grid
+     (``logtools.resample``: duplicates, jitter, gaps masked), zero-phase low-passed at the same cutoff
+     (3x the motion's band: the noise above it would bias a spline-interpolated sub-sample delay);
+  1. coarse, rotation-invariant: normalised cross-correlation of |w| (mean removed and normalised over
+     the overlap at each lag, FFT over the whole overlap) -- candidates, and the "xcorr-norm" baseline;
+  2. rotation from the data: at every integer lag of the search range the rotation-solved vector cost
+     ``min_{R,b} sum |w_s - R w_m - b|^2`` (Kabsch/Wahba with the means, i.e. the biases) is computed at
+     once from 18 FFT cross-correlations and a batched 3x3 SVD: a cost curve that is rotation- and
+     bias-invariant and uses all three axes (this is what makes slow, smooth motions work);
+  3. full-vector refinement to a sub-sample delay: Gauss-Newton on the continuous delay (cubic B-spline
+     of the slave, never extrapolated), R and b re-solved at every step (variable projection); then the
+     band is re-chosen from the residual spectrum (the cutoff minimising the predicted variance: flexure
+     adds rate noise above slow motions) and the units re-filtered;
+  4. drift: step 3 in windows along the overlap (integer-lag search around the predicted lag, then
+     refinement), a weighted line latency(t) = L + drift (t - t_mid), then a joint Gauss-Newton of
+     (L, drift) with R, b over the whole overlap;
+  5. sigma: the joint (L, drift, rotation, bias) Gauss-Newton covariance with a heteroscedasticity-and-
+     autocorrelation-consistent (Bartlett/Newey-West) variance of the scores, i.e. corrected for
+     correlated residuals, inflated by the scatter of the window estimates about the drift line;
+  6. quality flags: motion level, too little motion, periodic motion (several near-equal minima of the
+     cost: S000 eq 6's caveat; sigma then covers the ambiguity), windows disagreeing, overlap, rotation
+     found, residual RMS, masked fraction.
+
+"xcorr-norm": step 1 alone with a parabolic peak interpolation (what Kalibr / Twist-n-Sync do first).
+The seeds' methods (``s000-rate-integral``, ``s002-attitude-shift``) live in ``logtools.latency_seeds``.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import fft as sfft
+
+from logtools.conventions import euler_from_dcm, quat_conj, quat_make_continuous, quat_mul, rotvec_from_quat
+from logtools.errors import AnalysisError
+from logtools.inslog import InsLog
+from logtools.resample import Interpolant, UniformSeries, interpolant, lowpass, median_rate_hz, to_uniform
+from logtools.results import LatencyResult, MethodEstimate
+
+__all__ = ["estimate", "METHODS", "rate_from_attitude"]
+
+METHODS = ("tapost", "s000-rate-integral", "s002-attitude-shift", "xcorr-norm")
+MAX_COMMON_RATE_HZ = 200.0  # refinement grid cap (a 400-1000 Hz unit is low-passed then decimated)
+MAX_COARSE_RATE_HZ = 100.0  # integer-lag search grid cap
+CUTOFF_FRACTION = 0.4  # zero-phase low-pass at most at this fraction of the common rate
+MIN_CUTOFF_HZ = 1.0  # and at least here (3x the motion band in between)
+MIN_OVERLAP_S = 5.0
+MIN_MOTION_SNR = 2.0  # in-band motion RMS / in-band noise RMS below this: no motion (AnalysisError)
+LOW_MOTION_SNR = 10.0  # below this (or below LOW_MOTION_DPS): "too_little_motion" flag
+LOW_MOTION_DPS = 0.5
+WINDOW_S = 15.0  # nominal window length for the drift stage (3..MAX_WINDOWS windows)
+MAX_WINDOWS = 16
+DRIFT_PRIOR_PPM = 100.0  # prior std of the relative clock drift (shrinks an undetermined drift)
+DRIFT_SEARCH_PPM = 250.0  # window search band grows with distance from the middle at this rate
+SIGMA_CALIBRATION = 1.2  # from a Monte Carlo over the simulator (|error| <= 2 sigma in ~95 % of runs)
+HAC_BANDWIDTH_FACTOR = 4  # Newey-West bandwidth = this x the lag where the scores decorrelate
+ADAPT_BAND = True  # narrow the band where the residuals (flexure) outweigh the motion
+ADAPT_SPAN_S = 300.0  # the band is chosen from a first fit on the central part of the overlap
+MIN_ADAPT_CUTOFF_HZ = 0.05
+MIN_ADAPT_CYCLES = 20.0  # the adapted cutoff keeps at least this many cycles over the overlap
+ADAPT_GAIN = 0.7  # narrow only when the predicted variance drops below this fraction
+SIGMA_FLOOR_S = 5e-6  # model floor (interpolation, numerics)
+PERIODIC_MARGIN = 0.02  # alternative minimum within this of the best normalised cost -> periodic
+PERIODIC_REL_MARGIN = 0.1  # ... or within this fraction of the best cost (noisy data)
+
+Progress = Callable[[float, str], None] | None
+
+
+# ---------------------------------------------------------------------------------------------
+# inputs
+# ---------------------------------------------------------------------------------------------
+def rate_from_attitude(t_s: np.ndarray, quat_wxyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Body angular rate (rad/s, FRD) from body->NED quaternions by finite differences.
+
+    ``q_{k+1} = q_k * dq``: ``w = rotvec(q_k^-1 q_{k+1}) / dt`` stamped at the interval's middle (the
+    rate relative to the navigation frame; earth and transport rates, a few deg/h, are left out).
+    """
+    t = np.asarray(t_s, dtype=float)
+    q = np.asarray(quat_wxyz, dtype=float)
+    ok = np.isfinite(t) & np.all(np.isfinite(q), axis=1)
+    t, q = t[ok], q[ok]
+    order = np.argsort(t, kind="stable")
+    t, q = t[order], quat_make_continuous(q[order])
+    keep = np.concatenate([[True], np.diff(t) > 0])
+    t, q = t[keep], q[keep]
+    if len(t) < 2:
+        return np.zeros(0), np.zeros((0, 3))
+    dq = quat_mul(quat_conj(q[:-1]), q[1:])
+    w = rotvec_from_quat(dq) / np.diff(t)[:, None]
+    return 0.5 * (t[:-1] + t[1:]), w
+
+
+def _unit_rate(log: InsLog, role: str) -> tuple[np.ndarray, np.ndarray, str]:
+    name = f"{role} {log.meta.source_path or ''}".strip()
+    gyro_ok = log.has_gyro and int(np.isfinite(log.gyro_rad_s()).all(axis=1).sum()) >= 20
+    if gyro_ok or (log.has_gyro and not log.has_quat):
+        t, w = log.t_imu_s(), log.gyro_rad_s()
+        src = "gyro"
+    elif log.has_quat:
+        t, w = rate_from_attitude(*log.quat_wxyz())
+        src = "attitude"
+    else:
+        raise AnalysisError(f"{name}: latency needs angular rate or attitude; the log has neither")
+    ok = np.isfinite(t) & np.all(np.isfinite(w), axis=1)
+    if ok.sum() < 20:
+        raise AnalysisError(f"{name}: angular rate ({src}) has {int(ok.sum())} finite samples "
+                            f"of {len(t)} (NaN-only or empty data)")
+    return t, w, src
+
+
+@dataclass(frozen=True)
+class _Unit:
+    name: str
+    source: str  # "gyro" | "attitude"
+    rate_hz: float
+    native: UniformSeries  # on its own grid, low-passed
+    itp: Interpolant  # continuous
+    grid: UniformSeries  # on the common grid
+    noise_dps: float  # white-noise level of the raw samples (deg/s per sample)
+
+
+def _series_on_grid(itp: Interpolant, dt_s: float) -> UniformSeries:
+    i0 = int(np.ceil(itp.t_first_s / dt_s - 1e-9))
+    i1 = int(np.floor(itp.t_last_s / dt_s + 1e-9))
+    t = np.arange(i0, i1 + 1) * dt_s
+    v, ok = itp(t)
+    v = np.where(ok[:, None], v, 0.0)
+    return UniformSeries(i0, dt_s, v, ok, itp.series.warnings, itp.series.gaps_s)
+
+
+def _uniform_native(t: np.ndarray, w: np.ndarray, name: str) -> tuple[UniformSeries, float]:
+    """The unit on its own uniform grid, and its white-noise level (rad/s per raw sample)."""
+    try:
+        nat = to_uniform(t, w, name=name)
+    except ValueError as exc:
+        raise AnalysisError(f"{name}: {exc}") from None
+    # noise per raw sample (second differences remove smooth motion): std(d2) = sqrt(6) sigma
+    d2 = np.diff(nat.values[nat.valid], n=2, axis=0)
+    noise = float(np.sqrt(np.mean((np.median(np.abs(d2), axis=0) * 1.4826) ** 2)) / np.sqrt(6.0)) if len(d2) else 0.0
+    return nat, noise
+
+
+def _signal_band_hz(nat: UniformSeries, noise_rad_s: float) -> float:
+    """Frequency below which 99.5 % of the motion power (PSD above 3x the white-noise floor) lies."""
+    from scipy.signal import welch
+
+    v = nat.values[nat.valid]
+    if len(v) > 2 ** 18:  # the central part is enough for a spectrum (speed)
+        c = len(v) // 2
+        v = v[c - 2 ** 17:c + 2 ** 17]
+    fs = nat.rate_hz
+    if len(v) < 64:
+        return 0.4 * fs
+    nper = int(min(len(v), 2 ** int(np.ceil(np.log2(max(64.0, 60.0 * fs))))))
+    f, p = welch(v - v.mean(axis=0), fs=fs, nperseg=nper, axis=0)
+    p = p.sum(axis=1)
+    n0 = 3.0 * 3.0 * 2.0 * noise_rad_s ** 2 / fs  # 3x the one-sided white-noise PSD of 3 axes
+    ex = np.clip(p - n0, 0.0, None)
+    tot = ex.sum()
+    if not tot > 0:
+        return 0.4 * fs
+    return float(f[min(len(f) - 1, int(np.searchsorted(np.cumsum(ex), 0.995 * tot)))])
+
+
+def _make_unit(nat: UniformSeries, noise: float, src: str, name: str, rate: float, dt_c: float,
+               cutoff_hz: float) -> _Unit:
+    lp = lowpass(nat, cutoff_hz)
+    itp = interpolant(lp)
+    grid = _series_on_grid(itp, dt_c)
+    return _Unit(name, src, rate, lp, itp, grid, float(np.degrees(noise)))
+
+
+# ---------------------------------------------------------------------------------------------
+# FFT machinery: correlations of masked series on a common grid
+# ---------------------------------------------------------------------------------------------
+class _Correlator:
+    """corr(x, y)[L] = sum_i x[i] y[i + L + off] for a master and a slave series on one grid."""
+
+    def __init__(self, m: UniformSeries, s: UniformSeries):
+        self.n, self.m_len = len(m.values), len(s.values)
+        self.nfft = sfft.next_fast_len(self.n + self.m_len - 1, real=True)
+        self.off = m.i0 - s.i0
+
+    def fa(self, x: np.ndarray) -> np.ndarray:
+        return np.conj(sfft.rfft(x, self.nfft, axis=0))
+
+    def fb(self, y: np.ndarray) -> np.ndarray:
+        return sfft.rfft(y, self.nfft, axis=0)
+
+    def lag_range(self) -> tuple[int, int]:
+        """Lags (grid steps) with at least one overlapping pair."""
+        return -(self.n - 1) - self.off, self.m_len - 1 - self.off
+
+    def corr(self, FA: np.ndarray, FB: np.ndarray, lags: np.ndarray) -> np.ndarray:
+        c = sfft.irfft(FA * FB, self.nfft, axis=0)
+        return c[(lags + self.off) % self.nfft]
+
+
+def _norm_xcorr(m: UniformSeries, s: UniformSeries, lags: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pearson correlation of |w| at each lag over the overlap (mean removed per lag), and counts."""
+    c = _Correlator(m, s)
+    va, vb = m.valid.astype(float), s.valid.astype(float)
+    a = np.linalg.norm(m.values, axis=1) * va
+    b = np.linalg.norm(s.values, axis=1) * vb
+    FA = c.fa(np.stack([va, a, a * a], axis=1))
+    FB = c.fb(np.stack([vb, b, b * b], axis=1))
+    n = c.corr(FA[:, 0], FB[:, 0], lags)
+    sa = c.corr(FA[:, 1], FB[:, 0], lags)
+    saa = c.corr(FA[:, 2], FB[:, 0], lags)
+    sb = c.corr(FA[:, 0], FB[:, 1], lags)
+    sbb = c.corr(FA[:, 0], FB[:, 2], lags)
+    sab = c.corr(FA[:, 1], FB[:, 1], lags)
+    n = np.round(n)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cov = sab - sa * sb / n
+        var_a = saa - sa * sa / n
+        var_b = sbb - sb * sb / n
+        rho = cov / np.sqrt(var_a * var_b)
+    rho[~(n > 3) | ~(var_a > 0) | ~(var_b > 0)] = np.nan
+    return rho, n
+
+
+def _kabsch(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """R maximising tr(R M) for M = sum a b^T (so that b ~ R a); batched. Returns (R, max value)."""
+    U, S, Vt = np.linalg.svd(M)
+    det = np.linalg.det(np.swapaxes(Vt, -1, -2) @ np.swapaxes(U, -1, -2))
+    D = np.ones(S.shape)
+    D[..., 2] = np.sign(det + (det == 0))
+    R = np.swapaxes(Vt, -1, -2) @ (D[..., :, None] * np.swapaxes(U, -1, -2))
+    return R, np.sum(S * D, axis=-1)
+
+
+@dataclass(frozen=True)
+class _VectorCost:
+    lags: np.ndarray  # grid steps
+    cost: np.ndarray  # normalised: (C_aa + C_bb - 2 max tr(R M)) / (C_aa + C_bb), in [0, 2]; NaN off-range
+    count: np.ndarray
+    R: np.ndarray  # (L, 3, 3)
+
+
+def _vector_cost(m: UniformSeries, s: UniformSeries, lags: np.ndarray, min_count: float) -> _VectorCost:
+    """Rotation- and bias-solved full-vector cost at every integer lag (18 FFT correlations)."""
+    c = _Correlator(m, s)
+    va, vb = m.valid.astype(float), s.valid.astype(float)
+    a = m.values * va[:, None]
+    b = s.values * vb[:, None]
+    FA = c.fa(np.column_stack([va, a, np.sum(a * a, axis=1)]))
+    FB = c.fb(np.column_stack([vb, b, np.sum(b * b, axis=1)]))
+    n = np.round(c.corr(FA[:, 0], FB[:, 0], lags))
+    sa = np.stack([c.corr(FA[:, 1 + p], FB[:, 0], lags) for p in range(3)], axis=-1)
+    sb = np.stack([c.corr(FA[:, 0], FB[:, 1 + q], lags) for q in range(3)], axis=-1)
+    saa = c.corr(FA[:, 4], FB[:, 0], lags)
+    sbb = c.corr(FA[:, 0], FB[:, 4], lags)
+    M = np.empty((len(lags), 3, 3))
+    for p in range(3):
+        for q in range(3):
+            M[:, p, q] = c.corr(FA[:, 1 + p], FB[:, 1 + q], lags)
+    good = n >= max(min_count, 10)
+    nn = np.where(good, n, 1.0)
+    M -= sa[:, :, None] * sb[:, None, :] / nn[:, None, None]
+    caa = saa - np.sum(sa * sa, axis=1) / nn
+    cbb = sbb - np.sum(sb * sb, axis=1) / nn
+    R, best = _kabsch(M)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cost = (caa + cbb - 2.0 * best) / (caa + cbb)
+    cost[~good | ~(caa + cbb > 0)] = np.nan
+    return _VectorCost(lags, cost, n, R)
+
+
+def _parabolic(y: np.ndarray, i: int) -> float:
+    """Vertex offset (in steps, within +-0.5) of the parabola through y[i-1], y[i], y[i+1]."""
+    if i <= 0 or i >= len(y) - 1 or not np.all(np.isfinite(y[i - 1:i + 2])):
+        return 0.0
+    den = y[i - 1] - 2 * y[i] + y[i + 1]
+    return float(np.clip(0.5 * (y[i - 1] - y[i + 1]) / den, -0.5, 0.5)) if den != 0 else 0.0
+
+
+def _local_minima(y: np.ndarray) -> np.ndarray:
+    f = np.where(np.isfinite(y), y, np.inf)
+    i = np.arange(1, len(f) - 1)
+    return i[(f[i] <= f[i - 1]) & (f[i] < f[i + 1]) & np.isfinite(f[i])]
+
+
+# ---------------------------------------------------------------------------------------------
+# continuous refinement
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class _Fit:
+    latency_s: float
+    drift: float  # s/s
+    R: np.ndarray
+    bias: np.ndarray  # rad/s, slave frame
+    sigma_latency_s: float
+    sigma_drift: float
+    residual_rms: float  # rad/s
+    n: int
+    hac_factor: float  # variance inflation for correlated residuals
+    motion_rms: float  # rad/s, master, in the used samples
+    ok: bool = True
+    corr_ld: float = 0.0  # correlation of the (L, drift) estimates
+
+
+def _kabsch_bias(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    ma, mb = a.mean(axis=0), b.mean(axis=0)
+    M = (a - ma).T @ (b - mb)
+    R, _ = _kabsch(M)
+    return R, mb - R @ ma
+
+
+def _hac_cov(u: np.ndarray, max_lag: int) -> tuple[np.ndarray, float]:
+    """Newey-West (Bartlett) covariance of sum_k u_k for serially correlated u (N, p); the bandwidth is
+    HAC_BANDWIDTH_FACTOR times the lag where u's mean autocorrelation first drops below 0.1.
+    Returns (covariance (p, p), bandwidth in samples)."""
+    N, p = u.shape
+    nfft = sfft.next_fast_len(2 * N, real=True)
+    F = sfft.rfft(u, nfft, axis=0)
+    nl = min(N, max_lag + 1)
+    # ac[h, i, j] = sum_k u_i[k] u_j[k + h]
+    ac = np.empty((nl, p, p))
+    for i in range(p):
+        for j in range(p):
+            ac[:, i, j] = sfft.irfft(np.conj(F[:, i]) * F[:, j], nfft)[:nl]
+    g0 = np.diag(ac[0]).copy()
+    g0[g0 <= 0] = np.finfo(float).tiny
+    rho = (np.diagonal(ac, axis1=1, axis2=2) / g0).mean(axis=1)
+    below = np.flatnonzero(rho < 0.1)
+    h1 = int(below[0]) if len(below) else nl - 1
+    H = int(np.clip(HAC_BANDWIDTH_FACTOR * h1, 1, nl - 1)) if nl > 1 else 0
+    if H == 0:
+        return ac[0], 0.0
+    w = 1.0 - np.arange(1, H + 1) / (H + 1.0)
+    S = np.sum(w[:, None, None] * ac[1:H + 1], axis=0)
+    V = ac[0] + S + S.T
+    return V, float(H)
+
+
+def _jacobian(bd: np.ndarray, tu: np.ndarray | None, Ra: np.ndarray) -> np.ndarray:
+    """(3N, P) Jacobian of r = w_s(t + L + drift t) - R w_m - b w.r.t. (L[, drift], rotation, bias)."""
+    n = len(bd)
+    P = 8 if tu is not None else 7
+    J = np.zeros((n, 3, P))
+    J[:, :, 0] = bd
+    k = 1
+    if tu is not None:
+        J[:, :, 1] = bd * tu[:, None]
+        k = 2
+    x, y, z = Ra[:, 0], Ra[:, 1], Ra[:, 2]
+    # d(r)/d(theta) = [R a]x  (R -> exp([theta]x) R)
+    J[:, 1, k], J[:, 2, k] = z, -y
+    J[:, 0, k + 1], J[:, 2, k + 1] = -z, x
+    J[:, 0, k + 2], J[:, 1, k + 2] = y, -x
+    J[:, 0, k + 3] = J[:, 1, k + 4] = J[:, 2, k + 5] = -1.0
+    return J.reshape(3 * n, P)
+
+
+def _residual(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant, f: _Fit,
+              t_mid: float) -> np.ndarray:
+    """Residuals (N, 3) of a fit on the refinement grid; 0 where masked."""
+    bv, ok = itp(t_m + f.latency_s + f.drift * (t_m - t_mid))
+    r = bv - a @ f.R.T - f.bias
+    r[~(ok & valid)] = 0.0
+    return r
+
+
+def _best_cutoff(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, r: np.ndarray, dt_s: float,
+                 cutoff_hz: float, overlap_s: float) -> float:
+    """Cutoff fc minimising the predicted variance of a least-squares delay on signals band-limited
+    at fc: var(fc) ~ sum_{f<fc} w^2 S N / (sum_{f<fc} w^2 S)^2 (S: master rate PSD, N: residual PSD)."""
+    if len(r) < 256:
+        return cutoff_hz
+    # periodograms over the whole overlap (the motion may be slower than any Welch segment); the
+    # noise spectrum smoothed over a few bins
+    am = np.where(valid[:, None], a - a[valid].mean(axis=0), 0.0)
+    f = sfft.rfftfreq(len(r), dt_s)
+    S = np.sum(np.abs(sfft.rfft(am, axis=0)) ** 2, axis=1)
+    N = np.sum(np.abs(sfft.rfft(r, axis=0)) ** 2, axis=1)
+    k = 9
+    N = np.convolve(np.pad(N, k // 2, mode="edge"), np.ones(k) / k, mode="valid")
+    w2s = (2 * np.pi * f) ** 2 * S
+    num = np.cumsum(w2s * N)
+    den = np.cumsum(w2s)
+    f_min = max(MIN_ADAPT_CUTOFF_HZ, MIN_ADAPT_CYCLES / max(overlap_s, 1.0))
+    cand = (f >= f_min) & (f <= cutoff_hz) & (den > 0)
+    if not cand.any():
+        return cutoff_hz
+    var = np.where(cand, num / np.where(den > 0, den, 1.0) ** 2, np.inf)
+    k = int(np.argmin(var))
+    # keep the full band unless narrowing gains clearly (>20 % in sigma)
+    full = np.flatnonzero(cand)[-1]
+    if not var[k] < ADAPT_GAIN * var[full]:
+        return cutoff_hz
+    return float(min(cutoff_hz, 1.25 * f[k]))
+
+
+def _refiltered_ctx(ctx: "_Ctx", cutoff_hz: float) -> "_Ctx":
+    """The units low-passed again (zero-phase) from their raw series at a new cutoff."""
+    from dataclasses import replace as _rep
+
+    units = []
+    for u, nat in zip((ctx.master, ctx.slave), ctx.raw):
+        lp = lowpass(nat, cutoff_hz)
+        itp = interpolant(lp)
+        units.append(_rep(u, native=lp, itp=itp, grid=_series_on_grid(itp, ctx.dt_s)))
+    return _rep(ctx, master=units[0], slave=units[1], cutoff_hz=cutoff_hz, adapted_cutoff=True)
+
+
+def _refine(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant, d0: float,
+            drift0: float, t_mid: float, *, fit_drift: bool, iters: int = 12) -> _Fit:
+    """Gauss-Newton on (L[, drift]) with R, b re-solved (Kabsch with means) at every step; covariance
+    of the joint (L, drift, rotation, bias) problem with a HAC score variance."""
+    d, dr = float(d0), float(drift0)
+    dt = float(np.median(np.diff(t_m))) if len(t_m) > 1 else 1.0
+    tt = t_m - t_mid
+    prev = np.inf
+    for _ in range(iters):
+        tau = t_m + d + dr * tt
+        bv, ok = itp(tau)
+        use = ok & valid
+        if use.sum() < 20:
+            return _Fit(d, dr, np.eye(3), np.zeros(3), np.inf, np.inf, np.nan, int(use.sum()), 1.0, 0.0, False)
+        bd, _ = itp(tau[use], 1)
+        au, bu, tu = a[use], bv[use], tt[use]
+        R, bias = _kabsch_bias(au, bu)
+        r = bu - au @ R.T - bias
+        cost = float(np.sum(r * r))
+        # reduced Gauss-Newton step on (L[, drift]) (variable projection: R and b are re-solved
+        # exactly at every iteration; the bias is projected out of the step by centring)
+        J = [bd - bd.mean(axis=0)]
+        if fit_drift:
+            jd = bd * tu[:, None]
+            J.append(jd - jd.mean(axis=0))
+        Nr = np.array([[np.sum(x * y) for y in J] for x in J])
+        gr = np.array([np.sum(x * r) for x in J])
+        try:
+            step = -np.linalg.solve(Nr, gr)
+        except np.linalg.LinAlgError:
+            return _Fit(d, dr, R, bias, np.inf, np.inf, np.sqrt(cost / max(1, r.size)), int(use.sum()), 1.0, 0.0, False)
+        sd = float(np.clip(step[0], -0.5 * dt, 0.5 * dt))
+        d += sd
+        if fit_drift:
+            span = max(1e-9, float(np.max(np.abs(tu))))
+            dr += float(np.clip(step[1], -0.5 * dt / span, 0.5 * dt / span))
+        if abs(sd) < 1e-4 * dt or abs(prev - cost) <= 1e-10 * max(cost, 1e-300):
+            break
+        prev = cost
+    # covariance at the solution: joint (L[, drift], rotation, bias) normal equations, HAC-corrected
+    nd = 1 + int(fit_drift)
+    tau = t_m + d + dr * tt
+    bv, ok = itp(tau)
+    use = ok & valid
+    if use.sum() < 20:
+        return _Fit(d, dr, np.eye(3), np.zeros(3), np.inf, np.inf, np.nan, int(use.sum()), 1.0, 0.0, False)
+    bd, _ = itp(tau[use], 1)
+    au, bu, tu = a[use], bv[use], tt[use]
+    R, bias = _kabsch_bias(au, bu)
+    r = bu - au @ R.T - bias
+    cost = float(np.sum(r * r))
+    Jfull = _jacobian(bd, tu if fit_drift else None, au @ R.T)
+    rr = r.ravel()
+    Nm = Jfull.T @ Jfull
+    try:
+        Ninv = np.linalg.inv(Nm)
+    except np.linalg.LinAlgError:
+        return _Fit(d, dr, R, bias, np.inf, np.inf, np.sqrt(cost / max(1, r.size)), int(use.sum()), 1.0, 0.0, False)
+    G = (Jfull * rr[:, None]).reshape(len(r), 3, -1).sum(axis=1)  # per-sample scores
+    u = G @ Ninv[:, :nd]  # contributions to the (L, drift) step
+    max_h = int(min(len(u) // 4, max(10, 20.0 / dt)))
+    V_hac, _H = _hac_cov(u, max_h)
+    dof = max(1, r.size - Nm.shape[0])
+    s2 = cost / dof
+    var_cls = s2 * np.diag(Ninv)[:nd]
+    var_h = np.diag(V_hac)
+    var = np.maximum(np.maximum(var_h, 0.25 * var_cls), var_cls)
+    corr = 0.0
+    if fit_drift and var_h[0] > 0 and var_h[1] > 0:
+        corr = float(np.clip(V_hac[0, 1] / np.sqrt(var_h[0] * var_h[1]), -0.99, 0.99))
+    fac = float(var[0] / var_cls[0]) if var_cls[0] > 0 else 1.0
+    motion = float(np.sqrt(np.mean(np.sum((au - au.mean(axis=0)) ** 2, axis=1))))
+    return _Fit(d, dr, R, bias, float(np.sqrt(var[0])), float(np.sqrt(var[1])) if fit_drift else 0.0,
+                float(np.sqrt(cost / r.size)), int(use.sum()), fac, motion, corr_ld=corr)
+
+
+# ---------------------------------------------------------------------------------------------
+# the estimator
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class _Ctx:
+    master: _Unit
+    slave: _Unit
+    dt_c: float  # common rate (the slower unit's, at most MAX_COMMON_RATE_HZ)
+    cutoff_hz: float
+    max_lag_s: float | None
+    dt_s: float = 0.0  # integer-lag search grid
+    dt_r: float = 0.0  # continuous refinement samples (master)
+    raw: tuple = ()  # (master, slave) unfiltered native uniform series (baseline method)
+    adapted_cutoff: bool = False
+    warnings: list[str] = field(default_factory=list)
+    t0_abs_s: float = 0.0
+
+
+def _prepare(master: InsLog, slave: InsLog, max_lag_s: float | None) -> _Ctx:
+    if max_lag_s is not None and not (np.isfinite(max_lag_s) and max_lag_s > 0):
+        raise AnalysisError(f"max_lag_s must be positive or None (whole overlap), not {max_lag_s!r}")
+    slave_r = slave.rebased(master.meta.t0_ns)
+    tm, wm, srcm = _unit_rate(master, "master")
+    ts, ws, srcs = _unit_rate(slave_r, "slave")
+    fm, fs = median_rate_hz(tm), median_rate_hz(ts)
+    f_c = min(fm, fs, MAX_COMMON_RATE_HZ)
+    dt_c = 1.0 / f_c
+    # master and slave spans (finite samples), face value
+    okm = np.all(np.isfinite(wm), axis=1) & np.isfinite(tm)
+    oks = np.all(np.isfinite(ws), axis=1) & np.isfinite(ts)
+    m0, m1 = float(np.min(tm[okm])), float(np.max(tm[okm]))
+    s0, s1 = float(np.min(ts[oks])), float(np.max(ts[oks]))
+    if max_lag_s is not None:
+        ov = min(m1, s1 + max_lag_s) - max(m0, s0 - max_lag_s)
+        if ov < MIN_OVERLAP_S:
+            raise AnalysisError(
+                f"no overlap between master [{m0 + master.t0_s:.3f}, {m1 + master.t0_s:.3f}] s and slave "
+                f"[{s0 + master.t0_s:.3f}, {s1 + master.t0_s:.3f}] s within +-{max_lag_s:g} s at face value "
+                f"(clocks unrelated? use --max-lag auto)")
+    elif min(m1 - m0, s1 - s0) < MIN_OVERLAP_S:
+        raise AnalysisError(f"logs too short for a latency estimate: master {m1 - m0:.1f} s, slave "
+                            f"{s1 - s0:.1f} s (need {MIN_OVERLAP_S:g} s of overlap)")
+    natm, nm = _uniform_native(tm, wm, "master")
+    nats, ns = _uniform_native(ts, ws, "slave")
+    # zero-phase low-pass of both units at the same cutoff: a few times the motion's band (the noise
+    # between the motion's band and Nyquist would otherwise bias a spline-interpolated sub-sample delay)
+    band = max(_signal_band_hz(natm, nm), _signal_band_hz(nats, ns))
+    cutoff = float(np.clip(3.0 * band, MIN_CUTOFF_HZ, CUTOFF_FRACTION * f_c))
+    # both units are band-limited at the cutoff: refinement samples at 5x the cutoff carry all the
+    # information (a denser grid only costs time; the residuals' correlation is handled by the HAC)
+    f_r = min(f_c, max(5.0 * cutoff, 20.0))
+    f_s = min(f_r, MAX_COARSE_RATE_HZ)
+    um = _make_unit(natm, nm, srcm, "master", fm, 1.0 / f_s, cutoff)
+    us = _make_unit(nats, ns, srcs, "slave", fs, 1.0 / f_s, cutoff)
+    ctx = _Ctx(um, us, dt_c, cutoff, max_lag_s, t0_abs_s=master.t0_s, dt_s=1.0 / f_s, dt_r=1.0 / f_r,
+               raw=(natm, nats))
+    ctx.warnings += list(um.native.warnings) + list(us.native.warnings)
+    if srcm == "attitude" or srcs == "attitude":
+        ctx.warnings.append("angular rate derived from attitude for the " +
+                            " and ".join(r for r, s in (("master", srcm), ("slave", srcs)) if s == "attitude"))
+    return ctx
+
+
+def _lag_window(ctx: _Ctx, corr: _Correlator, dt: float, min_frac: float) -> tuple[np.ndarray, float]:
+    lo, hi = corr.lag_range()
+    if ctx.max_lag_s is not None:
+        k = int(np.floor(ctx.max_lag_s / dt + 1e-9))
+        lo, hi = max(lo, -k), min(hi, k)
+    lags = np.arange(lo, hi + 1)
+    n_short = min(corr.n, corr.m_len)
+    return lags, max(MIN_OVERLAP_S / dt, min_frac * n_short)
+
+
+@dataclass(frozen=True)
+class _Coarse:
+    xc_lags_s: np.ndarray
+    xc_rho: np.ndarray
+    xcorr_latency_s: float
+    xcorr_peak: float
+    vc: _VectorCost
+    dt_s: float  # coarse grid step
+    d0_s: float  # coarse full-vector estimate (parabolic)
+    best_cost: float
+    alternatives_s: tuple[float, ...]  # near-equal other minima (periodic motion)
+    alt_costs: tuple[float, ...]
+
+
+def _coarse(ctx: _Ctx) -> _Coarse:
+    m, s = ctx.master.grid, ctx.slave.grid
+    dt = m.dt_s
+    if len(m.values) < 10 or len(s.values) < 10:
+        raise AnalysisError("too little data for a latency estimate (fewer than 10 coarse samples)")
+    corr = _Correlator(m, s)
+    # overlap needed at a candidate lag: half the shorter log with a bounded search, a quarter otherwise
+    lags, min_count = _lag_window(ctx, corr, dt, 0.5 if ctx.max_lag_s is not None else 0.25)
+    # 1) |w| normalised cross-correlation
+    rho, n = _norm_xcorr(m, s, lags)
+    rho[n < min_count] = np.nan
+    if not np.any(np.isfinite(rho)):
+        raise AnalysisError(f"overlap shorter than {min_count * dt:.1f} s at every candidate lag "
+                            f"(clocks unrelated? use --max-lag auto)")
+    ib = int(np.nanargmax(rho))
+    xc_lat = (lags[ib] + _parabolic(-rho, ib)) * dt
+    # 2) rotation-solved full-vector cost; in an unbounded search only around the best |w| peaks
+    if ctx.max_lag_s is None and len(lags) > 4001:
+        r = np.where(np.isfinite(rho), rho, -np.inf)
+        pk = _local_minima(-r)
+        pk = pk[np.argsort(-r[pk])][:6] if len(pk) else np.array([ib])
+        half = int(np.ceil(2.0 / dt))
+        sel = np.unique(np.concatenate([np.arange(p - half, p + half + 1) for p in pk]))
+        sel = sel[(sel >= 0) & (sel < len(lags))]
+        vlags = lags[sel]
+    else:
+        vlags = lags
+    vc = _vector_cost(m, s, vlags, min_count)
+    if not np.any(np.isfinite(vc.cost)):
+        raise AnalysisError("no lag with enough overlapping valid data")
+    cost = vc.cost
+    # contiguous segments only (selected lags may be disjoint): minima inside runs
+    jb = int(np.nanargmin(cost))
+    contiguous = (jb > 0 and jb < len(vlags) - 1 and vlags[jb + 1] - vlags[jb - 1] == 2)
+    d0 = (vlags[jb] + (_parabolic(cost, jb) if contiguous else 0.0)) * dt
+    # periodic motion: other local minima (outside the main lobe) nearly as low
+    best = float(cost[jb])
+    mins = _local_minima(cost)
+    lobe = _lobe_halfwidth(cost, jb)
+    alts = [i for i in mins if abs(int(vlags[i]) - int(vlags[jb])) > lobe
+            and cost[i] <= best + max(PERIODIC_MARGIN, PERIODIC_REL_MARGIN * best)]
+    return _Coarse(lags * dt, rho, float(xc_lat), float(rho[ib]), vc, dt, float(d0), best,
+                   tuple(float(vlags[i] * dt) for i in alts), tuple(float(cost[i]) for i in alts))
+
+
+def _lobe_halfwidth(cost: np.ndarray, j: int) -> int:
+    """Steps from the minimum j to where the cost rises half-way to its median (main lobe)."""
+    fin = cost[np.isfinite(cost)]
+    level = cost[j] + 0.5 * (np.median(fin) - cost[j])
+    k = 1
+    n = len(cost)
+    while True:
+        left = j - k < 0 or not np.isfinite(cost[j - k]) or cost[j - k] > level
+        right = j + k >= n or not np.isfinite(cost[j + k]) or cost[j + k] > level
+        if (left and right) or k > n:
+            return k
+        k += 1
+
+
+def _windows(ctx: _Ctx, t0: float, t1: float) -> list[tuple[float, float]]:
+    T = t1 - t0
+    K = int(np.clip(np.floor(T / WINDOW_S), 1, MAX_WINDOWS))
+    if T >= 60.0:
+        K = max(K, 3)
+    edges = np.linspace(t0, t1, K + 1)
+    return list(zip(edges[:-1], edges[1:]))
+
+
+def _motion_snr(u: _Unit, cutoff_hz: float) -> tuple[float, float]:
+    """(motion RMS deg/s of the low-passed, mean-removed rate; in-band SNR)."""
+    v = u.grid.values[u.grid.valid]
+    if len(v) < 10:
+        return 0.0, 0.0
+    motion = float(np.degrees(np.sqrt(np.mean(np.sum((v - v.mean(axis=0)) ** 2, axis=1)))))
+    noise_inband = u.noise_dps * np.sqrt(3.0) * np.sqrt(min(1.0, 2.0 * cutoff_hz / u.rate_hz))
+    return motion, float(motion / noise_inband) if noise_inband > 0 else np.inf
+
+
+def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
+    def prog(f: float, stage: str) -> None:
+        if progress is not None:
+            progress(f, stage)
+
+    m, s = ctx.master, ctx.slave
+    motion_dps, snr = _motion_snr(m, ctx.cutoff_hz)
+    motion_s_dps, snr_s = _motion_snr(s, ctx.cutoff_hz)
+    if min(snr, snr_s) < MIN_MOTION_SNR or motion_dps < 1e-3:
+        raise AnalysisError(
+            f"not enough motion to estimate the latency: {motion_dps:.3g} deg/s RMS on the master "
+            f"(signal/noise {min(snr, snr_s):.2g}, need {MIN_MOTION_SNR:g})")
+    prog(0.1, "coarse |w| and rotation-solved cost")
+    co = _coarse(ctx)
+    prog(0.35, "refinement")
+    # refinement samples: the master at ~5x the low-pass cutoff (both units are band-limited there, so
+    # a denser grid adds no information, only time; the residuals' correlation is handled by the HAC)
+    gr = _series_on_grid(m.itp, ctx.dt_r) if abs(ctx.dt_r - ctx.dt_s) > 1e-12 else m.grid
+    t_m, a, valid = gr.t_s, gr.values, gr.valid
+    # analysed window: master samples whose slave counterpart exists
+    ok0 = valid & s.itp.ok(t_m + co.d0_s)
+    if ok0.sum() * ctx.dt_r < MIN_OVERLAP_S:
+        raise AnalysisError(f"overlap at the estimated lag {co.d0_s:.3f} s is only "
+                            f"{ok0.sum() * ctx.dt_r:.1f} s (need {MIN_OVERLAP_S:g} s)")
+    idx = np.flatnonzero(ok0)
+    w0, w1 = float(t_m[idx[0]]), float(t_m[idx[-1]])
+    t_mid = 0.5 * (w0 + w1)
+    sel = (t_m >= w0) & (t_m <= w1)
+    t_m, a, valid = t_m[sel], a[sel], valid[sel]
+    # first fit on the central part (at most ADAPT_SPAN_S, where drift barely matters), no drift
+    cs = np.abs(t_m - t_mid) <= 0.5 * ADAPT_SPAN_S
+    first = _refine(t_m[cs], a[cs], valid[cs], s.itp, co.d0_s, 0.0, t_mid, fit_drift=False)
+    d_center = first.latency_s if first.ok else co.d0_s
+    # band selection: the residual spectrum tells where the noise is (flexure adds a rate noise at
+    # the flexure's frequencies, large compared with slow motions); the low-pass cutoff that minimises
+    # the predicted variance of the delay is chosen and the units are re-filtered there
+    if ADAPT_BAND and first.ok:
+        new_cut = _best_cutoff(t_m[cs], a[cs], valid[cs], _residual(t_m[cs], a[cs], valid[cs], s.itp, first, t_mid),
+                               ctx.dt_r, ctx.cutoff_hz, float(np.ptp(t_m[cs])))
+        if new_cut < 0.7 * ctx.cutoff_hz:
+            ctx = _refiltered_ctx(ctx, new_cut)
+            m, s = ctx.master, ctx.slave
+            gr = _series_on_grid(m.itp, ctx.dt_r) if abs(ctx.dt_r - ctx.dt_s) > 1e-12 else m.grid
+            sel = (gr.t_s >= w0) & (gr.t_s <= w1)
+            t_m, a, valid = gr.t_s[sel], gr.values[sel], gr.valid[sel]
+    prog(0.55, "windows and drift")
+    fin, centers, lats, sigs = _fit_all(ctx, t_m, a, valid, w0, w1, d_center, 0.0, DRIFT_SEARCH_PPM)
+    prog(0.8, "drift")
+    fit_drift = len(centers) >= 3
+    # sigma: HAC-corrected GN sigma, inflated by the windows' scatter about the drift line
+    chi2_red = 1.0
+    if len(centers) >= 3:
+        res = lats - (fin.latency_s + fin.drift * (centers - t_mid))
+        chi2_red = float(np.sum((res / sigs) ** 2) / max(1, len(centers) - 2))
+    infl = np.sqrt(max(1.0, chi2_red))
+    sig_l, sigma_drift = fin.sigma_latency_s * infl, fin.sigma_drift * infl
+    latency, drift = fin.latency_s, fin.drift
+    # a drift the data cannot determine is pulled towards 0 by a Gaussian prior (crystal clocks:
+    # DRIFT_PRIOR_PPM), and the latency with it through their correlation (Gaussian conditioning),
+    # so that an undetermined slope does not become a large made-up one nor spoil the latency
+    if fit_drift and np.isfinite(sigma_drift) and np.isfinite(sig_l):
+        V = np.array([[sig_l ** 2, fin.corr_ld * sig_l * sigma_drift],
+                      [fin.corr_ld * sig_l * sigma_drift, sigma_drift ** 2]])
+        K = V[:, 1] / (V[1, 1] + (DRIFT_PRIOR_PPM * 1e-6) ** 2)
+        latency, drift = latency - K[0] * drift, drift - K[1] * drift
+        V = V - np.outer(K, V[1])
+        sig_l, sigma_drift = float(np.sqrt(max(V[0, 0], 0.0))), float(np.sqrt(max(V[1, 1], 0.0)))
+    sigma = max(SIGMA_CALIBRATION * sig_l, SIGMA_FLOOR_S)
+    periodic = len(co.alternatives_s) > 0
+    if periodic:
+        spread = max(abs(x - co.d0_s) for x in co.alternatives_s)
+        sigma = max(sigma, 0.5 * spread)
+    rpy = tuple(float(x) for x in np.degrees(euler_from_dcm(fin.R)))
+    nanfrac = float(1.0 - np.mean(ok0[(gr.t_s >= w0) & (gr.t_s <= w1)]))
+    too_little = bool(min(snr, snr_s) < LOW_MOTION_SNR or motion_dps < LOW_MOTION_DPS)
+    # normalised cost curve around the minimum (coarse grid), for plots
+    vc = co.vc
+    near = np.abs(vc.lags * co.dt_s - co.d0_s) <= max(0.5, 10 * co.dt_s)
+    quality = {
+        "motion_dps": motion_dps,
+        "slave_motion_dps": motion_s_dps,
+        "motion_snr": float(min(snr, snr_s)),
+        "too_little_motion": too_little,
+        "periodic": periodic,
+        "periodic_alternatives_s": [float(x) for x in co.alternatives_s[:10]],
+        "windows_disagree": bool(chi2_red > 9.0),
+        "window_chi2_red": chi2_red,
+        "n_windows": int(len(centers)),
+        "overlap_s": float(w1 - w0),
+        "mounting_rpy_deg": list(rpy),
+        "bias_diff_dph": [float(x) for x in np.degrees(fin.bias) * 3600.0],
+        "residual_rms_dps": float(np.degrees(fin.residual_rms)),
+        "vector_cost_min": co.best_cost,
+        "nan_fraction": nanfrac,
+        "coarse_latency_s": co.d0_s,
+        "xcorr_norm_latency_s": co.xcorr_latency_s,
+        "xcorr_norm_peak": co.xcorr_peak,
+        "residual_correlation_factor": fin.hac_factor,
+        "drift_sigma_ppm": float(sigma_drift * 1e6) if fit_drift else None,
+        "drift_estimated": fit_drift,
+        "common_rate_hz": 1.0 / ctx.dt_c,
+        "refine_rate_hz": 1.0 / ctx.dt_r,
+        "lowpass_hz": ctx.cutoff_hz,
+        "band_adapted": ctx.adapted_cutoff,
+        "rates_hz": {"master": m.rate_hz, "slave": s.rate_hz},
+        "rate_source": {"master": m.source, "slave": s.source},
+        "warnings": list(ctx.warnings),
+    }
+    res = LatencyResult(
+        latency_s=float(latency), sigma_s=float(sigma), drift_ppm=float(drift * 1e6) if fit_drift else 0.0,
+        method="tapost", window_s=(ctx.t0_abs_s + w0, ctx.t0_abs_s + w1), quality=quality,
+        cost_lag_s=vc.lags[near] * co.dt_s, cost=vc.cost[near],
+        window_centers_s=centers, window_latency_s=lats, mounting_rpy_deg=rpy, t_mid_rel_s=float(t_mid))
+    return res, co
+
+
+def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: float, w1: float,
+             d_center: float, drift_center: float, search_ppm: float
+             ) -> tuple[_Fit, np.ndarray, np.ndarray, np.ndarray]:
+    """Windows along the overlap (each: integer-lag search around the predicted lag, then refinement),
+    a weighted line through them, then the joint (L, drift) fit over the whole overlap. With fewer than
+    3 usable windows, one global fit without drift."""
+    t_mid = 0.5 * (w0 + w1)
+    itp = ctx.slave.itp
+    wins = _windows(ctx, w0, w1)
+    centers, lats, sigs, wmot = [], [], [], []
+    for (a0, a1) in wins if len(wins) >= 3 else []:
+        ws = (t_m >= a0) & (t_m <= a1)
+        if ws.sum() < 50:
+            continue
+        tc = 0.5 * (a0 + a1)
+        pred = d_center + drift_center * (tc - t_mid)
+        band = search_ppm * 1e-6 * abs(tc - t_mid) + 2.0 * ctx.dt_s
+        dw = _window_start(ctx, a0, a1, pred, band)
+        if dw is None:
+            continue
+        f = _refine(t_m[ws], a[ws], valid[ws], itp, dw, 0.0, tc, fit_drift=False, iters=8)
+        if f.ok and np.isfinite(f.sigma_latency_s):
+            centers.append(tc)
+            lats.append(f.latency_s)
+            sigs.append(max(f.sigma_latency_s, SIGMA_FLOOR_S))
+            wmot.append(f.motion_rms)
+    centers, lats, sigs, wmot = map(np.asarray, (centers, lats, sigs, wmot))
+    if len(wmot):
+        keep = wmot >= 0.2 * np.median(wmot)  # windows with enough motion
+        centers, lats, sigs = centers[keep], lats[keep], sigs[keep]
+    fin = None
+    if len(centers) >= 3:
+        L0, dr0, _ = _wls_line(centers - t_mid, lats, sigs)
+        fin = _refine(t_m, a, valid, itp, L0, dr0, t_mid, fit_drift=True)
+        if not fin.ok:
+            fin = None
+    if fin is None:
+        centers = lats = sigs = np.zeros(0)
+        fin = _refine(t_m, a, valid, itp, d_center, 0.0, t_mid, fit_drift=False)
+        if not fin.ok:
+            raise AnalysisError("latency refinement failed (too little valid overlapping data)")
+    return fin, centers, lats, sigs
+
+
+def _window_start(ctx: _Ctx, a0: float, a1: float, d_center: float, band_s: float) -> float | None:
+    """Integer-lag full-vector search of the window [a0, a1] (master relative s) within
+    d_center +- band_s, on the search grid."""
+    dt = ctx.dt_s
+    mg = ctx.master.grid
+    j0 = max(0, int(np.ceil(a0 / dt)) - mg.i0)
+    j1 = min(len(mg.values), int(np.floor(a1 / dt)) - mg.i0 + 1)
+    if j1 - j0 < 20:
+        return None
+    ms = UniformSeries(mg.i0 + j0, dt, mg.values[j0:j1], mg.valid[j0:j1])
+    t = ms.t_s
+    valid = ms.valid
+    # slave samples covering the window shifted by the band
+    sg = ctx.slave.grid
+    lo = int(np.floor((t[0] + d_center - band_s) / dt)) - 2 - sg.i0
+    hi = int(np.ceil((t[-1] + d_center + band_s) / dt)) + 2 - sg.i0
+    lo, hi = max(lo, 0), min(hi, len(sg.values))
+    if hi - lo < 20:
+        return None
+    ss = UniformSeries(sg.i0 + lo, dt, sg.values[lo:hi], sg.valid[lo:hi])
+    kc = int(round(d_center / dt))
+    kb = int(np.ceil(band_s / dt))
+    lags = np.arange(kc - kb, kc + kb + 1)
+    vc = _vector_cost(ms, ss, lags, 0.8 * valid.sum())
+    if not np.any(np.isfinite(vc.cost)):
+        return None
+    j = int(np.nanargmin(vc.cost))
+    return float((lags[j] + _parabolic(vc.cost, j)) * dt)
+
+
+def _wls_line(x: np.ndarray, y: np.ndarray, sig: np.ndarray) -> tuple[float, float, np.ndarray]:
+    w = 1.0 / np.maximum(sig, 1e-12) ** 2
+    A = np.stack([np.ones_like(x), x], axis=1)
+    N = A.T @ (A * w[:, None])
+    p = np.linalg.solve(N, A.T @ (w * y))
+    return float(p[0]), float(p[1]), np.linalg.inv(N)
+
+
+def _xcorr_estimate(ctx: _Ctx) -> MethodEstimate:
+    """Baseline: |w| normalised cross-correlation on the common grid, parabolic peak interpolation."""
+    m, s = (_series_on_grid(interpolant(lowpass(u, CUTOFF_FRACTION / ctx.dt_c)), ctx.dt_c) for u in ctx.raw)
+    corr = _Correlator(m, s)
+    lags, min_count = _lag_window(ctx, corr, ctx.dt_c, 0.5 if ctx.max_lag_s is not None else 0.25)
+    rho, n = _norm_xcorr(m, s, lags)
+    rho[n < min_count] = np.nan
+    if not np.any(np.isfinite(rho)):
+        raise AnalysisError("no lag with enough overlap")
+    i = int(np.nanargmax(rho))
+    d = (lags[i] + _parabolic(-rho, i)) * ctx.dt_c
+    # sigma: width of the peak / sqrt(number of independent samples), at least the grid quantisation
+    r = rho[np.isfinite(rho)]
+    lobe = _lobe_halfwidth(-rho, i) * ctx.dt_c
+    n_ind = max(1.0, n[i] * ctx.dt_c / max(lobe, ctx.dt_c))
+    sig = max(ctx.dt_c / np.sqrt(12.0), lobe * np.sqrt(max(1e-6, 1 - rho[i] ** 2)) / np.sqrt(n_ind))
+    note = f"peak correlation {rho[i]:.3f}" + ("" if len(r) else "")
+    return MethodEstimate(float(d), float(sig), note)
+
+
+def _run_seed(name: str, master: InsLog, slave: InsLog, max_lag_s: float | None) -> MethodEstimate:
+    try:
+        from logtools import latency_seeds  # noqa: PLC0415 (lazy: written separately)
+    except ImportError as exc:
+        return MethodEstimate(float("nan"), float("nan"), f"not available ({exc})")
+    fn = {"s000-rate-integral": "s000_rate_integral", "s002-attitude-shift": "s002_attitude_shift"}[name]
+    f = getattr(latency_seeds, fn, None)
+    if f is None:
+        return MethodEstimate(float("nan"), float("nan"), f"not available (latency_seeds.{fn} missing)")
+    return f(master, slave, max_lag_s=max_lag_s)
+
+
+def estimate(master: InsLog, slave: InsLog, *, method: str = "tapost", max_lag_s: float | None = 2.0,
+             compare: bool = True, progress: Progress = None) -> LatencyResult:
+    """Latency (s) and drift (ppm) of ``slave`` behind ``master``; see the module docstring.
+
+    ``max_lag_s`` bounds the search at face value (both logs' absolute stamps); ``None`` searches the
+    whole overlap (unrelated clocks). Raises AnalysisError (one line) for no/too short overlap, no motion,
+    NaN-only data. With ``compare`` every other method that can run is stored in ``methods`` (a method
+    that cannot run is stored with NaN and its reason).
+    """
+    if method not in METHODS:
+        raise AnalysisError(f"unknown latency method {method!r} (choose from {', '.join(METHODS)})")
+
+    def prog(f: float, stage: str) -> None:
+        if progress is not None:
+            progress(float(f), stage)
+
+    prog(0.0, "preparing")
+    ctx = _prepare(master, slave, max_lag_s)
+    methods: dict[str, MethodEstimate] = {}
+    head: LatencyResult | None = None
+    err: AnalysisError | None = None
+    # the headline first: its failure is the run's failure
+    if method == "tapost":
+        head, _ = _tapost(ctx, lambda f, st: prog(0.05 + 0.75 * f, st))
+        methods["tapost"] = MethodEstimate(head.latency_s, head.sigma_s, "")
+    others = [x for x in METHODS if x != method] if compare else []
+    for i, name in enumerate(([method] if method != "tapost" else []) + others):
+        prog(0.8 + 0.2 * i / max(1, len(others) + 1), name)
+        try:
+            if name == "tapost":
+                r, _ = _tapost(ctx, None)
+                me = MethodEstimate(r.latency_s, r.sigma_s, "")
+            elif name == "xcorr-norm":
+                me = _xcorr_estimate(ctx)
+            else:
+                me = _run_seed(name, master, slave, max_lag_s)
+        except AnalysisError as exc:
+            if name == method:
+                err = exc
+                break
+            me = MethodEstimate(float("nan"), float("nan"), f"cannot run: {exc.problem}")
+        except Exception as exc:  # noqa: BLE001 - a comparison method must never crash the run
+            if name == method:
+                raise
+            me = MethodEstimate(float("nan"), float("nan"), f"failed: {type(exc).__name__}: {exc}")
+        methods[name] = me
+    if err is not None:
+        raise err
+    if head is None:
+        me = methods[method]
+        if not np.isfinite(me.latency_s):
+            raise AnalysisError(f"latency method {method} could not run: {me.note}")
+        g = ctx.master.grid
+        head = LatencyResult(latency_s=me.latency_s, sigma_s=me.sigma_s, drift_ppm=0.0, method=method,
+                             window_s=(ctx.t0_abs_s + float(g.t_s[0]), ctx.t0_abs_s + float(g.t_s[-1])),
+                             quality={"note": me.note, "warnings": list(ctx.warnings)},
+                             t_mid_rel_s=float(0.5 * (g.t_s[0] + g.t_s[-1])))
+    from dataclasses import replace
+    prog(1.0, "done")
+    return replace(head, methods={k: methods[k] for k in METHODS if k in methods})

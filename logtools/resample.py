@@ -1,0 +1,269 @@
+"""Put irregular sensor streams on a uniform time grid, and interpolate them continuously.
+
+Used by the latency estimator (``logtools.latency``): two units logged at different rates (50-1000 Hz),
+through different clocks, with jittered stamps, gaps and duplicated stamps are brought onto one uniform
+grid, and a continuous interpolant (cubic B-spline) evaluates a unit at arbitrary, sub-sample shifted
+instants.
+
+Rules (the failure modes of existing tools, avoided here):
+
+* never extrapolate past the data ends: outside ``[t_first, t_last]`` the value is masked;
+* never interpolate across a gap where more than ``max_gap_samples`` samples are missing: masked;
+* duplicated stamps are merged (values averaged), stamps going backwards are sorted, non-finite rows
+  dropped; every such repair is reported in ``warnings``.
+
+Times are float64 seconds relative to a stated origin (see DESIGN.md, "Time").
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage, signal
+from scipy.interpolate import make_interp_spline
+
+__all__ = ["CleanSamples", "UniformSeries", "Interpolant", "clean_samples", "median_rate_hz",
+           "to_uniform", "lowpass", "interpolant"]
+
+
+@dataclass(frozen=True)
+class CleanSamples:
+    """Sorted, finite, unique-stamp samples of one stream, and what was repaired."""
+
+    t_s: np.ndarray  # (n,) strictly increasing
+    values: np.ndarray  # (n, k)
+    warnings: tuple[str, ...] = ()
+    n_duplicates: int = 0
+    n_nonfinite: int = 0
+    n_unsorted: int = 0
+
+
+@dataclass(frozen=True)
+class UniformSeries:
+    """Samples on the grid ``t_k = (i0 + k) * dt_s`` (k = 0..n-1); ``valid`` masks gaps/ends."""
+
+    i0: int  # grid index of the first sample (grid phase shared by every series with the same dt)
+    dt_s: float
+    values: np.ndarray  # (n, k); invalid rows hold finite fill values (do not use them)
+    valid: np.ndarray  # (n,) bool
+    warnings: tuple[str, ...] = ()
+    gaps_s: tuple[tuple[float, float], ...] = field(default=())  # masked spans (start, end)
+
+    @property
+    def t_s(self) -> np.ndarray:
+        return (self.i0 + np.arange(len(self.values))) * self.dt_s
+
+    @property
+    def rate_hz(self) -> float:
+        return 1.0 / self.dt_s
+
+    @property
+    def nan_fraction(self) -> float:
+        return float(1.0 - self.valid.mean()) if len(self.valid) else 1.0
+
+
+def _as2d(x: np.ndarray) -> np.ndarray:
+    x = np.asarray(x, dtype=float)
+    return x[:, None] if x.ndim == 1 else x
+
+
+def clean_samples(t_s: np.ndarray, values: np.ndarray, *, name: str = "stream") -> CleanSamples:
+    """Sort by time, drop rows with a non-finite stamp or value, merge duplicated stamps (mean)."""
+    t = np.asarray(t_s, dtype=float)
+    x = _as2d(values)
+    warns: list[str] = []
+    ok = np.isfinite(t) & np.all(np.isfinite(x), axis=1)
+    n_bad = int((~ok).sum())
+    if n_bad:
+        warns.append(f"{name}: {n_bad} of {len(t)} samples with NaN/inf dropped")
+    t, x = t[ok], x[ok]
+    n_unsorted = int(np.sum(np.diff(t) < 0)) if len(t) > 1 else 0
+    if n_unsorted:
+        order = np.argsort(t, kind="stable")
+        t, x = t[order], x[order]
+        warns.append(f"{name}: {n_unsorted} stamps going backwards (re-sorted)")
+    n_dup = 0
+    if len(t) > 1:
+        new = np.concatenate([[True], np.diff(t) > 0])
+        n_dup = int((~new).sum())
+        if n_dup:
+            grp = np.cumsum(new) - 1
+            cnt = np.bincount(grp).astype(float)
+            x = np.stack([np.bincount(grp, weights=x[:, j]) / cnt for j in range(x.shape[1])], axis=1)
+            t = t[new]
+            warns.append(f"{name}: {n_dup} duplicated stamps merged (values averaged)")
+    return CleanSamples(t, x, tuple(warns), n_dup, n_bad, n_unsorted)
+
+
+def median_rate_hz(t_s: np.ndarray) -> float:
+    """Nominal rate from the median stamp interval (robust to jitter, gaps and duplicates)."""
+    t = np.asarray(t_s, dtype=float)
+    d = np.diff(t[np.isfinite(t)])
+    d = d[d > 0]
+    return float(1.0 / np.median(d)) if len(d) else float("nan")
+
+
+def to_uniform(
+    t_s: np.ndarray,
+    values: np.ndarray,
+    *,
+    dt_s: float | None = None,
+    max_gap_samples: float = 3.0,
+    name: str = "stream",
+) -> UniformSeries:
+    """Resample a stream on the uniform grid ``k * dt_s`` (default: its own median interval).
+
+    A cubic spline through the (cleaned) samples gives the grid values; grid points farther than the
+    data ends, or inside an interval between two samples where more than ``max_gap_samples`` samples
+    (at the stream's median interval) are missing, are masked (``valid`` False), never interpolated.
+    """
+    cs = clean_samples(t_s, values, name=name)
+    t, x = cs.t_s, cs.values
+    warns = list(cs.warnings)
+    if len(t) < 4:
+        raise ValueError(f"{name}: only {len(t)} usable samples")
+    dt_nat = float(np.median(np.diff(t)))
+    dt = float(dt_s) if dt_s is not None else dt_nat
+    i0 = int(np.ceil(t[0] / dt - 1e-9))
+    i1 = int(np.floor(t[-1] / dt + 1e-9))
+    tg = np.arange(i0, i1 + 1) * dt
+    tg = np.clip(tg, t[0], t[-1])
+    # spline on the samples (not-a-knot cubic); gaps masked below
+    spl = make_interp_spline(t, x, k=3)
+    vg = spl(tg)
+    valid = np.ones(len(tg), dtype=bool)
+    gaps: list[tuple[float, float]] = []
+    steps = np.diff(t)
+    jitter = float(np.std(steps[steps < 1.5 * dt_nat]) / dt_nat) if np.any(steps < 1.5 * dt_nat) else 0.0
+    # an interval is a gap when more than max_gap_samples samples are missing in it
+    big = np.flatnonzero(steps > (max_gap_samples + 1.5) * dt_nat)
+    if len(big):
+        # grid points strictly inside (t[j], t[j+1]) of a long interval are masked
+        eps = 1e-6 * dt  # a grid point on a bounding sample (up to rounding) is that sample
+        lo = np.searchsorted(tg, t[big] + eps, side="right")
+        hi = np.searchsorted(tg, t[big + 1] - eps, side="left")
+        cover = np.zeros(len(tg) + 1, dtype=int)
+        np.add.at(cover, lo, 1)
+        np.add.at(cover, hi, -1)
+        valid &= np.cumsum(cover)[:-1] == 0
+        gaps = [(float(t[j]), float(t[j + 1])) for j in big]
+        tot = float(np.sum(steps[big]))
+        warns.append(f"{name}: {len(big)} gaps of more than {max_gap_samples:g} missing samples "
+                     f"({tot:.3f} s in all, longest {float(steps[big].max()):.3f} s) masked, not interpolated")
+    if jitter > 0.05:
+        warns.append(f"{name}: stamp jitter {100 * jitter:.0f} % of the {1 / dt_nat:.1f} Hz interval "
+                     f"(spline through the actual stamps)")
+    if dt_s is not None and abs(dt - dt_nat) > 0.01 * dt_nat:
+        warns.append(f"{name}: resampled from {1 / dt_nat:.1f} Hz to {1 / dt:.1f} Hz")
+    return UniformSeries(i0, dt, vg, valid, tuple(warns), tuple(gaps))
+
+
+def _fill_invalid(series: UniformSeries) -> np.ndarray:
+    """Values with invalid rows replaced by linear interpolation of the valid ones (for filtering)."""
+    v = series.values.copy()
+    ok = series.valid
+    if ok.all() or not ok.any():
+        return v
+    idx = np.arange(len(v))
+    for j in range(v.shape[1]):
+        v[~ok, j] = np.interp(idx[~ok], idx[ok], v[ok, j])
+    return v
+
+
+def _dilate(mask_bad: np.ndarray, n: int) -> np.ndarray:
+    if n <= 0 or not mask_bad.any():
+        return mask_bad
+    k = np.ones(2 * n + 1)
+    return np.convolve(mask_bad.astype(float), k, mode="same") > 0
+
+
+def lowpass(series: UniformSeries, cutoff_hz: float, *, order: int = 4) -> UniformSeries:
+    """Zero-phase (forward-backward) Butterworth low-pass: no delay is introduced.
+
+    Invalid rows are bridged linearly for the filter, then masked again, widened by the filter's
+    settling length so that no masked value leaks into a valid one.
+    """
+    nyq = 0.5 / series.dt_s
+    if not (0 < cutoff_hz < 0.98 * nyq) or len(series.values) < 8 * order:
+        return series
+    sos = signal.butter(order, cutoff_hz / nyq, output="sos")
+    v = signal.sosfiltfilt(sos, _fill_invalid(series), axis=0, padtype="even")
+    settle = int(np.ceil(1.0 / (cutoff_hz * series.dt_s)))
+    valid = ~_dilate(~series.valid, settle)
+    valid[:settle] = False  # the filter's start-up and run-out at the data ends
+    valid[-settle:] = False
+    return UniformSeries(series.i0, series.dt_s, v, valid, series.warnings, series.gaps_s)
+
+
+@dataclass(frozen=True)
+class Interpolant:
+    """Continuous cubic B-spline through a uniform series (interpolating, mirror boundary);
+    masked (NaN) off the data ends and near invalid samples: never extrapolated."""
+
+    series: UniformSeries
+    _coef: np.ndarray  # (n + 3, k) B-spline coefficients, padded (1 before, 2 after)
+    _bad: np.ndarray  # invalid samples dilated by 1: the 4 samples around a point must be valid
+
+    @property
+    def t_first_s(self) -> float:
+        return float(self.series.i0 * self.series.dt_s)
+
+    @property
+    def t_last_s(self) -> float:
+        return float((self.series.i0 + len(self.series.values) - 1) * self.series.dt_s)
+
+    def _pos(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        u = np.asarray(t, dtype=float) / self.series.dt_s - self.series.i0
+        inside = (u >= -1e-9) & (u <= len(self.series.values) - 1 + 1e-9)
+        return np.clip(u, 0.0, len(self.series.values) - 1), inside
+
+    def ok(self, t_s: np.ndarray) -> np.ndarray:
+        """True where an evaluation is supported by valid samples on both sides (no extrapolation)."""
+        u, inside = self._pos(t_s)
+        if self.series.valid.all():
+            return inside
+        n = len(self.series.values)
+        j = np.clip(np.floor(np.where(inside, u, 0)).astype(np.int64), 0, n - 1)
+        return inside & ~self._bad[j] & ~self._bad[np.minimum(j + 1, n - 1)]
+
+    def _eval(self, u: np.ndarray, nu: int) -> np.ndarray:
+        n = len(self.series.values)
+        j = np.clip(np.floor(u).astype(np.int64), 0, n - 1)
+        f = (u - j)[:, None]
+        c = self._coef
+        if nu == 0:
+            w0 = (1 - f) ** 3 / 6.0
+            w1 = (3 * f ** 3 - 6 * f ** 2 + 4) / 6.0
+            w2 = (-3 * f ** 3 + 3 * f ** 2 + 3 * f + 1) / 6.0
+            w3 = f ** 3 / 6.0
+            scale = 1.0
+        elif nu == 1:
+            w0 = -0.5 * (1 - f) ** 2
+            w1 = 1.5 * f ** 2 - 2 * f
+            w2 = -1.5 * f ** 2 + f + 0.5
+            w3 = 0.5 * f ** 2
+            scale = 1.0 / self.series.dt_s
+        else:
+            raise ValueError("nu must be 0 or 1")
+        # padded index: sample j sits at j + 1
+        return scale * (w0 * c[j] + w1 * c[j + 1] + w2 * c[j + 2] + w3 * c[j + 3])
+
+    def __call__(self, t_s: np.ndarray, nu: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """(values (m, k), ok (m,)); values (or derivatives, nu=1, per second) are NaN where not ok."""
+        t = np.asarray(t_s, dtype=float)
+        ok = self.ok(t)
+        out = np.full((len(t), self.series.values.shape[1]), np.nan)
+        if ok.any():
+            u, _ = self._pos(t[ok])
+            out[ok] = self._eval(u, nu)
+        return out, ok
+
+
+def interpolant(series: UniformSeries) -> Interpolant:
+    """Interpolating cubic B-spline of a uniform series (O(n) prefilter); gaps bridged then masked."""
+    v = _fill_invalid(series)
+    if len(v) < 4:
+        raise ValueError("an interpolant needs at least 4 samples")
+    c = ndimage.spline_filter1d(v, order=3, axis=0, mode="mirror")
+    cp = np.concatenate([c[1:2], c, c[-2:-1], c[-3:-2]], axis=0)
+    return Interpolant(series, cp, _dilate(~series.valid, 1))
