@@ -30,7 +30,7 @@ from pipelines.progress import Progress, null_progress
 
 FILTERS = ("kf", "kf-delay", "kf-split", "hinf", "ahinf")
 MATCHES = ("auto", "vel", "att", "vel+att")
-COMPENSATIONS = ("interp", "shift", "poly2", "split")
+COMPENSATIONS = ("restamp", "interp", "shift", "poly2", "split")
 LATENCY_METHODS = ("tapost", "s000-rate-integral", "s002-attitude-shift", "xcorr-norm")
 REPORT, HTML, RECORDING = "report.json", "report.html", "recording.rrd"
 
@@ -42,7 +42,7 @@ class AnalyzeOptions:
     max_lag_s: float | None = 2.0
     filter: str = "kf"
     match: str = "auto"  # auto: vel+att when the master has both, else what it has
-    compensation: str = "interp"
+    compensation: str = "restamp"  # the slave's own samples, stamps corrected (nothing resampled)
     smoother: bool = False
     recording: bool = True
     latency_method: str = "tapost"
@@ -123,6 +123,8 @@ def options_from(cli: dict, config: dict | None = None) -> tuple[AnalyzeOptions,
         kw["recording"] = bool(merged["recording"])
     if merged.get("no_recording"):
         kw["recording"] = False
+    if kw.get("filter") == "kf-split" and "compensation" not in kw:
+        kw["compensation"] = "split"  # S004: integer-sample lag applied, the residual left to the delay state
     if "recording_max_rows" in merged:
         kw["recording_max_rows"] = int(merged["recording_max_rows"])
     return AnalyzeOptions(**kw), merged.get("out")
@@ -138,7 +140,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--match", default=None, choices=MATCHES,
                    help="alignment measurements (default auto: vel+att when the master has both)")
     p.add_argument("--compensation", default=None, choices=COMPENSATIONS,
-                   help="how the slave is put on the master's clock (default interp)")
+                   help="how the slave is put on the master's clock (default restamp: the slave's own "
+                        "samples with corrected stamps; split with --filter kf-split)")
     p.add_argument("--smoother", action="store_const", const=True, default=None,
                    help="run the RTS smoother after the filter")
     p.add_argument("--latency-method", default=None, choices=LATENCY_METHODS,
@@ -173,6 +176,16 @@ def _resolve_match(master: InsLog, requested: str) -> tuple[str | None, str | No
     return requested, None
 
 
+def _filter_options(slave: InsLog, opts: AnalyzeOptions) -> dict:
+    """Extra run_alignment options: for S004's split, the residual latency the compensation left."""
+    if opts.filter != "kf-split":
+        return {}
+    from logtools.compensate import split_residual_s
+
+    residual = split_residual_s(slave)
+    return {} if residual is None else {"delay_s": residual}
+
+
 def _alignment(master: InsLog, slave: InsLog, run: str, opts: AnalyzeOptions, progress) -> AlignmentResult | str:
     """One alignment run, or the reason it could not be done (str)."""
     if not (slave.has_gyro and slave.has_accel):
@@ -192,7 +205,7 @@ def _alignment(master: InsLog, slave: InsLog, run: str, opts: AnalyzeOptions, pr
         return f"alignment is not available in this installation ({exc})"
     try:
         return run_alignment(master, slave, filter=opts.filter, match=match, smoother=opts.smoother,
-                             progress=progress)
+                             progress=progress, **_filter_options(slave, opts))
     except AnalysisError as exc:
         return exc.problem
 
@@ -225,11 +238,11 @@ def summary_lines(rep: dict, paths: dict[str, str | None]) -> list[str]:
         if "skipped" in a:
             out.append(f"mounting ({run}): skipped: {a['skipped']}")
             continue
-        rpy = " ".join(f"{x:+.3f}" if x is not None else "n/a" for x in a["mounting_rpy_deg"])
-        sig = " ".join(f"{x:.3f}" if x is not None else "n/a" for x in a["mounting_sigma_deg"])
+        rpy = " ".join(f"{x:+.4f}" if x is not None else "n/a" for x in a["mounting_rpy_deg"])
+        sig = " ".join(f"{x * 60:.3g}'" if x is not None else "n/a" for x in a["mounting_sigma_deg"])
         conv = f"{a['converged_s']:.1f} s" if a.get("converged_s") is not None else "not converged"
         out.append(f"mounting ({run}, {a['filter']}/{a['match']}): roll pitch yaw = {rpy} deg "
-                   f"+/- {sig} deg (1 sigma), {conv}")
+                   f"+/- {sig} (arcmin, 1 sigma), {conv}")
     for k, v in rep.get("skipped", {}).items():
         if k == "recording":
             out.append(f"skipped recording: {v}")
