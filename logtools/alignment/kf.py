@@ -345,6 +345,25 @@ def run_filter(inp: AlignInputs, s: FilterSettings, *, progress: Callable | None
     w_en = np.zeros(3)
     mav = np.zeros((3, 3))
     att_sl, vel_sl, mount_sl, lev_sl, d_i = lay.att, lay.vel, lay.mount, lay.lever, lay.delay
+
+    def record(k, x, P, q, r_hat, tau, lever, c_nm, fb) -> None:
+        """The per-epoch histories (and the smoother's filtered values) after epoch k."""
+        r_hist[k] = r_hat
+        if mount_sl is not None:
+            pm_hist[k] = P[mount_sl, mount_sl]
+        else:
+            cq = _dcm(q)
+            pm_hist[k] = cq.T @ P[att_sl, att_sl] @ cq
+        tau_hist[k] = tau
+        lev_hist[k] = lever
+        q_hist[k] = q
+        if cnm_hist is not None and c_nm is not None:
+            cnm_hist[k] = c_nm
+        if keep:
+            sm_xf[k] = x
+            sm_pf[k] = P
+            sm_fb[k] = fb
+
     for k in range(ne):
         c_ns = _dcm(q)
         phi_k, qd_k = no_phi, no_phi
@@ -395,21 +414,7 @@ def run_filter(inp: AlignInputs, s: FilterSettings, *, progress: Callable | None
                 sm_ppred[k] = P
             xs[k] = x
             pd[k] = np.diag(P)
-            r_hist[k] = r_hat
-            if mount_sl is not None:
-                pm_hist[k] = P[mount_sl, mount_sl]
-            else:
-                cq = _dcm(q)
-                pm_hist[k] = cq.T @ P[att_sl, att_sl] @ cq
-            tau_hist[k] = tau
-            lev_hist[k] = lever
-            q_hist[k] = q
-            if cnm_hist is not None and c_nm is not None:
-                cnm_hist[k] = c_nm
-            if keep:
-                sm_xf[k] = x
-                sm_pf[k] = P
-                sm_fb[k] = 0.0
+            record(k, x, P, q, r_hat, tau, lever, c_nm, 0.0)
             n_skipped += 1
             continue
         zs = []
@@ -476,21 +481,7 @@ def run_filter(inp: AlignInputs, s: FilterSettings, *, progress: Callable | None
             fb[d_i] = t_new - tau
             tau = t_new
         x = np.where(fb_idx, 0.0, x)
-        r_hist[k] = r_hat
-        if mount_sl is not None:
-            pm_hist[k] = P[mount_sl, mount_sl]
-        else:
-            cq = _dcm(q)
-            pm_hist[k] = cq.T @ P[att_sl, att_sl] @ cq
-        tau_hist[k] = tau
-        lev_hist[k] = lever
-        q_hist[k] = q
-        if cnm_hist is not None and c_nm is not None:
-            cnm_hist[k] = c_nm
-        if keep:
-            sm_xf[k] = x
-            sm_pf[k] = P
-            sm_fb[k] = fb
+        record(k, x, P, q, r_hat, tau, lever, c_nm, fb)
         if progress is not None and k % prog_every == 0:
             progress(k / ne, "alignment filter")
 
