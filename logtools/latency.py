@@ -77,6 +77,10 @@ ADAPT_GAIN = 0.7  # narrow only when the predicted variance drops below this fra
 SIGMA_FLOOR_S = 5e-6  # model floor (interpolation, numerics)
 PERIODIC_MARGIN = 0.02  # alternative minimum within this of the best normalised cost -> periodic
 PERIODIC_REL_MARGIN = 0.1  # ... or within this fraction of the best cost (noisy data)
+GLS = True  # weigh frequencies by motion / residual power (whitened Gauss-Newton), see _refine_gls
+GLS_SMOOTH_HZ = 0.05  # the residual spectrum is smoothed over this band
+GLS_PASSES = 2  # whole-overlap GLS passes (residual spectrum re-estimated before each)
+GLS_FLOOR = 1e-2  # PSD floor (fraction of its peak): the low-pass stop band is not amplified beyond
 
 Progress = Callable[[float, str], None] | None
 
@@ -496,6 +500,127 @@ def _refine(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant,
 
 
 # ---------------------------------------------------------------------------------------------
+# generalised least squares: the residual's spectrum (flexure, noise) whitened
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class _NoiseModel:
+    """Smoothed power spectrum of the residual w_s(t + d) - R w_m(t) - b (per axis, arbitrary units)
+    on ``f_hz``: flexure's differential rate (a second-order Markov process, coloured, low frequency),
+    the gyros' white noise and what the low-pass leaves, i.e. the disturbance a delay fit must weigh."""
+
+    f_hz: np.ndarray
+    psd: np.ndarray
+    floor: float  # numerical floor (the low-pass stop band)
+    tail_s: float  # length of the whitening filter's impulse response (zero padding)
+
+    def weights(self, n: int, dt_s: float) -> tuple[int, np.ndarray]:
+        pad = min(n, int(np.ceil(self.tail_s / dt_s)))
+        nfft = sfft.next_fast_len(n + pad, real=True)
+        f = sfft.rfftfreq(nfft, dt_s)
+        return nfft, 1.0 / np.sqrt(np.interp(f, self.f_hz, self.psd) + self.floor)
+
+    def whiten(self, x: np.ndarray, dt_s: float) -> np.ndarray:
+        """The zero-phase whitening filter 1/sqrt(PSD) applied along axis 0 (zero-filled masks)."""
+        n = len(x)
+        nfft, w = self.weights(n, dt_s)
+        shape = (len(w),) + (1,) * (x.ndim - 1)
+        return sfft.irfft(sfft.rfft(x, nfft, axis=0) * w.reshape(shape), nfft, axis=0)[:n]
+
+
+def _noise_model(r: np.ndarray, use: np.ndarray, dt_s: float) -> _NoiseModel | None:
+    """Residual spectrum from one fit's residuals (N, 3) (0 where unused): periodogram over the whole
+    span, averaged over the axes and smoothed over GLS_SMOOTH_HZ (a 2nd-order Markov spectrum is
+    smooth on that scale)."""
+    n = len(r)
+    if n < 256 or use.sum() < 128:
+        return None
+    x = np.where(use[:, None], r, 0.0)
+    X = sfft.rfft(x, axis=0)
+    p = np.mean(np.abs(X) ** 2, axis=1) / max(1.0, float(use.sum()))
+    f = sfft.rfftfreq(n, dt_s)
+    k = max(3, int(round(GLS_SMOOTH_HZ * n * dt_s))) | 1
+    k = min(k, (len(p) // 4) | 1)
+    ps = np.convolve(np.pad(p, k // 2, mode="reflect"), np.ones(k) / k, mode="valid")
+    top = float(ps.max())
+    if not top > 0:
+        return None
+    return _NoiseModel(f, ps, GLS_FLOOR * top, 1.0 / GLS_SMOOTH_HZ)
+
+
+def _refine_gls(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant, d0: float,
+                drift0: float, t_mid: float, noise: _NoiseModel, *, fit_drift: bool, iters: int = 4) -> _Fit:
+    """Generalised least squares: Gauss-Newton on the whitened residual and whitened Jacobian of the
+    joint (L[, drift], rotation, bias) problem; the L[, drift] part of each step is taken and R, b
+    re-solved (Kabsch), whose fixed point is the joint GLS estimate. Covariance: the whitened
+    curvature times the whitened residual variance (HAC-checked)."""
+    d, dr = float(d0), float(drift0)
+    n = len(t_m)
+    dt = float(np.median(np.diff(t_m))) if n > 1 else 1.0
+    tt = t_m - t_mid
+    nd = 1 + int(fit_drift)
+    fail = _Fit(d, dr, np.eye(3), np.zeros(3), np.inf, np.inf, np.nan, 0, 1.0, 0.0, False)
+    for it in range(iters + 1):
+        tau = t_m + d + dr * tt
+        bv, ok = itp(tau)
+        use = ok & valid
+        if use.sum() < 20:
+            return fail
+        bd = np.zeros((n, 3))
+        bd[use], _ = itp(tau[use], 1)
+        R, bias = _kabsch_bias(a[use], bv[use])
+        r = np.zeros((n, 3))
+        r[use] = bv[use] - a[use] @ R.T - bias
+        Ra = np.where(use[:, None], a @ R.T, 0.0)
+        J = _jacobian(bd, tt if fit_drift else None, Ra).reshape(n, 3, -1)
+        J[~use] = 0.0
+        P = J.shape[2]
+        Z = noise.whiten(np.concatenate([r, J.reshape(n, 3 * P)], axis=1), dt)
+        rw = Z[:, :3]
+        Jw = Z[:, 3:].reshape(n, 3, P)
+        Jf = Jw.reshape(3 * n, P)
+        Nm = Jf.T @ Jf
+        g = Jf.T @ rw.ravel()
+        try:
+            step = -np.linalg.solve(Nm, g)
+        except np.linalg.LinAlgError:
+            return fail
+        if it == iters:
+            break
+        sd = float(np.clip(step[0], -0.5 * dt, 0.5 * dt))
+        d += sd
+        if fit_drift:
+            span = max(1e-9, float(np.max(np.abs(tt[use]))))
+            dr += float(np.clip(step[1], -0.5 * dt / span, 0.5 * dt / span))
+        if abs(sd) < 1e-4 * dt:
+            # one more pass for the covariance at the solution
+            iters = it + 1
+    try:
+        Ninv = np.linalg.inv(Nm)
+    except np.linalg.LinAlgError:
+        return fail
+    n_use = int(use.sum())
+    dof = max(1, 3 * n_use - P)
+    s2 = float(np.sum(rw * rw)) / dof
+    var_cls = s2 * np.diag(Ninv)[:nd]
+    G = np.sum(Jw * rw[:, :, None], axis=1)  # per-sample whitened scores
+    u = G @ Ninv[:, :nd]
+    max_h = int(min(len(u) // 4, max(10, 20.0 / dt)))
+    V_hac, _H = _hac_cov(u, max_h)
+    var_h = np.diag(V_hac)
+    var = np.maximum(var_h, var_cls)
+    corr = 0.0
+    if fit_drift and var[0] > 0 and var[1] > 0:
+        cv = V_hac[0, 1] if var_h[0] >= var_cls[0] else s2 * Ninv[0, 1]
+        corr = float(np.clip(cv / np.sqrt(var[0] * var[1]), -0.99, 0.99))
+    fac = float(var[0] / var_cls[0]) if var_cls[0] > 0 else 1.0
+    au = a[use]
+    motion = float(np.sqrt(np.mean(np.sum((au - au.mean(axis=0)) ** 2, axis=1))))
+    raw_rms = float(np.sqrt(np.sum(r * r) / (3 * n_use)))
+    return _Fit(d, dr, R, bias, float(np.sqrt(var[0])), float(np.sqrt(var[1])) if fit_drift else 0.0,
+                raw_rms, n_use, fac, motion, corr_ld=corr)
+
+
+# ---------------------------------------------------------------------------------------------
 # the estimator
 # ---------------------------------------------------------------------------------------------
 @dataclass
@@ -696,7 +821,11 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
     # band selection: the residual spectrum tells where the noise is (flexure adds a rate noise at
     # the flexure's frequencies, large compared with slow motions); the low-pass cutoff that minimises
     # the predicted variance of the delay is chosen and the units are re-filtered there
-    if ADAPT_BAND and first.ok:
+    noise = None
+    if GLS and first.ok:
+        cr = _residual(t_m[cs], a[cs], valid[cs], s.itp, first, t_mid)
+        noise = _noise_model(cr, np.any(cr != 0.0, axis=1), ctx.dt_r)
+    if ADAPT_BAND and first.ok and noise is None:
         new_cut = _best_cutoff(t_m[cs], a[cs], valid[cs], _residual(t_m[cs], a[cs], valid[cs], s.itp, first, t_mid),
                                ctx.dt_r, ctx.cutoff_hz, float(np.ptp(t_m[cs])))
         if new_cut < 0.7 * ctx.cutoff_hz:
@@ -706,7 +835,7 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
             sel = (gr.t_s >= w0) & (gr.t_s <= w1)
             t_m, a, valid = gr.t_s[sel], gr.values[sel], gr.valid[sel]
     prog(0.55, "windows and drift")
-    fin, centers, lats, sigs = _fit_all(ctx, t_m, a, valid, w0, w1, d_center, 0.0, DRIFT_SEARCH_PPM)
+    fin, centers, lats, sigs = _fit_all(ctx, t_m, a, valid, w0, w1, d_center, 0.0, DRIFT_SEARCH_PPM, noise)
     prog(0.8, "drift")
     fit_drift = len(centers) >= 3
     # sigma: HAC-corrected GN sigma, inflated by the windows' scatter about the drift line
@@ -777,7 +906,7 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
 
 
 def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: float, w1: float,
-             d_center: float, drift_center: float, search_ppm: float
+             d_center: float, drift_center: float, search_ppm: float, noise: _NoiseModel | None = None
              ) -> tuple[_Fit, np.ndarray, np.ndarray, np.ndarray]:
     """Windows along the overlap (each: integer-lag search around the predicted lag, then refinement),
     a weighted line through them, then the joint (L, drift) fit over the whole overlap. With fewer than
@@ -797,6 +926,8 @@ def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: f
         if dw is None:
             continue
         f = _refine(t_m[ws], a[ws], valid[ws], itp, dw, 0.0, tc, fit_drift=False, iters=8)
+        if noise is not None and f.ok:
+            f = _refine_gls(t_m[ws], a[ws], valid[ws], itp, f.latency_s, 0.0, tc, noise, fit_drift=False)
         if f.ok and np.isfinite(f.sigma_latency_s):
             centers.append(tc)
             lats.append(f.latency_s)
@@ -817,6 +948,16 @@ def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: f
         fin = _refine(t_m, a, valid, itp, d_center, 0.0, t_mid, fit_drift=False)
         if not fin.ok:
             raise AnalysisError("latency refinement failed (too little valid overlapping data)")
+    if noise is not None:
+        # GLS on the whole overlap, with the residual spectrum re-estimated from this fit
+        fd = len(centers) >= 3
+        for _ in range(GLS_PASSES):
+            r = _residual(t_m, a, valid, itp, fin, t_mid)
+            nm = _noise_model(r, np.any(r != 0.0, axis=1), float(np.median(np.diff(t_m)))) or noise
+            f2 = _refine_gls(t_m, a, valid, itp, fin.latency_s, fin.drift, t_mid, nm, fit_drift=fd)
+            if not f2.ok:
+                break
+            fin = f2
     return fin, centers, lats, sigs
 
 
