@@ -80,7 +80,8 @@ PERIODIC_REL_MARGIN = 0.1  # ... or within this fraction of the best cost (noisy
 GLS = True  # weigh frequencies by motion / residual power (whitened Gauss-Newton), see _refine_gls
 GLS_SMOOTH_HZ = 0.05  # the residual spectrum is smoothed over this band
 GLS_PASSES = 2  # whole-overlap GLS passes (residual spectrum re-estimated before each)
-GLS_FLOOR = 1e-2  # PSD floor (fraction of its peak): the low-pass stop band is not amplified beyond
+GLS_TAPER_S = 2.0  # ramp of the weights at the ends of the used data (whitening transients)
+GLS_FLOOR = 1e-4  # PSD floor (fraction of its peak): the low-pass stop band is not amplified beyond
 
 Progress = Callable[[float, str], None] | None
 
@@ -527,6 +528,17 @@ class _NoiseModel:
         return sfft.irfft(sfft.rfft(x, nfft, axis=0) * w.reshape(shape), nfft, axis=0)[:n]
 
 
+def _taper(use: np.ndarray, n_ramp: int) -> np.ndarray:
+    """Weights rising as a raised cosine over n_ramp samples from every end of the used runs."""
+    if n_ramp <= 1:
+        return use.astype(float)
+    from scipy import ndimage as _nd
+
+    dist = _nd.distance_transform_edt(np.pad(use, 1, constant_values=False))[1:-1]
+    x = np.clip(dist / n_ramp, 0.0, 1.0)
+    return np.where(use, 0.5 - 0.5 * np.cos(np.pi * x), 0.0)
+
+
 def _noise_model(r: np.ndarray, use: np.ndarray, dt_s: float) -> _NoiseModel | None:
     """Residual spectrum from one fit's residuals (N, 3) (0 where unused): periodogram over the whole
     span, averaged over the axes and smoothed over GLS_SMOOTH_HZ (a 2nd-order Markov spectrum is
@@ -559,11 +571,18 @@ def _refine_gls(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpol
     tt = t_m - t_mid
     nd = 1 + int(fit_drift)
     fail = _Fit(d, dr, np.eye(3), np.zeros(3), np.inf, np.inf, np.nan, 0, 1.0, 0.0, False)
+    # the samples used are fixed for all iterations (no sample switches in or out with d: a switch is
+    # a step the whitening filter would amplify), and tapered at their ends and around gaps
+    span = float(np.max(np.abs(tt))) if n else 0.0
+    margin = 2.0 * dt + abs(dr) * 0.0
+    use = valid & itp.ok(t_m + d + dr * tt - margin) & itp.ok(t_m + d + dr * tt + margin)
+    if use.sum() < 20:
+        return fail
+    taper = _taper(use, int(np.ceil(GLS_TAPER_S / dt)))
     for it in range(iters + 1):
         tau = t_m + d + dr * tt
         bv, ok = itp(tau)
-        use = ok & valid
-        if use.sum() < 20:
+        if not np.all(ok[use]):
             return fail
         bd = np.zeros((n, 3))
         bd[use], _ = itp(tau[use], 1)
@@ -574,6 +593,8 @@ def _refine_gls(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpol
         J = _jacobian(bd, tt if fit_drift else None, Ra).reshape(n, 3, -1)
         J[~use] = 0.0
         P = J.shape[2]
+        r = r * taper[:, None]
+        J = J * taper[:, None, None]
         Z = noise.whiten(np.concatenate([r, J.reshape(n, 3 * P)], axis=1), dt)
         rw = Z[:, :3]
         Jw = Z[:, 3:].reshape(n, 3, P)
@@ -589,8 +610,7 @@ def _refine_gls(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpol
         sd = float(np.clip(step[0], -0.5 * dt, 0.5 * dt))
         d += sd
         if fit_drift:
-            span = max(1e-9, float(np.max(np.abs(tt[use]))))
-            dr += float(np.clip(step[1], -0.5 * dt / span, 0.5 * dt / span))
+            dr += float(np.clip(step[1], -0.5 * dt / max(span, 1e-9), 0.5 * dt / max(span, 1e-9)))
         if abs(sd) < 1e-4 * dt:
             # one more pass for the covariance at the solution
             iters = it + 1
