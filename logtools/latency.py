@@ -22,15 +22,26 @@ tapost's method ("tapost")
      once from 18 FFT cross-correlations and a batched 3x3 SVD: a cost curve that is rotation- and
      bias-invariant and uses all three axes (this is what makes slow, smooth motions work);
   3. full-vector refinement to a sub-sample delay: Gauss-Newton on the continuous delay (cubic B-spline
-     of the slave, never extrapolated), R and b re-solved at every step (variable projection); then the
-     band is re-chosen from the residual spectrum (the cutoff minimising the predicted variance: flexure
-     adds rate noise above slow motions) and the units re-filtered;
-  4. drift: step 3 in windows along the overlap (integer-lag search around the predicted lag, then
-     refinement), a weighted line latency(t) = L + drift (t - t_mid), then a joint Gauss-Newton of
-     (L, drift) with R, b over the whole overlap;
-  5. sigma: the joint (L, drift, rotation, bias) Gauss-Newton covariance with a heteroscedasticity-and-
-     autocorrelation-consistent (Bartlett/Newey-West) variance of the scores, i.e. corrected for
-     correlated residuals, inflated by the scatter of the window estimates about the drift line;
+     of the slave, never extrapolated), R and b re-solved at every step (variable projection);
+  3b. generalised least squares (GLS): the residual w_s(t + d) - R w_m(t) - b of that first fit is not
+     white -- flexure adds a differential angular rate between the units, a coloured (second-order
+     Markov) process concentrated at low frequency, on top of the gyros' white noise -- so its power
+     spectrum is estimated (periodogram smoothed over GLS_SMOOTH_HZ) and the Gauss-Newton steps are
+     taken on the whitened residual and the whitened joint Jacobian (zero-phase 1/sqrt(PSD) filter,
+     the used samples fixed and tapered at their ends so that no step is amplified): each frequency
+     weighs as (motion-derivative power / residual power), the maximum-likelihood weighting for a
+     Gaussian disturbance. (Without a residual spectrum, e.g. very short data, the older heuristic
+     is used: the low-pass band re-chosen from the residual spectrum and the units re-filtered.)
+  4. drift: steps 3-3b in windows along the overlap (integer-lag search around the predicted lag, then
+     refinement), a weighted line latency(t) = L + drift (t - t_mid) with windows beyond WINDOW_REJECT
+     sigma rejected (a window with little motion can lock on a wrong minimum, where its linearised sigma
+     means nothing), then a joint Gauss-Newton of (L, drift) with R, b over the whole overlap (started
+     from the windows' line and from the central fit; the lower cost wins), then GLS_PASSES GLS passes
+     over the whole overlap, the residual spectrum re-estimated before each;
+  5. sigma: the joint (L, drift, rotation, bias) GLS covariance (whitened curvature x whitened residual
+     variance) with a heteroscedasticity-and-autocorrelation-consistent (Bartlett/Newey-West) variance
+     of the whitened scores as a floor (what whitening missed), inflated by the scatter of the kept
+     window estimates about the drift line;
   6. quality flags: motion level, too little motion, periodic motion (several near-equal minima of the
      cost: S000 eq 6's caveat; sigma then covers the ambiguity), windows disagreeing, overlap, rotation
      found, residual RMS, masked fraction.
@@ -81,6 +92,13 @@ GLS = True  # weigh frequencies by motion / residual power (whitened Gauss-Newto
 GLS_SMOOTH_HZ = 0.05  # the residual spectrum is smoothed over this band
 GLS_PASSES = 2  # whole-overlap GLS passes (residual spectrum re-estimated before each)
 GLS_TAPER_S = 2.0  # ramp of the weights at the ends of the used data (whitening transients)
+WINDOW_REJECT = 5.0  # a window this many sigma off the drift line is an outlier (wrong minimum)
+WINDOW_INFLATE = True  # sigma inflated by the kept windows' scatter about the drift line (chi2 > 1)
+FINE_COST_POINTS = 41  # continuous cost samples around the estimate (plots)
+FINE_COST_SIGMAS = 5.0  # ... over +- this many sigma
+FINE_COST_SAMPLES = 3  # ... or at least +- this many search-grid samples
+FINE_COST_MAX_SAMPLES = 50_000
+GLS_WINDOWS = False  # GLS also in each drift window
 GLS_FLOOR = 1e-4  # PSD floor (fraction of its peak): the low-pass stop band is not amplified beyond
 
 Progress = Callable[[float, str], None] | None
@@ -574,7 +592,7 @@ def _refine_gls(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpol
     # the samples used are fixed for all iterations (no sample switches in or out with d: a switch is
     # a step the whitening filter would amplify), and tapered at their ends and around gaps
     span = float(np.max(np.abs(tt))) if n else 0.0
-    margin = 2.0 * dt + abs(dr) * 0.0
+    margin = (iters + 1) * dt  # the steps are clipped to 0.5 dt (latency) + 0.5 dt at the ends (drift)
     use = valid & itp.ok(t_m + d + dr * tt - margin) & itp.ok(t_m + d + dr * tt + margin)
     if use.sum() < 20:
         return fail
@@ -863,7 +881,7 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
     if len(centers) >= 3:
         res = lats - (fin.latency_s + fin.drift * (centers - t_mid))
         chi2_red = float(np.sum((res / sigs) ** 2) / max(1, len(centers) - 2))
-    infl = np.sqrt(max(1.0, chi2_red))
+    infl = np.sqrt(max(1.0, chi2_red)) if WINDOW_INFLATE else 1.0
     sig_l, sigma_drift = fin.sigma_latency_s * infl, fin.sigma_drift * infl
     latency, drift = fin.latency_s, fin.drift
     # a drift the data cannot determine is pulled towards 0 by a Gaussian prior (crystal clocks:
@@ -884,9 +902,19 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
     rpy = tuple(float(x) for x in np.degrees(euler_from_dcm(fin.R)))
     nanfrac = float(1.0 - np.mean(ok0[(gr.t_s >= w0) & (gr.t_s <= w1)]))
     too_little = bool(min(snr, snr_s) < LOW_MOTION_SNR or motion_dps < LOW_MOTION_DPS)
-    # normalised cost curve around the minimum (coarse grid), for plots
+    # normalised cost curve around the minimum (coarse grid), for plots, with the continuous cost
+    # (drift included) sampled finely near the estimate so that a zoom shows the parabola
     vc = co.vc
     near = np.abs(vc.lags * co.dt_s - co.d0_s) <= max(0.5, 10 * co.dt_s)
+    c_lag, c_val = vc.lags[near] * co.dt_s, vc.cost[near]
+    half = min(max(FINE_COST_SIGMAS * sigma, FINE_COST_SAMPLES * co.dt_s), max(0.5, 10 * co.dt_s))
+    f_lag, f_val = _fine_cost(ctx, latency, drift, t_mid, w0, w1, half)
+    if len(f_lag):
+        out = (c_lag < f_lag[0]) | (c_lag > f_lag[-1])
+        c_lag = np.concatenate([c_lag[out], f_lag])
+        c_val = np.concatenate([c_val[out], f_val])
+        o = np.argsort(c_lag, kind="stable")
+        c_lag, c_val = c_lag[o], c_val[o]
     quality = {
         "motion_dps": motion_dps,
         "slave_motion_dps": motion_s_dps,
@@ -902,6 +930,7 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
         "bias_diff_dph": [float(x) for x in np.degrees(fin.bias) * 3600.0],
         "residual_rms_dps": float(np.degrees(fin.residual_rms)),
         "vector_cost_min": co.best_cost,
+        "gls": bool(noise is not None),
         "nan_fraction": nanfrac,
         "coarse_latency_s": co.d0_s,
         "xcorr_norm_latency_s": co.xcorr_latency_s,
@@ -920,9 +949,35 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
     res = LatencyResult(
         latency_s=float(latency), sigma_s=float(sigma), drift_ppm=float(drift * 1e6) if fit_drift else 0.0,
         method="tapost", window_s=(ctx.t0_abs_s + w0, ctx.t0_abs_s + w1), quality=quality,
-        cost_lag_s=vc.lags[near] * co.dt_s, cost=vc.cost[near],
+        cost_lag_s=c_lag, cost=c_val,
         window_centers_s=centers, window_latency_s=lats, mounting_rpy_deg=rpy, t_mid_rel_s=float(t_mid))
     return res, co
+
+
+def _fine_cost(ctx: _Ctx, latency_s: float, drift: float, t_mid: float, w0: float, w1: float,
+               half_s: float, n: int = FINE_COST_POINTS) -> tuple[np.ndarray, np.ndarray]:
+    """The normalised rotation- and bias-solved cost (as the coarse curve) at n continuous lags
+    latency_s +- half_s, with the drift, on at most FINE_COST_MAX_SAMPLES master samples (a strided
+    subset of the search grid: the curve's shape, not its noise, is what a plot needs)."""
+    g = ctx.master.grid
+    sel = np.flatnonzero((g.t_s >= w0) & (g.t_s <= w1) & g.valid)
+    if len(sel) < 20 or not np.isfinite(half_s) or half_s <= 0:
+        return np.zeros(0), np.zeros(0)
+    sel = sel[::max(1, int(np.ceil(len(sel) / FINE_COST_MAX_SAMPLES)))]
+    t, a = g.t_s[sel], g.values[sel]
+    lags = latency_s + np.linspace(-half_s, half_s, n)
+    out = np.full(n, np.nan)
+    shift = drift * (t - t_mid)
+    for k, d in enumerate(lags):
+        b, ok = ctx.slave.itp(t + d + shift)
+        if ok.sum() < 20:
+            continue
+        aa, bb = a[ok] - a[ok].mean(axis=0), b[ok] - b[ok].mean(axis=0)
+        _, best = _kabsch(aa.T @ bb)
+        tot = float(np.sum(aa * aa) + np.sum(bb * bb))
+        if tot > 0:
+            out[k] = (tot - 2.0 * float(best)) / tot
+    return lags, out
 
 
 def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: float, w1: float,
@@ -946,7 +1001,7 @@ def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: f
         if dw is None:
             continue
         f = _refine(t_m[ws], a[ws], valid[ws], itp, dw, 0.0, tc, fit_drift=False, iters=8)
-        if noise is not None and f.ok:
+        if GLS_WINDOWS and noise is not None and f.ok:
             f = _refine_gls(t_m[ws], a[ws], valid[ws], itp, f.latency_s, 0.0, tc, noise, fit_drift=False)
         if f.ok and np.isfinite(f.sigma_latency_s):
             centers.append(tc)
@@ -959,10 +1014,23 @@ def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: f
         centers, lats, sigs = centers[keep], lats[keep], sigs[keep]
     fin = None
     if len(centers) >= 3:
+        # windows that locked on a wrong minimum (little motion in them: the linearised sigma does not
+        # hold there) are outliers of the line: rejected one at a time beyond WINDOW_REJECT sigma
+        keep = np.ones(len(centers), bool)
+        while keep.sum() > 3:
+            L0, dr0, _ = _wls_line(centers[keep] - t_mid, lats[keep], sigs[keep])
+            z = np.abs(lats - (L0 + dr0 * (centers - t_mid))) / sigs
+            j = int(np.argmax(np.where(keep, z, -1.0)))
+            if z[j] <= WINDOW_REJECT:
+                break
+            keep[j] = False
+        centers, lats, sigs = centers[keep], lats[keep], sigs[keep]
         L0, dr0, _ = _wls_line(centers - t_mid, lats, sigs)
-        fin = _refine(t_m, a, valid, itp, L0, dr0, t_mid, fit_drift=True)
-        if not fin.ok:
-            fin = None
+        # two starts: the windows' line and the central fit without drift; the lower cost wins
+        cands = [_refine(t_m, a, valid, itp, L0, dr0, t_mid, fit_drift=True),
+                 _refine(t_m, a, valid, itp, d_center, 0.0, t_mid, fit_drift=True)]
+        cands = [c for c in cands if c.ok]
+        fin = min(cands, key=lambda c: c.residual_rms) if cands else None
     if fin is None:
         centers = lats = sigs = np.zeros(0)
         fin = _refine(t_m, a, valid, itp, d_center, 0.0, t_mid, fit_drift=False)

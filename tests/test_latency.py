@@ -296,3 +296,74 @@ def test_real_car_stereo_odometry_lags_xsens():
     assert 0.10 < res.latency_s < 0.14 and res.sigma_s < 5e-3
     R = dcm_from_euler(np.radians(res.mounting_rpy_deg))
     assert rot_angle_deg(R, np.diag([1.0, -1.0, -1.0])) < 10.0
+
+
+# ---------------------------------------------------------------------------------------------
+# generalised least squares (coloured disturbance, e.g. flexure) and the fine cost curve
+# ---------------------------------------------------------------------------------------------
+def markov_rate(rng, t: np.ndarray, beta_1_s: float = 2.0, sigma_deg: float = 0.3) -> np.ndarray:
+    """Rate of a critically damped second-order Markov angle (flexure-like): coloured, low frequency."""
+    from scipy.signal import lfilter
+
+    dt = float(t[1] - t[0])
+    a = np.exp(-beta_1_s * dt)
+    ang = lfilter([1.0], [1.0, -2 * a, a * a], rng.normal(size=(len(t) + 2000, 3)), axis=0)[2000:]
+    ang *= np.radians(sigma_deg) / ang.std(axis=0)
+    return np.gradient(ang, dt, axis=0)
+
+
+def test_noise_model_whitens_a_coloured_residual():
+    from logtools.latency import _noise_model
+
+    rng = np.random.default_rng(5)
+    dt = 0.02
+    t = np.arange(0.0, 200.0, dt)
+    r = markov_rate(rng, t) + rng.normal(0, 1e-3, (len(t), 3))  # flexure-like rate + gyro white noise
+    use = np.ones(len(t), bool)
+    nm = _noise_model(r, use, dt)
+    assert nm is not None
+    rw = nm.whiten(r, dt)[500:-500]
+
+    def acf(x, k):
+        x = x - x.mean(axis=0)
+        return float(np.mean(np.sum(x[:-k] * x[k:], axis=0) / np.sum(x * x, axis=0)))
+
+    assert acf(r, 5) > 0.5  # coloured
+    assert max(abs(acf(rw, k)) for k in (1, 2, 5, 10, 25)) < 0.1  # white after the filter
+
+
+def test_coloured_disturbance_estimated_with_honest_sigma():
+    """A flexure-like differential rate on the slave: GLS is used, the error is within 1 ms and
+    within a few of its own sigmas."""
+    lat = 0.0123
+    errs, zs = [], []
+    for seed in (1, 2):
+        rng = np.random.default_rng(seed)
+        master, slave = make_pair(rng, w=Motion(rng, fmax_hz=3.0, amp_dps=5.0), f_m=100.0, f_s=100.0,
+                                  latency_s=lat)
+        imu = slave.imu.copy()
+        cols = ["gyro_x_rad_s", "gyro_y_rad_s", "gyro_z_rad_s"]
+        imu[cols] = imu[cols].to_numpy() + markov_rate(rng, imu.index.to_numpy())
+        res = estimate(master, InsLog(imu, slave.nav, slave.meta), compare=False)
+        assert res.quality["gls"] is True
+        errs.append(res.latency_s - lat)
+        zs.append(abs(res.latency_s - lat) / res.sigma_s)
+    assert max(abs(e) for e in errs) < 1e-3
+    assert max(zs) < 4.0
+
+
+def test_cost_curve_is_fine_near_the_minimum():
+    from logtools.latency import FINE_COST_POINTS
+
+    rng = np.random.default_rng(23)
+    master, slave = make_pair(rng, w=Motion(rng, fmax_hz=0.3), f_m=100.0, f_s=100.0, latency_s=0.2345)
+    res = estimate(master, slave, compare=False)
+    lag, cost = np.asarray(res.cost_lag_s), np.asarray(res.cost)
+    assert np.all(np.diff(lag) > 0)
+    coarse_step = float(np.max(np.diff(lag)))  # the wide curve's integer-lag grid
+    near = np.abs(lag - res.latency_s) <= 3 * coarse_step
+    assert near.sum() >= FINE_COST_POINTS  # the zoom shows a parabola, not a V of 3 points
+    k = int(np.nanargmin(cost))
+    fine_step = float(np.min(np.diff(lag[near])))
+    assert abs(lag[k] - res.latency_s) <= fine_step + 1e-9
+    assert abs(res.latency_s - 0.2345) < 1e-3
