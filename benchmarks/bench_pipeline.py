@@ -18,7 +18,8 @@ cProfile of the analyze (``benchmarks/results/pipeline_profile_<N>s.txt``). Targ
 
     python benchmarks/bench_pipeline.py            # 10 min and 1 h
     python benchmarks/bench_pipeline.py --quick    # 10 min only
-    python benchmarks/bench_pipeline.py --long     # 10 min, 1 h and 4 h (several minutes, GBs)
+    python benchmarks/bench_pipeline.py --long     # 10 min, 1 h and 4 h (about 12 min, 5 GB)
+    python benchmarks/bench_pipeline.py --long --profile-all   # and a cProfile at each length
 
 Figures go to ``benchmarks/results/bench_pipeline.json``.
 """
@@ -246,6 +247,8 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true", help="10 min log only")
     ap.add_argument("--long", action="store_true", help="also the 4 h log")
     ap.add_argument("--fix-rate", type=float, default=10.0, help="master /fix rate, Hz (velocity stays 200 Hz)")
+    ap.add_argument("--profile-all", action="store_true",
+                    help="cProfile the analyze at every length (default: the shortest only)")
     ap.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
     ap.add_argument("--profile", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -275,7 +278,8 @@ def main() -> int:
     try:
         for i, dur in enumerate(lengths):
             try:
-                results["runs"].append(bench_length(dur, work, args.fix_rate, profile=(i == 0), cold=(i == 0)))
+                results["runs"].append(bench_length(dur, work, args.fix_rate, profile=(i == 0 or args.profile_all),
+                                                    cold=(i == 0)))
             except Exception as exc:  # say so in the figures
                 results["runs"].append({"duration_s": dur, "error": f"{type(exc).__name__}: {exc}"})
                 print(f"   FAILED: {type(exc).__name__}: {exc}", flush=True)
@@ -283,6 +287,14 @@ def main() -> int:
         shutil.rmtree(work, ignore_errors=True)
     ok = [r for r in results["runs"] if "error" not in r and r["analyze"].get("process_wall_s")]
     if len(ok) >= 2:
+        base_run = ok[0]
+        results["scaling_vs_shortest"] = {
+            f"{r['duration_s'] / 60:.0f} min": {
+                "length_x": r["duration_s"] / base_run["duration_s"],
+                "messages_x": round(r["messages_total"] / base_run["messages_total"], 2),
+                **{k: round(v / base_run["analyze"]["timings_s"][k], 2)
+                   for k, v in r["analyze"]["timings_s"].items() if base_run["analyze"]["timings_s"].get(k)}}
+            for r in ok}
         per_msg = [r["analyze"]["process_wall_s"] / r["messages_total"] * 1e6 for r in ok]
         results["scaling_us_per_message"] = {f"{r['duration_s'] / 60:.0f} min": round(v, 3) for r, v in zip(ok, per_msg)}
     os.makedirs(RESULTS_DIR, exist_ok=True)

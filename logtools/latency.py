@@ -1107,7 +1107,20 @@ def _xcorr_estimate(ctx: _Ctx) -> MethodEstimate:
     return MethodEstimate(float(d), float(sig), note)
 
 
-def _run_seed(name: str, master: InsLog, slave: InsLog, max_lag_s: float | None) -> MethodEstimate:
+#: record length (s) the seeds' grid searches get when they only run for comparison: their cost is
+#: samples x candidate lags (a 4 h log took 19 s); the papers themselves use 5-6 s records
+COMPARE_RECORD_S = 600.0
+
+
+def _run_seed(name: str, master: InsLog, slave: InsLog, max_lag_s: float | None,
+              headline: bool = False) -> MethodEstimate:
+    """A seed's method. As the headline it runs as asked; for comparison only, on a record of at most
+    COMPARE_RECORD_S and never over the whole overlap (``max_lag_s=None``: quadratic in the log length)."""
+    if not headline and max_lag_s is None:
+        return MethodEstimate(float("nan"), float("nan"),
+                              "not run for comparison with --max-lag auto (a grid search over the whole "
+                              "overlap); choose it with --latency-method to run it")
+    kw = {} if headline else {"record_s": COMPARE_RECORD_S}
     try:
         from logtools import latency_seeds  # noqa: PLC0415 (lazy: written separately)
     except ImportError as exc:
@@ -1116,7 +1129,7 @@ def _run_seed(name: str, master: InsLog, slave: InsLog, max_lag_s: float | None)
     f = getattr(latency_seeds, fn, None)
     if f is None:
         return MethodEstimate(float("nan"), float("nan"), f"not available (latency_seeds.{fn} missing)")
-    return f(master, slave, max_lag_s=max_lag_s)
+    return f(master, slave, max_lag_s=max_lag_s, **kw)
 
 
 def estimate(master: InsLog, slave: InsLog, *, method: str = "tapost", max_lag_s: float | None = 2.0,
@@ -1154,7 +1167,7 @@ def estimate(master: InsLog, slave: InsLog, *, method: str = "tapost", max_lag_s
             elif name == "xcorr-norm":
                 me = _xcorr_estimate(ctx)
             else:
-                me = _run_seed(name, master, slave, max_lag_s)
+                me = _run_seed(name, master, slave, max_lag_s, headline=name == method)
         except AnalysisError as exc:
             if name == method:
                 err = exc
