@@ -442,6 +442,23 @@ def _refiltered_ctx(ctx: "_Ctx", cutoff_hz: float) -> "_Ctx":
     return _rep(ctx, master=units[0], slave=units[1], cutoff_hz=cutoff_hz, adapted_cutoff=True)
 
 
+def _residuals(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant, d: float, dr: float,
+               tt: np.ndarray):
+    """Residuals of the slave read at t + d + dr*tt against R a + b (R, b by Kabsch with means):
+    (slave derivative, master rows, tt rows, R, b, residuals, cost), or the number of usable samples
+    when there are fewer than 20."""
+    tau = t_m + d + dr * tt
+    bv, ok = itp(tau)
+    use = ok & valid
+    if use.sum() < 20:
+        return int(use.sum())
+    bd, _ = itp(tau[use], 1)
+    au, bu, tu = a[use], bv[use], tt[use]
+    R, bias = _kabsch_bias(au, bu)
+    r = bu - au @ R.T - bias
+    return bd, au, tu, R, bias, r, float(np.sum(r * r))
+
+
 def _refine(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant, d0: float,
             drift0: float, t_mid: float, *, fit_drift: bool, iters: int = 12) -> _Fit:
     """Gauss-Newton on (L[, drift]) with R, b re-solved (Kabsch with means) at every step; covariance
@@ -451,16 +468,10 @@ def _refine(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant,
     tt = t_m - t_mid
     prev = np.inf
     for _ in range(iters):
-        tau = t_m + d + dr * tt
-        bv, ok = itp(tau)
-        use = ok & valid
-        if use.sum() < 20:
-            return _Fit(d, dr, np.eye(3), np.zeros(3), np.inf, np.inf, np.nan, int(use.sum()), 1.0, 0.0, False)
-        bd, _ = itp(tau[use], 1)
-        au, bu, tu = a[use], bv[use], tt[use]
-        R, bias = _kabsch_bias(au, bu)
-        r = bu - au @ R.T - bias
-        cost = float(np.sum(r * r))
+        ev = _residuals(t_m, a, valid, itp, d, dr, tt)
+        if isinstance(ev, int):
+            return _Fit(d, dr, np.eye(3), np.zeros(3), np.inf, np.inf, np.nan, ev, 1.0, 0.0, False)
+        bd, au, tu, R, bias, r, cost = ev
         # reduced Gauss-Newton step on (L[, drift]) (variable projection: R and b are re-solved
         # exactly at every iteration; the bias is projected out of the step by centring)
         J = [bd - bd.mean(axis=0)]
@@ -472,7 +483,7 @@ def _refine(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant,
         try:
             step = -np.linalg.solve(Nr, gr)
         except np.linalg.LinAlgError:
-            return _Fit(d, dr, R, bias, np.inf, np.inf, np.sqrt(cost / max(1, r.size)), int(use.sum()), 1.0, 0.0, False)
+            return _Fit(d, dr, R, bias, np.inf, np.inf, np.sqrt(cost / max(1, r.size)), len(au), 1.0, 0.0, False)
         sd = float(np.clip(step[0], -0.5 * dt, 0.5 * dt))
         d += sd
         if fit_drift:
@@ -483,23 +494,17 @@ def _refine(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant,
         prev = cost
     # covariance at the solution: joint (L[, drift], rotation, bias) normal equations, HAC-corrected
     nd = 1 + int(fit_drift)
-    tau = t_m + d + dr * tt
-    bv, ok = itp(tau)
-    use = ok & valid
-    if use.sum() < 20:
-        return _Fit(d, dr, np.eye(3), np.zeros(3), np.inf, np.inf, np.nan, int(use.sum()), 1.0, 0.0, False)
-    bd, _ = itp(tau[use], 1)
-    au, bu, tu = a[use], bv[use], tt[use]
-    R, bias = _kabsch_bias(au, bu)
-    r = bu - au @ R.T - bias
-    cost = float(np.sum(r * r))
+    ev = _residuals(t_m, a, valid, itp, d, dr, tt)
+    if isinstance(ev, int):
+        return _Fit(d, dr, np.eye(3), np.zeros(3), np.inf, np.inf, np.nan, ev, 1.0, 0.0, False)
+    bd, au, tu, R, bias, r, cost = ev
     Jfull = _jacobian(bd, tu if fit_drift else None, au @ R.T)
     rr = r.ravel()
     Nm = Jfull.T @ Jfull
     try:
         Ninv = np.linalg.inv(Nm)
     except np.linalg.LinAlgError:
-        return _Fit(d, dr, R, bias, np.inf, np.inf, np.sqrt(cost / max(1, r.size)), int(use.sum()), 1.0, 0.0, False)
+        return _Fit(d, dr, R, bias, np.inf, np.inf, np.sqrt(cost / max(1, r.size)), len(au), 1.0, 0.0, False)
     G = (Jfull * rr[:, None]).reshape(len(r), 3, -1).sum(axis=1)  # per-sample scores
     u = G @ Ninv[:, :nd]  # contributions to the (L, drift) step
     max_h = int(min(len(u) // 4, max(10, 20.0 / dt)))
@@ -515,7 +520,7 @@ def _refine(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant,
     fac = float(var[0] / var_cls[0]) if var_cls[0] > 0 else 1.0
     motion = float(np.sqrt(np.mean(np.sum((au - au.mean(axis=0)) ** 2, axis=1))))
     return _Fit(d, dr, R, bias, float(np.sqrt(var[0])), float(np.sqrt(var[1])) if fit_drift else 0.0,
-                float(np.sqrt(cost / r.size)), int(use.sum()), fac, motion, corr_ld=corr)
+                float(np.sqrt(cost / r.size)), len(au), fac, motion, corr_ld=corr)
 
 
 # ---------------------------------------------------------------------------------------------
