@@ -18,7 +18,7 @@ Selector keys: ``imu=`` (``sensor_combined`` | ``sensor_gyro[i]`` (pairs ``senso
 ``vehicle_imu[i]`` (delta angle / delta velocity over dt) | ``vehicle_angular_velocity[i]`` (pairs
 ``vehicle_acceleration[i]``)), ``att=`` (an attitude topic, e.g. ``vehicle_attitude``,
 ``estimator_attitude[1]``), ``vel=`` / ``pos=`` (``vehicle_local_position``, ``vehicle_global_position``),
-``clock=boot|epoch``, ``time=timestamp|sample`` (``timestamp_sample`` where a topic has it); ``none``
+``clock=boot|epoch|auto`` (default auto: epoch where the log's GPS UTC time gives the offset, else boot), ``time=timestamp|sample`` (``timestamp_sample`` where a topic has it); ``none``
 drops a group.
 """
 from __future__ import annotations
@@ -472,8 +472,8 @@ def load(path: str, selector: Selector, *, engine: str = "auto") -> InsLog:
     if bad:
         raise InputError(f"unknown selector key(s) {', '.join(bad)} for ULog (use imu=, att=, vel=, pos=, "
                          f"clock=, time=)", path)
-    clock = (selector.get("clock") or "boot").lower()
-    if clock not in ("boot", "epoch"):
+    clock = (selector.get("clock") or "auto").lower()
+    if clock not in ("boot", "epoch", "auto"):
         raise InputError(f"clock={clock}: ULog offers clock=boot or clock=epoch", path)
     timesel = (selector.get("time") or "timestamp").lower()
     if timesel not in ("timestamp", "sample"):
@@ -484,7 +484,7 @@ def load(path: str, selector: Selector, *, engine: str = "auto") -> InsLog:
         v = selector.get(k)
         if v and v.lower() != "none":
             names.add(parse_topic(v, path)[0])
-    if clock == "epoch":
+    if clock in ("epoch", "auto"):
         names |= set(GPS_TOPICS)
     data = read_topics(path, names, engine=engine)
     topics = data.topics
@@ -521,8 +521,16 @@ def load(path: str, selector: Selector, *, engine: str = "auto") -> InsLog:
         have = ", ".join(_fmt_key(k) for k in sorted(topics)) or "none of the known topics"
         raise InputError(f"no IMU, attitude, velocity or position topic in ULog (found: {have})", path)
     stamp = f"PX4 {imu_src if k_imu else ('timestamp_sample' if use_sample else 'timestamp')} (us since boot)"
-    if clock == "epoch":
-        off_ns, src, w = _utc_offset_ns(topics, path)
+    utc = None
+    if clock in ("epoch", "auto"):
+        try:
+            utc = _utc_offset_ns(topics, path)
+        except InputError:
+            if clock == "epoch":
+                raise
+        clock = "epoch" if utc is not None else "boot"  # auto: UNIX time where the log's GPS gives it
+    if utc is not None:
+        off_ns, src, w = utc
         warns.extend(w)
 
         def shift(s):
@@ -575,9 +583,9 @@ def inventory(path: str) -> Inventory:
             selectors.append(",".join(sel))
     if not selectors and nav:
         selectors.append(",".join(nav))
-    notes = ["clock: boot (us since boot); PX4 data are FRD/NED already"]
+    notes = ["stamps: us since boot; PX4 data are FRD/NED already"]
     if any(n in GPS_TOPICS and "time_utc_usec" in d for (n, _), d in data.topics.items()):
-        notes.append("GPS UTC time present: append clock=epoch to a selector for UNIX time")
+        notes.append("GPS UTC time present: loaded on the UNIX clock by default (clock=boot keeps boot time)")
     return Inventory(path=path, format=NAME, streams=tuple(streams), selectors=tuple(selectors),
                      warnings=data.warnings, notes=tuple(notes))
 

@@ -15,6 +15,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -161,16 +162,21 @@ def test_real_campaign(tmp_path):
 
     from parsers import registry
 
-    fmts = [f for f in ("csv", "tlog", "mcap", "ulog") if _writable(f)]
+    fmts = [f for f in ("csv", "tlog", "mcap", "ulog", "rosbag1") if _writable(f)]
     camp = tmp_path / "camp"
+    truth = {}
     for i in range(6):
         d = camp / f"p{i}"
         d.mkdir(parents=True)
-        pair = sim.simulate(sim.scenario_config(("aircraft", "vehicle", "ship")[i % 3], duration_s=90.0, seed=i))
+        pair = sim.simulate(sim.scenario_config(("aircraft", "vehicle", "ship")[i % 3], duration_s=90.0, seed=i,
+                                                latency_s=0.01 * (i + 1)))
+        truth[f"p{i}"] = pair.truth.to_dict()["latency_s"]
         fm, fs = fmts[i % len(fmts)], fmts[(i + 1) % len(fmts)]
         registry.write(str(d / f"master{registry.format_by_name(fm).EXTENSIONS[0]}"), pair.master, fm)
         registry.write(str(d / f"slave{registry.format_by_name(fs).EXTENSIONS[0]}"), pair.slave, fs)
-    (camp / "p5" / "slave.csv").write_bytes(b"time_s,gyro_x_rad_s\n" + b"\x00" * 100) if fmts == ["csv"] else None
+    # the sixth pair's slave is damaged beyond use: random bytes under its name
+    (broken,) = (camp / "p5").glob("slave*")
+    broken.write_bytes(np.random.default_rng(0).bytes(4096))
     out1, out2 = tmp_path / "o1", tmp_path / "o2"
     assert main(["batch", str(camp), "-o", str(out1), "--jobs", "2", ]) == 0
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cl:
@@ -178,6 +184,15 @@ def test_real_campaign(tmp_path):
     s1, s2 = pd.read_csv(out1 / "summary.csv"), pd.read_csv(out2 / "summary.csv")
     pd.testing.assert_frame_equal(s1[COMPARE], s2[COMPARE])
     assert len(s1) == 6
+    rows = s1.set_index("pair")
+    assert rows.loc["p5", "status"] == "failed" and rows.loc["p5", "exit_code"] == 2
+    for name in ("p0", "p1", "p2", "p3", "p4"):
+        assert rows.loc[name, "status"] == "ok"
+        assert abs(rows.loc[name, "latency_s"] - truth[name]) < 1e-3
+    # a second run does no work
+    snap = snapshot(out1)
+    assert main(["batch", str(camp), "-o", str(out1), "--jobs", "2"]) == 0
+    assert snapshot(out1) == snap
 
 
 def _writable(fmt: str) -> bool:

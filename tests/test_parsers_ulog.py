@@ -63,7 +63,7 @@ def test_sniff_by_magic(written):
 
 def test_round_trip_boot_clock(written):
     log, path = written
-    back = registry.load(str(path))
+    back = registry.load(f"{path}::clock=boot")
     assert back.meta.format == "ulog" and back.meta.clock == "boot"
     assert "timestamp" in back.meta.stamp_source
     assert back.meta.t0_ns == 10_000_000_000  # an epoch log is written with boot time from 10 s
@@ -77,6 +77,9 @@ def test_round_trip_epoch_clock_from_gps_time(written):
     assert back.meta.clock == "epoch" and "time_utc_usec" in back.meta.stamp_source
     assert abs(back.meta.t0_ns - log.meta.t0_ns) <= 1000
     _compare(log, back)
+    # without a selector the log lands on the UNIX clock too, since its GPS gives the offset
+    default = registry.load(str(path))
+    assert default.meta.clock == "epoch" and default.meta.t0_ns == back.meta.t0_ns
 
 
 def test_round_trip_boot_log_keeps_its_stamps(tmp_path):
