@@ -121,6 +121,15 @@ def _record_indices(t_s_grid: np.ndarray, m_first: float, m_last: float, max_lag
     return a, b
 
 
+def _grid_search(lags: np.ndarray, cost: np.ndarray, dt: float, record_s: tuple[float, float]) -> GridSearch:
+    """Candidate lags and their cost, sorted by lag, with the best one and its near-equal rivals."""
+    order = np.argsort(lags)
+    lags, cost = lags[order], cost[order]
+    best = int(np.argmin(cost))
+    return GridSearch(lags_s=lags, cost=cost, best_s=float(lags[best]), dt_s=dt, record_s=record_s,
+                      near_equal_minima=_count_near_minima(cost, best))
+
+
 def _count_near_minima(cost: np.ndarray, best: int, tol: float = 0.10, guard: int = 3) -> int:
     """Local minima (away from the best by more than ``guard`` steps) within ``tol`` of the best cost."""
     if len(cost) < 3:
@@ -198,12 +207,7 @@ def s000_search(master: InsLog, slave: InsLog, *, max_lag_s: float | None = 1.0,
     cand = np.argsort(cost)[: min(7, len(cost))]
     exact = np.array([np.sum((mc[p[c] + 1:p[c] + 1 + n_rec] - mc[p[c]] - big_b) ** 2) for c in cand])
     cost[cand] = exact
-    order = np.argsort(lags)
-    lags, cost = lags[order], cost[order]
-    best = int(np.argmin(cost))  # eq 4
-    return GridSearch(lags_s=lags, cost=cost, best_s=float(lags[best]), dt_s=dt,
-                      record_s=(float(gs[a]), float(gs[b - 1])),
-                      near_equal_minima=_count_near_minima(cost, best))
+    return _grid_search(lags, cost, dt, (float(gs[a]), float(gs[b - 1])))  # eq 4: the argmin
 
 
 def s000_rate_integral(master: InsLog, slave: InsLog, *, max_lag_s: float | None = 1.0,
@@ -305,12 +309,7 @@ def s002_search(master: InsLog, slave: InsLog, *, max_lag_s: float | None = 1.0,
     # eq 10: sum over the record of (H_M - H_S)^2 + (P_M - P_S)^2 + (R_M - R_S)^2 at every shift
     cost = _attitude_cost(np.ascontiguousarray(e_m), np.ascontiguousarray(e_s), p_all.astype(np.int64))
     lags = gs[a] - gm[p_all]
-    order = np.argsort(lags)
-    lags, cost = lags[order], cost[order]
-    best = int(np.argmin(cost))  # eq 11
-    return GridSearch(lags_s=lags, cost=cost, best_s=float(lags[best]), dt_s=dt,
-                      record_s=(float(gs[a]), float(gs[b - 1])),
-                      near_equal_minima=_count_near_minima(cost, best))
+    return _grid_search(lags, cost, dt, (float(gs[a]), float(gs[b - 1])))  # eq 11: the argmin
 
 
 def s002_attitude_shift(master: InsLog, slave: InsLog, *, max_lag_s: float | None = 1.0,

@@ -152,21 +152,6 @@ def x25_crc_at_np(buf: np.ndarray, starts: np.ndarray, width: int, extra: int | 
 
 
 @_njit(cache=True)
-def _crc_nb(buf, starts, width, extra, table):  # pragma: no cover - compiled
-    n = len(starts)
-    out = np.empty(n, dtype=np.uint16)
-    for i in range(n):
-        crc = np.uint16(0xFFFF)
-        s = starts[i]
-        for j in range(width):
-            crc = (crc >> 8) ^ table[(crc ^ buf[s + j]) & 0xFF]
-        if extra >= 0:
-            crc = (crc >> 8) ^ table[(crc ^ extra) & 0xFF]
-        out[i] = crc
-    return out
-
-
-@_njit(cache=True)
 def _crc_var_nb(buf, starts, lengths, extra, table):  # pragma: no cover - compiled
     n = len(starts)
     out = np.empty(n, dtype=np.uint16)
@@ -198,8 +183,9 @@ def x25_crc_at(buf: np.ndarray, starts: np.ndarray, width: int, extra: int | Non
     """X.25 CRC of ``buf[starts[i]: starts[i] + width]`` for every i (then CRC_EXTRA)."""
     if not HAVE_NUMBA:
         return x25_crc_at_np(buf, starts, width, extra)
-    return _crc_nb(buf, np.asarray(starts, dtype=np.int64), int(width),
-                   -1 if extra is None else int(extra), CRC_TABLE)
+    starts = np.asarray(starts, dtype=np.int64)
+    return _crc_var_nb(buf, starts, np.full(len(starts), int(width), dtype=np.int64),
+                       -1 if extra is None else int(extra), CRC_TABLE)
 
 
 def records_view(block: np.ndarray, dtype: np.dtype) -> np.ndarray:
