@@ -49,7 +49,9 @@ SCENARIOS = ("ship", "aircraft", "vehicle", "multirotor")
 METHODS = ("tapost", "xcorr-norm", "s000-rate-integral", "s002-attitude-shift")
 # the seeds again with the papers' own search range (+-1 s, S000 step 2), computed directly
 PAPER_RANGE = {"s000-rate-integral@1s": "s000_rate_integral", "s002-attitude-shift@1s": "s002_attitude_shift"}
-ALL_METHODS = METHODS + tuple(PAPER_RANGE)
+#: ablation: tapost's method on the gyros alone (without the accelerometer-aided GLS)
+GYRO_ONLY = "tapost-gyro-only"
+ALL_METHODS = METHODS[:1] + (GYRO_ONLY,) + METHODS[1:] + tuple(PAPER_RANGE)
 MAX_LAG_S = 2.0  # tapost's default search window (DESIGN.md --max-lag); latencies are within +-1 s
 NOISE_LEVELS = (0.5, 1.0, 3.0)
 PAPER_TABLE1 = {10: (2, 10), 50: (10, 50), 100: (20, 100), 150: (30, 150)}  # ms: (shifted points, est. ms)
@@ -132,6 +134,7 @@ def run_one(d: dict) -> dict:
     # per-method runtime (each on its own) and fallback values when estimate() did not give them
     solo = {
         "tapost": lambda: estimate(m, s, max_lag_s=MAX_LAG_S, compare=False),
+        GYRO_ONLY: lambda: estimate(m, s, max_lag_s=MAX_LAG_S, compare=False, accelerometers=False),
         "xcorr-norm": lambda: estimate(m, s, method="xcorr-norm", max_lag_s=MAX_LAG_S, compare=False),
         "s000-rate-integral": lambda: latency_seeds.s000_rate_integral(m, s, max_lag_s=MAX_LAG_S),
         "s002-attitude-shift": lambda: latency_seeds.s002_attitude_shift(m, s, max_lag_s=MAX_LAG_S),

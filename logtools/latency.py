@@ -32,6 +32,17 @@ tapost's method ("tapost")
      weighs as (motion-derivative power / residual power), the maximum-likelihood weighting for a
      Gaussian disturbance. (Without a residual spectrum, e.g. very short data, the older heuristic
      is used: the low-pass band re-chosen from the residual spectrum and the units re-filtered.)
+  3c. accelerometer-aided GLS (when both units log gyros and accelerometers and the gyro-only sigma
+     exceeds ACCEL_MIN_SIGMA_S): flexure rotates the slave, so it tilts the slave's specific force as
+     well as adding a differential rate; the accelerometer residual f_s(t + d) - R (f_m + ([w_m' x] +
+     [w_m x]^2) r) - b_a (r: lever arm, b_a: accelerometer bias difference, both solved) joins the gyro
+     residual, and the whitening uses their 6 x 6 cross-spectral density, so the part of the flexure
+     that the accelerometers see is weighed out and the specific force's own motion (heave, turns,
+     speed changes) adds delay information. (A rotation of the slave by flexure and a delay of its
+     rotation look alike to gravity's direction, so the gain comes mostly from the non-rotational
+     accelerations; the vertical-axis flexure is not seen at all.) Model check: a separate delay of
+     the accelerometers is estimated alongside; beyond ACCEL_LAG_SIGMAS sigma (real IMUs may filter
+     accelerometers and gyros differently) or when its sigma is not smaller, the gyro-only fit stays.
   4. drift: steps 3-3b in windows along the overlap (integer-lag search around the predicted lag, then
      refinement), a weighted line latency(t) = L + drift (t - t_mid) with windows beyond WINDOW_REJECT
      sigma rejected (a window with little motion can lock on a wrong minimum, where its linearised sigma
@@ -40,8 +51,8 @@ tapost's method ("tapost")
      over the whole overlap, the residual spectrum re-estimated before each;
   5. sigma: the joint (L, drift, rotation, bias) GLS covariance (whitened curvature x whitened residual
      variance) with a heteroscedasticity-and-autocorrelation-consistent (Bartlett/Newey-West) variance
-     of the whitened scores as a floor (what whitening missed), inflated by the scatter of the kept
-     window estimates about the drift line;
+     of the whitened scores as a floor (what whitening missed), inflated by the scatter of the window
+     estimates about the drift line (with an accelerometer-aided fit, the windows re-estimated with it);
   6. quality flags: motion level, too little motion, periodic motion (several near-equal minima of the
      cost: S000 eq 6's caveat; sigma then covers the ambiguity), windows disagreeing, overlap, rotation
      found, residual RMS, masked fraction.
@@ -52,12 +63,12 @@ The seeds' methods (``s000-rate-integral``, ``s002-attitude-shift``) live in ``l
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import fft as sfft
 
-from logtools.conventions import euler_from_dcm, quat_conj, quat_make_continuous, quat_mul, rotvec_from_quat
+from logtools.conventions import euler_from_dcm, quat_conj, skew, quat_make_continuous, quat_mul, rotvec_from_quat
 from logtools.errors import AnalysisError
 from logtools.inslog import InsLog
 from logtools.resample import Interpolant, UniformSeries, interpolant, lowpass, median_rate_hz, to_uniform
@@ -99,7 +110,12 @@ FINE_COST_SIGMAS = 5.0  # ... over +- this many sigma
 FINE_COST_SAMPLES = 3  # ... or at least +- this many search-grid samples
 FINE_COST_MAX_SAMPLES = 50_000
 GLS_WINDOWS = False  # GLS also in each drift window
-GLS_FLOOR = 1e-4  # PSD floor (fraction of its peak): the low-pass stop band is not amplified beyond
+GLS_FLOOR = 1e-4  # PSD floor (fraction of its peak): the low-pass stop band is not amplified beyond it
+GLS_CSD_BINS = 15  # a cross-spectral matrix is smoothed over at least this many bins (conditioning)
+ACCEL_AIDED = True  # gyro + accelerometer residuals in the final GLS when both units have accelerometers
+ACCEL_GLS_PASSES = 2  # accelerometer-aided passes (the 6-channel cross-spectrum re-estimated before each)
+ACCEL_MIN_SIGMA_S = 1e-4  # ... and when the gyro-only sigma is above this (below it they cannot matter)
+ACCEL_LAG_SIGMAS = 3.0  # ... unless the accelerometers' own delay differs from the gyros' by more sigmas
 
 Progress = Callable[[float, str], None] | None
 
@@ -336,6 +352,8 @@ class _Fit:
     motion_rms: float  # rad/s, master, in the used samples
     ok: bool = True
     corr_ld: float = 0.0  # correlation of the (L, drift) estimates
+    aided: bool = False  # accelerometer-aided GLS
+    accel_lag_s: tuple[float, float] = (0.0, 0.0)  # accelerometers' extra delay and its sigma (aided fits)
 
 
 def _kabsch_bias(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -528,27 +546,50 @@ def _refine(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant,
 # ---------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class _NoiseModel:
-    """Smoothed power spectrum of the residual w_s(t + d) - R w_m(t) - b (per axis, arbitrary units)
-    on ``f_hz``: flexure's differential rate (a second-order Markov process, coloured, low frequency),
-    the gyros' white noise and what the low-pass leaves, i.e. the disturbance a delay fit must weigh."""
+    """Smoothed power spectrum of the residual w_s(t + d) - R w_m(t) - b on ``f_hz``: flexure's
+    differential rate (a second-order Markov process, coloured, low frequency), the gyros' white noise
+    and what the low-pass leaves, i.e. the disturbance a delay fit must weigh.
+
+    ``psd`` is either one spectrum shared by the channels, (nf,), or a cross-spectral density matrix
+    (nf, C, C) of C channels (gyro and accelerometer residuals: flexure tilts the specific force as it
+    rotates the slave, so the two are coherent and the accelerometers tell the flexure apart from the
+    delay); ``floor`` is then one number per channel."""
 
     f_hz: np.ndarray
     psd: np.ndarray
-    floor: float  # numerical floor (the low-pass stop band)
+    floor: float | np.ndarray  # numerical floor (the low-pass stop band)
     tail_s: float  # length of the whitening filter's impulse response (zero padding)
 
     def weights(self, n: int, dt_s: float) -> tuple[int, np.ndarray]:
+        """(nfft, W): W = PSD^-1/2 on the rfft bins of nfft, (nfreq,) or (nfreq, C, C)."""
         pad = min(n, int(np.ceil(self.tail_s / dt_s)))
         nfft = sfft.next_fast_len(n + pad, real=True)
         f = sfft.rfftfreq(nfft, dt_s)
-        return nfft, 1.0 / np.sqrt(np.interp(f, self.f_hz, self.psd) + self.floor)
+        if self.psd.ndim == 1:
+            return nfft, 1.0 / np.sqrt(np.interp(f, self.f_hz, self.psd) + self.floor)
+        C = self.psd.shape[1]
+        flat = self.psd.reshape(len(self.f_hz), C * C)
+        S = np.empty((len(f), C * C), complex)
+        for j in range(C * C):
+            S[:, j] = (np.interp(f, self.f_hz, flat[:, j].real)
+                       + 1j * np.interp(f, self.f_hz, flat[:, j].imag))
+        S = S.reshape(len(f), C, C) + np.diag(np.asarray(self.floor, float))
+        lam, V = np.linalg.eigh(S)
+        lam = np.maximum(lam, 1e-300)
+        return nfft, np.einsum("fij,fj,fkj->fik", V, 1.0 / np.sqrt(lam), np.conj(V))
 
-    def whiten(self, x: np.ndarray, dt_s: float) -> np.ndarray:
-        """The zero-phase whitening filter 1/sqrt(PSD) applied along axis 0 (zero-filled masks)."""
+    def whiten(self, x: np.ndarray, dt_s: float, weights: tuple[int, np.ndarray] | None = None) -> np.ndarray:
+        """The zero-phase whitening filter PSD^-1/2 applied along axis 0 (zero-filled masks); with a
+        cross-spectral matrix, x is (n, C, K) and the channels are mixed bin by bin. ``weights``:
+        ``self.weights(len(x), dt_s)`` when already computed."""
         n = len(x)
-        nfft, w = self.weights(n, dt_s)
-        shape = (len(w),) + (1,) * (x.ndim - 1)
-        return sfft.irfft(sfft.rfft(x, nfft, axis=0) * w.reshape(shape), nfft, axis=0)[:n]
+        nfft, w = weights if weights is not None else self.weights(n, dt_s)
+        X = sfft.rfft(x, nfft, axis=0)
+        if w.ndim == 1:
+            Z = X * w.reshape((len(w),) + (1,) * (x.ndim - 1))
+        else:
+            Z = np.matmul(w, X)
+        return sfft.irfft(Z, nfft, axis=0)[:n]
 
 
 def _taper(use: np.ndarray, n_ramp: int) -> np.ndarray:
@@ -562,32 +603,106 @@ def _taper(use: np.ndarray, n_ramp: int) -> np.ndarray:
     return np.where(use, 0.5 - 0.5 * np.cos(np.pi * x), 0.0)
 
 
-def _noise_model(r: np.ndarray, use: np.ndarray, dt_s: float) -> _NoiseModel | None:
-    """Residual spectrum from one fit's residuals (N, 3) (0 where unused): periodogram over the whole
-    span, averaged over the axes and smoothed over GLS_SMOOTH_HZ (a 2nd-order Markov spectrum is
-    smooth on that scale)."""
-    n = len(r)
+def _noise_model(r: np.ndarray, use: np.ndarray, dt_s: float, *, matrix: bool = False) -> _NoiseModel | None:
+    """Residual spectrum from one fit's residuals (N, C) (0 where unused): periodogram over the whole
+    span smoothed over GLS_SMOOTH_HZ (a 2nd-order Markov spectrum is smooth on that scale); averaged
+    over the axes (one spectrum), or with ``matrix`` the C x C cross-spectral density, smoothed over at
+    least GLS_CSD_BINS bins so that it is well conditioned."""
+    n, C = r.shape
     if n < 256 or use.sum() < 128:
         return None
     x = np.where(use[:, None], r, 0.0)
     X = sfft.rfft(x, axis=0)
-    p = np.mean(np.abs(X) ** 2, axis=1) / max(1.0, float(use.sum()))
     f = sfft.rfftfreq(n, dt_s)
     k = max(3, int(round(GLS_SMOOTH_HZ * n * dt_s))) | 1
-    k = min(k, (len(p) // 4) | 1)
-    ps = np.convolve(np.pad(p, k // 2, mode="reflect"), np.ones(k) / k, mode="valid")
-    top = float(ps.max())
-    if not top > 0:
+    if matrix:
+        k = max(k, GLS_CSD_BINS | 1)
+    k = min(k, (len(f) // 4) | 1)
+    norm = max(1.0, float(use.sum()))
+    if not matrix:
+        p = np.mean(np.abs(X) ** 2, axis=1) / norm
+        ps = np.convolve(np.pad(p, k // 2, mode="reflect"), np.ones(k) / k, mode="valid")
+        top = float(ps.max())
+        if not top > 0:
+            return None
+        return _NoiseModel(f, ps, GLS_FLOOR * top, 1.0 / GLS_SMOOTH_HZ)
+    from scipy.ndimage import uniform_filter1d
+
+    P = (X[:, :, None] * np.conj(X[:, None, :])).reshape(len(f), C * C) / norm
+    P = (uniform_filter1d(P.real, k, axis=0, mode="reflect")
+         + 1j * uniform_filter1d(P.imag, k, axis=0, mode="reflect")).reshape(len(f), C, C)
+    top = np.max(np.real(np.diagonal(P, axis1=1, axis2=2)), axis=0)
+    if not np.all(top > 0):
         return None
-    return _NoiseModel(f, ps, GLS_FLOOR * top, 1.0 / GLS_SMOOTH_HZ)
+    return _NoiseModel(f, P, GLS_FLOOR * top, 1.0 / GLS_SMOOTH_HZ)
+
+
+@dataclass(frozen=True)
+class _Accel:
+    """Both units' specific force (low-passed like the rates) and the master's rate, continuous: the
+    accelerometer rows of the accelerometer-aided fit (``f_s(t + d) = R (f_m + (w_m' x + [w_m x]^2) r)
+    + b_a``, r the lever arm in the master frame)."""
+
+    master: Interpolant
+    slave: Interpolant
+    master_rate: Interpolant
+
+    def master_rows(self, t_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(f_m, lever-arm matrix [w' x] + [w x]^2 (n, 3, 3), ok) at the master instants t_m."""
+        f, okf = self.master(t_m)
+        w, okw = self.master_rate(t_m)
+        ok = okf & okw
+        wd = np.zeros_like(w)
+        if ok.any():
+            wd[ok], _ = self.master_rate(t_m[ok], 1)
+        f, w = np.where(ok[:, None], f, 0.0), np.where(ok[:, None], w, 0.0)
+        sw = skew(w)
+        return f, skew(wd) + sw @ sw, ok
+
+
+def _lever_solve(r_a: np.ndarray, Jl: np.ndarray, use: np.ndarray) -> np.ndarray:
+    """Accelerometer residuals (n, 3) with the lever arm (Jacobian Jl (n, 3, 3)) and the accelerometer
+    bias solved by ordinary least squares over the used rows (0 elsewhere)."""
+    ru, Ju = r_a[use], Jl[use]
+    Ju = Ju - Ju.mean(axis=0)
+    ru = ru - ru.mean(axis=0)
+    A = Ju.reshape(-1, 3)
+    x, *_ = np.linalg.lstsq(A, ru.ravel(), rcond=None)
+    out = np.zeros_like(r_a)
+    out[use] = ru - (A @ x).reshape(-1, 3)
+    return out
+
+
+def _accel_residual(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant, acc: _Accel,
+                    f: _Fit, t_mid: float) -> np.ndarray:
+    """(N, 6) gyro and accelerometer residuals of a fit (lever arm and biases by least squares), 0 where
+    masked: what the accelerometer-aided noise model is estimated from."""
+    tau = t_m + f.latency_s + f.drift * (t_m - t_mid)
+    bv, ok = itp(tau)
+    fv, okf = acc.slave(tau)
+    fm, lev, okm = acc.master_rows(t_m)
+    use = ok & okf & okm & valid
+    out = np.zeros((len(t_m), 6))
+    if use.sum() < 20:
+        return out
+    out[use, :3] = bv[use] - a[use] @ f.R.T - f.bias
+    r_a = np.where(use[:, None], fv - fm @ f.R.T, 0.0)
+    out[:, 3:] = _lever_solve(r_a, -np.einsum("ij,njk->nik", f.R, lev), use)
+    return out
 
 
 def _refine_gls(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant, d0: float,
-                drift0: float, t_mid: float, noise: _NoiseModel, *, fit_drift: bool, iters: int = 4) -> _Fit:
+                drift0: float, t_mid: float, noise: _NoiseModel, *, fit_drift: bool, iters: int = 4,
+                acc: _Accel | None = None) -> _Fit:
     """Generalised least squares: Gauss-Newton on the whitened residual and whitened Jacobian of the
     joint (L[, drift], rotation, bias) problem; the L[, drift] part of each step is taken and R, b
     re-solved (Kabsch), whose fixed point is the joint GLS estimate. Covariance: the whitened
-    curvature times the whitened residual variance (HAC-checked)."""
+    curvature times the whitened residual variance (HAC-checked).
+
+    With ``acc`` (and a 6-channel cross-spectral ``noise``), the accelerometers' residuals join the
+    gyros' (accelerometer bias and lever arm as further linear unknowns, the rotation shared): the
+    whitening then uses their coherence, i.e. the flexure seen as a tilt of the specific force is
+    taken out of the differential rate, and the specific force's own motion adds delay information."""
     d, dr = float(d0), float(drift0)
     n = len(t_m)
     dt = float(np.median(np.diff(t_m))) if n > 1 else 1.0
@@ -599,9 +714,14 @@ def _refine_gls(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpol
     span = float(np.max(np.abs(tt))) if n else 0.0
     margin = (iters + 1) * dt  # the steps are clipped to 0.5 dt (latency) + 0.5 dt at the ends (drift)
     use = valid & itp.ok(t_m + d + dr * tt - margin) & itp.ok(t_m + d + dr * tt + margin)
+    if acc is not None:
+        fm, lev, okm = acc.master_rows(t_m)
+        use &= okm & acc.slave.ok(t_m + d + dr * tt - margin) & acc.slave.ok(t_m + d + dr * tt + margin)
     if use.sum() < 20:
         return fail
+    C = 3 if acc is None else 6
     taper = _taper(use, int(np.ceil(GLS_TAPER_S / dt)))
+    wts = noise.weights(n, dt)
     for it in range(iters + 1):
         tau = t_m + d + dr * tt
         bv, ok = itp(tau)
@@ -610,18 +730,41 @@ def _refine_gls(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpol
         bd = np.zeros((n, 3))
         bd[use], _ = itp(tau[use], 1)
         R, bias = _kabsch_bias(a[use], bv[use])
-        r = np.zeros((n, 3))
-        r[use] = bv[use] - a[use] @ R.T - bias
+        r = np.zeros((n, C))
+        r[use, :3] = bv[use] - a[use] @ R.T - bias
         Ra = np.where(use[:, None], a @ R.T, 0.0)
-        J = _jacobian(bd, tt if fit_drift else None, Ra).reshape(n, 3, -1)
+        Jg = _jacobian(bd, tt if fit_drift else None, Ra).reshape(n, 3, -1)
+        if acc is None:
+            J = Jg
+        else:
+            fv, _ = acc.slave(tau)
+            fd = np.zeros((n, 3))
+            fd[use], _ = acc.slave(tau[use], 1)
+            Rf = np.where(use[:, None], fm @ R.T, 0.0)
+            r[use, 3:] = fv[use] - Rf[use] - np.mean(fv[use] - Rf[use], axis=0)
+            Ja = _jacobian(fd, tt if fit_drift else None, Rf).reshape(n, 3, -1)
+            pg = Jg.shape[2]  # L[, drift], rotation, gyro bias | accelerometer bias, lever arm
+            J = np.zeros((n, 6, pg + 7))
+            J[:, :3, :pg] = Jg
+            J[:, 3:, :nd + 3] = Ja[:, :, :nd + 3]
+            J[:, 3:, pg:pg + 3] = Ja[:, :, nd + 3:]
+            J[:, 3:, pg + 3:pg + 6] = -np.einsum("ij,njk->nik", R, lev)
+            J[:, 3:, pg + 6] = fd  # a delay of the accelerometers' own (model check, not in the steps)
         J[~use] = 0.0
         P = J.shape[2]
         r = r * taper[:, None]
         J = J * taper[:, None, None]
-        Z = noise.whiten(np.concatenate([r, J.reshape(n, 3 * P)], axis=1), dt)
-        rw = Z[:, :3]
-        Jw = Z[:, 3:].reshape(n, 3, P)
-        Jf = Jw.reshape(3 * n, P)
+        X = np.concatenate([r[:, :, None], J], axis=2)  # (n, C, 1 + P)
+        if noise.psd.ndim == 1:
+            Z = noise.whiten(X.reshape(n, C * (1 + P)), dt, wts).reshape(n, C, 1 + P)
+        else:
+            Z = noise.whiten(X, dt, wts)
+        rw = Z[:, :, 0]
+        if acc is not None:
+            P -= 1
+            Jx = Z[:, :, 1:].reshape(C * n, P + 1)
+        Jw = Z[:, :, 1:P + 1]
+        Jf = Jw.reshape(C * n, P)
         Nm = Jf.T @ Jf
         g = Jf.T @ rw.ravel()
         try:
@@ -641,8 +784,11 @@ def _refine_gls(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpol
         Ninv = np.linalg.inv(Nm)
     except np.linalg.LinAlgError:
         return fail
+    # the residual after the last step (the linear unknowns -- rotation, biases, lever arm -- at their
+    # GLS values rather than the re-solved ones): what the variance and the scores are taken from
+    rw = rw + (Jf @ step).reshape(n, C)
     n_use = int(use.sum())
-    dof = max(1, 3 * n_use - P)
+    dof = max(1, C * n_use - P)
     s2 = float(np.sum(rw * rw)) / dof
     var_cls = s2 * np.diag(Ninv)[:nd]
     G = np.sum(Jw * rw[:, :, None], axis=1)  # per-sample whitened scores
@@ -656,11 +802,22 @@ def _refine_gls(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpol
         cv = V_hac[0, 1] if var_h[0] >= var_cls[0] else s2 * Ninv[0, 1]
         corr = float(np.clip(cv / np.sqrt(var[0] * var[1]), -0.99, 0.99))
     fac = float(var[0] / var_cls[0]) if var_cls[0] > 0 else 1.0
+    acc_lag = (0.0, 0.0)
+    if acc is not None:
+        # model check: the accelerometers' delay relative to the gyros' (0 when both come through
+        # the same path; real IMUs may filter them differently), from the augmented normal equations
+        try:
+            Nx = Jx.T @ Jx
+            sx = np.linalg.solve(Nx, Jx.T @ rw.ravel())
+            vx = float(np.linalg.inv(Nx)[-1, -1]) * s2 * max(1.0, fac)
+            acc_lag = (-float(sx[-1]), float(np.sqrt(max(vx, 0.0))))
+        except np.linalg.LinAlgError:
+            acc_lag = (np.inf, np.inf)
     au = a[use]
     motion = float(np.sqrt(np.mean(np.sum((au - au.mean(axis=0)) ** 2, axis=1))))
-    raw_rms = float(np.sqrt(np.sum(r * r) / (3 * n_use)))
+    raw_rms = float(np.sqrt(np.sum(r[:, :3] ** 2) / (3 * n_use)))
     return _Fit(d, dr, R, bias, float(np.sqrt(var[0])), float(np.sqrt(var[1])) if fit_drift else 0.0,
-                raw_rms, n_use, fac, motion, corr_ld=corr)
+                raw_rms, n_use, fac, motion, corr_ld=corr, accel_lag_s=acc_lag)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -679,9 +836,10 @@ class _Ctx:
     adapted_cutoff: bool = False
     warnings: list[str] = field(default_factory=list)
     t0_abs_s: float = 0.0
+    acc_src: tuple | None = None  # (master, slave, cutoff, master rate) for the accelerometer-aided GLS
 
 
-def _prepare(master: InsLog, slave: InsLog, max_lag_s: float | None) -> _Ctx:
+def _prepare(master: InsLog, slave: InsLog, max_lag_s: float | None, *, accelerometers: bool = True) -> _Ctx:
     if max_lag_s is not None and not (np.isfinite(max_lag_s) and max_lag_s > 0):
         raise AnalysisError(f"max_lag_s must be positive or None (whole overlap), not {max_lag_s!r}")
     slave_r = slave.rebased(master.meta.t0_ns)
@@ -720,10 +878,32 @@ def _prepare(master: InsLog, slave: InsLog, max_lag_s: float | None) -> _Ctx:
     ctx = _Ctx(um, us, dt_c, cutoff, max_lag_s, t0_abs_s=master.t0_s, dt_s=1.0 / f_s, dt_r=1.0 / f_r,
                raw=(natm, nats))
     ctx.warnings += list(um.native.warnings) + list(us.native.warnings)
+    if (accelerometers and ACCEL_AIDED and srcm == "gyro" and srcs == "gyro" and master.has_accel
+            and slave_r.has_accel):
+        ctx.acc_src = (master, slave_r, cutoff, um.itp)  # built when needed (_accel_pair)
     if srcm == "attitude" or srcs == "attitude":
         ctx.warnings.append("angular rate derived from attitude for the " +
                             " and ".join(r for r, s in (("master", srcm), ("slave", srcs)) if s == "attitude"))
     return ctx
+
+
+def _accel_pair(master: InsLog, slave: InsLog, cutoff_hz: float, master_rate: Interpolant) -> _Accel | None:
+    """Both units' specific force, uniform and low-passed at the rates' cutoff; None when either unit
+    has no (or too little finite) accelerometer data."""
+    itps = []
+    for log, role in ((master, "master"), (slave, "slave")):
+        if not log.has_accel:
+            return None
+        t, f = log.t_imu_s(), log.accel_m_s2()
+        ok = np.isfinite(t) & np.all(np.isfinite(f), axis=1)
+        if ok.sum() < 256:
+            return None
+        try:
+            nat = to_uniform(t[ok], f[ok], name=f"{role} accelerometer")
+            itps.append(interpolant(lowpass(nat, cutoff_hz)))
+        except ValueError:
+            return None
+    return _Accel(itps[0], itps[1], master_rate)
 
 
 def _lag_window(ctx: _Ctx, corr: _Correlator, dt: float, min_frac: float) -> tuple[np.ndarray, float]:
@@ -936,6 +1116,9 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
         "residual_rms_dps": float(np.degrees(fin.residual_rms)),
         "vector_cost_min": co.best_cost,
         "gls": bool(noise is not None),
+        "accel_aided": bool(fin.aided),
+        "accel_minus_gyro_lag_s": float(fin.accel_lag_s[0]) if fin.accel_lag_s[1] > 0 else None,
+        "accel_minus_gyro_lag_sigma_s": float(fin.accel_lag_s[1]) if fin.accel_lag_s[1] > 0 else None,
         "nan_fraction": nanfrac,
         "coarse_latency_s": co.d0_s,
         "xcorr_norm_latency_s": co.xcorr_latency_s,
@@ -995,6 +1178,7 @@ def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: f
     itp = ctx.slave.itp
     wins = _windows(ctx, w0, w1)
     centers, lats, sigs, wmot = [], [], [], []
+    bounds: dict[float, tuple[float, float]] = {}
     for (a0, a1) in wins if len(wins) >= 3 else []:
         ws = (t_m >= a0) & (t_m <= a1)
         if ws.sum() < 50:
@@ -1009,6 +1193,7 @@ def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: f
         if GLS_WINDOWS and noise is not None and f.ok:
             f = _refine_gls(t_m[ws], a[ws], valid[ws], itp, f.latency_s, 0.0, tc, noise, fit_drift=False)
         if f.ok and np.isfinite(f.sigma_latency_s):
+            bounds[float(tc)] = (a0, a1)
             centers.append(tc)
             lats.append(f.latency_s)
             sigs.append(max(f.sigma_latency_s, SIGMA_FLOOR_S))
@@ -1044,14 +1229,66 @@ def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: f
     if noise is not None:
         # GLS on the whole overlap, with the residual spectrum re-estimated from this fit
         fd = len(centers) >= 3
-        for _ in range(GLS_PASSES):
+        final_noise, final_acc = None, None
+        # with accelerometers, one gyro-only pass (their start and fall-back), then the aided passes
+        for k in range(GLS_PASSES):
+            if k == 1 and ctx.acc_src is not None and fin.sigma_latency_s > ACCEL_MIN_SIGMA_S:
+                break
             r = _residual(t_m, a, valid, itp, fin, t_mid)
             nm = _noise_model(r, np.any(r != 0.0, axis=1), float(np.median(np.diff(t_m)))) or noise
             f2 = _refine_gls(t_m, a, valid, itp, fin.latency_s, fin.drift, t_mid, nm, fit_drift=fd)
             if not f2.ok:
                 break
-            fin = f2
+            fin, final_noise = f2, nm
+        acc = None
+        if ctx.acc_src is not None and final_noise is not None and fin.sigma_latency_s > ACCEL_MIN_SIGMA_S:
+            acc = _accel_pair(*ctx.acc_src)
+        if acc is not None:
+            fa, nm6 = _accel_aided(t_m, a, valid, itp, acc, fin, t_mid, fit_drift=fd)
+            if fa.aided:
+                fin, final_noise, final_acc = fa, nm6, acc
+            else:
+                fin = fa  # the gyro-only fit, with the model check's figures
+        if fd and final_acc is not None:
+            # the windows again with the final (aided) estimator, its noise model and channels: their
+            # scatter about the final line is what the sigma is checked against (gyro-only windows
+            # scatter with the flexure the accelerometers took out). Gyro-only fits keep the ordinary
+            # windows' scatter, the conservative check (GLS windows of gyros alone measured worse).
+            c2, l2, s2 = [], [], []
+            for tc in centers:
+                a0, a1 = bounds[float(tc)]
+                ws = (t_m >= a0) & (t_m <= a1)
+                f = _refine_gls(t_m[ws], a[ws], valid[ws], itp, fin.latency_s + fin.drift * (tc - t_mid), 0.0,
+                                tc, final_noise, fit_drift=False, acc=final_acc)
+                if f.ok and np.isfinite(f.sigma_latency_s):
+                    c2.append(tc)
+                    l2.append(f.latency_s)
+                    s2.append(max(f.sigma_latency_s, SIGMA_FLOOR_S))
+            if len(c2) >= 3:
+                centers, lats, sigs = np.asarray(c2), np.asarray(l2), np.asarray(s2)
     return fin, centers, lats, sigs
+
+
+def _accel_aided(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant, acc: _Accel, fin: _Fit,
+                 t_mid: float, *, fit_drift: bool) -> tuple[_Fit, _NoiseModel | None]:
+    """ACCEL_GLS_PASSES accelerometer-aided GLS passes from the gyro-only fit ``fin`` (the 6-channel residual
+    cross-spectrum re-estimated before each); kept when its sigma is smaller (flagged ``aided``).
+    Returns the fit kept and, when it is the aided one, its noise model."""
+    dt = float(np.median(np.diff(t_m)))
+    cur, nm = fin, None
+    for _ in range(ACCEL_GLS_PASSES):
+        r6 = _accel_residual(t_m, a, valid, itp, acc, cur, t_mid)
+        nm6 = _noise_model(r6, np.any(r6 != 0.0, axis=1), dt, matrix=True)
+        if nm6 is None:
+            break
+        f2 = _refine_gls(t_m, a, valid, itp, cur.latency_s, cur.drift, t_mid, nm6, fit_drift=fit_drift, acc=acc)
+        if not f2.ok:
+            break
+        cur, nm = f2, nm6
+    lag, sig = cur.accel_lag_s
+    if cur is not fin and cur.sigma_latency_s < fin.sigma_latency_s and abs(lag) <= ACCEL_LAG_SIGMAS * sig:
+        return replace(cur, aided=True), nm
+    return replace(fin, accel_lag_s=cur.accel_lag_s), None
 
 
 def _window_start(ctx: _Ctx, a0: float, a1: float, d_center: float, band_s: float) -> float | None:
@@ -1138,13 +1375,14 @@ def _run_seed(name: str, master: InsLog, slave: InsLog, max_lag_s: float | None,
 
 
 def estimate(master: InsLog, slave: InsLog, *, method: str = "tapost", max_lag_s: float | None = 2.0,
-             compare: bool = True, progress: Progress = None) -> LatencyResult:
+             compare: bool = True, progress: Progress = None, accelerometers: bool = True) -> LatencyResult:
     """Latency (s) and drift (ppm) of ``slave`` behind ``master``; see the module docstring.
 
     ``max_lag_s`` bounds the search at face value (both logs' absolute stamps); ``None`` searches the
     whole overlap (unrelated clocks). Raises AnalysisError (one line) for no/too short overlap, no motion,
     NaN-only data. With ``compare`` every other method that can run is stored in ``methods`` (a method
-    that cannot run is stored with NaN and its reason).
+    that cannot run is stored with NaN and its reason). ``accelerometers=False`` keeps the tapost method
+    on the gyros alone (no accelerometer-aided GLS).
     """
     if method not in METHODS:
         raise AnalysisError(f"unknown latency method {method!r} (choose from {', '.join(METHODS)})")
@@ -1154,7 +1392,7 @@ def estimate(master: InsLog, slave: InsLog, *, method: str = "tapost", max_lag_s
             progress(float(f), stage)
 
     prog(0.0, "preparing")
-    ctx = _prepare(master, slave, max_lag_s)
+    ctx = _prepare(master, slave, max_lag_s, accelerometers=accelerometers)
     methods: dict[str, MethodEstimate] = {}
     head: LatencyResult | None = None
     err: AnalysisError | None = None
@@ -1194,6 +1432,5 @@ def estimate(master: InsLog, slave: InsLog, *, method: str = "tapost", max_lag_s
                              window_s=(ctx.t0_abs_s + float(g.t_s[0]), ctx.t0_abs_s + float(g.t_s[-1])),
                              quality={"note": me.note, "warnings": list(ctx.warnings)},
                              t_mid_rel_s=float(0.5 * (g.t_s[0] + g.t_s[-1])))
-    from dataclasses import replace
     prog(1.0, "done")
     return replace(head, methods={k: methods[k] for k in METHODS if k in methods})

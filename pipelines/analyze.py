@@ -223,11 +223,13 @@ def summary_lines(rep: dict, paths: dict[str, str | None]) -> list[str]:
         out.append(f"latency FAILED: {lat['failed']}")
     else:
         sig = lat["sigma_s"]
+        aided = (lat.get("quality") or {}).get("accel_aided") is True
         big = abs(lat["latency_s"]) >= 10.0  # unrelated clocks: the offset between them, in seconds
         head = f"{lat['latency_s']:+.6f} s" if big else f"{lat['latency_s'] * 1e3:+.3f} ms"
         out.append(f"latency {head} +/- {sig * 1e3 if sig is not None else float('nan'):.3f} ms (1 sigma), "
                    f"drift {lat['drift_ppm'] if lat['drift_ppm'] is not None else float('nan'):+.2f} ppm  "
-                   f"[{lat['method']}, window {lat['window_s'][1] - lat['window_s'][0]:.1f} s]")
+                   f"[{lat['method']}{' gyro+accel' if aided else ''}, "
+                   f"window {lat['window_s'][1] - lat['window_s'][0]:.1f} s]")
         others = [f"{k} {_fmt_ms(v['latency_s'])}" for k, v in lat.get("methods", {}).items() if k != lat["method"]]
         if others:
             out.append("        other methods: " + ", ".join(others))
