@@ -1080,6 +1080,14 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
         V = V - np.outer(K, V[1])
         sig_l, sigma_drift = float(np.sqrt(max(V[0, 0], 0.0))), float(np.sqrt(max(V[1, 1], 0.0)))
     sigma = max(SIGMA_CALIBRATION * sig_l, SIGMA_FLOOR_S)
+    # the instant where the latency is best determined (uncorrelated with the drift): the middle of the
+    # window when the motion is spread evenly, elsewhere when it is not (DESIGN.md quotes the middle)
+    t_best, lat_best, sig_best = t_mid, latency, sigma
+    if fit_drift and np.isfinite(sigma_drift) and sigma_drift > 0 and np.isfinite(sig_l):
+        t_best = float(np.clip(t_mid - V[0, 1] / V[1, 1], w0, w1))
+        lat_best = float(latency + drift * (t_best - t_mid))
+        v_best = V[0, 0] + 2 * (t_best - t_mid) * V[0, 1] + (t_best - t_mid) ** 2 * V[1, 1]
+        sig_best = max(SIGMA_CALIBRATION * float(np.sqrt(max(v_best, 0.0))), SIGMA_FLOOR_S)
     periodic = len(co.alternatives_s) > 0
     if periodic:
         spread = max(abs(x - co.d0_s) for x in co.alternatives_s)
@@ -1125,6 +1133,9 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
         "xcorr_norm_peak": co.xcorr_peak,
         "residual_correlation_factor": fin.hac_factor,
         "drift_sigma_ppm": float(sigma_drift * 1e6) if fit_drift else None,
+        "best_instant_s": float(ctx.t0_abs_s + t_best),  # absolute, like window_s
+        "latency_at_best_instant_s": float(lat_best),
+        "sigma_at_best_instant_s": float(sig_best),
         "drift_estimated": fit_drift,
         "common_rate_hz": 1.0 / ctx.dt_c,
         "refine_rate_hz": 1.0 / ctx.dt_r,
