@@ -84,15 +84,6 @@ def _decimal_kernel():
     return _DECIMAL_TO_NS[0]
 
 
-def _decimal_kernel():
-    """``_decimal_to_ns`` compiled with numba on first use (cached on disk; numba is imported lazily)."""
-    if not _DECIMAL_TO_NS:
-        import numba
-
-        _DECIMAL_TO_NS.append(numba.njit(cache=True)(_decimal_to_ns))
-    return _DECIMAL_TO_NS[0]
-
-
 def decimal_text_to_int(text: pd.Series, scale_pow10: int) -> tuple[np.ndarray, np.ndarray]:
     """Decimal numbers as text -> (int64 value * 10**scale_pow10, valid mask), exactly."""
     t = text.fillna("").astype(str)

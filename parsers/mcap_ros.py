@@ -19,6 +19,8 @@ import struct
 import zlib
 from collections.abc import Callable
 
+import numpy as np
+
 from logtools.errors import InputError
 from logtools.inslog import InsLog
 from parsers import ros_common as rc
@@ -32,7 +34,6 @@ MAGIC = b"\x89MCAP0\r\n"
 _OP_HEADER, _OP_FOOTER, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK = 1, 2, 3, 4, 5, 6
 _OP_DATA_END = 15
 _REC = struct.Struct("<BQ")
-_MSG = struct.Struct("<BQHIQ")  # opcode, length, channel_id, sequence, log_time
 _U16 = struct.Struct("<H")
 _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
@@ -69,6 +70,74 @@ def _decompress(kind: str, data: bytes, size: int) -> bytes:
     raise _Damage(f"unsupported chunk compression {kind!r}")
 
 
+# ---- record walk: a compiled kernel finds the message records of a chunk ---------------------
+_E_CUT, _E_PAST_MSG, _E_OPCODE, _E_PAST = 1, 2, 3, 4
+
+
+def _walk(b, start, end):  # compiled with numba (_walk_kernel); plain Python otherwise
+    """Records of b[start:end] (uint8): messages as (channel, log time, data start, data end) arrays,
+    other records as (opcode, offset, next) arrays, and the first error (code, offset) or (0, end)."""
+    nmax = (end - start) // 9 + 1
+    cid = np.empty(nmax, np.int64)
+    t = np.empty(nmax, np.int64)
+    s = np.empty(nmax, np.int64)
+    e = np.empty(nmax, np.int64)
+    oop = np.empty(nmax, np.int64)
+    ooff = np.empty(nmax, np.int64)
+    onxt = np.empty(nmax, np.int64)
+    m = 0
+    k = 0
+    off = start
+    while off < end:
+        if off + 9 > end:
+            return m, cid, t, s, e, k, oop, ooff, onxt, _E_CUT, off
+        op = b[off]
+        ln = 0
+        for j in range(8):
+            ln |= np.int64(b[off + 1 + j]) << (8 * j)
+        past = ln < 0 or ln > end - off - 9  # (a length beyond the int64 range reads negative)
+        nxt = off + 9 + ln
+        if op == 5 and off + 31 <= end:
+            if past or ln < 22:
+                return m, cid, t, s, e, k, oop, ooff, onxt, _E_PAST_MSG, off
+            cid[m] = np.int64(b[off + 9]) | (np.int64(b[off + 10]) << 8)
+            tt = np.int64(0)
+            for j in range(8):
+                tt |= np.int64(b[off + 15 + j]) << (8 * j)
+            t[m] = tt
+            s[m] = off + 31
+            e[m] = nxt
+            m += 1
+            off = nxt
+            continue
+        if past:
+            return m, cid, t, s, e, k, oop, ooff, onxt, _E_PAST, off
+        if op == 0 or op > 15:
+            return m, cid, t, s, e, k, oop, ooff, onxt, _E_OPCODE, off
+        if op == 3 or op == 4:
+            oop[k] = op
+            ooff[k] = off
+            onxt[k] = nxt
+            k += 1
+        off = nxt
+    return m, cid, t, s, e, k, oop, ooff, onxt, 0, end
+
+
+_WALK = []
+
+
+def _walk_kernel():
+    """``_walk`` compiled with numba on first use (cached on disk); the Python function without numba."""
+    if not _WALK:
+        try:
+            import numba
+
+            _WALK.append(numba.njit(cache=True)(_walk))
+        except ImportError:  # pragma: no cover - numba is a dependency
+            _WALK.append(_walk)
+    return _WALK[0]
+
+
 class _Scan:
     """State of one MCAP scan: schemas, channels, per-channel raw messages."""
 
@@ -101,39 +170,45 @@ class _Scan:
         self.data[cid] = [] if self.keep(topic, msgtype) else None
 
     def records(self, buf, start: int, end: int, where: str) -> None:
-        """Walk the records in ``buf[start:end]`` (a chunk's content or the top level)."""
-        off = start
-        times, data = self.times, self.data
-        msg_unpack, rec_unpack = _MSG.unpack_from, _REC.unpack_from
-        while off < end:
-            if off + 9 > end:
-                raise _Damage(f"{where}: record header cut at byte {off}")
-            op = buf[off]
-            if op == _OP_MESSAGE and off + 31 <= end:
-                _op, ln, cid, _seq, t = msg_unpack(buf, off)
-                nxt = off + 9 + ln
-                if nxt > end or ln < 22:
-                    raise _Damage(f"{where}: message record at byte {off} runs past its container")
-                lst = times.get(cid)
-                if lst is None:
-                    raise _Damage(f"{where}: message for unknown channel {cid} at byte {off}")
-                lst.append(t)
-                d = data[cid]
-                if d is not None:
-                    d.append(buf[off + 31:nxt])
-                off = nxt
-                continue
-            _op, ln = rec_unpack(buf, off)
-            nxt = off + 9 + ln
-            if nxt > end:
-                raise _Damage(f"{where}: record (opcode {op}) at byte {off} runs past its container")
+        """Walk the records in ``buf[start:end]`` (a chunk's content or the top level): the compiled
+        walk finds the message records, schema and channel records are read here in their order; a
+        message whose channel is not defined before it, or a broken record, is damage."""
+        arr = np.frombuffer(buf, np.uint8)
+        m, cid, t, s, e, k, oop, ooff, onxt, err, eoff = _walk_kernel()(arr, start, end)
+        defined_at: dict[int, int] = {}
+        for op, off, nxt in zip(oop[:k].tolist(), ooff[:k].tolist(), onxt[:k].tolist()):
             if op == _OP_SCHEMA:
                 self.schema(buf, off + 9, nxt)
-            elif op == _OP_CHANNEL:
+            else:
+                (c,) = _U16.unpack_from(buf, off + 9)
+                new = c not in self.channels
                 self.channel(buf, off + 9)
-            elif op == 0 or op > 0x0F:
-                raise _Damage(f"{where}: invalid record opcode {op} at byte {off}")
-            off = nxt
+                if new:
+                    defined_at[c] = off
+        cid, t, s, e = cid[:m], t[:m], s[:m], e[:m]
+        first_bad = end
+        for c in np.unique(cid).tolist():
+            sel = cid == c
+            if c not in self.times:
+                first_bad = min(first_bad, int(s[sel][0]) - 31)
+            elif c in defined_at and np.any(s[sel] - 31 < defined_at[c]):
+                first_bad = min(first_bad, int(s[sel][s[sel] - 31 < defined_at[c]][0]) - 31)
+        if err and eoff < first_bad:
+            raise _Damage({
+                _E_CUT: f"{where}: record header cut at byte {eoff}",
+                _E_PAST_MSG: f"{where}: message record at byte {eoff} runs past its container",
+                _E_OPCODE: f"{where}: invalid record opcode {int(arr[eoff])} at byte {eoff}",
+                _E_PAST: f"{where}: record (opcode {int(arr[eoff])}) at byte {eoff} runs past its container",
+            }[err])
+        if first_bad < end:
+            c = int(cid[s - 31 == first_bad][0])
+            raise _Damage(f"{where}: message for unknown channel {c} at byte {first_bad}")
+        for c in np.unique(cid).tolist():
+            sel = np.flatnonzero(cid == c)
+            self.times[c].extend(t[sel].tolist())
+            d = self.data[c]
+            if d is not None:
+                d.extend([buf[a:b] for a, b in zip(s[sel].tolist(), e[sel].tolist())])
 
 
 def read_raw(path: str, keep: Callable[[str, str], bool] = rc.keep_supported, fmt: str = NAME) -> rc.RawLog:
