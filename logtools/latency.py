@@ -836,6 +836,7 @@ class _Ctx:
     adapted_cutoff: bool = False
     warnings: list[str] = field(default_factory=list)
     t0_abs_s: float = 0.0
+    stamp_jitter_s: tuple[float, float] = (0.0, 0.0)  # (master, slave) white stamp noise, s
     acc_src: tuple | None = None  # (master, slave, cutoff, master rate) for the accelerometer-aided GLS
 
 
@@ -876,7 +877,7 @@ def _prepare(master: InsLog, slave: InsLog, max_lag_s: float | None, *, accelero
     um = _make_unit(natm, nm, srcm, "master", fm, 1.0 / f_s, cutoff)
     us = _make_unit(nats, ns, srcs, "slave", fs, 1.0 / f_s, cutoff)
     ctx = _Ctx(um, us, dt_c, cutoff, max_lag_s, t0_abs_s=master.t0_s, dt_s=1.0 / f_s, dt_r=1.0 / f_r,
-               raw=(natm, nats))
+               raw=(natm, nats), stamp_jitter_s=(_stamp_jitter_s(tm), _stamp_jitter_s(ts)))
     ctx.warnings += list(um.native.warnings) + list(us.native.warnings)
     if (accelerometers and ACCEL_AIDED and srcm == "gyro" and srcs == "gyro" and master.has_accel
             and slave_r.has_accel):
@@ -904,6 +905,41 @@ def _accel_pair(master: InsLog, slave: InsLog, cutoff_hz: float, master_rate: In
         except ValueError:
             return None
     return _Accel(itps[0], itps[1], master_rate)
+
+
+def _stamp_jitter_s(t: np.ndarray) -> float:
+    """White noise on a stream's stamps (s), from the spread of its sample intervals (gaps and
+    duplicates left out): a stamp error of sigma makes the intervals spread by sqrt(2) sigma."""
+    st = np.diff(np.sort(t[np.isfinite(t)]))
+    if len(st) < 10:
+        return 0.0
+    med = float(np.median(st))
+    st = st[(st > 0) & (st < 2.0 * med)]
+    if len(st) < 10:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(st - np.median(st))) / np.sqrt(2.0))
+
+
+def _jitter_sigma_s(ctx: _Ctx, w0: float, w1: float) -> float:
+    """The latency error that stamp noise alone causes: a least-squares delay is a weighted mean of
+    the stamp errors, weights |w'|^2 per sample, so its variance is sigma_t^2 sum |w'|^4 / (sum |w'|^2)^2
+    per unit (samples of each unit in the analysed window). It is not seen as a residual by the
+    accelerometer-aided fit (the gyros and accelerometers share the stamps)."""
+    var = 0.0
+    for u, sj in zip((ctx.master, ctx.slave), ctx.stamp_jitter_s):
+        if not sj > 0:
+            continue
+        nat = u.native
+        t = nat.t_s
+        sel = nat.valid & (t >= w0) & (t <= w1)
+        if sel.sum() < 10:
+            continue
+        wd = np.gradient(nat.values, nat.dt_s, axis=0)[sel]
+        g = np.sum(wd * wd, axis=1)
+        den = float(np.sum(g)) ** 2
+        if den > 0:
+            var += sj ** 2 * float(np.sum(g * g)) / den
+    return float(np.sqrt(var))
 
 
 def _lag_window(ctx: _Ctx, corr: _Correlator, dt: float, min_frac: float) -> tuple[np.ndarray, float]:
@@ -1079,6 +1115,9 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
         latency, drift = latency - K[0] * drift, drift - K[1] * drift
         V = V - np.outer(K, V[1])
         sig_l, sigma_drift = float(np.sqrt(max(V[0, 0], 0.0))), float(np.sqrt(max(V[1, 1], 0.0)))
+    # stamp noise: the error it causes is a floor (the aided fit does not see it in its residuals)
+    jit_sigma = _jitter_sigma_s(ctx, w0, w1)
+    sig_l = max(sig_l, jit_sigma)
     sigma = max(SIGMA_CALIBRATION * sig_l, SIGMA_FLOOR_S)
     # the instant where the latency is best determined (uncorrelated with the drift): the middle of the
     # window when the motion is spread evenly, elsewhere when it is not (DESIGN.md quotes the middle)
@@ -1133,6 +1172,8 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
         "xcorr_norm_peak": co.xcorr_peak,
         "residual_correlation_factor": fin.hac_factor,
         "drift_sigma_ppm": float(sigma_drift * 1e6) if fit_drift else None,
+        "stamp_jitter_s": {"master": ctx.stamp_jitter_s[0], "slave": ctx.stamp_jitter_s[1]},
+        "stamp_jitter_latency_sigma_s": jit_sigma,
         "best_instant_s": float(ctx.t0_abs_s + t_best),  # absolute, like window_s
         "latency_at_best_instant_s": float(lat_best),
         "sigma_at_best_instant_s": float(sig_best),

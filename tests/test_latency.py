@@ -464,3 +464,22 @@ def test_accelerometer_aided_estimate_with_a_lever_arm():
     err = res.latency_s - p.truth.latency_at(res.t_mid_rel_s)
     assert res.quality["accel_aided"] is True
     assert abs(err) < 2.5 * res.sigma_s and abs(err) < 1.5e-3
+
+
+def test_stamp_jitter_is_measured_and_floors_sigma():
+    """Stamps with white noise (0.3 of a 55 Hz master's period): the noise is measured from the
+    intervals and the latency error it causes is covered by sigma, accelerometers or not."""
+    from logtools import sim
+
+    cfg = sim.scenario_config("aircraft", seed=5, master_imu_rate_hz=55.0, slave_imu_rate_hz=335.0,
+                              master_jitter_s=0.3 / 55.0, slave_jitter_s=0.3 / 335.0, latency_s=-0.4321,
+                              drift_ppm=-40.0, mount_rpy_deg=(120.0, 30.0, -60.0))
+    p = sim.simulate(cfg)
+    for acc in (True, False):
+        res = estimate(p.master, p.slave, compare=False, accelerometers=acc)
+        q = res.quality
+        # clipped at +-0.4 period, the stamps' noise is a little below 0.3 period
+        assert 0.2 / 55.0 < q["stamp_jitter_s"]["master"] < 0.32 / 55.0
+        assert q["stamp_jitter_latency_sigma_s"] > 0
+        err = res.latency_s - p.truth.latency_at(res.t_mid_rel_s)
+        assert abs(err) < 2.0 * res.sigma_s and abs(err) < 5e-3
