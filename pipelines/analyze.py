@@ -48,6 +48,10 @@ class AnalyzeOptions:
     latency_method: str = "tapost"
     compare: bool = True  # also run the seeds' latency methods (report.json latency.methods)
     recording_max_rows: int = 100_000
+    #: the search window was set by the user (CLI/config); when it was not and the two logs are on
+    #: unrelated clocks (UNIX vs boot time), a face-value window means nothing and the whole overlap is
+    #: searched instead (recorded in the report)
+    max_lag_given: bool = False
 
     def __post_init__(self):
         for name, allowed in (("filter", FILTERS), ("match", MATCHES), ("compensation", COMPENSATIONS),
@@ -113,6 +117,7 @@ def options_from(cli: dict, config: dict | None = None) -> tuple[AnalyzeOptions,
     kw: dict = {}
     if "max_lag" in merged:
         kw["max_lag_s"] = parse_max_lag(merged["max_lag"])
+        kw["max_lag_given"] = True
     for k in ("filter", "match", "compensation", "latency_method"):
         if k in merged:
             kw[k] = str(merged[k])
@@ -219,6 +224,8 @@ def summary_lines(rep: dict, paths: dict[str, str | None]) -> list[str]:
     m, s, lat = rep["master"], rep["slave"], rep["latency"]
     out = [f"master  {m['path']} [{m['format']}, {m['clock']} clock, {m['duration_s'] or 0:.1f} s]",
            f"slave   {s['path']} [{s['format']}, {s['clock']} clock, {s['duration_s'] or 0:.1f} s]"]
+    if rep.get("latency_search"):
+        out.append(f"latency search: {rep['latency_search']}")
     if "failed" in lat:
         out.append(f"latency FAILED: {lat['failed']}")
     else:
@@ -300,15 +307,21 @@ def analyze_pair(master_arg: str, slave_arg: str, out_dir: str, opts: AnalyzeOpt
             from logtools.latency import estimate
         except ImportError as exc:
             raise AnalysisError(f"latency estimation is not available in this installation ({exc})") from None
+        max_lag = opts.max_lag_s
+        clocks = (master.meta.clock, slave.meta.clock)
+        if not opts.max_lag_given and max_lag is not None and set(clocks) == {"epoch", "boot"}:
+            max_lag = None
+            extra["latency_search"] = (f"whole overlap: the master is on {clocks[0]} time and the slave on "
+                                       f"{clocks[1]} time, so their stamps cannot be compared at face value")
         try:
-            an.latency = estimate(master, slave, method=opts.latency_method, max_lag_s=opts.max_lag_s,
+            an.latency = estimate(master, slave, method=opts.latency_method, max_lag_s=max_lag,
                                   compare=opts.compare, progress=sub(0.15, 0.45, "latency"))
         except AnalysisError as exc:
             failure = exc.problem
             face = slave.rebased(master.meta.t0_ns)
             m0, m1 = master.span_s()
             s0, s1 = face.span_s()
-            if (opts.max_lag_s is not None and "--max-lag" not in failure
+            if (max_lag is not None and "--max-lag" not in failure
                     and (master.meta.clock != slave.meta.clock or min(m1, s1) <= max(m0, s0))):
                 failure += (f" (clocks look unrelated: master {master.meta.clock}, slave {slave.meta.clock}, "
                             "no overlap at face value; try --max-lag auto)")

@@ -259,6 +259,32 @@ def test_real_cli_on_simulated_files(tmp_path, capsys, fmt):
     assert (out / "report.html").exists() and (out / "recording.rrd").exists()
 
 
+def test_real_cli_slave_on_boot_clock_searches_the_whole_overlap(tmp_path, capsys):
+    """Master on UNIX time (MCAP), slave on its boot clock (CSV): without --max-lag the stamps cannot be
+    compared at face value, so the whole overlap is searched; the report says so. With an explicit
+    --max-lag the user's window is kept (and fails, naming --max-lag auto)."""
+    sim = _real()
+    pair = sim.simulate(sim.scenario_config("ship", duration_s=120.0, slave_clock="boot", latency_s=0.0731,
+                                            mount_rpy_deg=(10.0, -20.0, 135.0), drift_ppm=30.0))
+    assert pair.slave.meta.clock == "boot"
+    m, s = str(tmp_path / "m.mcap"), str(tmp_path / "s.csv")
+    registry.write(m, pair.master, "mcap")
+    registry.write(s, pair.slave, "csv")
+    out = tmp_path / "out"
+    rc = main(["analyze", m, s, "-o", str(out), "--no-recording"])
+    text = capsys.readouterr().out
+    assert rc == 0
+    rep = json.loads((out / "report.json").read_text())
+    rp.validate(rep)
+    assert "whole overlap" in rep["latency_search"] and "latency search: whole overlap" in text
+    # the latency between the two clocks: the boot clock's offset plus the delay
+    truth = pair.truth.latency_at(rep["latency"]["window_s"][0] + 0.5 * (rep["latency"]["window_s"][1]
+                                  - rep["latency"]["window_s"][0]) - pair.master.t0_s)
+    assert rep["latency"]["latency_s"] == pytest.approx(truth, abs=1e-3)
+    rc = main(["analyze", m, s, "-o", str(tmp_path / "o2"), "--no-recording", "--max-lag", "2"])
+    assert rc == 1 and "--max-lag auto" in capsys.readouterr().err
+
+
 REALDATA = __import__("pathlib").Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
 
 
