@@ -15,6 +15,10 @@ Truth is ``Truth.latency_at(result.t_mid_rel_s)`` (the instant where the estimat
 RMS, worst and median absolute error, fraction within 1 ms, coverage of sigma (fraction of runs with
 |error| <= 2 sigma), failures (AnalysisError / NaN) and runtime per run (each method timed on its own).
 
+Further sets: an aligned-axes control (runs/5, what the seeds assume) and a stamp-noise set (runs/5:
+white noise on both units' stamps, std up to 0.3 of each IMU period, and two gaps in the slave).
+"tapost-gyro-only" is tapost's method without the accelerometer-aided GLS (ablation).
+
 Second table: S000's Table 1 (aircraft, aligned axes, 200 Hz units, delays 10/50/100/150 ms, an exact
 number of samples as in the paper) with S000's method (5 s record in the S manoeuvre, +-1 s search,
 as published; and the whole overlap) and tapost's, next to the paper's published numbers.
@@ -67,14 +71,23 @@ def random_rotation_rpy_deg(rng: np.random.Generator) -> tuple[float, float, flo
     return tuple(float(x) for x in np.degrees(euler_from_quat(q)))
 
 
-def draw_config(i: int, base_seed: int, aligned: bool = False) -> dict:
-    """Run i's random draw; ``aligned`` (the control set) keeps the draw but mounts the units aligned."""
-    rng = np.random.default_rng([base_seed, i, int(aligned)])
+def draw_config(i: int, base_seed: int, aligned: bool = False, stamps: bool = False) -> dict:
+    """Run i's random draw; ``aligned`` (the control set) keeps the draw but mounts the units aligned;
+    ``stamps`` (the stamp-noise set) adds white noise to both units' stamps (std uniform in 0-0.3 of each
+    unit's IMU period) and two gaps in the slave (0.05-2 s)."""
+    rng = np.random.default_rng([base_seed, i, int(aligned) + 2 * int(stamps)])
     scenario = SCENARIOS[i % len(SCENARIOS)]
     m_imu = float(rng.uniform(50.0, 400.0))
     s_imu = float(rng.uniform(50.0, 400.0))
+    extra = {}
+    if stamps:
+        extra = dict(master_jitter_s=float(rng.uniform(0.0, 0.3)) / m_imu,
+                     slave_jitter_s=float(rng.uniform(0.0, 0.3)) / s_imu,
+                     slave_gaps_s=[[float(rng.uniform(10.0, 50.0)), float(rng.uniform(0.05, 2.0))],
+                                   [float(rng.uniform(60.0, 100.0)), float(rng.uniform(0.05, 2.0))]])
     return dict(
-        run=i, set="aligned-control" if aligned else "main", scenario=scenario,
+        **extra,
+        run=i, set="aligned-control" if aligned else ("stamps" if stamps else "main"), scenario=scenario,
         seed=int(rng.integers(0, 2**31 - 1)),
         latency_s=float(rng.uniform(-1.0, 1.0)), drift_ppm=float(rng.uniform(-100.0, 100.0)),
         mount_rpy_deg=(0.0, 0.0, 0.0) if aligned else random_rotation_rpy_deg(rng),
@@ -98,6 +111,9 @@ def sim_config(d: dict):
         slave_gyro_arw_dpsh=lvl * base.slave_gyro_arw_dpsh,
         slave_accel_vrw_ug_rthz=lvl * base.slave_accel_vrw_ug_rthz, flexure=d["flexure"],
     )
+    for k in ("master_jitter_s", "slave_jitter_s", "slave_gaps_s"):
+        if k in d:
+            ov[k] = d[k]
     return sim.scenario_config(d["scenario"], **ov)
 
 
@@ -244,6 +260,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--runs", type=int, default=None, help="number of Monte Carlo runs (full: 200)")
     ap.add_argument("--control", type=int, default=None,
                     help="extra runs with aligned axes (control for the seeds; default runs/5)")
+    ap.add_argument("--stamps", type=int, default=None,
+                    help="extra runs with noisy stamps and slave gaps (default runs/5)")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--seed", type=int, default=2026)
     ap.add_argument("--out", default=OUT_MC)
@@ -251,8 +269,10 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     n_runs = args.runs if args.runs is not None else (40 if args.quick else 200)
     n_ctrl = args.control if args.control is not None else n_runs // 5
+    n_stamps = args.stamps if args.stamps is not None else n_runs // 5
     configs = [draw_config(i, args.seed) for i in range(n_runs)]
     configs += [draw_config(n_runs + i, args.seed, aligned=True) for i in range(n_ctrl)]
+    configs += [draw_config(n_runs + n_ctrl + i, args.seed, stamps=True) for i in range(n_stamps)]
     t_start = time.perf_counter()
     if args.workers > 1:
         with mp.get_context("spawn" if sys.platform == "darwin" else "fork").Pool(args.workers) as pool:
@@ -266,16 +286,19 @@ def main(argv: list[str] | None = None) -> int:
     rows.sort(key=lambda r: r["run"])
     wall = time.perf_counter() - t_start
     main_rows = [r for r in rows if r["set"] == "main"]
-    ctrl_rows = [r for r in rows if r["set"] != "main"]
+    ctrl_rows = [r for r in rows if r["set"] == "aligned-control"]
+    stamp_rows = [r for r in rows if r["set"] == "stamps"]
     summary = summarize(main_rows)
     by_scenario = {sc: summarize([r for r in main_rows if r["scenario"] == sc]) for sc in SCENARIOS}
     control = summarize(ctrl_rows) if ctrl_rows else {}
+    stamp_noise = summarize(stamp_rows, methods=("tapost", GYRO_ONLY, "xcorr-norm")) if stamp_rows else {}
     by_flexure = {f"flexure={f}": summarize(sel) for f in (False, True)
                   if (sel := [r for r in main_rows if r["flexure"] == f])}
     t1 = table1()
     result = dict(
         benchmark="latency", created_utc=datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        config=dict(runs=n_runs, aligned_control_runs=n_ctrl, quick=bool(args.quick), workers=args.workers,
+        config=dict(runs=n_runs, aligned_control_runs=n_ctrl, stamp_noise_runs=n_stamps,
+                    stamp_noise="white, std uniform in [0, 0.3] IMU period per unit; 2 slave gaps 0.05-2 s", quick=bool(args.quick), workers=args.workers,
                     seed=args.seed,
                     max_lag_s=MAX_LAG_S, scenarios=list(SCENARIOS), latency_s=[-1.0, 1.0],
                     drift_ppm=[-100.0, 100.0], mounting="uniform on SO(3)", imu_rate_hz=[50.0, 400.0],
@@ -284,9 +307,9 @@ def main(argv: list[str] | None = None) -> int:
                     python=platform.python_version(), machine=platform.machine(), cpus=os.cpu_count()),
         wall_time_s=wall, runtime_per_run_s=wall * args.workers / max(len(rows), 1),
         summary=summary, by_scenario=by_scenario, by_flexure=by_flexure,
-        aligned_control=control, rows=rows,
+        aligned_control=control, stamp_noise=stamp_noise, rows=rows,
         notes=("summary/by_scenario: random mountings (main set). aligned_control: the same kind of draws with "
-               "the units' axes aligned (what the seeds assume). '@1s' rows: the seeds with the papers' +-1 s "
+               "the units' axes aligned (what the seeds assume). stamp_noise: noisy stamps and slave gaps. '@1s' rows: the seeds with the papers' +-1 s "
                "search instead of estimate()'s 2 s. within_1ms and coverage count failures as misses; "
                "RMS/worst/median are over the runs that returned a value."),
     )
@@ -306,6 +329,9 @@ def main(argv: list[str] | None = None) -> int:
     if control:
         print()
         print(md_table(control, f"Aligned-axes control: {len(ctrl_rows)} runs (what the seeds assume)"))
+    if stamp_noise:
+        print()
+        print(md_table(stamp_noise, f"Noisy stamps and slave gaps: {len(stamp_rows)} runs"))
     print()
     print(table1_md(t1))
     print(f"\nwrote {os.path.relpath(args.out, ROOT)} and {os.path.relpath(args.table1_out, ROOT)}")
