@@ -170,6 +170,10 @@ def s000_search(master: InsLog, slave: InsLog, *, max_lag_s: float | None = 1.0,
     if n_rec < MIN_RECORD_SAMPLES:
         lag = "the whole overlap" if max_lag_s is None else f"a +-{max_lag_s:g} s search"
         raise AnalysisError(f"{name}: overlap too short for {lag} ({max(n_rec, 0)} samples usable)")
+    if max_lag_s is not None:  # the master only where a candidate window reads it
+        lo = int(np.searchsorted(gm, gs[a] - max_lag_s - dt)) - 1
+        hi = int(np.searchsorted(gm, gs[a] + max_lag_s + dt, side="right")) + n_rec + 1
+        gm = gm[max(lo, 0):min(hi, len(gm))]
     w_m = np.stack([np.interp(gm, tm, wm[:, i]) for i in range(3)], axis=1)
     w_s = np.stack([np.interp(gs[a:b], ts, ws[:, i]) for i in range(3)], axis=1)
     if np.linalg.norm(w_m.std(axis=0)) < MIN_MOTION_RAD_S or np.linalg.norm(w_s.std(axis=0)) < MIN_MOTION_RAD_S:
@@ -290,13 +294,6 @@ def s002_search(master: InsLog, slave: InsLog, *, max_lag_s: float | None = 1.0,
     if n_rec < MIN_RECORD_SAMPLES:
         lag = "the whole overlap" if max_lag_s is None else f"a +-{max_lag_s:g} s search"
         raise AnalysisError(f"{name}: overlap too short for {lag} ({max(n_rec, 0)} samples usable)")
-    e_m = _euler_on_grid(tm, qm, gm)
-    e_s = _euler_on_grid(ts, qs, gs[a:b])
-    spread_m = np.linalg.norm(np.std(np.unwrap(e_m, axis=0), axis=0))
-    spread_s = np.linalg.norm(np.std(np.unwrap(e_s, axis=0), axis=0))
-    if min(spread_m, spread_s) < MIN_ATT_MOTION_RAD:
-        raise AnalysisError(f"{name}: attitude too constant to estimate a delay "
-                            f"(Euler-angle std < {MIN_ATT_MOTION_RAD:g} rad)")
     n_pos = len(gm) - n_rec + 1
     if n_pos < 1:
         raise AnalysisError(f"{name}: master record shorter than the slave record")
@@ -306,8 +303,17 @@ def s002_search(master: InsLog, slave: InsLog, *, max_lag_s: float | None = 1.0,
         p_all = p_all[np.abs(lags_all) <= max_lag_s + 1e-9]
     if len(p_all) == 0:
         raise AnalysisError(f"{name}: no candidate lag inside the search range")
+    # the master's angles only where a candidate shift reads them
+    lo, hi = int(p_all[0]), int(p_all[-1]) + n_rec
+    e_m = _euler_on_grid(tm, qm, gm[lo:hi])
+    e_s = _euler_on_grid(ts, qs, gs[a:b])
+    spread_m = np.linalg.norm(np.std(np.unwrap(e_m, axis=0), axis=0))
+    spread_s = np.linalg.norm(np.std(np.unwrap(e_s, axis=0), axis=0))
+    if min(spread_m, spread_s) < MIN_ATT_MOTION_RAD:
+        raise AnalysisError(f"{name}: attitude too constant to estimate a delay "
+                            f"(Euler-angle std < {MIN_ATT_MOTION_RAD:g} rad)")
     # eq 10: sum over the record of (H_M - H_S)^2 + (P_M - P_S)^2 + (R_M - R_S)^2 at every shift
-    cost = _attitude_cost(np.ascontiguousarray(e_m), np.ascontiguousarray(e_s), p_all.astype(np.int64))
+    cost = _attitude_cost(np.ascontiguousarray(e_m), np.ascontiguousarray(e_s), (p_all - lo).astype(np.int64))
     lags = gs[a] - gm[p_all]
     return _grid_search(lags, cost, dt, (float(gs[a]), float(gs[b - 1])))  # eq 11: the argmin
 
