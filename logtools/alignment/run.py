@@ -22,7 +22,7 @@ degrees of freedom, rerun with the measurement noise taken from the residual RMS
 """
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import fields, replace
 from typing import Callable
 
 import numpy as np
@@ -77,7 +77,7 @@ def run_alignment(master: InsLog, slave: InsLog, *, filter: str = "kf", match: s
 
     # ---- slave IMU, master series
     t_imu, gyro, accel = _slave_imu(slave, src)
-    ms = _master_series(master)
+    ms = _master_series_cached(master)
     # default update rate: 20 Hz, but not faster than the master's navigation output (interpolated
     # master samples between two updates would count the same information twice)
     nav_hz = 1.0 / float(np.median(np.diff(ms.t_s)))
@@ -197,6 +197,23 @@ def _slave_imu(slave: InsLog, src: str) -> tuple[np.ndarray, np.ndarray, np.ndar
     t, g, a = t[order], g[order], a[order]
     keep = np.concatenate([[True], np.diff(t) > 0])
     return t[keep], g[keep], a[keep]
+
+
+_LAST_MASTER: list = []  # [(master, series)]: the one most recently prepared
+
+
+def _master_series_cached(master: InsLog) -> MasterSeries:
+    """:func:`_master_series`, prepared once for the same master object (analyze runs the alignment
+    before and after compensation against one master; InsLog is immutable)."""
+    if _LAST_MASTER and _LAST_MASTER[0][0] is master:
+        return _LAST_MASTER[0][1]
+    ms = _master_series(master)
+    for f in fields(ms):  # shared between runs: read-only
+        v = getattr(ms, f.name)
+        if isinstance(v, np.ndarray):
+            v.flags.writeable = False
+    _LAST_MASTER[:] = [(master, ms)]
+    return ms
 
 
 def _master_series(master: InsLog) -> MasterSeries:
