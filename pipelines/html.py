@@ -45,7 +45,7 @@ def _mpl():
 
 def _png(fig) -> str:
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", bbox_inches="tight")
+    fig.savefig(buf, format="png")  # the figures are laid out (tight_layout) already
     import matplotlib.pyplot as plt
 
     plt.close(fig)
