@@ -7,10 +7,12 @@ metadata next to it). Detected by content: a directory by its ``metadata.yaml``
 Reading: sqlite3 storage straight from the ``messages`` table (raw CDR + record timestamps, read in
 batches: a damaged database gives the rows read before the damage, with a warning); message
 definitions from the ``message_definitions`` table when present, else the built-in ROS 2 (humble)
-definitions. mcap storage through :func:`parsers.mcap_ros.read_raw`. Content decoded by
+definitions. mcap storage through :func:`parsers.mcap_ros.read_raw`. Compressed bags (metadata.yaml
+``compression_mode: file`` -- ``*.db3.zstd`` / ``*.mcap.zstd`` storage files, decompressed into a temporary
+folder -- or ``message`` -- each message zstd-compressed) are read too. Content decoded by
 :mod:`parsers.ros_common`.
 
-Writing (``write(path, log, storage="sqlite3"|"mcap", log_delay_ns=0)``) with
+Writing (``write(path, log, storage="sqlite3"|"mcap", log_delay_ns=0, compression="none"|"file"|"message")``) with
 ``rosbags.rosbag2.Writer``: same topics as :mod:`parsers.mcap_ros`; written into a temporary
 directory next to ``path`` and renamed into place.
 """
@@ -30,8 +32,9 @@ from parsers import ros_common as rc
 from parsers.base import Inventory, Selector, check_readable
 
 NAME = "rosbag2"
-EXTENSIONS = (".db3", ".yaml")
+EXTENSIONS = (".db3", ".yaml", ".zstd")
 SQLITE_MAGIC = b"SQLite format 3\x00"
+ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
 YAML_KEY = b"rosbag2_bagfile_information"
 _BATCH = 2_000
 
@@ -39,6 +42,8 @@ _BATCH = 2_000
 def sniff(head: bytes, path: str) -> bool:
     if os.path.isdir(path):
         return os.path.isfile(os.path.join(path, "metadata.yaml"))
+    if path.endswith((".db3.zstd", ".mcap.zstd")) and head.startswith(ZSTD_MAGIC):
+        return True  # one file-compressed storage file
     return head.startswith(SQLITE_MAGIC) or YAML_KEY in head[:4096]
 
 
@@ -59,7 +64,7 @@ def _resolve(path: str) -> tuple[str, dict | None, list[str]]:
         raise InputError("metadata.yaml is not a rosbag2 description", meta_path)
     files = [os.path.join(bagdir, f) for f in meta.get("relative_file_paths") or []]
     if not files:
-        files = sorted(os.path.join(bagdir, f) for f in os.listdir(bagdir) if f.endswith((".db3", ".mcap")))
+        files = sorted(os.path.join(bagdir, f) for f in os.listdir(bagdir) if f.endswith((".db3", ".mcap", ".db3.zstd", ".mcap.zstd")))
     missing = [f for f in files if not os.path.isfile(f)]
     if missing:
         raise InputError(f"storage file(s) listed in metadata.yaml are missing: "
@@ -168,28 +173,26 @@ def read_raw(path: str, keep: Callable[[str, str], bool] = rc.keep_supported) ->
     warnings: list[str] = []
     topics: dict[str, rc.RawTopic] = {}
     typestore = get_typestore(Stores.EMPTY)
-    from parsers import mcap_ros
-
-    for f in files:
-        if f.endswith(".mcap") or storage == "mcap":
-            part = mcap_ros.read_raw(f, keep, fmt=NAME)
-            warnings += [f"{os.path.basename(f)}: {w}" for w in part.warnings]
-            for name, t in part.topics.items():
-                if t.msgtype in part.typestore.fielddefs and t.msgtype not in typestore.fielddefs:
-                    need = mcap_ros._closure(part.typestore, {t.msgtype})
-                    typestore.register({k: part.typestore.fielddefs[k] for k in need
-                                        if k not in typestore.fielddefs})
-                if name in topics:
-                    topics[name].log_ns.extend(t.log_ns)
-                    topics[name].data.extend(t.data)
-                else:
-                    topics[name] = t
-        else:
-            _read_sqlite(f, keep, typestore, warnings, topics)
+    mode, cfmt = _compression(meta)
+    if mode in ("file", "message") and cfmt != "zstd":
+        raise InputError(f"compression format {cfmt!r} not supported (zstd is)", bagdir)
+    with tempfile.TemporaryDirectory(prefix="tapost-rosbag2-") as tmp:
+        for f in files:
+            if not (mode == "file" or f.endswith(".zstd")):
+                _read_storage(f, storage, keep, typestore, warnings, topics)
+                continue
+            try:  # errors name the user's (compressed) file, not the temporary copy
+                _read_storage(_unzstd_file(f, tmp), storage, keep, typestore, warnings, topics)
+            except InputError as exc:
+                raise InputError(exc.problem, f) from None
+    if mode == "message":
+        _unzstd_messages(topics, warnings)
     missing = {t.msgtype for t in topics.values() if t.msgtype in rc.SUPPORTED and t.data
                and t.msgtype not in typestore.fielddefs}
     if missing:
         base = rc.default_typestore("cdr")
+        from parsers import mcap_ros
+
         typestore.register({k: base.fielddefs[k] for k in mcap_ros._closure(base, missing)
                             if k not in typestore.fielddefs})
     if meta is not None:
@@ -200,6 +203,78 @@ def read_raw(path: str, keep: Callable[[str, str], bool] = rc.keep_supported) ->
     return rc.RawLog(path=path, fmt=NAME, topics=topics, typestore=typestore, warnings=warnings)
 
 
+def _read_storage(f: str, storage: str, keep: Callable[[str, str], bool], typestore, warnings: list[str],
+                  topics: dict[str, rc.RawTopic]) -> None:
+    """One (uncompressed) storage file into ``topics``."""
+    from parsers import mcap_ros
+
+    if f.endswith(".mcap") or storage == "mcap":
+        part = mcap_ros.read_raw(f, keep, fmt=NAME)
+        warnings += [f"{os.path.basename(f)}: {w}" for w in part.warnings]
+        for name, t in part.topics.items():
+            if t.msgtype in part.typestore.fielddefs and t.msgtype not in typestore.fielddefs:
+                need = mcap_ros._closure(part.typestore, {t.msgtype})
+                typestore.register({k: part.typestore.fielddefs[k] for k in need
+                                    if k not in typestore.fielddefs})
+            if name in topics:
+                topics[name].log_ns.extend(t.log_ns)
+                topics[name].data.extend(t.data)
+            else:
+                topics[name] = t
+    else:
+        _read_sqlite(f, keep, typestore, warnings, topics)
+
+
+# ---- compressed bags (``ros2 bag record --compression-mode file|message --compression-format zstd``) --
+def _compression(meta: dict | None) -> tuple[str, str]:
+    """(mode: "none" | "file" | "message" | "storage", format) from metadata.yaml."""
+    meta = meta or {}
+    mode = str(meta.get("compression_mode") or "none").strip().lower() or "none"
+    return mode, str(meta.get("compression_format") or "").strip().lower()
+
+
+def _unzstd_file(f: str, tmpdir: str) -> str:
+    """A zstd-compressed storage file decompressed into ``tmpdir`` (the input is left as it is)."""
+    import zstandard
+
+    name = os.path.basename(f)
+    out = os.path.join(tmpdir, name[:-5] if name.endswith(".zstd") else name + ".raw")
+    check_readable(f)
+    dobj = zstandard.ZstdDecompressor().decompressobj()
+    try:
+        with open(f, "rb") as src, open(out, "wb") as dst:
+            while chunk := src.read(1 << 22):
+                dst.write(dobj.decompress(chunk))
+    except zstandard.ZstdError as exc:
+        raise InputError(f"compressed storage file cannot be decompressed (zstd: {exc})", f) from None
+    if not dobj.eof:
+        raise InputError("compressed storage file cannot be decompressed: the zstd stream is cut "
+                         "(file truncated)", f)
+    return out
+
+
+def _unzstd_messages(topics: dict[str, rc.RawTopic], warnings: list[str]) -> None:
+    """Per-message zstd compression undone; a message that does not decompress is dropped (reported)."""
+    import zstandard
+
+    dctx = zstandard.ZstdDecompressor()
+    for name, raw in topics.items():
+        if not raw.data:
+            continue
+        out, keep = [], []
+        for i, d in enumerate(raw.data):
+            try:
+                out.append(dctx.decompressobj().decompress(d))
+                keep.append(i)
+            except zstandard.ZstdError:
+                pass
+        if len(keep) < len(raw.data):
+            warnings.append(f"{name}: {len(raw.data) - len(keep)} of {len(raw.data)} compressed messages "
+                            "do not decompress (damaged); dropped")
+            raw.log_ns = [raw.log_ns[i] for i in keep]
+        raw.data = out
+
+
 def load(path: str, selector: Selector) -> InsLog:
     return rc.to_inslog(read_raw(path), selector)
 
@@ -208,13 +283,19 @@ def inventory(path: str) -> Inventory:
     return rc.to_inventory(read_raw(path))
 
 
-def write(path: str, log: InsLog, *, storage: str = "sqlite3", log_delay_ns: int = 0) -> None:
-    """Write ``log`` as a ROS 2 bag directory (``storage`` "sqlite3" or "mcap"), atomically."""
+def write(path: str, log: InsLog, *, storage: str = "sqlite3", log_delay_ns: int = 0,
+          compression: str = "none") -> None:
+    """Write ``log`` as a ROS 2 bag directory (``storage`` "sqlite3" or "mcap"; ``compression`` "none",
+    "file" or "message", zstd), atomically."""
     from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 
     plugin = {"sqlite3": StoragePlugin.SQLITE3, "mcap": StoragePlugin.MCAP}.get(storage)
     if plugin is None:
         raise InputError(f"rosbag2 storage must be sqlite3 or mcap, not {storage!r}", path)
+    cmode = {"none": None, "file": CompressionMode.FILE, "message": CompressionMode.MESSAGE}.get(compression, 0)
+    if cmode == 0:
+        raise InputError(f"rosbag2 compression must be none, file or message, not {compression!r}", path)
     typestore = rc.default_typestore("cdr")
     topics = rc.ros_topics_from_inslog(log, typestore, "cdr")
     parent = os.path.dirname(os.path.abspath(path)) or "."
@@ -222,7 +303,10 @@ def write(path: str, log: InsLog, *, storage: str = "sqlite3", log_delay_ns: int
     tmpdir = tempfile.mkdtemp(prefix="." + os.path.basename(path) + ".", dir=parent)
     tmp = os.path.join(tmpdir, "bag")
     try:
-        with Writer(tmp, version=9, storage_plugin=plugin) as w:
+        w = Writer(tmp, version=9, storage_plugin=plugin)
+        if cmode is not None:
+            w.set_compression(cmode, CompressionFormat.ZSTD)
+        with w:
             conns = [w.add_connection(tp.name, tp.msgtype, typestore=typestore) for tp in topics]
             for t, k, i in rc.merged_order(topics, log_delay_ns):
                 w.write(conns[k], t, topics[k].data[i])
