@@ -241,7 +241,8 @@ def summary_lines(rep: dict, paths: dict[str, str | None]) -> list[str]:
         if others:
             out.append("        other methods: " + ", ".join(others))
         q = lat.get("quality") or {}
-        flags = [f"{k}={v}" for k, v in q.items() if isinstance(v, (bool, str, int, float)) and v is not None]
+        flags = [f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                 for k, v in q.items() if isinstance(v, (bool, str, int, float)) and v is not None]
         if flags:
             out.append("quality " + ", ".join(flags[:8]))
     for run in rp.RUNS:
