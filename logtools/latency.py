@@ -11,7 +11,8 @@ gyro biases, L the latency at the middle ``t_mid`` of the analysed window and ``
 rate (``drift_ppm`` = drift * 1e6).
 
 tapost's method ("tapost")
-  0. inputs: each unit's gyro (or body rate from its attitude quaternions), on the master's relative
+  0. inputs: each unit's gyro (or body rate from its attitude quaternions, plus the earth and transport
+     rates from the unit's position and velocity, so that it is inertial like a gyro's), on the master's relative
      clock (``slave.rebased(master.meta.t0_ns)``, exact), each on its own uniform grid
      (``logtools.resample``: duplicates, jitter, gaps masked), zero-phase low-passed at the same cutoff
      (3x the motion's band: the noise above it would bias a spline-interpolated sub-sample delay);
@@ -68,7 +69,9 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy import fft as sfft
 
-from logtools.conventions import euler_from_dcm, quat_conj, skew, quat_make_continuous, quat_mul, rotvec_from_quat
+from logtools import earth
+from logtools.conventions import (dcm_from_quat, euler_from_dcm, quat_conj, quat_make_continuous, quat_mul,
+                                 rotvec_from_quat, skew)
 from logtools.errors import AnalysisError
 from logtools.inslog import InsLog
 from logtools.resample import Interpolant, UniformSeries, interpolant, lowpass, median_rate_hz, to_uniform
@@ -151,7 +154,9 @@ def _unit_rate(log: InsLog, role: str) -> tuple[np.ndarray, np.ndarray, str]:
         t, w = log.t_imu_s(), log.gyro_rad_s()
         src = "gyro"
     elif log.has_quat:
-        t, w = rate_from_attitude(*log.quat_wxyz())
+        tq, q = log.quat_wxyz()
+        t, w = rate_from_attitude(tq, q)
+        w = w + _nav_rate_in_body(log, t, tq, q)
         src = "attitude"
     else:
         raise AnalysisError(f"{name}: latency needs angular rate or attitude; the log has neither")
@@ -160,6 +165,36 @@ def _unit_rate(log: InsLog, role: str) -> tuple[np.ndarray, np.ndarray, str]:
         raise AnalysisError(f"{name}: angular rate ({src}) has {int(ok.sum())} finite samples "
                             f"of {len(t)} (NaN-only or empty data)")
     return t, w, src
+
+
+def _nav_rate_in_body(log: InsLog, t: np.ndarray, tq: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """omega_in (earth + transport rate) in the body frame at t, to make an attitude-derived rate
+    (relative to NED) comparable with a gyro's (inertial): 15 deg/h plus v/R change direction in the
+    body as the vehicle turns, a slowly varying difference a delay fit would otherwise absorb. Zero
+    when the log has no position."""
+    if len(t) == 0 or not log.has_pos:
+        return np.zeros((len(t), 3))
+    tp, lla = log.lat_lon_alt()
+    okp = np.isfinite(tp) & np.all(np.isfinite(lla), axis=1)
+    if okp.sum() < 1:
+        return np.zeros((len(t), 3))
+    tp, lla = tp[okp], lla[okp]
+    lat = np.radians(np.interp(t, tp, lla[:, 0]))
+    alt = np.interp(t, tp, lla[:, 2])
+    vel = np.zeros((len(t), 3))
+    if log.has_vel:
+        tv, v = log.vel_ned_m_s()
+        okv = np.isfinite(tv) & np.all(np.isfinite(v), axis=1)
+        if okv.sum() >= 1:
+            vel = np.stack([np.interp(t, tv[okv], v[okv, i]) for i in range(3)], axis=1)
+    w_n = earth.earth_rate_ned(lat) + earth.transport_rate_ned(lat, alt, vel)
+    okq = np.isfinite(tq) & np.all(np.isfinite(q), axis=1)
+    tq, q = tq[okq], q[okq]
+    order = np.argsort(tq, kind="stable")
+    tq, q = tq[order], q[order]
+    j = np.clip(np.searchsorted(tq, t), 0, len(tq) - 1)
+    c_nb = dcm_from_quat(q[j])
+    return np.einsum("kji,kj->ki", c_nb, w_n)
 
 
 @dataclass(frozen=True)
