@@ -143,6 +143,20 @@ def _count_near_minima(cost: np.ndarray, best: int, tol: float = 0.10, guard: in
     return int(len(near))
 
 
+def _grids(name: str, tm: np.ndarray, ts: np.ndarray, dt: float, max_lag_s: float | None,
+           record_s: float | None, record_start_s: float | None) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """Master and slave grids of step dt with a common phase, and the slave record [a, b) on its grid;
+    AnalysisError when the record is shorter than MIN_RECORD_SAMPLES."""
+    phase = float(tm[0])
+    gm = _phase_grid(tm[0], tm[-1], dt, phase)
+    gs = _phase_grid(ts[0], ts[-1], dt, phase)
+    a, b = _record_indices(gs, float(gm[0]), float(gm[-1]), max_lag_s, record_s, dt, record_start_s)
+    if b - a < MIN_RECORD_SAMPLES:
+        lag = "the whole overlap" if max_lag_s is None else f"a +-{max_lag_s:g} s search"
+        raise AnalysisError(f"{name}: overlap too short for {lag} ({max(b - a, 0)} samples usable)")
+    return gm, gs, a, b
+
+
 # ---- S000: least-squares fit of integrated angular rates (eqs 1-5) -------------------------------
 def s000_search(master: InsLog, slave: InsLog, *, max_lag_s: float | None = 1.0,
                 record_s: float | None = None, record_start_s: float | None = None,
@@ -162,14 +176,8 @@ def s000_search(master: InsLog, slave: InsLog, *, max_lag_s: float | None = 1.0,
         ws = ws @ np.asarray(rotation, float)  # v_master = R^T v_slave, row-wise v @ R
     # t_s: the finer of the two IMU intervals; grid phase common to both units
     dt = min(_median_dt(tm), _median_dt(ts))
-    phase = float(tm[0])
-    gm = _phase_grid(tm[0], tm[-1], dt, phase)
-    gs = _phase_grid(ts[0], ts[-1], dt, phase)
-    a, b = _record_indices(gs, float(gm[0]), float(gm[-1]), max_lag_s, record_s, dt, record_start_s)
+    gm, gs, a, b = _grids(name, tm, ts, dt, max_lag_s, record_s, record_start_s)
     n_rec = b - a
-    if n_rec < MIN_RECORD_SAMPLES:
-        lag = "the whole overlap" if max_lag_s is None else f"a +-{max_lag_s:g} s search"
-        raise AnalysisError(f"{name}: overlap too short for {lag} ({max(n_rec, 0)} samples usable)")
     if max_lag_s is not None:  # the master only where a candidate window reads it
         lo = int(np.searchsorted(gm, gs[a] - max_lag_s - dt)) - 1
         hi = int(np.searchsorted(gm, gs[a] + max_lag_s + dt, side="right")) + n_rec + 1
@@ -286,14 +294,8 @@ def s002_search(master: InsLog, slave: InsLog, *, max_lag_s: float | None = 1.0,
     if len(tm) < MIN_RECORD_SAMPLES or len(ts) < MIN_RECORD_SAMPLES:
         raise AnalysisError(f"{name}: too few attitude samples ({len(tm)} master, {len(ts)} slave)")
     dt = _median_dt(ts)  # eq 12: T_SINS, the slave's attitude update cycle
-    phase = float(tm[0])
-    gm = _phase_grid(tm[0], tm[-1], dt, phase)
-    gs = _phase_grid(ts[0], ts[-1], dt, phase)
-    a, b = _record_indices(gs, float(gm[0]), float(gm[-1]), max_lag_s, record_s, dt, record_start_s)
+    gm, gs, a, b = _grids(name, tm, ts, dt, max_lag_s, record_s, record_start_s)
     n_rec = b - a
-    if n_rec < MIN_RECORD_SAMPLES:
-        lag = "the whole overlap" if max_lag_s is None else f"a +-{max_lag_s:g} s search"
-        raise AnalysisError(f"{name}: overlap too short for {lag} ({max(n_rec, 0)} samples usable)")
     n_pos = len(gm) - n_rec + 1
     if n_pos < 1:
         raise AnalysisError(f"{name}: master record shorter than the slave record")
