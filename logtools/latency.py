@@ -708,21 +708,25 @@ def _lever_solve(r_a: np.ndarray, Jl: np.ndarray, use: np.ndarray) -> np.ndarray
     return out
 
 
+def _lever_jacobian(R: np.ndarray, lev: np.ndarray) -> np.ndarray:
+    """(n, 3, 3) derivative of the accelerometer residual w.r.t. the lever arm (master frame)."""
+    return -np.einsum("ij,njk->nik", R, lev)
+
+
 def _accel_residual(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant, acc: _Accel,
                     f: _Fit, t_mid: float) -> np.ndarray:
     """(N, 6) gyro and accelerometer residuals of a fit (lever arm and biases by least squares), 0 where
     masked: what the accelerometer-aided noise model is estimated from."""
     tau = t_m + f.latency_s + f.drift * (t_m - t_mid)
-    bv, ok = itp(tau)
     fv, okf = acc.slave(tau)
     fm, lev, okm = acc.master_rows(t_m)
-    use = ok & okf & okm & valid
+    use = itp.ok(tau) & okf & okm & valid
     out = np.zeros((len(t_m), 6))
     if use.sum() < 20:
         return out
-    out[use, :3] = bv[use] - a[use] @ f.R.T - f.bias
+    out[:, :3] = np.where(use[:, None], _residual(t_m, a, valid, itp, f, t_mid), 0.0)
     r_a = np.where(use[:, None], fv - fm @ f.R.T, 0.0)
-    out[:, 3:] = _lever_solve(r_a, -np.einsum("ij,njk->nik", f.R, lev), use)
+    out[:, 3:] = _lever_solve(r_a, _lever_jacobian(f.R, lev), use)
     return out
 
 
@@ -783,21 +787,20 @@ def _refine_gls(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpol
             J[:, :3, :pg] = Jg
             J[:, 3:, :nd + 3] = Ja[:, :, :nd + 3]
             J[:, 3:, pg:pg + 3] = Ja[:, :, nd + 3:]
-            J[:, 3:, pg + 3:pg + 6] = -np.einsum("ij,njk->nik", R, lev)
+            J[:, 3:, pg + 3:pg + 6] = _lever_jacobian(R, lev)
             J[:, 3:, pg + 6] = fd  # a delay of the accelerometers' own (model check, not in the steps)
         J[~use] = 0.0
-        P = J.shape[2]
+        n_check = 0 if acc is None else 1  # trailing columns only for the model check, not in the steps
+        P = J.shape[2] - n_check
         r = r * taper[:, None]
         J = J * taper[:, None, None]
-        X = np.concatenate([r[:, :, None], J], axis=2)  # (n, C, 1 + P)
+        X = np.concatenate([r[:, :, None], J], axis=2)  # (n, C, 1 + P + n_check)
         if noise.psd.ndim == 1:
-            Z = noise.whiten(X.reshape(n, C * (1 + P)), dt, wts).reshape(n, C, 1 + P)
+            Z = noise.whiten(X.reshape(n, -1), dt, wts).reshape(X.shape)
         else:
             Z = noise.whiten(X, dt, wts)
         rw = Z[:, :, 0]
-        if acc is not None:
-            P -= 1
-            Jx = Z[:, :, 1:].reshape(C * n, P + 1)
+        Jx = Z[:, :, 1:].reshape(C * n, P + n_check) if n_check else None
         Jw = Z[:, :, 1:P + 1]
         Jf = Jw.reshape(C * n, P)
         Nm = Jf.T @ Jf
@@ -1316,20 +1319,23 @@ def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: f
     if noise is not None:
         # GLS on the whole overlap, with the residual spectrum re-estimated from this fit
         fd = len(centers) >= 3
-        final_noise, final_acc = None, None
+
+        def wants_accel(f: _Fit) -> bool:  # below ACCEL_MIN_SIGMA_S the accelerometers cannot matter
+            return ctx.acc_src is not None and f.sigma_latency_s > ACCEL_MIN_SIGMA_S
+
         # with accelerometers, one gyro-only pass (their start and fall-back), then the aided passes
+        gls_done = False
         for k in range(GLS_PASSES):
-            if k == 1 and ctx.acc_src is not None and fin.sigma_latency_s > ACCEL_MIN_SIGMA_S:
+            if k == 1 and wants_accel(fin):
                 break
             r = _residual(t_m, a, valid, itp, fin, t_mid)
             nm = _noise_model(r, np.any(r != 0.0, axis=1), float(np.median(np.diff(t_m)))) or noise
             f2 = _refine_gls(t_m, a, valid, itp, fin.latency_s, fin.drift, t_mid, nm, fit_drift=fd)
             if not f2.ok:
                 break
-            fin, final_noise = f2, nm
-        acc = None
-        if ctx.acc_src is not None and final_noise is not None and fin.sigma_latency_s > ACCEL_MIN_SIGMA_S:
-            acc = _accel_pair(*ctx.acc_src)
+            fin, gls_done = f2, True
+        final_noise, final_acc = None, None
+        acc = _accel_pair(*ctx.acc_src) if gls_done and wants_accel(fin) else None
         if acc is not None:
             fa, nm6 = _accel_aided(t_m, a, valid, itp, acc, fin, t_mid, fit_drift=fd)
             if fa.aided:

@@ -186,11 +186,11 @@ class _Scan:
                 if new:
                     defined_at[c] = off
         cid, t, s, e = cid[:m], t[:m], s[:m], e[:m]
+        groups = [(c, np.flatnonzero(cid == c)) for c in np.unique(cid).tolist()]
         first_bad = end
-        for c in np.unique(cid).tolist():
-            sel = cid == c
+        for c, sel in groups:
             if c not in self.times:
-                first_bad = min(first_bad, int(s[sel][0]) - 31)
+                first_bad = min(first_bad, int(s[sel[0]]) - 31)
             elif c in defined_at and np.any(s[sel] - 31 < defined_at[c]):
                 first_bad = min(first_bad, int(s[sel][s[sel] - 31 < defined_at[c]][0]) - 31)
         if err and eoff < first_bad:
@@ -203,8 +203,7 @@ class _Scan:
         if first_bad < end:
             c = int(cid[s - 31 == first_bad][0])
             raise _Damage(f"{where}: message for unknown channel {c} at byte {first_bad}")
-        for c in np.unique(cid).tolist():
-            sel = np.flatnonzero(cid == c)
+        for c, sel in groups:
             self.times[c].extend(t[sel].tolist())
             d = self.data[c]
             if d is not None:

@@ -22,6 +22,7 @@ degrees of freedom, rerun with the measurement noise taken from the residual RMS
 """
 from __future__ import annotations
 
+import weakref
 from dataclasses import fields, replace
 from typing import Callable
 
@@ -199,21 +200,29 @@ def _slave_imu(slave: InsLog, src: str) -> tuple[np.ndarray, np.ndarray, np.ndar
     return t[keep], g[keep], a[keep]
 
 
-_LAST_MASTER: list = []  # [(master, series)]: the one most recently prepared
+_LAST_MASTER: list = []  # [(weak ref to the master, its series)]: the one most recently prepared
 
 
 def _master_series_cached(master: InsLog) -> MasterSeries:
     """:func:`_master_series`, prepared once for the same master object (analyze runs the alignment
     before and after compensation against one master; InsLog is immutable)."""
-    if _LAST_MASTER and _LAST_MASTER[0][0] is master:
+    if _LAST_MASTER and _LAST_MASTER[0][0]() is master:
         return _LAST_MASTER[0][1]
     ms = _master_series(master)
     for f in fields(ms):  # shared between runs: read-only
         v = getattr(ms, f.name)
         if isinstance(v, np.ndarray):
             v.flags.writeable = False
-    _LAST_MASTER[:] = [(master, ms)]
+    # held weakly: the series goes when the master does (a batch does not keep the last pair's master)
+    ref = weakref.ref(master)
+    _LAST_MASTER[:] = [(ref, ms)]
+    weakref.finalize(master, _forget_master, ref)
     return ms
+
+
+def _forget_master(ref) -> None:
+    if _LAST_MASTER and _LAST_MASTER[0][0] is ref:
+        _LAST_MASTER.clear()
 
 
 def _master_series(master: InsLog) -> MasterSeries:
