@@ -17,7 +17,9 @@ RMS, worst and median absolute error, fraction within 1 ms, coverage of sigma (f
 
 Further sets: an aligned-axes control (runs/5, what the seeds assume) and a stamp-noise set (runs/5:
 white noise on both units' stamps, std up to 0.3 of each IMU period, and two gaps in the slave).
-"tapost-gyro-only" is tapost's method without the accelerometer-aided GLS (ablation).
+"tapost-gyro-only" is tapost's method without the accelerometer-aided GLS (ablation). For the flexure
+runs, the Cramer-Rao bound of the latency (``latency_bound.py``: exact flexure and noise model, truth
+signals) is computed too: the RMS and the within-1 ms fraction an efficient estimator would reach.
 
 Second table: S000's Table 1 (aircraft, aligned axes, 200 Hz units, delays 10/50/100/150 ms, an exact
 number of samples as in the paper) with S000's method (5 s record in the S manoeuvre, +-1 s search,
@@ -45,6 +47,7 @@ import numpy as np
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # latency_bound
 RESULTS_DIR = os.path.join(ROOT, "benchmarks", "results")
 OUT_MC = os.path.join(RESULTS_DIR, "latency.json")
 OUT_T1 = os.path.join(RESULTS_DIR, "latency_s000_table1.json")
@@ -132,8 +135,13 @@ def run_one(d: dict) -> dict:
 
     row = dict(d)
     row["mount_rpy_deg"] = list(d["mount_rpy_deg"])
-    pair = sim.simulate(sim_config(d))
+    cfg = sim_config(d)
+    pair = sim.simulate(cfg)
     m, s, truth = pair.master, pair.slave, pair.truth
+    if d["flexure"]:  # what no estimator can beat on this run (benchmarks/latency_bound.py)
+        from latency_bound import latency_bound_s
+
+        row["bound_s"] = latency_bound_s(cfg, truth)
     res, err, t_all = _timed(estimate, m, s, max_lag_s=MAX_LAG_S, compare=True)
     row["runtime_compare_all_s"] = t_all
     if res is not None:
@@ -190,6 +198,35 @@ def summarize(rows: list[dict], methods=ALL_METHODS) -> dict:
             runtime_mean_s=float(np.nanmean(rt)) if np.isfinite(rt).any() else math.nan,
         )
     return out
+
+
+def summarize_bound(rows: list[dict]) -> dict:
+    """The Cramer-Rao bound over the flexure runs that have it: its RMS (what an efficient estimator's
+    RMS error would be) and the fraction of runs an efficient, unbiased Gaussian estimator would bring
+    within 1 ms (mean of erf(1 ms / (sqrt 2 bound))), with the gyros and accelerometers and the gyros alone."""
+    out = {}
+    for key in ("aided", "gyro"):
+        b = np.array([r["bound_s"][key] for r in rows if "bound_s" in r], float)
+        if not len(b):
+            continue
+        out[key] = dict(runs=int(len(b)), rms_ms=float(np.sqrt(np.mean(b ** 2)) * 1e3),
+                        worst_ms=float(b.max() * 1e3),
+                        expected_within_1ms=float(np.mean([math.erf(1e-3 / (math.sqrt(2.0) * x)) for x in b])))
+    return out
+
+
+def bound_md(bounds: dict) -> str:
+    lines = ["### Cramer-Rao bound of the latency, flexure runs (benchmarks/latency_bound.py)", "",
+             "| runs | bound with accelerometers: RMS (ms) / worst (ms) / expected within 1 ms "
+             "| gyros alone: RMS (ms) / worst / expected within 1 ms |", "|---|---|---|"]
+    for name, b in bounds.items():
+        if not b:
+            continue
+        a, g = b["aided"], b["gyro"]
+        lines.append(f"| {name} ({a['runs']}) | {a['rms_ms']:.3f} / {a['worst_ms']:.3f} / "
+                     f"{100 * a['expected_within_1ms']:.1f} % | {g['rms_ms']:.3f} / {g['worst_ms']:.3f} / "
+                     f"{100 * g['expected_within_1ms']:.1f} % |")
+    return "\n".join(lines)
 
 
 def md_table(summary: dict, title: str) -> str:
@@ -294,6 +331,9 @@ def main(argv: list[str] | None = None) -> int:
     stamp_noise = summarize(stamp_rows, methods=("tapost", GYRO_ONLY, "xcorr-norm")) if stamp_rows else {}
     by_flexure = {f"flexure={f}": summarize(sel) for f in (False, True)
                   if (sel := [r for r in main_rows if r["flexure"] == f])}
+    flex_rows = [r for r in main_rows if r["flexure"]]
+    bound = {"all flexure runs": summarize_bound(flex_rows)}
+    bound.update({sc: summarize_bound([r for r in flex_rows if r["scenario"] == sc]) for sc in SCENARIOS})
     t1 = table1()
     result = dict(
         benchmark="latency", created_utc=datetime.now(timezone.utc).isoformat(timespec="seconds"),
@@ -306,7 +346,7 @@ def main(argv: list[str] | None = None) -> int:
                     truth="Truth.latency_at(result.t_mid_rel_s)", sigma_coverage="|error| <= 2 sigma",
                     python=platform.python_version(), machine=platform.machine(), cpus=os.cpu_count()),
         wall_time_s=wall, runtime_per_run_s=wall * args.workers / max(len(rows), 1),
-        summary=summary, by_scenario=by_scenario, by_flexure=by_flexure,
+        summary=summary, by_scenario=by_scenario, by_flexure=by_flexure, bound_flexure=bound,
         aligned_control=control, stamp_noise=stamp_noise, rows=rows,
         notes=("summary/by_scenario: random mountings (main set). aligned_control: the same kind of draws with "
                "the units' axes aligned (what the seeds assume). stamp_noise: noisy stamps and slave gaps. '@1s' rows: the seeds with the papers' +-1 s "
@@ -326,6 +366,13 @@ def main(argv: list[str] | None = None) -> int:
     for k, v in by_flexure.items():
         print()
         print(md_table(v, k))
+    for sc in SCENARIOS:
+        sel = [r for r in flex_rows if r["scenario"] == sc]
+        if sel:
+            print()
+            print(md_table(summarize(sel, methods=("tapost", GYRO_ONLY)), f"{sc}, flexure runs"))
+    print()
+    print(bound_md(bound))
     if control:
         print()
         print(md_table(control, f"Aligned-axes control: {len(ctrl_rows)} runs (what the seeds assume)"))

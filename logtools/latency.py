@@ -74,6 +74,7 @@ from logtools.conventions import (dcm_from_quat, euler_from_dcm, quat_conj, quat
                                  rotvec_from_quat, skew)
 from logtools.errors import AnalysisError
 from logtools.inslog import InsLog
+from logtools.latency_flexure import DECIMATE_FACTOR, FlexureModel, block_mean, fit_model, whitened_normal
 from logtools.resample import Interpolant, UniformSeries, interpolant, lowpass, median_rate_hz, to_uniform
 from logtools.results import LatencyResult, MethodEstimate
 
@@ -118,6 +119,11 @@ GLS_CSD_BINS = 15  # a cross-spectral matrix is smoothed over at least this many
 ACCEL_AIDED = True  # gyro + accelerometer residuals in the final GLS when both units have accelerometers
 ACCEL_GLS_PASSES = 2  # accelerometer-aided passes (the 6-channel cross-spectrum re-estimated before each)
 ACCEL_MIN_SIGMA_S = 1e-4  # ... and when the gyro-only sigma is above this (below it they cannot matter)
+FLEX_SS = True  # Kalman (state-space flexure model) whitening after the spectral GLS, see _refine_flex
+FLEX_AGREE_SIGMAS = 5.0
+FLEX_ITERS = 6  # profile Newton steps
+FLEX_ML_SPAN_S = 120.0  # the flexure model is fitted on at most this much of the overlap (its middle)
+FLEX_ML_BLOCKS = 1500  # ... and on at most this many block samples  # ... kept when within this many sigma of the spectral GLS and more precise
 ACCEL_LAG_SIGMAS = 3.0  # ... unless the accelerometers' own delay differs from the gyros' by more sigmas
 
 Progress = Callable[[float, str], None] | None
@@ -388,6 +394,7 @@ class _Fit:
     ok: bool = True
     corr_ld: float = 0.0  # correlation of the (L, drift) estimates
     aided: bool = False  # accelerometer-aided GLS
+    flex: FlexureModel | None = None  # the state-space flexure model of a Kalman-whitened fit
     accel_lag_s: tuple[float, float] = (0.0, 0.0)  # accelerometers' extra delay and its sigma (aided fits)
 
 
@@ -730,6 +737,68 @@ def _accel_residual(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Inte
     return out
 
 
+def _gls_use(t_m: np.ndarray, valid: np.ndarray, itp: Interpolant, lag: np.ndarray, margin: float,
+             acc: _Accel | None) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """The samples a fit uses, fixed for all its iterations (slave data within +- margin of the lag
+    everywhere), and with ``acc`` the master's accelerometer rows (f_m, lever-arm matrix) at t_m."""
+    use = valid & itp.ok(t_m + lag - margin) & itp.ok(t_m + lag + margin)
+    fm = lev = None
+    if acc is not None:
+        fm, lev, okm = acc.master_rows(t_m)
+        use &= okm & acc.slave.ok(t_m + lag - margin) & acc.slave.ok(t_m + lag + margin)
+    return use, fm, lev
+
+
+def _gls_system(t_m: np.ndarray, a: np.ndarray, use: np.ndarray, itp: Interpolant, d: float, dr: float,
+                tt: np.ndarray, fit_drift: bool, acc: _Accel | None, fm: np.ndarray | None,
+                lev: np.ndarray | None, *, jacobian: bool = True) -> tuple | None:
+    """Residuals r (n, C) and Jacobian J (n, C, P [+ 1]) of the joint fit at (d, dr), R and the gyro bias
+    re-solved (Kabsch), 0 outside ``use``; C = 3 (gyros) or 6 (with ``acc``: accelerometer rows, their
+    bias and the lever arm as further unknowns, and a trailing column for the accelerometers' own delay,
+    the model check). Also the slave's specific force at the delayed instants (None without ``acc``).
+    None when a used sample falls off the slave's data. Without ``jacobian``: (r, None, R, bias, fv)."""
+    n = len(t_m)
+    C = 3 if acc is None else 6
+    nd = 1 + int(fit_drift)
+    tau = t_m + d + dr * tt
+    bv, ok = itp(tau)
+    if not np.all(ok[use]):
+        return None
+    R, bias = _kabsch_bias(a[use], bv[use])
+    r = np.zeros((n, C))
+    r[use, :3] = bv[use] - a[use] @ R.T - bias
+    if not jacobian:
+        fv = None
+        if acc is not None:
+            fv, _ = acc.slave(tau)
+            Rf = fm[use] @ R.T
+            r[use, 3:] = fv[use] - Rf - np.mean(fv[use] - Rf, axis=0)
+        return r, None, R, bias, fv
+    bd = np.zeros((n, 3))
+    bd[use], _ = itp(tau[use], 1)
+    Ra = np.where(use[:, None], a @ R.T, 0.0)
+    Jg = _jacobian(bd, tt if fit_drift else None, Ra).reshape(n, 3, -1)
+    fv = None
+    if acc is None:
+        J = Jg
+    else:
+        fv, _ = acc.slave(tau)
+        fd = np.zeros((n, 3))
+        fd[use], _ = acc.slave(tau[use], 1)
+        Rf = np.where(use[:, None], fm @ R.T, 0.0)
+        r[use, 3:] = fv[use] - Rf[use] - np.mean(fv[use] - Rf[use], axis=0)
+        Ja = _jacobian(fd, tt if fit_drift else None, Rf).reshape(n, 3, -1)
+        pg = Jg.shape[2]  # L[, drift], rotation, gyro bias | accelerometer bias, lever arm
+        J = np.zeros((n, 6, pg + 7))
+        J[:, :3, :pg] = Jg
+        J[:, 3:, :nd + 3] = Ja[:, :, :nd + 3]
+        J[:, 3:, pg:pg + 3] = Ja[:, :, nd + 3:]
+        J[:, 3:, pg + 3:pg + 6] = _lever_jacobian(R, lev)
+        J[:, 3:, pg + 6] = fd  # a delay of the accelerometers' own (model check, not in the steps)
+    J[~use] = 0.0
+    return r, J, R, bias, fv
+
+
 def _refine_gls(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant, d0: float,
                 drift0: float, t_mid: float, noise: _NoiseModel, *, fit_drift: bool, iters: int = 4,
                 acc: _Accel | None = None) -> _Fit:
@@ -752,44 +821,17 @@ def _refine_gls(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpol
     # a step the whitening filter would amplify), and tapered at their ends and around gaps
     span = float(np.max(np.abs(tt))) if n else 0.0
     margin = (iters + 1) * dt  # the steps are clipped to 0.5 dt (latency) + 0.5 dt at the ends (drift)
-    use = valid & itp.ok(t_m + d + dr * tt - margin) & itp.ok(t_m + d + dr * tt + margin)
-    if acc is not None:
-        fm, lev, okm = acc.master_rows(t_m)
-        use &= okm & acc.slave.ok(t_m + d + dr * tt - margin) & acc.slave.ok(t_m + d + dr * tt + margin)
+    use, fm, lev = _gls_use(t_m, valid, itp, d + dr * tt, margin, acc)
     if use.sum() < 20:
         return fail
     C = 3 if acc is None else 6
     taper = _taper(use, int(np.ceil(GLS_TAPER_S / dt)))
     wts = noise.weights(n, dt)
     for it in range(iters + 1):
-        tau = t_m + d + dr * tt
-        bv, ok = itp(tau)
-        if not np.all(ok[use]):
+        sysm = _gls_system(t_m, a, use, itp, d, dr, tt, fit_drift, acc, fm, lev)
+        if sysm is None:
             return fail
-        bd = np.zeros((n, 3))
-        bd[use], _ = itp(tau[use], 1)
-        R, bias = _kabsch_bias(a[use], bv[use])
-        r = np.zeros((n, C))
-        r[use, :3] = bv[use] - a[use] @ R.T - bias
-        Ra = np.where(use[:, None], a @ R.T, 0.0)
-        Jg = _jacobian(bd, tt if fit_drift else None, Ra).reshape(n, 3, -1)
-        if acc is None:
-            J = Jg
-        else:
-            fv, _ = acc.slave(tau)
-            fd = np.zeros((n, 3))
-            fd[use], _ = acc.slave(tau[use], 1)
-            Rf = np.where(use[:, None], fm @ R.T, 0.0)
-            r[use, 3:] = fv[use] - Rf[use] - np.mean(fv[use] - Rf[use], axis=0)
-            Ja = _jacobian(fd, tt if fit_drift else None, Rf).reshape(n, 3, -1)
-            pg = Jg.shape[2]  # L[, drift], rotation, gyro bias | accelerometer bias, lever arm
-            J = np.zeros((n, 6, pg + 7))
-            J[:, :3, :pg] = Jg
-            J[:, 3:, :nd + 3] = Ja[:, :, :nd + 3]
-            J[:, 3:, pg:pg + 3] = Ja[:, :, nd + 3:]
-            J[:, 3:, pg + 3:pg + 6] = _lever_jacobian(R, lev)
-            J[:, 3:, pg + 6] = fd  # a delay of the accelerometers' own (model check, not in the steps)
-        J[~use] = 0.0
+        r, J, R, bias, _fv = sysm
         n_check = 0 if acc is None else 1  # trailing columns only for the model check, not in the steps
         P = J.shape[2] - n_check
         r = r * taper[:, None]
@@ -856,6 +898,149 @@ def _refine_gls(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpol
     raw_rms = float(np.sqrt(np.sum(r[:, :3] ** 2) / (3 * n_use)))
     return _Fit(d, dr, R, bias, float(np.sqrt(var[0])), float(np.sqrt(var[1])) if fit_drift else 0.0,
                 raw_rms, n_use, fac, motion, corr_ld=corr, accel_lag_s=acc_lag)
+
+
+def _refine_flex(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant, d0: float,
+                 drift0: float, t_mid: float, cutoff_hz: float, *, fit_drift: bool, acc: _Accel | None = None,
+                 model: FlexureModel | None = None, h0: float = 0.0, iters: int = FLEX_ITERS) -> _Fit:
+    """Generalised least squares as ``_refine_gls``, whitened by a Kalman filter of seed 000's flexure
+    model (``logtools.latency_flexure``) instead of a residual spectrum. The rows are block-averaged to
+    DECIMATE_FACTOR x the cutoff; the model's parameters are fitted by restricted maximum likelihood at
+    the start (on at most FLEX_ML_SPAN_S of blocks; unless ``model`` is given, e.g. for the drift windows).
+
+    The delay is then found on the profile of the whitened cost (every other unknown -- drift, rotation,
+    biases, lever arm -- concentrated out, linearised): Newton steps on a parabola through three cost
+    evaluations (d - h, d, d + h), not Gauss-Newton steps on the Jacobian alone. The Kalman whitening
+    weighs the fine structure of the signals heavily, where two units' sampling and filtering never
+    match exactly; there the Gauss-Newton curvature can exceed the cost's own several times over, and
+    its steps stall and its sigma is optimistic. The sigma is the larger of the profile's (its
+    curvature) and the Gauss-Newton/HAC one. ``h0``: the first half-width (e.g. the spectral sigma)."""
+    d, dr = float(d0), float(drift0)
+    n = len(t_m)
+    dt = float(np.median(np.diff(t_m))) if n > 1 else 1.0
+    tt = t_m - t_mid
+    nd = 1 + int(fit_drift)
+    fail = _Fit(d, dr, np.eye(3), np.zeros(3), np.inf, np.inf, np.nan, 0, 1.0, 0.0, False)
+    span = float(np.max(np.abs(tt))) if n else 0.0
+    h = float(np.clip(h0 if h0 > 0 else 0.05 * dt, 1e-3 * dt, 0.5 * dt))
+    reach = 4.0 * h * iters  # how far the search may go
+    use, fm, lev = _gls_use(t_m, valid, itp, d + dr * tt, reach + h + 2 * dt, acc)
+    k = max(1, int(round(1.0 / (DECIMATE_FACTOR * cutoff_hz * dt))))
+    if use.sum() < 20 * k:
+        return fail
+    C = 3 if acc is None else 6
+    n_check = 0 if acc is None else 1
+
+    def blocks(x: np.ndarray) -> np.ndarray:
+        return block_mean(np.where(use.reshape((-1,) + (1,) * (x.ndim - 1)), x, 0.0), use, k)[0]
+
+    def system(dd: float, rr: float, jac: bool = True):
+        """Block rows at (dd, rr): (X (nb, C, 1 [+ P + check]), used blocks, fs, ws, r, R, bias) or None."""
+        sysm = _gls_system(t_m, a, use, itp, dd, rr, tt, fit_drift, acc, fm, lev, jacobian=jac)
+        if sysm is None:
+            return None
+        r, J, R, bias, fv = sysm
+        Xb, ub = block_mean(r[:, :, None] if J is None else np.concatenate([r[:, :, None], J], axis=2), use, k)
+        fb = None if fv is None else blocks(fv)
+        wb = blocks(r[:, :3] + a @ R.T + bias)  # the slave's rate
+        return Xb, ub, fb, wb, r, R, bias
+
+    sy = system(d, dr)
+    if sy is None:
+        return fail
+    Xb, ub, fb, wb = sy[:4]
+    P = Xb.shape[2] - 1 - n_check
+    if model is None:
+        span_ml = min(FLEX_ML_SPAN_S, FLEX_ML_BLOCKS * k * dt)
+        cen = np.abs((np.arange(len(ub)) + 0.5) * k * dt + t_m[0] - t_mid) <= 0.5 * span_ml
+        model = fit_model(Xb[cen], wb[cen], None if fb is None else fb[cen], ub[cen], k * dt, P)
+        if model is None:
+            return fail
+    # whitened columns: 3 residuals (at d - h, d, d + h; the Jacobian shared) then the Jacobian
+    jc = list(range(3, 3 + P))  # the fit's unknowns (delay first)
+    pc = jc[1:]  # ... all but the delay (the profile)
+
+    def profile(M: np.ndarray, col: int) -> float:
+        s_ = M[pc, col]
+        return float(M[col, col] - s_ @ np.linalg.solve(M[np.ix_(pc, pc)], s_))
+
+    curv = 0.0
+    for it in range(iters + 1):
+        sy = system(d, dr)
+        sp, sm = system(d + h, dr, False), system(d - h, dr, False)
+        if sy is None or sp is None or sm is None:
+            return fail
+        Y = np.concatenate([sm[0], sy[0][:, :, :1], sp[0], sy[0][:, :, 1:]], axis=2)
+        W, M, _ = whitened_normal(Y, sy[3], sy[2], sy[1], model, store=it == iters)
+        try:
+            cm, c0, cp = (profile(M, j) for j in range(3))
+            stp = -np.linalg.solve(M[np.ix_(jc, jc)], M[jc, 1])  # the GLS step (for the drift)
+        except np.linalg.LinAlgError:
+            return fail
+        curv_h = (cp + cm - 2.0 * c0) / (2.0 * h * h)
+        if it == iters:
+            if curv_h > 0:
+                curv = curv_h
+            break
+        if not curv_h > 0:
+            h = min(2.0 * h, 0.5 * dt)
+            continue
+        curv = curv_h
+        step = float(np.clip(-(cp - cm) / (2.0 * h) / (2.0 * curv), -3.0 * h, 3.0 * h))
+        d += step
+        if fit_drift:
+            dr += float(np.clip(stp[1], -0.5 * dt / max(span, 1e-9), 0.5 * dt / max(span, 1e-9)))
+        if abs(d - d0) > reach:
+            return fail
+        h = float(np.clip(np.sqrt(1.0 / curv), 1e-3 * dt, 0.5 * dt))  # the next bracket: ~1 sigma
+        if abs(step) < 0.05 * h:
+            iters = it + 1  # one more pass: the covariance and scores at the solution
+    if not curv > 0:
+        return fail
+    # the final pass: residual column 1, the unknowns jc (+ the model check's column last)
+    M = M[np.ix_([1] + jc + list(range(3 + P, M.shape[0])), [1] + jc + list(range(3 + P, M.shape[0])))]
+    W = W[:, :, [1] + jc + list(range(3 + P, W.shape[2]))]
+    ub = sy[1]
+    r, R, bias = sy[4], sy[5], sy[6]
+    Nm, g = M[1:P + 1, 1:P + 1], M[1:P + 1, 0]
+    try:
+        Ninv = np.linalg.inv(Nm)
+    except np.linalg.LinAlgError:
+        return fail
+    step = -Ninv @ g
+    Wp = W[:, :, 1:P + 1]
+    rw = W[:, :, 0] + Wp @ step
+    nb = int(ub.sum())
+    s2 = float(np.sum(rw * rw)) / max(1, C * nb - P)
+    var_cls = s2 * np.diag(Ninv)[:nd]
+    # the profile's curvature (cost = sum of squares: var = s2 / curvature)
+    var_prof = s2 / curv
+    u = np.sum(Wp * rw[:, :, None], axis=1)[ub] @ Ninv[:, :nd]
+    V_hac, _H = _hac_cov(u, int(min(len(u) // 4, max(10, 20.0 / (k * dt)))))
+    var_h = np.diag(V_hac)
+    var = np.maximum(var_h, var_cls)
+    prof_fac = max(1.0, var_prof / var[0]) if var[0] > 0 else 1.0
+    var = var * prof_fac  # the drift's variance scaled alike (a conservative choice)
+    corr = 0.0
+    if fit_drift and var[0] > 0 and var[1] > 0:
+        cv = (V_hac[0, 1] if var_h[0] >= var_cls[0] else s2 * Ninv[0, 1]) * prof_fac
+        corr = float(np.clip(cv / np.sqrt(var[0] * var[1]), -0.99, 0.99))
+    fac = float(var[0] / var_cls[0]) if var_cls[0] > 0 else 1.0
+    acc_lag = (0.0, 0.0)
+    if n_check:
+        try:
+            Nx = M[1:, 1:]
+            sx = np.linalg.solve(Nx, M[1:, 0] + M[1:, 1:P + 1] @ step)
+            vx = float(np.linalg.inv(Nx)[-1, -1]) * s2 * max(1.0, fac)
+            acc_lag = (-float(sx[-1]), float(np.sqrt(max(vx, 0.0))))
+        except np.linalg.LinAlgError:
+            acc_lag = (np.inf, np.inf)
+    au = a[use]
+    motion = float(np.sqrt(np.mean(np.sum((au - au.mean(axis=0)) ** 2, axis=1))))
+    raw_rms = float(np.sqrt(np.sum(r[use, :3] ** 2) / (3 * int(use.sum()))))
+    return _Fit(d, dr, R, bias, float(np.sqrt(var[0])), float(np.sqrt(var[1])) if fit_drift else 0.0,
+                raw_rms, int(use.sum()), fac, motion, corr_ld=corr, aided=acc is not None, accel_lag_s=acc_lag,
+                flex=model)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1202,6 +1387,9 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
         "vector_cost_min": co.best_cost,
         "gls": bool(noise is not None),
         "accel_aided": bool(fin.aided),
+        # the Kalman-whitened fit's flexure model (seed 000 eq. 8), when that fit was kept
+        "flexure_model": None if fin.flex is None else {
+            "sigma_deg": [float(x) for x in np.degrees(fin.flex.sigma_rad)], "beta_1_s": float(fin.flex.beta_1_s)},
         "accel_minus_gyro_lag_s": float(fin.accel_lag_s[0]) if fin.accel_lag_s[1] > 0 else None,
         "accel_minus_gyro_lag_sigma_s": float(fin.accel_lag_s[1]) if fin.accel_lag_s[1] > 0 else None,
         "nan_fraction": nanfrac,
@@ -1342,23 +1530,45 @@ def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: f
                 fin, final_noise, final_acc = fa, nm6, acc
             else:
                 fin = fa  # the gyro-only fit, with the model check's figures
-        if fd and final_acc is not None:
-            # the windows again with the final (aided) estimator, its noise model and channels: their
-            # scatter about the final line is what the sigma is checked against (gyro-only windows
-            # scatter with the flexure the accelerometers took out). Gyro-only fits keep the ordinary
-            # windows' scatter, the conservative check (GLS windows of gyros alone measured worse).
+        refit = None  # the final estimator for one window (tc, lag there) when it is not the ordinary one
+        if final_acc is not None:
+            def refit(ws, tc, lag):
+                return _refine_gls(t_m[ws], a[ws], valid[ws], itp, lag, 0.0, tc, final_noise, fit_drift=False,
+                                   acc=final_acc)
+        if FLEX_SS and gls_done and fin.sigma_latency_s > ACCEL_MIN_SIGMA_S:
+            # Kalman whitening with the flexure model, from the spectral GLS fit; kept when it agrees with
+            # it (the windows' scatter below checks its sigma). Not chosen by the smaller sigma: where the
+            # spectrum is estimated from few cycles of slow motion, the spectral sigma is the optimistic one
+            ff = _refine_flex(t_m, a, valid, itp, fin.latency_s, fin.drift, t_mid, ctx.cutoff_hz, fit_drift=fd,
+                              acc=final_acc, h0=fin.sigma_latency_s)
+            if ff.ok and abs(ff.latency_s - fin.latency_s) <= FLEX_AGREE_SIGMAS * max(ff.sigma_latency_s,
+                                                                                      fin.sigma_latency_s):
+                # (a gyro-only Kalman fit keeps the accelerometer model check's figures)
+                fin = ff if ff.accel_lag_s[1] > 0 else replace(ff, accel_lag_s=fin.accel_lag_s)
+
+                def refit(ws, tc, lag):
+                    return _refine_flex(t_m[ws], a[ws], valid[ws], itp, lag, 0.0, tc, ctx.cutoff_hz,
+                                        fit_drift=False, acc=final_acc, model=ff.flex, h0=ff.sigma_latency_s)
+        if fd and refit is not None:
+            # the windows again with the final (aided / Kalman-whitened) estimator, its noise model and
+            # channels: their scatter about the final line is what the sigma is checked against (gyro-only
+            # windows scatter with the flexure the final estimator took out). Gyro-only spectral fits keep
+            # the ordinary windows' scatter, the conservative check (GLS windows of gyros alone measured worse).
             c2, l2, s2 = [], [], []
             for tc in centers:
                 a0, a1 = bounds[float(tc)]
                 ws = (t_m >= a0) & (t_m <= a1)
-                f = _refine_gls(t_m[ws], a[ws], valid[ws], itp, fin.latency_s + fin.drift * (tc - t_mid), 0.0,
-                                tc, final_noise, fit_drift=False, acc=final_acc)
+                f = refit(ws, tc, fin.latency_s + fin.drift * (tc - t_mid))
                 if f.ok and np.isfinite(f.sigma_latency_s):
                     c2.append(tc)
                     l2.append(f.latency_s)
                     s2.append(max(f.sigma_latency_s, SIGMA_FLOOR_S))
             if len(c2) >= 3:
                 centers, lats, sigs = np.asarray(c2), np.asarray(l2), np.asarray(s2)
+            else:
+                # too few windows with enough motion for the final estimator: nothing checks its sigma
+                # (the ordinary windows' sigmas ignore the flexure and would inflate it for nothing)
+                sigs = np.full(len(sigs), np.inf)
     return fin, centers, lats, sigs
 
 
