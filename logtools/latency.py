@@ -799,6 +799,55 @@ def _gls_system(t_m: np.ndarray, a: np.ndarray, use: np.ndarray, itp: Interpolan
     return r, J, R, bias, fv
 
 
+def _fit_start(t_m: np.ndarray, t_mid: float, d0: float, drift0: float
+               ) -> tuple[float, float, float, np.ndarray, float, _Fit]:
+    """(d, drift, sample interval, t - t_mid, half span, the failed fit) at the start of a refinement."""
+    d, dr = float(d0), float(drift0)
+    dt = float(np.median(np.diff(t_m))) if len(t_m) > 1 else 1.0
+    tt = t_m - t_mid
+    span = float(np.max(np.abs(tt))) if len(t_m) else 0.0
+    return d, dr, dt, tt, span, _Fit(d, dr, np.eye(3), np.zeros(3), np.inf, np.inf, np.nan, 0, 1.0, 0.0, False)
+
+
+def _gls_covariance(Ninv: np.ndarray, s2: float, u: np.ndarray, dt_s: float, fit_drift: bool, *,
+                    check: tuple[np.ndarray, np.ndarray] | None = None, var_floor: float = 0.0
+                    ) -> tuple[np.ndarray, float, float, tuple[float, float]]:
+    """Variances of (L[, drift]) of a whitened least-squares fit: the curvature's (s2 diag(Ninv)) with the
+    Newey-West variance of the per-sample scores u (n, nd) as a floor (what the whitening missed; lags
+    up to 20 s at the samples' interval dt_s), and the latency's at least ``var_floor`` (the drift's
+    scaled alike). Returns (var (nd,), corr(L, drift), variance factor over the curvature's, (delay of the
+    accelerometers' own, its sigma)) -- the last from ``check`` = (augmented normal matrix, right-hand
+    side) with the model-check column last, else (0, 0)."""
+    nd = u.shape[1]
+    var_cls = s2 * np.diag(Ninv)[:nd]
+    V_hac, _H = _hac_cov(u, int(min(len(u) // 4, max(10, 20.0 / dt_s))))
+    var_h = np.diag(V_hac)
+    var = np.maximum(var_h, var_cls)
+    up = max(1.0, var_floor / var[0]) if var[0] > 0 else 1.0
+    var = var * up
+    corr = 0.0
+    if fit_drift and var[0] > 0 and var[1] > 0:
+        cv = (V_hac[0, 1] if var_h[0] >= var_cls[0] else s2 * Ninv[0, 1]) * up
+        corr = float(np.clip(cv / np.sqrt(var[0] * var[1]), -0.99, 0.99))
+    fac = float(var[0] / var_cls[0]) if var_cls[0] > 0 else 1.0
+    acc_lag = (0.0, 0.0)
+    if check is not None:
+        try:
+            Nx, b = check
+            sx = np.linalg.solve(Nx, b)
+            vx = float(np.linalg.inv(Nx)[-1, -1]) * s2 * max(1.0, fac)
+            acc_lag = (-float(sx[-1]), float(np.sqrt(max(vx, 0.0))))
+        except np.linalg.LinAlgError:
+            acc_lag = (np.inf, np.inf)
+    return var, corr, fac, acc_lag
+
+
+def _motion_rms(a: np.ndarray, use: np.ndarray) -> float:
+    """RMS of the master's rate about its mean over the used samples (rad/s)."""
+    au = a[use]
+    return float(np.sqrt(np.mean(np.sum((au - au.mean(axis=0)) ** 2, axis=1))))
+
+
 def _refine_gls(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant, d0: float,
                 drift0: float, t_mid: float, noise: _NoiseModel, *, fit_drift: bool, iters: int = 4,
                 acc: _Accel | None = None) -> _Fit:
@@ -811,15 +860,10 @@ def _refine_gls(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpol
     gyros' (accelerometer bias and lever arm as further linear unknowns, the rotation shared): the
     whitening then uses their coherence, i.e. the flexure seen as a tilt of the specific force is
     taken out of the differential rate, and the specific force's own motion adds delay information."""
-    d, dr = float(d0), float(drift0)
-    n = len(t_m)
-    dt = float(np.median(np.diff(t_m))) if n > 1 else 1.0
-    tt = t_m - t_mid
-    nd = 1 + int(fit_drift)
-    fail = _Fit(d, dr, np.eye(3), np.zeros(3), np.inf, np.inf, np.nan, 0, 1.0, 0.0, False)
+    d, dr, dt, tt, span, fail = _fit_start(t_m, t_mid, d0, drift0)
+    n, nd = len(t_m), 1 + int(fit_drift)
     # the samples used are fixed for all iterations (no sample switches in or out with d: a switch is
     # a step the whitening filter would amplify), and tapered at their ends and around gaps
-    span = float(np.max(np.abs(tt))) if n else 0.0
     margin = (iters + 1) * dt  # the steps are clipped to 0.5 dt (latency) + 0.5 dt at the ends (drift)
     use, fm, lev = _gls_use(t_m, valid, itp, d + dr * tt, margin, acc)
     if use.sum() < 20:
@@ -870,31 +914,12 @@ def _refine_gls(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpol
     n_use = int(use.sum())
     dof = max(1, C * n_use - P)
     s2 = float(np.sum(rw * rw)) / dof
-    var_cls = s2 * np.diag(Ninv)[:nd]
-    G = np.sum(Jw * rw[:, :, None], axis=1)  # per-sample whitened scores
-    u = G @ Ninv[:, :nd]
-    max_h = int(min(len(u) // 4, max(10, 20.0 / dt)))
-    V_hac, _H = _hac_cov(u, max_h)
-    var_h = np.diag(V_hac)
-    var = np.maximum(var_h, var_cls)
-    corr = 0.0
-    if fit_drift and var[0] > 0 and var[1] > 0:
-        cv = V_hac[0, 1] if var_h[0] >= var_cls[0] else s2 * Ninv[0, 1]
-        corr = float(np.clip(cv / np.sqrt(var[0] * var[1]), -0.99, 0.99))
-    fac = float(var[0] / var_cls[0]) if var_cls[0] > 0 else 1.0
-    acc_lag = (0.0, 0.0)
-    if acc is not None:
-        # model check: the accelerometers' delay relative to the gyros' (0 when both come through
-        # the same path; real IMUs may filter them differently), from the augmented normal equations
-        try:
-            Nx = Jx.T @ Jx
-            sx = np.linalg.solve(Nx, Jx.T @ rw.ravel())
-            vx = float(np.linalg.inv(Nx)[-1, -1]) * s2 * max(1.0, fac)
-            acc_lag = (-float(sx[-1]), float(np.sqrt(max(vx, 0.0))))
-        except np.linalg.LinAlgError:
-            acc_lag = (np.inf, np.inf)
-    au = a[use]
-    motion = float(np.sqrt(np.mean(np.sum((au - au.mean(axis=0)) ** 2, axis=1))))
+    u = np.sum(Jw * rw[:, :, None], axis=1) @ Ninv[:, :nd]  # per-sample whitened scores
+    # model check: the accelerometers' delay relative to the gyros' (0 when both come through the same
+    # path; real IMUs may filter them differently), from the augmented normal equations
+    check = None if acc is None else (Jx.T @ Jx, Jx.T @ rw.ravel())
+    var, corr, fac, acc_lag = _gls_covariance(Ninv, s2, u, dt, fit_drift, check=check)
+    motion = _motion_rms(a, use)
     raw_rms = float(np.sqrt(np.sum(r[:, :3] ** 2) / (3 * n_use)))
     return _Fit(d, dr, R, bias, float(np.sqrt(var[0])), float(np.sqrt(var[1])) if fit_drift else 0.0,
                 raw_rms, n_use, fac, motion, corr_ld=corr, accel_lag_s=acc_lag)
@@ -915,13 +940,8 @@ def _refine_flex(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpo
     match exactly; there the Gauss-Newton curvature can exceed the cost's own several times over, and
     its steps stall and its sigma is optimistic. The sigma is the larger of the profile's (its
     curvature) and the Gauss-Newton/HAC one. ``h0``: the first half-width (e.g. the spectral sigma)."""
-    d, dr = float(d0), float(drift0)
-    n = len(t_m)
-    dt = float(np.median(np.diff(t_m))) if n > 1 else 1.0
-    tt = t_m - t_mid
+    d, dr, dt, tt, span, fail = _fit_start(t_m, t_mid, d0, drift0)
     nd = 1 + int(fit_drift)
-    fail = _Fit(d, dr, np.eye(3), np.zeros(3), np.inf, np.inf, np.nan, 0, 1.0, 0.0, False)
-    span = float(np.max(np.abs(tt))) if n else 0.0
     h = float(np.clip(h0 if h0 > 0 else 0.05 * dt, 1e-3 * dt, 0.5 * dt))
     reach = 4.0 * h * iters  # how far the search may go
     use, fm, lev = _gls_use(t_m, valid, itp, d + dr * tt, reach + h + 2 * dt, acc)
@@ -1012,31 +1032,11 @@ def _refine_flex(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpo
     rw = W[:, :, 0] + Wp @ step
     nb = int(ub.sum())
     s2 = float(np.sum(rw * rw)) / max(1, C * nb - P)
-    var_cls = s2 * np.diag(Ninv)[:nd]
-    # the profile's curvature (cost = sum of squares: var = s2 / curvature)
-    var_prof = s2 / curv
     u = np.sum(Wp * rw[:, :, None], axis=1)[ub] @ Ninv[:, :nd]
-    V_hac, _H = _hac_cov(u, int(min(len(u) // 4, max(10, 20.0 / (k * dt)))))
-    var_h = np.diag(V_hac)
-    var = np.maximum(var_h, var_cls)
-    prof_fac = max(1.0, var_prof / var[0]) if var[0] > 0 else 1.0
-    var = var * prof_fac  # the drift's variance scaled alike (a conservative choice)
-    corr = 0.0
-    if fit_drift and var[0] > 0 and var[1] > 0:
-        cv = (V_hac[0, 1] if var_h[0] >= var_cls[0] else s2 * Ninv[0, 1]) * prof_fac
-        corr = float(np.clip(cv / np.sqrt(var[0] * var[1]), -0.99, 0.99))
-    fac = float(var[0] / var_cls[0]) if var_cls[0] > 0 else 1.0
-    acc_lag = (0.0, 0.0)
-    if n_check:
-        try:
-            Nx = M[1:, 1:]
-            sx = np.linalg.solve(Nx, M[1:, 0] + M[1:, 1:P + 1] @ step)
-            vx = float(np.linalg.inv(Nx)[-1, -1]) * s2 * max(1.0, fac)
-            acc_lag = (-float(sx[-1]), float(np.sqrt(max(vx, 0.0))))
-        except np.linalg.LinAlgError:
-            acc_lag = (np.inf, np.inf)
-    au = a[use]
-    motion = float(np.sqrt(np.mean(np.sum((au - au.mean(axis=0)) ** 2, axis=1))))
+    check = None if not n_check else (M[1:, 1:], M[1:, 0] + M[1:, 1:P + 1] @ step)
+    # the profile's curvature floors the latency's variance (cost = sum of squares: var = s2 / curvature)
+    var, corr, fac, acc_lag = _gls_covariance(Ninv, s2, u, k * dt, fit_drift, check=check, var_floor=s2 / curv)
+    motion = _motion_rms(a, use)
     raw_rms = float(np.sqrt(np.sum(r[use, :3] ** 2) / (3 * int(use.sum()))))
     return _Fit(d, dr, R, bias, float(np.sqrt(var[0])), float(np.sqrt(var[1])) if fit_drift else 0.0,
                 raw_rms, int(use.sum()), fac, motion, corr_ld=corr, aided=acc is not None, accel_lag_s=acc_lag,
