@@ -10,7 +10,8 @@ The residual model is the one ``logtools.latency_flexure`` whitens::
 with p = (delay, drift, rotation, gyro bias, accelerometer bias, lever arm) and J their Jacobian built
 from the truth (slave frame: w, w', f, f' of the master rotated by the mounting). The Fisher information
 of p is sum_k Jw_k^T Jw_k with Jw the Kalman-whitened columns of J (innovations of the exact model);
-the bound on the latency is sqrt(inv(F)[0, 0]), the other unknowns estimated jointly. It is evaluated on
+the bound on the latency is sqrt(inv(F)[0, 0]), the other unknowns estimated jointly, the drift with the
+Gaussian prior tapost's estimator uses (DRIFT_PRIOR_PPM; a Bayesian bound for that part). It is evaluated on
 samples every ``dt_s`` (the truth is smooth; the flexure model is exact at any step) over the pair's
 overlap, and with the gyros alone (``gyro``) as well as gyros and accelerometers (``aided``).
 
@@ -23,6 +24,7 @@ import numpy as np
 
 from logtools import sim
 from logtools.conventions import dcm_from_euler, skew
+from logtools.latency import DRIFT_PRIOR_PPM
 from logtools.latency_flexure import FlexureModel, whitened_normal
 
 DEG = np.pi / 180.0
@@ -63,5 +65,7 @@ def latency_bound_s(cfg: "sim.SimConfig", truth: "sim.Truth", dt_s: float = 0.05
         model = FlexureModel(sig, beta, noise[rows], dt_s)
         yy = np.ascontiguousarray(y[:, rows][:, :, cols_used])
         _, M, _ = whitened_normal(yy, w, f if name == "aided" else None, use, model, store=False)
-        out[name] = float(np.sqrt(np.linalg.inv(M[1:, 1:])[0, 0]))
+        F = M[1:, 1:].copy()
+        F[1, 1] += 1.0 / (DRIFT_PRIOR_PPM * 1e-6) ** 2  # the drift prior tapost's estimator uses
+        out[name] = float(np.sqrt(np.linalg.inv(F)[0, 0]))
     return out

@@ -44,6 +44,18 @@ tapost's method ("tapost")
      accelerations; the vertical-axis flexure is not seen at all.) Model check: a separate delay of
      the accelerometers is estimated alongside; beyond ACCEL_LAG_SIGMAS sigma (real IMUs may filter
      accelerometers and gyros differently) or when its sigma is not smaller, the gyro-only fit stays.
+  3d. Kalman whitening with a flexure model (``logtools.latency_flexure``; when the sigma so far exceeds
+     ACCEL_MIN_SIGMA_S): the residual is modelled as seed 000's flexure -- a second-order Markov rotation
+     lam of the slave per axis (eq. 8), which adds lam' + w x lam to its rates and f x lam to its specific
+     force -- plus white noise per channel; the model's parameters (sigma per axis, beta, the noise) by
+     restricted maximum likelihood, then the delay on the profile of the Kalman-whitened cost (every
+     other unknown concentrated out) by Newton steps on parabolas through the cost itself, sigma from
+     the profile's curvature (floored by the Gauss-Newton/HAC one). A stationary spectrum estimated
+     from a few cycles of slow motion cannot tell the flexure from the delay as well as this model
+     does, and it averages the gravity direction's modulation of the accelerometer rows that the
+     Kalman filter keeps exact. Kept when within FLEX_AGREE_SIGMAS of the spectral fit; the quality
+     key ``flexure_model`` then gives the fitted sigma (deg) and beta. On the benchmark's flexure runs
+     the error is at the Cramer-Rao bound (``benchmarks/latency_bound.py``).
   4. drift: steps 3-3b in windows along the overlap (integer-lag search around the predicted lag, then
      refinement), a weighted line latency(t) = L + drift (t - t_mid) with windows beyond WINDOW_REJECT
      sigma rejected (a window with little motion can lock on a wrong minimum, where its linearised sigma
@@ -53,7 +65,8 @@ tapost's method ("tapost")
   5. sigma: the joint (L, drift, rotation, bias) GLS covariance (whitened curvature x whitened residual
      variance) with a heteroscedasticity-and-autocorrelation-consistent (Bartlett/Newey-West) variance
      of the whitened scores as a floor (what whitening missed), inflated by the scatter of the window
-     estimates about the drift line (with an accelerometer-aided fit, the windows re-estimated with it);
+     estimates about the drift line (with an accelerometer-aided or Kalman-whitened fit, the windows
+     re-estimated with it; when fewer than 3 windows have the motion for that, no window check);
   6. quality flags: motion level, too little motion, periodic motion (several near-equal minima of the
      cost: S000 eq 6's caveat; sigma then covers the ambiguity), windows disagreeing, overlap, rotation
      found, residual RMS, masked fraction.
