@@ -53,8 +53,10 @@ tapost's method ("tapost")
      the profile's curvature (floored by the Gauss-Newton/HAC one). A stationary spectrum estimated
      from a few cycles of slow motion cannot tell the flexure from the delay as well as this model
      does, and it averages the gravity direction's modulation of the accelerometer rows that the
-     Kalman filter keeps exact. Kept when within FLEX_AGREE_SIGMAS of the spectral fit; the quality
-     key ``flexure_model`` then gives the fitted sigma (deg) and beta. On the benchmark's flexure runs
+     Kalman filter keeps exact. A candidate when within FLEX_AGREE_SIGMAS of the spectral fit; kept
+     unless its sigma, checked by its own drift windows' scatter (step 5), exceeds the spectral fit's
+     likewise checked one FLEX_PREFERENCE times (a real log whose disturbance is not flexure-like:
+     vibration, filters). The quality key ``flexure_model`` then gives the fitted sigma (deg) and beta. On the benchmark's flexure runs
      the error is at the Cramer-Rao bound (``benchmarks/latency_bound.py``).
   4. drift: steps 3-3b in windows along the overlap (integer-lag search around the predicted lag, then
      refinement), a weighted line latency(t) = L + drift (t - t_mid) with windows beyond WINDOW_REJECT
@@ -134,6 +136,7 @@ ACCEL_GLS_PASSES = 2  # accelerometer-aided passes (the 6-channel cross-spectrum
 ACCEL_MIN_SIGMA_S = 1e-4  # ... and when the gyro-only sigma is above this (below it they cannot matter)
 FLEX_SS = True  # Kalman (state-space flexure model) whitening after the spectral GLS, see _refine_flex
 FLEX_AGREE_SIGMAS = 5.0
+FLEX_PREFERENCE = 2.0  # ... and kept unless its window-checked sigma is this many times the spectral fit's
 FLEX_ITERS = 6  # profile Newton steps
 FLEX_ML_SPAN_S = 120.0  # the flexure model is fitted on at most this much of the overlap (its middle)
 FLEX_ML_BLOCKS = 1500  # ... and on at most this many block samples  # ... kept when within this many sigma of the spectral GLS and more precise
@@ -1334,10 +1337,7 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
     prog(0.8, "drift")
     fit_drift = len(centers) >= 3
     # sigma: HAC-corrected GN sigma, inflated by the windows' scatter about the drift line
-    chi2_red = 1.0
-    if len(centers) >= 3:
-        res = lats - (fin.latency_s + fin.drift * (centers - t_mid))
-        chi2_red = float(np.sum((res / sigs) ** 2) / max(1, len(centers) - 2))
+    chi2_red = _window_chi2(fin, centers, lats, sigs, t_mid)
     infl = np.sqrt(max(1.0, chi2_red)) if WINDOW_INFLATE else 1.0
     sig_l, sigma_drift = fin.sigma_latency_s * infl, fin.sigma_drift * infl
     latency, drift = fin.latency_s, fin.drift
@@ -1459,6 +1459,14 @@ def _fine_cost(ctx: _Ctx, latency_s: float, drift: float, t_mid: float, w0: floa
     return lags, out
 
 
+def _window_chi2(f: _Fit, centers: np.ndarray, lats: np.ndarray, sigs: np.ndarray, t_mid: float) -> float:
+    """Reduced chi-square of the window estimates about f's line L + drift (t - t_mid) (1 below 3 windows)."""
+    if len(centers) < 3:
+        return 1.0
+    res = lats - (f.latency_s + f.drift * (centers - t_mid))
+    return float(np.sum((res / sigs) ** 2) / max(1, len(centers) - 2))
+
+
 def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: float, w1: float,
              d_center: float, drift_center: float, search_ppm: float, noise: _NoiseModel | None = None
              ) -> tuple[_Fit, np.ndarray, np.ndarray, np.ndarray]:
@@ -1543,45 +1551,61 @@ def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: f
                 fin, final_noise, final_acc = fa, nm6, acc
             else:
                 fin = fa  # the gyro-only fit, with the model check's figures
-        refit = None  # the final estimator for one window (tc, lag there) when it is not the ordinary one
-        if final_acc is not None:
-            def refit(ws, tc, lag):
-                return _refine_gls(t_m[ws], a[ws], valid[ws], itp, lag, 0.0, tc, final_noise, fit_drift=False,
-                                   acc=final_acc)
-        if FLEX_SS and gls_done and fin.sigma_latency_s > ACCEL_MIN_SIGMA_S:
-            # Kalman whitening with the flexure model, from the spectral GLS fit; kept when it agrees with
-            # it (the windows' scatter below checks its sigma). Not chosen by the smaller sigma: where the
-            # spectrum is estimated from few cycles of slow motion, the spectral sigma is the optimistic one
-            ff = _refine_flex(t_m, a, valid, itp, fin.latency_s, fin.drift, t_mid, ctx.cutoff_hz, fit_drift=fd,
-                              acc=final_acc, h0=fin.sigma_latency_s)
-            if ff.ok and abs(ff.latency_s - fin.latency_s) <= FLEX_AGREE_SIGMAS * max(ff.sigma_latency_s,
-                                                                                      fin.sigma_latency_s):
-                # (a gyro-only Kalman fit keeps the accelerometer model check's figures)
-                fin = ff if ff.accel_lag_s[1] > 0 else replace(ff, accel_lag_s=fin.accel_lag_s)
-
-                def refit(ws, tc, lag):
-                    return _refine_flex(t_m[ws], a[ws], valid[ws], itp, lag, 0.0, tc, ctx.cutoff_hz,
-                                        fit_drift=False, acc=final_acc, model=ff.flex, h0=ff.sigma_latency_s)
-        if fd and refit is not None:
-            # the windows again with the final (aided / Kalman-whitened) estimator, its noise model and
-            # channels: their scatter about the final line is what the sigma is checked against (gyro-only
-            # windows scatter with the flexure the final estimator took out). Gyro-only spectral fits keep
-            # the ordinary windows' scatter, the conservative check (GLS windows of gyros alone measured worse).
+        def windows(f: _Fit, refit) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            """The windows for the check of f's sigma: again with f's own estimator (``refit``: its noise
+            model and channels; gyro-only windows scatter with the flexure it took out), else the ordinary
+            ones (gyro-only spectral fits: the conservative check, GLS windows of gyros alone measured
+            worse). Fewer than 3 windows with the motion for f's estimator: nothing checks its sigma (the
+            ordinary windows' sigmas ignore the flexure and would inflate it for nothing)."""
+            if not fd or refit is None:
+                return centers, lats, sigs
             c2, l2, s2 = [], [], []
             for tc in centers:
                 a0, a1 = bounds[float(tc)]
                 ws = (t_m >= a0) & (t_m <= a1)
-                f = refit(ws, tc, fin.latency_s + fin.drift * (tc - t_mid))
-                if f.ok and np.isfinite(f.sigma_latency_s):
+                fw = refit(ws, tc, f.latency_s + f.drift * (tc - t_mid))
+                if fw.ok and np.isfinite(fw.sigma_latency_s):
                     c2.append(tc)
-                    l2.append(f.latency_s)
-                    s2.append(max(f.sigma_latency_s, SIGMA_FLOOR_S))
+                    l2.append(fw.latency_s)
+                    s2.append(max(fw.sigma_latency_s, SIGMA_FLOOR_S))
             if len(c2) >= 3:
-                centers, lats, sigs = np.asarray(c2), np.asarray(l2), np.asarray(s2)
-            else:
-                # too few windows with enough motion for the final estimator: nothing checks its sigma
-                # (the ordinary windows' sigmas ignore the flexure and would inflate it for nothing)
-                sigs = np.full(len(sigs), np.inf)
+                return np.asarray(c2), np.asarray(l2), np.asarray(s2)
+            return centers, lats, np.full(len(sigs), np.inf)
+
+        refit = None
+        if final_acc is not None:
+            def refit(ws, tc, lag):
+                return _refine_gls(t_m[ws], a[ws], valid[ws], itp, lag, 0.0, tc, final_noise, fit_drift=False,
+                                   acc=final_acc)
+        cands = [(fin, refit)]
+        if FLEX_SS and gls_done and fin.sigma_latency_s > ACCEL_MIN_SIGMA_S:
+            # Kalman whitening with the flexure model, from the spectral GLS fit; a candidate when it
+            # agrees with it (a gyro-only Kalman fit keeps the accelerometer model check's figures)
+            ff = _refine_flex(t_m, a, valid, itp, fin.latency_s, fin.drift, t_mid, ctx.cutoff_hz, fit_drift=fd,
+                              acc=final_acc, h0=fin.sigma_latency_s)
+            if ff.ok and abs(ff.latency_s - fin.latency_s) <= FLEX_AGREE_SIGMAS * max(ff.sigma_latency_s,
+                                                                                      fin.sigma_latency_s):
+                ff = ff if ff.accel_lag_s[1] > 0 else replace(ff, accel_lag_s=fin.accel_lag_s)
+
+                def refit_flex(ws, tc, lag):
+                    return _refine_flex(t_m[ws], a[ws], valid[ws], itp, lag, 0.0, tc, ctx.cutoff_hz,
+                                        fit_drift=False, acc=final_acc, model=ff.flex, h0=ff.sigma_latency_s)
+                cands.append((ff, refit_flex))
+        if len(cands) == 1 or not fd:
+            fin, refit = cands[-1]  # without windows the Kalman fit is taken (see FLEX_AGREE_SIGMAS)
+            centers, lats, sigs = windows(fin, refit)
+        else:
+            # each candidate's sigma as checked by its own windows' scatter; the smaller one is kept (not
+            # the bare sigmas: where the spectrum is estimated from a few cycles of slow motion, the
+            # spectral sigma is the optimistic one, and where the flexure model does not describe the
+            # data -- vibration, filters -- its windows disagree)
+            scored = []
+            for k, (f, rf) in enumerate(cands):
+                w = windows(f, rf)
+                chi2 = _window_chi2(f, *w, t_mid)
+                pref = 1.0 if k == 0 else 1.0 / FLEX_PREFERENCE  # the model-based fit unless clearly worse
+                scored.append((pref * f.sigma_latency_s * np.sqrt(max(1.0, chi2)), f, w))
+            _, fin, (centers, lats, sigs) = min(scored, key=lambda x: x[0])
     return fin, centers, lats, sigs
 
 
