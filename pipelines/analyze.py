@@ -231,11 +231,14 @@ def summary_lines(rep: dict, paths: dict[str, str | None]) -> list[str]:
     else:
         sig = lat["sigma_s"]
         aided = (lat.get("quality") or {}).get("accel_aided") is True
+        flex = (lat.get("quality") or {}).get("flexure_model")
+        flex_txt = (f", flexure model {max(flex['sigma_deg']):.3g} deg / beta {flex['beta_1_s']:.3g} 1/s"
+                    if isinstance(flex, dict) else "")
         big = abs(lat["latency_s"]) >= 10.0  # unrelated clocks: the offset between them, in seconds
         head = f"{lat['latency_s']:+.6f} s" if big else f"{lat['latency_s'] * 1e3:+.3f} ms"
         out.append(f"latency {head} +/- {sig * 1e3 if sig is not None else float('nan'):.3f} ms (1 sigma), "
                    f"drift {lat['drift_ppm'] if lat['drift_ppm'] is not None else float('nan'):+.2f} ppm  "
-                   f"[{lat['method']}{' gyro+accel' if aided else ''}, "
+                   f"[{lat['method']}{' gyro+accel' if aided else ''}{flex_txt}, "
                    f"window {lat['window_s'][1] - lat['window_s'][0]:.1f} s]")
         others = [f"{k} {_fmt_ms(v['latency_s'])}" for k, v in lat.get("methods", {}).items() if k != lat["method"]]
         if others:
