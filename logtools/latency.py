@@ -54,9 +54,10 @@ tapost's method ("tapost")
      from a few cycles of slow motion cannot tell the flexure from the delay as well as this model
      does, and it averages the gravity direction's modulation of the accelerometer rows that the
      Kalman filter keeps exact. A candidate when within FLEX_AGREE_SIGMAS of the spectral fit; kept
-     unless its sigma, checked by its own drift windows' scatter (step 5), exceeds the spectral fit's
-     likewise checked one FLEX_PREFERENCE times (a real log whose disturbance is not flexure-like:
-     vibration, filters). The quality key ``flexure_model`` then gives the fitted sigma (deg) and beta. On the benchmark's flexure runs
+     unless its own drift windows (step 5, re-estimated with it) disagree beyond FLEX_WINDOWS_CHI2 and
+     the spectral fit's window-checked sigma is the smaller (a real log whose disturbance is not
+     flexure-like: vibration, filters). The quality key ``flexure_model`` then gives the fitted sigma
+     (deg) and beta. On the benchmark's flexure runs
      the error is at the Cramer-Rao bound (``benchmarks/latency_bound.py``).
   4. drift: steps 3-3b in windows along the overlap (integer-lag search around the predicted lag, then
      refinement), a weighted line latency(t) = L + drift (t - t_mid) with windows beyond WINDOW_REJECT
@@ -136,7 +137,8 @@ ACCEL_GLS_PASSES = 2  # accelerometer-aided passes (the 6-channel cross-spectrum
 ACCEL_MIN_SIGMA_S = 1e-4  # ... and when the gyro-only sigma is above this (below it they cannot matter)
 FLEX_SS = True  # Kalman (state-space flexure model) whitening after the spectral GLS, see _refine_flex
 FLEX_AGREE_SIGMAS = 5.0
-FLEX_PREFERENCE = 2.0  # ... and kept unless its window-checked sigma is this many times the spectral fit's
+FLEX_WINDOWS_CHI2 = 4.0  # ... and kept unless its windows disagree beyond this (reduced chi-square) and the
+#                          spectral fit's window-checked sigma is the smaller
 FLEX_ITERS = 6  # profile Newton steps
 FLEX_ML_SPAN_S = 120.0  # the flexure model is fitted on at most this much of the overlap (its middle)
 FLEX_ML_BLOCKS = 1500  # ... and on at most this many block samples  # ... kept when within this many sigma of the spectral GLS and more precise
@@ -1595,17 +1597,20 @@ def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: f
             fin, refit = cands[-1]  # without windows the Kalman fit is taken (see FLEX_AGREE_SIGMAS)
             centers, lats, sigs = windows(fin, refit)
         else:
-            # each candidate's sigma as checked by its own windows' scatter; the smaller one is kept (not
-            # the bare sigmas: where the spectrum is estimated from a few cycles of slow motion, the
-            # spectral sigma is the optimistic one, and where the flexure model does not describe the
-            # data -- vibration, filters -- its windows disagree)
+            # each candidate's sigma as checked by its own windows' scatter. The Kalman fit is kept unless
+            # its windows disagree (the flexure model does not describe the data: vibration, filters) and
+            # the spectral fit's checked sigma is smaller. Not the bare sigmas: where the spectrum is
+            # estimated from a few cycles of slow motion, the spectral sigma is the optimistic one
             scored = []
-            for k, (f, rf) in enumerate(cands):
+            for f, rf in cands:
                 w = windows(f, rf)
                 chi2 = _window_chi2(f, *w, t_mid)
-                pref = 1.0 if k == 0 else 1.0 / FLEX_PREFERENCE  # the model-based fit unless clearly worse
-                scored.append((pref * f.sigma_latency_s * np.sqrt(max(1.0, chi2)), f, w))
-            _, fin, (centers, lats, sigs) = min(scored, key=lambda x: x[0])
+                scored.append((f.sigma_latency_s * np.sqrt(max(1.0, chi2)), chi2, f, w))
+            (s_spec, _, f_spec, w_spec), (s_flex, chi2_flex, f_flex, w_flex) = scored
+            if chi2_flex > FLEX_WINDOWS_CHI2 and s_spec < s_flex:
+                fin, (centers, lats, sigs) = f_spec, w_spec
+            else:
+                fin, (centers, lats, sigs) = f_flex, w_flex
     return fin, centers, lats, sigs
 
 
