@@ -91,7 +91,8 @@ from logtools.conventions import (dcm_from_quat, euler_from_dcm, quat_conj, quat
 from logtools.errors import AnalysisError
 from logtools.inslog import InsLog
 from logtools.latency_flexure import DECIMATE_FACTOR, FlexureModel, block_mean, fit_model, whitened_normal
-from logtools.resample import Interpolant, UniformSeries, interpolant, lowpass, median_rate_hz, to_uniform
+from logtools.resample import (Interpolant, UniformSeries, interpolant, lowpass, median_rate_hz, stamp_noise_s,
+                               to_uniform)
 from logtools.results import LatencyResult, MethodEstimate
 
 __all__ = ["estimate", "METHODS", "rate_from_attitude"]
@@ -1118,7 +1119,7 @@ def _prepare(master: InsLog, slave: InsLog, max_lag_s: float | None, *, accelero
     um = _make_unit(natm, nm, srcm, "master", fm, 1.0 / f_s, cutoff)
     us = _make_unit(nats, ns, srcs, "slave", fs, 1.0 / f_s, cutoff)
     ctx = _Ctx(um, us, dt_c, cutoff, max_lag_s, t0_abs_s=master.t0_s, dt_s=1.0 / f_s, dt_r=1.0 / f_r,
-               raw=(natm, nats), stamp_jitter_s=(_stamp_jitter_s(tm), _stamp_jitter_s(ts)))
+               raw=(natm, nats), stamp_jitter_s=(stamp_noise_s(tm), stamp_noise_s(ts)))
     ctx.warnings += list(um.native.warnings) + list(us.native.warnings)
     if (accelerometers and ACCEL_AIDED and srcm == "gyro" and srcs == "gyro" and master.has_accel
             and slave_r.has_accel):
@@ -1146,19 +1147,6 @@ def _accel_pair(master: InsLog, slave: InsLog, cutoff_hz: float, master_rate: In
         except ValueError:
             return None
     return _Accel(itps[0], itps[1], master_rate)
-
-
-def _stamp_jitter_s(t: np.ndarray) -> float:
-    """White noise on a stream's stamps (s), from the spread of its sample intervals (gaps and
-    duplicates left out): a stamp error of sigma makes the intervals spread by sqrt(2) sigma."""
-    st = np.diff(np.sort(t[np.isfinite(t)]))
-    if len(st) < 10:
-        return 0.0
-    med = float(np.median(st))
-    st = st[(st > 0) & (st < 2.0 * med)]
-    if len(st) < 10:
-        return 0.0
-    return float(1.4826 * np.median(np.abs(st - np.median(st))) / np.sqrt(2.0))
 
 
 def _jitter_sigma_s(ctx: _Ctx, w0: float, w1: float) -> float:

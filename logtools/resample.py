@@ -23,7 +23,7 @@ from scipy import ndimage, signal
 from scipy.interpolate import make_interp_spline
 
 __all__ = ["CleanSamples", "UniformSeries", "Interpolant", "clean_samples", "median_rate_hz",
-           "to_uniform", "lowpass", "interpolant"]
+           "to_uniform", "lowpass", "interpolant", "stamp_noise_s"]
 
 
 @dataclass(frozen=True)
@@ -103,6 +103,20 @@ def median_rate_hz(t_s: np.ndarray) -> float:
     return float(1.0 / np.median(d)) if len(d) else float("nan")
 
 
+def stamp_noise_s(t: np.ndarray) -> float:
+    """White noise on a stream's stamps (s), from the robust spread (MAD) of its sample intervals, gaps
+    and duplicates left out: a stamp error of sigma spreads the intervals by sqrt(2) sigma. The one
+    measure of stamp noise (the resampling's warning, the latency's sigma floor)."""
+    st = np.diff(np.sort(t[np.isfinite(t)]))
+    if len(st) < 10:
+        return 0.0
+    med = float(np.median(st))
+    st = st[(st > 0) & (st < 2.0 * med)]
+    if len(st) < 10:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(st - np.median(st))) / np.sqrt(2.0))
+
+
 def to_uniform(
     t_s: np.ndarray,
     values: np.ndarray,
@@ -134,7 +148,7 @@ def to_uniform(
     valid = np.ones(len(tg), dtype=bool)
     gaps: list[tuple[float, float]] = []
     steps = np.diff(t)
-    jitter = float(np.std(steps[steps < 1.5 * dt_nat]) / dt_nat) if np.any(steps < 1.5 * dt_nat) else 0.0
+    jitter = stamp_noise_s(t) * np.sqrt(2.0) / dt_nat  # the intervals' spread, as a fraction of one
     # an interval is a gap when more than max_gap_samples samples are missing in it
     big = np.flatnonzero(steps > (max_gap_samples + 1.5) * dt_nat)
     if len(big):
