@@ -7,10 +7,10 @@ Markov rotation ``lam`` of the slave per axis::
 
     lam'' = -beta^2 lam - 2 beta lam' + eta,      var(lam_i) = sigma_i^2
 
-A rotation ``lam`` of the slave adds ``lam'`` to its rates and ``f_s x lam`` to its specific force, so the
-residual is, per sample k (slave frame)::
+A rotation ``lam`` of the slave adds ``lam' + w_s x lam`` to its rates and ``f_s x lam`` to its specific
+force, so the residual is, per sample k (slave frame)::
 
-    y_k = J_k p + H_k x_k + v_k,   x = (lam, lam'),   H_k = [[0, I], [[f_s,k x], 0]],   v_k white
+    y_k = J_k p + H_k x_k + v_k,   x = (lam, lam'),   H_k = [[[w_s,k x], I], [[f_s,k x], 0]],   v_k white
 
 with p the fit's unknowns (delay, drift, rotation, biases, lever arm; J their Jacobian). The Kalman filter
 of that model turns ``y`` and every column of ``J`` into innovations whitened by their covariance: least
@@ -41,7 +41,6 @@ except ImportError:  # pragma: no cover
         return fn
 
 __all__ = ["FlexureModel", "block_mean", "fit_model", "whitened_normal"]
-
 
 DECIMATE_FACTOR = 2.5  # block rate = this x the low-pass cutoff
 MAX_ML_ITER = 30
