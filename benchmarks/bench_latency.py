@@ -332,6 +332,8 @@ def main(argv: list[str] | None = None) -> int:
     by_flexure = {f"flexure={f}": summarize(sel) for f in (False, True)
                   if (sel := [r for r in main_rows if r["flexure"] == f])}
     flex_rows = [r for r in main_rows if r["flexure"]]
+    flexure_by_scenario = {sc: summarize(sel, methods=("tapost", GYRO_ONLY)) for sc in SCENARIOS
+                           if (sel := [r for r in flex_rows if r["scenario"] == sc])}
     bound = {"all flexure runs": summarize_bound(flex_rows)}
     bound.update({sc: summarize_bound([r for r in flex_rows if r["scenario"] == sc]) for sc in SCENARIOS})
     t1 = table1()
@@ -346,7 +348,8 @@ def main(argv: list[str] | None = None) -> int:
                     truth="Truth.latency_at(result.t_mid_rel_s)", sigma_coverage="|error| <= 2 sigma",
                     python=platform.python_version(), machine=platform.machine(), cpus=os.cpu_count()),
         wall_time_s=wall, runtime_per_run_s=wall * args.workers / max(len(rows), 1),
-        summary=summary, by_scenario=by_scenario, by_flexure=by_flexure, bound_flexure=bound,
+        summary=summary, by_scenario=by_scenario, by_flexure=by_flexure,
+        flexure_by_scenario=flexure_by_scenario, bound_flexure=bound,
         aligned_control=control, stamp_noise=stamp_noise, rows=rows,
         notes=("summary/by_scenario: random mountings (main set). aligned_control: the same kind of draws with "
                "the units' axes aligned (what the seeds assume). stamp_noise: noisy stamps and slave gaps. '@1s' rows: the seeds with the papers' +-1 s "
@@ -366,11 +369,9 @@ def main(argv: list[str] | None = None) -> int:
     for k, v in by_flexure.items():
         print()
         print(md_table(v, k))
-    for sc in SCENARIOS:
-        sel = [r for r in flex_rows if r["scenario"] == sc]
-        if sel:
-            print()
-            print(md_table(summarize(sel, methods=("tapost", GYRO_ONLY)), f"{sc}, flexure runs"))
+    for sc, v in flexure_by_scenario.items():
+        print()
+        print(md_table(v, f"{sc}, flexure runs"))
     print()
     print(bound_md(bound))
     if control:

@@ -57,8 +57,8 @@ tapost's method ("tapost")
      unless its own drift windows (step 5, re-estimated with it) disagree beyond FLEX_WINDOWS_CHI2 and
      the spectral fit's window-checked sigma is the smaller (a real log whose disturbance is not
      flexure-like: vibration, filters). The quality key ``flexure_model`` then gives the fitted sigma
-     (deg) and beta. On the benchmark's flexure runs
-     the error is at the Cramer-Rao bound (``benchmarks/latency_bound.py``).
+     (deg) and beta. On the benchmark's flexure runs the error is at the Cramer-Rao bound
+     (``benchmarks/latency_bound.py``).
   4. drift: steps 3-3b in windows along the overlap (integer-lag search around the predicted lag, then
      refinement), a weighted line latency(t) = L + drift (t - t_mid) with windows beyond WINDOW_REJECT
      sigma rejected (a window with little motion can lock on a wrong minimum, where its linearised sigma
@@ -137,12 +137,12 @@ ACCEL_AIDED = True  # gyro + accelerometer residuals in the final GLS when both 
 ACCEL_GLS_PASSES = 2  # accelerometer-aided passes (the 6-channel cross-spectrum re-estimated before each)
 ACCEL_MIN_SIGMA_S = 1e-4  # ... and when the gyro-only sigma is above this (below it they cannot matter)
 FLEX_SS = True  # Kalman (state-space flexure model) whitening after the spectral GLS, see _refine_flex
-FLEX_AGREE_SIGMAS = 5.0
+FLEX_AGREE_SIGMAS = 5.0  # ... a candidate when within this many sigma of the spectral GLS
 FLEX_WINDOWS_CHI2 = 4.0  # ... and kept unless its windows disagree beyond this (reduced chi-square) and the
 #                          spectral fit's window-checked sigma is the smaller
 FLEX_ITERS = 6  # profile Newton steps
 FLEX_ML_SPAN_S = 120.0  # the flexure model is fitted on at most this much of the overlap (its middle)
-FLEX_ML_BLOCKS = 1500  # ... and on at most this many block samples  # ... kept when within this many sigma of the spectral GLS and more precise
+FLEX_ML_BLOCKS = 1500  # ... and on at most this many block samples
 ACCEL_LAG_SIGMAS = 3.0  # ... unless the accelerometers' own delay differs from the gyros' by more sigmas
 
 Progress = Callable[[float, str], None] | None
@@ -786,26 +786,22 @@ def _gls_system(t_m: np.ndarray, a: np.ndarray, use: np.ndarray, itp: Interpolan
     R, bias = _kabsch_bias(a[use], bv[use])
     r = np.zeros((n, C))
     r[use, :3] = bv[use] - a[use] @ R.T - bias
+    fv = Rf = None
+    if acc is not None:
+        fv, _ = acc.slave(tau)
+        Rf = np.where(use[:, None], fm @ R.T, 0.0)
+        r[use, 3:] = fv[use] - Rf[use] - np.mean(fv[use] - Rf[use], axis=0)
     if not jacobian:
-        fv = None
-        if acc is not None:
-            fv, _ = acc.slave(tau)
-            Rf = fm[use] @ R.T
-            r[use, 3:] = fv[use] - Rf - np.mean(fv[use] - Rf, axis=0)
         return r, None, R, bias, fv
     bd = np.zeros((n, 3))
     bd[use], _ = itp(tau[use], 1)
     Ra = np.where(use[:, None], a @ R.T, 0.0)
     Jg = _jacobian(bd, tt if fit_drift else None, Ra).reshape(n, 3, -1)
-    fv = None
     if acc is None:
         J = Jg
     else:
-        fv, _ = acc.slave(tau)
         fd = np.zeros((n, 3))
         fd[use], _ = acc.slave(tau[use], 1)
-        Rf = np.where(use[:, None], fm @ R.T, 0.0)
-        r[use, 3:] = fv[use] - Rf[use] - np.mean(fv[use] - Rf[use], axis=0)
         Ja = _jacobian(fd, tt if fit_drift else None, Rf).reshape(n, 3, -1)
         pg = Jg.shape[2]  # L[, drift], rotation, gyro bias | accelerometer bias, lever arm
         J = np.zeros((n, 6, pg + 7))
@@ -1004,8 +1000,10 @@ def _refine_flex(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpo
         return float(M[col, col] - s_ @ np.linalg.solve(M[np.ix_(pc, pc)], s_))
 
     curv = 0.0
+    at = (d, dr)  # where sy was evaluated
     for it in range(iters + 1):
-        sy = system(d, dr)
+        if (d, dr) != at:
+            sy, at = system(d, dr), (d, dr)
         sp, sm = system(d + h, dr, False), system(d - h, dr, False)
         if sy is None or sp is None or sm is None:
             return fail
@@ -1037,8 +1035,8 @@ def _refine_flex(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpo
     if not curv > 0:
         return fail
     # the final pass: residual column 1, the unknowns jc (+ the model check's column last)
-    M = M[np.ix_([1] + jc + list(range(3 + P, M.shape[0])), [1] + jc + list(range(3 + P, M.shape[0])))]
-    W = W[:, :, [1] + jc + list(range(3 + P, W.shape[2]))]
+    keep = [1] + jc + list(range(3 + P, M.shape[0]))
+    M, W = M[np.ix_(keep, keep)], W[:, :, keep]
     ub = sy[1]
     r, R, bias = sy[4], sy[5], sy[6]
     Nm, g = M[1:P + 1, 1:P + 1], M[1:P + 1, 0]
@@ -1541,6 +1539,7 @@ def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: f
                 fin, final_noise, final_acc = fa, nm6, acc
             else:
                 fin = fa  # the gyro-only fit, with the model check's figures
+
         def windows(f: _Fit, refit) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             """The windows for the check of f's sigma: again with f's own estimator (``refit``: its noise
             model and channels; gyro-only windows scatter with the flexure it took out), else the ordinary

@@ -230,8 +230,9 @@ def summary_lines(rep: dict, paths: dict[str, str | None]) -> list[str]:
         out.append(f"latency FAILED: {lat['failed']}")
     else:
         sig = lat["sigma_s"]
-        aided = (lat.get("quality") or {}).get("accel_aided") is True
-        flex = (lat.get("quality") or {}).get("flexure_model")
+        q = lat.get("quality") or {}
+        aided = q.get("accel_aided") is True
+        flex = q.get("flexure_model")
         flex_txt = (f", flexure model {max(flex['sigma_deg']):.3g} deg / beta {flex['beta_1_s']:.3g} 1/s"
                     if isinstance(flex, dict) else "")
         big = abs(lat["latency_s"]) >= 10.0  # unrelated clocks: the offset between them, in seconds
@@ -243,7 +244,6 @@ def summary_lines(rep: dict, paths: dict[str, str | None]) -> list[str]:
         others = [f"{k} {_fmt_ms(v['latency_s'])}" for k, v in lat.get("methods", {}).items() if k != lat["method"]]
         if others:
             out.append("        other methods: " + ", ".join(others))
-        q = lat.get("quality") or {}
         flags = [f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                  for k, v in q.items() if isinstance(v, (bool, str, int, float)) and v is not None]
         if flags:
