@@ -23,12 +23,9 @@ from __future__ import annotations
 import numpy as np
 
 from logtools import sim
-from logtools.conventions import dcm_from_euler, skew
+from logtools.conventions import DEG, DEG_PER_SQRT_H, UG_PER_SQRT_HZ, dcm_from_euler, skew
 from logtools.latency import DRIFT_PRIOR_PPM
 from logtools.latency_flexure import FlexureModel, whitened_normal
-
-DEG = np.pi / 180.0
-G0 = 9.80665
 
 
 def latency_bound_s(cfg: "sim.SimConfig", truth: "sim.Truth", dt_s: float = 0.05) -> dict:
@@ -53,8 +50,9 @@ def latency_bound_s(cfg: "sim.SimConfig", truth: "sim.Truth", dt_s: float = 0.05
             np.concatenate([Z3, skew(wd) + skew(w) @ skew(w)], axis=1)]  # lever arm
     J = np.concatenate(cols, axis=2)  # (n, 6, 14)
     y = np.concatenate([np.zeros((n, 6, 1)), J], axis=2)
-    arw = np.hypot(cfg.slave_gyro_arw_dpsh, cfg.master_gyro_arw_dpsh) * DEG / 60.0  # rad/sqrt(s)
-    vrw = np.hypot(cfg.slave_accel_vrw_ug_rthz, cfg.master_accel_vrw_ug_rthz) * 1e-6 * G0
+    # white noise of both units, per dt_s sample (the simulator's convention: std N sqrt(rate) per sample)
+    arw = np.hypot(cfg.slave_gyro_arw_dpsh, cfg.master_gyro_arw_dpsh) * DEG_PER_SQRT_H
+    vrw = np.hypot(cfg.slave_accel_vrw_ug_rthz, cfg.master_accel_vrw_ug_rthz) * UG_PER_SQRT_HZ
     noise = np.array([arw ** 2] * 3 + [vrw ** 2] * 3) / dt_s
     sig = np.asarray(cfg.flexure_sigma_deg, float) * DEG if cfg.flexure else np.full(3, 1e-12)
     beta = float(np.mean(cfg.flexure_beta_1_s))
