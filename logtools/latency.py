@@ -90,6 +90,7 @@ from logtools.conventions import (dcm_from_quat, euler_from_dcm, quat_conj, quat
                                  rotvec_from_quat, skew)
 from logtools.errors import AnalysisError
 from logtools.inslog import InsLog
+from logtools.latency_gls import NoiseModel, end_taper, gls_covariance, hac_cov, noise_model
 from logtools.latency_flexure import DECIMATE_FACTOR, FlexureModel, block_mean, fit_model, whitened_normal
 from logtools.resample import (Interpolant, UniformSeries, interpolant, lowpass, median_rate_hz, stamp_noise_s,
                                to_uniform)
@@ -111,7 +112,6 @@ MAX_WINDOWS = 16
 DRIFT_PRIOR_PPM = 100.0  # prior std of the relative clock drift (shrinks an undetermined drift)
 DRIFT_SEARCH_PPM = 250.0  # window search band grows with distance from the middle at this rate
 SIGMA_CALIBRATION = 1.2  # from a Monte Carlo over the simulator (|error| <= 2 sigma in ~95 % of runs)
-HAC_BANDWIDTH_FACTOR = 4  # Newey-West bandwidth = this x the lag where the scores decorrelate
 ADAPT_BAND = True  # narrow the band where the residuals (flexure) outweigh the motion
 ADAPT_SPAN_S = 300.0  # the band is chosen from a first fit on the central part of the overlap
 MIN_ADAPT_CUTOFF_HZ = 0.05
@@ -121,7 +121,6 @@ SIGMA_FLOOR_S = 5e-6  # model floor (interpolation, numerics)
 PERIODIC_MARGIN = 0.02  # alternative minimum within this of the best normalised cost -> periodic
 PERIODIC_REL_MARGIN = 0.1  # ... or within this fraction of the best cost (noisy data)
 GLS = True  # weigh frequencies by motion / residual power (whitened Gauss-Newton), see _refine_gls
-GLS_SMOOTH_HZ = 0.05  # the residual spectrum is smoothed over this band
 GLS_PASSES = 2  # whole-overlap GLS passes (residual spectrum re-estimated before each)
 GLS_TAPER_S = 2.0  # ramp of the weights at the ends of the used data (whitening transients)
 WINDOW_REJECT = 5.0  # a window this many sigma off the drift line is an outlier (wrong minimum)
@@ -131,8 +130,6 @@ FINE_COST_SIGMAS = 5.0  # ... over +- this many sigma
 FINE_COST_SAMPLES = 3  # ... or at least +- this many search-grid samples
 FINE_COST_MAX_SAMPLES = 50_000
 GLS_WINDOWS = False  # GLS also in each drift window
-GLS_FLOOR = 1e-4  # PSD floor (fraction of its peak): the low-pass stop band is not amplified beyond it
-GLS_CSD_BINS = 15  # a cross-spectral matrix is smoothed over at least this many bins (conditioning)
 ACCEL_AIDED = True  # gyro + accelerometer residuals in the final GLS when both units have accelerometers
 ACCEL_GLS_PASSES = 2  # accelerometer-aided passes (the 6-channel cross-spectrum re-estimated before each)
 ACCEL_MIN_SIGMA_S = 1e-4  # ... and when the gyro-only sigma is above this (below it they cannot matter)
@@ -424,33 +421,6 @@ def _kabsch_bias(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return R, mb - R @ ma
 
 
-def _hac_cov(u: np.ndarray, max_lag: int) -> tuple[np.ndarray, float]:
-    """Newey-West (Bartlett) covariance of sum_k u_k for serially correlated u (N, p); the bandwidth is
-    HAC_BANDWIDTH_FACTOR times the lag where u's mean autocorrelation first drops below 0.1.
-    Returns (covariance (p, p), bandwidth in samples)."""
-    N, p = u.shape
-    nfft = sfft.next_fast_len(2 * N, real=True)
-    F = sfft.rfft(u, nfft, axis=0)
-    nl = min(N, max_lag + 1)
-    # ac[h, i, j] = sum_k u_i[k] u_j[k + h]
-    ac = np.empty((nl, p, p))
-    for i in range(p):
-        for j in range(p):
-            ac[:, i, j] = sfft.irfft(np.conj(F[:, i]) * F[:, j], nfft)[:nl]
-    g0 = np.diag(ac[0]).copy()
-    g0[g0 <= 0] = np.finfo(float).tiny
-    rho = (np.diagonal(ac, axis1=1, axis2=2) / g0).mean(axis=1)
-    below = np.flatnonzero(rho < 0.1)
-    h1 = int(below[0]) if len(below) else nl - 1
-    H = int(np.clip(HAC_BANDWIDTH_FACTOR * h1, 1, nl - 1)) if nl > 1 else 0
-    if H == 0:
-        return ac[0], 0.0
-    w = 1.0 - np.arange(1, H + 1) / (H + 1.0)
-    S = np.sum(w[:, None, None] * ac[1:H + 1], axis=0)
-    V = ac[0] + S + S.T
-    return V, float(H)
-
-
 def _jacobian(bd: np.ndarray, tu: np.ndarray | None, Ra: np.ndarray) -> np.ndarray:
     """(3N, P) Jacobian of r = w_s(t + L + drift t) - R w_m - b w.r.t. (L[, drift], rotation, bias)."""
     n = len(bd)
@@ -587,7 +557,7 @@ def _refine(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant,
     G = (Jfull * rr[:, None]).reshape(len(r), 3, -1).sum(axis=1)  # per-sample scores
     u = G @ Ninv[:, :nd]  # contributions to the (L, drift) step
     max_h = int(min(len(u) // 4, max(10, 20.0 / dt)))
-    V_hac, _H = _hac_cov(u, max_h)
+    V_hac, _H = hac_cov(u, max_h)
     dof = max(1, r.size - Nm.shape[0])
     s2 = cost / dof
     var_cls = s2 * np.diag(Ninv)[:nd]
@@ -605,99 +575,6 @@ def _refine(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant,
 # ---------------------------------------------------------------------------------------------
 # generalised least squares: the residual's spectrum (flexure, noise) whitened
 # ---------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class _NoiseModel:
-    """Smoothed power spectrum of the residual w_s(t + d) - R w_m(t) - b on ``f_hz``: flexure's
-    differential rate (a second-order Markov process, coloured, low frequency), the gyros' white noise
-    and what the low-pass leaves, i.e. the disturbance a delay fit must weigh.
-
-    ``psd`` is either one spectrum shared by the channels, (nf,), or a cross-spectral density matrix
-    (nf, C, C) of C channels (gyro and accelerometer residuals: flexure tilts the specific force as it
-    rotates the slave, so the two are coherent and the accelerometers tell the flexure apart from the
-    delay); ``floor`` is then one number per channel."""
-
-    f_hz: np.ndarray
-    psd: np.ndarray
-    floor: float | np.ndarray  # numerical floor (the low-pass stop band)
-    tail_s: float  # length of the whitening filter's impulse response (zero padding)
-
-    def weights(self, n: int, dt_s: float) -> tuple[int, np.ndarray]:
-        """(nfft, W): W = PSD^-1/2 on the rfft bins of nfft, (nfreq,) or (nfreq, C, C)."""
-        pad = min(n, int(np.ceil(self.tail_s / dt_s)))
-        nfft = sfft.next_fast_len(n + pad, real=True)
-        f = sfft.rfftfreq(nfft, dt_s)
-        if self.psd.ndim == 1:
-            return nfft, 1.0 / np.sqrt(np.interp(f, self.f_hz, self.psd) + self.floor)
-        C = self.psd.shape[1]
-        flat = self.psd.reshape(len(self.f_hz), C * C)
-        S = np.empty((len(f), C * C), complex)
-        for j in range(C * C):
-            S[:, j] = (np.interp(f, self.f_hz, flat[:, j].real)
-                       + 1j * np.interp(f, self.f_hz, flat[:, j].imag))
-        S = S.reshape(len(f), C, C) + np.diag(np.asarray(self.floor, float))
-        lam, V = np.linalg.eigh(S)
-        lam = np.maximum(lam, 1e-300)
-        return nfft, np.einsum("fij,fj,fkj->fik", V, 1.0 / np.sqrt(lam), np.conj(V))
-
-    def whiten(self, x: np.ndarray, dt_s: float, weights: tuple[int, np.ndarray] | None = None) -> np.ndarray:
-        """The zero-phase whitening filter PSD^-1/2 applied along axis 0 (zero-filled masks); with a
-        cross-spectral matrix, x is (n, C, K) and the channels are mixed bin by bin. ``weights``:
-        ``self.weights(len(x), dt_s)`` when already computed."""
-        n = len(x)
-        nfft, w = weights if weights is not None else self.weights(n, dt_s)
-        X = sfft.rfft(x, nfft, axis=0)
-        if w.ndim == 1:
-            Z = X * w.reshape((len(w),) + (1,) * (x.ndim - 1))
-        else:
-            Z = np.matmul(w, X)
-        return sfft.irfft(Z, nfft, axis=0)[:n]
-
-
-def _taper(use: np.ndarray, n_ramp: int) -> np.ndarray:
-    """Weights rising as a raised cosine over n_ramp samples from every end of the used runs."""
-    if n_ramp <= 1:
-        return use.astype(float)
-    from scipy import ndimage as _nd
-
-    dist = _nd.distance_transform_edt(np.pad(use, 1, constant_values=False))[1:-1]
-    x = np.clip(dist / n_ramp, 0.0, 1.0)
-    return np.where(use, 0.5 - 0.5 * np.cos(np.pi * x), 0.0)
-
-
-def _noise_model(r: np.ndarray, use: np.ndarray, dt_s: float, *, matrix: bool = False) -> _NoiseModel | None:
-    """Residual spectrum from one fit's residuals (N, C) (0 where unused): periodogram over the whole
-    span smoothed over GLS_SMOOTH_HZ (a 2nd-order Markov spectrum is smooth on that scale); averaged
-    over the axes (one spectrum), or with ``matrix`` the C x C cross-spectral density, smoothed over at
-    least GLS_CSD_BINS bins so that it is well conditioned."""
-    n, C = r.shape
-    if n < 256 or use.sum() < 128:
-        return None
-    x = np.where(use[:, None], r, 0.0)
-    X = sfft.rfft(x, axis=0)
-    f = sfft.rfftfreq(n, dt_s)
-    k = max(3, int(round(GLS_SMOOTH_HZ * n * dt_s))) | 1
-    if matrix:
-        k = max(k, GLS_CSD_BINS | 1)
-    k = min(k, (len(f) // 4) | 1)
-    norm = max(1.0, float(use.sum()))
-    if not matrix:
-        p = np.mean(np.abs(X) ** 2, axis=1) / norm
-        ps = np.convolve(np.pad(p, k // 2, mode="reflect"), np.ones(k) / k, mode="valid")
-        top = float(ps.max())
-        if not top > 0:
-            return None
-        return _NoiseModel(f, ps, GLS_FLOOR * top, 1.0 / GLS_SMOOTH_HZ)
-    from scipy.ndimage import uniform_filter1d
-
-    P = (X[:, :, None] * np.conj(X[:, None, :])).reshape(len(f), C * C) / norm
-    P = (uniform_filter1d(P.real, k, axis=0, mode="reflect")
-         + 1j * uniform_filter1d(P.imag, k, axis=0, mode="reflect")).reshape(len(f), C, C)
-    top = np.max(np.real(np.diagonal(P, axis1=1, axis2=2)), axis=0)
-    if not np.all(top > 0):
-        return None
-    return _NoiseModel(f, P, GLS_FLOOR * top, 1.0 / GLS_SMOOTH_HZ)
-
-
 @dataclass(frozen=True)
 class _Accel:
     """Both units' specific force (low-passed like the rates) and the master's rate, continuous: the
@@ -824,39 +701,6 @@ def _fit_start(t_m: np.ndarray, t_mid: float, d0: float, drift0: float
     return d, dr, dt, tt, span, _Fit(d, dr, np.eye(3), np.zeros(3), np.inf, np.inf, np.nan, 0, 1.0, 0.0, False)
 
 
-def _gls_covariance(Ninv: np.ndarray, s2: float, u: np.ndarray, dt_s: float, fit_drift: bool, *,
-                    check: tuple[np.ndarray, np.ndarray] | None = None, var_floor: float = 0.0
-                    ) -> tuple[np.ndarray, float, float, tuple[float, float]]:
-    """Variances of (L[, drift]) of a whitened least-squares fit: the curvature's (s2 diag(Ninv)) with the
-    Newey-West variance of the per-sample scores u (n, nd) as a floor (what the whitening missed; lags
-    up to 20 s at the samples' interval dt_s), and the latency's at least ``var_floor`` (the drift's
-    scaled alike). Returns (var (nd,), corr(L, drift), variance factor over the curvature's, (delay of the
-    accelerometers' own, its sigma)) -- the last from ``check`` = (augmented normal matrix, right-hand
-    side) with the model-check column last, else (0, 0)."""
-    nd = u.shape[1]
-    var_cls = s2 * np.diag(Ninv)[:nd]
-    V_hac, _H = _hac_cov(u, int(min(len(u) // 4, max(10, 20.0 / dt_s))))
-    var_h = np.diag(V_hac)
-    var = np.maximum(var_h, var_cls)
-    up = max(1.0, var_floor / var[0]) if var[0] > 0 else 1.0
-    var = var * up
-    corr = 0.0
-    if fit_drift and var[0] > 0 and var[1] > 0:
-        cv = (V_hac[0, 1] if var_h[0] >= var_cls[0] else s2 * Ninv[0, 1]) * up
-        corr = float(np.clip(cv / np.sqrt(var[0] * var[1]), -0.99, 0.99))
-    fac = float(var[0] / var_cls[0]) if var_cls[0] > 0 else 1.0
-    acc_lag = (0.0, 0.0)
-    if check is not None:
-        try:
-            Nx, b = check
-            sx = np.linalg.solve(Nx, b)
-            vx = float(np.linalg.inv(Nx)[-1, -1]) * s2 * max(1.0, fac)
-            acc_lag = (-float(sx[-1]), float(np.sqrt(max(vx, 0.0))))
-        except np.linalg.LinAlgError:
-            acc_lag = (np.inf, np.inf)
-    return var, corr, fac, acc_lag
-
-
 def _motion_rms(a: np.ndarray, use: np.ndarray) -> float:
     """RMS of the master's rate about its mean over the used samples (rad/s)."""
     au = a[use]
@@ -864,7 +708,7 @@ def _motion_rms(a: np.ndarray, use: np.ndarray) -> float:
 
 
 def _refine_gls(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant, d0: float,
-                drift0: float, t_mid: float, noise: _NoiseModel, *, fit_drift: bool, iters: int = 4,
+                drift0: float, t_mid: float, noise: NoiseModel, *, fit_drift: bool, iters: int = 4,
                 acc: _Accel | None = None) -> _Fit:
     """Generalised least squares: Gauss-Newton on the whitened residual and whitened Jacobian of the
     joint (L[, drift], rotation, bias) problem; the L[, drift] part of each step is taken and R, b
@@ -884,7 +728,7 @@ def _refine_gls(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpol
     if use.sum() < 20:
         return fail
     C = 3 if acc is None else 6
-    taper = _taper(use, int(np.ceil(GLS_TAPER_S / dt)))
+    taper = end_taper(use, int(np.ceil(GLS_TAPER_S / dt)))
     wts = noise.weights(n, dt)
     for it in range(iters + 1):
         sysm = _gls_system(t_m, a, use, itp, d, dr, tt, fit_drift, acc, fm, lev)
@@ -933,7 +777,7 @@ def _refine_gls(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpol
     # model check: the accelerometers' delay relative to the gyros' (0 when both come through the same
     # path; real IMUs may filter them differently), from the augmented normal equations
     check = None if acc is None else (Jx.T @ Jx, Jx.T @ rw.ravel())
-    var, corr, fac, acc_lag = _gls_covariance(Ninv, s2, u, dt, fit_drift, check=check)
+    var, corr, fac, acc_lag = gls_covariance(Ninv, s2, u, dt, fit_drift, check=check)
     motion = _motion_rms(a, use)
     raw_rms = float(np.sqrt(np.sum(r[:, :3] ** 2) / (3 * n_use)))
     return _Fit(d, dr, R, bias, float(np.sqrt(var[0])), float(np.sqrt(var[1])) if fit_drift else 0.0,
@@ -1052,7 +896,7 @@ def _refine_flex(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpo
     u = np.sum(Wp * rw[:, :, None], axis=1)[ub] @ Ninv[:, :nd]
     check = None if not n_check else (M[1:, 1:], M[1:, 0] + M[1:, 1:P + 1] @ step)
     # the profile's curvature floors the latency's variance (cost = sum of squares: var = s2 / curvature)
-    var, corr, fac, acc_lag = _gls_covariance(Ninv, s2, u, k * dt, fit_drift, check=check, var_floor=s2 / curv)
+    var, corr, fac, acc_lag = gls_covariance(Ninv, s2, u, k * dt, fit_drift, check=check, var_floor=s2 / curv)
     motion = _motion_rms(a, use)
     raw_rms = float(np.sqrt(np.sum(r[use, :3] ** 2) / (3 * int(use.sum()))))
     return _Fit(d, dr, R, bias, float(np.sqrt(var[0])), float(np.sqrt(var[1])) if fit_drift else 0.0,
@@ -1310,7 +1154,7 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
     noise = None
     if GLS and first.ok:
         cr = _residual(t_m[cs], a[cs], valid[cs], s.itp, first, t_mid)
-        noise = _noise_model(cr, np.any(cr != 0.0, axis=1), ctx.dt_r)
+        noise = noise_model(cr, np.any(cr != 0.0, axis=1), ctx.dt_r)
     if ADAPT_BAND and first.ok and noise is None:
         new_cut = _best_cutoff(t_m[cs], a[cs], valid[cs], _residual(t_m[cs], a[cs], valid[cs], s.itp, first, t_mid),
                                ctx.dt_r, ctx.cutoff_hz, float(np.ptp(t_m[cs])))
@@ -1456,7 +1300,7 @@ def _window_chi2(f: _Fit, centers: np.ndarray, lats: np.ndarray, sigs: np.ndarra
 
 
 def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: float, w1: float,
-             d_center: float, drift_center: float, search_ppm: float, noise: _NoiseModel | None = None
+             d_center: float, drift_center: float, search_ppm: float, noise: NoiseModel | None = None
              ) -> tuple[_Fit, np.ndarray, np.ndarray, np.ndarray]:
     """Windows along the overlap (each: integer-lag search around the predicted lag, then refinement),
     a weighted line through them, then the joint (L, drift) fit over the whole overlap. With fewer than
@@ -1526,7 +1370,7 @@ def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: f
             if k == 1 and wants_accel(fin):
                 break
             r = _residual(t_m, a, valid, itp, fin, t_mid)
-            nm = _noise_model(r, np.any(r != 0.0, axis=1), float(np.median(np.diff(t_m)))) or noise
+            nm = noise_model(r, np.any(r != 0.0, axis=1), float(np.median(np.diff(t_m)))) or noise
             f2 = _refine_gls(t_m, a, valid, itp, fin.latency_s, fin.drift, t_mid, nm, fit_drift=fd)
             if not f2.ok:
                 break
@@ -1602,7 +1446,7 @@ def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: f
 
 
 def _accel_aided(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant, acc: _Accel, fin: _Fit,
-                 t_mid: float, *, fit_drift: bool) -> tuple[_Fit, _NoiseModel | None]:
+                 t_mid: float, *, fit_drift: bool) -> tuple[_Fit, NoiseModel | None]:
     """ACCEL_GLS_PASSES accelerometer-aided GLS passes from the gyro-only fit ``fin`` (the 6-channel residual
     cross-spectrum re-estimated before each); kept when its sigma is smaller (flagged ``aided``).
     Returns the fit kept and, when it is the aided one, its noise model."""
@@ -1610,7 +1454,7 @@ def _accel_aided(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpo
     cur, nm = fin, None
     for _ in range(ACCEL_GLS_PASSES):
         r6 = _accel_residual(t_m, a, valid, itp, acc, cur, t_mid)
-        nm6 = _noise_model(r6, np.any(r6 != 0.0, axis=1), dt, matrix=True)
+        nm6 = noise_model(r6, np.any(r6 != 0.0, axis=1), dt, matrix=True)
         if nm6 is None:
             break
         f2 = _refine_gls(t_m, a, valid, itp, cur.latency_s, cur.drift, t_mid, nm6, fit_drift=fit_drift, acc=acc)

@@ -336,14 +336,14 @@ def markov_rate(rng, t: np.ndarray, beta_1_s: float = 2.0, sigma_deg: float = 0.
 
 
 def test_noise_model_whitens_a_coloured_residual():
-    from logtools.latency import _noise_model
+    from logtools.latency_gls import noise_model
 
     rng = np.random.default_rng(5)
     dt = 0.02
     t = np.arange(0.0, 200.0, dt)
     r = markov_rate(rng, t) + rng.normal(0, 1e-3, (len(t), 3))  # flexure-like rate + gyro white noise
     use = np.ones(len(t), bool)
-    nm = _noise_model(r, use, dt)
+    nm = noise_model(r, use, dt)
     assert nm is not None
     rw = nm.whiten(r, dt)[500:-500]
 
@@ -400,7 +400,7 @@ def test_cross_spectral_noise_model_whitens_coherent_channels():
     matrix whitening leaves them white and uncorrelated with each other."""
     from scipy.signal import lfilter
 
-    from logtools.latency import _noise_model
+    from logtools.latency_gls import noise_model
 
     rng = np.random.default_rng(9)
     dt = 0.05
@@ -410,7 +410,7 @@ def test_cross_spectral_noise_model_whitens_coherent_channels():
     a = 0.5 * c @ dcm_from_euler(np.radians([10.0, 20.0, 30.0])).T + rng.normal(0, 0.05, (n, 3))
     r = np.concatenate([g, a], axis=1)
     use = np.ones(n, bool)
-    nm = _noise_model(r, use, dt, matrix=True)
+    nm = noise_model(r, use, dt, matrix=True)
     assert nm is not None and nm.psd.shape[1:] == (6, 6)
     rw = nm.whiten(r[:, :, None], dt)[:, :, 0][400:-400]
     corr = np.corrcoef(rw.T)

@@ -1,0 +1,167 @@
+"""Generalised least squares helpers of the latency fits (``logtools.latency``): the residual spectrum
+(one shared, or a cross-spectral matrix) and its zero-phase whitening filter, the taper of the used
+samples, and the covariance of a whitened fit with a Newey-West (HAC) floor."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import fft as sfft
+
+GLS_SMOOTH_HZ = 0.05  # the residual spectrum is smoothed over this band
+GLS_FLOOR = 1e-4  # PSD floor (fraction of its peak): the low-pass stop band is not amplified beyond it
+GLS_CSD_BINS = 15  # a cross-spectral matrix is smoothed over at least this many bins (conditioning)
+HAC_BANDWIDTH_FACTOR = 4  # Newey-West bandwidth = this x the lag where the scores decorrelate
+
+
+def hac_cov(u: np.ndarray, max_lag: int) -> tuple[np.ndarray, float]:
+    """Newey-West (Bartlett) covariance of sum_k u_k for serially correlated u (N, p); the bandwidth is
+    HAC_BANDWIDTH_FACTOR times the lag where u's mean autocorrelation first drops below 0.1.
+    Returns (covariance (p, p), bandwidth in samples)."""
+    N, p = u.shape
+    nfft = sfft.next_fast_len(2 * N, real=True)
+    F = sfft.rfft(u, nfft, axis=0)
+    nl = min(N, max_lag + 1)
+    # ac[h, i, j] = sum_k u_i[k] u_j[k + h]
+    ac = np.empty((nl, p, p))
+    for i in range(p):
+        for j in range(p):
+            ac[:, i, j] = sfft.irfft(np.conj(F[:, i]) * F[:, j], nfft)[:nl]
+    g0 = np.diag(ac[0]).copy()
+    g0[g0 <= 0] = np.finfo(float).tiny
+    rho = (np.diagonal(ac, axis1=1, axis2=2) / g0).mean(axis=1)
+    below = np.flatnonzero(rho < 0.1)
+    h1 = int(below[0]) if len(below) else nl - 1
+    H = int(np.clip(HAC_BANDWIDTH_FACTOR * h1, 1, nl - 1)) if nl > 1 else 0
+    if H == 0:
+        return ac[0], 0.0
+    w = 1.0 - np.arange(1, H + 1) / (H + 1.0)
+    S = np.sum(w[:, None, None] * ac[1:H + 1], axis=0)
+    V = ac[0] + S + S.T
+    return V, float(H)
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Smoothed power spectrum of the residual w_s(t + d) - R w_m(t) - b on ``f_hz``: flexure's
+    differential rate (a second-order Markov process, coloured, low frequency), the gyros' white noise
+    and what the low-pass leaves, i.e. the disturbance a delay fit must weigh.
+
+    ``psd`` is either one spectrum shared by the channels, (nf,), or a cross-spectral density matrix
+    (nf, C, C) of C channels (gyro and accelerometer residuals: flexure tilts the specific force as it
+    rotates the slave, so the two are coherent and the accelerometers tell the flexure apart from the
+    delay); ``floor`` is then one number per channel."""
+
+    f_hz: np.ndarray
+    psd: np.ndarray
+    floor: float | np.ndarray  # numerical floor (the low-pass stop band)
+    tail_s: float  # length of the whitening filter's impulse response (zero padding)
+
+    def weights(self, n: int, dt_s: float) -> tuple[int, np.ndarray]:
+        """(nfft, W): W = PSD^-1/2 on the rfft bins of nfft, (nfreq,) or (nfreq, C, C)."""
+        pad = min(n, int(np.ceil(self.tail_s / dt_s)))
+        nfft = sfft.next_fast_len(n + pad, real=True)
+        f = sfft.rfftfreq(nfft, dt_s)
+        if self.psd.ndim == 1:
+            return nfft, 1.0 / np.sqrt(np.interp(f, self.f_hz, self.psd) + self.floor)
+        C = self.psd.shape[1]
+        flat = self.psd.reshape(len(self.f_hz), C * C)
+        S = np.empty((len(f), C * C), complex)
+        for j in range(C * C):
+            S[:, j] = (np.interp(f, self.f_hz, flat[:, j].real)
+                       + 1j * np.interp(f, self.f_hz, flat[:, j].imag))
+        S = S.reshape(len(f), C, C) + np.diag(np.asarray(self.floor, float))
+        lam, V = np.linalg.eigh(S)
+        lam = np.maximum(lam, 1e-300)
+        return nfft, np.einsum("fij,fj,fkj->fik", V, 1.0 / np.sqrt(lam), np.conj(V))
+
+    def whiten(self, x: np.ndarray, dt_s: float, weights: tuple[int, np.ndarray] | None = None) -> np.ndarray:
+        """The zero-phase whitening filter PSD^-1/2 applied along axis 0 (zero-filled masks); with a
+        cross-spectral matrix, x is (n, C, K) and the channels are mixed bin by bin. ``weights``:
+        ``self.weights(len(x), dt_s)`` when already computed."""
+        n = len(x)
+        nfft, w = weights if weights is not None else self.weights(n, dt_s)
+        X = sfft.rfft(x, nfft, axis=0)
+        if w.ndim == 1:
+            Z = X * w.reshape((len(w),) + (1,) * (x.ndim - 1))
+        else:
+            Z = np.matmul(w, X)
+        return sfft.irfft(Z, nfft, axis=0)[:n]
+
+
+def end_taper(use: np.ndarray, n_ramp: int) -> np.ndarray:
+    """Weights rising as a raised cosine over n_ramp samples from every end of the used runs."""
+    if n_ramp <= 1:
+        return use.astype(float)
+    from scipy import ndimage as _nd
+
+    dist = _nd.distance_transform_edt(np.pad(use, 1, constant_values=False))[1:-1]
+    x = np.clip(dist / n_ramp, 0.0, 1.0)
+    return np.where(use, 0.5 - 0.5 * np.cos(np.pi * x), 0.0)
+
+
+def noise_model(r: np.ndarray, use: np.ndarray, dt_s: float, *, matrix: bool = False) -> NoiseModel | None:
+    """Residual spectrum from one fit's residuals (N, C) (0 where unused): periodogram over the whole
+    span smoothed over GLS_SMOOTH_HZ (a 2nd-order Markov spectrum is smooth on that scale); averaged
+    over the axes (one spectrum), or with ``matrix`` the C x C cross-spectral density, smoothed over at
+    least GLS_CSD_BINS bins so that it is well conditioned."""
+    n, C = r.shape
+    if n < 256 or use.sum() < 128:
+        return None
+    x = np.where(use[:, None], r, 0.0)
+    X = sfft.rfft(x, axis=0)
+    f = sfft.rfftfreq(n, dt_s)
+    k = max(3, int(round(GLS_SMOOTH_HZ * n * dt_s))) | 1
+    if matrix:
+        k = max(k, GLS_CSD_BINS | 1)
+    k = min(k, (len(f) // 4) | 1)
+    norm = max(1.0, float(use.sum()))
+    if not matrix:
+        p = np.mean(np.abs(X) ** 2, axis=1) / norm
+        ps = np.convolve(np.pad(p, k // 2, mode="reflect"), np.ones(k) / k, mode="valid")
+        top = float(ps.max())
+        if not top > 0:
+            return None
+        return NoiseModel(f, ps, GLS_FLOOR * top, 1.0 / GLS_SMOOTH_HZ)
+    from scipy.ndimage import uniform_filter1d
+
+    P = (X[:, :, None] * np.conj(X[:, None, :])).reshape(len(f), C * C) / norm
+    P = (uniform_filter1d(P.real, k, axis=0, mode="reflect")
+         + 1j * uniform_filter1d(P.imag, k, axis=0, mode="reflect")).reshape(len(f), C, C)
+    top = np.max(np.real(np.diagonal(P, axis1=1, axis2=2)), axis=0)
+    if not np.all(top > 0):
+        return None
+    return NoiseModel(f, P, GLS_FLOOR * top, 1.0 / GLS_SMOOTH_HZ)
+
+
+def gls_covariance(Ninv: np.ndarray, s2: float, u: np.ndarray, dt_s: float, fit_drift: bool, *,
+                    check: tuple[np.ndarray, np.ndarray] | None = None, var_floor: float = 0.0
+                    ) -> tuple[np.ndarray, float, float, tuple[float, float]]:
+    """Variances of (L[, drift]) of a whitened least-squares fit: the curvature's (s2 diag(Ninv)) with the
+    Newey-West variance of the per-sample scores u (n, nd) as a floor (what the whitening missed; lags
+    up to 20 s at the samples' interval dt_s), and the latency's at least ``var_floor`` (the drift's
+    scaled alike). Returns (var (nd,), corr(L, drift), variance factor over the curvature's, (delay of the
+    accelerometers' own, its sigma)) -- the last from ``check`` = (augmented normal matrix, right-hand
+    side) with the model-check column last, else (0, 0)."""
+    nd = u.shape[1]
+    var_cls = s2 * np.diag(Ninv)[:nd]
+    V_hac, _H = hac_cov(u, int(min(len(u) // 4, max(10, 20.0 / dt_s))))
+    var_h = np.diag(V_hac)
+    var = np.maximum(var_h, var_cls)
+    up = max(1.0, var_floor / var[0]) if var[0] > 0 else 1.0
+    var = var * up
+    corr = 0.0
+    if fit_drift and var[0] > 0 and var[1] > 0:
+        cv = (V_hac[0, 1] if var_h[0] >= var_cls[0] else s2 * Ninv[0, 1]) * up
+        corr = float(np.clip(cv / np.sqrt(var[0] * var[1]), -0.99, 0.99))
+    fac = float(var[0] / var_cls[0]) if var_cls[0] > 0 else 1.0
+    acc_lag = (0.0, 0.0)
+    if check is not None:
+        try:
+            Nx, b = check
+            sx = np.linalg.solve(Nx, b)
+            vx = float(np.linalg.inv(Nx)[-1, -1]) * s2 * max(1.0, fac)
+            acc_lag = (-float(sx[-1]), float(np.sqrt(max(vx, 0.0))))
+        except np.linalg.LinAlgError:
+            acc_lag = (np.inf, np.inf)
+    return var, corr, fac, acc_lag
