@@ -8,6 +8,9 @@ Runs ``logtools.sim`` pairs over
 * master and slave IMU rates independently uniform in [50, 400] Hz (nav rates capped at the IMU rate);
 * slave noise and bias scaled by a level drawn from {0.5, 1, 3} x the scenario's, flexure on in 1/3
   of the runs, a random start-up phase of the slave's samples;
+* the slave logs a nav solution (attitude, NED velocity, position) in 3/4 of the runs, its velocity with
+  white noise of the same level x SLAVE_VEL_NOISE_M_S (drawn from a stream of its own, so the other
+  draws are those of the earlier benchmark); in the other 1/4 it is an IMU alone;
 
 and estimates the latency with every method through ``logtools.latency.estimate(..., compare=True)``
 (``tapost``, ``xcorr-norm``, ``s000-rate-integral``, ``s002-attitude-shift`` read from ``methods``).
@@ -17,9 +20,11 @@ RMS, worst and median absolute error, fraction within 1 ms, coverage of sigma (f
 
 Further sets: an aligned-axes control (runs/5, what the seeds assume) and a stamp-noise set (runs/5:
 white noise on both units' stamps, std up to 0.3 of each IMU period, and two gaps in the slave).
-"tapost-gyro-only" is tapost's method without the accelerometer-aided GLS (ablation). For the flexure
-runs, the Cramer-Rao bound of the latency (``latency_bound.py``: exact flexure and noise model, truth
-signals) is computed too: the RMS and the within-1 ms fraction an efficient estimator would reach.
+"tapost-no-velocity" is tapost's method without the velocity matching, "tapost-gyro-only" without it and
+without the accelerometer-aided GLS (ablations). For the flexure runs, the Cramer-Rao bound of the
+latency from the rates and specific forces (``latency_bound.py``: exact flexure and noise model, truth
+signals) is computed too: the RMS and the within-1 ms fraction an efficient estimator would reach
+without the velocities (with a slave nav velocity there is more information than it counts).
 
 Second table: S000's Table 1 (aircraft, aligned axes, 200 Hz units, delays 10/50/100/150 ms, an exact
 number of samples as in the paper) with S000's method (5 s record in the S manoeuvre, +-1 s search,
@@ -56,11 +61,15 @@ SCENARIOS = ("ship", "aircraft", "vehicle", "multirotor")
 METHODS = ("tapost", "xcorr-norm", "s000-rate-integral", "s002-attitude-shift")
 # the seeds again with the papers' own search range (+-1 s, S000 step 2), computed directly
 PAPER_RANGE = {"s000-rate-integral@1s": "s000_rate_integral", "s002-attitude-shift@1s": "s002_attitude_shift"}
-#: ablation: tapost's method on the gyros alone (without the accelerometer-aided GLS)
+#: ablations: tapost's method without the velocity matching; and on the gyros alone (neither the velocity
+#: matching nor the accelerometer-aided GLS)
+NO_VEL = "tapost-no-velocity"
 GYRO_ONLY = "tapost-gyro-only"
-ALL_METHODS = METHODS[:1] + (GYRO_ONLY,) + METHODS[1:] + tuple(PAPER_RANGE)
+ALL_METHODS = METHODS[:1] + (NO_VEL, GYRO_ONLY) + METHODS[1:] + tuple(PAPER_RANGE)
 MAX_LAG_S = 2.0  # tapost's default search window (DESIGN.md --max-lag); latencies are within +-1 s
 NOISE_LEVELS = (0.5, 1.0, 3.0)
+SLAVE_NAV_FRACTION = 0.75  # runs whose slave logs a nav solution (else an IMU alone)
+SLAVE_VEL_NOISE_M_S = 0.005  # slave nav velocity white noise at noise level 1 (master: 0.002 m/s)
 PAPER_TABLE1 = {10: (2, 10), 50: (10, 50), 100: (20, 100), 150: (30, 150)}  # ms: (shifted points, est. ms)
 
 
@@ -96,6 +105,8 @@ def draw_config(i: int, base_seed: int, aligned: bool = False, stamps: bool = Fa
         mount_rpy_deg=(0.0, 0.0, 0.0) if aligned else random_rotation_rpy_deg(rng),
         master_imu_rate_hz=m_imu, slave_imu_rate_hz=s_imu,
         noise_level=float(rng.choice(NOISE_LEVELS)), flexure=bool(rng.random() < 1.0 / 3.0),
+        slave_nav=bool(np.random.default_rng([base_seed, i, 10 + int(aligned) + 2 * int(stamps)]).random()
+                       < SLAVE_NAV_FRACTION),
     )
 
 
@@ -113,6 +124,7 @@ def sim_config(d: dict):
         slave_accel_bias_mg=tuple(lvl * x for x in base.slave_accel_bias_mg),
         slave_gyro_arw_dpsh=lvl * base.slave_gyro_arw_dpsh,
         slave_accel_vrw_ug_rthz=lvl * base.slave_accel_vrw_ug_rthz, flexure=d["flexure"],
+        slave_nav=d.get("slave_nav", True), slave_vel_noise_m_s=lvl * SLAVE_VEL_NOISE_M_S,
     )
     for k in ("master_jitter_s", "slave_jitter_s", "slave_gaps_s"):
         if k in d:
@@ -149,16 +161,23 @@ def run_one(d: dict) -> dict:
         got = {k: (float(v.latency_s), float(v.sigma_s), v.note) for k, v in res.methods.items()}
         row["tapost_drift_ppm"] = float(res.drift_ppm)
         row["tapost_quality"] = {k: v for k, v in res.quality.items() if isinstance(v, (bool, int, float, str))}
+        vq = res.quality.get("velocity_fit")
+        if vq:  # the velocity-matched estimate on its own (fused or not)
+            row["velocity_fit"] = {k: vq[k] for k in ("latency_s", "sigma_s", "agreement_chi2", "fused")}
     else:  # the headline failed: the others are still measured on their own
         a0, a1 = max(m.span_s()[0], s.rebased(m.meta.t0_ns).span_s()[0]), m.span_s()[1]
         t_mid = 0.5 * (a0 + a1)
         got = {"tapost": (math.nan, math.nan, err)}
     row["t_mid_rel_s"] = t_mid
     row["truth_latency_s"] = float(truth.latency_at(t_mid))
+    if "velocity_fit" in row:
+        row["velocity_fit"]["error_s"] = row["velocity_fit"]["latency_s"] - row["truth_latency_s"]
     # per-method runtime (each on its own) and fallback values when estimate() did not give them
     solo = {
         "tapost": lambda: estimate(m, s, max_lag_s=MAX_LAG_S, compare=False),
-        GYRO_ONLY: lambda: estimate(m, s, max_lag_s=MAX_LAG_S, compare=False, accelerometers=False),
+        NO_VEL: lambda: estimate(m, s, max_lag_s=MAX_LAG_S, compare=False, velocity=False),
+        GYRO_ONLY: lambda: estimate(m, s, max_lag_s=MAX_LAG_S, compare=False, accelerometers=False,
+                                    velocity=False),
         "xcorr-norm": lambda: estimate(m, s, method="xcorr-norm", max_lag_s=MAX_LAG_S, compare=False),
         "s000-rate-integral": lambda: latency_seeds.s000_rate_integral(m, s, max_lag_s=MAX_LAG_S),
         "s002-attitude-shift": lambda: latency_seeds.s002_attitude_shift(m, s, max_lag_s=MAX_LAG_S),
@@ -216,7 +235,8 @@ def summarize_bound(rows: list[dict]) -> dict:
 
 
 def bound_md(bounds: dict) -> str:
-    lines = ["### Cramer-Rao bound of the latency, flexure runs (benchmarks/latency_bound.py)", "",
+    lines = ["### Cramer-Rao bound of the latency from the rates and specific forces, flexure runs "
+             "(benchmarks/latency_bound.py; a slave nav velocity adds information it does not count)", "",
              "| runs | bound with accelerometers: RMS (ms) / worst (ms) / expected within 1 ms "
              "| gyros alone: RMS (ms) / worst / expected within 1 ms |", "|---|---|---|"]
     for name, b in bounds.items():
@@ -328,13 +348,19 @@ def main(argv: list[str] | None = None) -> int:
     summary = summarize(main_rows)
     by_scenario = {sc: summarize([r for r in main_rows if r["scenario"] == sc]) for sc in SCENARIOS}
     control = summarize(ctrl_rows) if ctrl_rows else {}
-    stamp_noise = summarize(stamp_rows, methods=("tapost", GYRO_ONLY, "xcorr-norm")) if stamp_rows else {}
+    stamp_noise = summarize(stamp_rows, methods=("tapost", NO_VEL, GYRO_ONLY, "xcorr-norm")) if stamp_rows else {}
     by_flexure = {f"flexure={f}": summarize(sel) for f in (False, True)
                   if (sel := [r for r in main_rows if r["flexure"] == f])}
+    tap = ("tapost", NO_VEL, GYRO_ONLY)
+    by_slave_nav = {f"slave_nav={v}, flexure={f}": summarize(sel, methods=tap) for v in (True, False)
+                    for f in (False, True)
+                    if (sel := [r for r in main_rows if r.get("slave_nav", True) == v and r["flexure"] == f])}
     flex_rows = [r for r in main_rows if r["flexure"]]
-    flexure_by_scenario = {sc: summarize(sel, methods=("tapost", GYRO_ONLY)) for sc in SCENARIOS
-                           if (sel := [r for r in flex_rows if r["scenario"] == sc])}
-    bound = {"all flexure runs": summarize_bound(flex_rows)}
+    flexure_by_scenario = {f"{sc}, slave_nav={v}": summarize(sel, methods=tap) for sc in SCENARIOS
+                           for v in (True, False)
+                           if (sel := [r for r in flex_rows if r["scenario"] == sc and r.get("slave_nav", True) == v])}
+    bound = {"all flexure runs": summarize_bound(flex_rows),
+             "flexure runs, IMU-only slave": summarize_bound([r for r in flex_rows if not r.get("slave_nav", True)])}
     bound.update({sc: summarize_bound([r for r in flex_rows if r["scenario"] == sc]) for sc in SCENARIOS})
     t1 = table1()
     result = dict(
@@ -345,10 +371,11 @@ def main(argv: list[str] | None = None) -> int:
                     max_lag_s=MAX_LAG_S, scenarios=list(SCENARIOS), latency_s=[-1.0, 1.0],
                     drift_ppm=[-100.0, 100.0], mounting="uniform on SO(3)", imu_rate_hz=[50.0, 400.0],
                     noise_levels=list(NOISE_LEVELS), flexure_fraction=1 / 3, duration_s="scenario default",
+                    slave_nav_fraction=SLAVE_NAV_FRACTION, slave_vel_noise_m_s_at_level_1=SLAVE_VEL_NOISE_M_S,
                     truth="Truth.latency_at(result.t_mid_rel_s)", sigma_coverage="|error| <= 2 sigma",
                     python=platform.python_version(), machine=platform.machine(), cpus=os.cpu_count()),
         wall_time_s=wall, runtime_per_run_s=wall * args.workers / max(len(rows), 1),
-        summary=summary, by_scenario=by_scenario, by_flexure=by_flexure,
+        summary=summary, by_scenario=by_scenario, by_flexure=by_flexure, by_slave_nav=by_slave_nav,
         flexure_by_scenario=flexure_by_scenario, bound_flexure=bound,
         aligned_control=control, stamp_noise=stamp_noise, rows=rows,
         notes=("summary/by_scenario: random mountings (main set). aligned_control: the same kind of draws with "
@@ -367,6 +394,9 @@ def main(argv: list[str] | None = None) -> int:
         print()
         print(md_table(by_scenario[sc], f"{sc}"))
     for k, v in by_flexure.items():
+        print()
+        print(md_table(v, k))
+    for k, v in by_slave_nav.items():
         print()
         print(md_table(v, k))
     for sc, v in flexure_by_scenario.items():

@@ -70,6 +70,15 @@ tapost's method ("tapost")
      of the whitened scores as a floor (what whitening missed), inflated by the scatter of the window
      estimates about the drift line (with an accelerometer-aided or Kalman-whitened fit, the windows
      re-estimated with it; when fewer than 3 windows have the motion for that, no window check);
+  5b. velocity matching (``logtools.latency_velocity``; when both units log NED velocity): a second
+     estimate of (L, drift) from v_s(t + d) = v_m(t) + C_nb (w_m x l) + the slave's velocity error
+     (offset, ramp, and the (v - v_mid) x phi of a tilted slave INS), lever arm l and the rest solved,
+     GLS-whitened, window-checked. Flexure rotates the slave without moving it, so the velocity keeps
+     the delay information the rates lose to the flexure (and a slave without an IMU gains what its
+     attitude-derived rates lack). Fused with the rate fit's (L, drift) by inverse covariance when the
+     two agree (chi-square below VEL_AGREE_CHI2 with the sigmas as reported); otherwise the rate fit
+     stays and ``velocity_disagrees`` is set (a nav output logged later than its IMU). Two units that
+     carry the same nav samples (one EKF logged with two IMUs) are not matched. Then the drift prior;
   6. quality flags: motion level, too little motion, periodic motion (several near-equal minima of the
      cost: S000 eq 6's caveat; sigma then covers the ambiguity), windows disagreeing, overlap, rotation
      found, residual RMS, masked fraction.
@@ -91,6 +100,7 @@ from logtools.conventions import (dcm_from_quat, euler_from_dcm, quat_conj, quat
 from logtools.errors import AnalysisError
 from logtools.inslog import InsLog
 from logtools.latency_gls import NoiseModel, end_taper, gls_covariance, hac_cov, noise_model
+from logtools.latency_velocity import velocity_fit, velocity_pair
 from logtools.latency_flexure import DECIMATE_FACTOR, FlexureModel, block_mean, fit_model, whitened_normal
 from logtools.resample import (Interpolant, UniformSeries, interpolant, lowpass, median_rate_hz, stamp_noise_s,
                                to_uniform)
@@ -140,6 +150,10 @@ FLEX_WINDOWS_CHI2 = 4.0  # ... and kept unless its windows disagree beyond this 
 FLEX_ITERS = 6  # profile Newton steps
 FLEX_ML_SPAN_S = 120.0  # the flexure model is fitted on at most this much of the overlap (its middle)
 FLEX_ML_BLOCKS = 1500  # ... and on at most this many block samples
+VELOCITY_AIDED = True  # velocity matching (logtools.latency_velocity) when both units log NED velocity,
+VEL_AGREE_CHI2 = (8.8, 11.6)  # ... fused when it agrees: chi-square of (L) or (L, drift), 99.7 % ...
+VEL_FUSE_ALWAYS = False  # ... and its latency sigma is the smaller (else the rate fit's window-inflated
+#                          drift sigma, conservative on smooth motion, would hand the drift to the velocity)
 ACCEL_LAG_SIGMAS = 3.0  # ... unless the accelerometers' own delay differs from the gyros' by more sigmas
 
 Progress = Callable[[float, str], None] | None
@@ -922,9 +936,11 @@ class _Ctx:
     t0_abs_s: float = 0.0
     stamp_jitter_s: tuple[float, float] = (0.0, 0.0)  # (master, slave) white stamp noise, s
     acc_src: tuple | None = None  # (master, slave, cutoff, master rate) for the accelerometer-aided GLS
+    vel_src: tuple | None = None  # (master, slave) for the velocity fit, both with NED velocity
 
 
-def _prepare(master: InsLog, slave: InsLog, max_lag_s: float | None, *, accelerometers: bool = True) -> _Ctx:
+def _prepare(master: InsLog, slave: InsLog, max_lag_s: float | None, *, accelerometers: bool = True,
+             velocity: bool = True) -> _Ctx:
     if max_lag_s is not None and not (np.isfinite(max_lag_s) and max_lag_s > 0):
         raise AnalysisError(f"max_lag_s must be positive or None (whole overlap), not {max_lag_s!r}")
     slave_r = slave.rebased(master.meta.t0_ns)
@@ -966,6 +982,8 @@ def _prepare(master: InsLog, slave: InsLog, max_lag_s: float | None, *, accelero
     if (accelerometers and ACCEL_AIDED and srcm == "gyro" and srcs == "gyro" and master.has_accel
             and slave_r.has_accel):
         ctx.acc_src = (master, slave_r, cutoff, um.itp)  # built when needed (_accel_pair)
+    if velocity and VELOCITY_AIDED and master.has_vel and slave_r.has_vel:
+        ctx.vel_src = (master, slave_r)  # built when needed (_velocity_step)
     if srcm == "attitude" or srcs == "attitude":
         ctx.warnings.append("angular rate derived from attitude for the " +
                             " and ".join(r for r, s in (("master", srcm), ("slave", srcs)) if s == "attitude"))
@@ -1172,13 +1190,20 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
     chi2_red = _window_chi2(fin, centers, lats, sigs, t_mid)
     infl = np.sqrt(max(1.0, chi2_red)) if WINDOW_INFLATE else 1.0
     sig_l, sigma_drift = fin.sigma_latency_s * infl, fin.sigma_drift * infl
-    latency, drift = fin.latency_s, fin.drift
+    latency, drift, corr_ld = fin.latency_s, fin.drift, fin.corr_ld
+    # velocity matching: a second estimate, fused where the rate fit is uncertain and the two agree
+    vel_q = None
+    if ctx.vel_src is not None:
+        prog(0.85, "velocity matching")
+        vel_q, fused = _velocity_step(ctx, w0, w1, t_mid, fit_drift, latency, drift, sig_l, sigma_drift, corr_ld)
+        if fused is not None:
+            latency, drift, sig_l, sigma_drift, corr_ld = fused
     # a drift the data cannot determine is pulled towards 0 by a Gaussian prior (crystal clocks:
     # DRIFT_PRIOR_PPM), and the latency with it through their correlation (Gaussian conditioning),
     # so that an undetermined slope does not become a large made-up one nor spoil the latency
     if fit_drift and np.isfinite(sigma_drift) and np.isfinite(sig_l):
-        V = np.array([[sig_l ** 2, fin.corr_ld * sig_l * sigma_drift],
-                      [fin.corr_ld * sig_l * sigma_drift, sigma_drift ** 2]])
+        V = np.array([[sig_l ** 2, corr_ld * sig_l * sigma_drift],
+                      [corr_ld * sig_l * sigma_drift, sigma_drift ** 2]])
         K = V[:, 1] / (V[1, 1] + (DRIFT_PRIOR_PPM * 1e-6) ** 2)
         latency, drift = latency - K[0] * drift, drift - K[1] * drift
         V = V - np.outer(K, V[1])
@@ -1235,6 +1260,9 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
         # the Kalman-whitened fit's flexure model (seed 000 eq. 8), when that fit was kept
         "flexure_model": None if fin.flex is None else {
             "sigma_deg": [float(x) for x in np.degrees(fin.flex.sigma_rad)], "beta_1_s": float(fin.flex.beta_1_s)},
+        # the velocity-matched estimate (both units with NED velocity) and whether it was fused
+        "velocity_fit": vel_q,
+        "velocity_disagrees": bool(vel_q is not None and not vel_q["agrees"]),
         "accel_minus_gyro_lag_s": float(fin.accel_lag_s[0]) if fin.accel_lag_s[1] > 0 else None,
         "accel_minus_gyro_lag_sigma_s": float(fin.accel_lag_s[1]) if fin.accel_lag_s[1] > 0 else None,
         "nan_fraction": nanfrac,
@@ -1263,6 +1291,46 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
         cost_lag_s=c_lag, cost=c_val,
         window_centers_s=centers, window_latency_s=lats, mounting_rpy_deg=rpy, t_mid_rel_s=float(t_mid))
     return res, co
+
+
+def _velocity_step(ctx: _Ctx, w0: float, w1: float, t_mid: float, fit_drift: bool, latency: float, drift: float,
+                   sig_l: float, sig_dr: float, corr: float) -> tuple[dict | None, tuple | None]:
+    """The velocity-matched estimate (``logtools.latency_velocity``) and its fusion with the rate fit's
+    (L[, drift]): inverse-covariance weighted when the two agree (chi-square below VEL_AGREE_CHI2; a nav
+    velocity's delay need not be its IMU's: else ``agrees`` is False and the rate fit stays) and the
+    velocity's latency sigma is the smaller (VEL_FUSE_ALWAYS). Returns (the quality entry or None, the
+    fused (L, drift, sigma_L, sigma_drift, corr) or None)."""
+    master, slave = ctx.vel_src
+    vp = velocity_pair(master, slave, ctx.cutoff_hz, ctx.master.itp)
+    vf = None if vp is None else velocity_fit(vp, w0, w1, latency, drift, t_mid, fit_drift=fit_drift,
+                                              windows=_windows(ctx, w0, w1))
+    if vf is None or not np.isfinite(sig_l):
+        return None, None
+    nd = 2 if fit_drift and sig_dr > 0 and vf.sigma_drift > 0 else 1
+
+    def cov(s_l: float, s_d: float, c: float) -> np.ndarray:
+        return np.array([[s_l ** 2, c * s_l * s_d], [c * s_l * s_d, s_d ** 2]])[:nd, :nd]
+
+    x_r, x_v = np.array([latency, drift])[:nd], np.array([vf.latency_s, vf.drift])[:nd]
+    V_r, V_v = cov(sig_l, sig_dr, corr), cov(vf.sigma_latency_s, vf.sigma_drift, vf.corr_ld)
+    dx = x_v - x_r
+    chi2 = float(dx @ np.linalg.solve(V_r + V_v, dx)) / SIGMA_CALIBRATION ** 2  # the sigmas as reported
+    agrees = bool(chi2 <= VEL_AGREE_CHI2[nd - 1])
+    use = bool(agrees and (VEL_FUSE_ALWAYS or vf.sigma_latency_s < sig_l))
+    q = {"latency_s": vf.latency_s, "sigma_s": SIGMA_CALIBRATION * vf.sigma_latency_s,
+         "drift_ppm": vf.drift * 1e6 if nd == 2 else None, "lever_arm_m": vf.lever_arm_m,
+         "residual_rms_m_s": vf.residual_rms_m_s, "window_chi2_red": vf.window_chi2_red,
+         "n_windows": vf.n_windows, "lowpass_hz": vp.cutoff_hz, "agreement_chi2": chi2, "agrees": agrees,
+         "fused": use}
+    if not use:
+        return q, None
+    Wi = np.linalg.inv(np.linalg.inv(V_r) + np.linalg.inv(V_v))
+    x = Wi @ (np.linalg.solve(V_r, x_r) + np.linalg.solve(V_v, x_v))
+    s_l = float(np.sqrt(Wi[0, 0]))
+    if nd == 1:
+        return q, (float(x[0]), drift, s_l, sig_dr, corr)
+    s_d = float(np.sqrt(Wi[1, 1]))
+    return q, (float(x[0]), float(x[1]), s_l, s_d, float(Wi[0, 1] / (s_l * s_d)))
 
 
 def _fine_cost(ctx: _Ctx, latency_s: float, drift: float, t_mid: float, w0: float, w1: float,
@@ -1551,14 +1619,16 @@ def _run_seed(name: str, master: InsLog, slave: InsLog, max_lag_s: float | None,
 
 
 def estimate(master: InsLog, slave: InsLog, *, method: str = "tapost", max_lag_s: float | None = 2.0,
-             compare: bool = True, progress: Progress = None, accelerometers: bool = True) -> LatencyResult:
+             compare: bool = True, progress: Progress = None, accelerometers: bool = True,
+             velocity: bool = True) -> LatencyResult:
     """Latency (s) and drift (ppm) of ``slave`` behind ``master``; see the module docstring.
 
     ``max_lag_s`` bounds the search at face value (both logs' absolute stamps); ``None`` searches the
     whole overlap (unrelated clocks). Raises AnalysisError (one line) for no/too short overlap, no motion,
     NaN-only data. With ``compare`` every other method that can run is stored in ``methods`` (a method
     that cannot run is stored with NaN and its reason). ``accelerometers=False`` keeps the tapost method
-    on the gyros alone (no accelerometer-aided GLS).
+    on the gyros alone (no accelerometer-aided GLS); ``velocity=False`` leaves the units' velocities out
+    (no velocity matching).
     """
     if method not in METHODS:
         raise AnalysisError(f"unknown latency method {method!r} (choose from {', '.join(METHODS)})")
@@ -1568,7 +1638,7 @@ def estimate(master: InsLog, slave: InsLog, *, method: str = "tapost", max_lag_s
             progress(float(f), stage)
 
     prog(0.0, "preparing")
-    ctx = _prepare(master, slave, max_lag_s, accelerometers=accelerometers)
+    ctx = _prepare(master, slave, max_lag_s, accelerometers=accelerometers, velocity=velocity)
     methods: dict[str, MethodEstimate] = {}
     head: LatencyResult | None = None
     err: AnalysisError | None = None

@@ -12,6 +12,7 @@ GLS_SMOOTH_HZ = 0.05  # the residual spectrum is smoothed over this band
 GLS_FLOOR = 1e-4  # PSD floor (fraction of its peak): the low-pass stop band is not amplified beyond it
 GLS_CSD_BINS = 15  # a cross-spectral matrix is smoothed over at least this many bins (conditioning)
 HAC_BANDWIDTH_FACTOR = 4  # Newey-West bandwidth = this x the lag where the scores decorrelate
+CORR_MAX = 0.99  # |correlation| of (L, drift) at most this (the curvature and HAC parts may disagree)
 
 
 def hac_cov(u: np.ndarray, max_lag: int) -> tuple[np.ndarray, float]:
@@ -153,7 +154,7 @@ def gls_covariance(Ninv: np.ndarray, s2: float, u: np.ndarray, dt_s: float, fit_
     corr = 0.0
     if fit_drift and var[0] > 0 and var[1] > 0:
         cv = (V_hac[0, 1] if var_h[0] >= var_cls[0] else s2 * Ninv[0, 1]) * up
-        corr = float(np.clip(cv / np.sqrt(var[0] * var[1]), -0.99, 0.99))
+        corr = float(np.clip(cv / np.sqrt(var[0] * var[1]), -CORR_MAX, CORR_MAX))
     fac = float(var[0] / var_cls[0]) if var_cls[0] > 0 else 1.0
     acc_lag = (0.0, 0.0)
     if check is not None:

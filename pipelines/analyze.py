@@ -235,6 +235,12 @@ def summary_lines(rep: dict, paths: dict[str, str | None]) -> list[str]:
         flex = q.get("flexure_model")
         flex_txt = (f", flexure model {max(flex['sigma_deg']):.3g} deg / beta {flex['beta_1_s']:.3g} 1/s"
                     if isinstance(flex, dict) else "")
+        vel = q.get("velocity_fit")
+        if isinstance(vel, dict) and vel.get("fused"):  # velocity matching fused with the rates
+            flex_txt += " + velocity"
+        elif isinstance(vel, dict) and not vel.get("agrees"):
+            flex_txt += f", velocity alone {_fmt_ms(vel['latency_s'])} (disagrees, not used)"
+
         big = abs(lat["latency_s"]) >= 10.0  # unrelated clocks: the offset between them, in seconds
         head = f"{lat['latency_s']:+.6f} s" if big else f"{lat['latency_s'] * 1e3:+.3f} ms"
         out.append(f"latency {head} +/- {sig * 1e3 if sig is not None else float('nan'):.3f} ms (1 sigma), "

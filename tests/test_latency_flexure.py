@@ -120,18 +120,19 @@ def _ship_flexure(seed: int):
 
 def test_kalman_whitening_beats_the_spectral_gls_on_flexure(monkeypatch):
     """Ship with seed 000's flexure, 120 s: the fit whitened by the flexure model is kept (quality says
-    so), is more accurate than the spectral GLS alone over seeds, and its sigma covers its error."""
+    so), is more accurate than the spectral GLS alone over seeds, and its sigma covers its error. (On the
+    rates and specific forces: the slave's velocity is left out, whose matching would blur the comparison.)"""
     e_flex, e_spec, z = [], [], []
     for seed in range(5):
         p = _ship_flexure(seed)
-        res = estimate(p.master, p.slave, compare=False)
+        res = estimate(p.master, p.slave, compare=False, velocity=False)
         truth = p.truth.latency_at(res.t_mid_rel_s)
         assert res.quality["flexure_model"] is not None
         assert 0.01 < min(res.quality["flexure_model"]["sigma_deg"]) < 0.2  # the simulator's 0.05 deg
         e_flex.append(res.latency_s - truth)
         z.append(abs(res.latency_s - truth) / res.sigma_s)
         monkeypatch.setattr(L, "FLEX_SS", False)
-        spec = estimate(p.master, p.slave, compare=False)
+        spec = estimate(p.master, p.slave, compare=False, velocity=False)
         monkeypatch.setattr(L, "FLEX_SS", True)
         assert spec.quality["flexure_model"] is None
         e_spec.append(spec.latency_s - p.truth.latency_at(spec.t_mid_rel_s))

@@ -1,0 +1,315 @@
+"""Velocity matching: the slave's delay from the two units' NED velocities (the measurement of seeds
+001 and 004's delay-state filters), as a second, independent estimate for ``logtools.latency``.
+
+Model, on the master's relative clock like ``logtools.latency``::
+
+    v_s(t + L + drift (t - t_mid)) = v_m(t) + C_nb(t) (w_m(t) x l) + c0 + c1 (t - t_mid) / T + e
+
+with l the lever arm (the slave's position in the master's body frame, m; seed 003 eq. 3), c0 and c1 an
+offset and a ramp per axis (the slave's own slow velocity error), T the half span, and e the rest:
+noise, and the slave's slower errors (a coloured disturbance, weighed out by generalised least
+squares with its spectrum estimated from a first fit, as the rate fit does).
+
+Why it matters: flexure rotates the slave without moving it, so the velocity carries the delay
+untouched by the flexure, where the angular rate carries it only through the flexure's noise (on an
+aircraft with seed 000's flexure, 120 s, no rate-based estimator can do better than 1.6-2 ms;
+``benchmarks/latency_bound.py``). The velocity's information is the acceleration's change: turns,
+speed changes, heave.
+
+What it does not know: a nav velocity is an estimator's output. An aided autopilot's velocity is
+pulled towards its GNSS and its own filter; a slave that logs it late or early relative to its IMU
+has a nav delay that is not the IMU's. ``logtools.latency`` therefore fuses this estimate with the
+rate fit's only where the rate fit is uncertain and the two agree (chi-square), and reports it
+either way (``latency.quality.velocity_fit``). Units sharing one nav stream (two IMUs of one log
+with the same EKF output) are recognised and not fitted.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from logtools.conventions import dcm_from_quat, skew
+from logtools.inslog import InsLog
+from logtools.latency_gls import NoiseModel, end_taper, gls_covariance, noise_model
+from logtools.resample import Interpolant, interpolant, lowpass, median_rate_hz, to_uniform
+
+VEL_MAX_CUTOFF_HZ = 5.0  # the velocities are low-passed at the rate fit's cutoff, at most this
+VEL_CUTOFF_FRACTION = 0.4  # ... and at most this fraction of the slower nav rate
+VEL_MIN_GRID_HZ = 20.0  # fit samples at 5x the cutoff, at least this (at most the slower nav rate)
+VEL_MIN_SAMPLES = 64  # finite velocity samples each unit needs
+VEL_ITERS = 6  # Gauss-Newton iterations per pass
+VEL_GLS_PASSES = 2  # whitened passes after the first (unweighted) one, the spectrum re-estimated before each
+VEL_TAPER_S = 2.0  # ramp of the weights at the ends of the used data (whitening transients)
+VEL_QUANTA = (0.1, 0.01, 0.001)  # m/s: the velocity grids recognised (logged as integers of these)
+VEL_TILT = True  # the slave's attitude error phi as unknowns: its velocity error (v - v_mid) x phi (below)
+VEL_WINDOW_MIN = 50  # samples a drift window needs
+VEL_EDGE_CYCLES = 4.0  # samples within this many cutoff periods of a series' ends are not used (the
+#                        zero-phase filter's mirrored ends distort a velocity that is not level there)
+
+
+@dataclass(frozen=True)
+class VelocityPair:
+    """Both units' NED velocities, low-passed at the same cutoff, continuous; and the master's lever-arm
+    rows C_nb [w x] (None without the master's attitude: no lever arm then)."""
+
+    master: Interpolant
+    slave: Interpolant
+    lever: Callable[[np.ndarray], np.ndarray] | None
+    cutoff_hz: float
+    dt_s: float
+    #: per unit: (quantum of the logged velocity in m/s or 0, total variation per axis (3,) m/s)
+    steps: tuple[tuple[float, np.ndarray], ...] = ()
+
+
+@dataclass(frozen=True)
+class VelocityFit:
+    latency_s: float
+    drift: float  # s/s
+    sigma_latency_s: float  # window-checked (inflated by the windows' scatter when chi2 > 1)
+    sigma_drift: float
+    corr_ld: float
+    lever_arm_m: tuple[float, float, float] | None
+    residual_rms_m_s: float
+    n: int
+    window_chi2_red: float
+    n_windows: int
+
+
+def _finite(t: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    ok = np.isfinite(t) & np.all(np.isfinite(v), axis=1)
+    return t[ok], v[ok]
+
+
+def _same_stream(tm: np.ndarray, vm: np.ndarray, ts: np.ndarray, vs: np.ndarray) -> bool:
+    """True when the slave's velocity is the master's own samples (one nav solution logged for both)."""
+    if len(tm) != len(ts):
+        return False
+    return bool(np.allclose(tm, ts, rtol=0.0, atol=1e-6) and np.allclose(vm, vs, rtol=0.0, atol=1e-9))
+
+
+def velocity_pair(master: InsLog, slave: InsLog, cutoff_hz: float, master_rate: Interpolant
+                  ) -> VelocityPair | None:
+    """The pair for a velocity fit (``slave`` already on the master's relative clock), or None when either
+    unit has no (or too little finite) velocity, or both carry the same nav stream."""
+    if not (master.has_vel and slave.has_vel):
+        return None
+    tm, vm = _finite(*master.vel_ned_m_s())
+    ts, vs = _finite(*slave.vel_ned_m_s())
+    if min(len(tm), len(ts)) < VEL_MIN_SAMPLES or _same_stream(tm, vm, ts, vs):
+        return None
+    f_min = min(median_rate_hz(tm), median_rate_hz(ts))
+    cut = float(min(cutoff_hz, VEL_MAX_CUTOFF_HZ, VEL_CUTOFF_FRACTION * f_min))
+    try:
+        itps = [interpolant(lowpass(to_uniform(t, v, name=f"{role} velocity"), cut))
+                for t, v, role in ((tm, vm, "master"), (ts, vs, "slave"))]
+    except ValueError:
+        return None
+    lever = None
+    if master.has_quat:
+        tq, q = _finite(*master.quat_wxyz())
+        if len(tq) >= 2:
+            o = np.argsort(tq, kind="stable")
+            tq, c_nb = tq[o], dcm_from_quat(q[o])
+
+            def lever(t: np.ndarray) -> np.ndarray:
+                """C_nb(t) [w(t) x] (n, 3, 3): d(v_s)/d(l); the attitude at its nearest sample (its change
+                over half a nav interval times a lever arm is far below the velocity's noise)."""
+                j = np.clip(np.searchsorted(tq, t), 1, len(tq) - 1)
+                j -= (t - tq[j - 1]) < (tq[j] - t)
+                w, ok = master_rate(t)
+                return np.where(ok[:, None, None], c_nb[j] @ skew(np.where(ok[:, None], w, 0.0)), 0.0)
+    dt = 1.0 / min(max(5.0 * cut, VEL_MIN_GRID_HZ), f_min)
+    steps = tuple((velocity_quantum_m_s(v), np.sum(np.abs(np.diff(v, axis=0)), axis=0)) for v in (vm, vs))
+    return VelocityPair(itps[0], itps[1], lever, cut, dt, steps)
+
+
+def velocity_quantum_m_s(v: np.ndarray) -> float:
+    """The step the velocity was logged with (MAVLink GLOBAL_POSITION_INT: 0.01 m/s), 0 when it is not on
+    a grid: the largest of VEL_QUANTA that every sample is a whole multiple of."""
+    for q in VEL_QUANTA:
+        x = v / q
+        if np.all(np.abs(x - np.round(x)) < 1e-3):
+            return q
+    return 0.0
+
+
+def _quantization_sigma_s(vp: VelocityPair, accel: np.ndarray) -> float:
+    """Latency sigma from the velocities' quantization: a logged velocity on a grid of step q errs by a
+    sawtooth that is not white where the velocity changes slowly (one error per level crossing, with
+    variance q^2 / 12), which the residual spectrum does not show. Per axis the level crossings are
+    total variation / q, each weighed by the acceleration's mean square ``accel`` (3,)."""
+    info = 0.0
+    for q, tv in vp.steps:
+        if q > 0:
+            info += float(np.sum(accel * (tv / q))) / (q * q / 12.0)
+    return float(1.0 / np.sqrt(info)) if info > 0 else 0.0
+
+
+
+@dataclass(frozen=True)
+class _Solved:
+    d: float
+    dr: float
+    var: np.ndarray  # (nd,)
+    corr: float
+    lever: np.ndarray | None  # m, master body frame
+    tilt: np.ndarray | None  # rad
+    fixed: np.ndarray  # (n, 3) the lever-arm and tilt terms of the residual at the solution
+    rms: float
+    n: int
+    resid: np.ndarray  # (n, 3), 0 where unused
+
+
+def _solve(vp: VelocityPair, t: np.ndarray, vm: np.ndarray, Lr: np.ndarray | None, use0: np.ndarray,
+           d0: float, dr0: float, t_mid: float, noise: NoiseModel | None, fit_drift: bool, *,
+           tilt: bool) -> _Solved | None:
+    """Gauss-Newton on (L[, drift] | lever arm (with Lr), tilt, offset, ramp), whitened with ``noise``
+    (None: unweighted). The residual is r = v_s(t + L + drift (t - t_mid)) - v_m + J_lin x_lin."""
+    n, dt = len(t), vp.dt_s
+    tt = t - t_mid
+    T = max(float(np.max(np.abs(tt))), dt)
+    nd = 1 + int(fit_drift)
+    margin = (VEL_ITERS + 1) * dt
+    use = use0 & vp.slave.ok(t + d0 + dr0 * tt - margin) & vp.slave.ok(t + d0 + dr0 * tt + margin)
+    nl, nt = (0 if Lr is None else 3), (3 if tilt else 0)
+    P = nd + nl + nt + 6
+    if use.sum() < max(20, 2 * P):
+        return None
+    # the linear columns: lever arm, tilt, offset, ramp (fixed for all iterations)
+    eye = np.eye(3)
+    J_lin = np.zeros((n, 3, P - nd))
+    if nl:
+        J_lin[:, :, :3] = -Lr
+    k_mid = np.flatnonzero(use)[np.argmin(np.abs(tt[use]))]
+
+    def tilt_columns(lever: np.ndarray | None) -> None:
+        """d(delta v)/d(phi) = [(v - v_mid) x]: the velocity change since t_mid seen through the slave's
+        tilt, v the slave's true velocity (the master's plus the lever arm's, at the current lever arm)."""
+        v = vm if lever is None else vm + Lr @ lever
+        J_lin[:, :, nl:nl + 3] = np.where(use[:, None, None], skew(v - v[k_mid]), 0.0)
+
+    J_lin[:, :, nl + nt:nl + nt + 3] = -eye
+    J_lin[:, :, nl + nt + 3:] = -eye * (tt / T)[:, None, None]
+    J_lin[~use] = 0.0
+    if nt:
+        tilt_columns(None)
+    tap = end_taper(use, int(np.ceil(VEL_TAPER_S / dt)))
+    wts = noise.weights(n, dt) if noise is not None else None
+    lin = np.zeros(P - nd)
+    d, dr = float(d0), float(dr0)
+    iters = VEL_ITERS
+    for it in range(iters + 1):
+        tau = t + d + dr * tt
+        vs, ok = vp.slave(tau)
+        if not np.all(ok[use]):
+            return None
+        vd = np.zeros((n, 3))
+        vd[use], _ = vp.slave(tau[use], 1)
+        J = np.zeros((n, 3, P))
+        J[:, :, 0] = vd
+        if fit_drift:
+            J[:, :, 1] = vd * tt[:, None]
+        J[:, :, nd:] = J_lin
+        r = np.where(use[:, None], vs - vm, 0.0) + J_lin @ lin
+        J[~use] = 0.0
+        X = np.concatenate([r[:, :, None], J], axis=2) * tap[:, None, None]
+        Z = X if noise is None else noise.whiten(X.reshape(n, -1), dt, wts).reshape(X.shape)
+        rw, Jw = Z[:, :, 0], Z[:, :, 1:]
+        Jf = Jw.reshape(3 * n, P)
+        Nm = Jf.T @ Jf
+        try:
+            step = -np.linalg.solve(Nm, Jf.T @ rw.ravel())
+        except np.linalg.LinAlgError:
+            return None
+        if it == iters:
+            break
+        sd = float(np.clip(step[0], -0.5 * dt, 0.5 * dt))
+        d += sd
+        if fit_drift:
+            dr += float(np.clip(step[1], -0.5 * dt / T, 0.5 * dt / T))
+        lin = lin + step[nd:]
+        if nt and nl:
+            tilt_columns(lin[:3])
+        if abs(sd) < 1e-4 * dt:
+            iters = it + 1
+    try:
+        Ninv = np.linalg.inv(Nm)
+    except np.linalg.LinAlgError:
+        return None
+    rw = rw + (Jf @ step).reshape(n, 3)
+    n_use = int(use.sum())
+    s2 = float(np.sum(rw * rw)) / max(1, 3 * n_use - P)
+    u = np.sum(Jw * rw[:, :, None], axis=1) @ Ninv[:, :nd]
+    var, corr, _fac, _ = gls_covariance(Ninv, s2, u, dt, fit_drift)
+    lin = lin + step[nd:]
+    resid = r + J_lin @ step[nd:]
+    resid[~use] = 0.0
+    fixed = J_lin[:, :, :nl + nt] @ lin[:nl + nt]
+    return _Solved(d, dr, var, corr, lin[:3] if nl else None, lin[nl:nl + 3] if nt else None, fixed,
+                   float(np.sqrt(np.sum(resid ** 2) / (3 * n_use))), n_use, resid)
+
+
+def velocity_fit(vp: VelocityPair, w0: float, w1: float, d0: float, drift0: float, t_mid: float, *,
+                 fit_drift: bool, windows: list[tuple[float, float]]) -> VelocityFit | None:
+    """The velocity-matched (L, drift) over [w0, w1] (master's relative clock), started from the rate fit's
+    (d0, drift0): one unweighted pass, then VEL_GLS_PASSES whitened ones; sigma from the whitened
+    curvature with a HAC floor, inflated by the scatter of the windows' delays (each window: the
+    delay alone, whitened alike) about the fit's line when their reduced chi-square exceeds 1.
+    None when the data do not support a fit (too few samples, a singular system)."""
+    t = np.arange(np.ceil(w0 / vp.dt_s), np.floor(w1 / vp.dt_s) + 1) * vp.dt_s
+    edge = VEL_EDGE_CYCLES / vp.cutoff_hz
+    vm, okm = vp.master(t)
+    okm &= (t >= vp.master.t_first_s + edge) & (t <= vp.master.t_last_s - edge)
+    lag = d0 + drift0 * (t - t_mid)
+    okm &= (t + lag >= vp.slave.t_first_s + edge) & (t + lag <= vp.slave.t_last_s - edge)
+    Lr = vp.lever(t) if vp.lever is not None else None
+    if Lr is not None and not np.any(Lr):
+        Lr = None
+    vm = np.where(okm[:, None], vm, 0.0)
+    s = _solve(vp, t, vm, Lr, okm, d0, drift0, t_mid, None, fit_drift, tilt=VEL_TILT)
+    noise = None
+    for _ in range(VEL_GLS_PASSES):
+        if s is None:
+            return None
+        nm = noise_model(s.resid, np.any(s.resid != 0.0, axis=1), vp.dt_s)
+        if nm is None:
+            break
+        s2 = _solve(vp, t, vm, Lr, okm, s.d, s.dr, t_mid, nm, fit_drift, tilt=VEL_TILT)
+        if s2 is None:
+            break
+        s, noise = s2, nm
+    if s is None or not np.all(np.isfinite(s.var)) or s.var[0] <= 0:
+        return None
+    # the windows' delays, each with the whole fit's drift, lever arm and tilt (constants of the pair; a
+    # window cannot tell a lever arm along the flight path from a delay in a level turn)
+    vm_w = vm - s.fixed
+    c, lat, sig = [], [], []
+    for a0, a1 in windows if len(windows) >= 3 else []:
+        ws = (t >= a0) & (t <= a1)
+        if ws.sum() < VEL_WINDOW_MIN:
+            continue
+        tc = 0.5 * (a0 + a1)
+        pred = s.d + s.dr * (tc - t_mid)
+        sw = _solve(vp, t[ws], vm_w[ws], None, okm[ws], pred, s.dr, tc, noise, False, tilt=False)
+        if sw is not None and np.isfinite(sw.var[0]) and sw.var[0] > 0:
+            c.append(tc)
+            lat.append(sw.d)
+            sig.append(float(np.sqrt(sw.var[0])))
+    chi2 = 1.0
+    if len(c) >= 3:
+        c, lat, sig = map(np.asarray, (c, lat, sig))
+        res = lat - (s.d + s.dr * (c - t_mid))
+        chi2 = float(np.sum((res / sig) ** 2) / max(1, len(c) - 2))
+    infl = float(np.sqrt(max(1.0, chi2)))
+    # the quantization floor (in quadrature; the drift's sigma scaled alike)
+    acc, ok_a = vp.master(t, 1)
+    s_q = _quantization_sigma_s(vp, np.mean(acc[ok_a & okm] ** 2, axis=0)) if (ok_a & okm).any() else 0.0
+    s_l = float(np.sqrt(s.var[0])) * infl
+    q_infl = float(np.sqrt(1.0 + (s_q / s_l) ** 2))
+    sd = float(np.sqrt(s.var[1])) * infl * q_infl if fit_drift else 0.0
+    return VelocityFit(
+        latency_s=s.d, drift=s.dr, sigma_latency_s=s_l * q_infl, sigma_drift=sd,
+        corr_ld=s.corr, lever_arm_m=None if s.lever is None else tuple(float(x) for x in s.lever),
+        residual_rms_m_s=s.rms, n=s.n, window_chi2_red=chi2, n_windows=len(c))
