@@ -22,9 +22,9 @@ Further sets: an aligned-axes control (runs/5, what the seeds assume) and a stam
 white noise on both units' stamps, std up to 0.3 of each IMU period, and two gaps in the slave).
 "tapost-no-velocity" is tapost's method without the velocity matching, "tapost-gyro-only" without it and
 without the accelerometer-aided GLS (ablations). For the flexure runs, the Cramer-Rao bound of the
-latency from the rates and specific forces (``latency_bound.py``: exact flexure and noise model, truth
-signals) is computed too: the RMS and the within-1 ms fraction an efficient estimator would reach
-without the velocities (with a slave nav velocity there is more information than it counts).
+latency (``latency_bound.py``: exact flexure and noise model, truth signals) is computed too, from the
+rates and specific forces and, where the slave logs a nav velocity, with the velocities' information
+added: the RMS and the within-1 ms fraction an efficient estimator would reach.
 
 Second table: S000's Table 1 (aircraft, aligned axes, 200 Hz units, delays 10/50/100/150 ms, an exact
 number of samples as in the paper) with S000's method (5 s record in the S manoeuvre, +-1 s search,
@@ -68,6 +68,8 @@ GYRO_ONLY = "tapost-gyro-only"
 ALL_METHODS = METHODS[:1] + (NO_VEL, GYRO_ONLY) + METHODS[1:] + tuple(PAPER_RANGE)
 MAX_LAG_S = 2.0  # tapost's default search window (DESIGN.md --max-lag); latencies are within +-1 s
 NOISE_LEVELS = (0.5, 1.0, 3.0)
+#: the bound with gyros and accelerometers, gyros alone, and with the velocities too (slave with nav)
+BOUND_KEYS = ("aided", "gyro", "aided+velocity")
 SLAVE_NAV_FRACTION = 0.75  # runs whose slave logs a nav solution (else an IMU alone)
 SLAVE_VEL_NOISE_M_S = 0.005  # slave nav velocity white noise at noise level 1 (master: 0.002 m/s)
 PAPER_TABLE1 = {10: (2, 10), 50: (10, 50), 100: (20, 100), 150: (30, 150)}  # ms: (shifted points, est. ms)
@@ -222,10 +224,11 @@ def summarize(rows: list[dict], methods=ALL_METHODS) -> dict:
 def summarize_bound(rows: list[dict]) -> dict:
     """The Cramer-Rao bound over the flexure runs that have it: its RMS (what an efficient estimator's
     RMS error would be) and the fraction of runs an efficient, unbiased Gaussian estimator would bring
-    within 1 ms (mean of erf(1 ms / (sqrt 2 bound))), with the gyros and accelerometers and the gyros alone."""
+    within 1 ms (mean of erf(1 ms / (sqrt 2 bound))), with the gyros and accelerometers, the gyros alone, and
+    (runs whose slave logs a nav velocity) the gyros, accelerometers and velocities."""
     out = {}
-    for key in ("aided", "gyro"):
-        b = np.array([r["bound_s"][key] for r in rows if "bound_s" in r], float)
+    for key in BOUND_KEYS:
+        b = np.array([r["bound_s"][key] for r in rows if key in r.get("bound_s", {})], float)
         if not len(b):
             continue
         out[key] = dict(runs=int(len(b)), rms_ms=float(np.sqrt(np.mean(b ** 2)) * 1e3),
@@ -235,17 +238,15 @@ def summarize_bound(rows: list[dict]) -> dict:
 
 
 def bound_md(bounds: dict) -> str:
-    lines = ["### Cramer-Rao bound of the latency from the rates and specific forces, flexure runs "
-             "(benchmarks/latency_bound.py; a slave nav velocity adds information it does not count)", "",
-             "| runs | bound with accelerometers: RMS (ms) / worst (ms) / expected within 1 ms "
-             "| gyros alone: RMS (ms) / worst / expected within 1 ms |", "|---|---|---|"]
+    lines = ["### Cramer-Rao bound of the latency, flexure runs (benchmarks/latency_bound.py)", "",
+             "| runs | " + " | ".join(f"{k}: runs / RMS (ms) / worst (ms) / expected within 1 ms" for k in BOUND_KEYS)
+             + " |", "|---|" + "---|" * len(BOUND_KEYS)]
     for name, b in bounds.items():
         if not b:
             continue
-        a, g = b["aided"], b["gyro"]
-        lines.append(f"| {name} ({a['runs']}) | {a['rms_ms']:.3f} / {a['worst_ms']:.3f} / "
-                     f"{100 * a['expected_within_1ms']:.1f} % | {g['rms_ms']:.3f} / {g['worst_ms']:.3f} / "
-                     f"{100 * g['expected_within_1ms']:.1f} % |")
+        cells = [f"{b[k]['runs']} / {b[k]['rms_ms']:.3f} / {b[k]['worst_ms']:.3f} / "
+                 f"{100 * b[k]['expected_within_1ms']:.1f} %" if k in b else "-" for k in BOUND_KEYS]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
@@ -360,8 +361,10 @@ def main(argv: list[str] | None = None) -> int:
                            for v in (True, False)
                            if (sel := [r for r in flex_rows if r["scenario"] == sc and r.get("slave_nav", True) == v])}
     bound = {"all flexure runs": summarize_bound(flex_rows),
-             "flexure runs, IMU-only slave": summarize_bound([r for r in flex_rows if not r.get("slave_nav", True)])}
-    bound.update({sc: summarize_bound([r for r in flex_rows if r["scenario"] == sc]) for sc in SCENARIOS})
+             "flexure runs, IMU-only slave": summarize_bound([r for r in flex_rows if not r.get("slave_nav", True)]),
+             "flexure runs, slave with nav": summarize_bound([r for r in flex_rows if r.get("slave_nav", True)])}
+    bound.update({f"{sc}, slave_nav={v}": summarize_bound(sel) for sc in SCENARIOS for v in (True, False)
+                  if (sel := [r for r in flex_rows if r["scenario"] == sc and r.get("slave_nav", True) == v])})
     t1 = table1()
     result = dict(
         benchmark="latency", created_utc=datetime.now(timezone.utc).isoformat(timespec="seconds"),

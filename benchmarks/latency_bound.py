@@ -13,7 +13,8 @@ of p is sum_k Jw_k^T Jw_k with Jw the Kalman-whitened columns of J (innovations 
 the bound on the latency is sqrt(inv(F)[0, 0]), the other unknowns estimated jointly, the drift with the
 Gaussian prior tapost's estimator uses (DRIFT_PRIOR_PPM; a Bayesian bound for that part). It is evaluated on
 samples every ``dt_s`` (the truth is smooth; the flexure model is exact at any step) over the pair's
-overlap, and with the gyros alone (``gyro``) as well as gyros and accelerometers (``aided``).
+overlap, and with the gyros alone (``gyro``) as well as gyros and accelerometers (``aided``); when the
+slave logs a nav velocity, also with the velocity matching's information added (``aided+velocity``).
 
 Used by ``bench_latency.py`` for the flexure runs (without flexure the bound is the sensors' white noise
 alone, far below what interpolation and stamps allow, and is not reported).
@@ -58,12 +59,41 @@ def latency_bound_s(cfg: "sim.SimConfig", truth: "sim.Truth", dt_s: float = 0.05
     beta = float(np.mean(cfg.flexure_beta_1_s))
     use = np.ones(n, bool)
     out = {}
+    S_vel = _velocity_information(cfg, tr, tt, dt_s) if cfg.slave_nav else None
     for name, rows, cols_used in (("aided", slice(None), list(range(15))),
                                   ("gyro", slice(0, 3), list(range(9)))):  # residual, delay .. gyro bias
         model = FlexureModel(sig, beta, noise[rows], dt_s)
         yy = np.ascontiguousarray(y[:, rows][:, :, cols_used])
         _, M, _ = whitened_normal(yy, w, f if name == "aided" else None, use, model, store=False)
-        F = M[1:, 1:].copy()
-        F[1, 1] += 1.0 / (DRIFT_PRIOR_PPM * 1e-6) ** 2  # the drift prior tapost's estimator uses
-        out[name] = float(np.sqrt(np.linalg.inv(F)[0, 0]))
+        S = _schur2(M[1:, 1:])
+        S[1, 1] += 1.0 / (DRIFT_PRIOR_PPM * 1e-6) ** 2  # the drift prior tapost's estimator uses
+        out[name] = float(np.sqrt(np.linalg.inv(S)[0, 0]))
+        if name == "aided" and S_vel is not None:  # independent noise: the informations add
+            out["aided+velocity"] = float(np.sqrt(np.linalg.inv(S + S_vel)[0, 0]))
     return out
+
+
+def _schur2(F: np.ndarray) -> np.ndarray:
+    """The information of the first two parameters (delay, drift) with the others estimated jointly."""
+    return F[:2, :2] - F[:2, 2:] @ np.linalg.solve(F[2:, 2:], F[2:, :2])
+
+
+def _velocity_information(cfg: "sim.SimConfig", tr, tt: np.ndarray, dt_s: float) -> np.ndarray:
+    """(delay, drift) information of the velocity matching (``logtools.latency_velocity``'s model: lever
+    arm, offset, ramp and tilt estimated jointly) from both units' white velocity noise (the simulator's
+    per-sample std at each unit's nav rate, as a density on the dt_s grid). Flexure rotates the slave
+    without moving it: it does not enter."""
+    n = len(tt)
+    T = float(np.max(np.abs(tt)))
+    a = tr.accel_ned_m_s2
+    r = np.asarray(cfg.lever_arm_m, float)
+    v = tr.vel_ned_m_s + np.einsum("nij,nj->ni", tr.dcm_nb, np.cross(tr.omega_nb_b_rad_s, r))
+    lever = tr.dcm_nb @ skew(tr.omega_nb_b_rad_s)
+    I3 = np.broadcast_to(np.eye(3), (n, 3, 3))
+    J = np.concatenate([a[:, :, None], (a * tt[:, None])[:, :, None], lever, I3, I3 * (tt / T)[:, None, None],
+                        skew(v - v[n // 2])], axis=2)
+    m_rate = min(cfg.master_nav_rate_hz, 1.0 / dt_s)
+    s_rate = min(cfg.slave_nav_rate_hz, 1.0 / dt_s)
+    var = cfg.master_vel_noise_m_s ** 2 / (m_rate * dt_s) + cfg.slave_vel_noise_m_s ** 2 / (s_rate * dt_s)
+    Jf = J.reshape(3 * n, -1)
+    return _schur2(Jf.T @ Jf / var)

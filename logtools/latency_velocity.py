@@ -3,12 +3,15 @@
 
 Model, on the master's relative clock like ``logtools.latency``::
 
-    v_s(t + L + drift (t - t_mid)) = v_m(t) + C_nb(t) (w_m(t) x l) + c0 + c1 (t - t_mid) / T + e
+    v_s(t + L + drift (t - t_mid)) = v + c0 + c1 (t - t_mid) / T + (v - v(t_mid)) x phi + e,
+    v = v_m(t) + C_nb(t) (w_m(t) x l)
 
 with l the lever arm (the slave's position in the master's body frame, m; seed 003 eq. 3), c0 and c1 an
-offset and a ramp per axis (the slave's own slow velocity error), T the half span, and e the rest:
-noise, and the slave's slower errors (a coloured disturbance, weighed out by generalised least
-squares with its spectrum estimated from a first fit, as the rate fit does).
+offset and a ramp per axis and phi a tilt: the slave's own velocity error (a slave INS whose attitude
+is off by phi integrates f x phi, f = a - g: the ramp takes the g x phi part), T the half span, and e
+the rest: noise, and the slave's slower errors (a coloured disturbance, weighed out by generalised
+least squares with its spectrum estimated from a first fit, as the rate fit does). A velocity logged
+on a grid (MAVLink's cm/s) adds a quantization floor to the sigma.
 
 Why it matters: flexure rotates the slave without moving it, so the velocity carries the delay
 untouched by the flexure, where the angular rate carries it only through the flexure's noise (on an
@@ -19,14 +22,14 @@ speed changes, heave.
 What it does not know: a nav velocity is an estimator's output. An aided autopilot's velocity is
 pulled towards its GNSS and its own filter; a slave that logs it late or early relative to its IMU
 has a nav delay that is not the IMU's. ``logtools.latency`` therefore fuses this estimate with the
-rate fit's only where the rate fit is uncertain and the two agree (chi-square), and reports it
+rate fit's only where the two agree (chi-square) and the velocity is the more precise, and reports it
 either way (``latency.quality.velocity_fit``). Units sharing one nav stream (two IMUs of one log
 with the same EKF output) are recognised and not fitted.
 """
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -38,6 +41,7 @@ from logtools.resample import Interpolant, interpolant, lowpass, median_rate_hz,
 VEL_MAX_CUTOFF_HZ = 5.0  # the velocities are low-passed at the rate fit's cutoff, at most this
 VEL_CUTOFF_FRACTION = 0.4  # ... and at most this fraction of the slower nav rate
 VEL_MIN_GRID_HZ = 20.0  # fit samples at 5x the cutoff, at least this (at most the slower nav rate)
+VEL_MAX_FIT_SAMPLES = 60_000  # fit samples at most (a 4 h record at 1 Hz cutoff: one every 0.24 s)
 VEL_MIN_SAMPLES = 64  # finite velocity samples each unit needs
 VEL_ITERS = 6  # Gauss-Newton iterations per pass
 VEL_GLS_PASSES = 2  # whitened passes after the first (unweighted) one, the spectrum re-estimated before each
@@ -258,7 +262,10 @@ def velocity_fit(vp: VelocityPair, w0: float, w1: float, d0: float, drift0: floa
     curvature with a HAC floor, inflated by the scatter of the windows' delays (each window: the
     delay alone, whitened alike) about the fit's line when their reduced chi-square exceeds 1.
     None when the data do not support a fit (too few samples, a singular system)."""
-    t = np.arange(np.ceil(w0 / vp.dt_s), np.floor(w1 / vp.dt_s) + 1) * vp.dt_s
+    # long records: at most VEL_MAX_FIT_SAMPLES samples, still above twice the cutoff (band-limited data)
+    dt = max(vp.dt_s, min((w1 - w0) / VEL_MAX_FIT_SAMPLES, 1.0 / (2.5 * vp.cutoff_hz)))
+    vp = replace(vp, dt_s=dt)
+    t = np.arange(np.ceil(w0 / dt), np.floor(w1 / dt) + 1) * dt
     edge = VEL_EDGE_CYCLES / vp.cutoff_hz
     vm, okm = vp.master(t)
     okm &= (t >= vp.master.t_first_s + edge) & (t <= vp.master.t_last_s - edge)
