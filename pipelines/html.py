@@ -319,6 +319,14 @@ def _summary_html(rep: dict) -> str:
             ls, ss = me.get("latency_s"), me.get("sigma_s")
             t.append(f"<tr><th>&nbsp;&nbsp;method {_esc(name)}</th><td class=num>{_fmt(None if ls is None else ls * 1e3, '+.3f', 'ms')}</td>"
                      f"<td class=num>{_fmt(None if ss is None else ss * 1e3, '.3f', 'ms')}</td></tr>")
+        vf = (lat.get("quality") or {}).get("velocity_fit")
+        if isinstance(vf, dict):  # the velocity-matched estimate, and what became of it
+            use = "fused" if vf.get("fused") else ("agrees, not used (less precise)" if vf.get("agrees")
+                                                   else "disagrees, not used")
+            ls, ss = vf.get("latency_s"), vf.get("sigma_s")
+            t.append(f"<tr><th>&nbsp;&nbsp;velocity matching ({use}; lever arm {_vec(vf.get('lever_arm_m'), '.3f')} m)"
+                     f"</th><td class=num>{_fmt(None if ls is None else ls * 1e3, '+.3f', 'ms')}</td>"
+                     f"<td class=num>{_fmt(None if ss is None else ss * 1e3, '.3f', 'ms')}</td></tr>")
     for run in RUNS:
         a = rep["alignment"].get(run, {})
         if "skipped" in a:
@@ -337,7 +345,8 @@ def _summary_html(rep: dict) -> str:
     out.append("".join(t))
     q = lat.get("quality") or {}
     if q:
-        out.append("<p class=note>latency quality: " + ", ".join(f"{_esc(k)}={_esc(v)}" for k, v in q.items()) + "</p>")
+        out.append("<p class=note>latency quality: " + ", ".join(f"{_esc(k)}={_esc(v)}" for k, v in q.items()
+                                                                 if k != "velocity_fit") + "</p>")
     return "".join(out)
 
 
