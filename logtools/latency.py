@@ -99,7 +99,8 @@ from logtools.conventions import (dcm_from_quat, euler_from_dcm, quat_conj, quat
                                  rotvec_from_quat, skew)
 from logtools.errors import AnalysisError
 from logtools.inslog import InsLog
-from logtools.latency_gls import NoiseModel, end_taper, gls_covariance, hac_cov, noise_model
+from logtools.latency_gls import (NoiseModel, delay_step, end_taper, gls_covariance, gn_step, hac_cov,
+                                   noise_model)
 from logtools.latency_velocity import velocity_fit, velocity_pair
 from logtools.latency_flexure import DECIMATE_FACTOR, FlexureModel, block_mean, fit_model, whitened_normal
 from logtools.resample import (Interpolant, UniformSeries, interpolant, lowpass, median_rate_hz, stamp_noise_s,
@@ -762,18 +763,14 @@ def _refine_gls(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpol
         Jx = Z[:, :, 1:].reshape(C * n, P + n_check) if n_check else None
         Jw = Z[:, :, 1:P + 1]
         Jf = Jw.reshape(C * n, P)
-        Nm = Jf.T @ Jf
-        g = Jf.T @ rw.ravel()
-        try:
-            step = -np.linalg.solve(Nm, g)
-        except np.linalg.LinAlgError:
+        solved = gn_step(Jf, rw)
+        if solved is None:
             return fail
+        Nm, step = solved
         if it == iters:
             break
-        sd = float(np.clip(step[0], -0.5 * dt, 0.5 * dt))
-        d += sd
-        if fit_drift:
-            dr += float(np.clip(step[1], -0.5 * dt / max(span, 1e-9), 0.5 * dt / max(span, 1e-9)))
+        sd, sdr = delay_step(step, dt, span, fit_drift)
+        d, dr = d + sd, dr + sdr
         if abs(sd) < 1e-4 * dt:
             # one more pass for the covariance at the solution
             iters = it + 1

@@ -166,3 +166,24 @@ def gls_covariance(Ninv: np.ndarray, s2: float, u: np.ndarray, dt_s: float, fit_
         except np.linalg.LinAlgError:
             acc_lag = (np.inf, np.inf)
     return var, corr, fac, acc_lag
+
+
+def gn_step(Jf: np.ndarray, rw: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """(normal matrix, Gauss-Newton step) of a whitened least-squares problem (Jacobian (m, P), residual
+    (m,) or any shape of m elements); None when the normal matrix is singular."""
+    Nm = Jf.T @ Jf
+    try:
+        return Nm, -np.linalg.solve(Nm, Jf.T @ rw.ravel())
+    except np.linalg.LinAlgError:
+        return None
+
+
+def delay_step(step: np.ndarray, dt_s: float, span_s: float, fit_drift: bool) -> tuple[float, float]:
+    """The (latency, drift) part of a step, clipped to half a sample (the drift: half a sample at the
+    ends of the span, +- span_s from the middle): a delay fit never jumps over a sample at once."""
+    sd = float(np.clip(step[0], -0.5 * dt_s, 0.5 * dt_s))
+    if not fit_drift:
+        return sd, 0.0
+    lim = 0.5 * dt_s / max(span_s, 1e-9)
+    return sd, float(np.clip(step[1], -lim, lim))
+

@@ -35,7 +35,7 @@ import numpy as np
 
 from logtools.conventions import dcm_from_quat, skew
 from logtools.inslog import InsLog
-from logtools.latency_gls import NoiseModel, end_taper, gls_covariance, noise_model
+from logtools.latency_gls import NoiseModel, delay_step, end_taper, gls_covariance, gn_step, noise_model
 from logtools.resample import Interpolant, interpolant, lowpass, median_rate_hz, to_uniform
 
 VEL_MAX_CUTOFF_HZ = 5.0  # the velocities are low-passed at the rate fit's cutoff, at most this
@@ -222,17 +222,14 @@ def _solve(vp: VelocityPair, t: np.ndarray, vm: np.ndarray, Lr: np.ndarray | Non
         Z = X if noise is None else noise.whiten(X.reshape(n, -1), dt, wts).reshape(X.shape)
         rw, Jw = Z[:, :, 0], Z[:, :, 1:]
         Jf = Jw.reshape(3 * n, P)
-        Nm = Jf.T @ Jf
-        try:
-            step = -np.linalg.solve(Nm, Jf.T @ rw.ravel())
-        except np.linalg.LinAlgError:
+        solved = gn_step(Jf, rw)
+        if solved is None:
             return None
+        Nm, step = solved
         if it == iters:
             break
-        sd = float(np.clip(step[0], -0.5 * dt, 0.5 * dt))
-        d += sd
-        if fit_drift:
-            dr += float(np.clip(step[1], -0.5 * dt / T, 0.5 * dt / T))
+        sd, sdr = delay_step(step, dt, T, fit_drift)
+        d, dr = d + sd, dr + sdr
         lin = lin + step[nd:]
         if nt and nl:
             tilt_columns(lin[:3])
