@@ -48,6 +48,10 @@ VEL_GLS_PASSES = 2  # whitened passes after the first (unweighted) one, the spec
 VEL_TAPER_S = 2.0  # ramp of the weights at the ends of the used data (whitening transients)
 VEL_QUANTA = (0.1, 0.01, 0.001)  # m/s: the velocity grids recognised (logged as integers of these)
 VEL_TILT = True  # the slave's attitude error phi as unknowns: its velocity error (v - v_mid) x phi (below)
+VEL_STEP_RATIO = 10.0  # a jump of the residual's local mean beyond this times its median is a reset ...
+VEL_STEP_CYCLES = 2.0  # ... the means over this many cutoff periods either side (and left out around it)
+VEL_STEP_SHARP = 0.5  # ... and keeping this much of it at half the scale (a step, not a manoeuvre's curvature)
+VEL_MAX_STEPS = 12  # more resets than this: no velocity fit
 VEL_WINDOW_MIN = 50  # samples a drift window needs
 VEL_EDGE_CYCLES = 4.0  # samples within this many cutoff periods of a series' ends are not used (the
 #                        zero-phase filter's mirrored ends distort a velocity that is not level there)
@@ -79,6 +83,7 @@ class VelocityFit:
     n: int
     window_chi2_red: float
     n_windows: int
+    n_steps: int = 0  # resets of the slave's velocity found and solved
 
 
 def _finite(t: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -168,9 +173,10 @@ class _Solved:
 
 def _solve(vp: VelocityPair, t: np.ndarray, vm: np.ndarray, Lr: np.ndarray | None, use0: np.ndarray,
            d0: float, dr0: float, t_mid: float, noise: NoiseModel | None, fit_drift: bool, *,
-           tilt: bool) -> _Solved | None:
-    """Gauss-Newton on (L[, drift] | lever arm (with Lr), tilt, offset, ramp), whitened with ``noise``
-    (None: unweighted). The residual is r = v_s(t + L + drift (t - t_mid)) - v_m + J_lin x_lin."""
+           tilt: bool, steps: np.ndarray | None = None) -> _Solved | None:
+    """Gauss-Newton on (L[, drift] | lever arm (with Lr), tilt, steps, offset, ramp), whitened with
+    ``noise`` (None: unweighted). The residual is r = v_s(t + L + drift (t - t_mid)) - v_m + J_lin x_lin;
+    ``steps``: sample indices where the slave's velocity jumps (a reset), a step per axis from each."""
     n, dt = len(t), vp.dt_s
     tt = t - t_mid
     T = max(float(np.max(np.abs(tt))), dt)
@@ -178,7 +184,9 @@ def _solve(vp: VelocityPair, t: np.ndarray, vm: np.ndarray, Lr: np.ndarray | Non
     margin = (VEL_ITERS + 1) * dt
     use = use0 & vp.slave.ok(t + d0 + dr0 * tt - margin) & vp.slave.ok(t + d0 + dr0 * tt + margin)
     nl, nt = (0 if Lr is None else 3), (3 if tilt else 0)
-    P = nd + nl + nt + 6
+    steps = np.zeros(0, int) if steps is None else np.asarray(steps, int)
+    nf = nl + nt + 3 * len(steps)  # the columns kept by the windows (``fixed``)
+    P = nd + nf + 6
     if use.sum() < max(20, 2 * P):
         return None
     # the linear columns: lever arm, tilt, offset, ramp (fixed for all iterations)
@@ -194,8 +202,10 @@ def _solve(vp: VelocityPair, t: np.ndarray, vm: np.ndarray, Lr: np.ndarray | Non
         v = vm if lever is None else vm + Lr @ lever
         J_lin[:, :, nl:nl + 3] = np.where(use[:, None, None], skew(v - v[k_mid]), 0.0)
 
-    J_lin[:, :, nl + nt:nl + nt + 3] = -eye
-    J_lin[:, :, nl + nt + 3:] = -eye * (tt / T)[:, None, None]
+    for j, k in enumerate(steps):
+        J_lin[k:, :, nl + nt + 3 * j:nl + nt + 3 * j + 3] = -eye
+    J_lin[:, :, nf:nf + 3] = -eye
+    J_lin[:, :, nf + 3:] = -eye * (tt / T)[:, None, None]
     J_lin[~use] = 0.0
     if nt:
         tilt_columns(None)
@@ -247,9 +257,51 @@ def _solve(vp: VelocityPair, t: np.ndarray, vm: np.ndarray, Lr: np.ndarray | Non
     lin = lin + step[nd:]
     resid = r + J_lin @ step[nd:]
     resid[~use] = 0.0
-    fixed = J_lin[:, :, :nl + nt] @ lin[:nl + nt]
+    fixed = J_lin[:, :, :nf] @ lin[:nf]
     return _Solved(d, dr, var, corr, lin[:3] if nl else None, lin[nl:nl + 3] if nt else None, fixed,
                    float(np.sqrt(np.sum(resid ** 2) / (3 * n_use))), n_use, resid)
+
+
+def _step_score(S: np.ndarray, C: np.ndarray, k: np.ndarray, half: int) -> np.ndarray:
+    """|(C - B) - (D - A) / 3| at samples k, A, B, C, D the means of four runs of ``half`` samples (two before
+    k, two after; S, C the cumulative sums of the values and of the used flags): zero on a straight
+    line, 2/3 of a step, and a curvature's half^2; NaN where a run has too few used samples."""
+    def mean(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        c = C[b] - C[a]
+        return np.where((c > half // 2)[:, None], (S[b] - S[a]) / np.maximum(c, 1)[:, None], np.nan)
+
+    mA, mB = mean(k - 2 * half, k - half), mean(k - half, k)
+    mC, mD = mean(k, k + half), mean(k + half, k + 2 * half)
+    return np.linalg.norm((mC - mB) - (mD - mA) / 3.0, axis=1)
+
+
+def _find_steps(x: np.ndarray, use: np.ndarray, half: int) -> np.ndarray:
+    """Sample indices where x (n, 3) jumps: local maxima of the step score (``_step_score``) beyond
+    VEL_STEP_RATIO times its median that are sharp, i.e. keep at least VEL_STEP_SHARP of their score at
+    half the scale (a step keeps it all, the curvature of a manoeuvre a quarter)."""
+    n = len(x)
+    if n < 8 * half or half < 4:
+        return np.zeros(0, int)
+    xs = np.where(use[:, None], x, 0.0)
+    S = np.concatenate([np.zeros((1, 3)), np.cumsum(xs, axis=0)])
+    C = np.concatenate([[0], np.cumsum(use)])
+    k = np.arange(2 * half, n - 2 * half + 1)
+    m = _step_score(S, C, k, half)
+    ok = np.isfinite(m)
+    if not ok.any():
+        return np.zeros(0, int)
+    m = np.where(ok, m, 0.0)
+    thr = VEL_STEP_RATIO * float(np.median(m[ok]))
+    out: list[int] = []
+    for i in np.argsort(-m):
+        if m[i] <= thr:
+            break
+        if any(abs(int(i) - j) <= 2 * half for j in out):
+            continue
+        fine = _step_score(S, C, k[i:i + 1], half // 2)[0]
+        if np.isfinite(fine) and fine >= VEL_STEP_SHARP * m[i]:
+            out.append(int(i))
+    return np.sort(np.asarray(out, int) + 2 * half)
 
 
 def velocity_fit(vp: VelocityPair, w0: float, w1: float, d0: float, drift0: float, t_mid: float, *,
@@ -272,7 +324,16 @@ def velocity_fit(vp: VelocityPair, w0: float, w1: float, d0: float, drift0: floa
     if Lr is not None and not np.any(Lr):
         Lr = None
     vm = np.where(okm[:, None], vm, 0.0)
-    s = _solve(vp, t, vm, Lr, okm, d0, drift0, t_mid, None, fit_drift, tilt=VEL_TILT)
+    # resets of the slave's velocity (an aided filter's jumps): found in the raw difference at the rate
+    # fit's (L, drift), a step per axis solved from each, the low-passed transition around it left out
+    half = max(2, int(round(VEL_STEP_CYCLES / (vp.cutoff_hz * dt))))
+    vs0, ok0 = vp.slave(t + d0 + drift0 * (t - t_mid))
+    steps = _find_steps(np.where(ok0[:, None], vs0, 0.0) - vm, okm & ok0, half)
+    if len(steps) > VEL_MAX_STEPS:
+        return None  # a velocity that jumps this often carries no delay worth the risk
+    if len(steps):
+        okm = okm & ~_near(t, t[steps], half * dt)
+    s = _solve(vp, t, vm, Lr, okm, d0, drift0, t_mid, None, fit_drift, tilt=VEL_TILT, steps=steps)
     noise = None
     for _ in range(VEL_GLS_PASSES):
         if s is None:
@@ -280,7 +341,7 @@ def velocity_fit(vp: VelocityPair, w0: float, w1: float, d0: float, drift0: floa
         nm = noise_model(s.resid, np.any(s.resid != 0.0, axis=1), vp.dt_s)
         if nm is None:
             break
-        s2 = _solve(vp, t, vm, Lr, okm, s.d, s.dr, t_mid, nm, fit_drift, tilt=VEL_TILT)
+        s2 = _solve(vp, t, vm, Lr, okm, s.d, s.dr, t_mid, nm, fit_drift, tilt=VEL_TILT, steps=steps)
         if s2 is None:
             break
         s, noise = s2, nm
@@ -316,4 +377,13 @@ def velocity_fit(vp: VelocityPair, w0: float, w1: float, d0: float, drift0: floa
     return VelocityFit(
         latency_s=s.d, drift=s.dr, sigma_latency_s=s_l * q_infl, sigma_drift=sd,
         corr_ld=s.corr, lever_arm_m=None if s.lever is None else tuple(float(x) for x in s.lever),
-        residual_rms_m_s=s.rms, n=s.n, window_chi2_red=chi2, n_windows=len(c))
+        residual_rms_m_s=s.rms, n=s.n, window_chi2_red=chi2, n_windows=len(c), n_steps=int(len(steps)))
+
+
+def _near(t: np.ndarray, at: np.ndarray, half_s: float) -> np.ndarray:
+    """True where t is within half_s of any of the instants ``at``."""
+    j = np.clip(np.searchsorted(at, t), 1, max(1, len(at) - 1)) if len(at) > 1 else np.zeros(len(t), int)
+    d = np.abs(t - at[np.clip(j, 0, len(at) - 1)])
+    if len(at) > 1:
+        d = np.minimum(d, np.abs(t - at[j - 1]))
+    return d <= half_s
