@@ -72,8 +72,9 @@ tapost's method ("tapost")
      re-estimated with it; when fewer than 3 windows have the motion for that, no window check);
   5b. velocity matching (``logtools.latency_velocity``; when both units log NED velocity): a second
      estimate of (L, drift) from v_s(t + d) = v_m(t) + C_nb (w_m x l) + the slave's velocity error
-     (offset, ramp, and the (v - v_mid) x phi of a tilted slave INS), lever arm l and the rest solved,
-     GLS-whitened, window-checked. Flexure rotates the slave without moving it, so the velocity keeps
+     (offset, ramp, the (v - v_mid) x phi of a tilted slave INS, and a step at each reset of an aided
+     filter's velocity), lever arm l and the rest solved, GLS-whitened, window-checked, with a floor for
+     a velocity logged on a grid (MAVLink's cm/s). Flexure rotates the slave without moving it, so the velocity keeps
      the delay information the rates lose to the flexure (and a slave without an IMU gains what its
      attitude-derived rates lack). Fused with the rate fit's (L, drift) by inverse covariance when the
      two agree (chi-square below VEL_AGREE_CHI2 with the sigmas as reported); otherwise the rate fit
