@@ -32,6 +32,8 @@ class ChannelInfo:
     rate_hz: float
     count: int
     source: str = ""  # e.g. "IMU2", "/xsens/imu_data", "HIGHRES_IMU"
+    #: the stamps' step when the format's is coarse (MAVLink time_boot_ms: 1e-3 s); 0 when fine (us, ns)
+    stamp_resolution_s: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -69,6 +69,8 @@ class VelocityPair:
     dt_s: float
     #: per unit: (quantum of the logged velocity in m/s or 0, total variation per axis (3,) m/s)
     steps: tuple[tuple[float, np.ndarray], ...] = ()
+    #: per unit: the step of the velocity's stamps when coarse (s; 0 when fine)
+    stamp_quanta_s: tuple[float, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -131,7 +133,16 @@ def velocity_pair(master: InsLog, slave: InsLog, cutoff_hz: float, master_rate: 
                 return np.where(ok[:, None, None], c_nb[j] @ skew(np.where(ok[:, None], w, 0.0)), 0.0)
     dt = 1.0 / min(max(5.0 * cut, VEL_MIN_GRID_HZ), f_min)
     steps = tuple((velocity_quantum_m_s(v), np.sum(np.abs(np.diff(v, axis=0)), axis=0)) for v in (vm, vs))
-    return VelocityPair(itps[0], itps[1], lever, cut, dt, steps)
+    stamps = (stamp_resolution_s(master), stamp_resolution_s(slave))
+    return VelocityPair(itps[0], itps[1], lever, cut, dt, steps, stamps)
+
+
+def stamp_resolution_s(log: InsLog) -> float:
+    """The step of the log's velocity stamps when its format's is coarse (the parser's ``ChannelInfo``:
+    MAVLink ``time_boot_ms`` is 1 ms), else 0. Stamps rounded so may all be off by the same fraction of
+    it (a fixed sampling phase): a bias of up to half of it."""
+    ch = log.meta.channels.get("vel")
+    return float(getattr(ch, "stamp_resolution_s", 0.0) or 0.0)
 
 
 def velocity_quantum_m_s(v: np.ndarray) -> float:
@@ -368,9 +379,12 @@ def velocity_fit(vp: VelocityPair, w0: float, w1: float, d0: float, drift0: floa
         res = lat - (s.d + s.dr * (c - t_mid))
         chi2 = float(np.sum((res / sig) ** 2) / max(1, len(c) - 2))
     infl = float(np.sqrt(max(1.0, chi2)))
-    # the quantization floor (in quadrature; the drift's sigma scaled alike)
+    # the quantization floors (in quadrature; the drift's sigma scaled alike)
     acc, ok_a = vp.master(t, 1)
     s_q = _quantization_sigma_s(vp, np.mean(acc[ok_a & okm] ** 2, axis=0)) if (ok_a & okm).any() else 0.0
+    # stamps on a coarse grid: a common offset of up to half of it, uniform (the rates' own stamps are
+    # another stream's: this is the velocity's)
+    s_q = float(np.sqrt(s_q ** 2 + sum(q * q / 12.0 for q in vp.stamp_quanta_s)))
     s_l = float(np.sqrt(s.var[0])) * infl
     q_infl = float(np.sqrt(1.0 + (s_q / s_l) ** 2))
     sd = float(np.sqrt(s.var[1])) * infl * q_infl if fit_drift else 0.0

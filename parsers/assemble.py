@@ -25,6 +25,7 @@ class Stream:
     t_ns: np.ndarray
     values: np.ndarray
     source: str = ""
+    stamp_resolution_s: float = 0.0  # the format's stamp step for this stream when coarse (tlog time_boot_ms: 1e-3)
 
 
 def clean_stream(name: str, s: Stream, warnings: list[str]) -> Stream:
@@ -53,7 +54,7 @@ def clean_stream(name: str, s: Stream, warnings: list[str]) -> Stream:
         if big.any():
             warnings.append(
                 f"{name} ({s.source}): {int(big.sum())} gap(s) in stamps, longest {d.max() * 1e-9:.3f} s")
-    return Stream(t, v, s.source)
+    return Stream(t, v, s.source, s.stamp_resolution_s)
 
 
 def build_inslog(
@@ -93,7 +94,7 @@ def build_inslog(
         t_imu = rel(base.t_ns)
         if g is not None:
             cols.update(zip(GYRO, g.values.T))
-            channels["gyro"] = ChannelInfo(rate_of(t_imu), len(t_imu), g.source)
+            channels["gyro"] = ChannelInfo(rate_of(t_imu), len(t_imu), g.source, g.stamp_resolution_s)
         if a is not None:
             if g is not None and not np.array_equal(a.t_ns, g.t_ns):
                 ta = rel(a.t_ns)
@@ -103,7 +104,7 @@ def build_inslog(
                     warns.append("accel interpolated onto gyro stamps (different stamps)")
             else:
                 cols.update(zip(ACCEL, a.values.T))
-            channels["accel"] = ChannelInfo(rate_of(rel(a.t_ns)), len(a.t_ns), a.source)
+            channels["accel"] = ChannelInfo(rate_of(rel(a.t_ns)), len(a.t_ns), a.source, a.stamp_resolution_s)
         imu = pd.DataFrame(cols, index=pd.Index(t_imu, name=T))
         imu = imu[imu.notna().all(axis=1)] if ACCEL[0] in imu.columns and g is not None else imu
 
@@ -119,7 +120,7 @@ def build_inslog(
         df = pd.DataFrame(dict(zip(names, vals.T)), index=pd.Index(s.t_ns, name="t_ns"))
         nav_parts.append(df)
         channels[{"quat": "att", "vel": "vel", "pos": "pos"}[key]] = ChannelInfo(
-            rate_of(rel(s.t_ns)), len(s.t_ns), s.source)
+            rate_of(rel(s.t_ns)), len(s.t_ns), s.source, s.stamp_resolution_s)
     if nav_parts:
         nav = nav_parts[0]
         for part in nav_parts[1:]:

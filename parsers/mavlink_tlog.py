@@ -542,6 +542,9 @@ def load(path: str, selector: Selector) -> InsLog:
         k_, t_ = timing[key]
         return apply_clock(plan, k_, t_, picked[key].recv_ns, mode)
 
+    def resolution(key) -> float:  # time_boot_ms stamps are whole milliseconds
+        return 1e-3 if mode != "receive" and _time_field(picked[key].name) == "time_boot_ms" else 0.0
+
     kw: dict[str, Stream] = {}
     if "imu" in picked:
         s = picked["imu"]
@@ -549,25 +552,25 @@ def load(path: str, selector: Selector) -> InsLog:
         if s.name in RATE_ONLY:
             r = s.rec
             gyro = np.column_stack([r["rollspeed"], r["pitchspeed"], r["yawspeed"]]).astype(float)
-            kw["gyro"] = Stream(t, gyro, f"{s.name} body rates")
+            kw["gyro"] = Stream(t, gyro, f"{s.name} body rates", resolution("imu"))
             warns.append(f"gyro from {s.name} rollspeed/pitchspeed/yawspeed (estimator output, no accel)")
         else:
             gyro, acc = _imu_values(s)
-            kw["gyro"] = Stream(t, gyro, s.name)
-            kw["accel"] = Stream(t, acc, s.name)
+            kw["gyro"] = Stream(t, gyro, s.name, resolution("imu"))
+            kw["accel"] = Stream(t, acc, s.name, resolution("imu"))
     if "att" in picked:
         s = picked["att"]
-        kw["quat"] = Stream(stamps("att"), _quat_values(s), s.name)
+        kw["quat"] = Stream(stamps("att"), _quat_values(s), s.name, resolution("att"))
     if "vel" in picked:
         s = picked["vel"]
-        kw["vel"] = Stream(stamps("vel"), _vel_values(s), s.name)
+        kw["vel"] = Stream(stamps("vel"), _vel_values(s), s.name, resolution("vel"))
     if "pos" in picked:
         s = picked["pos"]
         vals, valid = _pos_values(s)
         if not valid.all():
             warns.append(f"{s.name}: {int((~valid).sum())} samples without a position fix (0,0) dropped")
         if valid.any():
-            kw["pos"] = Stream(stamps("pos")[valid], vals[valid], s.name)
+            kw["pos"] = Stream(stamps("pos")[valid], vals[valid], s.name, resolution("pos"))
     eff = ",".join(f"{k}={sel[k]}" for k in ("imu", "att", "vel", "pos") if k in sel)
     eff = f"sysid={sysid},compid={compid},{eff},time={mode}"
     return build_inslog(path=path, fmt=NAME, selector=eff, clock=plan.clock, stamp_source=plan.source,
