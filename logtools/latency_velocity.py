@@ -318,10 +318,11 @@ def _find_steps(x: np.ndarray, use: np.ndarray, half: int) -> np.ndarray:
 def velocity_fit(vp: VelocityPair, w0: float, w1: float, d0: float, drift0: float, t_mid: float, *,
                  fit_drift: bool, windows: list[tuple[float, float]]) -> VelocityFit | None:
     """The velocity-matched (L, drift) over [w0, w1] (master's relative clock), started from the rate fit's
-    (d0, drift0): one unweighted pass, then VEL_GLS_PASSES whitened ones; sigma from the whitened
-    curvature with a HAC floor, inflated by the scatter of the windows' delays (each window: the
-    delay alone, whitened alike) about the fit's line when their reduced chi-square exceeds 1.
-    None when the data do not support a fit (too few samples, a singular system)."""
+    (d0, drift0): the resets found (steps), one unweighted pass, then VEL_GLS_PASSES whitened ones; sigma
+    from the whitened curvature with a HAC floor, inflated by the scatter of the windows' delays (each
+    window: the delay alone, whitened alike) about the fit's line when their reduced chi-square exceeds
+    1, and floored by the velocity's and the stamps' quantization. None when the data do not support a
+    fit (too few samples, a singular system, more than VEL_MAX_STEPS resets)."""
     # long records: at most VEL_MAX_FIT_SAMPLES samples, still above twice the cutoff (band-limited data)
     dt = max(vp.dt_s, min((w1 - w0) / VEL_MAX_FIT_SAMPLES, 1.0 / (2.5 * vp.cutoff_hz)))
     vp = replace(vp, dt_s=dt)
@@ -395,9 +396,8 @@ def velocity_fit(vp: VelocityPair, w0: float, w1: float, d0: float, drift0: floa
 
 
 def _near(t: np.ndarray, at: np.ndarray, half_s: float) -> np.ndarray:
-    """True where t is within half_s of any of the instants ``at``."""
-    j = np.clip(np.searchsorted(at, t), 1, max(1, len(at) - 1)) if len(at) > 1 else np.zeros(len(t), int)
-    d = np.abs(t - at[np.clip(j, 0, len(at) - 1)])
-    if len(at) > 1:
-        d = np.minimum(d, np.abs(t - at[j - 1]))
-    return d <= half_s
+    """True where t is within half_s of any of the (sorted) instants ``at``."""
+    j = np.searchsorted(at, t)
+    before = np.abs(t - at[np.clip(j - 1, 0, len(at) - 1)])
+    after = np.abs(t - at[np.clip(j, 0, len(at) - 1)])
+    return np.minimum(before, after) <= half_s
