@@ -73,13 +73,15 @@ tapost's method ("tapost")
   5b. velocity matching (``logtools.latency_velocity``; when both units log NED velocity): a second
      estimate of (L, drift) from v_s(t + d) = v_m(t) + C_nb (w_m x l) + the slave's velocity error
      (offset, ramp, the (v - v_mid) x phi of a tilted slave INS, and a step at each reset of an aided
-     filter's velocity), lever arm l and the rest solved, GLS-whitened, window-checked, with a floor for
-     a velocity logged on a grid (MAVLink's cm/s). Flexure rotates the slave without moving it, so the velocity keeps
-     the delay information the rates lose to the flexure (and a slave without an IMU gains what its
-     attitude-derived rates lack). Fused with the rate fit's (L, drift) by inverse covariance when the
-     two agree (chi-square below VEL_AGREE_CHI2 with the sigmas as reported); otherwise the rate fit
-     stays and ``velocity_disagrees`` is set (a nav output logged later than its IMU). Two units that
-     carry the same nav samples (one EKF logged with two IMUs) are not matched. Then the drift prior;
+     filter's velocity), lever arm l and the rest solved, GLS-whitened, window-checked, with floors for
+     a velocity or stamps logged on a coarse grid (MAVLink's cm/s and ms). Flexure rotates the slave
+     without moving it, so the velocity keeps the delay information the rates lose to the flexure (and
+     a slave without an IMU gains what its attitude-derived rates lack). Fused with the rate fit's
+     (L, drift) by inverse covariance when the two agree (chi-square below VEL_AGREE_CHI2 with the
+     sigmas as reported) and the velocity is the more precise or the rate fit had to model flexure;
+     when they disagree the rate fit stays and ``velocity_disagrees`` is set (a nav output logged later
+     than its IMU). Two units that carry the same nav samples (one EKF logged with two IMUs) are not
+     matched. Then the drift prior;
   6. quality flags: motion level, too little motion, periodic motion (several near-equal minima of the
      cost: S000 eq 6's caveat; sigma then covers the ambiguity), windows disagreeing, overlap, rotation
      found, residual RMS, masked fraction.
@@ -154,6 +156,7 @@ FLEX_ML_SPAN_S = 120.0  # the flexure model is fitted on at most this much of th
 FLEX_ML_BLOCKS = 1500  # ... and on at most this many block samples
 VELOCITY_AIDED = True  # velocity matching (logtools.latency_velocity) when both units log NED velocity,
 VEL_AGREE_CHI2 = (8.8, 11.6)  # ... fused when it agrees: chi-square of (L) or (L, drift), 99.7 % ...
+VEL_FUSE_FLEXURE = True  # ... or the rate fit is the flexure-model one (its covariance is the Kalman profile's)
 VEL_FUSE_ALWAYS = False  # ... and its latency sigma is the smaller (else the rate fit's window-inflated
 #                          drift sigma, conservative on smooth motion, would hand the drift to the velocity)
 ACCEL_LAG_SIGMAS = 3.0  # ... unless the accelerometers' own delay differs from the gyros' by more sigmas
@@ -1193,7 +1196,8 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
     vel_q = None
     if ctx.vel_src is not None:
         prog(0.85, "velocity matching")
-        vel_q, fused = _velocity_step(ctx, w0, w1, t_mid, fit_drift, latency, drift, sig_l, sigma_drift, corr_ld)
+        vel_q, fused = _velocity_step(ctx, w0, w1, t_mid, fit_drift, latency, drift, sig_l, sigma_drift, corr_ld,
+                                      flexure=fin.flex is not None)
         if fused is not None:
             latency, drift, sig_l, sigma_drift, corr_ld = fused
     # a drift the data cannot determine is pulled towards 0 by a Gaussian prior (crystal clocks:
@@ -1292,11 +1296,13 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
 
 
 def _velocity_step(ctx: _Ctx, w0: float, w1: float, t_mid: float, fit_drift: bool, latency: float, drift: float,
-                   sig_l: float, sig_dr: float, corr: float) -> tuple[dict | None, tuple | None]:
+                   sig_l: float, sig_dr: float, corr: float, *, flexure: bool = False
+                   ) -> tuple[dict | None, tuple | None]:
     """The velocity-matched estimate (``logtools.latency_velocity``) and its fusion with the rate fit's
     (L[, drift]): inverse-covariance weighted when the two agree (chi-square below VEL_AGREE_CHI2; a nav
-    velocity's delay need not be its IMU's: else ``agrees`` is False and the rate fit stays) and the
-    velocity's latency sigma is the smaller (VEL_FUSE_ALWAYS). Returns (the quality entry or None, the
+    velocity's delay need not be its IMU's: else ``agrees`` is False and the rate fit stays) and either
+    the velocity's latency sigma is the smaller or the rate fit had to model flexure (``flexure``: what
+    limits it there is what the velocity does not see). Returns (the quality entry or None, the
     fused (L, drift, sigma_L, sigma_drift, corr) or None)."""
     master, slave = ctx.vel_src
     vp = velocity_pair(master, slave, ctx.cutoff_hz, ctx.master.itp)
@@ -1314,7 +1320,7 @@ def _velocity_step(ctx: _Ctx, w0: float, w1: float, t_mid: float, fit_drift: boo
     dx = x_v - x_r
     chi2 = float(dx @ np.linalg.solve(V_r + V_v, dx)) / SIGMA_CALIBRATION ** 2  # the sigmas as reported
     agrees = bool(chi2 <= VEL_AGREE_CHI2[nd - 1])
-    use = bool(agrees and (VEL_FUSE_ALWAYS or vf.sigma_latency_s < sig_l))
+    use = bool(agrees and (VEL_FUSE_ALWAYS or (VEL_FUSE_FLEXURE and flexure) or vf.sigma_latency_s < sig_l))
     q = {"latency_s": vf.latency_s, "sigma_s": SIGMA_CALIBRATION * vf.sigma_latency_s,
          "drift_ppm": vf.drift * 1e6 if nd == 2 else None, "lever_arm_m": vf.lever_arm_m,
          "residual_rms_m_s": vf.residual_rms_m_s, "window_chi2_red": vf.window_chi2_red,
