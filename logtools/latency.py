@@ -103,7 +103,7 @@ from logtools.conventions import (dcm_from_quat, euler_from_dcm, quat_conj, quat
 from logtools.errors import AnalysisError
 from logtools.inslog import InsLog
 from logtools.latency_gls import (NoiseModel, delay_step, end_taper, gls_covariance, gn_step, hac_cov,
-                                   noise_model)
+                                   noise_model, window_chi2)
 from logtools.latency_velocity import velocity_fit, velocity_pair
 from logtools.latency_flexure import DECIMATE_FACTOR, FlexureModel, block_mean, fit_model, whitened_normal
 from logtools.resample import (Interpolant, UniformSeries, interpolant, lowpass, median_rate_hz, stamp_noise_s,
@@ -155,10 +155,11 @@ FLEX_ITERS = 6  # profile Newton steps
 FLEX_ML_SPAN_S = 120.0  # the flexure model is fitted on at most this much of the overlap (its middle)
 FLEX_ML_BLOCKS = 1500  # ... and on at most this many block samples
 VELOCITY_AIDED = True  # velocity matching (logtools.latency_velocity) when both units log NED velocity,
-VEL_AGREE_CHI2 = (8.8, 11.6)  # ... fused when it agrees: chi-square of (L) or (L, drift), 99.7 % ...
-VEL_FUSE_FLEXURE = True  # ... or the rate fit is the flexure-model one (its covariance is the Kalman profile's)
-VEL_FUSE_ALWAYS = False  # ... and its latency sigma is the smaller (else the rate fit's window-inflated
-#                          drift sigma, conservative on smooth motion, would hand the drift to the velocity)
+VEL_AGREE_CHI2 = (8.8, 11.6)  # ... fused when it agrees (chi-square of (L) or (L, drift), 99.7 %) and its
+#                               latency sigma is the smaller ...
+VEL_FUSE_FLEXURE = True  # ... or the rate fit had to model flexure (what limits it there the velocity does not see)
+VEL_FUSE_ALWAYS = False  # whatever the sigmas (measured worse: on smooth motion the rate fit's window-inflated
+#                          drift sigma is conservative and would hand the drift to the velocity)
 ACCEL_LAG_SIGMAS = 3.0  # ... unless the accelerometers' own delay differs from the gyros' by more sigmas
 
 Progress = Callable[[float, str], None] | None
@@ -1192,7 +1193,7 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
     infl = np.sqrt(max(1.0, chi2_red)) if WINDOW_INFLATE else 1.0
     sig_l, sigma_drift = fin.sigma_latency_s * infl, fin.sigma_drift * infl
     latency, drift, corr_ld = fin.latency_s, fin.drift, fin.corr_ld
-    # velocity matching: a second estimate, fused where the rate fit is uncertain and the two agree
+    # velocity matching: a second estimate, fused when the two agree (see _velocity_step)
     vel_q = None
     if ctx.vel_src is not None:
         prog(0.85, "velocity matching")
@@ -1324,8 +1325,8 @@ def _velocity_step(ctx: _Ctx, w0: float, w1: float, t_mid: float, fit_drift: boo
     q = {"latency_s": vf.latency_s, "sigma_s": SIGMA_CALIBRATION * vf.sigma_latency_s,
          "drift_ppm": vf.drift * 1e6 if nd == 2 else None, "lever_arm_m": vf.lever_arm_m,
          "residual_rms_m_s": vf.residual_rms_m_s, "window_chi2_red": vf.window_chi2_red,
-         "n_windows": vf.n_windows, "velocity_steps": vf.n_steps, "lowpass_hz": vp.cutoff_hz, "agreement_chi2": chi2, "agrees": agrees,
-         "fused": use}
+         "n_windows": vf.n_windows, "velocity_steps": vf.n_steps, "lowpass_hz": vp.cutoff_hz,
+         "agreement_chi2": chi2, "agrees": agrees, "fused": use}
     if not use:
         return q, None
     Wi = np.linalg.inv(np.linalg.inv(V_r) + np.linalg.inv(V_v))
@@ -1365,10 +1366,7 @@ def _fine_cost(ctx: _Ctx, latency_s: float, drift: float, t_mid: float, w0: floa
 
 def _window_chi2(f: _Fit, centers: np.ndarray, lats: np.ndarray, sigs: np.ndarray, t_mid: float) -> float:
     """Reduced chi-square of the window estimates about f's line L + drift (t - t_mid) (1 below 3 windows)."""
-    if len(centers) < 3:
-        return 1.0
-    res = lats - (f.latency_s + f.drift * (centers - t_mid))
-    return float(np.sum((res / sigs) ** 2) / max(1, len(centers) - 2))
+    return window_chi2(centers, lats, sigs, f.latency_s, f.drift, t_mid)
 
 
 def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: float, w1: float,

@@ -168,6 +168,16 @@ def gls_covariance(Ninv: np.ndarray, s2: float, u: np.ndarray, dt_s: float, fit_
     return var, corr, fac, acc_lag
 
 
+def window_chi2(centers: np.ndarray, lats: np.ndarray, sigs: np.ndarray, latency_s: float, drift: float,
+                t_mid: float) -> float:
+    """Reduced chi-square of window delay estimates (at ``centers``, sigmas ``sigs``) about the line
+    latency_s + drift (t - t_mid); 1 below 3 windows (nothing to check against)."""
+    if len(centers) < 3:
+        return 1.0
+    res = np.asarray(lats) - (latency_s + drift * (np.asarray(centers) - t_mid))
+    return float(np.sum((res / np.asarray(sigs)) ** 2) / max(1, len(centers) - 2))
+
+
 def gn_step(Jf: np.ndarray, rw: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """(normal matrix, Gauss-Newton step) of a whitened least-squares problem (Jacobian (m, P), residual
     (m,) or any shape of m elements); None when the normal matrix is singular."""

@@ -35,7 +35,7 @@ import numpy as np
 
 from logtools.conventions import dcm_from_quat, skew
 from logtools.inslog import InsLog
-from logtools.latency_gls import NoiseModel, delay_step, end_taper, gls_covariance, gn_step, noise_model
+from logtools.latency_gls import NoiseModel, delay_step, end_taper, gls_covariance, gn_step, noise_model, window_chi2
 from logtools.resample import Interpolant, interpolant, lowpass, median_rate_hz, to_uniform
 
 VEL_MAX_CUTOFF_HZ = 5.0  # the velocities are low-passed at the rate fit's cutoff, at most this
@@ -70,7 +70,7 @@ class VelocityPair:
     #: per unit: (quantum of the logged velocity in m/s or 0, total variation per axis (3,) m/s)
     steps: tuple[tuple[float, np.ndarray], ...] = ()
     #: per unit: the step of the velocity's stamps when coarse (s; 0 when fine)
-    stamp_quanta_s: tuple[float, ...] = ()
+    stamp_resolutions_s: tuple[float, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -82,7 +82,6 @@ class VelocityFit:
     corr_ld: float
     lever_arm_m: tuple[float, float, float] | None
     residual_rms_m_s: float
-    n: int
     window_chi2_red: float
     n_windows: int
     n_steps: int = 0  # resets of the slave's velocity found and solved
@@ -175,10 +174,8 @@ class _Solved:
     var: np.ndarray  # (nd,)
     corr: float
     lever: np.ndarray | None  # m, master body frame
-    tilt: np.ndarray | None  # rad
-    fixed: np.ndarray  # (n, 3) the lever-arm and tilt terms of the residual at the solution
-    rms: float
-    n: int
+    fixed: np.ndarray  # (n, 3) the lever-arm, tilt and step terms of the residual at the solution
+    rms: float  # m/s, over the used samples
     resid: np.ndarray  # (n, 3), 0 where unused
 
 
@@ -200,7 +197,7 @@ def _solve(vp: VelocityPair, t: np.ndarray, vm: np.ndarray, Lr: np.ndarray | Non
     P = nd + nf + 6
     if use.sum() < max(20, 2 * P):
         return None
-    # the linear columns: lever arm, tilt, offset, ramp (fixed for all iterations)
+    # the linear columns: lever arm, tilt, steps, offset, ramp (the tilt's follow the lever arm)
     eye = np.eye(3)
     J_lin = np.zeros((n, 3, P - nd))
     if nl:
@@ -269,8 +266,8 @@ def _solve(vp: VelocityPair, t: np.ndarray, vm: np.ndarray, Lr: np.ndarray | Non
     resid = r + J_lin @ step[nd:]
     resid[~use] = 0.0
     fixed = J_lin[:, :, :nf] @ lin[:nf]
-    return _Solved(d, dr, var, corr, lin[:3] if nl else None, lin[nl:nl + 3] if nt else None, fixed,
-                   float(np.sqrt(np.sum(resid ** 2) / (3 * n_use))), n_use, resid)
+    rms = float(np.sqrt(np.sum(resid ** 2) / (3 * n_use)))
+    return _Solved(d, dr, var, corr, lin[:3] if nl else None, fixed, rms, resid)
 
 
 def _step_score(S: np.ndarray, C: np.ndarray, k: np.ndarray, half: int) -> np.ndarray:
@@ -374,25 +371,21 @@ def velocity_fit(vp: VelocityPair, w0: float, w1: float, d0: float, drift0: floa
             c.append(tc)
             lat.append(sw.d)
             sig.append(float(np.sqrt(sw.var[0])))
-    chi2 = 1.0
-    if len(c) >= 3:
-        c, lat, sig = map(np.asarray, (c, lat, sig))
-        res = lat - (s.d + s.dr * (c - t_mid))
-        chi2 = float(np.sum((res / sig) ** 2) / max(1, len(c) - 2))
+    chi2 = window_chi2(c, lat, sig, s.d, s.dr, t_mid)
     infl = float(np.sqrt(max(1.0, chi2)))
     # the quantization floors (in quadrature; the drift's sigma scaled alike)
     acc, ok_a = vp.master(t, 1)
     s_q = _quantization_sigma_s(vp, np.mean(acc[ok_a & okm] ** 2, axis=0)) if (ok_a & okm).any() else 0.0
     # stamps on a coarse grid: a common offset of up to half of it, uniform (the rates' own stamps are
     # another stream's: this is the velocity's)
-    s_q = float(np.sqrt(s_q ** 2 + sum(q * q / 12.0 for q in vp.stamp_quanta_s)))
+    s_q = float(np.sqrt(s_q ** 2 + sum(q * q / 12.0 for q in vp.stamp_resolutions_s)))
     s_l = float(np.sqrt(s.var[0])) * infl
     q_infl = float(np.sqrt(1.0 + (s_q / s_l) ** 2))
     sd = float(np.sqrt(s.var[1])) * infl * q_infl if fit_drift else 0.0
     return VelocityFit(
         latency_s=s.d, drift=s.dr, sigma_latency_s=s_l * q_infl, sigma_drift=sd,
         corr_ld=s.corr, lever_arm_m=None if s.lever is None else tuple(float(x) for x in s.lever),
-        residual_rms_m_s=s.rms, n=s.n, window_chi2_red=chi2, n_windows=len(c), n_steps=int(len(steps)))
+        residual_rms_m_s=s.rms, window_chi2_red=chi2, n_windows=len(c), n_steps=int(len(steps)))
 
 
 def _near(t: np.ndarray, at: np.ndarray, half_s: float) -> np.ndarray:

@@ -233,19 +233,18 @@ def summary_lines(rep: dict, paths: dict[str, str | None]) -> list[str]:
         q = lat.get("quality") or {}
         aided = q.get("accel_aided") is True
         flex = q.get("flexure_model")
-        flex_txt = (f", flexure model {max(flex['sigma_deg']):.3g} deg / beta {flex['beta_1_s']:.3g} 1/s"
-                    if isinstance(flex, dict) else "")
+        how = (f", flexure model {max(flex['sigma_deg']):.3g} deg / beta {flex['beta_1_s']:.3g} 1/s"
+               if isinstance(flex, dict) else "")
         vel = q.get("velocity_fit")
         if isinstance(vel, dict) and vel.get("fused"):  # velocity matching fused with the rates
-            flex_txt += " + velocity"
+            how += " + velocity"
         elif isinstance(vel, dict) and not vel.get("agrees"):
-            flex_txt += f", velocity alone {_fmt_ms(vel['latency_s'])} (disagrees, not used)"
-
+            how += f", velocity alone {_fmt_ms(vel['latency_s'])} (disagrees, not used)"
         big = abs(lat["latency_s"]) >= 10.0  # unrelated clocks: the offset between them, in seconds
         head = f"{lat['latency_s']:+.6f} s" if big else f"{lat['latency_s'] * 1e3:+.3f} ms"
         out.append(f"latency {head} +/- {sig * 1e3 if sig is not None else float('nan'):.3f} ms (1 sigma), "
                    f"drift {lat['drift_ppm'] if lat['drift_ppm'] is not None else float('nan'):+.2f} ppm  "
-                   f"[{lat['method']}{' gyro+accel' if aided else ''}{flex_txt}, "
+                   f"[{lat['method']}{' gyro+accel' if aided else ''}{how}, "
                    f"window {lat['window_s'][1] - lat['window_s'][0]:.1f} s]")
         others = [f"{k} {_fmt_ms(v['latency_s'])}" for k, v in lat.get("methods", {}).items() if k != lat["method"]]
         if others:
