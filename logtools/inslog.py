@@ -115,6 +115,20 @@ class InsLog:
     def has_pos(self) -> bool:
         return all(c in self.nav.columns for c in POS) and self.nav[list(POS)].notna().any().all()
 
+    def stamp_resolution_s(self, group: str) -> float:
+        """The step of a group's stamps (``"gyro"``, ``"accel"``, ``"att"``, ``"vel"``, ``"pos"``) when
+        coarse (``ChannelInfo.stamp_resolution_s``: MAVLink ``time_boot_ms``, DataFlash ``TimeMS``, a
+        CSV's fixed decimals, stamps on a visible grid), else 0. Stamps rounded so may all be off by
+        the same fraction of it (a fixed sampling phase): a delay bias of up to half of it. Logs that
+        name their channels by row kind (canonical CSV, the simulator: ``imu``, ``nav``) are read
+        through those names."""
+        kind = "imu" if group in ("gyro", "accel") else "nav"
+        for key in (group, kind):
+            ch = self.meta.channels.get(key)
+            if ch is not None:
+                return float(ch.stamp_resolution_s or 0.0)
+        return 0.0
+
     # -- array views -------------------------------------------------------------------------
     def t_imu_s(self) -> np.ndarray:
         return self.imu.index.to_numpy(dtype=float)

@@ -937,6 +937,7 @@ class _Ctx:
     warnings: list[str] = field(default_factory=list)
     t0_abs_s: float = 0.0
     stamp_jitter_s: tuple[float, float] = (0.0, 0.0)  # (master, slave) white stamp noise, s
+    stamp_resolution_s: tuple[float, float] = (0.0, 0.0)  # (master, slave) coarse stamp step of the rates' source
     acc_src: tuple | None = None  # (master, slave, cutoff, master rate) for the accelerometer-aided GLS
     vel_src: tuple | None = None  # (master, slave) for the velocity fit, both with NED velocity
 
@@ -979,13 +980,20 @@ def _prepare(master: InsLog, slave: InsLog, max_lag_s: float | None, *, accelero
     um = _make_unit(natm, nm, srcm, "master", fm, 1.0 / f_s, cutoff)
     us = _make_unit(nats, ns, srcs, "slave", fs, 1.0 / f_s, cutoff)
     ctx = _Ctx(um, us, dt_c, cutoff, max_lag_s, t0_abs_s=master.t0_s, dt_s=1.0 / f_s, dt_r=1.0 / f_r,
-               raw=(natm, nats), stamp_jitter_s=(stamp_noise_s(tm), stamp_noise_s(ts)))
+               raw=(natm, nats), stamp_jitter_s=(stamp_noise_s(tm), stamp_noise_s(ts)),
+               stamp_resolution_s=(master.stamp_resolution_s("gyro" if srcm == "gyro" else "att"),
+                                   slave.stamp_resolution_s("gyro" if srcs == "gyro" else "att")))
     ctx.warnings += list(um.native.warnings) + list(us.native.warnings)
     if (accelerometers and ACCEL_AIDED and srcm == "gyro" and srcs == "gyro" and master.has_accel
             and slave_r.has_accel):
         ctx.acc_src = (master, slave_r, cutoff, um.itp)  # built when needed (_accel_pair)
     if velocity and VELOCITY_AIDED and master.has_vel and slave_r.has_vel:
         ctx.vel_src = (master, slave_r)  # built when needed (_velocity_step)
+    for role, q in zip(("master", "slave"), ctx.stamp_resolution_s):
+        if q > 0:
+            ctx.warnings.append(f"{role} stamps are whole multiples of {q * 1e3:g} ms: the latency's sigma is "
+                                f"at least {q / np.sqrt(12.0) * 1e3:.3g} ms (a fixed sampling phase offsets "
+                                f"every stamp alike)")
     if srcm == "attitude" or srcs == "attitude":
         ctx.warnings.append("angular rate derived from attitude for the " +
                             " and ".join(r for r, s in (("master", srcm), ("slave", srcs)) if s == "attitude"))
@@ -1193,6 +1201,13 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
     infl = np.sqrt(max(1.0, chi2_red)) if WINDOW_INFLATE else 1.0
     sig_l, sigma_drift = fin.sigma_latency_s * infl, fin.sigma_drift * infl
     latency, drift, corr_ld = fin.latency_s, fin.drift, fin.corr_ld
+    # stamps on a coarse grid (whole milliseconds) with a fixed sampling phase are all off by the same
+    # fraction of it: a common offset, uniform over the grid step, that no residual shows (a floor in
+    # quadrature; the drift is not affected, so the latency-drift covariance stays)
+    res_sigma = float(np.sqrt(sum(q * q / 12.0 for q in ctx.stamp_resolution_s)))
+    if res_sigma > 0 and np.isfinite(sig_l) and sig_l > 0:
+        grown = float(np.hypot(sig_l, res_sigma))
+        corr_ld, sig_l = corr_ld * sig_l / grown, grown
     # velocity matching: a second estimate, fused when the two agree (see _velocity_step)
     vel_q = None
     if ctx.vel_src is not None:
@@ -1276,6 +1291,8 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
         "drift_sigma_ppm": float(sigma_drift * 1e6) if fit_drift else None,
         "stamp_jitter_s": {"master": ctx.stamp_jitter_s[0], "slave": ctx.stamp_jitter_s[1]},
         "stamp_jitter_latency_sigma_s": jit_sigma,
+        "stamp_resolution_s": {"master": ctx.stamp_resolution_s[0], "slave": ctx.stamp_resolution_s[1]},
+        "stamp_resolution_latency_sigma_s": res_sigma,
         "best_instant_s": float(ctx.t0_abs_s + t_best),  # absolute, like window_s
         "latency_at_best_instant_s": float(lat_best),
         "sigma_at_best_instant_s": float(sig_best),

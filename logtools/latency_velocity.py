@@ -132,16 +132,8 @@ def velocity_pair(master: InsLog, slave: InsLog, cutoff_hz: float, master_rate: 
                 return np.where(ok[:, None, None], c_nb[j] @ skew(np.where(ok[:, None], w, 0.0)), 0.0)
     dt = 1.0 / min(max(5.0 * cut, VEL_MIN_GRID_HZ), f_min)
     steps = tuple((velocity_quantum_m_s(v), np.sum(np.abs(np.diff(v, axis=0)), axis=0)) for v in (vm, vs))
-    stamps = (stamp_resolution_s(master), stamp_resolution_s(slave))
+    stamps = (master.stamp_resolution_s("vel"), slave.stamp_resolution_s("vel"))
     return VelocityPair(itps[0], itps[1], lever, cut, dt, steps, stamps)
-
-
-def stamp_resolution_s(log: InsLog) -> float:
-    """The step of the log's velocity stamps when its format's is coarse (the parser's ``ChannelInfo``:
-    MAVLink ``time_boot_ms`` is 1 ms), else 0. Stamps rounded so may all be off by the same fraction of
-    it (a fixed sampling phase): a bias of up to half of it."""
-    ch = log.meta.channels.get("vel")
-    return float(getattr(ch, "stamp_resolution_s", 0.0) or 0.0)
 
 
 def velocity_quantum_m_s(v: np.ndarray) -> float:

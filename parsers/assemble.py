@@ -12,7 +12,7 @@ import pandas as pd
 
 from logtools.errors import InputError
 from logtools.inslog import ACCEL, GYRO, POS, QUAT, T, VEL, ChannelInfo, InsLog, LogMeta
-from parsers.base import rate_of
+from parsers.base import rate_of, stamp_grid_s
 
 #: a stamp step larger than this many median periods is reported as a gap
 GAP_FACTOR = 5.0
@@ -25,7 +25,7 @@ class Stream:
     t_ns: np.ndarray
     values: np.ndarray
     source: str = ""
-    stamp_resolution_s: float = 0.0  # the format's stamp step for this stream when coarse (tlog time_boot_ms: 1e-3)
+    stamp_resolution_s: float = 0.0  # the format's stamp step when coarse (tlog time_boot_ms, DataFlash TimeMS: 1e-3)
 
 
 def clean_stream(name: str, s: Stream, warnings: list[str]) -> Stream:
@@ -54,7 +54,8 @@ def clean_stream(name: str, s: Stream, warnings: list[str]) -> Stream:
         if big.any():
             warnings.append(
                 f"{name} ({s.source}): {int(big.sum())} gap(s) in stamps, longest {d.max() * 1e-9:.3f} s")
-    return Stream(t, v, s.source, s.stamp_resolution_s)
+    # the stamps' resolution: the format's (tlog time_boot_ms), or the grid the stamps show they are on
+    return Stream(t, v, s.source, max(s.stamp_resolution_s, stamp_grid_s(t)))
 
 
 def build_inslog(

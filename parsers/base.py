@@ -85,6 +85,35 @@ def rate_of(t_s: np.ndarray) -> float:
     return float(1.0 / np.median(d)) if len(d) else 0.0
 
 
+#: stamp grids tested for (s), coarsest first: stamps on one of these are quantised to it
+STAMP_GRIDS_S = (1e-2, 1e-3, 1e-4)
+
+
+def stamp_grid_s(t_ns: np.ndarray) -> float:
+    """The grid (s) the stamps were quantised to, when that shows in the data, else 0.
+
+    Stamps quantised to a grid q (whole milliseconds, say) all lie on it (one residue modulo q), and
+    their steps differ by multiples of q where the true period is not a multiple of q or the phase
+    walks (drift, jitter): steps that are not all multiples of the median step. Stamps that lie on the
+    grid at an exact period (a synthetic log, or a quantised clock with an integer period and no drift)
+    show no quantisation: the format's own resolution has to say it there. Exact int ns: no tolerance."""
+    t = np.asarray(t_ns, dtype=np.int64)
+    if len(t) < 3:
+        return 0.0
+    d = np.diff(t)
+    d = d[d > 0]
+    if len(d) < 2:
+        return 0.0
+    rel = t - t[0]
+    for q in STAMP_GRIDS_S:
+        q_ns = int(round(q * 1e9))
+        if np.any(rel % q_ns):
+            continue
+        med = int(np.median(d))
+        return q if med > 0 and np.any(d % med) else 0.0
+    return 0.0
+
+
 def check_readable(path: str) -> None:
     if not os.path.exists(path):
         raise InputError("no such file", path)

@@ -14,7 +14,7 @@ import pandas as pd
 from logtools.errors import InputError
 from logtools.inslog import ACCEL, GYRO, POS, QUAT, VEL, ChannelInfo, InsLog, LogMeta
 from parsers.atomic import atomic_path
-from parsers.base import Inventory, Selector, StreamInfo, rate_of
+from parsers.base import Inventory, Selector, StreamInfo, rate_of, stamp_grid_s
 from parsers.csvtable import decimal_text_to_int, read_table
 
 NAME = "csv"
@@ -39,10 +39,15 @@ def sniff(head: bytes, path: str) -> bool:
 
 def seconds_text_to_ns(values: pd.Series) -> np.ndarray:
     """Decimal seconds as text -> int64 ns, exactly (no float64 rounding of epoch stamps)."""
-    ns, ok = decimal_text_to_int(values, 9)
+    return _seconds_text(values)[0]
+
+
+def _seconds_text(values: pd.Series) -> tuple[np.ndarray, int | None]:
+    """(int64 ns, the fixed number of decimals they are written with or None)."""
+    ns, ok, dec = decimal_text_to_int(values, 9)
     if not ok.all():
         raise ValueError("time column holds values that are not decimal seconds")
-    return ns
+    return ns, dec
 
 
 def ns_to_seconds_text(ns: np.ndarray) -> np.ndarray:
@@ -66,7 +71,7 @@ def load(path: str, selector: Selector) -> InsLog:
     df, warnings = _read_frame(path)
     df = df[df[TIME].notna()]
     try:
-        t_ns = seconds_text_to_ns(df[TIME])
+        t_ns, dec = _seconds_text(df[TIME])
     except ValueError as exc:
         raise InputError(str(exc), path) from None
     groups = {"gyro": CSV_GYRO, "accel": CSV_ACCEL, "quat": CSV_QUAT, "vel": CSV_VEL, "pos": CSV_POS}
@@ -94,6 +99,10 @@ def load(path: str, selector: Selector) -> InsLog:
     def block(cols):
         return df[list(cols)].apply(pd.to_numeric, errors="coerce").to_numpy(dtype=float)
 
+    def resolution(mask: np.ndarray) -> float:
+        """The stamps' step: the fixed number of decimals they are written with, or the grid they show."""
+        return max(0.0 if dec is None else 10.0 ** -dec, stamp_grid_s(t_ns[mask]))
+
     channels: dict[str, ChannelInfo] = {}
     imu_mask = np.zeros(len(df), bool)
     for g in ("gyro", "accel"):
@@ -110,7 +119,7 @@ def load(path: str, selector: Selector) -> InsLog:
             kw["gyro_rad_s"] = block(CSV_GYRO)[imu_mask]
         if "accel" in present:
             kw["accel_m_s2"] = block(CSV_ACCEL)[imu_mask]
-        channels["imu"] = ChannelInfo(rate_of(t_s[imu_mask]), int(imu_mask.sum()), "csv")
+        channels["imu"] = ChannelInfo(rate_of(t_s[imu_mask]), int(imu_mask.sum()), "csv", resolution(imu_mask))
     if nav_mask.any():
         kw["t_nav_s"] = t_s[nav_mask]
         if "quat" in present:
@@ -119,7 +128,7 @@ def load(path: str, selector: Selector) -> InsLog:
             kw["vel_ned_m_s"] = block(CSV_VEL)[nav_mask]
         if "pos" in present:
             kw["lat_lon_alt"] = block(CSV_POS)[nav_mask]
-        channels["nav"] = ChannelInfo(rate_of(t_s[nav_mask]), int(nav_mask.sum()), "csv")
+        channels["nav"] = ChannelInfo(rate_of(t_s[nav_mask]), int(nav_mask.sum()), "csv", resolution(nav_mask))
     if not kw:
         raise InputError("no complete data rows", path)
     meta = LogMeta(source_path=path, format=NAME, selector=str(selector), clock=clock, t0_ns=t0_ns,

@@ -380,14 +380,16 @@ def column_map_for(src: _Source, selector: Selector) -> ColumnMap:
 _SCALE_POW10 = {"s": 9, "sec": 9, "ms": 6, "us": 3, "ns": 0}
 
 
-def time_to_ns(text: pd.Series, unit: str) -> tuple[np.ndarray, np.ndarray]:
-    """Time column text -> (int64 ns, valid mask), from the decimal text exactly (no float rounding)."""
-    ns, ok = decimal_text_to_int(text, _SCALE_POW10[unit])
+def time_to_ns(text: pd.Series, unit: str) -> tuple[np.ndarray, np.ndarray, float]:
+    """Time column text -> (int64 ns, valid mask, resolution s), from the decimal text exactly (no float
+    rounding). The resolution is that of a fixed number of decimals (``%.3f`` seconds: 1 ms), else 0."""
+    ns, ok, dec = decimal_text_to_int(text, _SCALE_POW10[unit])
     if len(ok) and not ok.any():  # e.g. scientific notation: float64 is all the text offers
         v = pd.to_numeric(text, errors="coerce").to_numpy(float) * UNITS[unit][1]
         ok = np.isfinite(v) & (np.abs(v) < 9e18)
         ns = np.where(ok, np.round(np.where(ok, v, 0.0)), 0).astype(np.int64)
-    return ns, ok
+        dec = None
+    return ns, ok, 0.0 if dec is None else 10.0 ** (_SCALE_POW10[unit] - dec - 9)
 
 
 def _rotate_rows(m: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -431,7 +433,7 @@ def _streams_from_table(path: str, cmap: ColumnMap, groups_wanted: tuple[str, ..
         raise InputError(f"no column {time_col!r} in CSV", path)
     if len(df) == 0:
         raise InputError("no data rows", path)
-    t_ns, ok_t = time_to_ns(df[time_col], cmap.columns[time_col][1])
+    t_ns, ok_t, res = time_to_ns(df[time_col], cmap.columns[time_col][1])
     groups: dict[str, np.ndarray] = {}
     masks: dict[str, np.ndarray] = {}
     damaged = ~ok_t
@@ -459,8 +461,10 @@ def _streams_from_table(path: str, cmap: ColumnMap, groups_wanted: tuple[str, ..
         warns.append(f"{os.path.basename(path)}: {n_bad} row(s) with unparseable or missing values dropped "
                      f"(damaged or truncated file?)")
     groups = _convert_frames(cmap, groups)
-    streams = {g: Stream(t_ns[masks[g]], v[masks[g]], f"{os.path.basename(path)}:{g}") for g, v in groups.items()
-               if masks[g].any()}
+    # stamps written with a fixed number of decimals are that coarse (the grid the data shows is found
+    # later, parsers.assemble)
+    streams = {g: Stream(t_ns[masks[g]], v[masks[g]], f"{os.path.basename(path)}:{g}", res)
+               for g, v in groups.items() if masks[g].any()}
     if not streams:
         raise InputError(f"no row with a valid time and complete values ({int(ok_t.sum())} valid times "
                          f"in {len(ok_t)} rows)", path)

@@ -84,16 +84,36 @@ def _decimal_kernel():
     return _DECIMAL_TO_NS[0]
 
 
-def decimal_text_to_int(text: pd.Series, scale_pow10: int) -> tuple[np.ndarray, np.ndarray]:
-    """Decimal numbers as text -> (int64 value * 10**scale_pow10, valid mask), exactly."""
+def _text_bytes(text: pd.Series) -> np.ndarray:
+    """The column's text as a (n, width) uint8 array, NUL-padded."""
     t = text.fillna("").astype(str)
     width = max(1, int(t.str.len().max())) if len(t) else 1
     try:
         chars = t.to_numpy(dtype=f"S{width}")
     except UnicodeEncodeError:  # non-ASCII bytes from a damaged file: they make their rows invalid
         chars = np.char.encode(t.to_numpy(dtype=str), "ascii", "replace").astype(f"S{width}")
-    raw = np.frombuffer(chars.tobytes(), np.uint8).reshape(len(t), width) if len(t) else np.zeros((0, 1), np.uint8)
-    return _decimal_kernel()(raw, scale_pow10)
+    return np.frombuffer(chars.tobytes(), np.uint8).reshape(len(t), width) if len(t) else np.zeros((0, 1), np.uint8)
+
+
+def decimal_text_to_int(text: pd.Series, scale_pow10: int) -> tuple[np.ndarray, np.ndarray, int | None]:
+    """Decimal numbers as text -> (int64 value * 10**scale_pow10, valid mask, fixed decimals), exactly.
+    The last is the number of decimals every valid value is written with when it is the same for all
+    (a writer's fixed format, ``%.3f``: the values' resolution is 10**-decimals), else None."""
+    raw = _text_bytes(text)
+    ns, ok = _decimal_kernel()(raw, scale_pow10)
+    return ns, ok, _fixed_decimals(raw[ok])
+
+
+def _fixed_decimals(raw: np.ndarray) -> int | None:
+    """The common number of decimals of text rows (None: they differ, or exponents)."""
+    if len(raw) == 0 or np.any((raw == ord("e")) | (raw == ord("E"))):
+        return None
+    body = (raw != 0) & (raw != ord(" "))
+    last = raw.shape[1] - 1 - np.argmax(body[:, ::-1], axis=1)  # last non-blank character
+    dot = raw == ord(".")
+    pos = np.where(dot.any(axis=1), np.argmax(dot, axis=1), last)
+    dec = last - pos
+    return int(dec[0]) if np.all(dec == dec[0]) else None
 
 
 def delimiter(header: str) -> str:

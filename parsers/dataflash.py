@@ -189,6 +189,12 @@ class DfLog:
             return rec["TimeMS"].astype(np.int64) * 1_000_000
         raise KeyError(f"{name} has no TimeUS/TimeMS")
 
+    def time_resolution_s(self, name: str) -> float:
+        """The step of the message's stamps: 1 ms for TimeMS (old logs) and old GPS T, else 0 (TimeUS)."""
+        f = self.by_name.get(name)
+        cols = f.columns if f is not None else ()
+        return 0.0 if "TimeUS" in cols or not cols else 1e-3
+
 
 def read_log(path: str) -> DfLog:
     buf = np.fromfile(path, dtype=np.uint8)
@@ -490,25 +496,26 @@ def load(path: str, selector: Selector) -> InsLog:
             raise InputError(f"{s} is not an IMU message (no GyrX/AccX)", path)
         g = np.column_stack([log.column(s.name, rec, c) for c in ("GyrX", "GyrY", "GyrZ")])
         a = np.column_stack([log.column(s.name, rec, c) for c in ("AccX", "AccY", "AccZ")])
-        kw["gyro"], kw["accel"] = Stream(t, g, str(s)), Stream(t, a, str(s))
+        res = log.time_resolution_s(s.name)
+        kw["gyro"], kw["accel"] = Stream(t, g, str(s), res), Stream(t, a, str(s), res)
     att_desc = ""
     if "att" in srcs:
         t, q, att_desc = _att(log, srcs["att"])
-        kw["quat"] = Stream(t, q, str(srcs["att"]))
+        kw["quat"] = Stream(t, q, str(srcs["att"]), log.time_resolution_s(srcs["att"].name))
     if "vel" in srcs:
         t, v = _vel(log, srcs["vel"])
-        kw["vel"] = Stream(t, v, str(srcs["vel"]))
+        kw["vel"] = Stream(t, v, str(srcs["vel"]), log.time_resolution_s(srcs["vel"].name))
     if "pos" in srcs:
         t, p = _pos(log, srcs["pos"])
         if len(t):
-            kw["pos"] = Stream(t, p, str(srcs["pos"]))
+            kw["pos"] = Stream(t, p, str(srcs["pos"]), log.time_resolution_s(srcs["pos"].name))
         else:
             warns.append(f"{srcs['pos']}: no valid positions (no fix); position left out")
     if not kw:
         raise InputError("selector picks no streams", path)
     off, gps_name = (None, "") if mode == "boot" else _gps_epoch_offset_ns(log)
     if off is not None:
-        kw = {k: Stream(s.t_ns + off, s.values, s.source) for k, s in kw.items()}
+        kw = {k: Stream(s.t_ns + off, s.values, s.source, s.stamp_resolution_s) for k, s in kw.items()}
         clock = "epoch"
         src = (f"DataFlash TimeUS (boot) mapped to UNIX time by {gps_name} week/ms (median offset over "
                f"fixed GPS messages; GPS logging latency not removed)")

@@ -335,3 +335,37 @@ def test_canonical_sniff_is_by_header_not_extension(tmp_path):
     csv_canonical.write(str(p), log)
     assert registry.detect(str(p)).NAME == "csv"
     assert csv_vendor.sniff(p.read_bytes()[:8192], str(p)) is False
+
+
+# ---- the stamps' resolution -----------------------------------------------------------------------
+def test_stamp_grid_is_seen_only_where_quantisation_shows():
+    """Stamps rounded to whole ms from a clock whose period is not a whole number of ms: 1 ms. An
+    exact 5 ms grid (with or without dropped samples) shows nothing; neither do us stamps."""
+    from parsers.base import stamp_grid_s
+
+    t0 = 1_700_000_000_123_456_789
+    true_ns = t0 + np.rint(np.arange(2000) * 1e9 / 153.7).astype(np.int64)
+    assert stamp_grid_s((true_ns + 500_000) // 1_000_000 * 1_000_000) == 1e-3
+    assert stamp_grid_s((true_ns + 50_000) // 100_000 * 100_000) == 1e-4
+    assert stamp_grid_s(true_ns // 1000 * 1000) == 0.0
+    exact = 1_700_000_000_000_000_000 + np.arange(2000, dtype=np.int64) * 5_000_000
+    assert stamp_grid_s(exact) == 0.0
+    assert stamp_grid_s(np.delete(exact, [10, 11, 500])) == 0.0
+    # a 200 Hz clock 30 ppm fast, stamped in whole ms: the phase walks, the steps are 4, 5 or 6 ms
+    drifting = t0 + np.rint(np.arange(24000) * 5e6 * (1 + 30e-6)).astype(np.int64)
+    assert stamp_grid_s(drifting // 1_000_000 * 1_000_000) == 1e-3
+
+
+@pytest.mark.parametrize("fmt,expect", [("%.3f", 1e-3), ("%.6f", 1e-6), ("%.9f", 1e-9)])
+def test_fixed_decimals_are_the_stamps_resolution(tmp_path, fmt, expect):
+    """A CSV whose time is written with a fixed number of decimals says how coarse its stamps are,
+    even on an exact grid (canonical and vendor CSV alike)."""
+    t = 1_700_000_000.0 + np.arange(0, 20.0, 0.005)
+    w = np.c_[np.sin(t - t[0]), np.cos(t - t[0]), 0.1 * np.ones_like(t)]
+    canon = _write(tmp_path / "canon.csv", ",".join(["time_s", "gyro_x_rad_s", "gyro_y_rad_s", "gyro_z_rad_s"]) + "\n"
+                   + "\n".join(f"{fmt % a},{b:.6f},{c:.6f},{d:.6f}" for a, b, c, d in zip(t, *w.T)) + "\n")
+    log = registry.load(str(canon))
+    assert log.stamp_resolution_s("gyro") == pytest.approx(expect)
+    vendor = _write(tmp_path / "vendor.csv", "Time (s),Gyroscope X (deg/s),Gyroscope Y (deg/s),Gyroscope Z (deg/s)\n"
+                    + "\n".join(f"{fmt % a},{b:.6f},{c:.6f},{d:.6f}" for a, b, c, d in zip(t, *w.T)) + "\n")
+    assert registry.load(str(vendor)).stamp_resolution_s("gyro") == pytest.approx(expect)

@@ -331,6 +331,8 @@ def test_real_dataflash_logs(fname):
             corr = np.corrcoef(ga[:, ax], gb[:, ax])[0, 1]
             assert corr > 0.9, (fname, ax, corr)
             assert np.std(gb[:, ax]) / np.std(ga[:, ax]) == pytest.approx(1.0, abs=0.15)
+    # ArduCopter 3.1 stamps in whole milliseconds (TimeMS), later versions in microseconds (TimeUS)
+    assert a.stamp_resolution_s("gyro") == (1e-3 if fname.startswith("arducopter_2014") else 0.0)
     if fname != "arduplane_elevator.BIN":  # no GPS there: stays on boot time
         assert a.meta.clock == "epoch" and "GPS" in a.meta.stamp_source
     else:
