@@ -132,7 +132,9 @@ MIN_ADAPT_CUTOFF_HZ = 0.05
 MIN_ADAPT_CYCLES = 20.0  # the adapted cutoff keeps at least this many cycles over the overlap
 ADAPT_GAIN = 0.7  # narrow only when the predicted variance drops below this fraction
 SIGMA_FLOOR_S = 5e-6  # model floor (interpolation, numerics)
-PERIODIC_MARGIN = 0.02  # alternative minimum within this of the best normalised cost -> periodic
+PERIODIC_MARGIN = 5e-4  # alternative minimum within this of the best normalised cost -> periodic (numerical floor:
+#   noise-free data have best costs of 1e-6..1e-5; a course that nearly repeats 130 s later cost 3e-3 there,
+#   1000x the best, and was flagged at 0.02)
 PERIODIC_REL_MARGIN = 0.1  # ... or within this fraction of the best cost (noisy data)
 GLS = True  # weigh frequencies by motion / residual power (whitened Gauss-Newton), see _refine_gls
 GLS_PASSES = 2  # whole-overlap GLS passes (residual spectrum re-estimated before each)
