@@ -1345,6 +1345,7 @@ def _velocity_step(ctx: _Ctx, w0: float, w1: float, t_mid: float, fit_drift: boo
          "drift_ppm": vf.drift * 1e6 if nd == 2 else None, "lever_arm_m": vf.lever_arm_m,
          "residual_rms_m_s": vf.residual_rms_m_s, "window_chi2_red": vf.window_chi2_red,
          "n_windows": vf.n_windows, "velocity_steps": vf.n_steps, "lowpass_hz": vp.cutoff_hz,
+         "frame_rotation_deg": vf.frame_rotation_deg,
          "agreement_chi2": chi2, "agrees": agrees, "fused": use}
     if not use:
         return q, None

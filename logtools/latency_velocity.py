@@ -8,10 +8,15 @@ Model, on the master's relative clock like ``logtools.latency``::
 
 with l the lever arm (the slave's position in the master's body frame, m; seed 003 eq. 3), c0 and c1 an
 offset and a ramp per axis and phi a tilt: the slave's own velocity error (a slave INS whose attitude
-is off by phi integrates f x phi, f = a - g: the ramp takes the g x phi part), T the half span, and e
+is off by a rotation R integrates R C f: its velocity is R (v - g t) + g t, the ramp takes the g t part),
+T the half span, and e
 the rest: noise, and the slave's slower errors (a coloured disturbance, weighed out by generalised
 least squares with its spectrum estimated from a first fit, as the rate fit does). A velocity logged
-on a grid (MAVLink's cm/s) adds a quantization floor to the sigma.
+on a grid (MAVLink's cm/s) adds a quantization floor to the sigma. The tilt is linear in phi; a rotation
+beyond a fraction of a degree (an INS's heading error, an odometry's frame) errs by |v| angle^2 / 2 in it,
+so the rotation is found first (Kabsch on the velocities' changes, or the heading alone where they vary
+in one direction only) and undone, and the fitted tilt is undone exactly and the fit redone
+(``frame_rotation_deg``).
 
 Why it matters: flexure rotates the slave without moving it, so the velocity carries the delay
 untouched by the flexure, where the angular rate carries it only through the flexure's noise (on an
@@ -33,7 +38,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from logtools.conventions import dcm_from_quat, skew
+from logtools.conventions import dcm_from_quat, dcm_from_rotvec, skew
 from logtools.inslog import InsLog
 from logtools.latency_gls import NoiseModel, delay_step, end_taper, gls_covariance, gn_step, noise_model, window_chi2
 from logtools.resample import Interpolant, interpolant, lowpass, median_rate_hz, to_uniform
@@ -53,6 +58,10 @@ VEL_STEP_CYCLES = 2.0  # ... the means over this many cutoff periods either side
 VEL_STEP_SHARP = 0.5  # ... and keeping this much of it at half the scale (a step, not a manoeuvre's curvature)
 VEL_MAX_STEPS = 12  # more resets than this: no velocity fit
 VEL_WINDOW_MIN = 50  # samples a drift window needs
+VEL_FRAME_MIN_DEG = 0.2  # a rotation between the units' velocity frames beyond this is undone before the fit
+VEL_FRAME_MIN_RANK = 0.02  # ... when the velocity varies in at least two directions (2nd/1st singular value)
+VEL_FRAME_ITERS = 3  # the fitted tilt, when above VEL_TILT_EXACT_DEG, undone exactly and the fit redone
+VEL_TILT_EXACT_DEG = 0.05  # (the linear tilt model errs by |v| tilt^2 / 2: 1 mm/s at 200 m/s and 0.2 deg)
 VEL_EDGE_CYCLES = 4.0  # samples within this many cutoff periods of a series' ends are not used (the
 #                        zero-phase filter's mirrored ends distort a velocity that is not level there)
 
@@ -85,6 +94,7 @@ class VelocityFit:
     window_chi2_red: float
     n_windows: int
     n_steps: int = 0  # resets of the slave's velocity found and solved
+    frame_rotation_deg: float = 0.0  # the rotation between the velocities' frames undone before the fit
 
 
 def _finite(t: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -166,6 +176,7 @@ class _Solved:
     var: np.ndarray  # (nd,)
     corr: float
     lever: np.ndarray | None  # m, master body frame
+    tilt: np.ndarray | None  # rad, the slave velocity frame's small rotation (v_s = (I + [tilt x]) v)
     fixed: np.ndarray  # (n, 3) the lever-arm, tilt and step terms of the residual at the solution
     rms: float  # m/s, over the used samples
     resid: np.ndarray  # (n, 3), 0 where unused
@@ -259,7 +270,7 @@ def _solve(vp: VelocityPair, t: np.ndarray, vm: np.ndarray, Lr: np.ndarray | Non
     resid[~use] = 0.0
     fixed = J_lin[:, :, :nf] @ lin[:nf]
     rms = float(np.sqrt(np.sum(resid ** 2) / (3 * n_use)))
-    return _Solved(d, dr, var, corr, lin[:3] if nl else None, fixed, rms, resid)
+    return _Solved(d, dr, var, corr, lin[:3] if nl else None, lin[nl:nl + 3] if nt else None, fixed, rms, resid)
 
 
 def _step_score(S: np.ndarray, C: np.ndarray, k: np.ndarray, half: int) -> np.ndarray:
@@ -329,12 +340,30 @@ def velocity_fit(vp: VelocityPair, w0: float, w1: float, d0: float, drift0: floa
     # fit's (L, drift), a step per axis solved from each, the low-passed transition around it left out
     half = max(2, int(round(VEL_STEP_CYCLES / (vp.cutoff_hz * dt))))
     vs0, ok0 = vp.slave(t + d0 + drift0 * (t - t_mid))
+    # a slave whose velocity frame is rotated from the master's (an INS with a heading error, an odometry
+    # frame): the rotation found (Wahba) and undone, the tilt then solves what is left; the linear tilt
+    # model alone errs by |v| angle^2 / 2 (0.1 m/s at 200 m/s and 2 deg)
+    slave0 = vp.slave
+    R_f = _frame_rotation(vs0, vm, okm & ok0)
+    if R_f is not None and _angle_deg(R_f) > VEL_FRAME_MIN_DEG:
+        vp = replace(vp, slave=slave0.transformed(R_f.T))
+        vs0, ok0 = vp.slave(t + d0 + drift0 * (t - t_mid))
+    else:
+        R_f = np.eye(3)
     steps = _find_steps(np.where(ok0[:, None], vs0, 0.0) - vm, okm & ok0, half)
     if len(steps) > VEL_MAX_STEPS:
         return None  # a velocity that jumps this often carries no delay worth the risk
     if len(steps):
         okm = okm & ~_near(t, t[steps], half * dt)
     s = _solve(vp, t, vm, Lr, okm, d0, drift0, t_mid, None, fit_drift, tilt=VEL_TILT, steps=steps)
+    # the tilt found is a rotation: undone exactly (and the fit redone) where its square would show
+    for _ in range(VEL_FRAME_ITERS):
+        if s is None or s.tilt is None or np.degrees(np.linalg.norm(s.tilt)) <= VEL_TILT_EXACT_DEG:
+            break
+        R_f = R_f @ dcm_from_rotvec(s.tilt)  # slave_now = R_f^T v_s = (I + [tilt x]) v
+        vp = replace(vp, slave=slave0.transformed(R_f.T))
+        s = _solve(vp, t, vm, Lr, okm, s.d, s.dr, t_mid, None, fit_drift, tilt=VEL_TILT, steps=steps)
+    rot_deg = _angle_deg(R_f)
     noise = None
     for _ in range(VEL_GLS_PASSES):
         if s is None:
@@ -377,7 +406,35 @@ def velocity_fit(vp: VelocityPair, w0: float, w1: float, d0: float, drift0: floa
     return VelocityFit(
         latency_s=s.d, drift=s.dr, sigma_latency_s=s_l * q_infl, sigma_drift=sd,
         corr_ld=s.corr, lever_arm_m=None if s.lever is None else tuple(float(x) for x in s.lever),
-        residual_rms_m_s=s.rms, window_chi2_red=chi2, n_windows=len(c), n_steps=int(len(steps)))
+        residual_rms_m_s=s.rms, window_chi2_red=chi2, n_windows=len(c), n_steps=int(len(steps)),
+        frame_rotation_deg=rot_deg)
+
+
+def _angle_deg(R: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def _frame_rotation(vs: np.ndarray, vm: np.ndarray, use: np.ndarray) -> np.ndarray | None:
+    """The rotation R with v_s ~ R v_m + c, from the velocities' changes about their means: Kabsch when the
+    velocity varies in two directions or more; else (an aircraft's S-turns, a straight road) the rotation
+    about the one is undetermined and only a heading rotation is found (2-D, from the horizontal changes,
+    which one direction determines); None when neither is determined."""
+    if use.sum() < VEL_MIN_SAMPLES:
+        return None
+    a, b = vs[use] - vs[use].mean(axis=0), vm[use] - vm[use].mean(axis=0)
+    H = a.T @ b
+    U, sv, Vt = np.linalg.svd(H)
+    if not sv[0] > 0:
+        return None
+    if sv[1] > VEL_FRAME_MIN_RANK * sv[0]:
+        D = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(U @ Vt)))])
+        return U @ D @ Vt
+    h = H[:2, :2]
+    if np.linalg.norm(h) < 0.1 * sv[0]:  # the changes are vertical: the heading is not seen
+        return None
+    psi = float(np.arctan2(h[1, 0] - h[0, 1], h[0, 0] + h[1, 1]))
+    c, s_ = np.cos(psi), np.sin(psi)
+    return np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 def _near(t: np.ndarray, at: np.ndarray, half_s: float) -> np.ndarray:

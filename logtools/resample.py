@@ -16,7 +16,7 @@ Times are float64 seconds relative to a stated origin (see DESIGN.md, "Time").
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import ndimage, signal
@@ -261,6 +261,12 @@ class Interpolant:
             raise ValueError("nu must be 0 or 1")
         # padded index: sample j sits at j + 1
         return scale * (w0 * c[j] + w1 * c[j + 1] + w2 * c[j + 2] + w3 * c[j + 3])
+
+    def transformed(self, M: np.ndarray) -> "Interpolant":
+        """The interpolant of the values mapped by the matrix M (k, k): ``v -> M v`` (a spline is linear
+        in its coefficients, so this is exact)."""
+        M = np.asarray(M, dtype=float)
+        return Interpolant(replace(self.series, values=self.series.values @ M.T), self._coef @ M.T, self._bad)
 
     def __call__(self, t_s: np.ndarray, nu: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """(values (m, k), ok (m,)); values (or derivatives, nu=1, per second) are NaN where not ok."""
