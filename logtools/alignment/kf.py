@@ -215,6 +215,10 @@ class AlignInputs:
     r0: np.ndarray  # coarse mounting R (v_slave = R v_master)
     lever0_m: np.ndarray = field(default_factory=lambda: np.zeros(3))  # master frame, master -> slave
     tau0_s: float = 0.0  # initial delay estimate (known constant part for kf-split)
+    #: (M+1,) True at the epochs that end a segment over a gap in the slave's IMU: the slave's navigation
+    #: restarts there from the master (attitude through the mounting, velocity) and the gap's segment is not
+    #: propagated (its increments are not known); empty: none
+    restart: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
 
 
 @dataclass(frozen=True)
@@ -249,6 +253,7 @@ class FilterRun:
     gamma: np.ndarray  # (M+1,) H-infinity gamma used (inf for the KF)
     n_skipped: int = 0  # epochs without a usable master sample (prediction only)
     n_reinit: int = 0  # slave attitude restarts at master attitude resets
+    n_restart: int = 0  # slave navigation restarts after gaps in the slave's IMU
     smoothed: bool = False
     p_mount_fwd: np.ndarray | None = None  # forward-filter p_mount (kept when smoothed)
 
@@ -333,7 +338,11 @@ def run_filter(inp: AlignInputs, s: FilterSettings, *, progress: Callable | None
     is_kf = s.kind in ("kf", "kf-delay", "kf-split")
     n_resets = len(master.reset_t_s)
     n_reinit = 0
+    n_restart = 0
     n_skipped = 0
+    restart = np.zeros(ne, bool)
+    if len(inp.restart):
+        restart[:] = np.asarray(inp.restart, bool)
     offs = lay.offsets
     no_phi = np.zeros((0, 0))
     e_buf = np.zeros(m_meas)
@@ -383,6 +392,8 @@ def run_filter(inp: AlignInputs, s: FilterSettings, *, progress: Callable | None
             phi_k = np.empty((n, n))
             qd_k = np.empty((n, n))
             _discretise(f_buf, qc, dt, phi_k, qd_k)
+            if restart[k]:  # a gap: the error state is not propagated through unknown motion
+                phi_k, qd_k = np.eye(n), np.diag(qc * dt)
             # --- mechanise the slave over the segment
             nav_step(q, v, llh, inp.seg_dq[j], inp.seg_dv_b[j], dt, q_new, v_new, llh_new)
             q, q_new = q_new, q
@@ -403,6 +414,21 @@ def run_filter(inp: AlignInputs, s: FilterSettings, *, progress: Callable | None
                 P[att_sl, att_sl] = np.diag(np.asarray(s.p0_sigma)[att_sl] ** 2)
                 x[att_sl] = 0.0
                 n_reinit += 1
+        if k > 0 and restart[k]:
+            # after a gap in the slave's IMU: its navigation restarts from the master's (attitude through
+            # the mounting estimate, velocity with the lever arm), those error states from their priors
+            if c_nm is not None:
+                q = quat_from_dcm(c_nm @ r_hat.T)
+                c_ns = _dcm(q)
+            if v_m is not None:
+                v = v_m + (c_nm if c_nm is not None else eye3) @ np.cross(w_m if w_m is not None else z3, lever)
+            for blk in (att_sl, vel_sl):
+                if blk is not None:
+                    P[blk, :] = 0.0
+                    P[:, blk] = 0.0
+                    P[blk, blk] = np.diag(np.asarray(s.p0_sigma)[blk] ** 2)
+                    x[blk] = 0.0
+            n_restart += 1
         if not master.usable(tk - tau):
             # no usable master sample: prediction only
             if k > 0:
@@ -490,7 +516,7 @@ def run_filter(inp: AlignInputs, s: FilterSettings, *, progress: Callable | None
         raise AnalysisError("the master's attitude/velocity is unusable (frozen or jumping) over the whole overlap")
     run = FilterRun(inp.t_epoch_s.copy(), xs, pd, r_hist, pm_hist, tau_hist, lev_hist, innov, nis, cns_hist,
                     cnm_hist if (cnm_hist is not None and master.quat is not None) else None, gam,
-                    n_skipped=n_skipped, n_reinit=n_reinit)
+                    n_skipped=n_skipped, n_reinit=n_reinit, n_restart=n_restart)
     if keep:
         run.p_mount_fwd = run.p_mount.copy()
         _rts(run, lay, sm_phi, sm_xpred, sm_ppred, sm_xf, sm_pf, sm_fb)
@@ -581,7 +607,7 @@ def _quat_from_dcm_nb(m):
 
 
 @njit
-def _kf_loop(t_ep, seg_dq, seg_dv, seg_dt, mt, mq, mv, ma, mw, mvalid, resets, has_q, has_v, has_w,
+def _kf_loop(t_ep, seg_dq, seg_dv, seg_dt, mt, mq, mv, ma, mw, mvalid, resets, restart, has_q, has_v, has_w,
              q0, v0, llh0, r0, lever0, tau0, offs, n, m_meas, p0, qc, r_diag, beta, lo_tau, hi_tau, fb_mask,
              keep, xs, pd, r_hist, pm_hist, tau_hist, lev_hist, innov, nis, q_hist, cnm_hist,
              sm_phi, sm_xpred, sm_ppred, sm_xf, sm_pf, sm_fb, counters):
@@ -634,6 +660,11 @@ def _kf_loop(t_ep, seg_dq, seg_dv, seg_dt, mt, mq, mv, ma, mw, mvalid, resets, h
             f_buf[:, :] = 0.0
             _fill_dynamics(f_buf, offs, c_ns, f_n, w_ie, w_en, v, mav, beta)
             _discretise(f_buf, qc, dt, phi_k, qd_k)
+            if restart[k]:  # a gap: the error state is not propagated through unknown motion
+                for ii in range(n):
+                    for jj in range(n):
+                        phi_k[ii, jj] = 1.0 if ii == jj else 0.0
+                        qd_k[ii, jj] = qc[ii] * dt if ii == jj else 0.0
             nav_step(q, v, llh, seg_dq[j], seg_dv[j], dt, q_new, v_new, llh_new)
             q[:] = q_new
             v[:] = v_new
@@ -669,6 +700,26 @@ def _kf_loop(t_ep, seg_dq, seg_dv, seg_dt, mt, mq, mv, ma, mw, mvalid, resets, h
                     P[a0 + ii, a0 + ii] = p0[a0 + ii, a0 + ii]
                     x[a0 + ii] = 0.0
                 n_reinit += 1
+        if k > 0 and restart[k]:
+            # after a gap in the slave's IMU: its navigation restarts from the master's (attitude through
+            # the mounting estimate, velocity with the lever arm), those error states from their priors
+            if has_q:
+                q = _quat_from_dcm_nb(c_nm @ r_hat.T)
+                c_ns = _dcm(q)
+            if has_v:
+                lt = np.array([w_m[1] * lever[2] - w_m[2] * lever[1], w_m[2] * lever[0] - w_m[0] * lever[2],
+                               w_m[0] * lever[1] - w_m[1] * lever[0]])
+                v = v_m + c_nm @ lt
+            for blk in (a0, v_off):
+                if blk < 0:
+                    continue
+                for ii in range(3):
+                    for jj in range(n):
+                        P[blk + ii, jj] = 0.0
+                        P[jj, blk + ii] = 0.0
+                    P[blk + ii, blk + ii] = p0[blk + ii, blk + ii]
+                    x[blk + ii] = 0.0
+            counters[3] += 1
         usable = mvalid[i] and mvalid[i + 1]
         if not usable:
             if k > 0:
@@ -791,7 +842,10 @@ def run_filter_compiled(inp: AlignInputs, s: FilterSettings) -> FilterRun:
         fb_mask[lay.delay] = True
     r_diag = np.concatenate([[s.r_vel_m_s**2] * 3 if lay.uses_vel else [],
                              [s.r_att_rad**2] * 3 if lay.uses_att else []]).astype(float)
-    counters = np.zeros(3, np.int64)
+    counters = np.zeros(4, np.int64)
+    restart = np.zeros(ne, np.bool_)
+    if len(inp.restart):
+        restart[:] = np.asarray(inp.restart, np.bool_)
     valid = ms.valid if ms.valid is not None else np.ones(k_m, np.bool_)
     _kf_loop(np.ascontiguousarray(inp.t_epoch_s, float), np.ascontiguousarray(inp.seg_dq, float),
              np.ascontiguousarray(inp.seg_dv_b, float), np.ascontiguousarray(inp.seg_dt_s, float),
@@ -800,7 +854,7 @@ def run_filter_compiled(inp: AlignInputs, s: FilterSettings) -> FilterRun:
              np.ascontiguousarray(ms.vel if ms.vel is not None else z3, float),
              np.ascontiguousarray(ms.acc if ms.acc is not None else z3, float),
              np.ascontiguousarray(ms.w_nm_m if ms.w_nm_m is not None else z3, float),
-             np.ascontiguousarray(valid, np.bool_), np.ascontiguousarray(ms.reset_t_s, float),
+             np.ascontiguousarray(valid, np.bool_), np.ascontiguousarray(ms.reset_t_s, float), restart,
              ms.quat is not None, ms.vel is not None, ms.w_nm_m is not None,
              np.asarray(inp.q0, float).copy(), np.asarray(inp.v0, float).copy(),
              np.asarray(inp.llh0, float).copy(), np.ascontiguousarray(inp.r0, float),
@@ -815,7 +869,7 @@ def run_filter_compiled(inp: AlignInputs, s: FilterSettings) -> FilterRun:
         raise AnalysisError("the master's attitude/velocity is unusable (frozen or jumping) over the whole overlap")
     run = FilterRun(inp.t_epoch_s.copy(), xs, pd, r_hist, pm_hist, tau_hist, lev_hist, innov, nis,
                     dcm_from_quat(q_hist), cnm_hist if ms.quat is not None else None, np.full(ne, np.inf),
-                    n_skipped=int(counters[0]), n_reinit=int(counters[1]))
+                    n_skipped=int(counters[0]), n_reinit=int(counters[1]), n_restart=int(counters[3]))
     if keep:
         run.p_mount_fwd = run.p_mount.copy()
         _rts(run, lay, *sm)

@@ -41,6 +41,8 @@ from .kf import FILTERS, AlignInputs, FilterRun, FilterSettings, MasterSeries, r
 from .model import MATCHES, StateLayout, exp_so3, make_layout
 
 CONVERGED_ARCMIN = (1.0, 1.0, 2.0)  # roll, pitch, yaw thresholds on the mounting sigma
+IMU_GAP_S = 0.25  # a step of the slave's IMU stamps beyond this (and beyond IMU_GAP_PERIODS of its median step)
+IMU_GAP_PERIODS = 10.0  # is a gap: the slave's navigation restarts from the master after it (not bridged)
 OBSERVABLE_SHRINK = 0.5  # a state is observable when its sigma fell below this fraction of its prior
 _KNOWN_OPTIONS = {
     "update_hz", "lever_arm_m", "estimate_lever_arm", "flexure", "flex_beta", "flex_sigma_deg",
@@ -132,6 +134,15 @@ def run_alignment(master: InsLog, slave: InsLog, *, filter: str = "kf", match: s
     seg_dq, seg_dv = compose_segments(rv, dv, starts, stops)
     t_ep = t_imu[idx]
     seg_dt = np.diff(t_ep)
+    # gaps in the slave's IMU: the motion over them is unknown, so the slave's navigation restarts from
+    # the master after each one (the mounting, biases and their covariance carry on)
+    steps = np.diff(t_imu[idx[0]:idx[-1] + 1])
+    gap_s = max(IMU_GAP_S, IMU_GAP_PERIODS * float(np.median(steps)))
+    seg_max = np.maximum.reduceat(steps, starts)
+    restart = np.concatenate([[False], seg_max > gap_s])
+    if restart.any():
+        notes.append(f"{int(restart.sum())} gap(s) in the slave's IMU (longest {float(seg_max.max()):.2f} s): "
+                     "its navigation restarted from the master after each")
 
     # ---- initial state from the master at the first epoch
     lever0 = np.asarray(options.get("lever_arm_m", np.zeros(3)), float)
@@ -166,7 +177,7 @@ def run_alignment(master: InsLog, slave: InsLog, *, filter: str = "kf", match: s
         if need_gb > 2.0:
             raise AnalysisError(f"{src}: the RTS smoother would store {need_gb:.1f} GB for {t_b - t_a:.0f} s at "
                                 f"{update_hz:g} Hz; lower update_hz or run without the smoother")
-    inp = AlignInputs(t_ep, seg_dq, seg_dv, seg_dt, ms, q0, v0, llh0, r0, lever0, tau0)
+    inp = AlignInputs(t_ep, seg_dq, seg_dv, seg_dt, ms, q0, v0, llh0, r0, lever0, tau0, restart)
     prog(0.05, "alignment filter")
     sub = (lambda f, s="": prog(0.05 + 0.9 * f, s)) if progress else None
     run = run_filter(inp, settings, progress=sub)
