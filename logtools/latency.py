@@ -123,6 +123,8 @@ LOW_MOTION_SNR = 10.0  # below this (or below LOW_MOTION_DPS): "too_little_motio
 LOW_MOTION_DPS = 0.5
 WINDOW_S = 15.0  # nominal window length for the drift stage (3..MAX_WINDOWS windows)
 MAX_WINDOWS = 16
+WINDOW_DATA_FRACTION = 0.9  # data over less of the span than this (gaps): windows in the runs of data
+MIN_WINDOW_S = 5.0  # ... each at least this long
 DRIFT_PRIOR_PPM = 100.0  # prior std of the relative clock drift (shrinks an undetermined drift)
 DRIFT_SEARCH_PPM = 250.0  # window search band grows with distance from the middle at this rate
 SIGMA_CALIBRATION = 1.2  # from a Monte Carlo over the simulator (|error| <= 2 sigma in ~95 % of runs)
@@ -277,7 +279,13 @@ def _signal_band_hz(nat: UniformSeries, noise_rad_s: float) -> float:
     """Frequency below which 99.5 % of the motion power (PSD above 3x the white-noise floor) lies."""
     from scipy.signal import welch
 
-    v = nat.values[nat.valid]
+    # the longest run of valid samples: valid samples joined across a gap make a step, whose spectrum
+    # (1/f^2) would pass for motion up to the Nyquist frequency
+    ok = np.concatenate([[False], nat.valid, [False]])
+    edges = np.flatnonzero(np.diff(ok.astype(np.int8)))
+    starts, stops = edges[::2], edges[1::2]
+    j = int(np.argmax(stops - starts)) if len(starts) else 0
+    v = nat.values[starts[j]:stops[j]] if len(starts) else nat.values[:0]
     if len(v) > 2 ** 18:  # the central part is enough for a spectrum (speed)
         c = len(v) // 2
         v = v[c - 2 ** 17:c + 2 ** 17]
@@ -311,6 +319,7 @@ class _Correlator:
 
     def __init__(self, m: UniformSeries, s: UniformSeries):
         self.n, self.m_len = len(m.values), len(s.values)
+        self.n_valid = min(int(m.valid.sum()), int(s.valid.sum()))  # gaps and masked ends left out
         self.nfft = sfft.next_fast_len(self.n + self.m_len - 1, real=True)
         self.off = m.i0 - s.i0
 
@@ -1049,8 +1058,7 @@ def _lag_window(ctx: _Ctx, corr: _Correlator, dt: float, min_frac: float) -> tup
         k = int(np.floor(ctx.max_lag_s / dt + 1e-9))
         lo, hi = max(lo, -k), min(hi, k)
     lags = np.arange(lo, hi + 1)
-    n_short = min(corr.n, corr.m_len)
-    return lags, max(MIN_OVERLAP_S / dt, min_frac * n_short)
+    return lags, max(MIN_OVERLAP_S / dt, min_frac * corr.n_valid)
 
 
 @dataclass(frozen=True)
@@ -1126,8 +1134,41 @@ def _lobe_halfwidth(cost: np.ndarray, j: int) -> int:
         k += 1
 
 
-def _windows(ctx: _Ctx, t0: float, t1: float) -> list[tuple[float, float]]:
+def _windows(ctx: _Ctx, t0: float, t1: float, t_ok: np.ndarray | None = None) -> list[tuple[float, float]]:
+    """The drift windows over [t0, t1]: about WINDOW_S each (3..MAX_WINDOWS). With ``t_ok`` (the instants
+    that have data in both units) covering less than WINDOW_DATA_FRACTION of the span (gaps), windows are
+    laid in the runs of data between the gaps instead (none across one), their number shared by the
+    runs' lengths (runs shorter than MIN_WINDOW_S left out)."""
     T = t1 - t0
+    if t_ok is not None and len(t_ok) > 1:
+        d = np.diff(t_ok)
+        dt = float(np.median(d))
+        if len(t_ok) * dt < WINDOW_DATA_FRACTION * T:
+            cut = np.flatnonzero(d > max(1.0, 10.0 * dt))
+            runs = [(float(t_ok[a]), float(t_ok[b])) for a, b in
+                    zip(np.concatenate([[0], cut + 1]), np.concatenate([cut, [len(t_ok) - 1]]))]
+            runs = [r for r in runs if r[1] - r[0] >= MIN_WINDOW_S]
+            T_ok = sum(b - a for a, b in runs)
+            K = int(np.clip(np.floor(T_ok / WINDOW_S), 1, MAX_WINDOWS))
+            if T_ok >= 30.0:
+                K = max(K, 3)
+            K = min(K, int(sum(np.floor((b - a) / MIN_WINDOW_S) for a, b in runs)))
+            if not runs or K < 1:
+                return []
+            # largest remainder: each run at least one window, the rest by length, none below MIN_WINDOW_S
+            share = np.array([b - a for a, b in runs]) / T_ok * K
+            k_run = np.maximum(1, np.floor(share)).astype(int)
+            cap = np.floor(np.array([b - a for a, b in runs]) / MIN_WINDOW_S).astype(int)
+            for j in np.argsort(-(share - np.floor(share))):
+                if k_run.sum() >= K:
+                    break
+                if k_run[j] < cap[j]:
+                    k_run[j] += 1
+            out: list[tuple[float, float]] = []
+            for (a, b), k in zip(runs, k_run):
+                e = np.linspace(a, b, int(k) + 1)
+                out += list(zip(e[:-1], e[1:]))
+            return out[:MAX_WINDOWS] if len(out) <= MAX_WINDOWS else out
     K = int(np.clip(np.floor(T / WINDOW_S), 1, MAX_WINDOWS))
     if T >= 60.0:
         K = max(K, 3)
@@ -1228,6 +1269,12 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
         latency, drift = latency - K[0] * drift, drift - K[1] * drift
         V = V - np.outer(K, V[1])
         sig_l, sigma_drift = float(np.sqrt(max(V[0, 0], 0.0))), float(np.sqrt(max(V[1, 1], 0.0)))
+    # without a drift fit the latency is that of the data's centroid: where gaps move it off the middle
+    # of the window, the drift's prior moves the middle's latency by drift x that distance
+    if not fit_drift:
+        ok_f = valid & s.itp.ok(t_m + latency)
+        if ok_f.any():
+            sig_l = float(np.hypot(sig_l, DRIFT_PRIOR_PPM * 1e-6 * abs(float(np.mean(t_m[ok_f])) - t_mid)))
     # stamp noise: the error it causes is a floor (the aided fit does not see it in its residuals)
     jit_sigma = _jitter_sigma_s(ctx, w0, w1)
     sig_l = max(sig_l, jit_sigma)
@@ -1397,7 +1444,7 @@ def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: f
     3 usable windows, one global fit without drift."""
     t_mid = 0.5 * (w0 + w1)
     itp = ctx.slave.itp
-    wins = _windows(ctx, w0, w1)
+    wins = _windows(ctx, w0, w1, t_m[valid & itp.ok(t_m + d_center)])
     centers, lats, sigs, wmot = [], [], [], []
     bounds: dict[float, tuple[float, float]] = {}
     for (a0, a1) in wins if len(wins) >= 3 else []:

@@ -41,7 +41,7 @@ import numpy as np
 from logtools.conventions import dcm_from_quat, dcm_from_rotvec, skew
 from logtools.inslog import InsLog
 from logtools.latency_gls import NoiseModel, delay_step, end_taper, gls_covariance, gn_step, noise_model, window_chi2
-from logtools.resample import Interpolant, interpolant, lowpass, median_rate_hz, to_uniform
+from logtools.resample import Interpolant, interpolant, lowpass, median_rate_hz, stamp_noise_s, to_uniform
 
 VEL_MAX_CUTOFF_HZ = 5.0  # the velocities are low-passed at the rate fit's cutoff, at most this
 VEL_CUTOFF_FRACTION = 0.4  # ... and at most this fraction of the slower nav rate
@@ -80,6 +80,8 @@ class VelocityPair:
     steps: tuple[tuple[float, np.ndarray], ...] = ()
     #: per unit: the step of the velocity's stamps when coarse (s; 0 when fine)
     stamp_resolutions_s: tuple[float, ...] = ()
+    #: per unit: (white noise on the velocity's stamps, s; the velocity's sample rate, Hz)
+    stamp_jitter: tuple[tuple[float, float], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -143,7 +145,8 @@ def velocity_pair(master: InsLog, slave: InsLog, cutoff_hz: float, master_rate: 
     dt = 1.0 / min(max(5.0 * cut, VEL_MIN_GRID_HZ), f_min)
     steps = tuple((velocity_quantum_m_s(v), np.sum(np.abs(np.diff(v, axis=0)), axis=0)) for v in (vm, vs))
     stamps = (master.stamp_resolution_s("vel"), slave.stamp_resolution_s("vel"))
-    return VelocityPair(itps[0], itps[1], lever, cut, dt, steps, stamps)
+    jitter = tuple((stamp_noise_s(t), median_rate_hz(t)) for t in (tm, ts))
+    return VelocityPair(itps[0], itps[1], lever, cut, dt, steps, stamps, jitter)
 
 
 def velocity_quantum_m_s(v: np.ndarray) -> float:
@@ -400,6 +403,13 @@ def velocity_fit(vp: VelocityPair, w0: float, w1: float, d0: float, drift0: floa
     # stamps on a coarse grid: a common offset of up to half of it, uniform (the rates' own stamps are
     # another stream's: this is the velocity's)
     s_q = float(np.sqrt(s_q ** 2 + sum(q * q / 12.0 for q in vp.stamp_resolutions_s)))
+    # white stamp noise: the delay is a weighted mean of the stamps' errors, weights |a|^2 per sample
+    # (the rate fit's floor, logtools.latency._jitter_sigma_s; the GLS residuals do not show it)
+    g = np.sum(acc[ok_a & okm] ** 2, axis=1) if (ok_a & okm).any() else np.zeros(0)
+    if g.sum() > 0:
+        shape = float(np.sum(g * g)) / float(np.sum(g)) ** 2
+        s_q = float(np.sqrt(s_q ** 2 + sum(sj * sj * shape / max(f * vp.dt_s, 1e-12)
+                                           for sj, f in vp.stamp_jitter if sj > 0 and f > 0)))
     s_l = float(np.sqrt(s.var[0])) * infl
     q_infl = float(np.sqrt(1.0 + (s_q / s_l) ** 2))
     sd = float(np.sqrt(s.var[1])) * infl * q_infl if fit_drift else 0.0
