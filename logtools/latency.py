@@ -1116,6 +1116,17 @@ def _coarse(ctx: _Ctx) -> _Coarse:
     lobe = _lobe_halfwidth(cost, jb)
     alts = [i for i in mins if abs(int(vlags[i]) - int(vlags[jb])) > lobe
             and cost[i] <= best + max(PERIODIC_MARGIN, PERIODIC_REL_MARGIN * best)]
+    if alts:
+        # near-equal minima (motion that repeats): the one with the most overlapping data is the better
+        # supported (the same residual per sample over more samples); the others stay the alternatives
+        cand = [jb] + alts
+        jn = max(cand, key=lambda i: (float(vc.count[i]), -float(cost[i])))
+        if jn != jb and vc.count[jn] > vc.count[jb]:
+            alts = [i for i in cand if i != jn]
+            jb = jn
+            contiguous = (0 < jb < len(vlags) - 1 and vlags[jb + 1] - vlags[jb - 1] == 2)
+            d0 = (vlags[jb] + (_parabolic(cost, jb) if contiguous else 0.0)) * dt
+            best = float(cost[jb])
     return _Coarse(lags * dt, rho, float(xc_lat), float(rho[ib]), vc, dt, float(d0), best,
                    tuple(float(vlags[i] * dt) for i in alts), tuple(float(cost[i]) for i in alts))
 
