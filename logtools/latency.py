@@ -134,9 +134,10 @@ MIN_ADAPT_CUTOFF_HZ = 0.05
 MIN_ADAPT_CYCLES = 20.0  # the adapted cutoff keeps at least this many cycles over the overlap
 ADAPT_GAIN = 0.7  # narrow only when the predicted variance drops below this fraction
 SIGMA_FLOOR_S = 5e-6  # model floor (interpolation, numerics)
-PERIODIC_MARGIN = 5e-4  # alternative minimum within this of the best normalised cost -> periodic (numerical floor:
+PERIODIC_MARGIN = 1e-4  # alternative minimum within this of the best normalised cost -> periodic (numerical floor:
 #   noise-free data have best costs of 1e-6..1e-5; a course that nearly repeats 130 s later cost 3e-3 there,
-#   1000x the best, and was flagged at 0.02)
+#   1000x the best, and was flagged at 0.02; an aircraft's S-turns 200 s later 2.5e-4 against 9e-5 (the cost's
+#   statistical spread is a few % of it: PERIODIC_REL_MARGIN covers that))
 PERIODIC_REL_MARGIN = 0.1  # ... or within this fraction of the best cost (noisy data)
 GLS = True  # weigh frequencies by motion / residual power (whitened Gauss-Newton), see _refine_gls
 GLS_PASSES = 2  # whole-overlap GLS passes (residual spectrum re-estimated before each)
