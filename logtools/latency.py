@@ -125,6 +125,9 @@ WINDOW_S = 15.0  # nominal window length for the drift stage (3..MAX_WINDOWS win
 MAX_WINDOWS = 16
 WINDOW_DATA_FRACTION = 0.9  # data over less of the span than this (gaps): windows in the runs of data
 MIN_WINDOW_S = 5.0  # ... each at least this long
+WINDOWS3_MIN_S = 20.0  # overlaps this long get at least 3 drift windows (a drift fit checked by them)
+DRIFT_FIT_ALWAYS = False  # a drift fitted without 3 windows (measured worse: short logs with flexure took
+DRIFT_MIN_SPAN_S = 20.0  # drifts of 200 ppm at optimistic sigmas, coverage 0.83 against 0.96)
 DRIFT_PRIOR_PPM = 100.0  # prior std of the relative clock drift (shrinks an undetermined drift)
 DRIFT_SEARCH_PPM = 250.0  # window search band grows with distance from the middle at this rate
 SIGMA_CALIBRATION = 1.2  # from a Monte Carlo over the simulator (|error| <= 2 sigma in ~95 % of runs)
@@ -1146,6 +1149,12 @@ def _lobe_halfwidth(cost: np.ndarray, j: int) -> int:
         k += 1
 
 
+def _drift_without_windows(w0: float, w1: float) -> bool:
+    """A drift is fitted over an overlap this long even without 3 drift windows (short logs, gaps): its
+    sigma is then the fit's own, unchecked by windows, and the drift prior keeps an undetermined one small."""
+    return DRIFT_FIT_ALWAYS and (w1 - w0) >= DRIFT_MIN_SPAN_S
+
+
 def _windows(ctx: _Ctx, t0: float, t1: float, t_ok: np.ndarray | None = None) -> list[tuple[float, float]]:
     """The drift windows over [t0, t1]: about WINDOW_S each (3..MAX_WINDOWS). With ``t_ok`` (the instants
     that have data in both units) covering less than WINDOW_DATA_FRACTION of the span (gaps), windows are
@@ -1162,7 +1171,7 @@ def _windows(ctx: _Ctx, t0: float, t1: float, t_ok: np.ndarray | None = None) ->
             runs = [r for r in runs if r[1] - r[0] >= MIN_WINDOW_S]
             T_ok = sum(b - a for a, b in runs)
             K = int(np.clip(np.floor(T_ok / WINDOW_S), 1, MAX_WINDOWS))
-            if T_ok >= 30.0:
+            if T_ok >= WINDOWS3_MIN_S:
                 K = max(K, 3)
             K = min(K, int(sum(np.floor((b - a) / MIN_WINDOW_S) for a, b in runs)))
             if not runs or K < 1:
@@ -1182,7 +1191,7 @@ def _windows(ctx: _Ctx, t0: float, t1: float, t_ok: np.ndarray | None = None) ->
                 out += list(zip(e[:-1], e[1:]))
             return out[:MAX_WINDOWS] if len(out) <= MAX_WINDOWS else out
     K = int(np.clip(np.floor(T / WINDOW_S), 1, MAX_WINDOWS))
-    if T >= 60.0:
+    if T >= WINDOWS3_MIN_S:
         K = max(K, 3)
     edges = np.linspace(t0, t1, K + 1)
     return list(zip(edges[:-1], edges[1:]))
@@ -1250,7 +1259,7 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
     prog(0.55, "windows and drift")
     fin, centers, lats, sigs = _fit_all(ctx, t_m, a, valid, w0, w1, d_center, 0.0, DRIFT_SEARCH_PPM, noise)
     prog(0.8, "drift")
-    fit_drift = len(centers) >= 3
+    fit_drift = len(centers) >= 3 or _drift_without_windows(w0, w1)
     # sigma: HAC-corrected GN sigma, inflated by the windows' scatter about the drift line
     chi2_red = _window_chi2(fin, centers, lats, sigs, t_mid)
     infl = np.sqrt(max(1.0, chi2_red)) if WINDOW_INFLATE else 1.0
@@ -1281,12 +1290,17 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
         latency, drift = latency - K[0] * drift, drift - K[1] * drift
         V = V - np.outer(K, V[1])
         sig_l, sigma_drift = float(np.sqrt(max(V[0, 0], 0.0))), float(np.sqrt(max(V[1, 1], 0.0)))
-    # without a drift fit the latency is that of the data's centroid: where gaps move it off the middle
-    # of the window, the drift's prior moves the middle's latency by drift x that distance
+    # without a drift fit the latency is that of the information's centroid (the samples weighted by the
+    # rate's change squared): where gaps or uneven motion move it off the middle of the window, the drift's
+    # prior moves the middle's latency by drift x that distance
     if not fit_drift:
         ok_f = valid & s.itp.ok(t_m + latency)
-        if ok_f.any():
-            sig_l = float(np.hypot(sig_l, DRIFT_PRIOR_PPM * 1e-6 * abs(float(np.mean(t_m[ok_f])) - t_mid)))
+        wd, ok_d = m.itp(t_m, 1)
+        ok_f &= ok_d
+        g = np.sum(np.where(ok_f[:, None], wd, 0.0) ** 2, axis=1)  # the delay's information per sample
+        if g.sum() > 0:
+            t_c = float(np.sum(g * t_m) / g.sum())
+            sig_l = float(np.hypot(sig_l, DRIFT_PRIOR_PPM * 1e-6 * abs(t_c - t_mid)))
     # stamp noise: the error it causes is a floor (the aided fit does not see it in its residuals)
     jit_sigma = _jitter_sigma_s(ctx, w0, w1)
     sig_l = max(sig_l, jit_sigma)
@@ -1503,12 +1517,12 @@ def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: f
         fin = min(cands, key=lambda c: c.residual_rms) if cands else None
     if fin is None:
         centers = lats = sigs = np.zeros(0)
-        fin = _refine(t_m, a, valid, itp, d_center, 0.0, t_mid, fit_drift=False)
+        fin = _refine(t_m, a, valid, itp, d_center, 0.0, t_mid, fit_drift=_drift_without_windows(w0, w1))
         if not fin.ok:
             raise AnalysisError("latency refinement failed (too little valid overlapping data)")
     if noise is not None:
         # GLS on the whole overlap, with the residual spectrum re-estimated from this fit
-        fd = len(centers) >= 3
+        fd = len(centers) >= 3 or _drift_without_windows(w0, w1)
 
         def wants_accel(f: _Fit) -> bool:  # below ACCEL_MIN_SIGMA_S the accelerometers cannot matter
             return ctx.acc_src is not None and f.sigma_latency_s > ACCEL_MIN_SIGMA_S
