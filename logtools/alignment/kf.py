@@ -607,6 +607,19 @@ def _quat_from_dcm_nb(m):
 
 
 @njit
+def _reset_block(P, x, p0, blk):
+    """A 3-state block (from index blk) back to its prior: its covariance rows and columns cleared, its
+    variances p0's, its estimate 0 (a restart of the nominal it corrects)."""
+    n = P.shape[0]
+    for ii in range(3):
+        for jj in range(n):
+            P[blk + ii, jj] = 0.0
+            P[jj, blk + ii] = 0.0
+        P[blk + ii, blk + ii] = p0[blk + ii, blk + ii]
+        x[blk + ii] = 0.0
+
+
+@njit
 def _kf_loop(t_ep, seg_dq, seg_dv, seg_dt, mt, mq, mv, ma, mw, mvalid, resets, restart, has_q, has_v, has_w,
              q0, v0, llh0, r0, lever0, tau0, offs, n, m_meas, p0, qc, r_diag, beta, lo_tau, hi_tau, fb_mask,
              keep, xs, pd, r_hist, pm_hist, tau_hist, lev_hist, innov, nis, q_hist, cnm_hist,
@@ -693,12 +706,7 @@ def _kf_loop(t_ep, seg_dq, seg_dv, seg_dt, mt, mq, mv, ma, mw, mvalid, resets, r
             if hit:
                 q = _quat_from_dcm_nb(c_nm @ r_hat.T)
                 c_ns = _dcm(q)
-                for ii in range(3):
-                    for jj in range(n):
-                        P[a0 + ii, jj] = 0.0
-                        P[jj, a0 + ii] = 0.0
-                    P[a0 + ii, a0 + ii] = p0[a0 + ii, a0 + ii]
-                    x[a0 + ii] = 0.0
+                _reset_block(P, x, p0, a0)
                 n_reinit += 1
         if k > 0 and restart[k]:
             # after a gap in the slave's IMU: its navigation restarts from the master's (attitude through
@@ -710,15 +718,9 @@ def _kf_loop(t_ep, seg_dq, seg_dv, seg_dt, mt, mq, mv, ma, mw, mvalid, resets, r
                 lt = np.array([w_m[1] * lever[2] - w_m[2] * lever[1], w_m[2] * lever[0] - w_m[0] * lever[2],
                                w_m[0] * lever[1] - w_m[1] * lever[0]])
                 v = v_m + c_nm @ lt
-            for blk in (a0, v_off):
-                if blk < 0:
-                    continue
-                for ii in range(3):
-                    for jj in range(n):
-                        P[blk + ii, jj] = 0.0
-                        P[jj, blk + ii] = 0.0
-                    P[blk + ii, blk + ii] = p0[blk + ii, blk + ii]
-                    x[blk + ii] = 0.0
+            _reset_block(P, x, p0, a0)
+            if v_off >= 0:
+                _reset_block(P, x, p0, v_off)
             counters[3] += 1
         usable = mvalid[i] and mvalid[i + 1]
         if not usable:
