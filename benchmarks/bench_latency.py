@@ -128,7 +128,7 @@ def sim_config(d: dict):
         slave_accel_vrw_ug_rthz=lvl * base.slave_accel_vrw_ug_rthz, flexure=d["flexure"],
         slave_nav=d.get("slave_nav", True), slave_vel_noise_m_s=lvl * SLAVE_VEL_NOISE_M_S,
     )
-    for k in ("master_jitter_s", "slave_jitter_s", "slave_gaps_s"):
+    for k in ("master_jitter_s", "slave_jitter_s", "slave_gaps_s", "duration_s"):
         if k in d:
             ov[k] = d[k]
     return sim.scenario_config(d["scenario"], **ov)

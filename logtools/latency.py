@@ -126,6 +126,7 @@ MAX_WINDOWS = 16
 WINDOW_DATA_FRACTION = 0.9  # data over less of the span than this (gaps): windows in the runs of data
 MIN_WINDOW_S = 5.0  # ... each at least this long
 WINDOWS3_MIN_S = 20.0  # overlaps this long get at least 3 drift windows (a drift fit checked by them)
+STAMP_RESOLUTION_FLOOR = True  # stamps on a coarse grid floor the sigma at step / sqrt(12) per unit
 DRIFT_FIT_ALWAYS = False  # a drift fitted without 3 windows (measured worse: short logs with flexure took
 DRIFT_MIN_SPAN_S = 20.0  # drifts of 200 ppm at optimistic sigmas, coverage 0.83 against 0.96)
 DRIFT_PRIOR_PPM = 100.0  # prior std of the relative clock drift (shrinks an undetermined drift)
@@ -1268,7 +1269,7 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
     # stamps on a coarse grid (whole milliseconds) with a fixed sampling phase are all off by the same
     # fraction of it: a common offset, uniform over the grid step, that no residual shows (a floor in
     # quadrature; the drift is not affected, so the latency-drift covariance stays)
-    res_sigma = float(np.sqrt(sum(q * q / 12.0 for q in ctx.stamp_resolution_s)))
+    res_sigma = float(np.sqrt(sum(q * q / 12.0 for q in ctx.stamp_resolution_s))) if STAMP_RESOLUTION_FLOOR else 0.0
     if res_sigma > 0 and np.isfinite(sig_l) and sig_l > 0:
         grown = float(np.hypot(sig_l, res_sigma))
         corr_ld, sig_l = corr_ld * sig_l / grown, grown

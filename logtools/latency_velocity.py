@@ -58,6 +58,7 @@ VEL_STEP_CYCLES = 2.0  # ... the means over this many cutoff periods either side
 VEL_STEP_SHARP = 0.5  # ... and keeping this much of it at half the scale (a step, not a manoeuvre's curvature)
 VEL_MAX_STEPS = 12  # more resets than this: no velocity fit
 VEL_WINDOW_MIN = 50  # samples a drift window needs
+VEL_STAMP_RESOLUTION_FLOOR = True  # velocity stamps on a coarse grid floor its sigma at step / sqrt(12)
 VEL_FRAME_MIN_DEG = 0.2  # a rotation between the units' velocity frames beyond this is undone before the fit
 VEL_FRAME_MIN_RANK = 0.02  # ... when the velocity varies in at least two directions (2nd/1st singular value)
 VEL_FRAME_ITERS = 3  # the fitted tilt, when above VEL_TILT_EXACT_DEG, undone exactly and the fit redone
@@ -402,7 +403,8 @@ def velocity_fit(vp: VelocityPair, w0: float, w1: float, d0: float, drift0: floa
     s_q = _quantization_sigma_s(vp, np.mean(acc[ok_a & okm] ** 2, axis=0)) if (ok_a & okm).any() else 0.0
     # stamps on a coarse grid: a common offset of up to half of it, uniform (the rates' own stamps are
     # another stream's: this is the velocity's)
-    s_q = float(np.sqrt(s_q ** 2 + sum(q * q / 12.0 for q in vp.stamp_resolutions_s)))
+    if VEL_STAMP_RESOLUTION_FLOOR:
+        s_q = float(np.sqrt(s_q ** 2 + sum(q * q / 12.0 for q in vp.stamp_resolutions_s)))
     # white stamp noise: the delay is a weighted mean of the stamps' errors, weights |a|^2 per sample
     # (the rate fit's floor, logtools.latency._jitter_sigma_s; the GLS residuals do not show it)
     g = np.sum(acc[ok_a & okm] ** 2, axis=1) if (ok_a & okm).any() else np.zeros(0)
