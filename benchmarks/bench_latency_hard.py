@@ -7,9 +7,9 @@ one thing:
 
 * ``short``: 25, 30 or 40 s logs (1/3 with white stamp noise up to 0.2 of each IMU period);
 * ``dropout``: 60-300 s logs, the slave silent for 20-45 % of the log in one stretch;
-* ``ms-stamps``: the slave read from a canonical CSV whose time is written in whole milliseconds
-  (``%.3f``), half of the runs without drift (a fixed sampling phase: every stamp off by the same
-  fraction of a millisecond);
+* ``ms-stamps``: the slave at 100, 125, 200 or 250 Hz (a whole number of ms per sample, as real IMUs
+  run) read from a canonical CSV whose time is written in whole milliseconds (``%.3f``), half of the runs
+  without drift (a fixed sampling phase: every stamp off by the same fraction of a millisecond);
 * ``rotated-velocity``: the slave logs a nav velocity as an INS whose attitude is off by a heading error
   of 1-8 deg and a tilt of up to 0.5 deg would (R (v - g t) + g t), flexure in half of the runs.
 
@@ -63,6 +63,8 @@ def draw(set_name: str, i: int, base_seed: int) -> dict:
         length = float(rng.uniform(0.20, 0.45)) * dur
         d["slave_gaps_s"] = [[float(rng.uniform(0.1, 0.9 - length / dur)) * dur, length]]
     elif set_name == "ms-stamps":
+        # real IMUs run at round rates: a whole number of ms per sample keeps the sampling phase fixed
+        d["slave_imu_rate_hz"] = float(rng.choice([100.0, 125.0, 200.0, 250.0]))
         if i % 2 == 0:
             d["drift_ppm"] = 0.0
     else:
@@ -79,18 +81,7 @@ def _ms_csv_slave(slave):
 
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "slave.csv")
-        csv_canonical.write(path, slave)
-        with open(path) as f:
-            lines = f.read().splitlines()
-        out = [lines[0]]
-        for ln in lines[1:]:
-            t, rest = ln.split(",", 1)
-            sec, frac = t.split(".")
-            ns = int(sec) * 1_000_000_000 + int(frac.ljust(9, "0")[:9])
-            ms = (ns + 500_000) // 1_000_000
-            out.append(f"{ms // 1000}.{ms % 1000:03d},{rest}")
-        with open(path, "w") as f:
-            f.write("\n".join(out) + "\n")
+        csv_canonical.write(path, slave, time_decimals=3)
         return registry.load(path)
 
 

@@ -50,12 +50,14 @@ def _seconds_text(values: pd.Series) -> tuple[np.ndarray, int | None]:
     return ns, dec
 
 
-def ns_to_seconds_text(ns: np.ndarray) -> np.ndarray:
+def ns_to_seconds_text(ns: np.ndarray, decimals: int = 9) -> np.ndarray:
+    """int64 ns -> decimal seconds with ``decimals`` (1-9) digits, exactly (the ns already on that grid)."""
     ns = np.asarray(ns, dtype=np.int64)
     sign = np.where(ns < 0, "-", "")
     a = np.abs(ns)
+    q = 10 ** (9 - decimals)
     return np.char.add(np.char.add(sign, np.char.mod("%d", a // 1_000_000_000)),
-                       np.char.mod(".%09d", a % 1_000_000_000))
+                       np.char.mod(f".%0{decimals}d", (a % 1_000_000_000) // q))
 
 
 def _read_frame(path: str) -> tuple[pd.DataFrame, list[str]]:
@@ -148,8 +150,13 @@ def inventory(path: str) -> Inventory:
                      warnings=log.meta.warnings)
 
 
-def write(path: str, log: InsLog) -> None:
-    """Write an InsLog as canonical CSV; imu and nav rows are merged on their (exact) stamps."""
+def write(path: str, log: InsLog, *, time_decimals: int = 9) -> None:
+    """Write an InsLog as canonical CSV; imu and nav rows are merged on their (exact) stamps.
+    ``time_decimals`` < 9 writes the stamps rounded to that many decimals of a second, as a logger with a
+    coarser clock would (3: whole milliseconds)."""
+    if not 1 <= time_decimals <= 9:
+        raise InputError(f"time_decimals must be 1..9, not {time_decimals}", path)
+    q = 10 ** (9 - time_decimals)
     frames = []
     if len(log.imu):
         frames.append(log.imu[[c for c in GYRO + ACCEL if c in log.imu.columns]])
@@ -160,7 +167,8 @@ def write(path: str, log: InsLog) -> None:
     merged = None
     for f in frames:
         f = f.copy()
-        f.index = np.round(f.index.to_numpy(float) * 1e9).astype(np.int64)
+        abs_ns = np.round(f.index.to_numpy(float) * 1e9).astype(np.int64) + np.int64(log.meta.t0_ns)
+        f.index = (abs_ns + q // 2) // q * q - np.int64(log.meta.t0_ns)
         f = f[~f.index.duplicated()]
         merged = f if merged is None else merged.join(f, how="outer")
     if merged is None:
@@ -168,7 +176,7 @@ def write(path: str, log: InsLog) -> None:
     merged = merged.sort_index()
     cols = [c for c in HEADER[1:] if c in merged.columns]
     out = merged[cols]
-    time_txt = ns_to_seconds_text(merged.index.to_numpy() + log.meta.t0_ns)
+    time_txt = ns_to_seconds_text(merged.index.to_numpy() + log.meta.t0_ns, time_decimals)
     buf = io.StringIO()
     out.insert(0, TIME, time_txt)
     out.to_csv(buf, index=False, float_format="%.17g", na_rep="")

@@ -525,22 +525,6 @@ def test_attitude_only_slave_on_a_fast_aircraft():
     assert abs(err) < 0.3e-3 and abs(err) < 2 * res.sigma_s and res.sigma_s < 1e-3
 
 
-def _write_ms_csv(path, log: InsLog) -> None:
-    """The canonical CSV a logger with whole-millisecond stamps would write (``%.3f`` seconds)."""
-    from parsers import csv_canonical
-
-    csv_canonical.write(str(path), log)
-    lines = path.read_text().splitlines()
-    out = [lines[0]]
-    for ln in lines[1:]:
-        t, rest = ln.split(",", 1)
-        s, frac = t.split(".")
-        ns = int(s) * 1_000_000_000 + int(frac.ljust(9, "0")[:9])
-        ms = (ns + 500_000) // 1_000_000  # rounded to the millisecond
-        out.append(f"{ms // 1000}.{ms % 1000:03d},{rest}")
-    path.write_text("\n".join(out) + "\n")
-
-
 @pytest.mark.parametrize("seed", [1, 2])
 def test_millisecond_stamps_floor_the_rate_sigma(tmp_path, seed):
     """A slave whose stamps are whole milliseconds (a CSV written with ``%.3f``; MAVLink's
@@ -553,8 +537,11 @@ def test_millisecond_stamps_floor_the_rate_sigma(tmp_path, seed):
 
     p = sim.simulate(sim.scenario_config("multirotor", seed=seed, latency_s=0.1234, drift_ppm=0.0,
                                          mount_rpy_deg=(20.0, -40.0, 100.0)))
+    from parsers import csv_canonical
+
     path = tmp_path / "slave.csv"
-    _write_ms_csv(path, InsLog(imu=p.slave.imu, nav=p.slave.nav.iloc[:0], meta=p.slave.meta))
+    csv_canonical.write(str(path), InsLog(imu=p.slave.imu, nav=p.slave.nav.iloc[:0], meta=p.slave.meta),
+                        time_decimals=3)
     slave = registry.load(str(path))
     assert slave.stamp_resolution_s("gyro") == 1e-3
     res = estimate(p.master, slave, compare=False)
