@@ -63,6 +63,10 @@ def run_alignment(master: InsLog, slave: InsLog, *, filter: str = "kf", match: s
     if match not in MATCHES:
         raise AnalysisError(f"match must be one of {', '.join(MATCHES)}, not {match!r}")
     src = slave.meta.source_path or "slave"
+    # one time base: relative times of logs with different t0 are not comparable (a no-op when the slave
+    # is already rebased, as compensate() leaves it)
+    if slave.meta.t0_ns != master.meta.t0_ns:
+        slave = slave.rebased(master.meta.t0_ns)
     if not (slave.has_gyro and slave.has_accel):
         raise AnalysisError(f"{src}: alignment needs the slave's IMU (angular rate and specific force)")
     if "att" in match and not master.has_quat:
