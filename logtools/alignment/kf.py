@@ -26,6 +26,11 @@ from logtools.strapdown import _WIE, _radii, nav_step, njit
 from .model import StateLayout, _discretise, _fill_dynamics, _fill_h, att_residual, exp_so3, rotvec_small
 
 FILTERS = ("kf", "kf-delay", "kf-split", "hinf", "ahinf")
+#: attitude-only matching takes the mounting's Jacobian at the running slave attitude, not the first-estimate
+#: one (C_nm R0^T): with tight attitude noise and a mounting rolled past ~80 deg the first-estimate Jacobian
+#: made the aircraft's straight, unobservable start drift and diverge (residuals of 180 deg); velocity
+#: matching keeps it (there it stops the filter from inventing information)
+ATT_ONLY_FEJ = False  # (a compile-time constant of the compiled loop)
 
 
 # ---- measurement updates ------------------------------------------------------------------------
@@ -464,7 +469,7 @@ def run_filter(inp: AlignInputs, s: FilterSettings, *, progress: Callable | None
         # first-estimate Jacobian: the mounting enters H through the coarse mounting r0, not the running
         # r_hat; feeding back along an unobservable direction would otherwise rotate H and invent
         # information (the EKF inconsistency known from SLAM heading)
-        c_ref = (c_nm @ r_fej.T) if c_nm is not None else c_ns
+        c_ref = (c_nm @ r_fej.T) if c_nm is not None and (lay.uses_vel or ATT_ONLY_FEJ) else c_ns
         h_buf[:] = 0.0
         _fill_h(h_buf, offs, c_ref, c_nm if c_nm is not None else eye3, w_m if w_m is not None else z3,
                 w_ns_n, a_m if a_m is not None else z3)
@@ -754,7 +759,7 @@ def _kf_loop(t_ep, seg_dq, seg_dv, seg_dt, mt, mq, mv, ma, mw, mvalid, resets, r
                 w_in = np.array([_WIE * np.cos(lat) + v[1] / (r_n + h), -v[0] / (r_m + h),
                                  -_WIE * np.sin(lat) - v[1] * np.tan(lat) / (r_n + h)])
                 w_ns = c_ns @ w_b - w_in
-            c_ref = c_nm @ r_fej.T if has_q else c_ns
+            c_ref = c_nm @ r_fej.T if has_q and (uses_vel or ATT_ONLY_FEJ) else c_ns
             h_buf[:, :] = 0.0
             _fill_h(h_buf, offs, c_ref, c_nm, w_m, w_ns, a_m)
             nis[k] = kf_step_nb(x, P, phi_k if k > 0 else no_phi, qd_k, z, h_buf, r_diag, e_buf)
