@@ -102,8 +102,8 @@ from logtools.conventions import (dcm_from_quat, euler_from_dcm, quat_conj, quat
                                  rotvec_from_quat, skew)
 from logtools.errors import AnalysisError
 from logtools.inslog import InsLog
-from logtools.latency_gls import (NoiseModel, delay_step, end_taper, gls_covariance, gn_step, hac_cov,
-                                   noise_model, window_chi2)
+from logtools.latency_gls import (NoiseModel, delay_step, end_taper, gls_covariance, gn_step,
+                                   grid_offset_sigma_s, hac_cov, noise_model, stamp_noise_variance, window_chi2)
 from logtools.latency_velocity import velocity_fit, velocity_pair
 from logtools.latency_flexure import DECIMATE_FACTOR, FlexureModel, block_mean, fit_model, whitened_normal
 from logtools.resample import (Interpolant, UniformSeries, interpolant, lowpass, median_rate_hz, stamp_noise_s,
@@ -1050,10 +1050,7 @@ def _jitter_sigma_s(ctx: _Ctx, w0: float, w1: float) -> float:
         if sel.sum() < 10:
             continue
         wd = np.gradient(nat.values, nat.dt_s, axis=0)[sel]
-        g = np.sum(wd * wd, axis=1)
-        den = float(np.sum(g)) ** 2
-        if den > 0:
-            var += sj ** 2 * float(np.sum(g * g)) / den
+        var += stamp_noise_variance(sj, np.sum(wd * wd, axis=1))
     return float(np.sqrt(var))
 
 
@@ -1113,8 +1110,6 @@ def _coarse(ctx: _Ctx) -> _Coarse:
     cost = vc.cost
     # contiguous segments only (selected lags may be disjoint): minima inside runs
     jb = int(np.nanargmin(cost))
-    contiguous = (jb > 0 and jb < len(vlags) - 1 and vlags[jb + 1] - vlags[jb - 1] == 2)
-    d0 = (vlags[jb] + (_parabolic(cost, jb) if contiguous else 0.0)) * dt
     # periodic motion: other local minima (outside the main lobe) nearly as low
     best = float(cost[jb])
     mins = _local_minima(cost)
@@ -1129,9 +1124,9 @@ def _coarse(ctx: _Ctx) -> _Coarse:
         if jn != jb and vc.count[jn] > vc.count[jb]:
             alts = [i for i in cand if i != jn]
             jb = jn
-            contiguous = (0 < jb < len(vlags) - 1 and vlags[jb + 1] - vlags[jb - 1] == 2)
-            d0 = (vlags[jb] + (_parabolic(cost, jb) if contiguous else 0.0)) * dt
             best = float(cost[jb])
+    contiguous = (0 < jb < len(vlags) - 1 and vlags[jb + 1] - vlags[jb - 1] == 2)
+    d0 = (vlags[jb] + (_parabolic(cost, jb) if contiguous else 0.0)) * dt
     return _Coarse(lags * dt, rho, float(xc_lat), float(rho[ib]), vc, dt, float(d0), best,
                    tuple(float(vlags[i] * dt) for i in alts), tuple(float(cost[i]) for i in alts))
 
@@ -1190,7 +1185,7 @@ def _windows(ctx: _Ctx, t0: float, t1: float, t_ok: np.ndarray | None = None) ->
             for (a, b), k in zip(runs, k_run):
                 e = np.linspace(a, b, int(k) + 1)
                 out += list(zip(e[:-1], e[1:]))
-            return out[:MAX_WINDOWS] if len(out) <= MAX_WINDOWS else out
+            return out
     K = int(np.clip(np.floor(T / WINDOW_S), 1, MAX_WINDOWS))
     if T >= WINDOWS3_MIN_S:
         K = max(K, 3)
@@ -1269,7 +1264,7 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
     # stamps on a coarse grid (whole milliseconds) with a fixed sampling phase are all off by the same
     # fraction of it: a common offset, uniform over the grid step, that no residual shows (a floor in
     # quadrature; the drift is not affected, so the latency-drift covariance stays)
-    res_sigma = float(np.sqrt(sum(q * q / 12.0 for q in ctx.stamp_resolution_s))) if STAMP_RESOLUTION_FLOOR else 0.0
+    res_sigma = grid_offset_sigma_s(ctx.stamp_resolution_s) if STAMP_RESOLUTION_FLOOR else 0.0
     if res_sigma > 0 and np.isfinite(sig_l) and sig_l > 0:
         grown = float(np.hypot(sig_l, res_sigma))
         corr_ld, sig_l = corr_ld * sig_l / grown, grown

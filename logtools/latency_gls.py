@@ -197,3 +197,19 @@ def delay_step(step: np.ndarray, dt_s: float, span_s: float, fit_drift: bool) ->
     lim = 0.5 * dt_s / max(span_s, 1e-9)
     return sd, float(np.clip(step[1], -lim, lim))
 
+
+
+def grid_offset_sigma_s(resolutions_s) -> float:
+    """Sigma of a delay from stamps on coarse grids (one step per unit): with a fixed sampling phase every
+    stamp of a unit is off by the same fraction of its step, uniform over it: sqrt(sum step^2 / 12)."""
+    return float(np.sqrt(sum(q * q / 12.0 for q in resolutions_s)))
+
+
+def stamp_noise_variance(sigma_stamp_s: float, g: np.ndarray, samples_per_point: float = 1.0) -> float:
+    """Variance of a least-squares delay from white stamp noise: the delay is a weighted mean of the
+    stamps' errors, weights ``g`` per point (|signal'|^2), so sigma_t^2 sum g^2 / (sum g)^2; with
+    ``samples_per_point`` stamps behind each point (a fit grid coarser than the samples) it divides."""
+    den = float(np.sum(g)) ** 2
+    if not (sigma_stamp_s > 0 and den > 0 and samples_per_point > 0):
+        return 0.0
+    return sigma_stamp_s ** 2 * float(np.sum(g * g)) / den / samples_per_point

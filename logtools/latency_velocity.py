@@ -40,7 +40,8 @@ import numpy as np
 
 from logtools.conventions import dcm_from_quat, dcm_from_rotvec, skew
 from logtools.inslog import InsLog
-from logtools.latency_gls import NoiseModel, delay_step, end_taper, gls_covariance, gn_step, noise_model, window_chi2
+from logtools.latency_gls import (NoiseModel, delay_step, end_taper, gls_covariance, gn_step, grid_offset_sigma_s,
+                                  noise_model, stamp_noise_variance, window_chi2)
 from logtools.resample import Interpolant, interpolant, lowpass, median_rate_hz, stamp_noise_s, to_uniform
 
 VEL_MAX_CUTOFF_HZ = 5.0  # the velocities are low-passed at the rate fit's cutoff, at most this
@@ -404,14 +405,11 @@ def velocity_fit(vp: VelocityPair, w0: float, w1: float, d0: float, drift0: floa
     # stamps on a coarse grid: a common offset of up to half of it, uniform (the rates' own stamps are
     # another stream's: this is the velocity's)
     if VEL_STAMP_RESOLUTION_FLOOR:
-        s_q = float(np.sqrt(s_q ** 2 + sum(q * q / 12.0 for q in vp.stamp_resolutions_s)))
+        s_q = float(np.hypot(s_q, grid_offset_sigma_s(vp.stamp_resolutions_s)))
     # white stamp noise: the delay is a weighted mean of the stamps' errors, weights |a|^2 per sample
-    # (the rate fit's floor, logtools.latency._jitter_sigma_s; the GLS residuals do not show it)
-    g = np.sum(acc[ok_a & okm] ** 2, axis=1) if (ok_a & okm).any() else np.zeros(0)
-    if g.sum() > 0:
-        shape = float(np.sum(g * g)) / float(np.sum(g)) ** 2
-        s_q = float(np.sqrt(s_q ** 2 + sum(sj * sj * shape / max(f * vp.dt_s, 1e-12)
-                                           for sj, f in vp.stamp_jitter if sj > 0 and f > 0)))
+    # (as the rate fit's floor; the GLS residuals do not show it); f dt stamps behind each fit point
+    g = np.sum(acc[ok_a & okm] ** 2, axis=1)
+    s_q = float(np.sqrt(s_q ** 2 + sum(stamp_noise_variance(sj, g, f * vp.dt_s) for sj, f in vp.stamp_jitter)))
     s_l = float(np.sqrt(s.var[0])) * infl
     q_infl = float(np.sqrt(1.0 + (s_q / s_l) ** 2))
     sd = float(np.sqrt(s.var[1])) * infl * q_infl if fit_drift else 0.0

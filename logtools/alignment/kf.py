@@ -360,6 +360,15 @@ def run_filter(inp: AlignInputs, s: FilterSettings, *, progress: Callable | None
     mav = np.zeros((3, 3))
     att_sl, vel_sl, mount_sl, lev_sl, d_i = lay.att, lay.vel, lay.mount, lay.lever, lay.delay
 
+    p0_var = np.asarray(s.p0_sigma, float) ** 2
+
+    def reset(sl: slice) -> None:
+        """A state block back to its prior (``_reset_block`` of the compiled loop)."""
+        P[sl, :] = 0.0
+        P[:, sl] = 0.0
+        P[sl, sl] = np.diag(p0_var[sl])
+        x[sl] = 0.0
+
     def record(k, x, P, q, r_hat, tau, lever, c_nm, fb) -> None:
         """The per-epoch histories (and the smoother's filtered values) after epoch k."""
         r_hist[k] = r_hat
@@ -414,10 +423,7 @@ def run_filter(inp: AlignInputs, s: FilterSettings, *, progress: Callable | None
                 # the master's attitude jumped (EKF reset): restart the slave attitude from it
                 q = quat_from_dcm(c_nm @ r_hat.T)
                 c_ns = _dcm(q)
-                P[att_sl, :] = 0.0
-                P[:, att_sl] = 0.0
-                P[att_sl, att_sl] = np.diag(np.asarray(s.p0_sigma)[att_sl] ** 2)
-                x[att_sl] = 0.0
+                reset(att_sl)
                 n_reinit += 1
         if k > 0 and restart[k]:
             # after a gap in the slave's IMU: its navigation restarts from the master's (attitude through
@@ -427,12 +433,9 @@ def run_filter(inp: AlignInputs, s: FilterSettings, *, progress: Callable | None
                 c_ns = _dcm(q)
             if v_m is not None:
                 v = v_m + (c_nm if c_nm is not None else eye3) @ np.cross(w_m if w_m is not None else z3, lever)
-            for blk in (att_sl, vel_sl):
-                if blk is not None:
-                    P[blk, :] = 0.0
-                    P[:, blk] = 0.0
-                    P[blk, blk] = np.diag(np.asarray(s.p0_sigma)[blk] ** 2)
-                    x[blk] = 0.0
+            reset(att_sl)
+            if vel_sl is not None:
+                reset(vel_sl)
             n_restart += 1
         if not master.usable(tk - tau):
             # no usable master sample: prediction only
