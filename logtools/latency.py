@@ -157,7 +157,9 @@ ACCEL_AIDED = True  # gyro + accelerometer residuals in the final GLS when both 
 ACCEL_GLS_PASSES = 2  # accelerometer-aided passes (the 6-channel cross-spectrum re-estimated before each)
 ACCEL_MIN_SIGMA_S = 1e-4  # ... and when the gyro-only sigma is above this (below it they cannot matter)
 FLEX_SS = True  # Kalman (state-space flexure model) whitening after the spectral GLS, see _refine_flex
-FLEX_AGREE_SIGMAS = 5.0  # ... a candidate when within this many sigma of the spectral GLS
+FLEX_AGREE_SIGMAS = 5.0  # ... farther than this many sigma from the spectral GLS, the two disagree: the
+#                          fit kept has a sigma of at least FLEX_GAP_COVER x their difference
+FLEX_GAP_COVER = 0.5
 FLEX_WINDOWS_CHI2 = 4.0  # ... and kept unless its windows disagree beyond this (reduced chi-square) and the
 #                          spectral fit's window-checked sigma is the smaller
 FLEX_ITERS = 6  # profile Newton steps
@@ -448,6 +450,7 @@ class _Fit:
     aided: bool = False  # accelerometer-aided GLS
     flex: FlexureModel | None = None  # the state-space flexure model of a Kalman-whitened fit
     accel_lag_s: tuple[float, float] = (0.0, 0.0)  # accelerometers' extra delay and its sigma (aided fits)
+    model_gap_s: float = 0.0  # |spectral - Kalman| latency when the two fits disagree (FLEX_AGREE_SIGMAS)
 
 
 def _kabsch_bias(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -1260,7 +1263,16 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
     chi2_red = _window_chi2(fin, centers, lats, sigs, t_mid)
     infl = np.sqrt(max(1.0, chi2_red)) if WINDOW_INFLATE else 1.0
     sig_l, sigma_drift = fin.sigma_latency_s * infl, fin.sigma_drift * infl
-    latency, drift, corr_ld = fin.latency_s, fin.drift, fin.corr_ld
+    extra_warnings: list[str] = []
+    if fin.model_gap_s > 0:  # the spectral and the Kalman (flexure) fits disagree: cover the other one
+        grown = max(sig_l, FLEX_GAP_COVER * fin.model_gap_s)
+        corr_ld0 = fin.corr_ld * sig_l / grown
+        extra_warnings.append(f"the spectral and the flexure-model fits of the rates disagree by "
+                            f"{fin.model_gap_s * 1e3:.3g} ms: sigma covers both")
+        sig_l = grown
+    else:
+        corr_ld0 = fin.corr_ld
+    latency, drift, corr_ld = fin.latency_s, fin.drift, corr_ld0
     # stamps on a coarse grid (whole milliseconds) with a fixed sampling phase are all off by the same
     # fraction of it: a common offset, uniform over the grid step, that no residual shows (a floor in
     # quadrature; the drift is not affected, so the latency-drift covariance stays)
@@ -1346,6 +1358,8 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
         "vector_cost_min": co.best_cost,
         "gls": bool(noise is not None),
         "accel_aided": bool(fin.aided),
+        # |spectral - Kalman| latency of the rate fits when they disagree (0: they agree or one ran)
+        "rate_models_gap_s": float(fin.model_gap_s),
         # the Kalman-whitened fit's flexure model (seed 000 eq. 8), when that fit was kept
         "flexure_model": None if fin.flex is None else {
             "sigma_deg": [float(x) for x in np.degrees(fin.flex.sigma_rad)], "beta_1_s": float(fin.flex.beta_1_s)},
@@ -1374,7 +1388,7 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
         "band_adapted": ctx.adapted_cutoff,
         "rates_hz": {"master": m.rate_hz, "slave": s.rate_hz},
         "rate_source": {"master": m.source, "slave": s.source},
-        "warnings": list(ctx.warnings),
+        "warnings": list(ctx.warnings) + extra_warnings,
     }
     res = LatencyResult(
         latency_s=float(latency), sigma_s=float(sigma), drift_ppm=float(drift * 1e6) if fit_drift else 0.0,
@@ -1571,13 +1585,20 @@ def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: f
                                    acc=final_acc)
         cands = [(fin, refit)]
         if FLEX_SS and gls_done and fin.sigma_latency_s > ACCEL_MIN_SIGMA_S:
-            # Kalman whitening with the flexure model, from the spectral GLS fit; a candidate when it
-            # agrees with it (a gyro-only Kalman fit keeps the accelerometer model check's figures)
+            # Kalman whitening with the flexure model, from the spectral GLS fit, the second candidate
+            # (a gyro-only Kalman fit keeps the accelerometer model check's figures)
             ff = _refine_flex(t_m, a, valid, itp, fin.latency_s, fin.drift, t_mid, ctx.cutoff_hz, fit_drift=fd,
                               acc=final_acc, h0=fin.sigma_latency_s)
-            if ff.ok and abs(ff.latency_s - fin.latency_s) <= FLEX_AGREE_SIGMAS * max(ff.sigma_latency_s,
-                                                                                      fin.sigma_latency_s):
+            if ff.ok and np.isfinite(ff.sigma_latency_s):
                 ff = ff if ff.accel_lag_s[1] > 0 else replace(ff, accel_lag_s=fin.accel_lag_s)
+                gap = abs(ff.latency_s - fin.latency_s)
+                if gap > FLEX_AGREE_SIGMAS * max(ff.sigma_latency_s, fin.sigma_latency_s):
+                    # one of the two models is wrong (the spectral sigma is optimistic where flexure is
+                    # estimated from a few cycles; the Kalman fit where the disturbance is not flexure):
+                    # both go to the windows' check, and the one kept covers the other in its sigma
+                    fin = replace(fin, model_gap_s=gap)
+                    ff = replace(ff, model_gap_s=gap)
+                    cands[0] = (fin, refit)
 
                 def refit_flex(ws, tc, lag):
                     return _refine_flex(t_m[ws], a[ws], valid[ws], itp, lag, 0.0, tc, ctx.cutoff_hz,

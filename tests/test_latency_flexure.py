@@ -150,3 +150,28 @@ def test_without_flexure_the_kalman_stage_is_not_run():
     res = estimate(p.master, p.slave, compare=False)
     assert res.quality["flexure_model"] is None
     assert abs(res.latency_s - p.truth.latency_at(res.t_mid_rel_s)) < 1e-4
+
+
+def test_disagreeing_rate_models_both_go_to_the_windows_and_the_sigma_covers_them(monkeypatch):
+    """Where the Kalman (flexure) fit lands far from the spectral GLS (> FLEX_AGREE_SIGMAS), one of the
+    two models is wrong: both are scored by their windows, and the sigma of the one kept covers the
+    other (an aircraft with a lever arm, 300 s, once kept the spectral fit at 0.3 ms, 5.5 ms off, and
+    dropped the Kalman fit that was 0.5 ms off). Here the Kalman fit is pushed 12 sigmas away."""
+    p = _ship_flexure(1)
+    base = estimate(p.master, p.slave, compare=False, velocity=False)
+    assert base.quality["rate_models_gap_s"] == 0.0
+    orig = L._refine_flex
+    push = {}
+
+    def pushed(*a, **k):
+        f = orig(*a, **k)
+        if k.get("model") is None and f.ok:  # the whole-overlap fit (window refits pass the model)
+            push["gap"] = 12.0 * max(f.sigma_latency_s, k["h0"])  # h0: the spectral fit's sigma
+        return L.replace(f, latency_s=f.latency_s + push.get("gap", 0.0)) if f.ok else f
+
+    monkeypatch.setattr(L, "_refine_flex", pushed)
+    res = estimate(p.master, p.slave, compare=False, velocity=False)
+    gap = res.quality["rate_models_gap_s"]
+    assert gap > 0.5 * push["gap"]
+    assert res.sigma_s >= L.FLEX_GAP_COVER * gap
+    assert any("disagree" in w for w in res.quality["warnings"])
