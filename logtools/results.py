@@ -57,6 +57,10 @@ class AlignmentResult:
     accel_bias_sigma_mg: tuple[float, float, float] | None = None
     delay_s: float | None = None  # delay state estimate, for delay-augmented filters
     delay_sigma_s: float | None = None
+    #: the slave's position in the master's body frame (m): estimated (with its sigma), or as given
+    #: (sigma None); None when velocity was not matched or no lever arm was modelled
+    lever_arm_m: tuple[float, float, float] | None = None
+    lever_arm_sigma_m: tuple[float, float, float] | None = None
     observability: dict[str, bool] = field(default_factory=dict)  # state group -> observable?
     notes: tuple[str, ...] = ()
     # time histories for plots: t_s (master relative), states (N, k) with names, sigmas (N, k)

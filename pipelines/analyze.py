@@ -52,8 +52,13 @@ class AnalyzeOptions:
     #: unrelated clocks (UNIX vs boot time), a face-value window means nothing and the whole overlap is
     #: searched instead (recorded in the report)
     max_lag_given: bool = False
+    #: the slave's position in the master's body frame for the alignment: "auto" (estimated as filter
+    #: states when velocity is matched, started from the latency's velocity fit), "X,Y,Z" in metres
+    #: (known, not estimated) or "off" (not modelled)
+    lever_arm: str = "auto"
 
     def __post_init__(self):
+        parse_lever_arm(self.lever_arm)
         for name, allowed in (("filter", FILTERS), ("match", MATCHES), ("compensation", COMPENSATIONS),
                               ("latency_method", LATENCY_METHODS)):
             if getattr(self, name) not in allowed:
@@ -86,6 +91,22 @@ def parse_max_lag(text) -> float | None:
     return v
 
 
+def parse_lever_arm(text) -> str | tuple[float, float, float]:
+    """--lever-arm: 'auto', 'off', or X,Y,Z metres (a config file may give a list)."""
+    if isinstance(text, (list, tuple)):
+        text = ",".join(str(x) for x in text)
+    t = str(text).strip().lower()
+    if t in ("auto", "off"):
+        return t
+    try:
+        xyz = tuple(float(x) for x in t.split(","))
+    except ValueError:
+        xyz = ()
+    if len(xyz) != 3 or not all(np.isfinite(xyz)):
+        raise InputError(f"--lever-arm takes auto, off or X,Y,Z in metres (master body frame), not {text!r}")
+    return xyz
+
+
 def read_config(path: str) -> dict:
     """TOML or JSON config -> {option: value}; top level or an ``analyze`` table."""
     try:
@@ -103,7 +124,17 @@ def read_config(path: str) -> dict:
 
 
 _CONFIG_KEYS = {"max_lag", "filter", "match", "compensation", "smoother", "no_recording", "recording",
-                "latency_method", "compare", "out", "recording_max_rows"}
+                "latency_method", "compare", "out", "recording_max_rows", "lever_arm"}
+
+
+#: the analysis options add_arguments defines (argparse dests), as options_from takes them
+CLI_KEYS = ("max_lag", "filter", "match", "compensation", "smoother", "no_recording", "latency_method", "compare",
+            "lever_arm")
+
+
+def cli_values(ns: argparse.Namespace) -> dict:
+    """The analysis options of parsed arguments (None: not given)."""
+    return {k: getattr(ns, k, None) for k in CLI_KEYS}
 
 
 def options_from(cli: dict, config: dict | None = None) -> tuple[AnalyzeOptions, str | None]:
@@ -132,6 +163,9 @@ def options_from(cli: dict, config: dict | None = None) -> tuple[AnalyzeOptions,
         kw["compensation"] = "split"  # S004: integer-sample lag applied, the residual left to the delay state
     if "recording_max_rows" in merged:
         kw["recording_max_rows"] = int(merged["recording_max_rows"])
+    if "lever_arm" in merged:
+        la = merged["lever_arm"]
+        kw["lever_arm"] = ",".join(str(x) for x in la) if isinstance(la, (list, tuple)) else str(la)
     return AnalyzeOptions(**kw), merged.get("out")
 
 
@@ -155,6 +189,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="do not also run the other latency methods")
     p.add_argument("--no-recording", action="store_const", const=True, default=None,
                    help="do not write recording.rrd")
+    p.add_argument("--lever-arm", default=None, metavar="auto|off|X,Y,Z",
+                   help="slave position in the master body frame (FRD, m) for the alignment: auto (default: "
+                        "estimated where velocity is matched), off, or known X,Y,Z")
     p.add_argument("--config", default=None, metavar="FILE", help="TOML or JSON file with the same options")
 
 
@@ -191,7 +228,25 @@ def _filter_options(slave: InsLog, opts: AnalyzeOptions) -> dict:
     return {} if residual is None else {"delay_s": residual}
 
 
-def _alignment(master: InsLog, slave: InsLog, run: str, opts: AnalyzeOptions, progress) -> AlignmentResult | str:
+def _lever_options(opts: AnalyzeOptions, lat: LatencyResult | None) -> dict:
+    """run_alignment's lever-arm options: a known one as given; in auto mode estimated, from the latency's
+    velocity fit when that fit agreed with the rates (else from zero)."""
+    mode = parse_lever_arm(opts.lever_arm)
+    if mode == "off":
+        return {}
+    if isinstance(mode, tuple):
+        return {"lever_arm_m": mode}
+    out: dict = {"estimate_lever_arm": True}
+    vf = (lat.quality or {}).get("velocity_fit") if lat is not None else None
+    if isinstance(vf, dict) and vf.get("agrees") and vf.get("lever_arm_m") is not None:
+        la = np.asarray(vf["lever_arm_m"], float)
+        if la.shape == (3,) and np.all(np.isfinite(la)):
+            out["lever_arm_m"] = tuple(float(x) for x in la)
+    return out
+
+
+def _alignment(master: InsLog, slave: InsLog, run: str, opts: AnalyzeOptions, progress,
+               lat: LatencyResult | None = None) -> AlignmentResult | str:
     """One alignment run, or the reason it could not be done (str)."""
     if not (slave.has_gyro and slave.has_accel):
         return "alignment needs the slave's IMU (angular rate and specific force)"
@@ -210,7 +265,7 @@ def _alignment(master: InsLog, slave: InsLog, run: str, opts: AnalyzeOptions, pr
         return f"alignment is not available in this installation ({exc})"
     try:
         return run_alignment(master, slave, filter=opts.filter, match=match, smoother=opts.smoother,
-                             progress=progress, **_filter_options(slave, opts))
+                             progress=progress, **_filter_options(slave, opts), **_lever_options(opts, lat))
     except AnalysisError as exc:
         return exc.problem
 
@@ -263,6 +318,10 @@ def summary_lines(rep: dict, paths: dict[str, str | None]) -> list[str]:
         conv = f"{a['converged_s']:.1f} s" if a.get("converged_s") is not None else "not converged"
         out.append(f"mounting ({run}, {a['filter']}/{a['match']}): roll pitch yaw = {rpy} deg "
                    f"+/- {sig} (arcmin, 1 sigma), {conv}")
+        la, ls = a.get("lever_arm_m"), a.get("lever_arm_sigma_m")
+        if la is not None and None not in la:
+            tail = (" +/- " + " ".join(f"{x:.3f}" for x in ls) + " m (1 sigma)") if ls and None not in ls else " m (given)"
+            out.append(f"        lever arm x y z = {' '.join(f'{x:+.3f}' for x in la)}{tail}")
     for k, v in rep.get("skipped", {}).items():
         if k == "recording":
             out.append(f"skipped recording: {v}")
@@ -363,7 +422,7 @@ def analyze_pair(master_arg: str, slave_arg: str, out_dir: str, opts: AnalyzeOpt
             res: AlignmentResult | str = why
         else:
             p(0.0, "")
-            res = _alignment(master, slog, run, opts, p)
+            res = _alignment(master, slog, run, opts, p, an.latency)
         if isinstance(res, AlignmentResult):
             an.alignment[run] = res
             align_sections[run] = res
@@ -424,10 +483,7 @@ def analyze_pair(master_arg: str, slave_arg: str, out_dir: str, opts: AnalyzeOpt
 
 def run(args: argparse.Namespace) -> int:
     config = read_config(args.config) if args.config else None
-    cli = {"max_lag": args.max_lag, "filter": args.filter, "match": args.match,
-           "compensation": args.compensation, "smoother": args.smoother, "no_recording": args.no_recording,
-           "latency_method": args.latency_method, "compare": args.compare, "out": args.out}
-    opts, out = options_from(cli, config)
+    opts, out = options_from({**cli_values(args), "out": args.out}, config)
     progress = Progress()
     try:
         outcome = analyze_pair(args.master, args.slave, out or "tapost_out", opts, progress=progress)

@@ -266,10 +266,8 @@ def run_pair(job: PairJob) -> dict:
             from pipelines import analyze
 
             ns = _parse_options(job.options)
-            cli = {k: getattr(ns, k) for k in ("max_lag", "filter", "match", "compensation", "smoother",
-                                               "no_recording", "latency_method", "compare")}
             config = analyze.read_config(ns.config) if ns.config else None
-            opts, _ = analyze.options_from(cli, config)
+            opts, _ = analyze.options_from(analyze.cli_values(ns), config)
             out = analyze.analyze_pair(job.master, job.slave, job.out_dir, opts)
             rep = out.report
             status = "ok" if rep.get("status") == "ok" else "partial"

@@ -338,6 +338,10 @@ def _summary_html(rep: dict) -> str:
                  f"<td class=num>{_vec(a.get('gyro_bias_sigma_dph'), '.2f')}</td></tr>")
         t.append(f"<tr><th>&nbsp;&nbsp;slave accel bias ({run})</th><td class=num>{_vec(a['accel_bias_mg'], '.3f')} mg</td>"
                  f"<td class=num>{_vec(a.get('accel_bias_sigma_mg'), '.3f')}</td></tr>")
+        if a.get("lever_arm_m") is not None:
+            how = "estimated" if a.get("lever_arm_sigma_m") is not None else "given"
+            t.append(f"<tr><th>&nbsp;&nbsp;lever arm x/y/z ({run}, {how})</th><td class=num>{_vec(a['lever_arm_m'], '.3f')} m</td>"
+                     f"<td class=num>{_vec(a.get('lever_arm_sigma_m'), '.3f')}</td></tr>")
         rr = ", ".join(f"{_esc(k)} {_fmt(v, '.4g')}" for k, v in a.get("residual_rms", {}).items())
         t.append(f"<tr><th>&nbsp;&nbsp;converged / residual rms ({run})</th><td colspan=2>"
                  f"{_fmt(a.get('converged_s'), '.1f', 's')}; {rr}</td></tr>")

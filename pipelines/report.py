@@ -156,6 +156,8 @@ def alignment_section(res: AlignmentResult) -> dict:
         "residual_rms": {k: _num(v) for k, v in res.residual_rms.items()},
         "delay_s": _num(res.delay_s),
         "delay_sigma_s": _num(res.delay_sigma_s),
+        "lever_arm_m": _vec(res.lever_arm_m),
+        "lever_arm_sigma_m": _vec(res.lever_arm_sigma_m),
         "observability": {k: bool(v) for k, v in res.observability.items()},
         "notes": list(res.notes),
         "states": list(res.history_names),

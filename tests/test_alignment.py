@@ -360,6 +360,11 @@ def test_lever_arm_estimated_and_flexure_states_keep_the_filter_consistent():
     i = res.history_names.index("lever_arm_x_m")
     lev, sig = res.history_x[-1, i:i + 3], res.history_sigma[-1, i:i + 3]
     assert np.all(np.abs(lev - [2.0, -1.0, 0.5]) < np.maximum(4 * sig, 0.01)), (lev, sig)
+    assert np.allclose(res.lever_arm_m, lev) and np.all(np.asarray(res.lever_arm_sigma_m) >= sig - 1e-12)
+    given = run_alignment(m, s, lever_arm_m=(2.0, -1.0, 0.5))  # known: reported as given, no states
+    assert given.lever_arm_m == (2.0, -1.0, 0.5) and given.lever_arm_sigma_m is None
+    assert "lever_arm_x_m" not in given.history_names
+    assert run_alignment(m, s).lever_arm_m is None  # not modelled
     assert _within(_err_arcmin(res, truth), (0.2, 0.2, 0.2))
     # flexure (S000 eq 8) in the data: without flexure states the residuals blow up, with them the
     # filter is consistent and the mounting within a few sigma

@@ -8,8 +8,9 @@ epoch -> closed-loop filter (kf.py) -> optional RTS smoother -> AlignmentResult 
 mounting combined with the filter's residual), sigmas, convergence time, residual RMS, observability
 flags and decimated histories.
 
-Options (keyword, all optional): update_hz, lever_arm_m (3, master frame, master -> slave),
-estimate_lever_arm, flexure, flex_beta, flex_sigma_deg, mounting_sigma_deg, gyro_bias_sigma_dph,
+Options (keyword, all optional): update_hz, lever_arm_m (3, master frame, master -> slave: known, or the
+start of the estimate), estimate_lever_arm (velocity matching: the lever arm as 3 more states; the
+result then reports it), lever_arm_sigma_m (its prior sigma, default LEVER_ARM_SIGMA_M), flexure, flex_beta, flex_sigma_deg, mounting_sigma_deg, gyro_bias_sigma_dph,
 accel_bias_sigma_mg, gyro_arw_dpsh, accel_vrw_ug_psh (noise densities; estimated from the data when
 absent), r_vel_m_s, r_att_arcsec (measurement noise; estimated when absent), delay_s (initial delay;
 for kf-split the constant part shifted before the filter; for kf-delay, when absent, the delay state
@@ -43,9 +44,10 @@ from .model import MATCHES, StateLayout, exp_so3, make_layout
 CONVERGED_ARCMIN = (1.0, 1.0, 2.0)  # roll, pitch, yaw thresholds on the mounting sigma
 IMU_GAP_S = 0.25  # a step of the slave's IMU stamps beyond this (and beyond IMU_GAP_PERIODS of its median step)
 IMU_GAP_PERIODS = 10.0  # is a gap: the slave's navigation restarts from the master after it (not bridged)
+LEVER_ARM_SIGMA_M = 1.0  # prior sigma of an estimated lever arm (per axis, m)
 OBSERVABLE_SHRINK = 0.5  # a state is observable when its sigma fell below this fraction of its prior
 _KNOWN_OPTIONS = {
-    "update_hz", "lever_arm_m", "estimate_lever_arm", "flexure", "flex_beta", "flex_sigma_deg",
+    "update_hz", "lever_arm_m", "estimate_lever_arm", "lever_arm_sigma_m", "flexure", "flex_beta", "flex_sigma_deg",
     "mounting_sigma_deg", "gyro_bias_sigma_dph", "accel_bias_sigma_mg", "gyro_arw_dpsh", "accel_vrw_ug_psh",
     "r_vel_m_s", "r_att_arcsec", "delay_s", "delay_sigma_s", "delay_max_s", "hinf_gamma", "lat_deg",
     "mounting_guess_rpy_deg", "max_history_rows", "recalibrate_noise", "delay_state",
@@ -497,7 +499,7 @@ def _settings(kind: str, lay: StateLayout, master: InsLog, t_imu, gyro, accel, o
         sig[lay.flex_rate] = s_l * beta
         qc[lay.flex_rate] = 4.0 * beta**3 * s_l**2
     if lay.lever is not None:
-        sig[lay.lever] = 0.2
+        sig[lay.lever] = float(options.get("lever_arm_sigma_m", LEVER_ARM_SIGMA_M))
     if lay.delay is not None:
         if kind == "kf-split":
             sig[lay.delay] = dt_upd / np.sqrt(3.0)
@@ -668,6 +670,13 @@ def _result(run: FilterRun, lay: StateLayout, st: FilterSettings, sig0: np.ndarr
     rows = np.arange(0, ne, step)
     if rows[-1] != ne - 1:
         rows = np.append(rows, ne - 1)
+    # the lever arm: estimated (a state), or the one given (not estimated), else not modelled (None)
+    lever_m = lever_sig = None
+    if lay.lever is not None:
+        lever_m = tuple(float(x) for x in run.lever_hat[k_rep])
+        lever_sig = tuple(float(x) for x in sig_scale * np.sqrt(np.maximum(run.p_diag[k_rep, lay.lever], 0.0)))
+    elif "lever_arm_m" in options and lay.uses_vel:
+        lever_m = tuple(float(x) for x in np.asarray(options["lever_arm_m"], float))
     delay_s = delay_sig = None
     if lay.delay is not None:
         delay_s = float(run.tau_hat[k_rep])
@@ -682,7 +691,8 @@ def _result(run: FilterRun, lay: StateLayout, st: FilterSettings, sig0: np.ndarr
         gyro_bias_dph=tuple(float(x) for x in gb), accel_bias_mg=tuple(float(x) for x in ab),
         converged_s=conv, residual_rms=rms,
         gyro_bias_sigma_dph=tuple(float(x) for x in gbs), accel_bias_sigma_mg=tuple(float(x) for x in abs_),
-        delay_s=delay_s, delay_sigma_s=delay_sig, observability=obs, notes=tuple(notes),
+        delay_s=delay_s, delay_sigma_s=delay_sig, lever_arm_m=lever_m, lever_arm_sigma_m=lever_sig,
+        observability=obs, notes=tuple(notes),
         history_t_s=run.t_s[rows].copy(), history_names=tuple(names), history_x=cols[rows],
         history_sigma=sigs[rows], residual_t_s=run.t_s[rows].copy(), residual_names=tuple(rn),
         residuals=resid[rows],
