@@ -56,9 +56,14 @@ class AnalyzeOptions:
     #: states when velocity is matched, started from the latency's velocity fit), "X,Y,Z" in metres
     #: (known, not estimated) or "off" (not modelled)
     lever_arm: str = "auto"
+    #: flexure states in the alignment: "auto" (when the latency fit found flexure, with its model),
+    #: "on" (that model, else seed 000's 0.05 deg / 2 1/s), "off"
+    flexure: str = "auto"
 
     def __post_init__(self):
         parse_lever_arm(self.lever_arm)
+        if self.flexure not in FLEXURE_MODES:
+            raise InputError(f"--flexure takes {', '.join(FLEXURE_MODES)}, not {self.flexure!r}")
         for name, allowed in (("filter", FILTERS), ("match", MATCHES), ("compensation", COMPENSATIONS),
                               ("latency_method", LATENCY_METHODS)):
             if getattr(self, name) not in allowed:
@@ -89,6 +94,16 @@ def parse_max_lag(text) -> float | None:
     if not (v > 0 and np.isfinite(v)):
         raise InputError(f"--max-lag must be positive, not {text!r}")
     return v
+
+
+FLEXURE_MODES = ("auto", "on", "off")
+SEED000_FLEXURE = {"flex_sigma_deg": 0.05, "flex_beta": 2.0}  # seed 000's flexure (eq 8), for --flexure on
+#: the latency fit's flexure model goes into the alignment when it looks like a structure's flexure: a
+#: correlation time of at most 1/FLEX_MIN_BETA seconds and at most FLEX_MAX_DEG (a slow wander of degrees,
+#: what two MEMS IMUs' scale and bias errors give, e.g. the ArduCopter log0036 pair's 4.7 deg at beta 0.013,
+#: is not separable from the mounting and would only blur it)
+FLEX_MIN_BETA = 0.2
+FLEX_MAX_DEG = 1.0
 
 
 def parse_lever_arm(text) -> str | tuple[float, float, float]:
@@ -124,12 +139,12 @@ def read_config(path: str) -> dict:
 
 
 _CONFIG_KEYS = {"max_lag", "filter", "match", "compensation", "smoother", "no_recording", "recording",
-                "latency_method", "compare", "out", "recording_max_rows", "lever_arm"}
+                "latency_method", "compare", "out", "recording_max_rows", "lever_arm", "flexure"}
 
 
 #: the analysis options add_arguments defines (argparse dests), as options_from takes them
 CLI_KEYS = ("max_lag", "filter", "match", "compensation", "smoother", "no_recording", "latency_method", "compare",
-            "lever_arm")
+            "lever_arm", "flexure")
 
 
 def cli_values(ns: argparse.Namespace) -> dict:
@@ -149,7 +164,7 @@ def options_from(cli: dict, config: dict | None = None) -> tuple[AnalyzeOptions,
     if "max_lag" in merged:
         kw["max_lag_s"] = parse_max_lag(merged["max_lag"])
         kw["max_lag_given"] = True
-    for k in ("filter", "match", "compensation", "latency_method"):
+    for k in ("filter", "match", "compensation", "latency_method", "flexure"):
         if k in merged:
             kw[k] = str(merged[k])
     for k in ("smoother", "compare"):
@@ -192,6 +207,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lever-arm", default=None, metavar="auto|off|X,Y,Z",
                    help="slave position in the master body frame (FRD, m) for the alignment: auto (default: "
                         "estimated where velocity is matched), off, or known X,Y,Z")
+    p.add_argument("--flexure", default=None, choices=FLEXURE_MODES,
+                   help="flexure states in the alignment: auto (default: when the latency fit found flexure, "
+                        "with its model), on, off")
     p.add_argument("--config", default=None, metavar="FILE", help="TOML or JSON file with the same options")
 
 
@@ -245,6 +263,19 @@ def _lever_options(opts: AnalyzeOptions, lat: LatencyResult | None) -> dict:
     return out
 
 
+def _flexure_options(opts: AnalyzeOptions, lat: LatencyResult | None) -> dict:
+    """run_alignment's flexure options: the model the latency's rate fit found (sigma per axis, beta), or
+    with ``--flexure on`` and none found, seed 000's."""
+    if opts.flexure == "off":
+        return {}
+    fm = (lat.quality or {}).get("flexure_model") if lat is not None else None
+    if (isinstance(fm, dict) and fm.get("sigma_deg") is not None and fm.get("beta_1_s") is not None
+            and float(fm["beta_1_s"]) >= FLEX_MIN_BETA and max(fm["sigma_deg"]) <= FLEX_MAX_DEG):
+        return {"flexure": True, "flex_sigma_deg": tuple(float(x) for x in fm["sigma_deg"]),
+                "flex_beta": float(fm["beta_1_s"])}
+    return {"flexure": True, **SEED000_FLEXURE} if opts.flexure == "on" else {}
+
+
 def _alignment(master: InsLog, slave: InsLog, run: str, opts: AnalyzeOptions, progress,
                lat: LatencyResult | None = None) -> AlignmentResult | str:
     """One alignment run, or the reason it could not be done (str)."""
@@ -265,7 +296,8 @@ def _alignment(master: InsLog, slave: InsLog, run: str, opts: AnalyzeOptions, pr
         return f"alignment is not available in this installation ({exc})"
     try:
         return run_alignment(master, slave, filter=opts.filter, match=match, smoother=opts.smoother,
-                             progress=progress, **_filter_options(slave, opts), **_lever_options(opts, lat))
+                             progress=progress, **_filter_options(slave, opts), **_lever_options(opts, lat),
+                             **_flexure_options(opts, lat))
     except AnalysisError as exc:
         return exc.problem
 

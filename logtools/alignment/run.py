@@ -10,7 +10,9 @@ flags and decimated histories.
 
 Options (keyword, all optional): update_hz, lever_arm_m (3, master frame, master -> slave: known, or the
 start of the estimate), estimate_lever_arm (velocity matching: the lever arm as 3 more states; the
-result then reports it), lever_arm_sigma_m (its prior sigma, default LEVER_ARM_SIGMA_M), flexure, flex_beta, flex_sigma_deg, mounting_sigma_deg, gyro_bias_sigma_dph,
+result then reports it), lever_arm_sigma_m (its prior sigma, default LEVER_ARM_SIGMA_M), flexure (seed
+000's second-order Markov flexure as 6 more states), flex_beta (1/s), flex_sigma_deg (one or per axis),
+mounting_sigma_deg, gyro_bias_sigma_dph,
 accel_bias_sigma_mg, gyro_arw_dpsh, accel_vrw_ug_psh (noise densities; estimated from the data when
 absent), r_vel_m_s, r_att_arcsec (measurement noise; estimated when absent), delay_s (initial delay;
 for kf-split the constant part shifted before the filter; for kf-delay, when absent, the delay state
@@ -178,6 +180,9 @@ def run_alignment(master: InsLog, slave: InsLog, *, filter: str = "kf", match: s
                       lever_arm=bool(options.get("estimate_lever_arm", False)), delay=delay_mode)
     settings, sig0 = _settings(filter, lay, master, t_imu, gyro, accel, options, coarse_ok, dt_upd, tau0,
                                (lo_tau, hi_tau), smoother)
+    if lay.flex_ang is not None:
+        notes.append(f"flexure states (seed 000 eq 8): sigma {_fmt3(np.degrees(sig0[lay.flex_ang]))} deg, "
+                     f"beta {settings.flex_beta:.3g} 1/s")
     if smoother:
         need_gb = len(t_ep) * lay.n**2 * 8 * 3 / 1e9
         if need_gb > 2.0:
@@ -494,7 +499,7 @@ def _settings(kind: str, lay: StateLayout, master: InsLog, t_imu, gyro, accel, o
         sig[lay.mount] = sg_mount
     beta = float(options.get("flex_beta", 0.5))
     if lay.flex_ang is not None:
-        s_l = float(options.get("flex_sigma_deg", 0.05)) * DEG
+        s_l = np.broadcast_to(np.asarray(options.get("flex_sigma_deg", 0.05), float), (3,)) * DEG
         sig[lay.flex_ang] = s_l
         sig[lay.flex_rate] = s_l * beta
         qc[lay.flex_rate] = 4.0 * beta**3 * s_l**2
@@ -697,6 +702,10 @@ def _result(run: FilterRun, lay: StateLayout, st: FilterSettings, sig0: np.ndarr
         history_sigma=sigs[rows], residual_t_s=run.t_s[rows].copy(), residual_names=tuple(rn),
         residuals=resid[rows],
     )
+
+
+def _fmt3(v) -> str:
+    return "/".join(f"{float(x):.3g}" for x in v)
 
 
 def rpy_unwrap(hist_deg: np.ndarray, ref_deg: np.ndarray) -> np.ndarray:
