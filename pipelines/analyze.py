@@ -56,8 +56,9 @@ class AnalyzeOptions:
     #: states when velocity is matched, started from the latency's velocity fit), "X,Y,Z" in metres
     #: (known, not estimated) or "off" (not modelled)
     lever_arm: str = "auto"
-    #: flexure states in the alignment: "auto" (when the latency fit found flexure, with its model),
-    #: "on" (that model, else seed 000's 0.05 deg / 2 1/s), "off"
+    #: flexure states in the alignment: "auto" (when the latency fit found flexure, with its model; else
+    #: seed 000's when the alignment's residuals call for them), "on" (that model, else seed 000's
+    #: 0.05 deg / 2 1/s), "off"
     flexure: str = "auto"
 
     def __post_init__(self):
@@ -208,8 +209,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="slave position in the master body frame (FRD, m) for the alignment: auto (default: "
                         "estimated where velocity is matched), off, or known X,Y,Z")
     p.add_argument("--flexure", default=None, choices=FLEXURE_MODES,
-                   help="flexure states in the alignment: auto (default: when the latency fit found flexure, "
-                        "with its model), on, off")
+                   help="flexure states in the alignment: auto (default: with the latency fit's flexure "
+                        "model when it found one, else when the residuals call for them), on, off")
     p.add_argument("--config", default=None, metavar="FILE", help="TOML or JSON file with the same options")
 
 
@@ -264,8 +265,9 @@ def _lever_options(opts: AnalyzeOptions, lat: LatencyResult | None) -> dict:
 
 
 def _flexure_options(opts: AnalyzeOptions, lat: LatencyResult | None) -> dict:
-    """run_alignment's flexure options: the model the latency's rate fit found (sigma per axis, beta), or
-    with ``--flexure on`` and none found, seed 000's."""
+    """run_alignment's flexure options: the model the latency's rate fit found (sigma per axis, beta); where
+    it found none, with ``--flexure auto`` the alignment adds seed 000's when its residuals call for it,
+    with ``--flexure on`` always."""
     if opts.flexure == "off":
         return {}
     fm = (lat.quality or {}).get("flexure_model") if lat is not None else None
@@ -273,7 +275,7 @@ def _flexure_options(opts: AnalyzeOptions, lat: LatencyResult | None) -> dict:
             and float(fm["beta_1_s"]) >= FLEX_MIN_BETA and max(fm["sigma_deg"]) <= FLEX_MAX_DEG):
         return {"flexure": True, "flex_sigma_deg": tuple(float(x) for x in fm["sigma_deg"]),
                 "flex_beta": float(fm["beta_1_s"])}
-    return {"flexure": True, **SEED000_FLEXURE} if opts.flexure == "on" else {}
+    return {"flexure": True, **SEED000_FLEXURE} if opts.flexure == "on" else {"flexure": "auto"}
 
 
 def _alignment(master: InsLog, slave: InsLog, run: str, opts: AnalyzeOptions, progress,

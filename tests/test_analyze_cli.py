@@ -394,8 +394,9 @@ def test_flexure_options_take_only_a_structural_flexure_model():
     auto = AnalyzeOptions()
     got = _flexure_options(auto, lat([0.06, 0.07, 0.05], 1.4))
     assert got == {"flexure": True, "flex_sigma_deg": (0.06, 0.07, 0.05), "flex_beta": 1.4}
-    assert _flexure_options(auto, lat([4.74, 4.73, 0.02], 0.0126)) == {}
-    assert _flexure_options(auto, SimpleNamespace(quality={"flexure_model": None})) == {}
+    # not structure-like, or none: the alignment decides from its own residuals
+    assert _flexure_options(auto, lat([4.74, 4.73, 0.02], 0.0126)) == {"flexure": "auto"}
+    assert _flexure_options(auto, SimpleNamespace(quality={"flexure_model": None})) == {"flexure": "auto"}
     assert _flexure_options(AnalyzeOptions(flexure="off"), lat([0.06, 0.07, 0.05], 1.4)) == {}
     on = _flexure_options(AnalyzeOptions(flexure="on"), None)
     assert on["flexure"] and on["flex_beta"] == 2.0 and on["flex_sigma_deg"] == 0.05

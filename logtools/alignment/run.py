@@ -11,7 +11,8 @@ flags and decimated histories.
 Options (keyword, all optional): update_hz, lever_arm_m (3, master frame, master -> slave: known, or the
 start of the estimate), estimate_lever_arm (velocity matching: the lever arm as 3 more states; the
 result then reports it), lever_arm_sigma_m (its prior sigma, default LEVER_ARM_SIGMA_M), flexure (seed
-000's second-order Markov flexure as 6 more states), flex_beta (1/s), flex_sigma_deg (one or per axis),
+000's second-order Markov flexure as 6 more states; "auto": added when the residuals call for them, see
+FLEX_AUTO_NIS), flex_beta (1/s), flex_sigma_deg (one or per axis),
 mounting_sigma_deg, gyro_bias_sigma_dph,
 accel_bias_sigma_mg, gyro_arw_dpsh, accel_vrw_ug_psh (noise densities; estimated from the data when
 absent), r_vel_m_s, r_att_arcsec (measurement noise; estimated when absent), delay_s (initial delay;
@@ -46,6 +47,12 @@ from .model import MATCHES, StateLayout, exp_so3, make_layout
 CONVERGED_ARCMIN = (1.0, 1.0, 2.0)  # roll, pitch, yaw thresholds on the mounting sigma
 IMU_GAP_S = 0.25  # a step of the slave's IMU stamps beyond this (and beyond IMU_GAP_PERIODS of its median step)
 IMU_GAP_PERIODS = 10.0  # is a gap: the slave's navigation restarts from the master after it (not bridged)
+#: flexure="auto": without flexure states first; when the mean NIS exceeds FLEX_AUTO_NIS x dof, again with
+#: them (FLEX_AUTO_MODEL unless flex_sigma_deg / flex_beta are given: seed 000's flexure), kept when the
+#: mean NIS falls below FLEX_AUTO_GAIN x the first pass's
+FLEX_AUTO_NIS = 10.0
+FLEX_AUTO_GAIN = 0.5
+FLEX_AUTO_MODEL = {"flex_sigma_deg": 0.05, "flex_beta": 2.0}
 LEVER_ARM_SIGMA_M = 1.0  # prior sigma of an estimated lever arm (per axis, m)
 OBSERVABLE_SHRINK = 0.5  # a state is observable when its sigma fell below this fraction of its prior
 _KNOWN_OPTIONS = {
@@ -176,13 +183,18 @@ def run_alignment(master: InsLog, slave: InsLog, *, filter: str = "kf", match: s
     llh0 = _initial_position(master, slave, t_ep[0], options, notes)
 
     # ---- settings
-    lay = make_layout(match, flexure=bool(options.get("flexure", False)),
-                      lever_arm=bool(options.get("estimate_lever_arm", False)), delay=delay_mode)
-    settings, sig0 = _settings(filter, lay, master, t_imu, gyro, accel, options, coarse_ok, dt_upd, tau0,
-                               (lo_tau, hi_tau), smoother)
-    if lay.flex_ang is not None:
-        notes.append(f"flexure states (seed 000 eq 8): sigma {_fmt3(np.degrees(sig0[lay.flex_ang]))} deg, "
-                     f"beta {settings.flex_beta:.3g} 1/s")
+    flex_opt = options.get("flexure", False)
+    flex_auto = isinstance(flex_opt, str) and flex_opt == "auto"
+
+    def setup(flexure: bool) -> tuple[StateLayout, FilterSettings, np.ndarray]:
+        ly = make_layout(match, flexure=flexure, lever_arm=bool(options.get("estimate_lever_arm", False)),
+                         delay=delay_mode)
+        opts = {**FLEX_AUTO_MODEL, **options} if flex_auto else options
+        st, s0 = _settings(filter, ly, master, t_imu, gyro, accel, opts, coarse_ok, dt_upd, tau0,
+                           (lo_tau, hi_tau), smoother)
+        return ly, st, s0
+
+    lay, settings, sig0 = setup(bool(flex_opt) and not flex_auto)
     if smoother:
         need_gb = len(t_ep) * lay.n**2 * 8 * 3 / 1e9
         if need_gb > 2.0:
@@ -192,6 +204,19 @@ def run_alignment(master: InsLog, slave: InsLog, *, filter: str = "kf", match: s
     prog(0.05, "alignment filter")
     sub = (lambda f, s="": prog(0.05 + 0.9 * f, s)) if progress else None
     run = run_filter(inp, settings, progress=sub)
+    nis_rigid = _mean_nis(run)
+    if flex_auto and lay.flex_ang is None and nis_rigid > FLEX_AUTO_NIS * lay.n_meas:
+        # residuals far beyond the noise model: is it a flexing slave? The flexure states are kept when
+        # they explain most of the excess (mean NIS down by FLEX_AUTO_GAIN at least)
+        lay_f, st_f, sig0_f = setup(True)
+        run_f = run_filter(inp, st_f, progress=None)
+        if _mean_nis(run_f) < FLEX_AUTO_GAIN * nis_rigid:
+            notes.append(f"flexure states added (mean NIS/dof {nis_rigid / lay.n_meas:.1f} without them, "
+                         f"{_mean_nis(run_f) / lay_f.n_meas:.1f} with)")
+            lay, settings, sig0, run = lay_f, st_f, sig0_f, run_f
+    if lay.flex_ang is not None:
+        notes.append(f"flexure states (seed 000 eq 8): sigma {_fmt3(np.degrees(sig0[lay.flex_ang]))} deg, "
+                     f"beta {settings.flex_beta:.3g} 1/s")
     recal = _recalibrated(run, lay, settings, options) if options.get("recalibrate_noise", True) else None
     if recal is not None:
         # the residuals are far larger than the noise model says (real data: vibration, EKF smoothing,
