@@ -433,3 +433,17 @@ def test_flexure_auto_adds_the_states_where_the_residuals_call_for_them():
     auto = run_alignment(p.master, p.slave, estimate_lever_arm=True, flexure="auto")
     assert not any("flexure" in n for n in auto.notes)
     assert auto.mounting_rpy_deg == rigid.mounting_rpy_deg
+
+
+def test_a_lever_arm_that_absorbs_an_uncompensated_delay_is_called_implausible():
+    """Velocity matching with the lever arm as states on a slave left 0.5 s late: the lever arm along the
+    flight path takes the delay up (12 m on an aircraft); the result says so instead of reporting it
+    plainly. The compensated pair has no such note."""
+    kw = dict(seed=3, drift_ppm=0.0, duration_s=60.0, mount_rpy_deg=(10.0, 20.0, 30.0))
+    late = sim.simulate(sim.scenario_config("aircraft", latency_s=0.5, **kw))
+    res = run_alignment(late.master, late.slave, estimate_lever_arm=True)
+    assert np.linalg.norm(res.lever_arm_m) > 10.0
+    assert any("far beyond its prior" in n for n in res.notes)
+    ok = sim.simulate(sim.scenario_config("aircraft", latency_s=0.0, **kw))
+    res = run_alignment(ok.master, ok.slave, estimate_lever_arm=True)
+    assert np.linalg.norm(res.lever_arm_m) < 0.1 and not any("far beyond" in n for n in res.notes)

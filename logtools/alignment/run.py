@@ -54,6 +54,7 @@ FLEX_AUTO_NIS = 10.0
 FLEX_AUTO_GAIN = 0.5
 FLEX_AUTO_MODEL = {"flex_sigma_deg": 0.05, "flex_beta": 2.0}
 LEVER_ARM_SIGMA_M = 1.0  # prior sigma of an estimated lever arm (per axis, m)
+LEVER_ARM_IMPLAUSIBLE_SIGMAS = 10.0  # an estimate beyond this many prior sigmas gets a note
 OBSERVABLE_SHRINK = 0.5  # a state is observable when its sigma fell below this fraction of its prior
 _KNOWN_OPTIONS = {
     "update_hz", "lever_arm_m", "estimate_lever_arm", "lever_arm_sigma_m", "flexure", "flex_beta", "flex_sigma_deg",
@@ -705,6 +706,10 @@ def _result(run: FilterRun, lay: StateLayout, st: FilterSettings, sig0: np.ndarr
     if lay.lever is not None:
         lever_m = tuple(float(x) for x in run.lever_hat[k_rep])
         lever_sig = tuple(float(x) for x in sig_scale * np.sqrt(np.maximum(run.p_diag[k_rep, lay.lever], 0.0)))
+        prior = float(sig0[lay.lever][0])
+        if np.linalg.norm(lever_m) > LEVER_ARM_IMPLAUSIBLE_SIGMAS * prior:
+            notes.append(f"lever arm estimate {np.linalg.norm(lever_m):.3g} m is far beyond its prior "
+                         f"({prior:g} m per axis): it is absorbing something else (an uncompensated delay?)")
     elif "lever_arm_m" in options and lay.uses_vel:
         lever_m = tuple(float(x) for x in np.asarray(options["lever_arm_m"], float))
     delay_s = delay_sig = None
