@@ -1,0 +1,175 @@
+"""Transfer alignment as ``tapost analyze`` runs it, on random pairs with what real installations have and
+the seeds' scenarios do not: an arbitrary mounting, a lever arm of up to 2 m per axis, flexure.
+
+Runs are drawn like ``bench_latency.py`` (scenario round robin, latency in [-1, 1] s, drift in +-100 ppm,
+uniform random mounting, IMU rates 50-400 Hz, noise level 0.5/1/3, slave nav in 3/4), 60, 120 or 300 s
+long, with a lever arm uniform in +-2 m per axis in 2/3 of the runs and seed 000's flexure in 1/2.
+Each pair: the latency estimated (tapost), the slave compensated (restamp), then two alignments (kf,
+the match the CLI picks):
+
+* ``tapost``: the CLI's defaults (``--lever-arm auto --flexure auto``: the lever arm as states started
+  from the latency's velocity fit; the latency fit's flexure model as states, or the alignment's own
+  flexure check);
+* ``rigid``: neither (``--lever-arm off --flexure off``, what the CLI did before 2026-11-24).
+
+Per set (lever arm / flexure / both / neither) and variant: mounting error (the rotation between estimate
+and truth, arcmin) RMS and worst, z = error / sqrt(sum of the three sigmas^2), the fraction with z <= 2 and
+z > 3, the lever arm's error where estimated.
+
+    python benchmarks/bench_alignment_random.py [--runs 48] [--workers 2]
+
+Writes ``benchmarks/results/alignment_random.json``; prints markdown tables.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import multiprocessing as mp
+import os
+import platform
+import sys
+import time
+from datetime import datetime, timezone
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+import bench_latency as bl  # noqa: E402
+
+OUT = os.path.join(bl.RESULTS_DIR, "alignment_random.json")
+VARIANTS = ("tapost", "rigid")
+SETS = ("neither", "lever arm", "flexure", "both")
+
+
+def draw(i: int, base_seed: int) -> dict:
+    d = bl.draw_config(i, base_seed)
+    rng = np.random.default_rng([base_seed, i, 31])
+    d["set"] = "random"
+    d["duration_s"] = float(rng.choice([60.0, 120.0, 300.0]))
+    d["lever_arm_m"] = ([float(x) for x in rng.uniform(-2.0, 2.0, 3)] if rng.random() < 2.0 / 3.0
+                        else [0.0, 0.0, 0.0])
+    d["flexure"] = bool(rng.random() < 0.5)
+    return d
+
+
+def set_of(d: dict) -> str:
+    lev = any(d["lever_arm_m"])
+    return SETS[int(lev) + 2 * int(d["flexure"])]
+
+
+def _rotation_arcmin(rpy_a, rpy_b) -> float:
+    from logtools.conventions import dcm_from_euler
+
+    d = dcm_from_euler(np.radians(rpy_a)).T @ dcm_from_euler(np.radians(rpy_b))
+    return float(np.degrees(np.arccos(np.clip((np.trace(d) - 1.0) / 2.0, -1.0, 1.0))) * 60.0)
+
+
+def run_one(d: dict) -> dict:
+    from logtools import sim
+    from logtools.alignment import run_alignment
+    from logtools.compensate import compensate
+    from logtools.latency import estimate
+    from pipelines.analyze import AnalyzeOptions, _flexure_options, _lever_options, _resolve_match
+
+    cfg = dataclasses.replace(bl.sim_config(d), lever_arm_m=tuple(d["lever_arm_m"]))
+    pair = sim.simulate(cfg)
+    row = dict(d, set=set_of(d))
+    row["mount_rpy_deg"] = list(d["mount_rpy_deg"])
+    try:
+        lat = estimate(pair.master, pair.slave, max_lag_s=bl.MAX_LAG_S, compare=False)
+        slave = compensate(pair.slave, lat, pair.master)
+        match, why = _resolve_match(pair.master, "auto")
+        if match is None:
+            raise RuntimeError(why)
+    except Exception as exc:  # noqa: BLE001 - a benchmark row records the failure
+        for v in VARIANTS:
+            row[v] = dict(note=f"{type(exc).__name__}: {exc}"[:200])
+        return row
+    opts = AnalyzeOptions()
+    options = {"tapost": {**_lever_options(opts, lat), **_flexure_options(opts, lat)}, "rigid": {}}
+    for v in VARIANTS:
+        t0 = time.perf_counter()
+        try:
+            res = run_alignment(pair.master, slave, filter="kf", match=match, **options[v])
+            err = _rotation_arcmin(res.mounting_rpy_deg, cfg.mount_rpy_deg)
+            sig = float(np.linalg.norm(res.mounting_sigma_deg)) * 60.0
+            lev_err = (None if res.lever_arm_m is None or res.lever_arm_sigma_m is None
+                       else float(np.linalg.norm(np.subtract(res.lever_arm_m, cfg.lever_arm_m))))
+            flex = ("latency model" if options[v].get("flexure") is True
+                    else "added" if any(n.startswith("flexure states added") for n in res.notes) else "none")
+            row[v] = dict(error_arcmin=err, sigma_arcmin=sig, z=err / sig if sig > 0 else float("inf"),
+                          lever_error_m=lev_err, flexure_states=flex, note="")
+        except Exception as exc:  # noqa: BLE001
+            row[v] = dict(note=f"{type(exc).__name__}: {exc}"[:200])
+        row[f"runtime_{v}_s"] = time.perf_counter() - t0
+    return row
+
+
+def summarize(rows: list[dict]) -> dict:
+    out = {}
+    for v in VARIANTS:
+        ok = [r[v] for r in rows if "error_arcmin" in r.get(v, {})]
+        e = np.array([x["error_arcmin"] for x in ok])
+        z = np.array([x["z"] for x in ok])
+        lev = np.array([x["lever_error_m"] for x in ok if x["lever_error_m"] is not None])
+        out[v] = dict(n=len(ok), failed=len(rows) - len(ok),
+                      rms_arcmin=float(np.sqrt(np.mean(e ** 2))) if len(e) else None,
+                      worst_arcmin=float(e.max()) if len(e) else None,
+                      within_2_sigma=float(np.mean(z <= 2.0)) if len(z) else None,
+                      beyond_3_sigma=int(np.sum(z > 3.0)), worst_z=float(z.max()) if len(z) else None,
+                      lever_error_rms_m=float(np.sqrt(np.mean(lev ** 2))) if len(lev) else None,
+                      flexure_states={k: sum(1 for x in ok if x["flexure_states"] == k)
+                                      for k in ("latency model", "added", "none")})
+    return out
+
+
+def md_table(summary: dict, title: str) -> str:
+    lines = [f"| {title} | n | mounting err RMS / worst (') | z <= 2 | z > 3 (worst z) | lever arm err RMS (m) |",
+             "|---|---:|---:|---:|---:|---:|"]
+    for v, s in summary.items():
+        if not s["n"]:
+            continue
+        lev = "n/a" if s["lever_error_rms_m"] is None else f"{s['lever_error_rms_m']:.3f}"
+        lines.append(f"| {v} | {s['n']} | {s['rms_arcmin']:.3f} / {s['worst_arcmin']:.3f} | "
+                     f"{100 * s['within_2_sigma']:.0f} % | {s['beyond_3_sigma']} ({s['worst_z']:.1f}) | {lev} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--runs", type=int, default=48)
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--seed", type=int, default=2027)
+    ap.add_argument("--out", default=OUT)
+    a = ap.parse_args(argv)
+    jobs = [draw(i, a.seed) for i in range(a.runs)]
+    t0 = time.time()
+    rows = []
+    with mp.get_context("spawn").Pool(a.workers) as pool:
+        for k, row in enumerate(pool.imap_unordered(run_one, jobs)):
+            rows.append(row)
+            if (k + 1) % 8 == 0:
+                print(f"  {k + 1}/{len(jobs)} runs, {time.time() - t0:.0f} s", file=sys.stderr, flush=True)
+    rows.sort(key=lambda r: r["run"])
+    summary = {"all": summarize(rows), **{s: summarize([r for r in rows if r["set"] == s]) for s in SETS}}
+    out = dict(benchmark="alignment_random", created_utc=datetime.now(timezone.utc).isoformat(timespec="seconds"),
+               config=dict(runs=a.runs, seed=a.seed, max_lag_s=bl.MAX_LAG_S),
+               machine=dict(python=platform.python_version(), cpus=os.cpu_count(), workers=a.workers),
+               wall_time_s=time.time() - t0, summary=summary, rows=rows)
+    os.makedirs(os.path.dirname(a.out), exist_ok=True)
+    tmp = a.out + ".tmp"
+    with open(tmp, "w") as f:
+        json.dump(out, f, indent=1, default=float)
+    os.replace(tmp, a.out)
+    for s, summ in summary.items():
+        n = summ["tapost"]["n"] + summ["tapost"]["failed"]
+        print(md_table(summ, f"{s} ({n} runs)"))
+        print()
+    print(f"wrote {a.out} ({time.time() - t0:.0f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
