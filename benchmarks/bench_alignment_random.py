@@ -24,8 +24,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
-import multiprocessing as mp
 import os
 import platform
 import sys
@@ -146,23 +144,14 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     jobs = [draw(i, a.seed) for i in range(a.runs)]
     t0 = time.time()
-    rows = []
-    with mp.get_context("spawn").Pool(a.workers) as pool:
-        for k, row in enumerate(pool.imap_unordered(run_one, jobs)):
-            rows.append(row)
-            if (k + 1) % 8 == 0:
-                print(f"  {k + 1}/{len(jobs)} runs, {time.time() - t0:.0f} s", file=sys.stderr, flush=True)
+    rows = bl.run_pool(run_one, jobs, a.workers, every=8)
     rows.sort(key=lambda r: r["run"])
     summary = {"all": summarize(rows), **{s: summarize([r for r in rows if r["set"] == s]) for s in SETS}}
     out = dict(benchmark="alignment_random", created_utc=datetime.now(timezone.utc).isoformat(timespec="seconds"),
                config=dict(runs=a.runs, seed=a.seed, max_lag_s=bl.MAX_LAG_S),
                machine=dict(python=platform.python_version(), cpus=os.cpu_count(), workers=a.workers),
                wall_time_s=time.time() - t0, summary=summary, rows=rows)
-    os.makedirs(os.path.dirname(a.out), exist_ok=True)
-    tmp = a.out + ".tmp"
-    with open(tmp, "w") as f:
-        json.dump(out, f, indent=1, default=float)
-    os.replace(tmp, a.out)
+    bl.write_json_atomic(a.out, out)
     for s, summ in summary.items():
         n = summ["tapost"]["n"] + summ["tapost"]["failed"]
         print(md_table(summ, f"{s} ({n} runs)"))

@@ -134,6 +134,30 @@ def sim_config(d: dict):
     return sim.scenario_config(d["scenario"], **ov)
 
 
+def run_pool(fn, jobs: list, workers: int, every: int = 10) -> list:
+    """fn over jobs in ``workers`` processes (spawned; in this one with 1), progress on stderr every
+    ``every`` results; results in completion order."""
+    t0 = time.perf_counter()
+    if workers <= 1:
+        return [fn(j) for j in jobs]
+    out = []
+    with mp.get_context("spawn").Pool(workers) as pool:
+        for k, r in enumerate(pool.imap_unordered(fn, jobs)):
+            out.append(r)
+            if (k + 1) % every == 0:
+                print(f"  {k + 1}/{len(jobs)} runs, {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
+    return out
+
+
+def write_json_atomic(path: str, obj: dict) -> None:
+    """A results file written whole or not at all."""
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    tmp = path + ".tmp"
+    with open(tmp, "w") as f:
+        json.dump(obj, f, indent=1, default=float)
+    os.replace(tmp, path)
+
+
 def _timed(fn, *a, **kw):
     t = time.perf_counter()
     try:

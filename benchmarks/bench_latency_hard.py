@@ -26,8 +26,6 @@ Writes ``benchmarks/results/latency_hard.json``; prints markdown tables.
 from __future__ import annotations
 
 import argparse
-import json
-import multiprocessing as mp
 import os
 import platform
 import sys
@@ -156,23 +154,14 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     jobs = [draw(s, i, a.seed) for s in SETS for i in range(a.runs_per_set)]
     t0 = time.time()
-    rows = []
-    with mp.get_context("spawn").Pool(a.workers) as pool:
-        for k, row in enumerate(pool.imap_unordered(run_one, jobs)):
-            rows.append(row)
-            if (k + 1) % 16 == 0:
-                print(f"  {k + 1}/{len(jobs)} runs, {time.time() - t0:.0f} s", file=sys.stderr, flush=True)
+    rows = bl.run_pool(run_one, jobs, a.workers, every=16)
     rows.sort(key=lambda r: (SETS.index(r["set"]), r["run"]))
     summary = {s: bl.summarize([r for r in rows if r["set"] == s], VARIANTS) for s in SETS}
     out = dict(benchmark="latency_hard", created_utc=datetime.now(timezone.utc).isoformat(timespec="seconds"),
                config=dict(runs_per_set=a.runs_per_set, seed=a.seed, max_lag_s=bl.MAX_LAG_S, without=WITHOUT),
                machine=dict(python=platform.python_version(), cpus=os.cpu_count(), workers=a.workers),
                wall_time_s=time.time() - t0, summary=summary, rows=rows)
-    os.makedirs(os.path.dirname(a.out), exist_ok=True)
-    tmp = a.out + ".tmp"
-    with open(tmp, "w") as f:
-        json.dump(out, f, indent=1, default=float)
-    os.replace(tmp, a.out)
+    bl.write_json_atomic(a.out, out)
     for s in SETS:
         print(bl.md_table(summary[s], f"{s} ({a.runs_per_set} runs)"))
         print()
