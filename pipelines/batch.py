@@ -49,6 +49,7 @@ SUMMARY_COLUMNS = (
     "mount_unc_roll_deg", "mount_unc_pitch_deg", "mount_unc_yaw_deg",
     "mount_comp_roll_deg", "mount_comp_pitch_deg", "mount_comp_yaw_deg",
     "mount_comp_sigma_roll_deg", "mount_comp_sigma_pitch_deg", "mount_comp_sigma_yaw_deg",
+    "lever_comp_x_m", "lever_comp_y_m", "lever_comp_z_m",
     "reason", "master", "slave", "report",
 )
 
@@ -239,6 +240,9 @@ def row_from_report(job: PairJob, rep: dict | None, status: str, exit_code: int,
                 row[f"mount_{tag}_{ax}_deg"] = _v(a.get("mounting_rpy_deg"), i)
                 if tag == "comp":
                     row[f"mount_comp_sigma_{ax}_deg"] = _v(a.get("mounting_sigma_deg"), i)
+            if tag == "comp":
+                for i, ax in enumerate("xyz"):
+                    row[f"lever_comp_{ax}_m"] = _v(a.get("lever_arm_m"), i)
         if not reason and rep.get("skipped"):
             row["reason"] = "; ".join(f"{k}: {v}" for k, v in rep["skipped"].items())
     return row
@@ -303,7 +307,9 @@ def _parse_options(options: tuple[str, ...]) -> argparse.Namespace:
 
     p = _OptParser(prog="options", add_help=False)
     analyze.add_arguments(p)
-    return p.parse_args(["MASTER", "SLAVE", *options])
+    from pipelines.cli import glue_vector_values
+
+    return p.parse_args(["MASTER", "SLAVE", *glue_vector_values(list(options))])
 
 
 # ---- outputs --------------------------------------------------------------------------------

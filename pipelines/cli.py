@@ -41,9 +41,29 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+#: options whose value is a list of numbers that may start with a minus sign ("-0.5,0.2,1")
+VECTOR_OPTIONS = ("--lever-arm",)
+
+
+def glue_vector_values(argv: list[str]) -> list[str]:
+    """``--lever-arm -0.5,0.2,1`` as ``--lever-arm=-0.5,0.2,1`` (argparse takes a value starting with '-'
+    for an option unless it is one number)."""
+    out, i = [], 0
+    while i < len(argv):
+        a = argv[i]
+        nxt = argv[i + 1] if i + 1 < len(argv) else ""
+        if a in VECTOR_OPTIONS and len(nxt) > 1 and nxt[0] == "-" and nxt[1] in "0123456789.":
+            out.append(f"{a}={nxt}")
+            i += 2
+            continue
+        out.append(a)
+        i += 1
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(glue_vector_values(list(sys.argv[1:] if argv is None else argv)))
     if not getattr(args, "_run", None):
         parser.print_help(sys.stderr)
         return 2

@@ -402,3 +402,11 @@ def test_flexure_options_take_only_a_structural_flexure_model():
     assert on["flexure"] and on["flex_beta"] == 2.0 and on["flex_sigma_deg"] == 0.05
     with pytest.raises(Exception, match="--flexure"):
         AnalyzeOptions(flexure="sometimes")
+
+
+def test_lever_arm_values_with_a_leading_minus(tmp_path, fake_numerics):
+    """``--lever-arm -0.5,0.2,1`` as users type it (argparse alone took the value for an option)."""
+    m, s = write_fake_pair(tmp_path, duration_s=20)
+    out = tmp_path / "o"
+    assert main(["analyze", m, s, "-o", str(out), "--no-recording", "--lever-arm", "-0.5,0.2,1"]) == 0
+    assert json.loads((out / "report.json").read_text())["options"]["lever_arm"] == "-0.5,0.2,1"

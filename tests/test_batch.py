@@ -78,6 +78,20 @@ def test_discovery_rules(tmp_path):
         batch.discover(str(camp / "other"), str(tmp_path / "o"))
 
 
+def test_manifest_options_reach_the_analysis(tmp_path):
+    """Every analyze option a manifest row may carry reaches AnalyzeOptions (the batch kept its own copy of
+    the option names, and the lever-arm and flexure options did not reach it)."""
+    from pipelines import analyze
+
+    man = tmp_path / "m.csv"
+    man.write_text('master,slave,options\nm.csv,s.csv,"--lever-arm -0.5,-0.2,1 --flexure off --filter hinf"\n')
+    job = batch.discover(str(man), str(tmp_path / "o"))[0]
+    ns = batch._parse_options(job.options)
+    opts, _ = analyze.options_from(analyze.cli_values(ns))
+    assert (opts.lever_arm, opts.flexure, opts.filter) == ("-0.5,-0.2,1", "off", "hinf")
+    assert set(analyze.CLI_KEYS) <= set(vars(ns))
+
+
 def test_campaign_processes_and_dask_agree_and_rerun_does_nothing(tmp_path, fake_numerics, monkeypatch, capsys):
     camp = make_campaign(tmp_path)
     before = {str(p): p.stat().st_mtime_ns for p in camp.rglob("*")}
