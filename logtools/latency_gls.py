@@ -11,6 +11,7 @@ from scipy import fft as sfft
 GLS_SMOOTH_HZ = 0.05  # the residual spectrum is smoothed over this band
 GLS_FLOOR = 1e-4  # PSD floor (fraction of its peak): the low-pass stop band is not amplified beyond it
 GLS_CSD_BINS = 15  # a cross-spectral matrix is smoothed over at least this many bins (conditioning)
+LEVERAGE_MIN_KEEP = 0.2  # a residual periodogram is scaled up by at most 1 / this (see leverage_spectrum)
 HAC_BANDWIDTH_FACTOR = 4  # Newey-West bandwidth = this x the lag where the scores decorrelate
 CORR_MAX = 0.99  # |correlation| of (L, drift) at most this (the curvature and HAC parts may disagree)
 
@@ -101,11 +102,32 @@ def end_taper(use: np.ndarray, n_ramp: int) -> np.ndarray:
     return np.where(use, 0.5 - 0.5 * np.cos(np.pi * x), 0.0)
 
 
-def noise_model(r: np.ndarray, use: np.ndarray, dt_s: float, *, matrix: bool = False) -> NoiseModel | None:
+def leverage_spectrum(J: np.ndarray, use: np.ndarray) -> np.ndarray:
+    """The fraction of a white noise's power at each rfft frequency that a least-squares fit with design
+    J (n, C, P; 0 where unused) takes out of its residual: mean over the C channels of
+    sum_k |FFT(q_k)|^2 / n_used, q_k the orthonormal columns of J. A residual's periodogram divided by
+    (1 - that) is unbiased for white noise (the fitted columns empty the low frequencies of a short
+    record, and a spectrum estimated from it would overweight exactly there)."""
+    n, C, P = J.shape
+    A = np.where(use[:, None, None], J, 0.0).reshape(n * C, P)
+    keep = np.linalg.norm(A, axis=0) > 0
+    if not keep.any():
+        return np.zeros(n // 2 + 1)
+    Q, Rq = np.linalg.qr(A[:, keep])
+    d = np.abs(np.diag(Rq))
+    Q = Q[:, d > 1e-10 * d.max()].reshape(n, C, -1)
+    F = sfft.rfft(Q, axis=0)
+    return np.sum(np.abs(F) ** 2, axis=2).mean(axis=1) / max(1.0, float(use.sum()))
+
+
+def noise_model(r: np.ndarray, use: np.ndarray, dt_s: float, *, matrix: bool = False,
+                leverage: np.ndarray | None = None) -> NoiseModel | None:
     """Residual spectrum from one fit's residuals (N, C) (0 where unused): periodogram over the whole
     span smoothed over GLS_SMOOTH_HZ (a 2nd-order Markov spectrum is smooth on that scale); averaged
     over the axes (one spectrum), or with ``matrix`` the C x C cross-spectral density, smoothed over at
-    least GLS_CSD_BINS bins so that it is well conditioned."""
+    least GLS_CSD_BINS bins so that it is well conditioned. ``leverage`` (``leverage_spectrum`` of the
+    fit's design; single spectrum only): the periodogram is divided by 1 - leverage (at most by
+    1 / LEVERAGE_MIN_KEEP) before smoothing."""
     n, C = r.shape
     if n < 256 or use.sum() < 128:
         return None
@@ -119,6 +141,8 @@ def noise_model(r: np.ndarray, use: np.ndarray, dt_s: float, *, matrix: bool = F
     norm = max(1.0, float(use.sum()))
     if not matrix:
         p = np.mean(np.abs(X) ** 2, axis=1) / norm
+        if leverage is not None:
+            p = p / np.clip(1.0 - leverage, LEVERAGE_MIN_KEEP, 1.0)
         ps = np.convolve(np.pad(p, k // 2, mode="reflect"), np.ones(k) / k, mode="valid")
         top = float(ps.max())
         if not top > 0:

@@ -41,7 +41,7 @@ import numpy as np
 from logtools.conventions import dcm_from_quat, dcm_from_rotvec, skew
 from logtools.inslog import InsLog
 from logtools.latency_gls import (NoiseModel, delay_step, end_taper, gls_covariance, gn_step, grid_offset_sigma_s,
-                                  noise_model, stamp_noise_variance, window_chi2)
+                                  leverage_spectrum, noise_model, stamp_noise_variance, window_chi2)
 from logtools.resample import Interpolant, interpolant, lowpass, median_rate_hz, stamp_noise_s, to_uniform
 
 VEL_MAX_CUTOFF_HZ = 5.0  # the velocities are low-passed at the rate fit's cutoff, at most this
@@ -64,6 +64,9 @@ VEL_FRAME_MIN_DEG = 0.2  # a rotation between the units' velocity frames beyond 
 VEL_FRAME_MIN_RANK = 0.02  # ... when the velocity varies in at least two directions (2nd/1st singular value)
 VEL_FRAME_ITERS = 3  # the fitted tilt, when above VEL_TILT_EXACT_DEG, undone exactly and the fit redone
 VEL_TILT_EXACT_DEG = 0.05  # (the linear tilt model errs by |v| tilt^2 / 2: 1 mm/s at 200 m/s and 0.2 deg)
+VEL_LEVERAGE = True  # the residual spectrum corrected for what the fitted columns take out of it (short records:
+#                     uncorrected, the lever arm / delay / tilt columns emptied the low frequencies, the GLS
+#                     overweighted them and its sigma came out 1.4x small)
 VEL_EDGE_CYCLES = 4.0  # samples within this many cutoff periods of a series' ends are not used (the
 #                        zero-phase filter's mirrored ends distort a velocity that is not level there)
 
@@ -185,6 +188,7 @@ class _Solved:
     fixed: np.ndarray  # (n, 3) the lever-arm, tilt and step terms of the residual at the solution
     rms: float  # m/s, over the used samples
     resid: np.ndarray  # (n, 3), 0 where unused
+    leverage: np.ndarray | None = None  # the fit's leverage spectrum (latency_gls.leverage_spectrum)
 
 
 def _solve(vp: VelocityPair, t: np.ndarray, vm: np.ndarray, Lr: np.ndarray | None, use0: np.ndarray,
@@ -275,7 +279,9 @@ def _solve(vp: VelocityPair, t: np.ndarray, vm: np.ndarray, Lr: np.ndarray | Non
     resid[~use] = 0.0
     fixed = J_lin[:, :, :nf] @ lin[:nf]
     rms = float(np.sqrt(np.sum(resid ** 2) / (3 * n_use)))
-    return _Solved(d, dr, var, corr, lin[:3] if nl else None, lin[nl:nl + 3] if nt else None, fixed, rms, resid)
+    lev = leverage_spectrum(J * tap[:, None, None], use) if VEL_LEVERAGE else None
+    return _Solved(d, dr, var, corr, lin[:3] if nl else None, lin[nl:nl + 3] if nt else None, fixed, rms, resid,
+                   lev)
 
 
 def _step_score(S: np.ndarray, C: np.ndarray, k: np.ndarray, half: int) -> np.ndarray:
@@ -373,7 +379,7 @@ def velocity_fit(vp: VelocityPair, w0: float, w1: float, d0: float, drift0: floa
     for _ in range(VEL_GLS_PASSES):
         if s is None:
             return None
-        nm = noise_model(s.resid, np.any(s.resid != 0.0, axis=1), vp.dt_s)
+        nm = noise_model(s.resid, np.any(s.resid != 0.0, axis=1), vp.dt_s, leverage=s.leverage)
         if nm is None:
             break
         s2 = _solve(vp, t, vm, Lr, okm, s.d, s.dr, t_mid, nm, fit_drift, tilt=VEL_TILT, steps=steps)

@@ -175,3 +175,23 @@ def test_disagreeing_rate_models_both_go_to_the_windows_and_the_sigma_covers_the
     assert gap > 0.5 * push["gap"]
     assert res.sigma_s >= L.FLEX_GAP_COVER * gap
     assert any("disagree" in w for w in res.quality["warnings"])
+
+
+def test_short_flexure_records_reach_the_kalman_stage():
+    """30 s of a flexing ship's IMUs: the flexure model's likelihood asked for 4 blocks per unknown and
+    such records stayed with the spectral fit (over 4 seeds 2.8 ms RMS, one 5.4 ms off). With 2 (each
+    block has 6 rows) the Kalman stage runs; over 40 short (25-45 s) flexure runs of all scenarios the RMS
+    went from 1.94 to 0.98 ms and the 2-sigma coverage from 92.5 to 97.5 %."""
+    from logtools import sim
+
+    errs, zs = [], []
+    for seed in range(4):
+        p = sim.simulate(sim.scenario_config("ship", seed=seed, flexure=True, duration_s=30.0, latency_s=0.2371,
+                                             drift_ppm=30.0, mount_rpy_deg=(40.0, -60.0, 150.0), slave_nav=False))
+        res = estimate(p.master, p.slave, compare=False)
+        assert res.quality["flexure_model"] is not None
+        e = res.latency_s - p.truth.latency_at(res.t_mid_rel_s)
+        errs.append(e)
+        zs.append(abs(e) / res.sigma_s)
+    assert float(np.sqrt(np.mean(np.square(errs)))) < 1e-3
+    assert max(zs) < 3.5
