@@ -447,3 +447,23 @@ def test_a_lever_arm_that_absorbs_an_uncompensated_delay_is_called_implausible()
     ok = sim.simulate(sim.scenario_config("aircraft", latency_s=0.0, **kw))
     res = run_alignment(ok.master, ok.slave, estimate_lever_arm=True)
     assert np.linalg.norm(res.lever_arm_m) < 0.1 and not any("far beyond" in n for n in res.notes)
+
+
+def test_coarse_mounting_from_rates_and_specific_forces_when_a_car_turns_about_one_axis():
+    """A car on a nearly level road turns about one axis: the rates alone do not fix the mounting (the
+    second axis's rotation is below what the rate fit needs), and starting from a zero mounting a pitch of
+    71 deg diverged (141 deg off, lever arm 84 m). The motion of the specific forces (speed changes along
+    the track, centripetal across it) with the rates in one Wahba problem gives the start."""
+    cfg = sim.scenario_config("vehicle", seed=66006, duration_s=300.0, latency_s=0.0, drift_ppm=0.0,
+                              mount_rpy_deg=(-32.6, 70.9, 156.5), lever_arm_m=(-0.22, -1.14, 1.23),
+                              slave_nav=False, speed_m_s=15.1, turn_amp_deg=23.0, turn_period_s=64.6,
+                              climb_amp_deg=0.7, speed_var_m_s=3.0)
+    p = sim.simulate(cfg)
+    res = run_alignment(p.master, p.slave, estimate_lever_arm=True)
+    assert any("rates and specific forces together" in n for n in res.notes), res.notes
+    from logtools.conventions import dcm_from_euler
+
+    d = dcm_from_euler(np.radians(res.mounting_rpy_deg)).T @ dcm_from_euler(np.radians(cfg.mount_rpy_deg))
+    err_arcmin = np.degrees(np.arccos(np.clip((np.trace(d) - 1) / 2, -1, 1))) * 60
+    assert err_arcmin < 0.5 and err_arcmin / 60 < 3 * np.linalg.norm(res.mounting_sigma_deg), err_arcmin
+    assert np.allclose(res.lever_arm_m, cfg.lever_arm_m, atol=0.1)

@@ -53,6 +53,7 @@ IMU_GAP_PERIODS = 10.0  # is a gap: the slave's navigation restarts from the mas
 FLEX_AUTO_NIS = 10.0
 FLEX_AUTO_GAIN = 0.5
 FLEX_AUTO_MODEL = {"flex_sigma_deg": 0.05, "flex_beta": 2.0}
+COARSE_MIN_RATIO = 1e-3  # rates + specific forces: the smallest singular value over the largest at least this
 LEVER_ARM_SIGMA_M = 1.0  # prior sigma of an estimated lever arm (per axis, m)
 LEVER_ARM_IMPLAUSIBLE_SIGMAS = 10.0  # an estimate beyond this many prior sigmas gets a note
 OBSERVABLE_SHRINK = 0.5  # a state is observable when its sigma fell below this fraction of its prior
@@ -136,7 +137,7 @@ def run_alignment(master: InsLog, slave: InsLog, *, filter: str = "kf", match: s
         r0 = dcm_from_euler(np.radians(np.asarray(options["mounting_guess_rpy_deg"], float)))
         coarse_ok = True
     else:
-        r0, coarse_ok, why = _coarse_mounting(master, slave, ms, t_imu, gyro, tau0)
+        r0, coarse_ok, why = _coarse_mounting(master, slave, ms, t_imu, gyro, tau0, accel)
         if why:
             notes.append(why)
 
@@ -385,8 +386,10 @@ def _check_motion(gyro: np.ndarray, accel: np.ndarray, src: str) -> None:
 
 
 def _coarse_mounting(master: InsLog, slave: InsLog, ms: MasterSeries, t_imu: np.ndarray, gyro: np.ndarray,
-                     tau0: float) -> tuple[np.ndarray, bool, str]:
-    """(R0, ok, note). Wahba/Kabsch on angular rates: min sum |w_s - R w_m|^2 by SVD of sum w_s w_m^T."""
+                     tau0: float, accel: np.ndarray | None = None) -> tuple[np.ndarray, bool, str]:
+    """(R0, ok, note). Wahba/Kabsch on angular rates: min sum |w_s - R w_m|^2 by SVD of sum w_s w_m^T; where
+    the rates turn about one axis only, with the specific forces' motion added (``accel``: the slave's,
+    at t_imu); else from the slave's own attitude; else the identity (not ok)."""
     grid = np.arange(t_imu[0], t_imu[-1], 0.02)
     if master.has_gyro:
         tm = master.t_imu_s()
@@ -409,6 +412,24 @@ def _coarse_mounting(master: InsLog, slave: InsLog, ms: MasterSeries, t_imu: np.
             d = np.sign(np.linalg.det(u @ vt))
             return u @ np.diag([1.0, 1.0, d]) @ vt, True, ""
         why = "coarse mounting: too little rotation about two axes for the rate fit"
+        # a car turning on a level road rotates about one axis: its accelerations (speed changes along the
+        # track, centripetal across it) give the other directions. Rates and specific forces (motion parts,
+        # each set normalised by its power) in one Wahba problem
+        if master.has_accel and accel is not None:
+            ta, fa = master.t_imu_s(), master.accel_m_s2()
+            oka = np.isfinite(fa).all(1)
+            f_m = np.stack([np.interp(grid - tau0, ta[oka], fa[oka, i]) for i in range(3)], -1)
+            f_s = np.stack([np.interp(grid, t_imu, accel[:, i]) for i in range(3)], -1)
+            f_m, f_s = f_m - f_m.mean(0), f_s - f_s.mean(0)
+            pw, pf = float(np.trace(w_m.T @ w_m)), float(np.trace(f_m.T @ f_m))
+            if pw > 0 and pf > 0:
+                bf = f_s.T @ f_m
+                u, sv, vt = np.linalg.svd(b / pw + bf / pf)
+                motion_f = np.sqrt(np.linalg.svd(bf, compute_uv=False) / max(len(grid), 1))
+                if sv[1] / sv[0] > COARSE_MIN_RATIO and sv[2] / sv[0] > COARSE_MIN_RATIO and motion_f[1] > 0.05:
+                    d = np.sign(np.linalg.det(u @ vt))
+                    return (u @ np.diag([1.0, 1.0, d]) @ vt, True,
+                            why + "; rates and specific forces together instead")
     else:
         why = "coarse mounting: the master has no angular rate or attitude"
     if slave.has_quat and ms.quat is not None:
