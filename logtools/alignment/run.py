@@ -53,7 +53,8 @@ IMU_GAP_PERIODS = 10.0  # is a gap: the slave's navigation restarts from the mas
 FLEX_AUTO_NIS = 10.0
 FLEX_AUTO_GAIN = 0.5
 FLEX_AUTO_MODEL = {"flex_sigma_deg": 0.05, "flex_beta": 2.0}
-COARSE_MIN_RATIO = 1e-3  # rates + specific forces: the smallest singular value over the largest at least this
+COARSE_JOINT_RATIO = 0.05  # rates + specific forces: a start when the 2nd singular value is this much of the 1st
+COARSE_MIN_FORCE_M_S2 = 0.02  # ... and the specific forces move (rms, 2nd principal axis) at least this much
 LEVER_ARM_SIGMA_M = 1.0  # prior sigma of an estimated lever arm (per axis, m)
 LEVER_ARM_IMPLAUSIBLE_SIGMAS = 10.0  # an estimate beyond this many prior sigmas gets a note
 OBSERVABLE_SHRINK = 0.5  # a state is observable when its sigma fell below this fraction of its prior
@@ -387,9 +388,10 @@ def _check_motion(gyro: np.ndarray, accel: np.ndarray, src: str) -> None:
 
 def _coarse_mounting(master: InsLog, slave: InsLog, ms: MasterSeries, t_imu: np.ndarray, gyro: np.ndarray,
                      tau0: float, accel: np.ndarray | None = None) -> tuple[np.ndarray, bool, str]:
-    """(R0, ok, note). Wahba/Kabsch on angular rates: min sum |w_s - R w_m|^2 by SVD of sum w_s w_m^T; where
-    the rates turn about one axis only, with the specific forces' motion added (``accel``: the slave's,
-    at t_imu); else from the slave's own attitude; else the identity (not ok)."""
+    """(R0, ok, note). Wahba/Kabsch on angular rates: min sum |w_s - R w_m|^2 by SVD of sum w_s w_m^T. Where
+    the rates turn about one axis only, the specific forces' motion joins them (``accel``: the slave's, at
+    t_imu); then the slave's own attitude; then that joint fit however weakly it is determined (not ok: a
+    wider prior); else the identity (not ok)."""
     grid = np.arange(t_imu[0], t_imu[-1], 0.02)
     if master.has_gyro:
         tm = master.t_imu_s()
@@ -400,21 +402,26 @@ def _coarse_mounting(master: InsLog, slave: InsLog, ms: MasterSeries, t_imu: np.
         w_m = np.stack([np.interp(grid - tau0, ms.t_s, ms.w_nm_m[:, i]) for i in range(3)], -1)
     else:
         w_m = None
+    weak = None  # a joint rate + specific-force start that is only weakly determined
+
+    def wahba(B: np.ndarray) -> np.ndarray:
+        u, _, vt = np.linalg.svd(B)
+        return u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+
     if w_m is not None:
         w_s = np.stack([np.interp(grid, t_imu, gyro[:, i]) for i in range(3)], -1)
         # remove slow parts (biases, earth rate) so the fit sees the motion
         w_s = w_s - w_s.mean(0)
         w_m = w_m - w_m.mean(0)
         b = w_s.T @ w_m
-        u, sv, vt = np.linalg.svd(b)
+        sv = np.linalg.svd(b, compute_uv=False)
         motion = np.sqrt(sv / max(len(grid), 1))  # rms rate on the principal axes
         if sv[0] > 0 and motion[1] > 2e-3 and sv[1] / sv[0] > 1e-3:
-            d = np.sign(np.linalg.det(u @ vt))
-            return u @ np.diag([1.0, 1.0, d]) @ vt, True, ""
+            return wahba(b), True, ""
         why = "coarse mounting: too little rotation about two axes for the rate fit"
         # a car turning on a level road rotates about one axis: its accelerations (speed changes along the
-        # track, centripetal across it) give the other directions. Rates and specific forces (motion parts,
-        # each set normalised by its power) in one Wahba problem
+        # track, centripetal across it) give another direction, and two fix a rotation. Rates and specific
+        # forces (motion parts, each set normalised by its power) in one Wahba problem
         if master.has_accel and accel is not None:
             ta, fa = master.t_imu_s(), master.accel_m_s2()
             oka = np.isfinite(fa).all(1)
@@ -422,14 +429,17 @@ def _coarse_mounting(master: InsLog, slave: InsLog, ms: MasterSeries, t_imu: np.
             f_s = np.stack([np.interp(grid, t_imu, accel[:, i]) for i in range(3)], -1)
             f_m, f_s = f_m - f_m.mean(0), f_s - f_s.mean(0)
             pw, pf = float(np.trace(w_m.T @ w_m)), float(np.trace(f_m.T @ f_m))
-            if pw > 0 and pf > 0:
-                bf = f_s.T @ f_m
-                u, sv, vt = np.linalg.svd(b / pw + bf / pf)
-                motion_f = np.sqrt(np.linalg.svd(bf, compute_uv=False) / max(len(grid), 1))
-                if sv[1] / sv[0] > COARSE_MIN_RATIO and sv[2] / sv[0] > COARSE_MIN_RATIO and motion_f[1] > 0.05:
-                    d = np.sign(np.linalg.det(u @ vt))
-                    return (u @ np.diag([1.0, 1.0, d]) @ vt, True,
-                            why + "; rates and specific forces together instead")
+            bf = f_s.T @ f_m
+            motion_f = np.sqrt(np.linalg.svd(bf, compute_uv=False) / max(len(grid), 1))  # m/s^2 rms
+            # two directions of real motion, not noise: the rates' first and the specific forces' first, or
+            # the specific forces' first two (whether they differ, the joint fit's singular values say)
+            real = motion_f[0] > COARSE_MIN_FORCE_M_S2 and (motion[0] > 2e-3 or motion_f[1] > COARSE_MIN_FORCE_M_S2)
+            if real and pw > 0 and pf > 0:
+                B = b / pw + bf / pf
+                svj = np.linalg.svd(B, compute_uv=False)
+                if svj[1] / svj[0] >= COARSE_JOINT_RATIO:
+                    return wahba(B), True, why + "; rates and specific forces together instead"
+                weak = wahba(B)
     else:
         why = "coarse mounting: the master has no angular rate or attitude"
     if slave.has_quat and ms.quat is not None:
@@ -438,9 +448,9 @@ def _coarse_mounting(master: InsLog, slave: InsLog, ms: MasterSeries, t_imu: np.
         inside = (ts - tau0 >= ms.t_s[0]) & (ts - tau0 <= ms.t_s[-1])
         if inside.sum() >= 1:
             m = np.einsum("kji,kjl->il", dcm_from_quat(qs[inside]), dcm_from_quat(qm[inside]))  # sum C_sn C_nm
-            u, _, vt = np.linalg.svd(m)
-            d = np.sign(np.linalg.det(u @ vt))
-            return u @ np.diag([1.0, 1.0, d]) @ vt, True, why + "; used the slave's own attitude instead"
+            return wahba(m), True, why + "; used the slave's own attitude instead"
+    if weak is not None:
+        return weak, False, why + "; rates and specific forces together, weakly determined (wider prior)"
     return np.eye(3), False, why + "; started from a zero mounting"
 
 
