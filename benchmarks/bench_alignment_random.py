@@ -10,9 +10,14 @@ the match the CLI picks):
 * ``tapost``: the CLI's defaults (``--lever-arm auto --flexure auto``: the lever arm as states started
   from the latency's velocity fit; the latency fit's flexure model as states, or the alignment's own
   flexure check);
-* ``rigid``: neither (``--lever-arm off --flexure off``, what the CLI did before 2026-11-24).
+* ``rigid``: neither (``--lever-arm off --flexure off``), and the coarse mounting from the rates alone: what
+  the CLI did before 2026-11-24.
 
-Per set (lever arm / flexure / both / neither) and variant: mounting error (the rotation between estimate
+``--one-axis N`` further pairs (default 30) whose rates turn about one axis only (cars with gentle turns on
+a level road, ships that barely roll, aircraft with shallow S-turns; IMU-only slaves, lever arms, no
+flexure): where the coarse mounting needs the specific forces too (set ``one-axis``).
+
+Per set (lever arm / flexure / both / neither / one-axis) and variant: mounting error (the rotation between estimate
 and truth, arcmin) RMS and worst, z = error / sqrt(sum of the three sigmas^2), the fraction with z <= 2 and
 z > 3, the lever arm's error where estimated.
 
@@ -52,7 +57,24 @@ def draw(i: int, base_seed: int) -> dict:
     return d
 
 
+def draw_one_axis(i: int, base_seed: int) -> dict:
+    """A pair whose rates turn about one axis only: a car with gentle turns on a level road, a ship that
+    barely rolls or pitches (0.2 deg), an aircraft with shallow S-turns; IMU-only slave, no flexure."""
+    d = bl.draw_config(i, base_seed + 7)
+    rng = np.random.default_rng([base_seed, i, 47])
+    d["scenario"] = ("vehicle", "ship", "aircraft")[i % 3]
+    d.update(set="one-axis", slave_nav=False, flexure=False, duration_s=float(rng.choice([120.0, 300.0])),
+             lever_arm_m=[float(x) for x in rng.uniform(-2.0, 2.0, 3)])
+    d["extra"] = dict(turn_amp_deg=float(rng.uniform(2.0, 20.0)), climb_amp_deg=0.0,
+                      speed_var_m_s=float(rng.uniform(0.0, 2.0)))
+    if d["scenario"] == "ship":
+        d["extra"]["sway_amp_deg"] = (0.2, 0.2, 3.0)
+    return d
+
+
 def set_of(d: dict) -> str:
+    if d.get("set") == "one-axis":
+        return "one-axis"
     lev = any(d["lever_arm_m"])
     return SETS[int(lev) + 2 * int(d["flexure"])]
 
@@ -71,7 +93,9 @@ def run_one(d: dict) -> dict:
     from logtools.latency import estimate
     from pipelines.analyze import AnalyzeOptions, _flexure_options, _lever_options, _resolve_match
 
-    cfg = dataclasses.replace(bl.sim_config(d), lever_arm_m=tuple(d["lever_arm_m"]))
+    import logtools.alignment.run as align_run
+
+    cfg = dataclasses.replace(bl.sim_config(d), lever_arm_m=tuple(d["lever_arm_m"]), **d.get("extra", {}))
     pair = sim.simulate(cfg)
     row = dict(d, set=set_of(d))
     row["mount_rpy_deg"] = list(d["mount_rpy_deg"])
@@ -89,6 +113,7 @@ def run_one(d: dict) -> dict:
     options = {"tapost": {**_lever_options(opts, lat), **_flexure_options(opts, lat)}, "rigid": {}}
     for v in VARIANTS:
         t0 = time.perf_counter()
+        align_run.COARSE_JOINT = v == "tapost"  # rigid: the coarse mounting from the rates alone, as before
         try:
             res = run_alignment(pair.master, slave, filter="kf", match=match, **options[v])
             err = _rotation_arcmin(res.mounting_rpy_deg, cfg.mount_rpy_deg)
@@ -102,6 +127,7 @@ def run_one(d: dict) -> dict:
         except Exception as exc:  # noqa: BLE001
             row[v] = dict(note=f"{type(exc).__name__}: {exc}"[:200])
         row[f"runtime_{v}_s"] = time.perf_counter() - t0
+    align_run.COARSE_JOINT = True
     return row
 
 
@@ -139,14 +165,16 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=48)
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--one-axis", type=int, default=30, help="further pairs whose rates turn about one axis")
     ap.add_argument("--seed", type=int, default=2027)
     ap.add_argument("--out", default=OUT)
     a = ap.parse_args(argv)
-    jobs = [draw(i, a.seed) for i in range(a.runs)]
+    jobs = [draw(i, a.seed) for i in range(a.runs)] + [draw_one_axis(a.runs + i, a.seed) for i in range(a.one_axis)]
     t0 = time.time()
     rows = bl.run_pool(run_one, jobs, a.workers, every=8)
     rows.sort(key=lambda r: r["run"])
-    summary = {"all": summarize(rows), **{s: summarize([r for r in rows if r["set"] == s]) for s in SETS}}
+    summary = {"all": summarize([r for r in rows if r["set"] in SETS]),
+               **{s: summarize([r for r in rows if r["set"] == s]) for s in SETS + ("one-axis",)}}
     out = dict(benchmark="alignment_random", created_utc=datetime.now(timezone.utc).isoformat(timespec="seconds"),
                config=dict(runs=a.runs, seed=a.seed, max_lag_s=bl.MAX_LAG_S),
                machine=dict(python=platform.python_version(), cpus=os.cpu_count(), workers=a.workers),

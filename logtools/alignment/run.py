@@ -53,6 +53,7 @@ IMU_GAP_PERIODS = 10.0  # is a gap: the slave's navigation restarts from the mas
 FLEX_AUTO_NIS = 10.0
 FLEX_AUTO_GAIN = 0.5
 FLEX_AUTO_MODEL = {"flex_sigma_deg": 0.05, "flex_beta": 2.0}
+COARSE_JOINT = True  # where the rates turn about one axis, rates and specific forces in one Wahba problem
 COARSE_JOINT_RATIO = 0.05  # rates + specific forces: a start when the 2nd singular value is this much of the 1st
 COARSE_MIN_FORCE_M_S2 = 0.02  # ... and the specific forces move (rms, 2nd principal axis) at least this much
 LEVER_ARM_SIGMA_M = 1.0  # prior sigma of an estimated lever arm (per axis, m)
@@ -422,7 +423,7 @@ def _coarse_mounting(master: InsLog, slave: InsLog, ms: MasterSeries, t_imu: np.
         # a car turning on a level road rotates about one axis: its accelerations (speed changes along the
         # track, centripetal across it) give another direction, and two fix a rotation. Rates and specific
         # forces (motion parts, each set normalised by its power) in one Wahba problem
-        if master.has_accel and accel is not None:
+        if COARSE_JOINT and master.has_accel and accel is not None:
             ta, fa = master.t_imu_s(), master.accel_m_s2()
             oka = np.isfinite(fa).all(1)
             f_m = np.stack([np.interp(grid - tau0, ta[oka], fa[oka, i]) for i in range(3)], -1)
