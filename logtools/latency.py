@@ -1263,16 +1263,13 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
     chi2_red = _window_chi2(fin, centers, lats, sigs, t_mid)
     infl = np.sqrt(max(1.0, chi2_red)) if WINDOW_INFLATE else 1.0
     sig_l, sigma_drift = fin.sigma_latency_s * infl, fin.sigma_drift * infl
+    latency, drift, corr_ld = fin.latency_s, fin.drift, fin.corr_ld
     extra_warnings: list[str] = []
     if fin.model_gap_s > 0:  # the spectral and the Kalman (flexure) fits disagree: cover the other one
         grown = max(sig_l, FLEX_GAP_COVER * fin.model_gap_s)
-        corr_ld0 = fin.corr_ld * sig_l / grown
+        corr_ld, sig_l = corr_ld * sig_l / grown, grown
         extra_warnings.append(f"the spectral and the flexure-model fits of the rates disagree by "
-                            f"{fin.model_gap_s * 1e3:.3g} ms: sigma covers both")
-        sig_l = grown
-    else:
-        corr_ld0 = fin.corr_ld
-    latency, drift, corr_ld = fin.latency_s, fin.drift, corr_ld0
+                              f"{fin.model_gap_s * 1e3:.3g} ms: sigma covers both")
     # stamps on a coarse grid (whole milliseconds) with a fixed sampling phase are all off by the same
     # fraction of it: a common offset, uniform over the grid step, that no residual shows (a floor in
     # quadrature; the drift is not affected, so the latency-drift covariance stays)

@@ -222,7 +222,6 @@ def delay_step(step: np.ndarray, dt_s: float, span_s: float, fit_drift: bool) ->
     return sd, float(np.clip(step[1], -lim, lim))
 
 
-
 def grid_offset_sigma_s(resolutions_s) -> float:
     """Sigma of a delay from stamps on coarse grids (one step per unit): with a fixed sampling phase every
     stamp of a unit is off by the same fraction of its step, uniform over it: sqrt(sum step^2 / 12)."""

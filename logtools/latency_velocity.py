@@ -193,10 +193,11 @@ class _Solved:
 
 def _solve(vp: VelocityPair, t: np.ndarray, vm: np.ndarray, Lr: np.ndarray | None, use0: np.ndarray,
            d0: float, dr0: float, t_mid: float, noise: NoiseModel | None, fit_drift: bool, *,
-           tilt: bool, steps: np.ndarray | None = None) -> _Solved | None:
+           tilt: bool, steps: np.ndarray | None = None, leverage: bool = False) -> _Solved | None:
     """Gauss-Newton on (L[, drift] | lever arm (with Lr), tilt, steps, offset, ramp), whitened with
     ``noise`` (None: unweighted). The residual is r = v_s(t + L + drift (t - t_mid)) - v_m + J_lin x_lin;
-    ``steps``: sample indices where the slave's velocity jumps (a reset), a step per axis from each."""
+    ``steps``: sample indices where the slave's velocity jumps (a reset), a step per axis from each.
+    ``leverage``: also the design's leverage spectrum (for a noise model estimated from this fit)."""
     n, dt = len(t), vp.dt_s
     tt = t - t_mid
     T = max(float(np.max(np.abs(tt))), dt)
@@ -279,7 +280,7 @@ def _solve(vp: VelocityPair, t: np.ndarray, vm: np.ndarray, Lr: np.ndarray | Non
     resid[~use] = 0.0
     fixed = J_lin[:, :, :nf] @ lin[:nf]
     rms = float(np.sqrt(np.sum(resid ** 2) / (3 * n_use)))
-    lev = leverage_spectrum(J * tap[:, None, None], use) if VEL_LEVERAGE else None
+    lev = leverage_spectrum(J * tap[:, None, None], use) if (leverage and VEL_LEVERAGE) else None
     return _Solved(d, dr, var, corr, lin[:3] if nl else None, lin[nl:nl + 3] if nt else None, fixed, rms, resid,
                    lev)
 
@@ -366,23 +367,25 @@ def velocity_fit(vp: VelocityPair, w0: float, w1: float, d0: float, drift0: floa
         return None  # a velocity that jumps this often carries no delay worth the risk
     if len(steps):
         okm = okm & ~_near(t, t[steps], half * dt)
-    s = _solve(vp, t, vm, Lr, okm, d0, drift0, t_mid, None, fit_drift, tilt=VEL_TILT, steps=steps)
+    s = _solve(vp, t, vm, Lr, okm, d0, drift0, t_mid, None, fit_drift, tilt=VEL_TILT, steps=steps, leverage=True)
     # the tilt found is a rotation: undone exactly (and the fit redone) where its square would show
     for _ in range(VEL_FRAME_ITERS):
         if s is None or s.tilt is None or np.degrees(np.linalg.norm(s.tilt)) <= VEL_TILT_EXACT_DEG:
             break
         R_f = R_f @ dcm_from_rotvec(s.tilt)  # slave_now = R_f^T v_s = (I + [tilt x]) v
         vp = replace(vp, slave=slave0.transformed(R_f.T))
-        s = _solve(vp, t, vm, Lr, okm, s.d, s.dr, t_mid, None, fit_drift, tilt=VEL_TILT, steps=steps)
+        s = _solve(vp, t, vm, Lr, okm, s.d, s.dr, t_mid, None, fit_drift, tilt=VEL_TILT, steps=steps,
+                   leverage=True)
     rot_deg = _angle_deg(R_f)
     noise = None
-    for _ in range(VEL_GLS_PASSES):
+    for k in range(VEL_GLS_PASSES):
         if s is None:
             return None
         nm = noise_model(s.resid, np.any(s.resid != 0.0, axis=1), vp.dt_s, leverage=s.leverage)
         if nm is None:
             break
-        s2 = _solve(vp, t, vm, Lr, okm, s.d, s.dr, t_mid, nm, fit_drift, tilt=VEL_TILT, steps=steps)
+        s2 = _solve(vp, t, vm, Lr, okm, s.d, s.dr, t_mid, nm, fit_drift, tilt=VEL_TILT, steps=steps,
+                    leverage=k < VEL_GLS_PASSES - 1)
         if s2 is None:
             break
         s, noise = s2, nm

@@ -108,9 +108,7 @@ FLEX_MAX_DEG = 1.0
 
 
 def parse_lever_arm(text) -> str | tuple[float, float, float]:
-    """--lever-arm: 'auto', 'off', or X,Y,Z metres (a config file may give a list)."""
-    if isinstance(text, (list, tuple)):
-        text = ",".join(str(x) for x in text)
+    """--lever-arm: 'auto', 'off', or X,Y,Z metres (``options_from`` joins a config file's list)."""
     t = str(text).strip().lower()
     if t in ("auto", "off"):
         return t

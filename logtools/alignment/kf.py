@@ -432,7 +432,7 @@ def run_filter(inp: AlignInputs, s: FilterSettings, *, progress: Callable | None
                 q = quat_from_dcm(c_nm @ r_hat.T)
                 c_ns = _dcm(q)
             if v_m is not None:
-                v = v_m + (c_nm if c_nm is not None else eye3) @ np.cross(w_m if w_m is not None else z3, lever)
+                v = v_m + (c_nm if c_nm is not None else eye3) @ _cross3(w_m if w_m is not None else z3, lever)
             reset(att_sl)
             if vel_sl is not None:
                 reset(vel_sl)
@@ -531,6 +531,7 @@ def run_filter(inp: AlignInputs, s: FilterSettings, *, progress: Callable | None
     return run
 
 
+@njit
 def _cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
 
@@ -723,8 +724,7 @@ def _kf_loop(t_ep, seg_dq, seg_dv, seg_dt, mt, mq, mv, ma, mw, mvalid, resets, r
                 q = _quat_from_dcm_nb(c_nm @ r_hat.T)
                 c_ns = _dcm(q)
             if has_v:
-                lt = np.array([w_m[1] * lever[2] - w_m[2] * lever[1], w_m[2] * lever[0] - w_m[0] * lever[2],
-                               w_m[0] * lever[1] - w_m[1] * lever[0]])
+                lt = _cross3(w_m, lever)
                 v = v_m + c_nm @ lt
             _reset_block(P, x, p0, a0)
             if v_off >= 0:
@@ -746,8 +746,7 @@ def _kf_loop(t_ep, seg_dq, seg_dv, seg_dt, mt, mq, mv, ma, mw, mvalid, resets, r
         else:
             row = 0
             if uses_vel:
-                lt = np.array([w_m[1] * lever[2] - w_m[2] * lever[1], w_m[2] * lever[0] - w_m[0] * lever[2],
-                               w_m[0] * lever[1] - w_m[1] * lever[0]])
+                lt = _cross3(w_m, lever)
                 zv = v - v_m - c_nm @ lt
                 z[0], z[1], z[2] = zv[0], zv[1], zv[2]
                 row = 3
