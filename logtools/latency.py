@@ -143,10 +143,15 @@ PERIODIC_MARGIN = 1e-4  # alternative minimum within this of the best normalised
 #   1000x the best, and was flagged at 0.02; an aircraft's S-turns 200 s later 2.5e-4 against 9e-5 (the cost's
 #   statistical spread is a few % of it: PERIODIC_REL_MARGIN covers that))
 PERIODIC_REL_MARGIN = 0.1  # ... or within this fraction of the best cost (noisy data)
+PERIODIC_VELOCITY = True  # alternatives checked on the velocities where both units have them
+PERIODIC_VELOCITY_RATIO = 2.0  # an alternative whose velocity residual RMS exceeds the estimate's this many
+#   times is rejected (its mismatch then carries 3x the noise's power)
 GLS = True  # weigh frequencies by motion / residual power (whitened Gauss-Newton), see _refine_gls
 GLS_PASSES = 2  # whole-overlap GLS passes (residual spectrum re-estimated before each)
 GLS_TAPER_S = 2.0  # ramp of the weights at the ends of the used data (whitening transients)
 WINDOW_REJECT = 5.0  # a window this many sigma off the drift line is an outlier (wrong minimum)
+WINDOW_DRIFT = True  # the drift windows' delays are fitted with the drift inside each window (see _fit_all)
+WINDOW_DRIFT_FRACTION = 0.1  # ... where it moves a window's delay end to end by more than this x its sigma
 WINDOW_INFLATE = True  # sigma inflated by the kept windows' scatter about the drift line (chi2 > 1)
 FINE_COST_POINTS = 41  # continuous cost samples around the estimate (plots)
 FINE_COST_SIGMAS = 5.0  # ... over +- this many sigma
@@ -1318,9 +1323,12 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
         lat_best = float(latency + drift * (t_best - t_mid))
         v_best = V[0, 0] + 2 * (t_best - t_mid) * V[0, 1] + (t_best - t_mid) ** 2 * V[1, 1]
         sig_best = max(SIGMA_CALIBRATION * float(np.sqrt(max(v_best, 0.0))), SIGMA_FLOOR_S)
-    periodic = len(co.alternatives_s) > 0
+    alts, alts_out = list(co.alternatives_s), []
+    if alts and PERIODIC_VELOCITY and vel_q is not None and vel_q["agrees"]:
+        alts, alts_out = _periodic_by_velocity(ctx, alts, co.d0_s, latency, drift, t_mid, fit_drift)
+    periodic = len(alts) > 0
     if periodic:
-        spread = max(abs(x - co.d0_s) for x in co.alternatives_s)
+        spread = max(abs(x - co.d0_s) for x in alts)
         sigma = max(sigma, 0.5 * spread)
     rpy = tuple(float(x) for x in np.degrees(euler_from_dcm(fin.R)))
     nanfrac = float(1.0 - np.mean(ok0[(gr.t_s >= w0) & (gr.t_s <= w1)]))
@@ -1344,7 +1352,8 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
         "motion_snr": float(min(snr, snr_s)),
         "too_little_motion": too_little,
         "periodic": periodic,
-        "periodic_alternatives_s": [float(x) for x in co.alternatives_s[:10]],
+        "periodic_alternatives_s": [float(x) for x in alts[:10]],
+        "periodic_alternatives_rejected_s": [float(x) for x in alts_out[:10]],
         "windows_disagree": bool(chi2_red > 9.0),
         "window_chi2_red": chi2_red,
         "n_windows": int(len(centers)),
@@ -1438,6 +1447,39 @@ def _velocity_step(ctx: _Ctx, w0: float, w1: float, t_mid: float, fit_drift: boo
     return q, (float(x[0]), float(x[1]), s_l, s_d, float(Wi[0, 1] / (s_l * s_d)))
 
 
+def _periodic_by_velocity(ctx: _Ctx, alts: list[float], d0: float, latency: float, drift: float, t_mid: float,
+                          fit_drift: bool) -> tuple[list[float], list[float]]:
+    """The rates' near-equal other minima (motion that repeats: a ship's sway, S-turns) tried on the
+    velocities, which a mounting rotation cannot fit and which seldom repeat with the attitude: an
+    alternative whose velocity fit leaves PERIODIC_VELOCITY_RATIO x the residual of the estimate's (each
+    over its own overlap, same fit) is rejected. Returns (kept, rejected) alternatives (coarse lags)."""
+    master, slave = ctx.vel_src
+    vp = velocity_pair(master, slave, ctx.cutoff_hz, ctx.master.itp)
+    if vp is None:
+        return alts, []
+    g = ctx.master.grid
+    dr = drift if fit_drift else 0.0
+
+    def rms_at(lag: float) -> float:
+        ok = g.valid & ctx.slave.itp.ok(g.t_s + lag)
+        if ok.sum() * g.dt_s < MIN_OVERLAP_S:
+            return np.nan
+        idx = np.flatnonzero(ok)
+        a0, a1 = float(g.t_s[idx[0]]), float(g.t_s[idx[-1]])
+        tm = 0.5 * (a0 + a1)
+        vf = velocity_fit(vp, a0, a1, lag + dr * (tm - t_mid), dr, tm, fit_drift=False, windows=[])
+        return np.nan if vf is None else vf.residual_rms_m_s
+
+    best = rms_at(latency)
+    if not (np.isfinite(best) and best > 0):
+        return alts, []
+    kept, out = [], []
+    for x in alts:
+        r = rms_at(latency + (x - d0))
+        (out if np.isfinite(r) and r > PERIODIC_VELOCITY_RATIO * best else kept).append(x)
+    return kept, out
+
+
 def _fine_cost(ctx: _Ctx, latency_s: float, drift: float, t_mid: float, w0: float, w1: float,
                half_s: float, n: int = FINE_COST_POINTS) -> tuple[np.ndarray, np.ndarray]:
     """The normalised rotation- and bias-solved cost (as the coarse curve) at n continuous lags
@@ -1478,35 +1520,47 @@ def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: f
     t_mid = 0.5 * (w0 + w1)
     itp = ctx.slave.itp
     wins = _windows(ctx, w0, w1, t_m[valid & itp.ok(t_m + d_center)])
-    centers, lats, sigs, wmot = [], [], [], []
     bounds: dict[float, tuple[float, float]] = {}
-    for (a0, a1) in wins if len(wins) >= 3 else []:
-        ws = (t_m >= a0) & (t_m <= a1)
-        if ws.sum() < 50:
-            continue
-        tc = 0.5 * (a0 + a1)
-        pred = d_center + drift_center * (tc - t_mid)
-        band = search_ppm * 1e-6 * abs(tc - t_mid) + 2.0 * ctx.dt_s
-        dw = _window_start(ctx, a0, a1, pred, band)
-        if dw is None:
-            continue
-        f = _refine(t_m[ws], a[ws], valid[ws], itp, dw, 0.0, tc, fit_drift=False, iters=8)
-        if GLS_WINDOWS and noise is not None and f.ok:
-            f = _refine_gls(t_m[ws], a[ws], valid[ws], itp, f.latency_s, 0.0, tc, noise, fit_drift=False)
-        if f.ok and np.isfinite(f.sigma_latency_s):
-            bounds[float(tc)] = (a0, a1)
-            centers.append(tc)
-            lats.append(f.latency_s)
-            sigs.append(max(f.sigma_latency_s, SIGMA_FLOOR_S))
-            wmot.append(f.motion_rms)
-    centers, lats, sigs, wmot = map(np.asarray, (centers, lats, sigs, wmot))
-    if len(wmot):
-        keep = wmot >= 0.2 * np.median(wmot)  # windows with enough motion
-        centers, lats, sigs = centers[keep], lats[keep], sigs[keep]
-    fin = None
-    if len(centers) >= 3:
-        # windows that locked on a wrong minimum (little motion in them: the linearised sigma does not
-        # hold there) are outliers of the line: rejected one at a time beyond WINDOW_REJECT sigma
+
+    def fit_windows(line: tuple[float, float] | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Each window's delay at its centre. The drift inside a window is that of ``line`` (L, drift at
+        t_mid), else none: a window's delay without it is that of the window's motion centroid, not its
+        centre (100 ppm over a 15 s window whose motion sits at one end: 0.7 ms)."""
+        centers, lats, sigs, wmot = [], [], [], []
+        for (a0, a1) in wins if len(wins) >= 3 else []:
+            ws = (t_m >= a0) & (t_m <= a1)
+            if ws.sum() < 50:
+                continue
+            tc = 0.5 * (a0 + a1)
+            if line is None:
+                dr_w = 0.0
+                pred = d_center + drift_center * (tc - t_mid)
+                band = search_ppm * 1e-6 * abs(tc - t_mid) + 2.0 * ctx.dt_s
+                dw = _window_start(ctx, a0, a1, pred, band)
+                if dw is None:
+                    continue
+            else:
+                dr_w = line[1]
+                dw = line[0] + dr_w * (tc - t_mid)
+            f = _refine(t_m[ws], a[ws], valid[ws], itp, dw, dr_w, tc, fit_drift=False, iters=8)
+            if GLS_WINDOWS and noise is not None and f.ok:
+                f = _refine_gls(t_m[ws], a[ws], valid[ws], itp, f.latency_s, dr_w, tc, noise, fit_drift=False)
+            if f.ok and np.isfinite(f.sigma_latency_s):
+                bounds[float(tc)] = (a0, a1)
+                centers.append(tc)
+                lats.append(f.latency_s)
+                sigs.append(max(f.sigma_latency_s, SIGMA_FLOOR_S))
+                wmot.append(f.motion_rms)
+        centers, lats, sigs, wmot = map(np.asarray, (centers, lats, sigs, wmot))
+        if len(wmot):
+            keep = wmot >= 0.2 * np.median(wmot)  # windows with enough motion
+            centers, lats, sigs = centers[keep], lats[keep], sigs[keep]
+        return centers, lats, sigs
+
+    def reject(centers: np.ndarray, lats: np.ndarray, sigs: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
+        """Windows that locked on a wrong minimum (little motion in them: the linearised sigma does not
+        hold there) are outliers of the line: rejected one at a time beyond WINDOW_REJECT sigma."""
         keep = np.ones(len(centers), bool)
         while keep.sum() > 3:
             L0, dr0, _ = _wls_line(centers[keep] - t_mid, lats[keep], sigs[keep])
@@ -1517,11 +1571,25 @@ def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: f
             keep[j] = False
         centers, lats, sigs = centers[keep], lats[keep], sigs[keep]
         L0, dr0, _ = _wls_line(centers - t_mid, lats, sigs)
+        return centers, lats, sigs, L0, dr0
+
+    centers, lats, sigs = fit_windows(None)
+    fin = None
+    if len(centers) >= 3:
+        centers, lats, sigs, L0, dr0 = reject(centers, lats, sigs)
         # two starts: the windows' line and the central fit without drift; the lower cost wins
         cands = [_refine(t_m, a, valid, itp, L0, dr0, t_mid, fit_drift=True),
                  _refine(t_m, a, valid, itp, d_center, 0.0, t_mid, fit_drift=True)]
         cands = [c for c in cands if c.ok]
         fin = min(cands, key=lambda c: c.residual_rms) if cands else None
+        half = 0.5 * max(b - a for a, b in bounds.values())
+        if (WINDOW_DRIFT and fin is not None
+                and abs(fin.drift) * half > WINDOW_DRIFT_FRACTION * float(np.median(sigs))):
+            # the windows again, with the joint fit's drift inside each (a window's own drift-free delay
+            # is its motion centroid's: windows of uneven motion scatter about the line for nothing)
+            c2, l2, s2 = fit_windows((fin.latency_s, fin.drift))
+            if len(c2) >= 3:
+                centers, lats, sigs, _, _ = reject(c2, l2, s2)
     if fin is None:
         centers = lats = sigs = np.zeros(0)
         fin = _refine(t_m, a, valid, itp, d_center, 0.0, t_mid, fit_drift=_drift_without_windows(w0, w1))
@@ -1566,7 +1634,7 @@ def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: f
             for tc in centers:
                 a0, a1 = bounds[float(tc)]
                 ws = (t_m >= a0) & (t_m <= a1)
-                fw = refit(ws, tc, f.latency_s + f.drift * (tc - t_mid))
+                fw = refit(ws, tc, f.latency_s + f.drift * (tc - t_mid), f.drift if WINDOW_DRIFT else 0.0)
                 if fw.ok and np.isfinite(fw.sigma_latency_s):
                     c2.append(tc)
                     l2.append(fw.latency_s)
@@ -1577,8 +1645,8 @@ def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: f
 
         refit = None
         if final_acc is not None:
-            def refit(ws, tc, lag):
-                return _refine_gls(t_m[ws], a[ws], valid[ws], itp, lag, 0.0, tc, final_noise, fit_drift=False,
+            def refit(ws, tc, lag, drift):
+                return _refine_gls(t_m[ws], a[ws], valid[ws], itp, lag, drift, tc, final_noise, fit_drift=False,
                                    acc=final_acc)
         cands = [(fin, refit)]
         if FLEX_SS and gls_done and fin.sigma_latency_s > ACCEL_MIN_SIGMA_S:
@@ -1597,8 +1665,8 @@ def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: f
                     ff = replace(ff, model_gap_s=gap)
                     cands[0] = (fin, refit)
 
-                def refit_flex(ws, tc, lag):
-                    return _refine_flex(t_m[ws], a[ws], valid[ws], itp, lag, 0.0, tc, ctx.cutoff_hz,
+                def refit_flex(ws, tc, lag, drift):
+                    return _refine_flex(t_m[ws], a[ws], valid[ws], itp, lag, drift, tc, ctx.cutoff_hz,
                                         fit_drift=False, acc=final_acc, model=ff.flex, h0=ff.sigma_latency_s)
                 cands.append((ff, refit_flex))
         if len(cands) == 1 or not fd:

@@ -37,6 +37,7 @@ import re
 import shlex
 import signal
 import sys
+import threading
 import time
 from dataclasses import asdict, dataclass
 
@@ -388,12 +389,43 @@ def _result_or_failure(job: PairJob, fut) -> dict:
                 "ran": True}
 
 
-def _run_local(jobs: list[PairJob], n: int, on_result) -> None:
+class _SigintLatch:
+    """Ctrl-C raises KeyboardInterrupt as usual and is also remembered: an interrupt that lands where
+    Python swallows exceptions (a finaliser, a weakref callback: "Exception ignored in ...") still
+    stops the batch before its next pair (``check``) and at its end."""
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._old = None
+
+    def __enter__(self) -> _SigintLatch:
+        if threading.current_thread() is threading.main_thread() and \
+                signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+            self._old = signal.signal(signal.SIGINT, self._handler)
+        return self
+
+    def _handler(self, signum, frame) -> None:
+        self.requested = True
+        raise KeyboardInterrupt
+
+    def check(self) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+
+    def __exit__(self, *exc) -> None:
+        if self._old is not None:
+            signal.signal(signal.SIGINT, self._old)
+
+
+def _run_local(jobs: list[PairJob], n: int, on_result, latch: _SigintLatch | None = None) -> None:
     """Serial (n = 1, in this process) or ``n`` worker processes, at most ``n`` pairs in flight so
     that an interrupt stops at once: the running pairs finish their (atomic) writes, no new one starts."""
+    check = latch.check if latch is not None else (lambda: None)
     if n <= 1:
         for j in jobs:
+            check()
             on_result(j, run_pair(j))
+        check()
         return
     ctx = mp.get_context(os.environ.get("TAPOST_MP_START", "spawn"))
     todo = iter(jobs)
@@ -413,6 +445,7 @@ def _run_local(jobs: list[PairJob], n: int, on_result) -> None:
                 for f in done:
                     j = inflight.pop(f)
                     on_result(j, _result_or_failure(j, f))
+                check()
                 fill()
         except KeyboardInterrupt:
             print(f"tapost batch: interrupted; waiting for {len(inflight)} running pair(s) to finish their "
@@ -469,10 +502,12 @@ def run_batch(campaign: str, out_root: str, *, jobs: int = 1, scheduler: str | N
         else:
             todo.append(j)
     try:
-        if scheduler:
-            _run_dask(todo, scheduler, on_result)
-        else:
-            _run_local(todo, max(1, int(jobs)), on_result)
+        with _SigintLatch() as latch:
+            if scheduler:
+                _run_dask(todo, scheduler, on_result)
+            else:
+                _run_local(todo, max(1, int(jobs)), on_result, latch)
+            latch.check()
     finally:
         final = [rows.get(j.name) or row_from_report(j, None, "pending", -1, "not run (interrupted)")
                  for j in pair_jobs]

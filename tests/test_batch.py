@@ -167,6 +167,28 @@ def test_sigint_leaves_no_half_written_report_and_rerun_completes(tmp_path):
     assert (pd.read_csv(out / "summary.csv").status != "pending").all()
 
 
+def test_an_interrupt_swallowed_inside_a_pair_still_stops_the_batch(monkeypatch):
+    """Ctrl-C landing where Python swallows exceptions (a finaliser: "Exception ignored in ...") let a batch
+    run on to exit 0 (a flake of the test above). The latch remembers it: no further pair starts."""
+    ran = []
+
+    def pair(job):
+        ran.append(job)
+        try:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.5)  # the handler runs here
+        except KeyboardInterrupt:
+            pass  # swallowed, as in a finaliser
+        return {"row": {}, "ran": True}
+
+    monkeypatch.setattr(batch, "run_pair", pair)
+    with pytest.raises(KeyboardInterrupt):
+        with batch._SigintLatch() as latch:
+            batch._run_local(["a", "b", "c"], 1, lambda j, r: None, latch)
+    assert ran == ["a"]
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+
+
 def test_real_campaign(tmp_path):
     """Real numerics, mixed formats, spawned processes vs a multi-process Dask LocalCluster."""
     sim = pytest.importorskip("logtools.sim")
