@@ -280,7 +280,8 @@ def _uniform_native(t: np.ndarray, w: np.ndarray, name: str) -> tuple[UniformSer
     try:
         nat = to_uniform(t, w, name=name)
     except ValueError as exc:
-        raise AnalysisError(f"{name}: {exc}") from None
+        msg = str(exc)
+        raise AnalysisError(msg if msg.startswith(name) else f"{name}: {msg}") from None
     # noise per raw sample (second differences remove smooth motion): std(d2) = sqrt(6) sigma
     d2 = np.diff(nat.values[nat.valid], n=2, axis=0)
     noise = float(np.sqrt(np.mean((np.median(np.abs(d2), axis=0) * 1.4826) ** 2)) / np.sqrt(6.0)) if len(d2) else 0.0
@@ -981,6 +982,9 @@ def _prepare(master: InsLog, slave: InsLog, max_lag_s: float | None, *, accelero
     oks = np.all(np.isfinite(ws), axis=1) & np.isfinite(ts)
     m0, m1 = float(np.min(tm[okm])), float(np.max(tm[okm]))
     s0, s1 = float(np.min(ts[oks])), float(np.max(ts[oks]))
+    if min(m1 - m0, s1 - s0) < MIN_OVERLAP_S:
+        raise AnalysisError(f"logs too short for a latency estimate: master {m1 - m0:.1f} s, slave "
+                            f"{s1 - s0:.1f} s of angular rate (need {MIN_OVERLAP_S:g} s of overlap)")
     if max_lag_s is not None:
         ov = min(m1, s1 + max_lag_s) - max(m0, s0 - max_lag_s)
         if ov < MIN_OVERLAP_S:
@@ -988,9 +992,6 @@ def _prepare(master: InsLog, slave: InsLog, max_lag_s: float | None, *, accelero
                 f"no overlap between master [{m0 + master.t0_s:.3f}, {m1 + master.t0_s:.3f}] s and slave "
                 f"[{s0 + master.t0_s:.3f}, {s1 + master.t0_s:.3f}] s within +-{max_lag_s:g} s at face value "
                 f"(clocks unrelated? use --max-lag auto)")
-    elif min(m1 - m0, s1 - s0) < MIN_OVERLAP_S:
-        raise AnalysisError(f"logs too short for a latency estimate: master {m1 - m0:.1f} s, slave "
-                            f"{s1 - s0:.1f} s (need {MIN_OVERLAP_S:g} s of overlap)")
     natm, nm = _uniform_native(tm, wm, "master")
     nats, ns = _uniform_native(ts, ws, "slave")
     # zero-phase low-pass of both units at the same cutoff: a few times the motion's band (the noise

@@ -117,6 +117,12 @@ def stamp_noise_s(t: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(st - np.median(st))) / np.sqrt(2.0))
 
 
+#: a uniform grid longer than both of these (per sample, in all) is refused: a stream whose stamps span
+#: far more time than its samples cover (a corrupt stamp days away) would otherwise take gigabytes
+MAX_GRID_PER_SAMPLE = 20.0
+MAX_GRID_POINTS = 20_000_000
+
+
 def to_uniform(
     t_s: np.ndarray,
     values: np.ndarray,
@@ -140,6 +146,9 @@ def to_uniform(
     dt = float(dt_s) if dt_s is not None else dt_nat
     i0 = int(np.ceil(t[0] / dt - 1e-9))
     i1 = int(np.floor(t[-1] / dt + 1e-9))
+    if i1 - i0 + 1 > max(MAX_GRID_PER_SAMPLE * len(t), MAX_GRID_POINTS):
+        raise ValueError(f"{name}: {len(t)} samples at {1 / dt_nat:.4g} Hz spread over {t[-1] - t[0]:.0f} s "
+                         f"(mostly gaps: corrupt stamps, or logs joined across a long pause?); not resampled")
     tg = np.arange(i0, i1 + 1) * dt
     tg = np.clip(tg, t[0], t[-1])
     # spline on the samples (not-a-knot cubic); gaps masked below

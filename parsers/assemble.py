@@ -16,6 +16,12 @@ from parsers.base import rate_of, stamp_grid_s
 
 #: a stamp step larger than this many median periods is reported as a gap
 GAP_FACTOR = 5.0
+#: a run of at most STRAY_MAX_SAMPLES samples cut off from the rest by steps longer than STRAY_GAP_S and
+#: STRAY_GAP_PERIODS median periods holds stray stamps (a corrupt time field: one DataFlash TimeUS with
+#: a flipped byte put a sample 12 days after a 40 s log, and a uniform grid over that span took 16 GB)
+STRAY_GAP_S = 60.0
+STRAY_GAP_PERIODS = 1000.0
+STRAY_MAX_SAMPLES = 3
 
 
 @dataclass(frozen=True)
@@ -37,6 +43,11 @@ def clean_stream(name: str, s: Stream, warnings: list[str]) -> Stream:
     if not finite.all():
         warnings.append(f"{name} ({s.source}): {int((~finite).sum())} samples with NaN/inf dropped")
         t, v = t[finite], v[finite]
+    bad = implausible(name, v)
+    if bad.any():
+        warnings.append(f"{name} ({s.source}): {int(bad.sum())} samples with impossible values dropped "
+                        f"(corrupt data?)")
+        t, v = t[~bad], v[~bad]
     if len(t) > 1 and np.any(np.diff(t) < 0):
         n_back = int(np.sum(np.diff(t) < 0))
         warnings.append(f"{name} ({s.source}): {n_back} backward time steps (clock reset or reordering); sorted")
@@ -47,6 +58,14 @@ def clean_stream(name: str, s: Stream, warnings: list[str]) -> Stream:
         if dup.any():
             warnings.append(f"{name} ({s.source}): {int(dup.sum())} duplicate stamps dropped")
             t, v = t[~dup], v[~dup]
+    if len(t) > STRAY_MAX_SAMPLES + 1:
+        keep = not_stray(t)
+        if not keep.all():
+            n = int((~keep).sum())
+            bad = t[~keep]
+            warnings.append(f"{name} ({s.source}): {n} sample(s) with stray stamps dropped ({bad.min() * 1e-9:.3f} .. "
+                            f"{bad.max() * 1e-9:.3f} s, isolated from the rest: a corrupt time field?)")
+            t, v = t[keep], v[keep]
     if len(t) > 2:
         d = np.diff(t)
         med = np.median(d)
@@ -56,6 +75,42 @@ def clean_stream(name: str, s: Stream, warnings: list[str]) -> Stream:
                 f"{name} ({s.source}): {int(big.sum())} gap(s) in stamps, longest {d.max() * 1e-9:.3f} s")
     # the stamps' resolution: the format's (tlog time_boot_ms), or the grid the stamps show they are on
     return Stream(t, v, s.source, max(s.stamp_resolution_s, stamp_grid_s(t)))
+
+
+#: physically impossible magnitudes per stream (SI): a sample beyond them is a corrupt value (a flipped
+#: bit in a float without checksum), dropped with a warning. Generous: 10000 deg/s, about 500 g, 10 km/s.
+LIMITS = {"gyro": 175.0, "accel": 5000.0, "vel": 1.0e4}
+
+
+def implausible(name: str, values: np.ndarray) -> np.ndarray:
+    """True for the rows of ``values`` (N, k) of stream ``name`` that no vehicle can produce: a component
+    beyond LIMITS, or for positions a latitude beyond 90 deg, a longitude beyond 360 deg, an altitude
+    beyond 1000 km."""
+    v = np.abs(np.asarray(values, dtype=float))
+    if name in LIMITS:
+        return np.any(v > LIMITS[name], axis=1)
+    if name == "pos" and v.ndim == 2 and v.shape[1] >= 3:
+        return (v[:, 0] > 90.0) | (v[:, 1] > 360.0) | (v[:, 2] > 1.0e6)
+    return np.zeros(len(v), dtype=bool)
+
+
+def not_stray(t_ns: np.ndarray) -> np.ndarray:
+    """False for samples in runs of at most STRAY_MAX_SAMPLES cut off from longer runs by steps longer
+    than STRAY_GAP_S and STRAY_GAP_PERIODS median periods (``t_ns`` sorted, unique)."""
+    d = np.diff(t_ns)
+    thr = max(STRAY_GAP_S * 1e9, STRAY_GAP_PERIODS * float(np.median(d)))
+    cut = np.flatnonzero(d > thr) + 1
+    keep = np.ones(len(t_ns), dtype=bool)
+    if not len(cut):
+        return keep
+    bounds = np.concatenate([[0], cut, [len(t_ns)]])
+    sizes = np.diff(bounds)
+    if sizes.max() <= STRAY_MAX_SAMPLES:
+        return keep  # nothing but small runs: nothing to tell the stray ones by
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        if b - a <= STRAY_MAX_SAMPLES:
+            keep[a:b] = False
+    return keep
 
 
 def build_inslog(

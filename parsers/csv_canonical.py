@@ -13,6 +13,7 @@ import pandas as pd
 
 from logtools.errors import InputError
 from logtools.inslog import ACCEL, GYRO, POS, QUAT, VEL, ChannelInfo, InsLog, LogMeta
+from parsers.assemble import STRAY_MAX_SAMPLES, implausible, not_stray
 from parsers.atomic import atomic_path
 from parsers.base import Inventory, Selector, StreamInfo, rate_of, stamp_grid_s
 from parsers.csvtable import decimal_text_to_int, read_table
@@ -39,15 +40,23 @@ def sniff(head: bytes, path: str) -> bool:
 
 def seconds_text_to_ns(values: pd.Series) -> np.ndarray:
     """Decimal seconds as text -> int64 ns, exactly (no float64 rounding of epoch stamps)."""
-    return _seconds_text(values)[0]
-
-
-def _seconds_text(values: pd.Series) -> tuple[np.ndarray, int | None]:
-    """(int64 ns, the fixed number of decimals they are written with or None)."""
-    ns, ok, dec = decimal_text_to_int(values, 9)
+    ns, ok, _ = decimal_text_to_int(values, 9)
     if not ok.all():
         raise ValueError("time column holds values that are not decimal seconds")
-    return ns, dec
+    return ns
+
+
+#: at most this fraction of the time cells may be malformed (dropped with a warning: a damaged line);
+#: beyond it the column is not a time in decimal seconds at all
+MAX_BAD_TIME_FRACTION = 0.01
+
+
+def _seconds_text(values: pd.Series) -> tuple[np.ndarray, np.ndarray, int | None]:
+    """(int64 ns, the rows whose time is a decimal number, the fixed number of decimals or None)."""
+    ns, ok, dec = decimal_text_to_int(values, 9)
+    if not ok.any() or (~ok).sum() > MAX_BAD_TIME_FRACTION * len(ok):
+        raise ValueError("time column holds values that are not decimal seconds")
+    return ns, ok, dec
 
 
 def ns_to_seconds_text(ns: np.ndarray, decimals: int = 9) -> np.ndarray:
@@ -73,9 +82,12 @@ def load(path: str, selector: Selector) -> InsLog:
     df, warnings = _read_frame(path)
     df = df[df[TIME].notna()]
     try:
-        t_ns, dec = _seconds_text(df[TIME])
+        t_ns, ok_t, dec = _seconds_text(df[TIME])
     except ValueError as exc:
         raise InputError(str(exc), path) from None
+    if not ok_t.all():
+        warnings.append(f"{int((~ok_t).sum())} row(s) whose time is not a decimal number dropped (damaged lines?)")
+        t_ns, df = t_ns[ok_t], df[ok_t]
     groups = {"gyro": CSV_GYRO, "accel": CSV_ACCEL, "quat": CSV_QUAT, "vel": CSV_VEL, "pos": CSV_POS}
     present = {g: cols for g, cols in groups.items() if all(c in df.columns for c in cols)}
     partial = [g for g, cols in groups.items() if g not in present and any(c in df.columns for c in cols)]
@@ -94,12 +106,27 @@ def load(path: str, selector: Selector) -> InsLog:
     if dup.any():
         warnings.append(f"{int(dup.sum())} duplicate time stamps dropped")
         t_ns, df = t_ns[~dup], df[~dup]
+    if len(t_ns) > STRAY_MAX_SAMPLES + 1:
+        keep = not_stray(t_ns)
+        if not keep.all():
+            bad = t_ns[~keep]
+            warnings.append(f"{int((~keep).sum())} row(s) with stray stamps dropped ({bad.min() * 1e-9:.3f} .. "
+                            f"{bad.max() * 1e-9:.3f} s, isolated from the rest: a corrupt time field?)")
+            t_ns, df = t_ns[keep], df[keep]
     t0_ns = int(t_ns[0])
     t_s = (t_ns - t0_ns) * 1e-9
     clock = "epoch" if t0_ns * 1e-9 > EPOCH_THRESHOLD_S else "boot"
 
+    n_bad: dict[str, int] = {}
+
     def block(cols):
-        return df[list(cols)].apply(pd.to_numeric, errors="coerce").to_numpy(dtype=float)
+        x = df[list(cols)].apply(pd.to_numeric, errors="coerce").to_numpy(dtype=float, copy=True)
+        g = next(k for k, c in groups.items() if tuple(c) == tuple(cols))
+        bad = implausible(g, x)
+        if bad.any():  # corrupt values: the row's group is treated as missing
+            n_bad[g] = int(bad.sum())
+            x[bad] = np.nan
+        return x
 
     def resolution(mask: np.ndarray) -> float:
         """The stamps' step: the fixed number of decimals they are written with, or the grid they show."""
@@ -131,6 +158,7 @@ def load(path: str, selector: Selector) -> InsLog:
         if "pos" in present:
             kw["lat_lon_alt"] = block(CSV_POS)[nav_mask]
         channels["nav"] = ChannelInfo(rate_of(t_s[nav_mask]), int(nav_mask.sum()), "csv", resolution(nav_mask))
+    warnings += [f"{g}: {n} rows with impossible values ignored (corrupt data?)" for g, n in n_bad.items()]
     if not kw:
         raise InputError("no complete data rows", path)
     meta = LogMeta(source_path=path, format=NAME, selector=str(selector), clock=clock, t0_ns=t0_ns,

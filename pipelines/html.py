@@ -217,7 +217,11 @@ def fig_states(an: Analysis) -> list[tuple[str, str]]:
     if not runs:
         return []
     plt = _mpl()
-    names = next(iter(runs.values())).history_names
+    # the runs' states by name (the runs may differ: flexure or lever-arm states in one only)
+    names: list[str] = []
+    for res in runs.values():
+        names += [n for n in res.history_names if n not in names]
+    col = {r: {n: i for i, n in enumerate(res.history_names)} for r, res in runs.items()}
     out = []
     for group, idx in _state_groups(names).items():
         ncol = min(3, len(idx))
@@ -226,9 +230,10 @@ def fig_states(an: Analysis) -> list[tuple[str, str]]:
         for k, i in enumerate(idx):
             ax = axs[k // ncol, k % ncol]
             for run, res in runs.items():
-                if i >= res.history_x.shape[1] or res.history_names[i] != names[i]:
+                j = col[run].get(names[i])
+                if j is None or j >= res.history_x.shape[1]:
                     continue
-                t, x, s = _decimate(res.history_t_s, res.history_x[:, i], res.history_sigma[:, i])
+                t, x, s = _decimate(res.history_t_s, res.history_x[:, j], res.history_sigma[:, j])
                 st = RUN_STYLE.get(run, {})
                 ax.plot(t, x, lw=1.1, label=f"{run}", **st)
                 ax.fill_between(t, x - 3 * s, x + 3 * s, color=st.get("color"), alpha=0.12,
@@ -250,17 +255,20 @@ def fig_residuals(an: Analysis) -> str | None:
     if not runs:
         return None
     plt = _mpl()
-    names = next(iter(runs.values())).residual_names
+    names: list[str] = []
+    for res in runs.values():
+        names += [n for n in res.residual_names if n not in names]
     ncol = min(3, len(names))
     nrow = int(math.ceil(len(names) / ncol))
     fig, axs = plt.subplots(nrow, ncol, figsize=(4.2 * ncol, 2.7 * nrow), squeeze=False, sharex=True)
     for i, name in enumerate(names):
         ax = axs[i // ncol, i % ncol]
         for run, res in runs.items():
-            if i < res.residuals.shape[1]:
-                t, r = _decimate(res.residual_t_s, res.residuals[:, i])
+            j = list(res.residual_names).index(name) if name in res.residual_names else None
+            if j is not None and j < res.residuals.shape[1]:
+                t, r = _decimate(res.residual_t_s, res.residuals[:, j])
                 st = RUN_STYLE.get(run, {})
-                rms = float(np.sqrt(np.nanmean(res.residuals[:, i] ** 2)))
+                rms = float(np.sqrt(np.nanmean(res.residuals[:, j] ** 2)))
                 ax.plot(t, r, lw=0.8, label=f"{run} (rms {rms:.3g})", color=st.get("color"), alpha=0.8)
         ax.set_title(name)
         ax.set_xlabel("time (s)")

@@ -87,3 +87,28 @@ def test_renders_in_headless_chromium(page, tmp_path):
         assert f'id="{s}"' in dom
     assert dom.count("<img") >= 7
     assert "tapost latency and transfer-alignment report" in dom
+
+
+def test_state_plots_match_the_runs_states_by_name(monkeypatch):
+    """One run may carry states the other lacks (flexure, lever arm): the plots matched them by index, so
+    the compensated run's lever arm went unplotted when the uncompensated one had six flexure states."""
+    from dataclasses import replace
+
+    from pipelines import html as H
+
+    an = make_fake_analysis(duration_s=30)
+    comp = an.alignment["compensated"]
+    k = 6  # flexure-like states inserted before the accelerometer biases
+    names = comp.history_names[:k] + ("flex_ang_x_arcmin",) + comp.history_names[k:]
+    ins = lambda a: np.insert(a, k, 0.5, axis=1)  # noqa: E731
+    an.alignment["compensated"] = replace(comp, history_names=names, history_x=ins(comp.history_x),
+                                          history_sigma=ins(comp.history_sigma))
+    figs = []
+    monkeypatch.setattr(H, "_png", lambda fig: figs.append(fig) or "")
+    H.fig_states(an)
+    lines = {ax.get_title(): sorted(ln.get_label() for ln in ax.get_lines()) for f in figs for ax in f.axes}
+    assert lines["accel_bias_x_mg"] == ["compensated", "uncompensated"]
+    assert lines["flex_ang_x_arcmin"] == ["compensated"]
+    x_plotted = next(ln for f in figs for ax in f.axes if ax.get_title() == "accel_bias_x_mg"
+                     for ln in ax.get_lines() if ln.get_label() == "compensated").get_ydata()
+    assert np.allclose(x_plotted[-1], comp.history_x[-1, k])  # its own column, not the inserted one

@@ -329,6 +329,47 @@ def test_canonical_edge_cases(tmp_path):
         assert "\n" not in str(e.value)
 
 
+def test_canonical_damaged_cells_drop_their_rows_not_the_file(tmp_path):
+    """Flipped bytes in a CSV: a time cell that is no longer a number rejected the whole file; a gyro cell
+    become 1e+30 went into the analysis (matrix overflows). Now the first drops its row, the second its
+    row's gyro group, each with a warning; a time column that is mostly not numbers is still refused."""
+    log = _canon_log()
+    p = tmp_path / "c.csv"
+    registry.write(str(p), log, "csv")
+    lines = p.read_text().splitlines()
+    cells = lines[11].split(",")
+    cells[0] = cells[0].replace(".", "#")
+    lines[11] = ",".join(cells)
+    cells = lines[21].split(",")
+    cells[1] = "1e+30"
+    lines[21] = ",".join(cells)
+    p.write_text("\n".join(lines) + "\n")
+    back = registry.load(str(p))
+    assert len(back.imu) == len(log.imu) - 1  # the damaged time's row
+    g = back.gyro_rad_s()
+    assert np.isnan(g).any(axis=1).sum() == 1 and np.nanmax(np.abs(g)) < 2.0  # the 1e+30 row: no gyro
+    w = " ".join(back.meta.warnings)
+    assert "1 row(s) whose time is not a decimal number dropped" in w and "gyro: 1 rows with impossible values" in w
+    bad = tmp_path / "bad.csv"
+    bad.write_text("\n".join([lines[0]] + [ln.replace(".", "#", 1) for ln in lines[1:]]) + "\n")
+    with pytest.raises(InputError, match="not decimal seconds"):
+        registry.load(str(bad))
+
+
+def test_implausible_values_are_dropped_where_every_format_meets():
+    from parsers.assemble import Stream, build_inslog
+
+    t = 1_700_000_000_000_000_000 + np.arange(200, dtype=np.int64) * 5_000_000
+    g = np.tile([0.1, -0.2, 0.3], (200, 1))
+    g[50] = [3.0e38, 0.0, 0.0]  # a float32 with a flipped exponent bit
+    v = np.tile([10.0, 0.0, 0.0], (200, 1))
+    v[70, 2] = -1e300
+    log = build_inslog(path="x", fmt="test", selector="", clock="epoch", stamp_source="test",
+                       gyro=Stream(t, g, "IMU"), vel=Stream(t, v, "NAV"))
+    assert len(log.imu) == 199 and log.nav["vel_d_m_s"].abs().max() < 1.0
+    assert sum("impossible values dropped" in w for w in log.meta.warnings) == 2
+
+
 def test_canonical_sniff_is_by_header_not_extension(tmp_path):
     log = _canon_log()
     p = tmp_path / "data.bin"

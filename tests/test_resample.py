@@ -96,3 +96,16 @@ def test_median_rate_robust_to_duplicates_and_gaps():
     t = np.concatenate([np.arange(0, 5, 0.02), np.arange(6, 8, 0.02)])
     t = np.sort(np.concatenate([t, t[:10]]))
     assert median_rate_hz(t) == pytest.approx(50.0, rel=1e-6)
+
+
+def test_a_grid_far_longer_than_its_samples_is_refused_not_allocated():
+    """2000 samples at 200 Hz with one of them 12 days away: the grid would hold 2e8 points (1.6 GB a
+    column); it is refused with a reason instead."""
+    t = np.arange(2000) * 0.005
+    t[-1] = 1.04e6
+    with pytest.raises(ValueError, match="spread over 1040000 s"):
+        to_uniform(t, _sig(t), name="slave gyro")
+    # a long pause between two real runs of data is still resampled (masked as a gap)
+    t2 = np.concatenate([np.arange(2000) * 0.005, 300.0 + np.arange(2000) * 0.005])
+    u = to_uniform(t2, _sig(t2))
+    assert not u.valid.all() and u.gaps_s
