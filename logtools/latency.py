@@ -1098,8 +1098,10 @@ def _coarse(ctx: _Ctx) -> _Coarse:
     rho, n = _norm_xcorr(m, s, lags)
     rho[n < min_count] = np.nan
     if not np.any(np.isfinite(rho)):
-        raise AnalysisError(f"overlap shorter than {min_count * dt:.1f} s at every candidate lag "
-                            f"(clocks unrelated? use --max-lag auto)")
+        short = min(int(m.valid.sum()), int(s.valid.sum())) * dt
+        hint = (f"the shorter log has {short:.1f} s of usable angular rate" if short < 2.0 * min_count * dt
+                else "clocks unrelated? use --max-lag auto")
+        raise AnalysisError(f"overlap shorter than {min_count * dt:.1f} s at every candidate lag ({hint})")
     ib = int(np.nanargmax(rho))
     xc_lat = (lags[ib] + _parabolic(-rho, ib)) * dt
     # 2) rotation-solved full-vector cost; in an unbounded search only around the best |w| peaks

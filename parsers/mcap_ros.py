@@ -169,10 +169,12 @@ class _Scan:
         msgtype = self.schemas.get(sid, ("", "", b""))[0]
         self.data[cid] = [] if self.keep(topic, msgtype) else None
 
-    def records(self, buf, start: int, end: int, where: str) -> None:
+    def records(self, buf, start: int, end: int, where: str, *, cut_ok: bool = False) -> None:
         """Walk the records in ``buf[start:end]`` (a chunk's content or the top level): the compiled
         walk finds the message records, schema and channel records are read here in their order; a
-        message whose channel is not defined before it, or a broken record, is damage."""
+        message whose channel is not defined before it, or a broken record, is damage. ``cut_ok``: a
+        record cut by the end of ``buf`` (the partial content of a truncated file's last chunk) ends
+        the walk quietly, the complete records before it kept."""
         arr = np.frombuffer(buf, np.uint8)
         m, cid, t, s, e, k, oop, ooff, onxt, err, eoff = _walk_kernel()(arr, start, end)
         defined_at: dict[int, int] = {}
@@ -193,6 +195,8 @@ class _Scan:
                 first_bad = min(first_bad, int(s[sel[0]]) - 31)
             elif c in defined_at and np.any(s[sel] - 31 < defined_at[c]):
                 first_bad = min(first_bad, int(s[sel][s[sel] - 31 < defined_at[c]][0]) - 31)
+        if err and cut_ok and err != _E_OPCODE:
+            err = 0
         if err and eoff < first_bad:
             raise _Damage({
                 _E_CUT: f"{where}: record header cut at byte {eoff}",
@@ -208,6 +212,35 @@ class _Scan:
             d = self.data[c]
             if d is not None:
                 d.extend([buf[a:b] for a, b in zip(s[sel].tolist(), e[sel].tolist())])
+
+
+def _partial_chunk(scan: _Scan, buf: bytes, off: int, end: int) -> int:
+    """The complete messages of a chunk cut by the end of the file (a recording killed while writing
+    its last chunk): what of its compressed data is there, decompressed as far as it goes, walked up to
+    the first cut record (what ``mcap recover`` does). Returns how many messages were added."""
+    try:
+        comp, o = _string(buf, off + 9 + 28)
+        data = bytes(buf[o + 8:end])
+        if comp == "":
+            content = data
+        elif comp == "zstd":
+            import zstandard
+
+            content = zstandard.ZstdDecompressor().decompressobj().decompress(data)
+        elif comp == "lz4":
+            import lz4.frame
+
+            content = lz4.frame.LZ4FrameDecompressor().decompress(data)
+        else:
+            return 0
+    except Exception:  # a header cut too, or data that does not decompress at all: nothing to recover
+        return 0
+    before = sum(len(v) for v in scan.times.values())
+    try:
+        scan.records(content, 0, len(content), f"partial chunk at byte {off}", cut_ok=True)
+    except (_Damage, struct.error, UnicodeDecodeError):
+        return 0
+    return sum(len(v) for v in scan.times.values()) - before
 
 
 def read_raw(path: str, keep: Callable[[str, str], bool] = rc.keep_supported, fmt: str = NAME) -> rc.RawLog:
@@ -231,8 +264,10 @@ def read_raw(path: str, keep: Callable[[str, str], bool] = rc.keep_supported, fm
             scan.warnings.append(f"damaged: invalid record opcode {op} at byte {off}; rest of file ignored")
             break
         if nxt > end:
+            got = _partial_chunk(scan, buf, off, end) if op == _OP_CHUNK else 0
             scan.warnings.append(f"file truncated at byte {end}: record at byte {off} (opcode {op}) incomplete; "
-                                 "readable part used")
+                                 + (f"{got} messages recovered from its complete part; " if got else "")
+                                 + "readable part used")
             break
         try:
             if op == _OP_CHUNK:

@@ -441,6 +441,24 @@ def test_truncated_file_uses_readable_part(big_files, tmp_path, fmt):
     np.testing.assert_array_equal(back.gyro_rad_s(), ref.gyro_rad_s()[:k])
 
 
+@pytest.mark.parametrize("compression", ["zstd", "lz4", "none"])
+def test_mcap_cut_inside_its_only_chunk_keeps_the_chunks_complete_messages(big_files, tmp_path, compression):
+    """A recording killed while writing its (last, here only) chunk: the whole chunk was dropped, so a
+    short MCAP cut anywhere read nothing. Its compressed part is now decompressed as far as it goes and
+    the complete messages in it kept (what ``mcap recover`` does), identical to the written ones."""
+    ref = big_files["log"]
+    short = InsLog(imu=ref.imu.iloc[:1500], nav=ref.nav.iloc[:0], meta=ref.meta)
+    src = str(tmp_path / f"one_{compression}.mcap")
+    mcap_ros.write(src, short, compression=compression)
+    data = open(src, "rb").read()
+    p = _copy_with(src, str(tmp_path / "cut.mcap"), data[: int(len(data) * 0.5)])
+    back = parsers.load(p)
+    k = len(back.imu)
+    assert 0.2 * len(short.imu) < k < len(short.imu)
+    assert any("messages recovered" in w for w in back.meta.warnings)
+    np.testing.assert_array_equal(back.gyro_rad_s(), short.gyro_rad_s()[:k])
+
+
 @pytest.mark.parametrize("fmt", ["mcap", "rosbag1", "rosbag2"])
 def test_flipped_byte_is_reported_or_contained(big_files, tmp_path, fmt):
     src = big_files[fmt]
