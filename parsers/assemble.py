@@ -84,11 +84,14 @@ LIMITS = {"gyro": 175.0, "accel": 5000.0, "vel": 1.0e4}
 
 def implausible(name: str, values: np.ndarray) -> np.ndarray:
     """True for the rows of ``values`` (N, k) of stream ``name`` that no vehicle can produce: a component
-    beyond LIMITS, or for positions a latitude beyond 90 deg, a longitude beyond 360 deg, an altitude
-    beyond 1000 km."""
+    beyond LIMITS, a quaternion far from unit norm, or for positions a latitude beyond 90 deg, a longitude
+    beyond 360 deg, an altitude beyond 1000 km."""
     v = np.abs(np.asarray(values, dtype=float))
     if name in LIMITS:
         return np.any(v > LIMITS[name], axis=1)
+    if name == "quat" and v.ndim == 2 and v.shape[1] == 4:  # a rotation is a unit quaternion (not zeros)
+        n = np.linalg.norm(v, axis=1)
+        return ~((n > 0.5) & (n < 2.0))
     if name == "pos" and v.ndim == 2 and v.shape[1] >= 3:
         return (v[:, 0] > 90.0) | (v[:, 1] > 360.0) | (v[:, 2] > 1.0e6)
     return np.zeros(len(v), dtype=bool)

@@ -316,12 +316,18 @@ def _quat_source(log: DfLog, src: Src) -> Src | None:
 def _att(log: DfLog, src: Src) -> tuple[np.ndarray, np.ndarray, str]:
     rec, t = _select(log, src)
     cols = rec.dtype.names
+    euler = all(c in cols for c in ("Roll", "Pitch", "Yaw"))
     if all(c in cols for c in ("Q1", "Q2", "Q3", "Q4")):
         q = np.column_stack([log.column(src.name, rec, c) for c in ("Q1", "Q2", "Q3", "Q4")])
-        good = np.linalg.norm(q, axis=1) > 0.5
-        if good.all():
-            return t, q, f"{src} quaternion"
-    if not all(c in cols for c in ("Roll", "Pitch", "Yaw")):
+        n = np.linalg.norm(q, axis=1)
+        good = np.isfinite(n) & (n > 0.5) & (n < 2.0)
+        # all of them unit quaternions; else most of them (the rest damaged records, dropped and said);
+        # a message whose Q fields are not filled (zeros: older AHR2) falls back on its Euler angles
+        if good.all() or (good.any() and (good.mean() >= 0.5 or not euler)):
+            bad = int((~good).sum())
+            return t[good], q[good], f"{src} quaternion" + (
+                f" ({bad} samples with a non-unit quaternion dropped)" if bad else "")
+    if not euler:
         raise InputError(f"{src} carries no attitude (Roll/Pitch/Yaw or Q1..Q4)", log.path)
     rpy = np.column_stack([log.column(src.name, rec, c) for c in ("Roll", "Pitch", "Yaw")]) * DEG
     return t, quat_from_euler(rpy), f"{src} Euler angles"
