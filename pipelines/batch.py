@@ -4,7 +4,8 @@ CAMPAIGN is
   * a folder. Pairs are found by name (case-insensitive), in this order:
       1. one subfolder per pair: ``<name>/master[.ext]`` + ``<name>/slave[.ext]`` (a file or a
          bag directory; pair name = the subfolder's name);
-      2. flat files: ``<name>.master.<ext>`` + ``<name>.slave.<ext>`` (pair name = ``<name>``).
+      2. flat files: ``<name>.master.<ext>`` + ``<name>.slave.<ext>`` (pair name = ``<name>``);
+      3. the folder itself holding one ``master[.ext]`` + ``slave[.ext]`` (pair name = the folder's).
     A master without its slave (or two candidates) is a failed row saying so.
   * a manifest CSV with a header ``master,slave[,options][,name]``: paths relative to the manifest's
     folder (``PATH[::SELECTOR]`` allowed), ``options`` = analyze options as on the command line
@@ -120,6 +121,13 @@ def discover_folder(campaign: str, out_root: str) -> list[PairJob]:
             problem = (f"expected one {stem}.master.* and one {stem}.slave.*, found {len(ms)} and {len(ss)}")
         jobs.append(PairJob(name, ms[0] if ms else "", ss[0] if ss else "", os.path.join(out_root, name),
                             problem=problem))
+    # the campaign folder itself holding one pair (``tapost batch sample_logs/``)
+    ms, ss = _role_entries(campaign, "master"), _role_entries(campaign, "slave")
+    ms = [p for p in ms if os.path.abspath(p) != out_abs]
+    if len(ms) == 1 and len(ss) == 1:
+        name = _safe_name(os.path.basename(os.path.abspath(campaign)))
+        name = f"{name}_root" if name in {j.name for j in jobs} else name
+        jobs.append(PairJob(name, ms[0], ss[0], os.path.join(out_root, name)))
     return jobs
 
 
@@ -167,8 +175,8 @@ def discover(campaign: str, out_root: str) -> list[PairJob]:
     if os.path.isdir(campaign):
         jobs = discover_folder(campaign, out_root)
         if not jobs:
-            raise InputError("no pairs found (expected <name>/master.* + <name>/slave.* subfolders or "
-                             "<name>.master.* + <name>.slave.* files)", campaign)
+            raise InputError("no pairs found (expected <name>/master.* + <name>/slave.* subfolders, "
+                             "<name>.master.* + <name>.slave.* files, or one master.* + slave.* here)", campaign)
         return jobs
     if os.path.isfile(campaign):
         return discover_manifest(campaign, out_root)

@@ -76,6 +76,13 @@ def test_discovery_rules(tmp_path):
     assert mj[0].options == ("--max-lag", "auto") and mj[1].name == "pair002"
     with pytest.raises(Exception, match="no pairs found"):
         batch.discover(str(camp / "other"), str(tmp_path / "o"))
+    # a folder that is itself one pair (the shipped sample_logs/): one job named after it
+    (root := tmp_path / "flight7").mkdir()
+    (root / "master.mcap").write_text("x")
+    (root / "slave.tlog").write_text("x")
+    (root / "truth.json").write_text("{}")
+    (rj,) = batch.discover(str(root), str(root / "out"))
+    assert rj.name == "flight7" and rj.master.endswith("master.mcap") and not rj.problem
 
 
 def test_manifest_options_reach_the_analysis(tmp_path):
