@@ -469,6 +469,27 @@ def test_coarse_mounting_from_rates_and_specific_forces_when_a_car_turns_about_o
     assert np.allclose(res.lever_arm_m, cfg.lever_arm_m, atol=0.1)
 
 
+def test_coarse_mounting_of_a_master_that_logs_only_its_navigation_solution():
+    """The same car with a master INS that logs its solution only (no IMU): the joint start needs the
+    master's specific force, now C_bn (dv/dt - g) from its velocity and attitude. Without it the filter
+    started from a zero mounting (a sweep's car: 77 arcmin off, measurement noise re-estimated to 6.6 m/s
+    and 18 deg to hide the divergence)."""
+    from logtools.conventions import dcm_from_euler
+    from logtools.inslog import InsLog
+
+    cfg = sim.scenario_config("vehicle", seed=66006, duration_s=300.0, latency_s=0.0, drift_ppm=0.0,
+                              mount_rpy_deg=(-32.6, 70.9, 156.5), lever_arm_m=(-0.22, -1.14, 1.23),
+                              slave_nav=False, speed_m_s=15.1, turn_amp_deg=23.0, turn_period_s=64.6,
+                              climb_amp_deg=0.7, speed_var_m_s=3.0)
+    p = sim.simulate(cfg)
+    master = InsLog(imu=p.master.imu.iloc[:0], nav=p.master.nav, meta=p.master.meta)
+    res = run_alignment(master, p.slave, estimate_lever_arm=True)
+    assert any("rates and specific forces together instead" in n for n in res.notes), res.notes
+    d = dcm_from_euler(np.radians(res.mounting_rpy_deg)).T @ dcm_from_euler(np.radians(cfg.mount_rpy_deg))
+    err_arcmin = np.degrees(np.arccos(np.clip((np.trace(d) - 1) / 2, -1, 1))) * 60
+    assert err_arcmin < 1.0 and err_arcmin / 60 < 3 * np.linalg.norm(res.mounting_sigma_deg), err_arcmin
+
+
 def test_coarse_mounting_weakly_determined_starts_from_the_joint_fit_with_a_wide_prior():
     """A ship that barely rolls or pitches (0.2 deg sway, yaw sway and heave along the same axis): rates and
     specific forces fix the mounting only weakly. Started from a zero mounting the filter diverged (38 deg off,

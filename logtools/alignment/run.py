@@ -32,7 +32,7 @@ from typing import Callable
 
 import numpy as np
 
-from logtools.conventions import (ARCMIN, ARCSEC, DEG, DEG_PER_H, MG, UG, dcm_from_euler, dcm_from_quat,
+from logtools.conventions import (ARCMIN, ARCSEC, DEG, DEG_PER_H, G0_M_S2, MG, UG, dcm_from_euler, dcm_from_quat,
                                   euler_from_dcm, quat_from_dcm, quat_make_continuous, quat_mul,
                                   rotvec_from_quat, quat_conj)
 from logtools import earth
@@ -53,6 +53,8 @@ IMU_GAP_PERIODS = 10.0  # is a gap: the slave's navigation restarts from the mas
 FLEX_AUTO_NIS = 10.0
 FLEX_AUTO_GAIN = 0.5
 FLEX_AUTO_MODEL = {"flex_sigma_deg": 0.05, "flex_beta": 2.0}
+IMPLAUSIBLE_R_VEL_M_S = 1.0  # re-estimated measurement noise beyond these: a note that the filter did
+IMPLAUSIBLE_R_ATT_DEG = 2.0  # ... not follow the data (no navigation output is that noisy)
 COARSE_JOINT = True  # where the rates turn about one axis, rates and specific forces in one Wahba problem
 COARSE_JOINT_RATIO = 0.05  # rates + specific forces: a start when the 2nd singular value is this much of the 1st
 COARSE_MIN_FORCE_M_S2 = 0.02  # ... and the specific forces move (rms, 2nd principal axis) at least this much
@@ -231,6 +233,9 @@ def run_alignment(master: InsLog, slave: InsLog, *, filter: str = "kf", match: s
         notes.append(f"measurement noise re-estimated from the residuals (first pass NIS/dof "
                      f"{nis0 / lay.n_meas:.1f}): velocity {settings.r_vel_m_s:.3g} m/s, attitude "
                      f"{settings.r_att_rad / DEG:.3g} deg")
+        if settings.r_vel_m_s > IMPLAUSIBLE_R_VEL_M_S or settings.r_att_rad > IMPLAUSIBLE_R_ATT_DEG * DEG:
+            notes.append("residuals this large are no INS's noise: the filter did not follow the data (a wrong "
+                         "start, an uncompensated delay or reset, other units); the mounting is doubtful")
     res = _result(run, lay, settings, sig0, filter, match, options, notes)
     prog(1.0, "alignment done")
     return res
@@ -423,10 +428,8 @@ def _coarse_mounting(master: InsLog, slave: InsLog, ms: MasterSeries, t_imu: np.
         # a car turning on a level road rotates about one axis: its accelerations (speed changes along the
         # track, centripetal across it) give another direction, and two fix a rotation. Rates and specific
         # forces (motion parts, each set normalised by its power) in one Wahba problem
-        if COARSE_JOINT and master.has_accel and accel is not None:
-            ta, fa = master.t_imu_s(), master.accel_m_s2()
-            oka = np.isfinite(fa).all(1)
-            f_m = np.stack([np.interp(grid - tau0, ta[oka], fa[oka, i]) for i in range(3)], -1)
+        f_m = _master_specific_force(master, ms, grid - tau0) if COARSE_JOINT and accel is not None else None
+        if f_m is not None:
             f_s = np.stack([np.interp(grid, t_imu, accel[:, i]) for i in range(3)], -1)
             f_m, f_s = f_m - f_m.mean(0), f_s - f_s.mean(0)
             pw, pf = float(np.trace(w_m.T @ w_m)), float(np.trace(f_m.T @ f_m))
@@ -453,6 +456,26 @@ def _coarse_mounting(master: InsLog, slave: InsLog, ms: MasterSeries, t_imu: np.
     if weak is not None:
         return weak, False, why + "; rates and specific forces together, weakly determined (wider prior)"
     return np.eye(3), False, why + "; started from a zero mounting"
+
+
+def _master_specific_force(master: InsLog, ms: MasterSeries, t: np.ndarray) -> np.ndarray | None:
+    """The master's specific force (m/s^2, master body frame) at t: its accelerometers where it logs them,
+    else from its navigation solution (an INS logging only its output), C_bn (dv/dt - g_n), the small
+    Coriolis and transport terms left out (a coarse start). None without either."""
+    if master.has_accel:
+        ta, fa = master.t_imu_s(), master.accel_m_s2()
+        ok = np.isfinite(fa).all(1)
+        if ok.sum() >= 2:
+            return np.stack([np.interp(t, ta[ok], fa[ok, i]) for i in range(3)], -1)
+    if ms.acc is None or ms.quat is None:
+        return None
+    ok = np.isfinite(ms.acc).all(1) & np.isfinite(ms.quat).all(1)
+    if ok.sum() < 2:
+        return None
+    a_n = np.stack([np.interp(t, ms.t_s[ok], ms.acc[ok, i]) for i in range(3)], -1)
+    q = np.stack([np.interp(t, ms.t_s[ok], ms.quat[ok, i]) for i in range(4)], -1)
+    f_n = a_n - np.array([0.0, 0.0, G0_M_S2])
+    return np.einsum("kji,kj->ki", dcm_from_quat(q / np.linalg.norm(q, axis=1, keepdims=True)), f_n)
 
 
 def _coarse_delay(master: InsLog, ms: MasterSeries, t_imu: np.ndarray, gyro: np.ndarray, max_s: float
