@@ -72,9 +72,17 @@ def draw_one_axis(i: int, base_seed: int) -> dict:
     return d
 
 
+def draw_nav_master(i: int, base_seed: int) -> dict:
+    """A master INS that logs only its navigation solution (no IMU): every other pair one-axis (as
+    ``draw_one_axis``), the rest random installations (as ``draw``)."""
+    d = draw_one_axis(i, base_seed + 13) if i % 2 == 0 else draw(i, base_seed + 13)
+    d.update(set="nav-master", master_nav_only=True)
+    return d
+
+
 def set_of(d: dict) -> str:
-    if d.get("set") == "one-axis":
-        return "one-axis"
+    if d.get("set") in ("one-axis", "nav-master"):
+        return d["set"]
     lev = any(d["lever_arm_m"])
     return SETS[int(lev) + 2 * int(d["flexure"])]
 
@@ -97,6 +105,11 @@ def run_one(d: dict) -> dict:
 
     cfg = dataclasses.replace(bl.sim_config(d), lever_arm_m=tuple(d["lever_arm_m"]), **d.get("extra", {}))
     pair = sim.simulate(cfg)
+    if d.get("master_nav_only"):  # the master logs its solution only
+        from logtools.inslog import InsLog
+
+        m = pair.master
+        pair = dataclasses.replace(pair, master=InsLog(imu=m.imu.iloc[:0], nav=m.nav, meta=m.meta))
     row = dict(d, set=set_of(d))
     row["mount_rpy_deg"] = list(d["mount_rpy_deg"])
     try:
@@ -166,15 +179,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--runs", type=int, default=48)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--one-axis", type=int, default=30, help="further pairs whose rates turn about one axis")
+    ap.add_argument("--nav-master", type=int, default=24,
+                    help="further pairs whose master logs only its navigation solution (half of them one-axis)")
     ap.add_argument("--seed", type=int, default=2027)
     ap.add_argument("--out", default=OUT)
     a = ap.parse_args(argv)
-    jobs = [draw(i, a.seed) for i in range(a.runs)] + [draw_one_axis(a.runs + i, a.seed) for i in range(a.one_axis)]
+    jobs = ([draw(i, a.seed) for i in range(a.runs)] + [draw_one_axis(a.runs + i, a.seed) for i in range(a.one_axis)]
+            + [draw_nav_master(a.runs + a.one_axis + i, a.seed) for i in range(a.nav_master)])
     t0 = time.time()
     rows = bl.run_pool(run_one, jobs, a.workers, every=8)
     rows.sort(key=lambda r: r["run"])
     summary = {"all": summarize([r for r in rows if r["set"] in SETS]),
-               **{s: summarize([r for r in rows if r["set"] == s]) for s in SETS + ("one-axis",)}}
+               **{s: summarize([r for r in rows if r["set"] == s]) for s in SETS + ("one-axis", "nav-master")}}
     out = dict(benchmark="alignment_random", created_utc=datetime.now(timezone.utc).isoformat(timespec="seconds"),
                config=dict(runs=a.runs, seed=a.seed, max_lag_s=bl.MAX_LAG_S),
                machine=dict(python=platform.python_version(), cpus=os.cpu_count(), workers=a.workers),
