@@ -102,6 +102,7 @@ from logtools.conventions import (dcm_from_quat, euler_from_dcm, quat_conj, quat
                                  rotvec_from_quat, skew)
 from logtools.errors import AnalysisError
 from logtools.inslog import InsLog
+from logtools.navcheck import output_validity
 from logtools.latency_gls import (NoiseModel, delay_step, end_taper, gls_covariance, gn_step,
                                    grid_offset_sigma_s, hac_cov, noise_model, stamp_noise_variance, window_chi2)
 from logtools.latency_velocity import velocity_fit, velocity_pair
@@ -143,6 +144,11 @@ PERIODIC_MARGIN = 1e-4  # alternative minimum within this of the best normalised
 #   1000x the best, and was flagged at 0.02; an aircraft's S-turns 200 s later 2.5e-4 against 9e-5 (the cost's
 #   statistical spread is a few % of it: PERIODIC_REL_MARGIN covers that))
 PERIODIC_REL_MARGIN = 0.1  # ... or within this fraction of the best cost (noisy data)
+SEARCH_WIDEN = True  # a bounded search whose result is suspect (see _suspect) also searches the whole overlap
+SEARCH_EDGE_FRACTION = 0.9  # ... a result beyond this fraction of --max-lag
+SEARCH_SUSPECT_COST = 0.05  # ... or a normalised rate cost above this (good fits: <= 0.006 on the real logs,
+#   0.03 for an EKF's attitude against its filtered gyro, <= 0.003 in the simulations; a wrong lag: 0.1-0.9)
+SEARCH_WIDEN_GAIN = 0.5  # the whole-overlap result replaces the bounded one below this x its cost
 PERIODIC_VELOCITY = True  # alternatives checked on the velocities where both units have them
 PERIODIC_VELOCITY_RATIO = 2.0  # an alternative whose velocity residual RMS exceeds the estimate's this many
 #   times is rejected (its mismatch then carries 3x the noise's power)
@@ -184,11 +190,15 @@ Progress = Callable[[float, str], None] | None
 # ---------------------------------------------------------------------------------------------
 # inputs
 # ---------------------------------------------------------------------------------------------
-def rate_from_attitude(t_s: np.ndarray, quat_wxyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def rate_from_attitude(t_s: np.ndarray, quat_wxyz: np.ndarray, *, drop_invalid: bool = False
+                       ) -> tuple[np.ndarray, np.ndarray]:
     """Body angular rate (rad/s, FRD) from body->NED quaternions by finite differences.
 
     ``q_{k+1} = q_k * dq``: ``w = rotvec(q_k^-1 q_{k+1}) / dt`` stamped at the interval's middle (the
     rate relative to the navigation frame; earth and transport rates, a few deg/h, are left out).
+    ``drop_invalid``: NaN for the intervals that touch a frozen sample or a reset (``logtools.navcheck``:
+    an EKF not yet running logs the identity; a board's first 19 s of it and a 169 deg yaw reset made a
+    rate fit's cost 0.88 of the motion).
     """
     t = np.asarray(t_s, dtype=float)
     q = np.asarray(quat_wxyz, dtype=float)
@@ -202,6 +212,9 @@ def rate_from_attitude(t_s: np.ndarray, quat_wxyz: np.ndarray) -> tuple[np.ndarr
         return np.zeros(0), np.zeros((0, 3))
     dq = quat_mul(quat_conj(q[:-1]), q[1:])
     w = rotvec_from_quat(dq) / np.diff(t)[:, None]
+    if drop_invalid:
+        valid, _ = output_validity(t, q)
+        w[~(valid[:-1] & valid[1:])] = np.nan
     return 0.5 * (t[:-1] + t[1:]), w
 
 
@@ -213,7 +226,7 @@ def _unit_rate(log: InsLog, role: str) -> tuple[np.ndarray, np.ndarray, str]:
         src = "gyro"
     elif log.has_quat:
         tq, q = log.quat_wxyz()
-        t, w = rate_from_attitude(tq, q)
+        t, w = rate_from_attitude(tq, q, drop_invalid=True)
         w = w + _nav_rate_in_body(log, t, tq, q)
         src = "attitude"
     else:
@@ -1022,6 +1035,11 @@ def _prepare(master: InsLog, slave: InsLog, max_lag_s: float | None, *, accelero
     if srcm == "attitude" or srcs == "attitude":
         ctx.warnings.append("angular rate derived from attitude for the " +
                             " and ".join(r for r, s in (("master", srcm), ("slave", srcs)) if s == "attitude"))
+    for role, src, w in (("master", srcm, wm), ("slave", srcs, ws)):
+        n_bad = int(np.sum(~np.all(np.isfinite(w), axis=1))) if src == "attitude" else 0
+        if n_bad:
+            ctx.warnings.append(f"{role}: {n_bad} of {len(w)} attitude intervals frozen (an EKF not running) or "
+                                f"at a reset left out of the rates")
     return ctx
 
 
@@ -1798,6 +1816,41 @@ def _run_seed(name: str, master: InsLog, slave: InsLog, max_lag_s: float | None,
     return f(master, slave, max_lag_s=max_lag_s, **kw)
 
 
+def _suspect(res: LatencyResult, max_lag_s: float) -> bool:
+    """A bounded search's result that may be a minimum of the window, not of the data: at (or past) the
+    window's edge, or fitting the rates poorly (the true delay beyond --max-lag: a car 3.5 s late came out
+    3.08 s at sigma 25 ms, a multirotor 5 s late -1.81 s at sigma 0.5 ms)."""
+    return bool(abs(res.latency_s) > SEARCH_EDGE_FRACTION * max_lag_s
+                or res.quality.get("vector_cost_min", 0.0) > SEARCH_SUSPECT_COST)
+
+
+def _widened(res: LatencyResult, master: InsLog, slave: InsLog, max_lag_s: float, **kw) -> LatencyResult:
+    """The whole overlap searched as well; its result replaces the bounded one where it fits the rates
+    clearly better (cost below SEARCH_WIDEN_GAIN x), and a warning says what was found either way."""
+    c0 = float(res.quality.get("vector_cost_min", np.nan))
+    try:
+        wide, _ = _tapost(_prepare(master, slave, None, **kw), None)
+    except AnalysisError as exc:
+        wide, why = None, exc.problem
+    c1 = float(wide.quality.get("vector_cost_min", np.nan)) if wide is not None else np.nan
+    if wide is not None and c1 < SEARCH_WIDEN_GAIN * c0:
+        q = dict(wide.quality)
+        q["warnings"] = list(q.get("warnings", [])) + [
+            f"the best match within +-{max_lag_s:g} s ({res.latency_s * 1e3:+.1f} ms) fitted the rates poorly "
+            f"(cost {c0:.3g}) or lay at the edge: the whole overlap was searched and {wide.latency_s:+.4f} s "
+            f"fits far better (cost {c1:.3g}); widen --max-lag or use --max-lag auto to search so directly"]
+        q["search_widened"] = True
+        return replace(wide, quality=q)
+    q = dict(res.quality)
+    q["search_widened"] = False
+    note = (f"the whole overlap, searched as well, fits no better (cost {c1:.3g} at {wide.latency_s:+.4f} s)"
+            if wide is not None else f"a whole-overlap search could not run ({why})")
+    q["warnings"] = list(q.get("warnings", [])) + [
+        f"the best match within +-{max_lag_s:g} s lies at its edge or fits the rates poorly (cost {c0:.3g}); "
+        + note]
+    return replace(res, quality=q)
+
+
 def estimate(master: InsLog, slave: InsLog, *, method: str = "tapost", max_lag_s: float | None = 2.0,
              compare: bool = True, progress: Progress = None, accelerometers: bool = True,
              velocity: bool = True) -> LatencyResult:
@@ -1825,6 +1878,9 @@ def estimate(master: InsLog, slave: InsLog, *, method: str = "tapost", max_lag_s
     # the headline first: its failure is the run's failure
     if method == "tapost":
         head, _ = _tapost(ctx, lambda f, st: prog(0.05 + 0.75 * f, st))
+        if max_lag_s is not None and SEARCH_WIDEN and _suspect(head, max_lag_s):
+            prog(0.78, "whole-overlap search")
+            head = _widened(head, master, slave, max_lag_s, accelerometers=accelerometers, velocity=velocity)
         methods["tapost"] = MethodEstimate(head.latency_s, head.sigma_s, "")
     others = [x for x in METHODS if x != method] if compare else []
     for i, name in enumerate(([method] if method != "tapost" else []) + others):

@@ -278,6 +278,24 @@ def test_real_arduplane_imu_vs_imu2_and_known_shift():
     assert rot_angle_deg(R_est, R @ R_base) < 1.0
 
 
+def test_real_ekf_attitude_frozen_before_it_runs_and_reset_is_left_out():
+    """The board's EKF cores log the identity for their first 19 s (not yet running), then reset the yaw by
+    169 deg: rates derived across those are no motion. With them the rate fit's cost was 0.88 of the motion:
+    NKF1 -25 ms at sigma 935 ms (periodic), XKF1 -1147 ms at sigma 12 ms (a confident wrong number). Left
+    out, every attitude source of the log agrees with the others (the logged, low-pass filtered gyro lags
+    the attitude by about 11 ms)."""
+    master = _load_box_pilot("imu=IMU")
+    got = {}
+    for sel in ("att=ATT", "nav=NKF1", "nav=XKF1", "nav=XKF6"):
+        res = estimate(master, _load_box_pilot(f"imu=none,{sel}"), compare=False)
+        assert res.quality["vector_cost_min"] < 0.05 and not res.quality["periodic"], sel
+        got[sel] = res.latency_s
+        if sel != "att=ATT":
+            assert any("frozen" in w for w in res.quality["warnings"]), sel
+    vals = np.array(list(got.values()))
+    assert np.all(np.abs(vals - (-11e-3)) < 2e-3), got
+
+
 def test_real_arducopter_imu2_shifted_and_rotated_with_accelerometers():
     """A vibrating multicopter (2014 ArduCopter log, IMU vs IMU2): the slave's gyros and accelerometers
     rotated by a known rotation and its stamps shifted by +37.3 ms move the estimate by that amount within
@@ -646,6 +664,25 @@ def test_drift_windows_carry_the_drift_inside_them():
     err = res.latency_s - p.truth.latency_at(res.t_mid_rel_s)
     assert res.quality["window_chi2_red"] < 20.0
     assert abs(err) < 0.1e-3 and res.sigma_s < 0.2e-3, (err, res.sigma_s)
+
+
+@pytest.mark.parametrize("scenario,latency_s", [("vehicle", 3.5), ("multirotor", 5.0), ("aircraft", -4.2)])
+def test_a_latency_beyond_max_lag_is_not_a_confident_wrong_number(scenario, latency_s):
+    """True delays beyond the default +-2 s search: a car 3.5 s late came out 3.08 s at sigma 25 ms, a
+    multirotor 5 s late -1.81 s at sigma 0.5 ms (minima of the window, not of the data: rate costs of
+    0.1-0.7 against 1e-4 for a right lag). Such a result now also searches the whole overlap and takes its
+    far better fit, with a warning that says so."""
+    from logtools import sim
+
+    p = sim.simulate(sim.scenario_config(scenario, seed=4, duration_s=120.0, latency_s=latency_s,
+                                         mount_rpy_deg=(20.0, -50.0, 100.0)))
+    res = estimate(p.master, p.slave, compare=False)
+    assert abs(res.latency_s - p.truth.latency_at(res.t_mid_rel_s)) < 1e-3
+    assert res.quality["search_widened"] is True
+    assert any("whole overlap was searched" in w for w in res.quality["warnings"])
+    ok = sim.simulate(sim.scenario_config(scenario, seed=4, duration_s=120.0, latency_s=0.3,
+                                          mount_rpy_deg=(20.0, -50.0, 100.0)))
+    assert "search_widened" not in estimate(ok.master, ok.slave, compare=False).quality
 
 
 def test_short_log_gets_its_drift_fitted_and_checked():

@@ -38,6 +38,7 @@ from logtools.conventions import (ARCMIN, ARCSEC, DEG, DEG_PER_H, G0_M_S2, MG, U
 from logtools import earth
 from logtools.errors import AnalysisError
 from logtools.inslog import InsLog
+from logtools.navcheck import output_validity
 from logtools.results import AlignmentResult
 from logtools.strapdown import body_increments, compose_segments
 
@@ -342,39 +343,15 @@ def _master_series(master: InsLog) -> MasterSeries:
 
 def _master_quality(master: InsLog, t: np.ndarray, quat: np.ndarray | None, vel: np.ndarray | None
                     ) -> tuple[np.ndarray, np.ndarray]:
-    """(valid mask, reset times). Invalid: frozen output (3+ bit-identical samples in a row, e.g. an EKF
-    not running) and the samples at an attitude jump; a jump (reset) is an attitude increment that
-    differs in size from what the angular rate allows by more than max(2 deg, 10 x the median)."""
-    n = len(t)
-    valid = np.ones(n, bool)
-    rows = [a for a in (quat, vel) if a is not None]
-    same = np.all(np.concatenate([np.diff(a, axis=0) == 0 for a in rows], axis=1), axis=1)  # k+1 == k
-    run3 = np.zeros(n, bool)
-    if n >= 3:
-        s2 = same[1:] & same[:-1]  # samples k, k+1, k+2 identical
-        for off in range(3):
-            run3[off:n - 2 + off] |= s2
-    valid &= ~run3
-    resets = np.zeros(0)
-    if quat is not None and n > 3:
-        dq = np.linalg.norm(rotvec_from_quat(quat_mul(quat_conj(quat[:-1]), quat[1:])), axis=1)
-        if master.has_gyro:
-            tg, g = master.t_imu_s(), master.gyro_rad_s()
-            okg = np.isfinite(g).all(1)
-            mid = 0.5 * (t[:-1] + t[1:])
-            rate = np.linalg.norm(np.stack([np.interp(mid, tg[okg], g[okg, i]) for i in range(3)], -1), axis=1)
-            d = np.abs(dq - rate * np.diff(t))
-        else:
-            d = np.abs(np.diff(np.concatenate([[0.0], dq])))  # jump in the increment size
-            d = d[1:] if len(d) > len(dq) else d
-        moving = valid[:-1] & valid[1:]
-        med = float(np.median(d[moving])) if moving.any() else 0.0
-        jump = moving & (d > max(2.0 * DEG, 10.0 * med))
-        if jump.any():
-            k = np.nonzero(jump)[0]
-            resets = 0.5 * (t[k] + t[k + 1])
-            valid[k] = False
-    return valid, resets
+    """(valid mask, reset times) of the master's output (``logtools.navcheck``), its attitude increments
+    checked against its own gyro where it logs one."""
+    rate = None
+    if quat is not None and len(t) > 3 and master.has_gyro:
+        tg, g = master.t_imu_s(), master.gyro_rad_s()
+        okg = np.isfinite(g).all(1)
+        mid = 0.5 * (t[:-1] + t[1:])
+        rate = np.linalg.norm(np.stack([np.interp(mid, tg[okg], g[okg, i]) for i in range(3)], -1), axis=1)
+    return output_validity(t, quat, vel, rate)
 
 
 def _derivative(t: np.ndarray, y: np.ndarray, span_s: float) -> np.ndarray:

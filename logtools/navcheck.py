@@ -1,0 +1,52 @@
+"""Validity of a unit's navigation output (attitude, velocity): what an INS or EKF logs while it is not
+running or when it resets. Shared by the latency (rates derived from attitude) and the alignment (the
+master's measurements).
+
+* frozen: 3 or more bit-identical samples in a row (an EKF not yet initialised logs the identity, or holds
+  its last output); no sensor-driven solution repeats itself exactly while it runs;
+* jump (reset): an attitude increment between two samples that differs in size from what the angular
+  rate allows (``rate_at_mid``, where the unit has a gyro) or from its neighbours' increments, by more than
+  max(2 deg, 10 x the median difference).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from logtools.conventions import DEG, quat_conj, quat_mul, rotvec_from_quat
+
+JUMP_MIN_RAD = 2.0 * DEG
+JUMP_MEDIAN_FACTOR = 10.0
+
+
+def output_validity(t: np.ndarray, quat: np.ndarray | None, vel: np.ndarray | None = None,
+                    rate_at_mid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(valid mask over the samples, reset times). ``quat`` (n, 4) wxyz, ``vel`` (n, 3), either may be None;
+    ``rate_at_mid`` (n-1,): |angular rate| (rad/s) at the intervals' middles, when known."""
+    n = len(t)
+    valid = np.ones(n, bool)
+    rows = [a for a in (quat, vel) if a is not None]
+    if not rows or n < 2:
+        return valid, np.zeros(0)
+    same = np.all(np.concatenate([np.diff(a, axis=0) == 0 for a in rows], axis=1), axis=1)  # k+1 == k
+    run3 = np.zeros(n, bool)
+    if n >= 3:
+        s2 = same[1:] & same[:-1]  # samples k, k+1, k+2 identical
+        for off in range(3):
+            run3[off:n - 2 + off] |= s2
+    valid &= ~run3
+    resets = np.zeros(0)
+    if quat is not None and n > 3:
+        dq = np.linalg.norm(rotvec_from_quat(quat_mul(quat_conj(quat[:-1]), quat[1:])), axis=1)
+        if rate_at_mid is not None:
+            d = np.abs(dq - rate_at_mid * np.diff(t))
+        else:
+            d = np.abs(np.diff(np.concatenate([[0.0], dq])))  # jump in the increment size
+            d = d[1:] if len(d) > len(dq) else d
+        moving = valid[:-1] & valid[1:]
+        med = float(np.median(d[moving])) if moving.any() else 0.0
+        jump = moving & (d > max(JUMP_MIN_RAD, JUMP_MEDIAN_FACTOR * med))
+        if jump.any():
+            k = np.nonzero(jump)[0]
+            resets = 0.5 * (t[k] + t[k + 1])
+            valid[k] = False
+    return valid, resets
