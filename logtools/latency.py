@@ -1241,6 +1241,12 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
     motion_dps, snr = _motion_snr(m, ctx.cutoff_hz)
     motion_s_dps, snr_s = _motion_snr(s, ctx.cutoff_hz)
     if min(snr, snr_s) < MIN_MOTION_SNR or motion_dps < 1e-3:
+        if motion_dps >= 1e-3 and snr_s < MIN_MOTION_SNR <= snr:  # the master moves; the slave's rate is noise
+            raise AnalysisError(
+                f"the slave's angular rate is mostly noise (signal/noise {snr_s:.2g}, need {MIN_MOTION_SNR:g}) while "
+                f"the master moves {motion_dps:.3g} deg/s RMS" + (
+                    " (derived from attitude: its stamps too irregular or too coarse?)"
+                    if s.source == "attitude" else ""))
         raise AnalysisError(
             f"not enough motion to estimate the latency: {motion_dps:.3g} deg/s RMS on the master "
             f"(signal/noise {min(snr, snr_s):.2g}, need {MIN_MOTION_SNR:g})")

@@ -297,7 +297,15 @@ def plan_clock(streams: list[tuple[np.ndarray, np.ndarray, np.ndarray]], sys_off
     else:
         return ClockPlan("epoch", "tlog receive time (selected messages have no time field)", (),
                          (0, 0, 0))
-    if 2 in kinds:
+    if 2 in kinds and not lag:
+        # only messages without a time field selected (att=AHRS2 with imu=none): nothing to map the
+        # receive stamps by; on UNIX time they are used as they are
+        add2 = 0 if clock == "epoch" else None
+        if add2 is None:  # (cannot happen: a boot clock needs a timed stream)
+            raise InputError("the selected streams have no time field and no clock to map them onto")
+        warns.append("message(s) without a time field (AHRS2/AHRS3) stamped with the tlog's receive time "
+                     "(includes the link delay and its jitter)")
+    elif 2 in kinds:
         ref = 0 if 0 in lag else 1
         # receive -> clock: t_clock = recv - lag[ref] + add[ref]
         add2 = -lag[ref] + add[ref]

@@ -119,6 +119,11 @@ def test_no_motion_is_an_analysis_error():
     s = InsLog.from_arrays(LogMeta("s", "csv", t0_ns=T0_NS), t + 0.02, np.radians(0.05) * rng.normal(size=(len(t), 3)))
     with pytest.raises(AnalysisError, match="not enough motion"):
         estimate(m, s, compare=False)
+    # the master moving and the slave's rate noise: the message names the slave, not the master's motion
+    moving = np.radians(20.0) * np.sin(2 * np.pi * 0.3 * t)[:, None] * np.array([0.6, -0.48, 0.64])
+    m2 = InsLog.from_arrays(LogMeta("m", "csv", t0_ns=T0_NS), t, moving)
+    with pytest.raises(AnalysisError, match="slave's angular rate is mostly noise"):
+        estimate(m2, s, compare=False)
 
 
 def test_periodic_motion_is_flagged_not_confident():

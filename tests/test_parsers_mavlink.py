@@ -370,6 +370,10 @@ def test_real_sitl_tlog():
     assert np.median(log.accel_m_s2()[:20, 2]) == pytest.approx(-9.8, abs=0.3)
     two = registry.load(f"{path}::imu=SCALED_IMU2,att=AHRS2")
     assert two.has_quat and any("without a time field" in w for w in two.meta.warnings)
+    # AHRS2 alone (no timed stream to map its receive stamps by) was a KeyError; now receive time as is
+    alone = registry.load(f"{path}::imu=none,att=AHRS2")
+    assert alone.has_quat and not alone.has_gyro and alone.meta.clock == "epoch"
+    assert any("tlog's receive time" in w for w in alone.meta.warnings)
     assert _compare_tlog_with_pymavlink(str(path)) == 23894
 
 
