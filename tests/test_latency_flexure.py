@@ -195,3 +195,4 @@ def test_short_flexure_records_reach_the_kalman_stage():
         zs.append(abs(e) / res.sigma_s)
     assert float(np.sqrt(np.mean(np.square(errs)))) < 1e-3
     assert max(zs) < 3.5
+
