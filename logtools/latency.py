@@ -105,7 +105,7 @@ from logtools.inslog import InsLog
 from logtools.navcheck import output_validity
 from logtools.latency_gls import (NoiseModel, delay_step, end_taper, gls_covariance, gn_step,
                                    grid_offset_sigma_s, hac_cov, noise_model, stamp_noise_variance, window_chi2)
-from logtools.latency_velocity import velocity_fit, velocity_pair
+from logtools.latency_velocity import VelocityPair, velocity_fit, velocity_pair
 from logtools.latency_flexure import DECIMATE_FACTOR, FlexureModel, block_mean, fit_model, whitened_normal
 from logtools.resample import (Interpolant, UniformSeries, interpolant, lowpass, median_rate_hz, stamp_noise_s,
                                to_uniform)
@@ -1316,11 +1316,12 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
         grown = float(np.hypot(sig_l, res_sigma))
         corr_ld, sig_l = corr_ld * sig_l / grown, grown
     # velocity matching: a second estimate, fused when the two agree (see _velocity_step)
-    vel_q = None
+    vel_q, vp = None, None
     if ctx.vel_src is not None:
         prog(0.85, "velocity matching")
-        vel_q, fused = _velocity_step(ctx, w0, w1, t_mid, fit_drift, latency, drift, sig_l, sigma_drift, corr_ld,
-                                      flexure=fin.flex is not None)
+        vp = velocity_pair(*ctx.vel_src, ctx.cutoff_hz, ctx.master.itp)
+        vel_q, fused = _velocity_step(ctx, vp, w0, w1, t_mid, fit_drift, latency, drift, sig_l, sigma_drift,
+                                      corr_ld, flexure=fin.flex is not None)
         if fused is not None:
             latency, drift, sig_l, sigma_drift, corr_ld = fused
     # a drift the data cannot determine is pulled towards 0 by a Gaussian prior (crystal clocks:
@@ -1358,7 +1359,7 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
         sig_best = max(SIGMA_CALIBRATION * float(np.sqrt(max(v_best, 0.0))), SIGMA_FLOOR_S)
     alts, alts_out = list(co.alternatives_s), []
     if alts and PERIODIC_VELOCITY and vel_q is not None and vel_q["agrees"]:
-        alts, alts_out = _periodic_by_velocity(ctx, alts, co.d0_s, latency, drift, t_mid, fit_drift)
+        alts, alts_out = _periodic_by_velocity(ctx, vp, alts, co.d0_s, latency, drift, t_mid, fit_drift)
     periodic = len(alts) > 0
     if periodic:
         spread = max(abs(x - co.d0_s) for x in alts)
@@ -1437,17 +1438,15 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
     return res, co
 
 
-def _velocity_step(ctx: _Ctx, w0: float, w1: float, t_mid: float, fit_drift: bool, latency: float, drift: float,
-                   sig_l: float, sig_dr: float, corr: float, *, flexure: bool = False
+def _velocity_step(ctx: _Ctx, vp: VelocityPair | None, w0: float, w1: float, t_mid: float, fit_drift: bool,
+                   latency: float, drift: float, sig_l: float, sig_dr: float, corr: float, *, flexure: bool = False
                    ) -> tuple[dict | None, tuple | None]:
     """The velocity-matched estimate (``logtools.latency_velocity``) and its fusion with the rate fit's
     (L[, drift]): inverse-covariance weighted when the two agree (chi-square below VEL_AGREE_CHI2; a nav
     velocity's delay need not be its IMU's: else ``agrees`` is False and the rate fit stays) and either
     the velocity's latency sigma is the smaller or the rate fit had to model flexure (``flexure``: what
     limits it there is what the velocity does not see). Returns (the quality entry or None, the
-    fused (L, drift, sigma_L, sigma_drift, corr) or None)."""
-    master, slave = ctx.vel_src
-    vp = velocity_pair(master, slave, ctx.cutoff_hz, ctx.master.itp)
+    fused (L, drift, sigma_L, sigma_drift, corr) or None). ``vp``: the units' velocity pair (None: no fit)."""
     vf = None if vp is None else velocity_fit(vp, w0, w1, latency, drift, t_mid, fit_drift=fit_drift,
                                               windows=_windows(ctx, w0, w1))
     if vf is None or not np.isfinite(sig_l):
@@ -1480,14 +1479,12 @@ def _velocity_step(ctx: _Ctx, w0: float, w1: float, t_mid: float, fit_drift: boo
     return q, (float(x[0]), float(x[1]), s_l, s_d, float(Wi[0, 1] / (s_l * s_d)))
 
 
-def _periodic_by_velocity(ctx: _Ctx, alts: list[float], d0: float, latency: float, drift: float, t_mid: float,
-                          fit_drift: bool) -> tuple[list[float], list[float]]:
+def _periodic_by_velocity(ctx: _Ctx, vp: VelocityPair | None, alts: list[float], d0: float, latency: float,
+                          drift: float, t_mid: float, fit_drift: bool) -> tuple[list[float], list[float]]:
     """The rates' near-equal other minima (motion that repeats: a ship's sway, S-turns) tried on the
     velocities, which a mounting rotation cannot fit and which seldom repeat with the attitude: an
     alternative whose velocity fit leaves PERIODIC_VELOCITY_RATIO x the residual of the estimate's (each
     over its own overlap, same fit) is rejected. Returns (kept, rejected) alternatives (coarse lags)."""
-    master, slave = ctx.vel_src
-    vp = velocity_pair(master, slave, ctx.cutoff_hz, ctx.master.itp)
     if vp is None:
         return alts, []
     g = ctx.master.grid
@@ -1844,12 +1841,14 @@ def _suspect(res: LatencyResult, max_lag_s: float) -> bool:
                 or res.quality.get("vector_cost_min", 0.0) > SEARCH_SUSPECT_COST)
 
 
-def _widened(res: LatencyResult, master: InsLog, slave: InsLog, max_lag_s: float, **kw) -> LatencyResult:
-    """The whole overlap searched as well; its result replaces the bounded one where it fits the rates
-    clearly better (cost below SEARCH_WIDEN_GAIN x), and a warning says what was found either way."""
+def _widened(res: LatencyResult, ctx: _Ctx) -> LatencyResult:
+    """The whole overlap searched as well (``ctx``, the bounded search's, unbounded); its result replaces the
+    bounded one where it fits the rates clearly better (cost below SEARCH_WIDEN_GAIN x), and a warning says
+    what was found either way."""
+    max_lag_s = ctx.max_lag_s
     c0 = float(res.quality.get("vector_cost_min", np.nan))
     try:
-        wide, _ = _tapost(_prepare(master, slave, None, **kw), None)
+        wide, _ = _tapost(replace(ctx, max_lag_s=None, warnings=list(ctx.warnings)), None)
     except AnalysisError as exc:
         wide, why = None, exc.problem
     c1 = float(wide.quality.get("vector_cost_min", np.nan)) if wide is not None else np.nan
@@ -1900,7 +1899,7 @@ def estimate(master: InsLog, slave: InsLog, *, method: str = "tapost", max_lag_s
         head, _ = _tapost(ctx, lambda f, st: prog(0.05 + 0.75 * f, st))
         if max_lag_s is not None and SEARCH_WIDEN and _suspect(head, max_lag_s):
             prog(0.78, "whole-overlap search")
-            head = _widened(head, master, slave, max_lag_s, accelerometers=accelerometers, velocity=velocity)
+            head = _widened(head, ctx)
         methods["tapost"] = MethodEstimate(head.latency_s, head.sigma_s, "")
     others = [x for x in METHODS if x != method] if compare else []
     for i, name in enumerate(([method] if method != "tapost" else []) + others):

@@ -58,14 +58,8 @@ def clean_stream(name: str, s: Stream, warnings: list[str]) -> Stream:
         if dup.any():
             warnings.append(f"{name} ({s.source}): {int(dup.sum())} duplicate stamps dropped")
             t, v = t[~dup], v[~dup]
-    if len(t) > STRAY_MAX_SAMPLES + 1:
-        keep = not_stray(t)
-        if not keep.all():
-            n = int((~keep).sum())
-            bad = t[~keep]
-            warnings.append(f"{name} ({s.source}): {n} sample(s) with stray stamps dropped ({bad.min() * 1e-9:.3f} .. "
-                            f"{bad.max() * 1e-9:.3f} s, isolated from the rest: a corrupt time field?)")
-            t, v = t[keep], v[keep]
+    keep = drop_stray(t, f"{name} ({s.source}): ", warnings)
+    t, v = t[keep], v[keep]
     if len(t) > 2:
         d = np.diff(t)
         med = np.median(d)
@@ -97,13 +91,26 @@ def implausible(name: str, values: np.ndarray) -> np.ndarray:
     return np.zeros(len(v), dtype=bool)
 
 
+def drop_stray(t_ns: np.ndarray, label: str, warnings: list[str]) -> np.ndarray:
+    """The samples to keep of sorted, unique stamps ``t_ns``: all but the stray ones (``not_stray``), which
+    are said in ``warnings`` (prefixed with ``label``)."""
+    keep = not_stray(t_ns)
+    if not keep.all():
+        bad = t_ns[~keep]
+        warnings.append(f"{label}{int((~keep).sum())} sample(s) with stray stamps dropped ({bad.min() * 1e-9:.3f} .. "
+                        f"{bad.max() * 1e-9:.3f} s, isolated from the rest: a corrupt time field?)")
+    return keep
+
+
 def not_stray(t_ns: np.ndarray) -> np.ndarray:
     """False for samples in runs of at most STRAY_MAX_SAMPLES cut off from longer runs by steps longer
     than STRAY_GAP_S and STRAY_GAP_PERIODS median periods (``t_ns`` sorted, unique)."""
+    keep = np.ones(len(t_ns), dtype=bool)
+    if len(t_ns) <= STRAY_MAX_SAMPLES + 1:
+        return keep
     d = np.diff(t_ns)
     thr = max(STRAY_GAP_S * 1e9, STRAY_GAP_PERIODS * float(np.median(d)))
     cut = np.flatnonzero(d > thr) + 1
-    keep = np.ones(len(t_ns), dtype=bool)
     if not len(cut):
         return keep
     bounds = np.concatenate([[0], cut, [len(t_ns)]])

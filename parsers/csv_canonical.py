@@ -13,7 +13,7 @@ import pandas as pd
 
 from logtools.errors import InputError
 from logtools.inslog import ACCEL, GYRO, POS, QUAT, VEL, ChannelInfo, InsLog, LogMeta
-from parsers.assemble import STRAY_MAX_SAMPLES, implausible, not_stray
+from parsers.assemble import drop_stray, implausible
 from parsers.atomic import atomic_path
 from parsers.base import Inventory, Selector, StreamInfo, rate_of, stamp_grid_s
 from parsers.csvtable import decimal_text_to_int, read_table
@@ -106,27 +106,22 @@ def load(path: str, selector: Selector) -> InsLog:
     if dup.any():
         warnings.append(f"{int(dup.sum())} duplicate time stamps dropped")
         t_ns, df = t_ns[~dup], df[~dup]
-    if len(t_ns) > STRAY_MAX_SAMPLES + 1:
-        keep = not_stray(t_ns)
-        if not keep.all():
-            bad = t_ns[~keep]
-            warnings.append(f"{int((~keep).sum())} row(s) with stray stamps dropped ({bad.min() * 1e-9:.3f} .. "
-                            f"{bad.max() * 1e-9:.3f} s, isolated from the rest: a corrupt time field?)")
-            t_ns, df = t_ns[keep], df[keep]
+    keep = drop_stray(t_ns, "time_s column: ", warnings)
+    t_ns, df = t_ns[keep], df[keep]
     t0_ns = int(t_ns[0])
     t_s = (t_ns - t0_ns) * 1e-9
     clock = "epoch" if t0_ns * 1e-9 > EPOCH_THRESHOLD_S else "boot"
 
-    n_bad: dict[str, int] = {}
-
-    def block(cols):
-        x = df[list(cols)].apply(pd.to_numeric, errors="coerce").to_numpy(dtype=float, copy=True)
-        g = next(k for k, c in groups.items() if tuple(c) == tuple(cols))
+    def block(g: str) -> np.ndarray:
+        """Group ``g``'s columns as floats; a row with impossible values (corrupt) has the group missing."""
+        x = df[list(present[g])].apply(pd.to_numeric, errors="coerce").to_numpy(dtype=float, copy=True)
         bad = implausible(g, x)
-        if bad.any():  # corrupt values: the row's group is treated as missing
-            n_bad[g] = int(bad.sum())
+        if bad.any():
+            warnings.append(f"{g}: {int(bad.sum())} rows with impossible values ignored (corrupt data?)")
             x[bad] = np.nan
         return x
+
+    blocks = {g: block(g) for g in present}
 
     def resolution(mask: np.ndarray) -> float:
         """The stamps' step: the fixed number of decimals they are written with, or the grid they show."""
@@ -136,29 +131,28 @@ def load(path: str, selector: Selector) -> InsLog:
     imu_mask = np.zeros(len(df), bool)
     for g in ("gyro", "accel"):
         if g in present:
-            imu_mask |= np.isfinite(block(present[g])).all(axis=1)
+            imu_mask |= np.isfinite(blocks[g]).all(axis=1)
     nav_mask = np.zeros(len(df), bool)
     for g in ("quat", "vel", "pos"):
         if g in present:
-            nav_mask |= np.isfinite(block(present[g])).all(axis=1)
+            nav_mask |= np.isfinite(blocks[g]).all(axis=1)
     kw: dict = {}
     if imu_mask.any():
         kw["t_imu_s"] = t_s[imu_mask]
         if "gyro" in present:
-            kw["gyro_rad_s"] = block(CSV_GYRO)[imu_mask]
+            kw["gyro_rad_s"] = blocks["gyro"][imu_mask]
         if "accel" in present:
-            kw["accel_m_s2"] = block(CSV_ACCEL)[imu_mask]
+            kw["accel_m_s2"] = blocks["accel"][imu_mask]
         channels["imu"] = ChannelInfo(rate_of(t_s[imu_mask]), int(imu_mask.sum()), "csv", resolution(imu_mask))
     if nav_mask.any():
         kw["t_nav_s"] = t_s[nav_mask]
         if "quat" in present:
-            kw["quat_wxyz"] = block(CSV_QUAT)[nav_mask]
+            kw["quat_wxyz"] = blocks["quat"][nav_mask]
         if "vel" in present:
-            kw["vel_ned_m_s"] = block(CSV_VEL)[nav_mask]
+            kw["vel_ned_m_s"] = blocks["vel"][nav_mask]
         if "pos" in present:
-            kw["lat_lon_alt"] = block(CSV_POS)[nav_mask]
+            kw["lat_lon_alt"] = blocks["pos"][nav_mask]
         channels["nav"] = ChannelInfo(rate_of(t_s[nav_mask]), int(nav_mask.sum()), "csv", resolution(nav_mask))
-    warnings += [f"{g}: {n} rows with impossible values ignored (corrupt data?)" for g, n in n_bad.items()]
     if not kw:
         raise InputError("no complete data rows", path)
     meta = LogMeta(source_path=path, format=NAME, selector=str(selector), clock=clock, t0_ns=t0_ns,

@@ -39,7 +39,7 @@ import numpy as np
 from logtools.conventions import DEG, quat_from_euler
 from logtools.errors import InputError
 from logtools.inslog import InsLog
-from parsers.assemble import Stream, build_inslog
+from parsers.assemble import Stream, build_inslog, implausible
 from parsers.base import Inventory, Selector, StreamInfo, check_readable, rate_of
 from parsers.mavlink_common import gather_rows, gps_to_unix_ns, scatter_rows, walk_dataflash
 
@@ -319,8 +319,7 @@ def _att(log: DfLog, src: Src) -> tuple[np.ndarray, np.ndarray, str]:
     euler = all(c in cols for c in ("Roll", "Pitch", "Yaw"))
     if all(c in cols for c in ("Q1", "Q2", "Q3", "Q4")):
         q = np.column_stack([log.column(src.name, rec, c) for c in ("Q1", "Q2", "Q3", "Q4")])
-        n = np.linalg.norm(q, axis=1)
-        good = np.isfinite(n) & (n > 0.5) & (n < 2.0)
+        good = ~implausible("quat", q)
         # all of them unit quaternions; else most of them (the rest damaged records, dropped and said);
         # a message whose Q fields are not filled (zeros: older AHR2) falls back on its Euler angles
         if good.all() or (good.any() and (good.mean() >= 0.5 or not euler)):

@@ -298,11 +298,9 @@ def plan_clock(streams: list[tuple[np.ndarray, np.ndarray, np.ndarray]], sys_off
         return ClockPlan("epoch", "tlog receive time (selected messages have no time field)", (),
                          (0, 0, 0))
     if 2 in kinds and not lag:
-        # only messages without a time field selected (att=AHRS2 with imu=none): nothing to map the
-        # receive stamps by; on UNIX time they are used as they are
-        add2 = 0 if clock == "epoch" else None
-        if add2 is None:  # (cannot happen: a boot clock needs a timed stream)
-            raise InputError("the selected streams have no time field and no clock to map them onto")
+        # only messages without a time field selected (att=AHRS2 with imu=none; the clock is then UNIX time,
+        # SYSTEM_TIME's: a boot clock needs a timed stream): nothing to map the receive stamps by, used as is
+        add2 = 0
         warns.append("message(s) without a time field (AHRS2/AHRS3) stamped with the tlog's receive time "
                      "(includes the link delay and its jitter)")
     elif 2 in kinds:

@@ -211,6 +211,15 @@ def _state_groups(names: Sequence[str]) -> dict[str, list[int]]:
     return groups
 
 
+def _by_name(names_of: dict[str, Sequence[str]]) -> tuple[list[str], dict[str, dict[str, int]]]:
+    """The union of the runs' column names (first run's order, then the others' extras) and each run's
+    column index by name: runs may carry different columns (flexure, lever-arm states in one only)."""
+    names: list[str] = []
+    for ns in names_of.values():
+        names += [n for n in ns if n not in names]
+    return names, {r: {n: i for i, n in enumerate(ns)} for r, ns in names_of.items()}
+
+
 def fig_states(an: Analysis) -> list[tuple[str, str]]:
     """One figure per state group; both runs overlaid with their 3-sigma envelopes."""
     runs = {r: res for r, res in an.alignment.items() if res is not None and res.history_x.size}
@@ -218,10 +227,7 @@ def fig_states(an: Analysis) -> list[tuple[str, str]]:
         return []
     plt = _mpl()
     # the runs' states by name (the runs may differ: flexure or lever-arm states in one only)
-    names: list[str] = []
-    for res in runs.values():
-        names += [n for n in res.history_names if n not in names]
-    col = {r: {n: i for i, n in enumerate(res.history_names)} for r, res in runs.items()}
+    names, col = _by_name({r: res.history_names for r, res in runs.items()})
     out = []
     for group, idx in _state_groups(names).items():
         ncol = min(3, len(idx))
@@ -255,16 +261,14 @@ def fig_residuals(an: Analysis) -> str | None:
     if not runs:
         return None
     plt = _mpl()
-    names: list[str] = []
-    for res in runs.values():
-        names += [n for n in res.residual_names if n not in names]
+    names, col = _by_name({r: res.residual_names for r, res in runs.items()})
     ncol = min(3, len(names))
     nrow = int(math.ceil(len(names) / ncol))
     fig, axs = plt.subplots(nrow, ncol, figsize=(4.2 * ncol, 2.7 * nrow), squeeze=False, sharex=True)
     for i, name in enumerate(names):
         ax = axs[i // ncol, i % ncol]
         for run, res in runs.items():
-            j = list(res.residual_names).index(name) if name in res.residual_names else None
+            j = col[run].get(name)
             if j is not None and j < res.residuals.shape[1]:
                 t, r = _decimate(res.residual_t_s, res.residuals[:, j])
                 st = RUN_STYLE.get(run, {})

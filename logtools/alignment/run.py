@@ -323,7 +323,7 @@ def _master_series(master: InsLog) -> MasterSeries:
             tg, g = master.t_imu_s(), master.gyro_rad_s()
             okg = np.isfinite(g).all(1)
             if okg.sum() >= 2:
-                w_ib = np.stack([np.interp(t, tg[okg], g[okg, i]) for i in range(3)], -1)
+                w_ib = _interp_cols(t, tg[okg], g[okg])
                 lat = np.radians(master.lat_lon_alt()[1][0, 0]) if master.has_pos else np.radians(45.0)
                 w_ie_m = np.einsum("kji,j->ki", dcm_from_quat(quat), earth.earth_rate_ned(lat))
                 w = w_ib - w_ie_m
@@ -350,8 +350,13 @@ def _master_quality(master: InsLog, t: np.ndarray, quat: np.ndarray | None, vel:
         tg, g = master.t_imu_s(), master.gyro_rad_s()
         okg = np.isfinite(g).all(1)
         mid = 0.5 * (t[:-1] + t[1:])
-        rate = np.linalg.norm(np.stack([np.interp(mid, tg[okg], g[okg, i]) for i in range(3)], -1), axis=1)
+        rate = np.linalg.norm(_interp_cols(mid, tg[okg], g[okg]), axis=1)
     return output_validity(t, quat, vel, rate)
+
+
+def _interp_cols(t: np.ndarray, tp: np.ndarray, yp: np.ndarray) -> np.ndarray:
+    """Each column of ``yp`` (n, k), sampled at ``tp``, linearly interpolated at ``t`` (clamped at the ends)."""
+    return np.stack([np.interp(t, tp, yp[:, i]) for i in range(yp.shape[1])], -1)
 
 
 def _derivative(t: np.ndarray, y: np.ndarray, span_s: float) -> np.ndarray:
@@ -380,9 +385,9 @@ def _coarse_mounting(master: InsLog, slave: InsLog, ms: MasterSeries, t_imu: np.
         tm = master.t_imu_s()
         gm = master.gyro_rad_s()
         okm = np.isfinite(gm).all(1)
-        w_m = np.stack([np.interp(grid - tau0, tm[okm], gm[okm, i]) for i in range(3)], -1)
+        w_m = _interp_cols(grid - tau0, tm[okm], gm[okm])
     elif ms.w_nm_m is not None:
-        w_m = np.stack([np.interp(grid - tau0, ms.t_s, ms.w_nm_m[:, i]) for i in range(3)], -1)
+        w_m = _interp_cols(grid - tau0, ms.t_s, ms.w_nm_m)
     else:
         w_m = None
     weak = None  # a joint rate + specific-force start that is only weakly determined
@@ -392,7 +397,7 @@ def _coarse_mounting(master: InsLog, slave: InsLog, ms: MasterSeries, t_imu: np.
         return u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
 
     if w_m is not None:
-        w_s = np.stack([np.interp(grid, t_imu, gyro[:, i]) for i in range(3)], -1)
+        w_s = _interp_cols(grid, t_imu, gyro)
         # remove slow parts (biases, earth rate) so the fit sees the motion
         w_s = w_s - w_s.mean(0)
         w_m = w_m - w_m.mean(0)
@@ -407,7 +412,7 @@ def _coarse_mounting(master: InsLog, slave: InsLog, ms: MasterSeries, t_imu: np.
         # forces (motion parts, each set normalised by its power) in one Wahba problem
         f_m = _master_specific_force(master, ms, grid - tau0) if COARSE_JOINT and accel is not None else None
         if f_m is not None:
-            f_s = np.stack([np.interp(grid, t_imu, accel[:, i]) for i in range(3)], -1)
+            f_s = _interp_cols(grid, t_imu, accel)
             f_m, f_s = f_m - f_m.mean(0), f_s - f_s.mean(0)
             pw, pf = float(np.trace(w_m.T @ w_m)), float(np.trace(f_m.T @ f_m))
             bf = f_s.T @ f_m
@@ -425,7 +430,7 @@ def _coarse_mounting(master: InsLog, slave: InsLog, ms: MasterSeries, t_imu: np.
         why = "coarse mounting: the master has no angular rate or attitude"
     if slave.has_quat and ms.quat is not None:
         ts, qs = slave.quat_wxyz()
-        qm = np.stack([np.interp(ts - tau0, ms.t_s, ms.quat[:, i]) for i in range(4)], -1)
+        qm = _interp_cols(ts - tau0, ms.t_s, ms.quat)
         inside = (ts - tau0 >= ms.t_s[0]) & (ts - tau0 <= ms.t_s[-1])
         if inside.sum() >= 1:
             m = np.einsum("kji,kjl->il", dcm_from_quat(qs[inside]), dcm_from_quat(qm[inside]))  # sum C_sn C_nm
@@ -443,14 +448,14 @@ def _master_specific_force(master: InsLog, ms: MasterSeries, t: np.ndarray) -> n
         ta, fa = master.t_imu_s(), master.accel_m_s2()
         ok = np.isfinite(fa).all(1)
         if ok.sum() >= 2:
-            return np.stack([np.interp(t, ta[ok], fa[ok, i]) for i in range(3)], -1)
+            return _interp_cols(t, ta[ok], fa[ok])
     if ms.acc is None or ms.quat is None:
         return None
     ok = np.isfinite(ms.acc).all(1) & np.isfinite(ms.quat).all(1)
     if ok.sum() < 2:
         return None
-    a_n = np.stack([np.interp(t, ms.t_s[ok], ms.acc[ok, i]) for i in range(3)], -1)
-    q = np.stack([np.interp(t, ms.t_s[ok], ms.quat[ok, i]) for i in range(4)], -1)
+    a_n = _interp_cols(t, ms.t_s[ok], ms.acc[ok])
+    q = _interp_cols(t, ms.t_s[ok], ms.quat[ok])
     f_n = a_n - np.array([0.0, 0.0, G0_M_S2])
     return np.einsum("kji,kj->ki", dcm_from_quat(q / np.linalg.norm(q, axis=1, keepdims=True)), f_n)
 
