@@ -103,8 +103,9 @@ from logtools.conventions import (dcm_from_quat, euler_from_dcm, quat_conj, quat
 from logtools.errors import AnalysisError
 from logtools.inslog import InsLog
 from logtools.navcheck import output_validity
-from logtools.latency_gls import (NoiseModel, delay_step, end_taper, gls_covariance, gn_step,
-                                   grid_offset_sigma_s, hac_cov, noise_model, stamp_noise_variance, window_chi2)
+from logtools.latency_gls import (NoiseModel, cross_normal, cross_products, delay_step, end_taper, gls_covariance,
+                                  grid_derivative, grid_offset_sigma_s, hac_cov, noise_model, stamp_noise_variance,
+                                  window_chi2)
 from logtools.latency_velocity import VelocityPair, velocity_fit, velocity_pair
 from logtools.latency_flexure import DECIMATE_FACTOR, FlexureModel, block_mean, fit_model, whitened_normal
 from logtools.resample import (Interpolant, UniformSeries, interpolant, lowpass, median_rate_hz, stamp_noise_s,
@@ -555,8 +556,8 @@ def _refiltered_ctx(ctx: "_Ctx", cutoff_hz: float) -> "_Ctx":
 def _residuals(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant, d: float, dr: float,
                tt: np.ndarray):
     """Residuals of the slave read at t + d + dr*tt against R a + b (R, b by Kabsch with means):
-    (slave derivative, master rows, tt rows, R, b, residuals, cost), or the number of usable samples
-    when there are fewer than 20."""
+    (slave derivative, master rows, tt rows, R, b, residuals, cost, rows used), or the number of usable
+    samples when there are fewer than 20."""
     tau = t_m + d + dr * tt
     bv, ok = itp(tau)
     use = ok & valid
@@ -566,30 +567,46 @@ def _residuals(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpola
     au, bu, tu = a[use], bv[use], tt[use]
     R, bias = _kabsch_bias(au, bu)
     r = bu - au @ R.T - bias
-    return bd, au, tu, R, bias, r, float(np.sum(r * r))
+    return bd, au, tu, R, bias, r, float(np.sum(r * r)), use
 
 
 def _refine(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant, d0: float,
             drift0: float, t_mid: float, *, fit_drift: bool, iters: int = 12) -> _Fit:
-    """Gauss-Newton on (L[, drift]) with R, b re-solved (Kabsch with means) at every step; covariance
-    of the joint (L, drift, rotation, bias) problem with a HAC score variance."""
+    """Gauss-Newton on (L[, drift]) with R, b re-solved (Kabsch with means) at every step, the delay's
+    gradient and curvature from the master's derivative (``latency_gls.cross_normal``); covariance of
+    the joint (L, drift, rotation, bias) problem with a HAC score variance."""
     d, dr = float(d0), float(drift0)
     dt = float(np.median(np.diff(t_m))) if len(t_m) > 1 else 1.0
     tt = t_m - t_mid
+    ad, okd = grid_derivative(a, valid, dt)  # the master's derivative: the curvature's (cross_normal)
+
+    def master_derivative(bd: np.ndarray, use: np.ndarray, R: np.ndarray) -> np.ndarray:
+        """R a' at the used rows (the slave's derivative where the master's does not hold)."""
+        return np.where(okd[use][:, None], ad[use] @ R.T, bd)
+
     prev = np.inf
     for _ in range(iters):
         ev = _residuals(t_m, a, valid, itp, d, dr, tt)
         if isinstance(ev, int):
             return _Fit(d, dr, np.eye(3), np.zeros(3), np.inf, np.inf, np.nan, ev, 1.0, 0.0, False)
-        bd, au, tu, R, bias, r, cost = ev
+        bd, au, tu, R, bias, r, cost, use = ev
+        md = master_derivative(bd, use, R)
         # reduced Gauss-Newton step on (L[, drift]) (variable projection: R and b are re-solved
-        # exactly at every iteration; the bias is projected out of the step by centring)
+        # exactly at every iteration; the bias is projected out of the step by centring), the
+        # curvature from the cross-product of the two units' derivatives (see cross_normal)
         J = [bd - bd.mean(axis=0)]
+        Jm = [md - md.mean(axis=0)]
         if fit_drift:
-            jd = bd * tu[:, None]
+            jd, jm = bd * tu[:, None], md * tu[:, None]
             J.append(jd - jd.mean(axis=0))
-        Nr = np.array([[np.sum(x * y) for y in J] for x in J])
-        gr = np.array([np.sum(x * r) for x in J])
+            Jm.append(jm - jm.mean(axis=0))
+        Js = np.stack([x.ravel() for x in J], axis=1)
+        Dm = np.stack([x.ravel() for x in Jm], axis=1)
+        Nr = cross_normal(Js, Dm)
+        if Nr is None:
+            Nr, gr = Js.T @ Js, Js.T @ r.ravel()
+        else:
+            gr = Dm.T @ r.ravel()  # the master's derivative's gradient (cross_normal: no interpolation ripple)
         try:
             step = -np.linalg.solve(Nr, gr)
         except np.linalg.LinAlgError:
@@ -607,15 +624,20 @@ def _refine(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant,
     ev = _residuals(t_m, a, valid, itp, d, dr, tt)
     if isinstance(ev, int):
         return _Fit(d, dr, np.eye(3), np.zeros(3), np.inf, np.inf, np.nan, ev, 1.0, 0.0, False)
-    bd, au, tu, R, bias, r, cost = ev
+    bd, au, tu, R, bias, r, cost, use = ev
     Jfull = _jacobian(bd, tu if fit_drift else None, au @ R.T)
+    Jm = _jacobian(master_derivative(bd, use, R), tu if fit_drift else None, au @ R.T)
     rr = r.ravel()
-    Nm = Jfull.T @ Jfull
+    Nm = cross_normal(Jfull, Jm[:, :nd])
+    if Nm is None:
+        Nm, Jm = Jfull.T @ Jfull, Jfull
     try:
         Ninv = np.linalg.inv(Nm)
     except np.linalg.LinAlgError:
         return _Fit(d, dr, R, bias, np.inf, np.inf, np.sqrt(cost / max(1, r.size)), len(au), 1.0, 0.0, False)
-    G = (Jfull * rr[:, None]).reshape(len(r), 3, -1).sum(axis=1)  # per-sample scores
+    # per-sample scores from the master's derivative (the slave's carries its noise's derivative, whose
+    # products with the residual cancel only over long lags: a HAC of them was 100x too large)
+    G = (Jm * rr[:, None]).reshape(len(r), 3, -1).sum(axis=1)
     u = G @ Ninv[:, :nd]  # contributions to the (L, drift) step
     max_h = int(min(len(u) // 4, max(10, 20.0 / dt)))
     V_hac, _H = hac_cov(u, max_h)
@@ -712,8 +734,10 @@ def _gls_system(t_m: np.ndarray, a: np.ndarray, use: np.ndarray, itp: Interpolan
     """Residuals r (n, C) and Jacobian J (n, C, P [+ 1]) of the joint fit at (d, dr), R and the gyro bias
     re-solved (Kabsch), 0 outside ``use``; C = 3 (gyros) or 6 (with ``acc``: accelerometer rows, their
     bias and the lever arm as further unknowns, and a trailing column for the accelerometers' own delay,
-    the model check). Also the slave's specific force at the delayed instants (None without ``acc``).
-    None when a used sample falls off the slave's data. Without ``jacobian``: (r, None, R, bias, fv)."""
+    the model check). Also the slave's specific force at the delayed instants (None without ``acc``) and
+    Dm (n, C, nd): the delay's [and drift's] columns from the model's derivative, for the curvature
+    (``latency_gls.cross_normal``). None when a used sample falls off the slave's data. Without ``jacobian``:
+    (r, None, R, bias, fv, None)."""
     n = len(t_m)
     C = 3 if acc is None else 6
     nd = 1 + int(fit_drift)
@@ -730,17 +754,26 @@ def _gls_system(t_m: np.ndarray, a: np.ndarray, use: np.ndarray, itp: Interpolan
         Rf = np.where(use[:, None], fm @ R.T, 0.0)
         r[use, 3:] = fv[use] - Rf[use] - np.mean(fv[use] - Rf[use], axis=0)
     if not jacobian:
-        return r, None, R, bias, fv
+        return r, None, R, bias, fv, None
     bd = np.zeros((n, 3))
     bd[use], _ = itp(tau[use], 1)
     Ra = np.where(use[:, None], a @ R.T, 0.0)
     Jg = _jacobian(bd, tt if fit_drift else None, Ra).reshape(n, 3, -1)
+    dt = float(t_m[1] - t_m[0]) if n > 1 else 1.0
+    md, okd = grid_derivative(Ra, use, dt)
+    Dm = np.zeros((n, C, nd))
+    Dm[:, :3, 0] = np.where(okd[:, None], md, bd)
     if acc is None:
         J = Jg
     else:
         fd = np.zeros((n, 3))
         fd[use], _ = acc.slave(tau[use], 1)
         Ja = _jacobian(fd, tt if fit_drift else None, Rf).reshape(n, 3, -1)
+        # the accelerometers' model, lever arm included (least squares here): the master's side
+        Jl = _lever_jacobian(R, lev)
+        model_a = np.where(use[:, None], fv - _lever_solve(r[:, 3:], Jl, use), 0.0)
+        fmd, okf = grid_derivative(model_a, use, dt)
+        Dm[:, 3:, 0] = np.where(okf[:, None], fmd, fd)
         pg = Jg.shape[2]  # L[, drift], rotation, gyro bias | accelerometer bias, lever arm
         J = np.zeros((n, 6, pg + 7))
         J[:, :3, :pg] = Jg
@@ -748,8 +781,11 @@ def _gls_system(t_m: np.ndarray, a: np.ndarray, use: np.ndarray, itp: Interpolan
         J[:, 3:, pg:pg + 3] = Ja[:, :, nd + 3:]
         J[:, 3:, pg + 3:pg + 6] = _lever_jacobian(R, lev)
         J[:, 3:, pg + 6] = fd  # a delay of the accelerometers' own (model check, not in the steps)
+    if fit_drift:
+        Dm[:, :, 1] = Dm[:, :, 0] * tt[:, None]
     J[~use] = 0.0
-    return r, J, R, bias, fv
+    Dm[~use] = 0.0
+    return r, J, R, bias, fv, Dm
 
 
 def _fit_start(t_m: np.ndarray, t_mid: float, d0: float, drift0: float
@@ -795,24 +831,32 @@ def _refine_gls(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpol
         sysm = _gls_system(t_m, a, use, itp, d, dr, tt, fit_drift, acc, fm, lev)
         if sysm is None:
             return fail
-        r, J, R, bias, _fv = sysm
+        r, J, R, bias, _fv, Dm = sysm
         n_check = 0 if acc is None else 1  # trailing columns only for the model check, not in the steps
         P = J.shape[2] - n_check
         r = r * taper[:, None]
         J = J * taper[:, None, None]
-        X = np.concatenate([r[:, :, None], J], axis=2)  # (n, C, 1 + P + n_check)
+        Dm = Dm * taper[:, None, None]
+        X = np.concatenate([r[:, :, None], J, Dm], axis=2)  # (n, C, 1 + P + n_check + nd)
         if noise.psd.ndim == 1:
             Z = noise.whiten(X.reshape(n, -1), dt, wts).reshape(X.shape)
         else:
             Z = noise.whiten(X, dt, wts)
         rw = Z[:, :, 0]
-        Jx = Z[:, :, 1:].reshape(C * n, P + n_check) if n_check else None
+        Jx = Z[:, :, 1:1 + P + n_check].reshape(C * n, P + n_check) if n_check else None
         Jw = Z[:, :, 1:P + 1]
         Jf = Jw.reshape(C * n, P)
-        solved = gn_step(Jf, rw)
-        if solved is None:
+        Dw = Z[:, :, 1 + P + n_check:].reshape(C * n, nd)
+        Nm = cross_normal(Jf, Dw)
+        g = Jf.T @ rw.ravel()
+        if Nm is None:  # the ordinary Gauss-Newton step
+            Nm, Dw = Jf.T @ Jf, Jf[:, :nd]
+        else:
+            g[:nd] = Dw.T @ rw.ravel()  # the delay's [drift's] gradient from the master's derivative
+        try:
+            step = -np.linalg.solve(Nm, g)
+        except np.linalg.LinAlgError:
             return fail
-        Nm, step = solved
         if it == iters:
             break
         sd, sdr = delay_step(step, dt, span, fit_drift)
@@ -830,7 +874,9 @@ def _refine_gls(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpol
     n_use = int(use.sum())
     dof = max(1, C * n_use - P)
     s2 = float(np.sum(rw * rw)) / dof
-    u = np.sum(Jw * rw[:, :, None], axis=1) @ Ninv[:, :nd]  # per-sample whitened scores
+    # per-sample whitened scores, the delay's [drift's] from the master's derivative (as in _refine)
+    Js = np.concatenate([Dw.reshape(n, C, nd), Jw[:, :, nd:]], axis=2)
+    u = np.sum(Js * rw[:, :, None], axis=1) @ Ninv[:, :nd]
     # model check: the accelerometers' delay relative to the gyros' (0 when both come through the same
     # path; real IMUs may filter them differently), from the augmented normal equations
     check = None if acc is None else (Jx.T @ Jx, Jx.T @ rw.ravel())
@@ -851,11 +897,13 @@ def _refine_flex(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpo
 
     The delay is then found on the profile of the whitened cost (every other unknown -- drift, rotation,
     biases, lever arm -- concentrated out, linearised): Newton steps on a parabola through three cost
-    evaluations (d - h, d, d + h), not Gauss-Newton steps on the Jacobian alone. The Kalman whitening
-    weighs the fine structure of the signals heavily, where two units' sampling and filtering never
-    match exactly; there the Gauss-Newton curvature can exceed the cost's own several times over, and
-    its steps stall and its sigma is optimistic. The sigma is the larger of the profile's (its
-    curvature) and the Gauss-Newton/HAC one. ``h0``: the first half-width (e.g. the spectral sigma)."""
+    evaluations (d - h, d, d + h), not Gauss-Newton steps on the Jacobian alone: the Kalman whitening
+    weighs the fine structure of the signals heavily, where the slave's derivative is mostly its noise's,
+    and the Gauss-Newton curvature exceeded the cost's own several times over. The drift's step and the
+    covariance take the delay's [drift's] gradient and curvature from the master's derivative
+    (``latency_gls.cross_normal``; stepping the delay that way too left a 30 s flexing ship's windows
+    unchecked, z 3.6). The sigma is the larger of the profile's and the Gauss-Newton/HAC one. ``h0``:
+    the first half-width (e.g. the spectral sigma)."""
     d, dr, dt, tt, span, fail = _fit_start(t_m, t_mid, d0, drift0)
     nd = 1 + int(fit_drift)
     h = float(np.clip(h0 if h0 > 0 else 0.05 * dt, 1e-3 * dt, 0.5 * dt))
@@ -878,8 +926,8 @@ def _refine_flex(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpo
         sysm = _gls_system(t_m, a, use, itp, dd, rr, tt, fit_drift, acc, fm, lev, jacobian=jac)
         if sysm is None:
             return None
-        r, J, R, bias, fv = sysm
-        Xb, ub = block_mean(r[:, :, None] if J is None else np.concatenate([r[:, :, None], J], axis=2), use, k)
+        r, J, R, bias, fv, Dm = sysm
+        Xb, ub = block_mean(r[:, :, None] if J is None else np.concatenate([r[:, :, None], J, Dm], axis=2), use, k)
         fb = None if fv is None else blocks(fv)
         wb = blocks(r[:, :3] + a @ R.T + bias)  # the slave's rate
         return Xb, ub, fb, wb, r, R, bias
@@ -888,16 +936,18 @@ def _refine_flex(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpo
     if sy is None:
         return fail
     Xb, ub, fb, wb = sy[:4]
-    P = Xb.shape[2] - 1 - n_check
+    P = Xb.shape[2] - 1 - n_check - nd
     if model is None:
         span_ml = min(FLEX_ML_SPAN_S, FLEX_ML_BLOCKS * k * dt)
         cen = np.abs((np.arange(len(ub)) + 0.5) * k * dt + t_m[0] - t_mid) <= 0.5 * span_ml
-        model = fit_model(Xb[cen], wb[cen], None if fb is None else fb[cen], ub[cen], k * dt, P)
+        model = fit_model(Xb[cen][:, :, :1 + P + n_check], wb[cen], None if fb is None else fb[cen], ub[cen],
+                          k * dt, P)
         if model is None:
             return fail
     # whitened columns: 3 residuals (at d - h, d, d + h; the Jacobian shared) then the Jacobian
     jc = list(range(3, 3 + P))  # the fit's unknowns (delay first)
     pc = jc[1:]  # ... all but the delay (the profile)
+    dc = list(range(3 + P + n_check, 3 + P + n_check + nd))  # the delay's [drift's] columns, master side
 
     def profile(M: np.ndarray, col: int) -> float:
         s_ = M[pc, col]
@@ -915,7 +965,14 @@ def _refine_flex(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpo
         W, M, _ = whitened_normal(Y, sy[3], sy[2], sy[1], model, store=it == iters)
         try:
             cm, c0, cp = (profile(M, j) for j in range(3))
-            stp = -np.linalg.solve(M[np.ix_(jc, jc)], M[jc, 1])  # the GLS step (for the drift)
+            # the GLS step, its gradient and curvature from the master's derivative (cross_normal)
+            g = M[jc, 1].copy()
+            Nj = cross_products(M[np.ix_(jc, jc)], M[np.ix_(jc, dc)])
+            if Nj is None:
+                Nj = M[np.ix_(jc, jc)]
+            else:
+                g[:nd] = M[dc, 1]
+            stp = -np.linalg.solve(Nj, g)
         except np.linalg.LinAlgError:
             return fail
         curv_h = (cp + cm - 2.0 * c0) / (2.0 * h * h)
@@ -939,11 +996,17 @@ def _refine_flex(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpo
     if not curv > 0:
         return fail
     # the final pass: residual column 1, the unknowns jc (+ the model check's column last)
-    keep = [1] + jc + list(range(3 + P, M.shape[0]))
+    keep = [1] + jc + list(range(3 + P, 3 + P + n_check))
+    JD, gd = M[np.ix_(jc, dc)], M[dc, 1]
+    Wd = W[:, :, dc]
     M, W = M[np.ix_(keep, keep)], W[:, :, keep]
     ub = sy[1]
     r, R, bias = sy[4], sy[5], sy[6]
-    Nm, g = M[1:P + 1, 1:P + 1], M[1:P + 1, 0]
+    Nm, g = cross_products(M[1:P + 1, 1:P + 1], JD), M[1:P + 1, 0].copy()
+    if Nm is None:
+        Nm, Wd = M[1:P + 1, 1:P + 1], W[:, :, 1:nd + 1]
+    else:
+        g[:nd] = gd
     try:
         Ninv = np.linalg.inv(Nm)
     except np.linalg.LinAlgError:
@@ -953,7 +1016,8 @@ def _refine_flex(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpo
     rw = W[:, :, 0] + Wp @ step
     nb = int(ub.sum())
     s2 = float(np.sum(rw * rw)) / max(1, C * nb - P)
-    u = np.sum(Wp * rw[:, :, None], axis=1)[ub] @ Ninv[:, :nd]
+    Ws = np.concatenate([Wd, Wp[:, :, nd:]], axis=2)  # the scores as in _refine_gls
+    u = np.sum(Ws * rw[:, :, None], axis=1)[ub] @ Ninv[:, :nd]
     check = None if not n_check else (M[1:, 1:], M[1:, 0] + M[1:, 1:P + 1] @ step)
     # the profile's curvature floors the latency's variance (cost = sum of squares: var = s2 / curvature)
     var, corr, fac, acc_lag = gls_covariance(Ninv, s2, u, k * dt, fit_drift, check=check, var_floor=s2 / curv)

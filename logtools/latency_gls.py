@@ -202,6 +202,58 @@ def window_chi2(centers: np.ndarray, lats: np.ndarray, sigs: np.ndarray, latency
     return float(np.sum((res / np.asarray(sigs)) ** 2) / max(1, len(centers) - 2))
 
 
+def grid_derivative(y: np.ndarray, ok: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """d/dt of the rows y (n, k) of a uniform grid (4th-order central differences: 0.1 % low at a fifth
+    of the sampling rate, where the fits' motion lies at most), and where it holds (the five samples
+    around a row all ok; 0 elsewhere)."""
+    n = len(y)
+    d = np.zeros(y.shape)
+    okd = np.zeros(n, bool)
+    if n >= 5:
+        yz = np.where(ok.reshape((-1,) + (1,) * (y.ndim - 1)), y, 0.0)
+        d[2:-2] = (yz[:-4] - 8.0 * yz[1:-3] + 8.0 * yz[3:-1] - yz[4:]) / (12.0 * dt_s)
+        okd[2:-2] = ok[:-4] & ok[1:-3] & ok[2:-2] & ok[3:-1] & ok[4:]
+        d[~okd] = 0.0
+    return d, okd
+
+
+def cross_normal(Jf: np.ndarray, Dm: np.ndarray) -> np.ndarray | None:
+    """The normal matrix of a delay fit (Jacobian Jf (m, P), its first nd columns the delay's [and the
+    drift's] from the slave's derivative) with those columns' curvature taken from their cross-product
+    with the same columns built from the model's (the master's) derivative, Dm (m, nd); the fits then
+    take their delay's gradient from Dm too (Dm^T r: an instrumental-variable step).
+
+    Why: the slave's derivative carries its noise's derivative, whose energy the Gauss-Newton curvature
+    sum |s'|^2 counts as delay information. That energy grows with the band (flexure, vibration, a nav
+    velocity's noise): an aircraft with seed 000's flexure at a 7 Hz cutoff had 30x its motion's, so
+    each step went a few % of the way and the sigma was far too small. And the gradient sum s' r of a
+    spline-interpolated noisy slave ripples with the sub-sample phase (the interpolant's noise power
+    does), which pulled that aircraft's delay 10 ms towards one phase, the same way in every noise
+    seed. The master's derivative m', whose noise is independent of the slave's, keeps the signal's
+    part alone in sum s' m' and has no ripple in sum m' r.
+
+    None where the cross-product is not positive definite or its delay curvature exceeds the slave's
+    own twice over (no common signal, or a model without the slave's trend): the caller then keeps the
+    ordinary Gauss-Newton step."""
+    return cross_products(Jf.T @ Jf, Jf.T @ Dm)
+
+
+def cross_products(N: np.ndarray, JD: np.ndarray) -> np.ndarray | None:
+    """``cross_normal`` from the products: N = Jf^T Jf (P, P) and JD = Jf^T Dm (P, nd)."""
+    nd = JD.shape[1]
+    X = JD - N[:, :nd]
+    Nc = N.copy()
+    Nc[:, :nd] += 0.5 * X
+    Nc[:nd, :] += 0.5 * X.T
+    if np.any(np.diag(Nc)[:nd] > 2.0 * np.diag(N)[:nd]):
+        return None
+    try:
+        np.linalg.cholesky(Nc)
+    except np.linalg.LinAlgError:
+        return None
+    return Nc
+
+
 def gn_step(Jf: np.ndarray, rw: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """(normal matrix, Gauss-Newton step) of a whitened least-squares problem (Jacobian (m, P), residual
     (m,) or any shape of m elements); None when the normal matrix is singular."""

@@ -45,7 +45,9 @@ from logtools.latency_gls import (NoiseModel, delay_step, end_taper, gls_covaria
 from logtools.resample import Interpolant, interpolant, lowpass, median_rate_hz, stamp_noise_s, to_uniform
 
 VEL_MAX_CUTOFF_HZ = 5.0  # the velocities are low-passed at the rate fit's cutoff, at most this
-VEL_CUTOFF_FRACTION = 0.4  # ... and at most this fraction of the slower nav rate
+VEL_CUTOFF_FRACTION = 0.2  # ... and at most this fraction of the slower nav rate (0.4, 80 % of its Nyquist: a
+#   5 Hz nav velocity came out 6 ms late on an aircraft, its whitened fit weighing the band where the spline
+#   and the two low-passes differ; 0.2: unbiased over 12 runs)
 VEL_MIN_GRID_HZ = 20.0  # fit samples at 5x the cutoff, at least this (at most the slower nav rate)
 VEL_MAX_FIT_SAMPLES = 60_000  # fit samples at most (a 4 h record at 1 Hz cutoff: one every 0.24 s)
 VEL_MIN_SAMPLES = 64  # finite velocity samples each unit needs
