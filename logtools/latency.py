@@ -23,7 +23,9 @@ tapost's method ("tapost")
      once from 18 FFT cross-correlations and a batched 3x3 SVD: a cost curve that is rotation- and
      bias-invariant and uses all three axes (this is what makes slow, smooth motions work);
   3. full-vector refinement to a sub-sample delay: Gauss-Newton on the continuous delay (cubic B-spline
-     of the slave, never extrapolated), R and b re-solved at every step (variable projection);
+     of the slave, never extrapolated), R and b re-solved at every step (variable projection); the
+     delay's gradient and curvature from the master's derivative (``latency_gls.cross_normal``: the
+     slave's carries its noise's, which inflates the curvature, and ripples with the sub-sample phase);
   3b. generalised least squares (GLS): the residual w_s(t + d) - R w_m(t) - b of that first fit is not
      white -- flexure adds a differential angular rate between the units, a coloured (second-order
      Markov) process concentrated at low frequency, on top of the gyros' white noise -- so its power
