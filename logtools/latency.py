@@ -24,8 +24,9 @@ tapost's method ("tapost")
      bias-invariant and uses all three axes (this is what makes slow, smooth motions work);
   3. full-vector refinement to a sub-sample delay: Gauss-Newton on the continuous delay (cubic B-spline
      of the slave, never extrapolated), R and b re-solved at every step (variable projection); the
-     delay's gradient and curvature from the master's derivative (``latency_gls.cross_normal``: the
-     slave's carries its noise's, which inflates the curvature, and ripples with the sub-sample phase);
+     delay's gradient and curvature from the cleaner of the two units' derivatives, mostly the master's
+     (``latency_gls.delay_normal``: a noisy slave's inflates the curvature and ripples with the
+     sub-sample phase);
   3b. generalised least squares (GLS): the residual w_s(t + d) - R w_m(t) - b of that first fit is not
      white -- flexure adds a differential angular rate between the units, a coloured (second-order
      Markov) process concentrated at low frequency, on top of the gyros' white noise -- so its power
@@ -105,7 +106,7 @@ from logtools.conventions import (dcm_from_quat, euler_from_dcm, quat_conj, quat
 from logtools.errors import AnalysisError
 from logtools.inslog import InsLog
 from logtools.navcheck import output_validity
-from logtools.latency_gls import (NoiseModel, cross_normal, cross_products, delay_step, end_taper, gls_covariance,
+from logtools.latency_gls import (NoiseModel, delay_normal, delay_normal_products, delay_step, end_taper, gls_covariance,
                                   grid_derivative, grid_offset_sigma_s, hac_cov, noise_model, stamp_noise_variance,
                                   window_chi2)
 from logtools.latency_velocity import VelocityPair, velocity_fit, velocity_pair
@@ -120,6 +121,8 @@ METHODS = ("tapost", "s000-rate-integral", "s002-attitude-shift", "xcorr-norm")
 MAX_COMMON_RATE_HZ = 200.0  # refinement grid cap (a 400-1000 Hz unit is low-passed then decimated)
 MAX_COARSE_RATE_HZ = 100.0  # integer-lag search grid cap
 CUTOFF_FRACTION = 0.4  # zero-phase low-pass at most at this fraction of the common rate
+BAND_COMMON = True  # the motion's band: the smaller of the two units' (each unit's own noise, flexure, vibration
+#                    widens its own band only; the larger took a ship's fast flexure for motion: a 49 Hz cutoff)
 MIN_CUTOFF_HZ = 1.0  # and at least here (3x the motion band in between)
 MIN_OVERLAP_S = 5.0
 MIN_MOTION_SNR = 2.0  # in-band motion RMS / in-band noise RMS below this: no motion (AnalysisError)
@@ -575,12 +578,12 @@ def _residuals(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpola
 def _refine(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant, d0: float,
             drift0: float, t_mid: float, *, fit_drift: bool, iters: int = 12) -> _Fit:
     """Gauss-Newton on (L[, drift]) with R, b re-solved (Kabsch with means) at every step, the delay's
-    gradient and curvature from the master's derivative (``latency_gls.cross_normal``); covariance of
+    gradient and curvature from the cleaner unit's derivative (``latency_gls.delay_normal``); covariance of
     the joint (L, drift, rotation, bias) problem with a HAC score variance."""
     d, dr = float(d0), float(drift0)
     dt = float(np.median(np.diff(t_m))) if len(t_m) > 1 else 1.0
     tt = t_m - t_mid
-    ad, okd = grid_derivative(a, valid, dt)  # the master's derivative: the curvature's (cross_normal)
+    ad, okd = grid_derivative(a, valid, dt)  # the master's derivative (delay_normal)
 
     def master_derivative(bd: np.ndarray, use: np.ndarray, R: np.ndarray) -> np.ndarray:
         """R a' at the used rows (the slave's derivative where the master's does not hold)."""
@@ -595,7 +598,7 @@ def _refine(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant,
         md = master_derivative(bd, use, R)
         # reduced Gauss-Newton step on (L[, drift]) (variable projection: R and b are re-solved
         # exactly at every iteration; the bias is projected out of the step by centring), the
-        # curvature from the cross-product of the two units' derivatives (see cross_normal)
+        # curvature from the cleaner of the two units' derivatives (see delay_normal)
         J = [bd - bd.mean(axis=0)]
         Jm = [md - md.mean(axis=0)]
         if fit_drift:
@@ -604,11 +607,11 @@ def _refine(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant,
             Jm.append(jm - jm.mean(axis=0))
         Js = np.stack([x.ravel() for x in J], axis=1)
         Dm = np.stack([x.ravel() for x in Jm], axis=1)
-        Nr = cross_normal(Js, Dm)
+        Nr = delay_normal(Js, Dm)
         if Nr is None:
             Nr, gr = Js.T @ Js, Js.T @ r.ravel()
         else:
-            gr = Dm.T @ r.ravel()  # the master's derivative's gradient (cross_normal: no interpolation ripple)
+            gr = Dm.T @ r.ravel()  # the master's derivative's gradient (no interpolation ripple)
         try:
             step = -np.linalg.solve(Nr, gr)
         except np.linalg.LinAlgError:
@@ -630,15 +633,15 @@ def _refine(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant,
     Jfull = _jacobian(bd, tu if fit_drift else None, au @ R.T)
     Jm = _jacobian(master_derivative(bd, use, R), tu if fit_drift else None, au @ R.T)
     rr = r.ravel()
-    Nm = cross_normal(Jfull, Jm[:, :nd])
+    Nm = delay_normal(Jfull, Jm[:, :nd])
     if Nm is None:
         Nm, Jm = Jfull.T @ Jfull, Jfull
     try:
         Ninv = np.linalg.inv(Nm)
     except np.linalg.LinAlgError:
         return _Fit(d, dr, R, bias, np.inf, np.inf, np.sqrt(cost / max(1, r.size)), len(au), 1.0, 0.0, False)
-    # per-sample scores from the master's derivative (the slave's carries its noise's derivative, whose
-    # products with the residual cancel only over long lags: a HAC of them was 100x too large)
+    # per-sample scores from the derivative the step took (a noisy slave's: products with the residual
+    # that cancel only over long lags; a HAC of them was 100x too large)
     G = (Jm * rr[:, None]).reshape(len(r), 3, -1).sum(axis=1)
     u = G @ Ninv[:, :nd]  # contributions to the (L, drift) step
     max_h = int(min(len(u) // 4, max(10, 20.0 / dt)))
@@ -738,7 +741,7 @@ def _gls_system(t_m: np.ndarray, a: np.ndarray, use: np.ndarray, itp: Interpolan
     bias and the lever arm as further unknowns, and a trailing column for the accelerometers' own delay,
     the model check). Also the slave's specific force at the delayed instants (None without ``acc``) and
     Dm (n, C, nd): the delay's [and drift's] columns from the model's derivative, for the curvature
-    (``latency_gls.cross_normal``). None when a used sample falls off the slave's data. Without ``jacobian``:
+    (``latency_gls.delay_normal``). None when a used sample falls off the slave's data. Without ``jacobian``:
     (r, None, R, bias, fv, None)."""
     n = len(t_m)
     C = 3 if acc is None else 6
@@ -849,7 +852,7 @@ def _refine_gls(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpol
         Jw = Z[:, :, 1:P + 1]
         Jf = Jw.reshape(C * n, P)
         Dw = Z[:, :, 1 + P + n_check:].reshape(C * n, nd)
-        Nm = cross_normal(Jf, Dw)
+        Nm = delay_normal(Jf, Dw)
         g = Jf.T @ rw.ravel()
         if Nm is None:  # the ordinary Gauss-Newton step
             Nm, Dw = Jf.T @ Jf, Jf[:, :nd]
@@ -903,7 +906,7 @@ def _refine_flex(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpo
     weighs the fine structure of the signals heavily, where the slave's derivative is mostly its noise's,
     and the Gauss-Newton curvature exceeded the cost's own several times over. The drift's step and the
     covariance take the delay's [drift's] gradient and curvature from the master's derivative
-    (``latency_gls.cross_normal``; stepping the delay that way too left a 30 s flexing ship's windows
+    (``latency_gls.delay_normal``; stepping the delay that way too left a 30 s flexing ship's windows
     unchecked, z 3.6). The sigma is the larger of the profile's and the Gauss-Newton/HAC one. ``h0``:
     the first half-width (e.g. the spectral sigma)."""
     d, dr, dt, tt, span, fail = _fit_start(t_m, t_mid, d0, drift0)
@@ -967,9 +970,9 @@ def _refine_flex(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpo
         W, M, _ = whitened_normal(Y, sy[3], sy[2], sy[1], model, store=it == iters)
         try:
             cm, c0, cp = (profile(M, j) for j in range(3))
-            # the GLS step, its gradient and curvature from the master's derivative (cross_normal)
+            # the GLS step, its delay's gradient and curvature from the cleaner derivative (delay_normal)
             g = M[jc, 1].copy()
-            Nj = cross_products(M[np.ix_(jc, jc)], M[np.ix_(jc, dc)])
+            Nj = delay_normal_products(M[np.ix_(jc, jc)], M[np.ix_(jc, dc)], M[np.ix_(dc, dc)])
             if Nj is None:
                 Nj = M[np.ix_(jc, jc)]
             else:
@@ -999,12 +1002,12 @@ def _refine_flex(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpo
         return fail
     # the final pass: residual column 1, the unknowns jc (+ the model check's column last)
     keep = [1] + jc + list(range(3 + P, 3 + P + n_check))
-    JD, gd = M[np.ix_(jc, dc)], M[dc, 1]
+    JD, DD, gd = M[np.ix_(jc, dc)], M[np.ix_(dc, dc)], M[dc, 1]
     Wd = W[:, :, dc]
     M, W = M[np.ix_(keep, keep)], W[:, :, keep]
     ub = sy[1]
     r, R, bias = sy[4], sy[5], sy[6]
-    Nm, g = cross_products(M[1:P + 1, 1:P + 1], JD), M[1:P + 1, 0].copy()
+    Nm, g = delay_normal_products(M[1:P + 1, 1:P + 1], JD, DD), M[1:P + 1, 0].copy()
     if Nm is None:
         Nm, Wd = M[1:P + 1, 1:P + 1], W[:, :, 1:nd + 1]
     else:
@@ -1081,7 +1084,8 @@ def _prepare(master: InsLog, slave: InsLog, max_lag_s: float | None, *, accelero
     nats, ns = _uniform_native(ts, ws, "slave")
     # zero-phase low-pass of both units at the same cutoff: a few times the motion's band (the noise
     # between the motion's band and Nyquist would otherwise bias a spline-interpolated sub-sample delay)
-    band = max(_signal_band_hz(natm, nm), _signal_band_hz(nats, ns))
+    band = min(_signal_band_hz(natm, nm), _signal_band_hz(nats, ns)) if BAND_COMMON else max(
+        _signal_band_hz(natm, nm), _signal_band_hz(nats, ns))
     cutoff = float(np.clip(3.0 * band, MIN_CUTOFF_HZ, CUTOFF_FRACTION * f_c))
     # both units are band-limited at the cutoff: refinement samples at 5x the cutoff carry all the
     # information (a denser grid only costs time; the residuals' correlation is handled by the HAC)

@@ -217,41 +217,39 @@ def grid_derivative(y: np.ndarray, ok: np.ndarray, dt_s: float) -> tuple[np.ndar
     return d, okd
 
 
-def cross_normal(Jf: np.ndarray, Dm: np.ndarray) -> np.ndarray | None:
-    """The normal matrix of a delay fit (Jacobian Jf (m, P), its first nd columns the delay's [and the
-    drift's] from the slave's derivative) with those columns' curvature taken from their cross-product
-    with the same columns built from the model's (the master's) derivative, Dm (m, nd); the fits then
-    take their delay's gradient from Dm too (Dm^T r: an instrumental-variable step).
+def delay_normal(Jf: np.ndarray, Dm: np.ndarray) -> np.ndarray | None:
+    """The normal matrix of a delay fit with its delay's [and drift's] columns -- the first nd of the
+    Jacobian Jf (m, P), the slave's derivative -- replaced by Dm (m, nd), the same columns from the model's
+    (the master's) derivative, where that derivative is the cleaner of the two (the smaller energy in
+    the delay's column: both carry the signal's, each its own noise's); the fit then takes its delay's
+    gradient from Dm too (Dm^T r: the delay seen as a shift of the master). None where the slave's is
+    the cleaner (the caller keeps the ordinary Gauss-Newton step).
 
-    Why: the slave's derivative carries its noise's derivative, whose energy the Gauss-Newton curvature
-    sum |s'|^2 counts as delay information. That energy grows with the band (flexure, vibration, a nav
-    velocity's noise): an aircraft with seed 000's flexure at a 7 Hz cutoff had 30x its motion's, so
-    each step went a few % of the way and the sigma was far too small. And the gradient sum s' r of a
-    spline-interpolated noisy slave ripples with the sub-sample phase (the interpolant's noise power
-    does), which pulled that aircraft's delay 10 ms towards one phase, the same way in every noise
-    seed. The master's derivative m', whose noise is independent of the slave's, keeps the signal's
-    part alone in sum s' m' and has no ripple in sum m' r.
-
-    None where the cross-product is not positive definite or its delay curvature exceeds the slave's
-    own twice over (no common signal, or a model without the slave's trend): the caller then keeps the
-    ordinary Gauss-Newton step."""
-    return cross_products(Jf.T @ Jf, Jf.T @ Dm)
+    Why: a derivative's noise energy counts in the Gauss-Newton curvature as delay information. It
+    grows with the band (flexure, vibration): an aircraft with seed 000's flexure at a 7 Hz cutoff had
+    18x its motion's in the slave's derivative, so each step went a few % of the way and the sigma was
+    far too small; a ship's fast flexure at a 49 Hz cutoff, 1800x (45 ms off at z 800). And the gradient
+    sum s' r of a spline-interpolated noisy slave ripples with the sub-sample phase (the interpolant's
+    noise power does), which pulled the aircraft's delay 10 ms towards one phase in every noise seed.
+    (The cross-product sum s' m', unbiased for the signal's curvature, drowned in the noise's products
+    there and came out negative.)"""
+    return delay_normal_products(Jf.T @ Jf, Jf.T @ Dm, Dm.T @ Dm)
 
 
-def cross_products(N: np.ndarray, JD: np.ndarray) -> np.ndarray | None:
-    """``cross_normal`` from the products: N = Jf^T Jf (P, P) and JD = Jf^T Dm (P, nd)."""
-    nd = JD.shape[1]
-    X = JD - N[:, :nd]
-    Nc = N.copy()
-    Nc[:, :nd] += 0.5 * X
-    Nc[:nd, :] += 0.5 * X.T
-    if np.any(np.diag(Nc)[:nd] > 2.0 * np.diag(N)[:nd]):
+def delay_normal_products(N: np.ndarray, JD: np.ndarray, DD: np.ndarray) -> np.ndarray | None:
+    """``delay_normal`` from the products: N = Jf^T Jf (P, P), JD = Jf^T Dm (P, nd), DD = Dm^T Dm."""
+    nd = DD.shape[0]
+    if not DD[0, 0] < N[0, 0]:
         return None
+    Nm = N.copy()
+    Nm[:, :nd] = JD
+    Nm[:nd, :] = JD.T
+    Nm[:nd, :nd] = DD
     try:
-        np.linalg.cholesky(Nc)
+        np.linalg.cholesky(Nm)
     except np.linalg.LinAlgError:
         return None
-    return Nc
+    return Nm
 
 
 def gn_step(Jf: np.ndarray, rw: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:

@@ -1,5 +1,5 @@
-"""The delay fits' curvature: taken from the cross-product of the two units' derivatives, not from the
-slave's derivative alone (``latency_gls.cross_normal``). A slave whose noise has a large derivative
+"""The delay fits' curvature and gradient: from the cleaner of the two units' derivatives, not from the
+slave's derivative alone (``latency_gls.delay_normal``). A slave whose noise has a large derivative
 (flexure or vibration in a wide band) used to make every Gauss-Newton step go a fraction of the way
 and its sigma many times too small."""
 from __future__ import annotations
@@ -9,7 +9,7 @@ from scipy.signal import butter, sosfiltfilt
 
 import logtools.latency as L
 from logtools import sim
-from logtools.latency_gls import cross_normal, grid_derivative
+from logtools.latency_gls import delay_normal, grid_derivative
 from logtools.resample import UniformSeries, interpolant
 
 
@@ -26,17 +26,19 @@ def test_grid_derivative_is_exact_for_a_slow_sinusoid_and_masks_gaps():
     assert not okd[:2].any() and not okd[-2:].any()
 
 
-def test_cross_normal_keeps_the_signal_curvature_and_drops_independent_noise():
+def test_delay_normal_takes_the_cleaner_derivative():
     rng = np.random.default_rng(1)
     n = 20000
     sig = np.sin(np.linspace(0, 20 * np.pi, n))
-    Js = (sig + 5.0 * rng.standard_normal(n))[:, None]  # the slave's derivative: noise 50x the power
-    Dm = (sig + 0.1 * rng.standard_normal(n))[:, None]  # the model's: nearly clean
-    N = cross_normal(Js, Dm)
-    assert abs(N[0, 0] / np.sum(sig * sig) - 1.0) < 0.15
+    other = rng.standard_normal((n, 2))
+    Js = np.column_stack([sig + 5.0 * rng.standard_normal(n), other])  # the slave's derivative: 50x noise power
+    Dm = (sig + 0.1 * rng.standard_normal(n))[:, None]  # the master's: nearly clean
+    N = delay_normal(Js, Dm)
+    assert N is not None and abs(N[0, 0] / np.sum(sig * sig) - 1.0) < 0.05
     assert (Js.T @ Js)[0, 0] > 25 * N[0, 0]
-    # no common signal: None (the caller keeps the ordinary Gauss-Newton step), never a negative curvature
-    assert cross_normal(Js, -Js) is None
+    assert np.allclose(N[1:, 0], other.T @ Dm[:, 0]) and np.allclose(N[1:, 1:], other.T @ other)
+    # the slave's the cleaner (a noisy master): None, the caller keeps the ordinary Gauss-Newton step
+    assert delay_normal(np.column_stack([Dm[:, 0], other]), Js[:, :1]) is None
 
 
 def _pair(d_true: float, seed: int, dt: float = 1 / 40):
