@@ -106,7 +106,7 @@ from logtools.conventions import (dcm_from_quat, euler_from_dcm, quat_conj, quat
 from logtools.errors import AnalysisError
 from logtools.inslog import InsLog
 from logtools.navcheck import output_validity
-from logtools.latency_gls import (NoiseModel, delay_normal, delay_normal_products, delay_step, end_taper, gls_covariance,
+from logtools.latency_gls import (NoiseModel, delay_normal, delay_step, delay_system, end_taper, gls_covariance,
                                   grid_derivative, grid_offset_sigma_s, hac_cov, noise_model, stamp_noise_variance,
                                   window_chi2)
 from logtools.latency_velocity import VelocityPair, velocity_fit, velocity_pair
@@ -607,11 +607,7 @@ def _refine(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant,
             Jm.append(jm - jm.mean(axis=0))
         Js = np.stack([x.ravel() for x in J], axis=1)
         Dm = np.stack([x.ravel() for x in Jm], axis=1)
-        Nr = delay_normal(Js, Dm)
-        if Nr is None:
-            Nr, gr = Js.T @ Js, Js.T @ r.ravel()
-        else:
-            gr = Dm.T @ r.ravel()  # the master's derivative's gradient (no interpolation ripple)
+        Nr, gr, _ = delay_normal(Js, Dm, r.ravel())
         try:
             step = -np.linalg.solve(Nr, gr)
         except np.linalg.LinAlgError:
@@ -633,9 +629,9 @@ def _refine(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant,
     Jfull = _jacobian(bd, tu if fit_drift else None, au @ R.T)
     Jm = _jacobian(master_derivative(bd, use, R), tu if fit_drift else None, au @ R.T)
     rr = r.ravel()
-    Nm = delay_normal(Jfull, Jm[:, :nd])
-    if Nm is None:
-        Nm, Jm = Jfull.T @ Jfull, Jfull
+    Nm, _, master = delay_normal(Jfull, Jm[:, :nd], rr)
+    if not master:
+        Jm = Jfull
     try:
         Ninv = np.linalg.inv(Nm)
     except np.linalg.LinAlgError:
@@ -784,7 +780,7 @@ def _gls_system(t_m: np.ndarray, a: np.ndarray, use: np.ndarray, itp: Interpolan
         J[:, :3, :pg] = Jg
         J[:, 3:, :nd + 3] = Ja[:, :, :nd + 3]
         J[:, 3:, pg:pg + 3] = Ja[:, :, nd + 3:]
-        J[:, 3:, pg + 3:pg + 6] = _lever_jacobian(R, lev)
+        J[:, 3:, pg + 3:pg + 6] = Jl
         J[:, 3:, pg + 6] = fd  # a delay of the accelerometers' own (model check, not in the steps)
     if fit_drift:
         Dm[:, :, 1] = Dm[:, :, 0] * tt[:, None]
@@ -852,12 +848,9 @@ def _refine_gls(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpol
         Jw = Z[:, :, 1:P + 1]
         Jf = Jw.reshape(C * n, P)
         Dw = Z[:, :, 1 + P + n_check:].reshape(C * n, nd)
-        Nm = delay_normal(Jf, Dw)
-        g = Jf.T @ rw.ravel()
-        if Nm is None:  # the ordinary Gauss-Newton step
-            Nm, Dw = Jf.T @ Jf, Jf[:, :nd]
-        else:
-            g[:nd] = Dw.T @ rw.ravel()  # the delay's [drift's] gradient from the master's derivative
+        Nm, g, master = delay_normal(Jf, Dw, rw.ravel())
+        if not master:  # the ordinary Gauss-Newton step: its scores too
+            Dw = Jf[:, :nd]
         try:
             step = -np.linalg.solve(Nm, g)
         except np.linalg.LinAlgError:
@@ -971,12 +964,7 @@ def _refine_flex(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpo
         try:
             cm, c0, cp = (profile(M, j) for j in range(3))
             # the GLS step, its delay's gradient and curvature from the cleaner derivative (delay_normal)
-            g = M[jc, 1].copy()
-            Nj = delay_normal_products(M[np.ix_(jc, jc)], M[np.ix_(jc, dc)], M[np.ix_(dc, dc)])
-            if Nj is None:
-                Nj = M[np.ix_(jc, jc)]
-            else:
-                g[:nd] = M[dc, 1]
+            Nj, g, _ = delay_system(M[np.ix_(jc, jc)], M[np.ix_(jc, dc)], M[np.ix_(dc, dc)], M[jc, 1], M[dc, 1])
             stp = -np.linalg.solve(Nj, g)
         except np.linalg.LinAlgError:
             return fail
@@ -1007,11 +995,9 @@ def _refine_flex(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpo
     M, W = M[np.ix_(keep, keep)], W[:, :, keep]
     ub = sy[1]
     r, R, bias = sy[4], sy[5], sy[6]
-    Nm, g = delay_normal_products(M[1:P + 1, 1:P + 1], JD, DD), M[1:P + 1, 0].copy()
-    if Nm is None:
-        Nm, Wd = M[1:P + 1, 1:P + 1], W[:, :, 1:nd + 1]
-    else:
-        g[:nd] = gd
+    Nm, g, master = delay_system(M[1:P + 1, 1:P + 1], JD, DD, M[1:P + 1, 0], gd)
+    if not master:
+        Wd = W[:, :, 1:nd + 1]
     try:
         Ninv = np.linalg.inv(Nm)
     except np.linalg.LinAlgError:
@@ -1084,8 +1070,7 @@ def _prepare(master: InsLog, slave: InsLog, max_lag_s: float | None, *, accelero
     nats, ns = _uniform_native(ts, ws, "slave")
     # zero-phase low-pass of both units at the same cutoff: a few times the motion's band (the noise
     # between the motion's band and Nyquist would otherwise bias a spline-interpolated sub-sample delay)
-    band = min(_signal_band_hz(natm, nm), _signal_band_hz(nats, ns)) if BAND_COMMON else max(
-        _signal_band_hz(natm, nm), _signal_band_hz(nats, ns))
+    band = (min if BAND_COMMON else max)(_signal_band_hz(natm, nm), _signal_band_hz(nats, ns))
     cutoff = float(np.clip(3.0 * band, MIN_CUTOFF_HZ, CUTOFF_FRACTION * f_c))
     # both units are band-limited at the cutoff: refinement samples at 5x the cutoff carry all the
     # information (a denser grid only costs time; the residuals' correlation is handled by the HAC)

@@ -217,13 +217,13 @@ def grid_derivative(y: np.ndarray, ok: np.ndarray, dt_s: float) -> tuple[np.ndar
     return d, okd
 
 
-def delay_normal(Jf: np.ndarray, Dm: np.ndarray) -> np.ndarray | None:
-    """The normal matrix of a delay fit with its delay's [and drift's] columns -- the first nd of the
-    Jacobian Jf (m, P), the slave's derivative -- replaced by Dm (m, nd), the same columns from the model's
-    (the master's) derivative, where that derivative is the cleaner of the two (the smaller energy in
-    the delay's column: both carry the signal's, each its own noise's); the fit then takes its delay's
-    gradient from Dm too (Dm^T r: the delay seen as a shift of the master). None where the slave's is
-    the cleaner (the caller keeps the ordinary Gauss-Newton step).
+def delay_normal(Jf: np.ndarray, Dm: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+    """(normal matrix, gradient, master's side taken) of a delay fit (Jacobian Jf (m, P), residual r (m,)),
+    its delay's [and drift's] columns -- the first nd of Jf, the slave's derivative -- replaced by Dm (m, nd),
+    the same columns from the model's (the master's) derivative, where that derivative is the cleaner of
+    the two (the smaller energy in the delay's column: both carry the signal's, each its own noise's); the
+    delay's gradient then comes from Dm too (Dm^T r: the delay seen as a shift of the master). Where the
+    slave's is the cleaner: the ordinary Gauss-Newton system (Jf^T Jf, Jf^T r) and False.
 
     Why: a derivative's noise energy counts in the Gauss-Newton curvature as delay information. It
     grows with the band (flexure, vibration): an aircraft with seed 000's flexure at a 7 Hz cutoff had
@@ -233,14 +233,16 @@ def delay_normal(Jf: np.ndarray, Dm: np.ndarray) -> np.ndarray | None:
     noise power does), which pulled the aircraft's delay 10 ms towards one phase in every noise seed.
     (The cross-product sum s' m', unbiased for the signal's curvature, drowned in the noise's products
     there and came out negative.)"""
-    return delay_normal_products(Jf.T @ Jf, Jf.T @ Dm, Dm.T @ Dm)
+    return delay_system(Jf.T @ Jf, Jf.T @ Dm, Dm.T @ Dm, Jf.T @ r, Dm.T @ r)
 
 
-def delay_normal_products(N: np.ndarray, JD: np.ndarray, DD: np.ndarray) -> np.ndarray | None:
-    """``delay_normal`` from the products: N = Jf^T Jf (P, P), JD = Jf^T Dm (P, nd), DD = Dm^T Dm."""
+def delay_system(N: np.ndarray, JD: np.ndarray, DD: np.ndarray, g: np.ndarray, gd: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, bool]:
+    """``delay_normal`` from the products: N = Jf^T Jf (P, P), JD = Jf^T Dm (P, nd), DD = Dm^T Dm,
+    g = Jf^T r (P,), gd = Dm^T r (nd,)."""
     nd = DD.shape[0]
     if not DD[0, 0] < N[0, 0]:
-        return None
+        return N, g, False
     Nm = N.copy()
     Nm[:, :nd] = JD
     Nm[:nd, :] = JD.T
@@ -248,8 +250,10 @@ def delay_normal_products(N: np.ndarray, JD: np.ndarray, DD: np.ndarray) -> np.n
     try:
         np.linalg.cholesky(Nm)
     except np.linalg.LinAlgError:
-        return None
-    return Nm
+        return N, g, False
+    gm = np.array(g, dtype=float)
+    gm[:nd] = gd
+    return Nm, gm, True
 
 
 def gn_step(Jf: np.ndarray, rw: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:

@@ -33,12 +33,16 @@ def test_delay_normal_takes_the_cleaner_derivative():
     other = rng.standard_normal((n, 2))
     Js = np.column_stack([sig + 5.0 * rng.standard_normal(n), other])  # the slave's derivative: 50x noise power
     Dm = (sig + 0.1 * rng.standard_normal(n))[:, None]  # the master's: nearly clean
-    N = delay_normal(Js, Dm)
-    assert N is not None and abs(N[0, 0] / np.sum(sig * sig) - 1.0) < 0.05
+    r = rng.standard_normal(n)
+    N, g, master = delay_normal(Js, Dm, r)
+    assert master and abs(N[0, 0] / np.sum(sig * sig) - 1.0) < 0.05
     assert (Js.T @ Js)[0, 0] > 25 * N[0, 0]
     assert np.allclose(N[1:, 0], other.T @ Dm[:, 0]) and np.allclose(N[1:, 1:], other.T @ other)
-    # the slave's the cleaner (a noisy master): None, the caller keeps the ordinary Gauss-Newton step
-    assert delay_normal(np.column_stack([Dm[:, 0], other]), Js[:, :1]) is None
+    assert np.isclose(g[0], Dm[:, 0] @ r) and np.allclose(g[1:], other.T @ r)
+    # the slave's the cleaner (a noisy master): the ordinary Gauss-Newton system
+    Jc = np.column_stack([Dm[:, 0], other])
+    N0, g0, master0 = delay_normal(Jc, Js[:, :1], r)
+    assert not master0 and np.allclose(N0, Jc.T @ Jc) and np.allclose(g0, Jc.T @ r)
 
 
 def _pair(d_true: float, seed: int, dt: float = 1 / 40):
