@@ -15,7 +15,9 @@ tapost's method ("tapost")
      rates from the unit's position and velocity, so that it is inertial like a gyro's), on the master's relative
      clock (``slave.rebased(master.meta.t0_ns)``, exact), each on its own uniform grid
      (``logtools.resample``: duplicates, jitter, gaps masked), zero-phase low-passed at the same cutoff
-     (3x the motion's band: the noise above it would bias a spline-interpolated sub-sample delay);
+     (3x the motion's band: the noise above it would bias a spline-interpolated sub-sample delay; at least
+     MIN_CUTOFF_HZ, 4 Hz, for the Kalman flexure fit's blocks to resolve the flexure, at most a fifth of the
+     common rate; the motion's signal/noise and the velocities at the motion's band, at least 1 Hz);
   1. coarse, rotation-invariant: normalised cross-correlation of |w| (mean removed and normalised over
      the overlap at each lag, FFT over the whole overlap) -- candidates, and the "xcorr-norm" baseline;
   2. rotation from the data: at every integer lag of the search range the rotation-solved vector cost
@@ -123,7 +125,15 @@ MAX_COARSE_RATE_HZ = 100.0  # integer-lag search grid cap
 CUTOFF_FRACTION = 0.4  # zero-phase low-pass at most at this fraction of the common rate
 BAND_COMMON = True  # the motion's band: the smaller of the two units' (each unit's own noise, flexure, vibration
 #                    widens its own band only; the larger took a ship's fast flexure for motion: a 49 Hz cutoff)
-MIN_CUTOFF_HZ = 1.0  # and at least here (3x the motion band in between)
+BAND_MIN_CUTOFF_HZ = 1.0  # 3x the motion's band, at least here: the band of the motion's signal/noise and of
+#                          the velocities' low-pass (latency_velocity caps it further)
+MIN_CUTOFF_HZ = 4.0  # the rates' low-pass: 3x the motion's band, at least here. The Kalman flexure fit's blocks
+#   (DECIMATE_FACTOR x the cutoff) must resolve the flexure's own dynamics. At 1 Hz a 0.4 s block averaged a
+#   flexure of beta 2/s: its model came out beta 1.1 with a white noise 5-30x the sensors', and turning cars'
+#   IMU-only latencies had an RMS of 0.79 ms at sigmas of 1.5 ms against a bound of 0.53 ms (at 4 Hz, with
+#   FLEX_ACCEL_OWN: 0.54 ms at 0.78 ms)
+MIN_CUTOFF_FRACTION = 0.2  # ... that floor at most this fraction of the common rate (an attitude-only slave at
+#   10 Hz, its rates low-passed at 80 % of their Nyquist, came out 7.7 ms off at sigma 1.7 ms; at 2 Hz right)
 MIN_OVERLAP_S = 5.0
 MIN_MOTION_SNR = 2.0  # in-band motion RMS / in-band noise RMS below this: no motion (AnalysisError)
 LOW_MOTION_SNR = 10.0  # below this (or below LOW_MOTION_DPS): "too_little_motion" flag
@@ -180,6 +190,9 @@ FLEX_GAP_COVER = 0.5
 FLEX_WINDOWS_CHI2 = 4.0  # ... and kept unless its windows disagree beyond this (reduced chi-square) and the
 #                          spectral fit's window-checked sigma is the smaller
 FLEX_ITERS = 6  # profile Newton steps
+FLEX_ACCEL_OWN = True  # the Kalman fit takes the accelerometers on its own delay check, whatever the spectral
+#   6-channel fit decided (its coherence model of the flexure's tilt mismatched a turning car's: the aided
+#   sigma no smaller, or an accelerometer delay of 3 sigma for nothing)
 FLEX_REACH_MIN_S = 0.0  # the profile search may always go this far from its start (0: off. 20 ms let a
 #   gently turning aircraft's Kalman fit land 1 ms from the truth, 5.7 ms from the spectral fit, and the
 #   rule below then cover it; but it moved the 2014 ArduCopter's +37.3 ms shift to 38.5 ms, beyond 1 ms)
@@ -1029,6 +1042,7 @@ class _Ctx:
     dt_c: float  # common rate (the slower unit's, at most MAX_COMMON_RATE_HZ)
     cutoff_hz: float
     max_lag_s: float | None
+    band_cutoff_hz: float = 0.0  # the motion's band (signal/noise, the velocities' low-pass)
     dt_s: float = 0.0  # integer-lag search grid
     dt_r: float = 0.0  # continuous refinement samples (master)
     raw: tuple = ()  # (master, slave) unfiltered native uniform series (baseline method)
@@ -1071,14 +1085,17 @@ def _prepare(master: InsLog, slave: InsLog, max_lag_s: float | None, *, accelero
     # zero-phase low-pass of both units at the same cutoff: a few times the motion's band (the noise
     # between the motion's band and Nyquist would otherwise bias a spline-interpolated sub-sample delay)
     band = (min if BAND_COMMON else max)(_signal_band_hz(natm, nm), _signal_band_hz(nats, ns))
-    cutoff = float(np.clip(3.0 * band, MIN_CUTOFF_HZ, CUTOFF_FRACTION * f_c))
+    floor = min(MIN_CUTOFF_HZ, max(BAND_MIN_CUTOFF_HZ, MIN_CUTOFF_FRACTION * f_c))
+    cutoff = float(np.clip(3.0 * band, floor, CUTOFF_FRACTION * f_c))
+    band_cutoff = float(np.clip(3.0 * band, BAND_MIN_CUTOFF_HZ, CUTOFF_FRACTION * f_c))
     # both units are band-limited at the cutoff: refinement samples at 5x the cutoff carry all the
     # information (a denser grid only costs time; the residuals' correlation is handled by the HAC)
     f_r = min(f_c, max(5.0 * cutoff, 20.0))
     f_s = min(f_r, MAX_COARSE_RATE_HZ)
     um = _make_unit(natm, nm, srcm, "master", fm, 1.0 / f_s, cutoff)
     us = _make_unit(nats, ns, srcs, "slave", fs, 1.0 / f_s, cutoff)
-    ctx = _Ctx(um, us, dt_c, cutoff, max_lag_s, t0_abs_s=master.t0_s, dt_s=1.0 / f_s, dt_r=1.0 / f_r,
+    ctx = _Ctx(um, us, dt_c, cutoff, max_lag_s, band_cutoff_hz=band_cutoff, t0_abs_s=master.t0_s,
+               dt_s=1.0 / f_s, dt_r=1.0 / f_r,
                raw=(natm, nats), stamp_jitter_s=(stamp_noise_s(tm), stamp_noise_s(ts)),
                stamp_resolution_s=(master.stamp_resolution_s("gyro" if srcm == "gyro" else "att"),
                                    slave.stamp_resolution_s("gyro" if srcs == "gyro" else "att")))
@@ -1299,8 +1316,8 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
             progress(f, stage)
 
     m, s = ctx.master, ctx.slave
-    motion_dps, snr = _motion_snr(m, ctx.cutoff_hz)
-    motion_s_dps, snr_s = _motion_snr(s, ctx.cutoff_hz)
+    motion_dps, snr = _motion_snr(m, ctx.band_cutoff_hz)
+    motion_s_dps, snr_s = _motion_snr(s, ctx.band_cutoff_hz)
     if min(snr, snr_s) < MIN_MOTION_SNR or motion_dps < 1e-3:
         if motion_dps >= 1e-3 and snr_s < MIN_MOTION_SNR <= snr:  # the master moves; the slave's rate is noise
             raise AnalysisError(
@@ -1374,7 +1391,7 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
     vel_q, vp = None, None
     if ctx.vel_src is not None:
         prog(0.85, "velocity matching")
-        vp = velocity_pair(*ctx.vel_src, ctx.cutoff_hz, ctx.master.itp)
+        vp = velocity_pair(*ctx.vel_src, ctx.band_cutoff_hz, ctx.master.itp)
         vel_q, fused = _velocity_step(ctx, vp, w0, w1, t_mid, fit_drift, latency, drift, sig_l, sigma_drift,
                                       corr_ld, flexure=fin.flex is not None)
         if fused is not None:
@@ -1737,8 +1754,17 @@ def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: f
         if FLEX_SS and gls_done and fin.sigma_latency_s > ACCEL_MIN_SIGMA_S:
             # Kalman whitening with the flexure model, from the spectral GLS fit, the second candidate
             # (a gyro-only Kalman fit keeps the accelerometer model check's figures)
+            acc_x = final_acc  # FLEX_ACCEL_OWN: the accelerometers whenever both units have them
+            if FLEX_ACCEL_OWN and acc_x is None and ctx.acc_src is not None:
+                acc_x = _accel_pair(*ctx.acc_src)
             ff = _refine_flex(t_m, a, valid, itp, fin.latency_s, fin.drift, t_mid, ctx.cutoff_hz, fit_drift=fd,
-                              acc=final_acc, h0=fin.sigma_latency_s)
+                              acc=acc_x, h0=fin.sigma_latency_s)
+            if acc_x is not None and ff.ok and not abs(ff.accel_lag_s[0]) <= ACCEL_LAG_SIGMAS * ff.accel_lag_s[1]:
+                # the accelerometers' own delay differs from the gyros' (real IMUs may filter them
+                # differently): the gyros alone
+                acc_x = None
+                ff = _refine_flex(t_m, a, valid, itp, fin.latency_s, fin.drift, t_mid, ctx.cutoff_hz, fit_drift=fd,
+                                  h0=fin.sigma_latency_s)
             if ff.ok and np.isfinite(ff.sigma_latency_s):
                 ff = ff if ff.accel_lag_s[1] > 0 else replace(ff, accel_lag_s=fin.accel_lag_s)
                 gap = abs(ff.latency_s - fin.latency_s)
@@ -1752,7 +1778,7 @@ def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: f
 
                 def refit_flex(ws, tc, lag, drift):
                     return _refine_flex(t_m[ws], a[ws], valid[ws], itp, lag, drift, tc, ctx.cutoff_hz,
-                                        fit_drift=False, acc=final_acc, model=ff.flex, h0=ff.sigma_latency_s)
+                                        fit_drift=False, acc=acc_x, model=ff.flex, h0=ff.sigma_latency_s)
                 cands.append((ff, refit_flex))
         if len(cands) == 1 or not fd:
             fin, refit = cands[-1]  # without windows the Kalman fit is taken (see FLEX_AGREE_SIGMAS)
