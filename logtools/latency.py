@@ -1755,13 +1755,15 @@ def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: f
             # Kalman whitening with the flexure model, from the spectral GLS fit, the second candidate
             # (a gyro-only Kalman fit keeps the accelerometer model check's figures)
             acc_x = final_acc  # FLEX_ACCEL_OWN: the accelerometers whenever both units have them
-            if FLEX_ACCEL_OWN and acc_x is None and ctx.acc_src is not None:
+            own = FLEX_ACCEL_OWN and acc_x is None and ctx.acc_src is not None
+            if own:
                 acc_x = _accel_pair(*ctx.acc_src)
             ff = _refine_flex(t_m, a, valid, itp, fin.latency_s, fin.drift, t_mid, ctx.cutoff_hz, fit_drift=fd,
                               acc=acc_x, h0=fin.sigma_latency_s)
-            if acc_x is not None and ff.ok and not abs(ff.accel_lag_s[0]) <= ACCEL_LAG_SIGMAS * ff.accel_lag_s[1]:
+            if acc_x is not None and ((ff.ok and not abs(ff.accel_lag_s[0]) <= ACCEL_LAG_SIGMAS * ff.accel_lag_s[1])
+                                      or (own and not ff.ok)):
                 # the accelerometers' own delay differs from the gyros' (real IMUs may filter them
-                # differently): the gyros alone
+                # differently), or the fit with the ones taken here failed: the gyros alone
                 acc_x = None
                 ff = _refine_flex(t_m, a, valid, itp, fin.latency_s, fin.drift, t_mid, ctx.cutoff_hz, fit_drift=fd,
                                   h0=fin.sigma_latency_s)

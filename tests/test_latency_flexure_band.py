@@ -51,3 +51,27 @@ def test_short_flexing_aircraft_velocity_keeps_the_motion_band():
     vq = res.quality["velocity_fit"]
     assert vq["lowpass_hz"] < 2.0, vq["lowpass_hz"]
     assert abs(err) < 2.5 * res.sigma_s, (err, res.sigma_s)
+
+
+def test_kalman_fit_falls_back_to_the_gyros_when_its_own_accelerometers_fail(monkeypatch):
+    """FLEX_ACCEL_OWN hands the Kalman fit accelerometers the spectral fit did not take; where that aided
+    fit fails, the gyro-only Kalman fit (what ran before) is still a candidate."""
+    from dataclasses import replace
+
+    real = L._refine_flex
+    calls = []
+
+    def aided_fails(*a, **kw):
+        calls.append(kw.get("acc") is not None)
+        f = real(*a, **kw)
+        return replace(f, ok=False) if kw.get("acc") is not None else f
+
+    monkeypatch.setattr(L, "_refine_flex", aided_fails)
+    p = sim.simulate(_turning_car())
+    # the spectral fit without accelerometers: every aided Kalman fit is FLEX_ACCEL_OWN's
+    monkeypatch.setattr(L, "_accel_aided", lambda t_m, a, valid, itp, acc, fin, t_mid, **kw: (fin, None))
+    res = L.estimate(p.master, p.slave, compare=False)
+    err = res.latency_s - p.truth.latency_at(res.t_mid_rel_s)
+    assert calls[:2] == [True, False]  # the aided try, then the gyros alone
+    assert res.quality["flexure_model"] is not None and not res.quality["accel_aided"]
+    assert abs(err) < 2.5 * res.sigma_s, (err, res.sigma_s)
