@@ -1042,7 +1042,7 @@ class _Ctx:
     dt_c: float  # common rate (the slower unit's, at most MAX_COMMON_RATE_HZ)
     cutoff_hz: float
     max_lag_s: float | None
-    band_cutoff_hz: float = 0.0  # the motion's band (signal/noise, the velocities' low-pass)
+    band_cutoff_hz: float  # the motion's band (signal/noise, the velocities' low-pass)
     dt_s: float = 0.0  # integer-lag search grid
     dt_r: float = 0.0  # continuous refinement samples (master)
     raw: tuple = ()  # (master, slave) unfiltered native uniform series (baseline method)
@@ -1754,19 +1754,20 @@ def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: f
         if FLEX_SS and gls_done and fin.sigma_latency_s > ACCEL_MIN_SIGMA_S:
             # Kalman whitening with the flexure model, from the spectral GLS fit, the second candidate
             # (a gyro-only Kalman fit keeps the accelerometer model check's figures)
+            def flex_fit(acc: _Accel | None) -> _Fit:
+                return _refine_flex(t_m, a, valid, itp, fin.latency_s, fin.drift, t_mid, ctx.cutoff_hz,
+                                    fit_drift=fd, acc=acc, h0=fin.sigma_latency_s)
+
             acc_x = final_acc  # FLEX_ACCEL_OWN: the accelerometers whenever both units have them
             own = FLEX_ACCEL_OWN and acc_x is None and ctx.acc_src is not None
             if own:
                 acc_x = _accel_pair(*ctx.acc_src)
-            ff = _refine_flex(t_m, a, valid, itp, fin.latency_s, fin.drift, t_mid, ctx.cutoff_hz, fit_drift=fd,
-                              acc=acc_x, h0=fin.sigma_latency_s)
-            if acc_x is not None and ((ff.ok and not abs(ff.accel_lag_s[0]) <= ACCEL_LAG_SIGMAS * ff.accel_lag_s[1])
-                                      or (own and not ff.ok)):
+            ff = flex_fit(acc_x)
+            if acc_x is not None and ((ff.ok and not _accel_lag_agrees(ff)) or (own and not ff.ok)):
                 # the accelerometers' own delay differs from the gyros' (real IMUs may filter them
                 # differently), or the fit with the ones taken here failed: the gyros alone
                 acc_x = None
-                ff = _refine_flex(t_m, a, valid, itp, fin.latency_s, fin.drift, t_mid, ctx.cutoff_hz, fit_drift=fd,
-                                  h0=fin.sigma_latency_s)
+                ff = flex_fit(None)
             if ff.ok and np.isfinite(ff.sigma_latency_s):
                 ff = ff if ff.accel_lag_s[1] > 0 else replace(ff, accel_lag_s=fin.accel_lag_s)
                 gap = abs(ff.latency_s - fin.latency_s)
@@ -1827,10 +1828,15 @@ def _accel_aided(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpo
         if not f2.ok:
             break
         cur, nm = f2, nm6
-    lag, sig = cur.accel_lag_s
-    if cur is not fin and cur.sigma_latency_s < fin.sigma_latency_s and abs(lag) <= ACCEL_LAG_SIGMAS * sig:
+    if cur is not fin and cur.sigma_latency_s < fin.sigma_latency_s and _accel_lag_agrees(cur):
         return replace(cur, aided=True), nm
     return replace(fin, accel_lag_s=cur.accel_lag_s), None
+
+
+def _accel_lag_agrees(f: _Fit) -> bool:
+    """The accelerometers' own delay relative to the gyros' (f's model check) is zero within ACCEL_LAG_SIGMAS."""
+    lag, sig = f.accel_lag_s
+    return bool(abs(lag) <= ACCEL_LAG_SIGMAS * sig)
 
 
 def _window_start(ctx: _Ctx, a0: float, a1: float, d_center: float, band_s: float) -> float | None:
