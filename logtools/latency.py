@@ -48,7 +48,11 @@ tapost's method ("tapost")
      rotation look alike to gravity's direction, so the gain comes mostly from the non-rotational
      accelerations; the vertical-axis flexure is not seen at all.) Model check: a separate delay of
      the accelerometers is estimated alongside; beyond ACCEL_LAG_SIGMAS sigma (real IMUs may filter
-     accelerometers and gyros differently) or when its sigma is not smaller, the gyro-only fit stays.
+     accelerometers and gyros differently) the fit is redone with that delay as a further unknown
+     (ACCEL_LAG_FREE: the accelerometers' delay information is lost, their view of the flexure's tilt
+     is kept); where that delay exceeds ACCEL_LAG_MAX_S or the sigma is not smaller, the gyro-only fit
+     stays. (Assumed zero, an accelerometer delay of d moved a flexing ship's latency by about d: what
+     the check cannot see, 1-2 of its sigmas, stays a bias of that size.)
   3d. Kalman whitening with a flexure model (``logtools.latency_flexure``; when the sigma so far exceeds
      ACCEL_MIN_SIGMA_S): the residual is modelled as seed 000's flexure -- a second-order Markov rotation
      lam of the slave per axis (eq. 8), which adds lam' + w x lam to its rates and f x lam to its specific
@@ -205,6 +209,10 @@ VEL_FUSE_FLEXURE = True  # ... or the rate fit had to model flexure (what limits
 VEL_FUSE_ALWAYS = False  # whatever the sigmas (measured worse: on smooth motion the rate fit's window-inflated
 #                          drift sigma is conservative and would hand the drift to the velocity)
 ACCEL_LAG_SIGMAS = 3.0  # ... unless the accelerometers' own delay differs from the gyros' by more sigmas
+ACCEL_LAG_FREE = True  # ... and then an aided fit with that delay as a further unknown, rather than the gyros
+#   alone (a ship with flexure: gyros alone 2.4 ms sigma, the accelerometers' delay solved 0.3 ms, with them
+#   assumed on the gyros' delay 0.14-0.26 ms): the accelerometers still see the flexure's tilt
+ACCEL_LAG_MAX_S = 0.01  # ... kept while that delay is at most this (a linearised unknown)
 
 Progress = Callable[[float, str], None] | None
 
@@ -491,6 +499,7 @@ class _Fit:
     aided: bool = False  # accelerometer-aided GLS
     flex: FlexureModel | None = None  # the state-space flexure model of a Kalman-whitened fit
     accel_lag_s: tuple[float, float] = (0.0, 0.0)  # accelerometers' extra delay and its sigma (aided fits)
+    accel_lag_free: bool = False  # ... that delay an unknown of the fit (else the model check's figures)
     model_gap_s: float = 0.0  # |spectral - Kalman| latency when the two fits disagree (FLEX_AGREE_SIGMAS)
 
 
@@ -681,6 +690,7 @@ class _Accel:
     master: Interpolant
     slave: Interpolant
     master_rate: Interpolant
+    lag_free: bool = False  # the accelerometers' own delay an unknown of the fit (else the model check)
 
     def master_rows(self, t_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(f_m, lever-arm matrix [w' x] + [w x]^2 (n, 3, 3), ok) at the master instants t_m."""
@@ -701,7 +711,7 @@ def _lever_solve(r_a: np.ndarray, Jl: np.ndarray, use: np.ndarray) -> np.ndarray
     ru, Ju = r_a[use], Jl[use]
     Ju = Ju - Ju.mean(axis=0)
     ru = ru - ru.mean(axis=0)
-    A = Ju.reshape(-1, 3)
+    A = Ju.reshape(-1, Ju.shape[2])
     x, *_ = np.linalg.lstsq(A, ru.ravel(), rcond=None)
     out = np.zeros_like(r_a)
     out[use] = ru - (A @ x).reshape(-1, 3)
@@ -726,8 +736,24 @@ def _accel_residual(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Inte
         return out
     out[:, :3] = np.where(use[:, None], _residual(t_m, a, valid, itp, f, t_mid), 0.0)
     r_a = np.where(use[:, None], fv - fm @ f.R.T, 0.0)
-    out[:, 3:] = _lever_solve(r_a, _lever_jacobian(f.R, lev), use)
+    Jl = _lever_jacobian(f.R, lev)
+    if _n_check(acc) == 0:  # the accelerometers' own delay solved too
+        fd = np.zeros_like(fv)
+        fd[use], _ = acc.slave(tau[use], 1)
+        Jl = np.concatenate([Jl, fd[:, :, None]], axis=2)
+    out[:, 3:] = _lever_solve(r_a, Jl, use)
     return out
+
+
+def _n_check(acc: _Accel | None) -> int:
+    """Trailing model-check columns of an aided fit's Jacobian: the accelerometers' own delay, checked
+    (1) or an unknown of the fit (0: ``acc.lag_free``)."""
+    return 0 if acc is None or acc.lag_free else 1
+
+
+def _free_accel_lag(step: np.ndarray, Ninv: np.ndarray, s2: float, fac: float) -> tuple[float, float]:
+    """(the accelerometers' own delay, its sigma) where it is the fit's last unknown (``lag_free``)."""
+    return float(step[-1]), float(np.sqrt(max(s2 * Ninv[-1, -1] * max(1.0, fac), 0.0)))
 
 
 def _gls_use(t_m: np.ndarray, valid: np.ndarray, itp: Interpolant, lag: np.ndarray, margin: float,
@@ -846,7 +872,7 @@ def _refine_gls(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpol
         if sysm is None:
             return fail
         r, J, R, bias, _fv, Dm = sysm
-        n_check = 0 if acc is None else 1  # trailing columns only for the model check, not in the steps
+        n_check = _n_check(acc)  # trailing columns only for the model check, not in the steps
         P = J.shape[2] - n_check
         r = r * taper[:, None]
         J = J * taper[:, None, None]
@@ -890,12 +916,15 @@ def _refine_gls(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpol
     u = np.sum(Js * rw[:, :, None], axis=1) @ Ninv[:, :nd]
     # model check: the accelerometers' delay relative to the gyros' (0 when both come through the same
     # path; real IMUs may filter them differently), from the augmented normal equations
-    check = None if acc is None else (Jx.T @ Jx, Jx.T @ rw.ravel())
+    check = None if not n_check else (Jx.T @ Jx, Jx.T @ rw.ravel())
     var, corr, fac, acc_lag = gls_covariance(Ninv, s2, u, dt, fit_drift, check=check)
+    if acc is not None and not n_check:
+        acc_lag = _free_accel_lag(step, Ninv, s2, fac)
     motion = _motion_rms(a, use)
     raw_rms = float(np.sqrt(np.sum(r[:, :3] ** 2) / (3 * n_use)))
     return _Fit(d, dr, R, bias, float(np.sqrt(var[0])), float(np.sqrt(var[1])) if fit_drift else 0.0,
-                raw_rms, n_use, fac, motion, corr_ld=corr, accel_lag_s=acc_lag)
+                raw_rms, n_use, fac, motion, corr_ld=corr, accel_lag_s=acc_lag,
+                accel_lag_free=acc is not None and acc.lag_free)
 
 
 def _refine_flex(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant, d0: float,
@@ -927,7 +956,7 @@ def _refine_flex(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpo
     if use.sum() < 20 * k:
         return fail
     C = 3 if acc is None else 6
-    n_check = 0 if acc is None else 1
+    n_check = _n_check(acc)
 
     def blocks(x: np.ndarray) -> np.ndarray:
         return block_mean(np.where(use.reshape((-1,) + (1,) * (x.ndim - 1)), x, 0.0), use, k)[0]
@@ -951,8 +980,11 @@ def _refine_flex(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpo
     if model is None:
         span_ml = min(FLEX_ML_SPAN_S, FLEX_ML_BLOCKS * k * dt)
         cen = np.abs((np.arange(len(ub)) + 0.5) * k * dt + t_m[0] - t_mid) <= 0.5 * span_ml
-        model = fit_model(Xb[cen][:, :, :1 + P + n_check], wb[cen], None if fb is None else fb[cen], ub[cen],
-                          k * dt, P)
+        # the model's likelihood without the accelerometers' own delay where it is an unknown (lag_free):
+        # a flexure large enough to whiten the gyro rows away leaves the delay's accelerometer part and that
+        # column alike, and the restricted likelihood's log det term then pulled the fit into that corner
+        pm = P - int(acc is not None and not n_check)
+        model = fit_model(Xb[cen][:, :, :1 + pm], wb[cen], None if fb is None else fb[cen], ub[cen], k * dt, pm)
         if model is None:
             return fail
     # whitened columns: 3 residuals (at d - h, d, d + h; the Jacobian shared) then the Jacobian
@@ -1025,11 +1057,13 @@ def _refine_flex(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpo
     check = None if not n_check else (M[1:, 1:], M[1:, 0] + M[1:, 1:P + 1] @ step)
     # the profile's curvature floors the latency's variance (cost = sum of squares: var = s2 / curvature)
     var, corr, fac, acc_lag = gls_covariance(Ninv, s2, u, k * dt, fit_drift, check=check, var_floor=s2 / curv)
+    if acc is not None and not n_check:
+        acc_lag = _free_accel_lag(step, Ninv, s2, fac)
     motion = _motion_rms(a, use)
     raw_rms = float(np.sqrt(np.sum(r[use, :3] ** 2) / (3 * int(use.sum()))))
     return _Fit(d, dr, R, bias, float(np.sqrt(var[0])), float(np.sqrt(var[1])) if fit_drift else 0.0,
                 raw_rms, int(use.sum()), fac, motion, corr_ld=corr, aided=acc is not None, accel_lag_s=acc_lag,
-                flex=model)
+                flex=model, accel_lag_free=acc is not None and acc.lag_free)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1480,6 +1514,7 @@ def _tapost(ctx: _Ctx, progress: Progress) -> tuple[LatencyResult, _Coarse]:
         "velocity_disagrees": bool(vel_q is not None and not vel_q["agrees"]),
         "accel_minus_gyro_lag_s": float(fin.accel_lag_s[0]) if fin.accel_lag_s[1] > 0 else None,
         "accel_minus_gyro_lag_sigma_s": float(fin.accel_lag_s[1]) if fin.accel_lag_s[1] > 0 else None,
+        "accel_lag_solved": bool(fin.accel_lag_free),
         "nan_fraction": nanfrac,
         "coarse_latency_s": co.d0_s,
         "xcorr_norm_latency_s": co.xcorr_latency_s,
@@ -1718,9 +1753,9 @@ def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: f
         final_noise, final_acc = None, None
         acc = _accel_pair(*ctx.acc_src) if gls_done and wants_accel(fin) else None
         if acc is not None:
-            fa, nm6 = _accel_aided(t_m, a, valid, itp, acc, fin, t_mid, fit_drift=fd)
+            fa, nm6, acc_used = _accel_aided(t_m, a, valid, itp, acc, fin, t_mid, fit_drift=fd)
             if fa.aided:
-                fin, final_noise, final_acc = fa, nm6, acc
+                fin, final_noise, final_acc = fa, nm6, acc_used
             else:
                 fin = fa  # the gyro-only fit, with the model check's figures
 
@@ -1763,13 +1798,19 @@ def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: f
             if own:
                 acc_x = _accel_pair(*ctx.acc_src)
             ff = flex_fit(acc_x)
-            if acc_x is not None and ((ff.ok and not _accel_lag_agrees(ff)) or (own and not ff.ok)):
+            if acc_x is not None and not acc_x.lag_free and ff.ok and not _accel_lag_agrees(ff) and ACCEL_LAG_FREE:
                 # the accelerometers' own delay differs from the gyros' (real IMUs may filter them
-                # differently), or the fit with the ones taken here failed: the gyros alone
+                # differently): solved as a further unknown
+                acc_x = replace(acc_x, lag_free=True)
+                ff = flex_fit(acc_x)
+            if acc_x is not None and ((ff.ok and not _accel_lag_agrees(ff)) or ((own or acc_x.lag_free) and not ff.ok)):
+                # that delay beyond what a linearised unknown allows, or the fit with the accelerometers
+                # taken here failed: the gyros alone
                 acc_x = None
                 ff = flex_fit(None)
             if ff.ok and np.isfinite(ff.sigma_latency_s):
-                ff = ff if ff.accel_lag_s[1] > 0 else replace(ff, accel_lag_s=fin.accel_lag_s)
+                ff = ff if ff.accel_lag_s[1] > 0 else replace(ff, accel_lag_s=fin.accel_lag_s,
+                                                             accel_lag_free=fin.accel_lag_free)
                 gap = abs(ff.latency_s - fin.latency_s)
                 if gap > FLEX_AGREE_SIGMAS * max(ff.sigma_latency_s, fin.sigma_latency_s):
                     # one of the two models is wrong (the spectral sigma is optimistic where flexure is
@@ -1813,29 +1854,44 @@ def _fit_all(ctx: _Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: f
 
 
 def _accel_aided(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant, acc: _Accel, fin: _Fit,
-                 t_mid: float, *, fit_drift: bool) -> tuple[_Fit, NoiseModel | None]:
+                 t_mid: float, *, fit_drift: bool) -> tuple[_Fit, NoiseModel | None, _Accel | None]:
     """ACCEL_GLS_PASSES accelerometer-aided GLS passes from the gyro-only fit ``fin`` (the 6-channel residual
-    cross-spectrum re-estimated before each); kept when its sigma is smaller (flagged ``aided``).
-    Returns the fit kept and, when it is the aided one, its noise model."""
+    cross-spectrum re-estimated before each); kept when its sigma is smaller (flagged ``aided``). Where
+    the model check finds the accelerometers on a delay of their own, the passes again with that delay
+    solved (ACCEL_LAG_FREE). Returns the fit kept and, when it is an aided one, its noise model and
+    accelerometers (``lag_free`` or not)."""
     dt = float(np.median(np.diff(t_m)))
-    cur, nm = fin, None
-    for _ in range(ACCEL_GLS_PASSES):
-        r6 = _accel_residual(t_m, a, valid, itp, acc, cur, t_mid)
-        nm6 = noise_model(r6, np.any(r6 != 0.0, axis=1), dt, matrix=True)
-        if nm6 is None:
-            break
-        f2 = _refine_gls(t_m, a, valid, itp, cur.latency_s, cur.drift, t_mid, nm6, fit_drift=fit_drift, acc=acc)
-        if not f2.ok:
-            break
-        cur, nm = f2, nm6
+
+    def passes(ac: _Accel) -> tuple[_Fit, NoiseModel | None]:
+        cur, nm = fin, None
+        for _ in range(ACCEL_GLS_PASSES):
+            r6 = _accel_residual(t_m, a, valid, itp, ac, cur, t_mid)
+            nm6 = noise_model(r6, np.any(r6 != 0.0, axis=1), dt, matrix=True)
+            if nm6 is None:
+                break
+            f2 = _refine_gls(t_m, a, valid, itp, cur.latency_s, cur.drift, t_mid, nm6, fit_drift=fit_drift, acc=ac)
+            if not f2.ok:
+                break
+            cur, nm = f2, nm6
+        return cur, nm
+
+    cur, nm = passes(acc)
+    if cur is not fin and not _accel_lag_agrees(cur) and ACCEL_LAG_FREE:
+        free = replace(acc, lag_free=True)
+        cur_f, nm_f = passes(free)
+        if cur_f is not fin:
+            cur, nm, acc = cur_f, nm_f, free
     if cur is not fin and cur.sigma_latency_s < fin.sigma_latency_s and _accel_lag_agrees(cur):
-        return replace(cur, aided=True), nm
-    return replace(fin, accel_lag_s=cur.accel_lag_s), None
+        return replace(cur, aided=True), nm, acc
+    return replace(fin, accel_lag_s=cur.accel_lag_s), None, None
 
 
 def _accel_lag_agrees(f: _Fit) -> bool:
-    """The accelerometers' own delay relative to the gyros' (f's model check) is zero within ACCEL_LAG_SIGMAS."""
+    """The accelerometers' own delay relative to the gyros' (f's model check) is zero within ACCEL_LAG_SIGMAS;
+    where the fit solved it (``accel_lag_free``), it is at most ACCEL_LAG_MAX_S."""
     lag, sig = f.accel_lag_s
+    if f.accel_lag_free:
+        return bool(abs(lag) <= ACCEL_LAG_MAX_S)
     return bool(abs(lag) <= ACCEL_LAG_SIGMAS * sig)
 
 

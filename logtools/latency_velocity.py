@@ -138,17 +138,25 @@ def velocity_pair(master: InsLog, slave: InsLog, cutoff_hz: float, master_rate: 
     lever = None
     if master.has_quat:
         tq, q = _finite(*master.quat_wxyz())
-        if len(tq) >= 2:
-            o = np.argsort(tq, kind="stable")
-            tq, c_nb = tq[o], dcm_from_quat(q[o])
-
-            def lever(t: np.ndarray) -> np.ndarray:
-                """C_nb(t) [w(t) x] (n, 3, 3): d(v_s)/d(l); the attitude at its nearest sample (its change
-                over half a nav interval times a lever arm is far below the velocity's noise)."""
-                j = np.clip(np.searchsorted(tq, t), 1, len(tq) - 1)
-                j -= (t - tq[j - 1]) < (tq[j] - t)
-                w, ok = master_rate(t)
-                return np.where(ok[:, None, None], c_nb[j] @ skew(np.where(ok[:, None], w, 0.0)), 0.0)
+        o = np.argsort(tq, kind="stable")
+        tq, q = tq[o], q[o]
+        w, okw = master_rate(tq) if len(tq) else (np.zeros((0, 3)), np.zeros(0, bool))
+        if okw.sum() >= VEL_MIN_SAMPLES:
+            # C_nb [w x] at the attitude's instants, low-passed like the velocities: the lever arm's part of
+            # the slave's velocity is filtered with it, and noise in the rows above the velocities' cutoff
+            # (a rate from a noisy attitude: a master logging its navigation solution alone) would only
+            # dilute the lever arm's regression (measured: an aircraft's along-track lever arm 14 % short,
+            # its latency 2 ms off at a sigma of 0.5 ms, with the rows at the rate fit's 4 Hz)
+            rows = (dcm_from_quat(q[okw]) @ skew(w[okw])).reshape(-1, 9)
+            try:
+                lev_itp = interpolant(lowpass(to_uniform(tq[okw], rows, name="master lever-arm rows"), cut))
+            except ValueError:
+                lev_itp = None
+            if lev_itp is not None:
+                def lever(t: np.ndarray) -> np.ndarray:
+                    """C_nb(t) [w(t) x] (n, 3, 3), low-passed: d(v_s)/d(l)."""
+                    v, ok = lev_itp(t)
+                    return np.where(ok[:, None, None], v.reshape(-1, 3, 3), 0.0)
     dt = 1.0 / min(max(5.0 * cut, VEL_MIN_GRID_HZ), f_min)
     steps = tuple((velocity_quantum_m_s(v), np.sum(np.abs(np.diff(v, axis=0)), axis=0)) for v in (vm, vs))
     stamps = (master.stamp_resolution_s("vel"), slave.stamp_resolution_s("vel"))

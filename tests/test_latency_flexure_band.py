@@ -69,7 +69,7 @@ def test_kalman_fit_falls_back_to_the_gyros_when_its_own_accelerometers_fail(mon
     monkeypatch.setattr(L, "_refine_flex", aided_fails)
     p = sim.simulate(_turning_car())
     # the spectral fit without accelerometers: every aided Kalman fit is FLEX_ACCEL_OWN's
-    monkeypatch.setattr(L, "_accel_aided", lambda t_m, a, valid, itp, acc, fin, t_mid, **kw: (fin, None))
+    monkeypatch.setattr(L, "_accel_aided", lambda t_m, a, valid, itp, acc, fin, t_mid, **kw: (fin, None, None))
     res = L.estimate(p.master, p.slave, compare=False)
     err = res.latency_s - p.truth.latency_at(res.t_mid_rel_s)
     assert calls[:2] == [True, False]  # the aided try, then the gyros alone
