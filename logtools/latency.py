@@ -159,6 +159,10 @@ MIN_ADAPT_CUTOFF_HZ = 0.05
 MIN_ADAPT_CYCLES = 20.0  # the adapted cutoff keeps at least this many cycles over the overlap
 ADAPT_GAIN = 0.7  # narrow only when the predicted variance drops below this fraction
 SIGMA_FLOOR_S = 5e-6  # model floor (interpolation, numerics)
+COARSE_PEAKS = 48  # an unbounded search evaluates the full-vector cost around this many best |w| peaks (6 before:
+#   a ship whose yaw sway, period 7.66 s, dominates |w| has a |w| peak every period, and the true lag was not
+#   among the best 6 of the 180 s record; the one kept was a yaw period off, its roll and pitch taken for a
+#   180 deg rotation of the mounting (cost 0.0014), the velocity fit disagreeing at chi2 17616)
 PERIODIC_MARGIN = 1e-4  # alternative minimum within this of the best normalised cost -> periodic (numerical floor:
 #   noise-free data have best costs of 1e-6..1e-5; a course that nearly repeats 130 s later cost 3e-3 there,
 #   1000x the best, and was flagged at 0.02; an aircraft's S-turns 200 s later 2.5e-4 against 9e-5 (the cost's
@@ -1238,7 +1242,7 @@ def _coarse(ctx: _Ctx) -> _Coarse:
     if ctx.max_lag_s is None and len(lags) > 4001:
         r = np.where(np.isfinite(rho), rho, -np.inf)
         pk = _local_minima(-r)
-        pk = pk[np.argsort(-r[pk])][:6] if len(pk) else np.array([ib])
+        pk = pk[np.argsort(-r[pk])][:COARSE_PEAKS] if len(pk) else np.array([ib])
         half = int(np.ceil(2.0 / dt))
         sel = np.unique(np.concatenate([np.arange(p - half, p + half + 1) for p in pk]))
         sel = sel[(sel >= 0) & (sel < len(lags))]
