@@ -159,6 +159,8 @@ MIN_ADAPT_CUTOFF_HZ = 0.05
 MIN_ADAPT_CYCLES = 20.0  # the adapted cutoff keeps at least this many cycles over the overlap
 ADAPT_GAIN = 0.7  # narrow only when the predicted variance drops below this fraction
 SIGMA_FLOOR_S = 5e-6  # model floor (interpolation, numerics)
+NO_MATCH_COST = 0.5  # the best lag leaves more than this fraction of the rates' variance unexplained: no match
+#   (real pairs 1e-4 to 0.065: a car's wheel odometry, a 4 Hz SITL attitude; logs of different vehicles 0.91)
 COARSE_PEAKS = 48  # an unbounded search evaluates the full-vector cost around this many best |w| peaks (6 before:
 #   a ship whose yaw sway, period 7.66 s, dominates |w| has a |w| peak every period, and the true lag was not
 #   among the best 6 of the 180 s record; the one kept was a yaw period off, its roll and pitch taken for a
@@ -2049,6 +2051,11 @@ def estimate(master: InsLog, slave: InsLog, *, method: str = "tapost", max_lag_s
         if max_lag_s is not None and SEARCH_WIDEN and _suspect(head, max_lag_s):
             prog(0.78, "whole-overlap search")
             head = _widened(head, ctx)
+        cost = float(head.quality.get("vector_cost_min", 0.0))
+        if cost > NO_MATCH_COST:
+            raise AnalysisError(
+                f"the two units' angular rates match at no lag searched (best normalised cost {cost:.2f}; "
+                "0 = identical, 1 = unrelated): logs of different vehicles or of different times?")
         methods["tapost"] = MethodEstimate(head.latency_s, head.sigma_s, "")
     others = [x for x in METHODS if x != method] if compare else []
     for i, name in enumerate(([method] if method != "tapost" else []) + others):

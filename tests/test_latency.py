@@ -111,6 +111,17 @@ def test_unrelated_clocks_with_whole_overlap_search():
     assert abs(res.latency_s - (0.0421 - 1000.0)) < 0.3e-3
 
 
+def test_logs_of_different_vehicles_are_an_analysis_error():
+    """Two units that never shared a vehicle (each moving): the best lag of a whole-overlap search leaves
+    most of the rates' variance unexplained. An analysis error naming it, not a latency of 1.5e9 s at a
+    sigma of 45 s (what the PX4 sample log against the SITL tlog gave)."""
+    rng = np.random.default_rng(12)
+    master, _ = make_pair(rng, latency_s=0.0, R=np.eye(3), dur_s=120.0)
+    _, other = make_pair(np.random.default_rng(99), latency_s=0.0, R=random_rotation(rng), dur_s=120.0)
+    with pytest.raises(AnalysisError, match="match at no lag"):
+        estimate(master, other, max_lag_s=None, compare=False)
+
+
 def test_no_motion_is_an_analysis_error():
     rng = np.random.default_rng(5)
     t = np.arange(0, 60, 0.01)
