@@ -206,6 +206,8 @@ FLEX_ACCEL_OWN = True  # the Kalman fit takes the accelerometers on its own dela
 FLEX_REACH_MIN_S = 0.0  # the profile search may always go this far from its start (0: off. 20 ms let a
 #   gently turning aircraft's Kalman fit land 1 ms from the truth, 5.7 ms from the spectral fit, and the
 #   rule below then cover it; but it moved the 2014 ArduCopter's +37.3 ms shift to 38.5 ms, beyond 1 ms)
+FLEX_BETA_MIN_1_S = 0.05  # a fitted flexure model correlated longer than 20 s, or of a sigma beyond FLEX_SIGMA_MAX_DEG,
+FLEX_SIGMA_MAX_DEG = 1.0  # is not flexure: no Kalman candidate (seed 000: 0.05 deg at 2/s; the benchmarks 0.02-0.1 deg)
 FLEX_ML_SPAN_S = 120.0  # the flexure model is fitted on at most this much of the overlap (its middle)
 FLEX_ML_BLOCKS = 1500  # ... and on at most this many block samples
 VELOCITY_AIDED = True  # velocity matching (logtools.latency_velocity) when both units log NED velocity,
@@ -751,6 +753,14 @@ def _accel_residual(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Inte
     return out
 
 
+def _flexure_like(model: FlexureModel) -> bool:
+    """A fitted model that describes a structure's flexure: correlated over less than 1 / FLEX_BETA_MIN_1_S and
+    within FLEX_SIGMA_MAX_DEG. Beyond, the residual is something else the model bends to (an attitude-only
+    slave with jittered stamps: its rates' noise, proportional to the rate, came out as a 14 deg "flexure"
+    of beta 0.013/s, the fit 3 ms off at a sigma of 0.6 ms and the velocity, right to 0.01 ms, left out)."""
+    return bool(model.beta_1_s >= FLEX_BETA_MIN_1_S and np.degrees(np.max(model.sigma_rad)) <= FLEX_SIGMA_MAX_DEG)
+
+
 def _n_check(acc: _Accel | None) -> int:
     """Trailing model-check columns of an aided fit's Jacobian: the accelerometers' own delay, checked
     (1) or an unknown of the fit (0: ``acc.lag_free``)."""
@@ -991,7 +1001,7 @@ def _refine_flex(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpo
         # column alike, and the restricted likelihood's log det term then pulled the fit into that corner
         pm = P - int(acc is not None and not n_check)
         model = fit_model(Xb[cen][:, :, :1 + pm], wb[cen], None if fb is None else fb[cen], ub[cen], k * dt, pm)
-        if model is None:
+        if model is None or not _flexure_like(model):
             return fail
     # whitened columns: 3 residuals (at d - h, d, d + h; the Jacobian shared) then the Jacobian
     jc = list(range(3, 3 + P))  # the fit's unknowns (delay first)
