@@ -745,7 +745,7 @@ def _accel_residual(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Inte
     out[:, :3] = np.where(use[:, None], _residual(t_m, a, valid, itp, f, t_mid), 0.0)
     r_a = np.where(use[:, None], fv - fm @ f.R.T, 0.0)
     Jl = _lever_jacobian(f.R, lev)
-    if _n_check(acc) == 0:  # the accelerometers' own delay solved too
+    if acc.lag_free:  # the accelerometers' own delay solved too
         fd = np.zeros_like(fv)
         fd[use], _ = acc.slave(tau[use], 1)
         Jl = np.concatenate([Jl, fd[:, :, None]], axis=2)
@@ -765,11 +765,6 @@ def _n_check(acc: _Accel | None) -> int:
     """Trailing model-check columns of an aided fit's Jacobian: the accelerometers' own delay, checked
     (1) or an unknown of the fit (0: ``acc.lag_free``)."""
     return 0 if acc is None or acc.lag_free else 1
-
-
-def _free_accel_lag(step: np.ndarray, Ninv: np.ndarray, s2: float, fac: float) -> tuple[float, float]:
-    """(the accelerometers' own delay, its sigma) where it is the fit's last unknown (``lag_free``)."""
-    return float(step[-1]), float(np.sqrt(max(s2 * Ninv[-1, -1] * max(1.0, fac), 0.0)))
 
 
 def _gls_use(t_m: np.ndarray, valid: np.ndarray, itp: Interpolant, lag: np.ndarray, margin: float,
@@ -933,9 +928,8 @@ def _refine_gls(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpol
     # model check: the accelerometers' delay relative to the gyros' (0 when both come through the same
     # path; real IMUs may filter them differently), from the augmented normal equations
     check = None if not n_check else (Jx.T @ Jx, Jx.T @ rw.ravel())
-    var, corr, fac, acc_lag = gls_covariance(Ninv, s2, u, dt, fit_drift, check=check)
-    if acc is not None and not n_check:
-        acc_lag = _free_accel_lag(step, Ninv, s2, fac)
+    var, corr, fac, acc_lag = gls_covariance(Ninv, s2, u, dt, fit_drift, check=check,
+                                             free_step=step if acc is not None and acc.lag_free else None)
     motion = _motion_rms(a, use)
     raw_rms = float(np.sqrt(np.sum(r[:, :3] ** 2) / (3 * n_use)))
     return _Fit(d, dr, R, bias, float(np.sqrt(var[0])), float(np.sqrt(var[1])) if fit_drift else 0.0,
@@ -999,7 +993,7 @@ def _refine_flex(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpo
         # the model's likelihood without the accelerometers' own delay where it is an unknown (lag_free):
         # a flexure large enough to whiten the gyro rows away leaves the delay's accelerometer part and that
         # column alike, and the restricted likelihood's log det term then pulled the fit into that corner
-        pm = P - int(acc is not None and not n_check)
+        pm = P - int(acc is not None and acc.lag_free)
         model = fit_model(Xb[cen][:, :, :1 + pm], wb[cen], None if fb is None else fb[cen], ub[cen], k * dt, pm)
         if model is None or not _flexure_like(model):
             return fail
@@ -1072,9 +1066,8 @@ def _refine_flex(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpo
     u = np.sum(Ws * rw[:, :, None], axis=1)[ub] @ Ninv[:, :nd]
     check = None if not n_check else (M[1:, 1:], M[1:, 0] + M[1:, 1:P + 1] @ step)
     # the profile's curvature floors the latency's variance (cost = sum of squares: var = s2 / curvature)
-    var, corr, fac, acc_lag = gls_covariance(Ninv, s2, u, k * dt, fit_drift, check=check, var_floor=s2 / curv)
-    if acc is not None and not n_check:
-        acc_lag = _free_accel_lag(step, Ninv, s2, fac)
+    var, corr, fac, acc_lag = gls_covariance(Ninv, s2, u, k * dt, fit_drift, check=check, var_floor=s2 / curv,
+                                             free_step=step if acc is not None and acc.lag_free else None)
     motion = _motion_rms(a, use)
     raw_rms = float(np.sqrt(np.sum(r[use, :3] ** 2) / (3 * int(use.sum()))))
     return _Fit(d, dr, R, bias, float(np.sqrt(var[0])), float(np.sqrt(var[1])) if fit_drift else 0.0,

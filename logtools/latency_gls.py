@@ -160,14 +160,15 @@ def noise_model(r: np.ndarray, use: np.ndarray, dt_s: float, *, matrix: bool = F
 
 
 def gls_covariance(Ninv: np.ndarray, s2: float, u: np.ndarray, dt_s: float, fit_drift: bool, *,
-                    check: tuple[np.ndarray, np.ndarray] | None = None, var_floor: float = 0.0
-                    ) -> tuple[np.ndarray, float, float, tuple[float, float]]:
+                    check: tuple[np.ndarray, np.ndarray] | None = None, free_step: np.ndarray | None = None,
+                    var_floor: float = 0.0) -> tuple[np.ndarray, float, float, tuple[float, float]]:
     """Variances of (L[, drift]) of a whitened least-squares fit: the curvature's (s2 diag(Ninv)) with the
     Newey-West variance of the per-sample scores u (n, nd) as a floor (what the whitening missed; lags
     up to 20 s at the samples' interval dt_s), and the latency's at least ``var_floor`` (the drift's
     scaled alike). Returns (var (nd,), corr(L, drift), variance factor over the curvature's, (delay of the
     accelerometers' own, its sigma)) -- the last from ``check`` = (augmented normal matrix, right-hand
-    side) with the model-check column last, else (0, 0)."""
+    side) with the model-check column last, or, where that delay is the fit's last unknown, from
+    ``free_step`` (the fit's last step, its last element that delay) and Ninv; else (0, 0)."""
     nd = u.shape[1]
     var_cls = s2 * np.diag(Ninv)[:nd]
     V_hac, _H = hac_cov(u, int(min(len(u) // 4, max(10, 20.0 / dt_s))))
@@ -189,6 +190,8 @@ def gls_covariance(Ninv: np.ndarray, s2: float, u: np.ndarray, dt_s: float, fit_
             acc_lag = (-float(sx[-1]), float(np.sqrt(max(vx, 0.0))))
         except np.linalg.LinAlgError:
             acc_lag = (np.inf, np.inf)
+    elif free_step is not None:
+        acc_lag = (float(free_step[-1]), float(np.sqrt(max(s2 * Ninv[-1, -1] * max(1.0, fac), 0.0))))
     return var, corr, fac, acc_lag
 
 
