@@ -272,3 +272,31 @@ def quat_slerp(q0: np.ndarray, q1: np.ndarray, frac: np.ndarray) -> np.ndarray:
 def angle_between_quats(q0: np.ndarray, q1: np.ndarray) -> np.ndarray:
     """Rotation angle (rad) of q0^-1 q1."""
     return np.linalg.norm(rotvec_from_quat(quat_mul(quat_conj(q0), q1)), axis=-1)
+
+
+# --------------------------------------------------------------------------------------------
+# shared estimation primitives (one implementation each)
+# --------------------------------------------------------------------------------------------
+def wahba(B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Wahba/Kabsch: the proper rotation R maximising tr(R^T B) for the attitude profile matrix
+    B = sum_k v_k u_k^T, i.e. the R with v_k ~ R u_k in least squares; batched over leading axes.
+
+    Returns (R, score) with score = max tr(R^T B) = sum of B's singular values with the smallest's sign
+    set by det (a reflection is never returned; a singular B counts as det +1). For M = sum a b^T (b ~ R a)
+    the rotation is ``wahba(M)[0]`` transposed, i.e. ``wahba(M.T)`` up to rounding."""
+    U, S, Vt = np.linalg.svd(B)
+    det = np.linalg.det(U @ Vt)
+    D = np.ones(S.shape)
+    D[..., 2] = np.sign(det + (det == 0))
+    return U @ (D[..., :, None] * Vt), np.sum(S * D, axis=-1)
+
+
+def median_step_s(t_s: np.ndarray, default: float | None = None) -> float:
+    """The median sampling step of sorted stamps (seconds); ``default`` where fewer than two stamps
+    (a ValueError without one)."""
+    t_s = np.asarray(t_s, dtype=float)
+    if len(t_s) < 2:
+        if default is None:
+            raise ValueError("fewer than two stamps: no sampling step")
+        return float(default)
+    return float(np.median(np.diff(t_s)))

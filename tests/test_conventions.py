@@ -227,3 +227,20 @@ def test_property_round_trips(rpy, rv):
     assert np.allclose(cv.rotvec_from_quat(cv.quat_from_rotvec(rv)), rv, atol=1e-12)
     # ENU/FLU <-> NED/FRD is an involution on attitudes
     assert _same_rotation(cv.quat_ned_frd_to_enu_flu(cv.quat_enu_flu_to_ned_frd(q)), q)
+
+
+def test_wahba_recovers_a_known_rotation_and_never_a_reflection():
+    from logtools.conventions import dcm_from_euler, median_step_s, wahba
+    rng = np.random.default_rng(7)
+    R = dcm_from_euler(np.array([0.4, -0.3, 2.0]))
+    u = rng.normal(size=(200, 3))
+    v = u @ R.T + 1e-4 * rng.normal(size=u.shape)
+    Rh, score = wahba(v.T @ u)
+    assert np.abs(Rh - R).max() < 1e-4
+    assert score > 0.99 * np.sum(v * (u @ R.T))
+    # a reflected profile still gives a proper rotation (det +1), batched
+    B = np.stack([v.T @ u, -(v.T @ u), np.zeros((3, 3))])
+    Rb, _ = wahba(B)
+    assert np.allclose(np.linalg.det(Rb), 1.0)
+    assert median_step_s(np.array([0.0, 0.01, 0.02, 0.05])) == 0.01
+    assert median_step_s(np.array([1.0]), default=1.0) == 1.0
