@@ -22,7 +22,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from logtools.alignment.options import CONFIG as ALIGNMENT_CONFIG
-from logtools.alignment.options import FILTERS, AlignmentOptions, accepts_flexure_model
+from logtools.alignment.options import FILTERS, AlignmentOptions, FilterKind, accepts_flexure_model
 from logtools.alignment.options import MATCHES as ALIGNMENT_MATCHES
 from logtools.compensate import METHODS as COMPENSATIONS
 from logtools.errors import AnalysisError, InputError
@@ -168,7 +168,7 @@ def options_from(cli: dict, config: dict | None = None) -> tuple[AnalyzeOptions,
         kw["recording"] = bool(merged["recording"])
     if merged.get("no_recording"):
         kw["recording"] = False
-    if kw.get("filter") == "kf-split" and "compensation" not in kw:
+    if kw.get("filter") in FILTERS and FilterKind.parse(kw["filter"]).splits_delay and "compensation" not in kw:
         kw["compensation"] = "split"  # S004: integer-sample lag applied, the residual left to the delay state
     if "recording_max_rows" in merged:
         kw["recording_max_rows"] = int(merged["recording_max_rows"])
@@ -238,7 +238,7 @@ def alignment_options(slave: InsLog, opts: AnalyzeOptions, lat: LatencyResult | 
 
 def _filter_options(slave: InsLog, opts: AnalyzeOptions) -> dict:
     """AlignmentOptions fields: for S004's split, the residual latency the compensation left."""
-    if opts.filter != "kf-split":
+    if not FilterKind.parse(opts.filter).splits_delay:
         return {}
     from logtools.compensate import split_residual_s
 

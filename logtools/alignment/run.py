@@ -694,6 +694,8 @@ def _euler_jacobian(r: np.ndarray) -> np.ndarray:
 
 def _result(run: FilterRun, lay: StateLayout, st: FilterSettings, sig0: np.ndarray, kind: FilterKind, match: str,
             opts: AlignmentOptions, config: AlignmentConfig, notes: list[str]) -> AlignmentResult:
+    """The AlignmentResult of the final pass: the values at the last epoch (the smoother's: the middle),
+    the sigmas scaled by the a-posteriori variance factor, the notes in the order of the steps."""
     ne = len(run.t_s)
     k_rep = ne // 2 if run.smoothed else ne - 1
     # a-posteriori variance factor: when the residuals exceed the noise model (mean NIS > dof), the
@@ -702,45 +704,7 @@ def _result(run: FilterRun, lay: StateLayout, st: FilterSettings, sig0: np.ndarr
     sig_scale = float(np.sqrt(max(1.0, nis_m / lay.n_meas))) if np.isfinite(nis_m) else 1.0
     if sig_scale > 1.05:
         notes.append(f"reported sigmas scaled by {sig_scale:.2f} = sqrt(mean NIS / dof)")
-    # mounting totals per epoch
-    if lay.mount is not None:
-        r_ep = run.r_hat
-    elif run.c_nm is not None:
-        r_ep = np.einsum("kji,kjl->kil", run.c_ns, run.c_nm)  # C_sn C_nm
-    else:
-        r_ep = None
-    if r_ep is not None:
-        if lay.mount is None:  # velocity matching: average the last tenth (master attitude noise)
-            r_fin = wahba(r_ep[max(k_rep - max(ne // 10, 1), 0):k_rep + 1].sum(0))[0]  # their mean rotation
-        else:
-            r_fin = r_ep[k_rep]
-        jac = _euler_jacobian(r_fin)
-        rpy = euler_from_dcm(r_fin)
-        cov_e = np.einsum("ij,kjl,ml->kim", jac, run.p_mount, jac)
-        sig_e = np.sqrt(np.maximum(np.einsum("kii->ki", cov_e), 0.0))
-        mount_rpy = tuple(float(x) for x in np.degrees(rpy))
-        mount_sig = tuple(float(x) for x in sig_scale * np.degrees(sig_e[k_rep]))
-        hist_mount = np.degrees(euler_from_dcm(r_ep))
-        # keep yaw continuous around the final value
-        hist_mount = rpy_unwrap(hist_mount, np.degrees(rpy))
-    else:
-        notes.append("mounting not determined: the master has no attitude")
-        mount_rpy = (float("nan"),) * 3
-        mount_sig = (float("nan"),) * 3
-        sig_e = np.full((ne, 3), np.nan)
-        hist_mount = np.full((ne, 3), np.nan)
-    # convergence (forward filter sigma; the smoother's is not a convergence)
-    conv = None
-    if r_ep is not None:
-        p_fwd = run.p_mount_fwd if run.p_mount_fwd is not None else run.p_mount
-        cov_f = np.einsum("ij,kjl,ml->kim", jac, p_fwd, jac)
-        sig_f = np.sqrt(np.maximum(np.einsum("kii->ki", cov_f), 0.0))
-        thr = np.array(config.converged_arcmin) * ARCMIN / DEG
-        ok = (np.degrees(sig_f) < thr).all(1)
-        if ok[-1]:
-            bad = np.nonzero(~ok)[0]
-            first = 0 if len(bad) == 0 else bad[-1] + 1
-            conv = float(run.t_s[first] - run.t_s[0])
+    mnt = _mounting(run, lay, k_rep, sig_scale, config, notes)
     gb = run.x[k_rep, lay.gyro] / DEG_PER_H
     gbs = sig_scale * np.sqrt(run.p_diag[k_rep, lay.gyro]) / DEG_PER_H
     if lay.accel is not None:
@@ -750,11 +714,97 @@ def _result(run: FilterRun, lay: StateLayout, st: FilterSettings, sig0: np.ndarr
         ab = np.full(3, np.nan)
         abs_ = np.full(3, np.nan)
         notes.append("accelerometer bias not estimated: attitude matching only")
-    # observability: sigma shrink relative to the prior
+    obs = _observability(run, lay, sig0, k_rep, mnt.sig_e if mnt.determined else None, config, notes)
+    rn, resid, rms = _residual_summary(run, lay, notes)
+    if run.n_reinit:
+        notes.append(f"the master's attitude jumped {run.n_reinit} time(s) (EKF reset): slave attitude restarted")
+    if run.n_skipped:
+        notes.append(f"{run.n_skipped} of {ne} updates skipped: the master's output was frozen or jumping")
+    # histories, decimated to at most max_history_rows (the last epoch kept)
+    names, cols, sigs = _histories(run, lay, mnt.hist_deg, mnt.sig_e)
+    step = max(int(np.ceil(ne / int(opts.max_history_rows))), 1)
+    rows = np.arange(0, ne, step)
+    if rows[-1] != ne - 1:
+        rows = np.append(rows, ne - 1)
+    lever_m, lever_sig = _lever_arm(run, lay, sig0, k_rep, sig_scale, opts, config, notes)
+    delay_s = delay_sig = None
+    if lay.delay is not None:
+        delay_s = float(run.tau_hat[k_rep])
+        delay_sig = float(sig_scale * np.sqrt(run.p_diag[k_rep, lay.delay]))
+    if run.smoothed:
+        notes.append("RTS smoother: values are the smoothed estimates at the middle of the run")
+    if np.isfinite(run.gamma).any():
+        g = run.gamma[np.isfinite(run.gamma)]
+        notes.append(f"H-infinity gamma: median {np.median(g):.3g}, min {g.min():.3g}")
+    return AlignmentResult(
+        filter=kind.value, match=match, mounting_rpy_deg=mnt.rpy_deg, mounting_sigma_deg=mnt.sigma_deg,
+        gyro_bias_dph=tuple(float(x) for x in gb), accel_bias_mg=tuple(float(x) for x in ab),
+        converged_s=mnt.converged_s, residual_rms=rms,
+        gyro_bias_sigma_dph=tuple(float(x) for x in gbs), accel_bias_sigma_mg=tuple(float(x) for x in abs_),
+        delay_s=delay_s, delay_sigma_s=delay_sig, lever_arm_m=lever_m, lever_arm_sigma_m=lever_sig,
+        observability=obs, notes=tuple(notes),
+        history_t_s=run.t_s[rows].copy(), history_names=tuple(names), history_x=cols[rows],
+        history_sigma=sigs[rows], residual_t_s=run.t_s[rows].copy(), residual_names=tuple(rn),
+        residuals=resid[rows],
+    )
+
+
+@dataclass(frozen=True)
+class MountingSummary:
+    """The mounting total (coarse mounting combined with the filter's residual) and its history."""
+
+    determined: bool  # False: the master has no attitude
+    rpy_deg: tuple[float, float, float]
+    sigma_deg: tuple[float, float, float]  # scaled by the a-posteriori variance factor
+    sig_e: np.ndarray  # (M+1, 3) rad, unscaled: the history's sigma
+    hist_deg: np.ndarray  # (M+1, 3) yaw continuous around the final value
+    converged_s: float | None  # from the start, by the forward filter's sigma (config.converged_arcmin)
+
+
+def _mounting(run: FilterRun, lay: StateLayout, k_rep: int, sig_scale: float, config: AlignmentConfig,
+              notes: list[str]) -> MountingSummary:
+    ne = len(run.t_s)
+    if lay.mount is not None:
+        r_ep = run.r_hat
+    elif run.c_nm is not None:
+        r_ep = np.einsum("kji,kjl->kil", run.c_ns, run.c_nm)  # C_sn C_nm
+    else:
+        notes.append("mounting not determined: the master has no attitude")
+        nan3 = (float("nan"),) * 3
+        return MountingSummary(False, nan3, nan3, np.full((ne, 3), np.nan), np.full((ne, 3), np.nan), None)
+    if lay.mount is None:  # velocity matching: average the last tenth (master attitude noise)
+        r_fin = wahba(r_ep[max(k_rep - max(ne // 10, 1), 0):k_rep + 1].sum(0))[0]  # their mean rotation
+    else:
+        r_fin = r_ep[k_rep]
+    jac = _euler_jacobian(r_fin)
+    rpy = euler_from_dcm(r_fin)
+    cov_e = np.einsum("ij,kjl,ml->kim", jac, run.p_mount, jac)
+    sig_e = np.sqrt(np.maximum(np.einsum("kii->ki", cov_e), 0.0))
+    mount_rpy = tuple(float(x) for x in np.degrees(rpy))
+    mount_sig = tuple(float(x) for x in sig_scale * np.degrees(sig_e[k_rep]))
+    # keep yaw continuous around the final value
+    hist_mount = rpy_unwrap(np.degrees(euler_from_dcm(r_ep)), np.degrees(rpy))
+    # convergence (forward filter sigma; the smoother's is not a convergence)
+    conv = None
+    p_fwd = run.p_mount_fwd if run.p_mount_fwd is not None else run.p_mount
+    cov_f = np.einsum("ij,kjl,ml->kim", jac, p_fwd, jac)
+    sig_f = np.sqrt(np.maximum(np.einsum("kii->ki", cov_f), 0.0))
+    thr = np.array(config.converged_arcmin) * ARCMIN / DEG
+    ok = (np.degrees(sig_f) < thr).all(1)
+    if ok[-1]:
+        bad = np.nonzero(~ok)[0]
+        first = 0 if len(bad) == 0 else bad[-1] + 1
+        conv = float(run.t_s[first] - run.t_s[0])
+    return MountingSummary(True, mount_rpy, mount_sig, sig_e, hist_mount, conv)
+
+
+def _observability(run: FilterRun, lay: StateLayout, sig0: np.ndarray, k_rep: int, sig_e: np.ndarray | None,
+                   config: AlignmentConfig, notes: list[str]) -> dict[str, bool]:
+    """Observable: the sigma shrank below config.observable_shrink x its prior."""
     obs: dict[str, bool] = {}
     shrink = config.observable_shrink
     p_fin = np.sqrt(run.p_diag[k_rep])
-    if r_ep is not None:
+    if sig_e is not None:
         s0m = np.degrees(sig0[lay.mount] if lay.mount is not None else sig0[lay.att])
         for i, ax in enumerate(("roll", "pitch", "yaw")):
             obs[f"mounting_{ax}"] = bool(np.degrees(sig_e[k_rep, i]) < shrink * s0m[i])
@@ -769,7 +819,13 @@ def _result(run: FilterRun, lay: StateLayout, st: FilterSettings, sig0: np.ndarr
     if unobs:
         notes.append("not observable with this motion (sigma did not shrink below "
                      f"{shrink:g} x prior): {', '.join(unobs)}; values are the prior, not estimates")
-    # residuals
+    return obs
+
+
+def _residual_summary(run: FilterRun, lay: StateLayout, notes: list[str]
+                      ) -> tuple[list[str], np.ndarray, dict[str, float]]:
+    """(names, residual history in reported units, RMS and mean NIS after the initial transient)."""
+    ne = len(run.t_s)
     rn: list[str] = []
     scale = []
     if lay.uses_vel:
@@ -793,19 +849,13 @@ def _result(run: FilterRun, lay: StateLayout, st: FilterSettings, sig0: np.ndarr
     if rms["nis_mean"] > 3.0 * lay.n_meas:
         notes.append(f"residuals {np.sqrt(rms['nis_mean'] / lay.n_meas):.1f}x larger than the noise model: "
                      "unmodelled flexure, lever arm or delay? sigmas are optimistic")
-    if run.n_reinit:
-        notes.append(f"the master's attitude jumped {run.n_reinit} time(s) (EKF reset): slave attitude restarted")
-    if run.n_skipped:
-        notes.append(f"{run.n_skipped} of {ne} updates skipped: the master's output was frozen or jumping")
-    # histories
-    names, cols, sigs = _histories(run, lay, hist_mount, sig_e)
-    max_rows = int(opts.max_history_rows)
-    step = max(int(np.ceil(ne / max_rows)), 1)
-    rows = np.arange(0, ne, step)
-    if rows[-1] != ne - 1:
-        rows = np.append(rows, ne - 1)
-    # the lever arm: estimated (a state), or the one given (not estimated), else not modelled (None)
-    lever_m = lever_sig = None
+    return rn, resid, rms
+
+
+def _lever_arm(run: FilterRun, lay: StateLayout, sig0: np.ndarray, k_rep: int, sig_scale: float,
+               opts: AlignmentOptions, config: AlignmentConfig, notes: list[str]
+               ) -> tuple[tuple | None, tuple | None]:
+    """The lever arm: estimated (a state), or the one given (not estimated), else not modelled (None)."""
     if lay.lever is not None:
         lever_m = tuple(float(x) for x in run.lever_hat[k_rep])
         lever_sig = tuple(float(x) for x in sig_scale * np.sqrt(np.maximum(run.p_diag[k_rep, lay.lever], 0.0)))
@@ -813,28 +863,10 @@ def _result(run: FilterRun, lay: StateLayout, st: FilterSettings, sig0: np.ndarr
         if np.linalg.norm(lever_m) > config.lever_arm_implausible_sigmas * prior:
             notes.append(f"lever arm estimate {np.linalg.norm(lever_m):.3g} m is far beyond its prior "
                          f"({prior:g} m per axis): it is absorbing something else (an uncompensated delay?)")
-    elif opts.lever_arm_m is not None and lay.uses_vel:
-        lever_m = tuple(float(x) for x in np.asarray(opts.lever_arm_m, float))
-    delay_s = delay_sig = None
-    if lay.delay is not None:
-        delay_s = float(run.tau_hat[k_rep])
-        delay_sig = float(sig_scale * np.sqrt(run.p_diag[k_rep, lay.delay]))
-    if run.smoothed:
-        notes.append("RTS smoother: values are the smoothed estimates at the middle of the run")
-    if np.isfinite(run.gamma).any():
-        g = run.gamma[np.isfinite(run.gamma)]
-        notes.append(f"H-infinity gamma: median {np.median(g):.3g}, min {g.min():.3g}")
-    return AlignmentResult(
-        filter=kind.value, match=match, mounting_rpy_deg=mount_rpy, mounting_sigma_deg=mount_sig,
-        gyro_bias_dph=tuple(float(x) for x in gb), accel_bias_mg=tuple(float(x) for x in ab),
-        converged_s=conv, residual_rms=rms,
-        gyro_bias_sigma_dph=tuple(float(x) for x in gbs), accel_bias_sigma_mg=tuple(float(x) for x in abs_),
-        delay_s=delay_s, delay_sigma_s=delay_sig, lever_arm_m=lever_m, lever_arm_sigma_m=lever_sig,
-        observability=obs, notes=tuple(notes),
-        history_t_s=run.t_s[rows].copy(), history_names=tuple(names), history_x=cols[rows],
-        history_sigma=sigs[rows], residual_t_s=run.t_s[rows].copy(), residual_names=tuple(rn),
-        residuals=resid[rows],
-    )
+        return lever_m, lever_sig
+    if opts.lever_arm_m is not None and lay.uses_vel:
+        return tuple(float(x) for x in np.asarray(opts.lever_arm_m, float)), None
+    return None, None
 
 
 def _fmt3(v) -> str:
