@@ -297,20 +297,22 @@ def _master_series(master: InsLog) -> MasterSeries:
     if master.has_vel:
         tv, v = master.vel_ned_m_s()
         cols_t.append(tv)
-    t = cols_t[0]
-    for other in cols_t[1:]:
-        t = np.intersect1d(t, other)
+    if master.has_quat and master.has_vel:
+        t, q, v = _nav_common_stamps(tq, q, tv, v)  # q, v at t
+    else:
+        t = np.unique(cols_t[0])
+        if master.has_quat:
+            q = q[np.searchsorted(tq, t)]
+        else:
+            v = v[np.searchsorted(tv, t)]
     if len(t) < 3:
-        raise AnalysisError(f"{src}: the master's attitude and velocity share fewer than 3 stamps")
-    t = np.unique(t)
+        raise AnalysisError(f"{src}: the master's attitude and velocity overlap in fewer than 3 samples")
     if master.has_quat:
-        q = q[np.searchsorted(tq, t)]
         ok = np.isfinite(q).all(1)
         quat = quat_make_continuous(q / np.linalg.norm(q, axis=1, keepdims=True))
     else:
         ok = np.ones(len(t), bool)
     if master.has_vel:
-        v = v[np.searchsorted(tv, t)]
         ok &= np.isfinite(v).all(1)
     t = t[ok]
     if len(t) < 3:
@@ -336,6 +338,48 @@ def _master_series(master: InsLog) -> MasterSeries:
         acc = _derivative(t, vel, span_s=0.1)
     valid, resets = _master_quality(master, t, quat, vel)
     return MasterSeries(t, quat, vel, acc, w, valid, resets)
+
+
+#: the attitude's and the velocity's stamps are taken as one set when they share at least this fraction of
+#: the sparser stream's stamps (one EKF output); else each is a stream of its own (ATT 10 Hz, GPS 5 Hz)
+NAV_SHARED_STAMPS = 0.9
+NAV_GAP_STEPS = 3.0  # an interpolated stream's step beyond this many of its median steps is a gap (dropped)
+
+
+def _nav_common_stamps(tq: np.ndarray, q: np.ndarray, tv: np.ndarray, v: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(t, quat, vel) of a master whose attitude and velocity come with their own stamps and rates.
+
+    Where they share (nearly) all stamps (one EKF output), the shared stamps. Else the sparser stream's
+    stamps inside the other's span, the denser interpolated at them (the attitude by normalised linear
+    interpolation of sign-continuous quaternions, the velocity linearly; samples in a gap of the
+    interpolated stream dropped): each measurement used once, at its own instant, at the sparser rate
+    (the filter's update rate follows it), the interpolation's small error left to the measurement noise
+    the filter estimates from its residuals."""
+    t_shared = np.intersect1d(tq, tv)
+    if len(t_shared) >= NAV_SHARED_STAMPS * min(len(np.unique(tq)), len(np.unique(tv))):
+        return t_shared, q[np.searchsorted(tq, t_shared)], v[np.searchsorted(tv, t_shared)]
+    okq, okv = np.isfinite(q).all(1), np.isfinite(v).all(1)
+    tq, q, tv, v = tq[okq], q[okq], tv[okv], v[okv]
+    tq, iq = np.unique(tq, return_index=True)
+    tv, iv = np.unique(tv, return_index=True)
+    q, v = q[iq], v[iv]
+    if len(tq) < 2 or len(tv) < 2:
+        return np.zeros(0), q[:0], v[:0]
+    q = quat_make_continuous(q / np.linalg.norm(q, axis=1, keepdims=True))
+    if len(tv) <= len(tq):  # attitude onto the velocity's stamps
+        t = tv[(tv >= tq[0]) & (tv <= tq[-1])]
+        src_t, src_y = tq, q
+    else:
+        t = tq[(tq >= tv[0]) & (tq <= tv[-1])]
+        src_t, src_y = tv, v
+    j = np.clip(np.searchsorted(src_t, t), 1, len(src_t) - 1)
+    keep = (src_t[j] - src_t[j - 1]) <= NAV_GAP_STEPS * float(np.median(np.diff(src_t)))
+    t = t[keep]
+    y = _interp_cols(t, src_t, src_y)
+    if len(tv) <= len(tq):
+        return t, y / np.linalg.norm(y, axis=1, keepdims=True), v[np.searchsorted(tv, t)]
+    return t, q[np.searchsorted(tq, t)], y
 
 
 def _rate_from_attitude(t: np.ndarray, quat: np.ndarray) -> np.ndarray:
