@@ -28,7 +28,7 @@ def _ar1(rng, n, sigma, tau_samples):
 
 
 def _pair(seed, rpy_gyro_deg, rpy_accel_deg, *, rate_hz=50.0, dur_s=120.0, lever_m=(0.05, -0.03, 0.02),
-          slave_rate_hz=None):
+          slave_rate_hz=None, f_max_hz=1.5):
     """A master IMU on random smooth motion and a slave whose gyro triad is rotated by rpy_gyro and whose
     accelerometer triad by rpy_accel, both with correlated (Markov, 0.2 s) and white noise, a lever arm."""
     rng = np.random.default_rng(seed)
@@ -43,7 +43,7 @@ def _pair(seed, rpy_gyro_deg, rpy_accel_deg, *, rate_hz=50.0, dur_s=120.0, lever
     f_m = np.array([0.0, 0.0, -9.81]) + np.zeros((len(t), 3))
     for i in range(3):
         for _ in range(4):
-            fr, a, ph = rng.uniform(0.05, 1.5), rng.uniform(0.2, 1.5), rng.uniform(0, 2 * np.pi)
+            fr, a, ph = rng.uniform(0.05, f_max_hz), rng.uniform(0.2, 1.5), rng.uniform(0, 2 * np.pi)
             f_m[:, i] += a * np.sin(2 * np.pi * fr * t + ph)
     k = skew(dw) + skew(w) @ skew(w)
     f_at_slave = f_m + np.einsum("kij,j->ki", k, np.asarray(lever_m))
@@ -148,3 +148,24 @@ def test_real_ardupilot_imu2_triads_against_imu():
     assert np.all(np.abs(res.gyro.rpy_deg) < 2.0) and np.all(np.abs(res.accel.rpy_deg) < 3.0)
     assert np.all(np.asarray(res.gyro.sigma_deg) < 0.3) and np.all(np.asarray(res.accel.sigma_deg) < 0.5)
     assert np.all(np.asarray(res.gyro.sigma_deg) > 0)
+
+
+def test_triads_that_differ_by_more_than_a_rotation_are_flagged_and_their_sigma_widened():
+    """The slave's x accelerometer behind a 150 ms first-order filter (another chip's filter): the slow and the
+    fast part of the motion give different rotations; flagged, and half the spread joins the sigma."""
+    from scipy.signal import lfilter
+
+    master, slave = _pair(11, [0.3, 0.2, 5.0], [0.3, 0.2, 5.0], f_max_hz=6.0)
+    acc = slave.imu[["accel_x_m_s2"]].to_numpy()[:, 0]
+    a = np.exp(-0.02 / 0.15)
+    imu = slave.imu.copy()
+    imu["accel_x_m_s2"] = lfilter([1 - a], [1, -a], acc - acc[0]) + acc[0]
+    bent = InsLog(imu=imu, nav=slave.nav, meta=slave.meta)
+    res = imu_to_imu(master, bent)
+    assert res.accel.rigid is False and res.accel.band_z > 3
+    assert np.all(np.asarray(res.accel.sigma_deg) >= np.asarray(res.accel.sigma_data_deg))
+    cons = consistency(res.gyro.rpy_deg, res.gyro.sigma_deg, res)
+    assert cons["warning"] is None or "more than a rotation" in cons["warning"]
+    assert res.gyro.rigid is True  # the gyros were not touched
+    straight = imu_to_imu(master, slave)
+    assert straight.accel.rigid is True and straight.accel.sigma_data_deg is None

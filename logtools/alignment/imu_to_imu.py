@@ -17,12 +17,16 @@ Each rotation is refined by Gauss-Newton from the Wahba (SVD) start, the perturb
 (``R = exp([d x]) R_hat``); its sigma is the sandwich ``J^-1 Omega J^-1`` with ``J = sum H^T H`` and
 ``Omega`` the long-run covariance of the scores ``H^T e`` (Newey-West, Bartlett weights, bandwidth from
 the scores' correlation time): residuals correlated in time (vibration, scale-factor errors, flexure)
-count as the fewer independent samples they are. ``consistency`` compares the rotations with the
+count as the fewer independent samples they are. A residual delay between the two IMUs is estimated with
+each rotation (it would turn into one). The rotation is fitted again on the slow and on the fast part of
+the motion apart: a rotation is the same at every frequency, so where the two differ beyond 3 sigma the
+triads differ by more than a rotation (filters, aliased vibration, scale factors) and half the spread
+joins the sigma as the model's error. ``consistency`` compares the rotations with the
 nav-referenced mounting of the transfer alignment and names the likely cause when they differ.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -35,6 +39,8 @@ MIN_EXPLAINED = 0.5  # the fitted rotation must explain this fraction of the sla
 MAX_SIGMA_DEG = 5.0  # an axis less determined than this: the triad's rotation is not reported (null)
 GAP_STEPS = 3.0  # a step of a unit's stamps beyond this many of its median steps is a gap (not bridged)
 CONSISTENCY_Z = 3.0  # beyond this many combined sigmas the two views disagree
+BAND_SPLIT_S = 0.4  # the slow and the fast part of the motion split at this period (moving mean)
+BAND_Z = 3.0  # the two bands' rotations further apart than this many combined sigmas: not one rotation
 LEVER_MIN_RATE_RAD_S = 0.3  # the accelerometers' lever arm is estimated where the rates move at least this (rms)
 
 
@@ -49,6 +55,16 @@ class TriadRotation:
     corr_time_s: float  # the scores' integrated correlation time (what inflated the white sigma)
     lever_arm_m: tuple[float, float, float] | None = None  # accelerometers: the offset estimated with it
     delay_s: float | None = None  # the delay left between the two units' samples, estimated with it
+    #: the rotation fitted on the slow (periods > BAND_SPLIT_S) and on the fast part of the motion apart, and
+    #: the largest z between them (beyond BAND_Z: the triads differ by more than a rotation)
+    band_rpy_deg: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+    band_z: float | None = None
+    sigma_data_deg: tuple[float, float, float] | None = None  # the sigma from the residuals alone, where the
+    # bands disagreed and half their spread was added to ``sigma_deg``
+
+    @property
+    def rigid(self) -> bool | None:
+        return None if self.band_z is None else bool(self.band_z <= BAND_Z)
 
 
 @dataclass(frozen=True)
@@ -68,6 +84,11 @@ class ImuToImu:
                 out[f"{name}_corr_time_s"] = tr.corr_time_s
                 out[f"{name}_samples"] = tr.n
                 out[f"{name}_delay_s"] = tr.delay_s
+                if tr.band_z is not None:
+                    out[f"{name}_band_z"] = tr.band_z
+                    out[f"{name}_band_rpy_deg"] = {"slow": list(tr.band_rpy_deg[0]), "fast": list(tr.band_rpy_deg[1])}
+                if tr.sigma_data_deg is not None:
+                    out[f"{name}_sigma_data_deg"] = list(tr.sigma_data_deg)
         if self.accel and self.accel.lever_arm_m is not None:
             out["accel_lever_arm_m"] = list(self.accel.lever_arm_m)
         if self.reasons:
@@ -202,7 +223,8 @@ def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = 
     return r_mat, cov[:3, :3], lev, (cov[3:, 3:] if lev is not None else None), rms, tau * dt_s
 
 
-def _triad(u: np.ndarray, v: np.ndarray, k: np.ndarray | None, dt: float) -> TriadRotation | str:
+def _triad(u: np.ndarray, v: np.ndarray, k: np.ndarray | None, dt: float, min_explained: float = None
+           ) -> TriadRotation | str:
     if len(u) < MIN_SAMPLES:
         return f"only {len(u)} common samples (at least {MIN_SAMPLES} needed)"
     sv = np.linalg.svd(v.T @ u, compute_uv=False)
@@ -213,7 +235,8 @@ def _triad(u: np.ndarray, v: np.ndarray, k: np.ndarray | None, dt: float) -> Tri
     except np.linalg.LinAlgError:
         return "the fit is singular (too little motion)"
     explained = 1.0 - rms ** 2 / max(float(np.mean(np.sum(v * v, axis=1))), 1e-300)
-    if explained < MIN_EXPLAINED:
+    min_explained = MIN_EXPLAINED if min_explained is None else min_explained
+    if explained < min_explained:
         return (f"too little motion: the rotation explains {100 * max(explained, 0):.0f} % of the slave's "
                 f"signal (at least {100 * MIN_EXPLAINED:.0f} % needed)")
     sig = _euler_sigma_deg(r_mat, cov)
@@ -265,8 +288,23 @@ def imu_to_imu(master: InsLog, slave: InsLog, *, highpass_s: float = HIGHPASS_S)
         res = _triad(u[cut], v[cut], k[cut], dt)
         if isinstance(res, str):
             reasons[name] = res
-        else:
-            out[name] = res
+            continue
+        # a rotation is the same at every frequency: fitted on the slow and on the fast part of the motion
+        # apart, two figures beyond BAND_Z sigmas say the triads differ by more than a rotation (the
+        # sensors' own filters, vibration aliased into the snapshots, scale factors)
+        nlp = max(int(round(BAND_SPLIT_S / dt)), 2)
+        lo = [u - _highpass(u, nlp), v - _highpass(v, nlp), k - _highpass(k.reshape(len(t), -1), nlp).reshape(k.shape)]
+        hi = [u - lo[0], v - lo[1], k - lo[2]]
+        # (a band the rotation explains poorly is itself the sign: no minimum there, the sigmas judge)
+        bands = [_triad(b[0][cut], b[1][cut], b[2][cut], dt, min_explained=0.0) for b in (lo, hi)]
+        if all(isinstance(b, TriadRotation) for b in bands):
+            zb, _ = _z(bands[0].rpy_deg, bands[0].sigma_deg, bands[1].rpy_deg, bands[1].sigma_deg)
+            res = replace(res, band_z=zb, band_rpy_deg=(bands[0].rpy_deg, bands[1].rpy_deg))
+            if zb > BAND_Z:  # not one rotation: half the bands' spread joins the sigma (the model's error)
+                d = (np.asarray(bands[0].rpy_deg) - np.asarray(bands[1].rpy_deg) + 180.0) % 360.0 - 180.0
+                res = replace(res, sigma_deg=tuple(float(x) for x in np.hypot(res.sigma_deg, 0.5 * d)),
+                              sigma_data_deg=res.sigma_deg)
+        out[name] = res
     return ImuToImu(out["gyro"], out["accel"], reasons)
 
 
@@ -320,6 +358,11 @@ def consistency(mount_rpy_deg, mount_sigma_deg, imu: ImuToImu) -> dict:
     elif za is not None and za > CONSISTENCY_Z and not (zt is not None and zt > CONSISTENCY_Z):
         causes.append(f"the accelerometer triad's rotation differs from the mounting at z {za:.1f} while the gyro "
                       "triad's agrees: the accelerometers' scale factors, lever arm or vibration")
+    for name, tr in (("gyro", imu.gyro), ("accel", imu.accel)):
+        if tr is not None and tr.rigid is False:
+            causes.append(f"the {name} triads differ by more than a rotation (slow and fast motion give rotations "
+                          f"z {tr.band_z:.1f} apart: the sensors' filters, vibration aliased into the "
+                          "snapshots or scale factors), so its rotation is a compromise")
     figures = ", ".join(f"{k[2:].replace('_', ' vs ')} z {z:.1f}" for k, (z, _) in views.items())
     if out["agrees"]:
         out["note"] = f"agree within {CONSISTENCY_Z:g} combined sigma ({figures})"
