@@ -277,7 +277,8 @@ S004_ROWS = (
 )
 
 
-def _align_row(master, slave, truth, how: str, filt: str, match: str, **options) -> dict:
+def _align_row(master, slave, truth, how: str, filt: str, match: str, options=None) -> dict:
+    """One alignment row; ``options``: an AlignmentOptions (None: the defaults)."""
     from logtools.alignment import run_alignment
 
     lat_info, t_comp = {}, 0.0
@@ -288,7 +289,7 @@ def _align_row(master, slave, truth, how: str, filt: str, match: str, **options)
     else:
         s, lat, t_comp = _estimate_and_compensate(master, slave, how)
         lat_info = {"latency_est_s": float(lat.latency_s), "latency_err_ms": 1e3 * (lat.latency_s - truth["latency_s"])}
-    res, t_al = _timed(run_alignment, master, s, filter=filt, match=match, **options)
+    res, t_al = _timed(run_alignment, master, s, filter=filt, match=match, options=options)
     out = result_summary(res, truth)
     out.update(convergence(res, truth["mounting_rpy_deg"], float(master.span_s()[0])))
     out.update(lat_info)

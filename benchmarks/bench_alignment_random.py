@@ -151,12 +151,10 @@ def _rotation_arcmin(rpy_a, rpy_b) -> float:
 
 def run_one(d: dict) -> dict:
     from logtools import sim
-    from logtools.alignment import run_alignment
+    from logtools.alignment import CONFIG, AlignmentOptions, run_alignment
     from logtools.compensate import compensate
     from logtools.latency import estimate
     from pipelines.analyze import AnalyzeOptions, _flexure_options, _lever_options, _resolve_match
-
-    import logtools.alignment.run as align_run
 
     cfg = dataclasses.replace(bl.sim_config(d), lever_arm_m=tuple(d["lever_arm_m"]), **d.get("extra", {}))
     pair = sim.simulate(cfg)
@@ -180,24 +178,25 @@ def run_one(d: dict) -> dict:
             row[v] = dict(note=f"{type(exc).__name__}: {exc}"[:200])
         return row
     opts = AnalyzeOptions()
-    options = {"tapost": {**_lever_options(opts, lat), **_flexure_options(opts, lat)}, "rigid": {}}
+    options = {"tapost": AlignmentOptions(**_lever_options(opts, lat), **_flexure_options(opts, lat)),
+               "rigid": AlignmentOptions()}
+    # rigid: the coarse mounting from the rates alone, as before
+    configs = {"tapost": CONFIG, "rigid": dataclasses.replace(CONFIG, coarse_joint=False)}
     for v in VARIANTS:
         t0 = time.perf_counter()
-        align_run.COARSE_JOINT = v == "tapost"  # rigid: the coarse mounting from the rates alone, as before
         try:
-            res = run_alignment(pair.master, slave, filter="kf", match=match, **options[v])
+            res = run_alignment(pair.master, slave, filter="kf", match=match, options=options[v], config=configs[v])
             err = _rotation_arcmin(res.mounting_rpy_deg, cfg.mount_rpy_deg)
             sig = float(np.linalg.norm(res.mounting_sigma_deg)) * 60.0
             lev_err = (None if res.lever_arm_m is None or res.lever_arm_sigma_m is None
                        else float(np.linalg.norm(np.subtract(res.lever_arm_m, cfg.lever_arm_m))))
-            flex = ("latency model" if options[v].get("flexure") is True
+            flex = ("latency model" if options[v].flexure is True
                     else "added" if any(n.startswith("flexure states added") for n in res.notes) else "none")
             row[v] = dict(error_arcmin=err, sigma_arcmin=sig, z=err / sig if sig > 0 else float("inf"),
                           lever_error_m=lev_err, flexure_states=flex, note="")
         except Exception as exc:  # noqa: BLE001
             row[v] = dict(note=f"{type(exc).__name__}: {exc}"[:200])
         row[f"runtime_{v}_s"] = time.perf_counter() - t0
-    align_run.COARSE_JOINT = True
     return row
 
 

@@ -21,6 +21,10 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from logtools.alignment.options import CONFIG as ALIGNMENT_CONFIG
+from logtools.alignment.options import FILTERS, AlignmentOptions, FilterKind, accepts_flexure_model
+from logtools.alignment.options import MATCHES as ALIGNMENT_MATCHES
+from logtools.compensate import METHODS as COMPENSATIONS
 from logtools.errors import AnalysisError, InputError
 from logtools.inslog import InsLog
 from logtools.results import AlignmentResult, LatencyResult
@@ -28,9 +32,7 @@ from parsers import load
 from pipelines import report as rp
 from pipelines.progress import Progress, null_progress
 
-FILTERS = ("kf", "kf-delay", "kf-split", "hinf", "ahinf")
-MATCHES = ("auto", "vel", "att", "vel+att")
-COMPENSATIONS = ("restamp", "interp", "shift", "poly2", "split")
+MATCHES = ("auto",) + ALIGNMENT_MATCHES  # auto: vel+att when the master has both, else what it has
 LATENCY_METHODS = ("tapost", "s000-rate-integral", "s002-attitude-shift", "xcorr-norm")
 REPORT, HTML, RECORDING = "report.json", "report.html", "recording.rrd"
 
@@ -98,13 +100,6 @@ def parse_max_lag(text) -> float | None:
 
 
 FLEXURE_MODES = ("auto", "on", "off")
-SEED000_FLEXURE = {"flex_sigma_deg": 0.05, "flex_beta": 2.0}  # seed 000's flexure (eq 8), for --flexure on
-#: the latency fit's flexure model goes into the alignment when it looks like a structure's flexure: a
-#: correlation time of at most 1/FLEX_MIN_BETA seconds and at most FLEX_MAX_DEG (a slow wander of degrees,
-#: what two MEMS IMUs' scale and bias errors give, e.g. the ArduCopter log0036 pair's 4.7 deg at beta 0.013,
-#: is not separable from the mounting and would only blur it)
-FLEX_MIN_BETA = 0.2
-FLEX_MAX_DEG = 1.0
 
 
 def parse_lever_arm(text) -> str | tuple[float, float, float]:
@@ -173,7 +168,7 @@ def options_from(cli: dict, config: dict | None = None) -> tuple[AnalyzeOptions,
         kw["recording"] = bool(merged["recording"])
     if merged.get("no_recording"):
         kw["recording"] = False
-    if kw.get("filter") == "kf-split" and "compensation" not in kw:
+    if kw.get("filter") in FILTERS and FilterKind.parse(kw["filter"]).splits_delay and "compensation" not in kw:
         kw["compensation"] = "split"  # S004: integer-sample lag applied, the residual left to the delay state
     if "recording_max_rows" in merged:
         kw["recording_max_rows"] = int(merged["recording_max_rows"])
@@ -235,9 +230,15 @@ def _resolve_match(master: InsLog, requested: str) -> tuple[str | None, str | No
     return requested, None
 
 
+def alignment_options(slave: InsLog, opts: AnalyzeOptions, lat: LatencyResult | None) -> AlignmentOptions:
+    """The alignment's options for this pair: the split's residual delay, the lever arm, the flexure model
+    (each helper below gives its AlignmentOptions fields)."""
+    return AlignmentOptions(**_filter_options(slave, opts), **_lever_options(opts, lat), **_flexure_options(opts, lat))
+
+
 def _filter_options(slave: InsLog, opts: AnalyzeOptions) -> dict:
-    """Extra run_alignment options: for S004's split, the residual latency the compensation left."""
-    if opts.filter != "kf-split":
+    """AlignmentOptions fields: for S004's split, the residual latency the compensation left."""
+    if not FilterKind.parse(opts.filter).splits_delay:
         return {}
     from logtools.compensate import split_residual_s
 
@@ -246,7 +247,7 @@ def _filter_options(slave: InsLog, opts: AnalyzeOptions) -> dict:
 
 
 def _lever_options(opts: AnalyzeOptions, lat: LatencyResult | None) -> dict:
-    """run_alignment's lever-arm options: a known one as given; in auto mode estimated, from the latency's
+    """AlignmentOptions' lever-arm fields: a known one as given; in auto mode estimated, from the latency's
     velocity fit when that fit agreed with the rates (else from zero)."""
     mode = parse_lever_arm(opts.lever_arm)
     if mode == "off":
@@ -263,17 +264,20 @@ def _lever_options(opts: AnalyzeOptions, lat: LatencyResult | None) -> dict:
 
 
 def _flexure_options(opts: AnalyzeOptions, lat: LatencyResult | None) -> dict:
-    """run_alignment's flexure options: the model the latency's rate fit found (sigma per axis, beta); where
-    it found none, with ``--flexure auto`` the alignment adds seed 000's when its residuals call for it,
-    with ``--flexure on`` always."""
+    """AlignmentOptions' flexure fields: the model the latency's rate fit found (sigma per axis, beta) where
+    it is a structure's flexure (``accepts_flexure_model``); else, with ``--flexure auto`` the alignment adds
+    seed 000's when its residuals call for it, with ``--flexure on`` always."""
     if opts.flexure == "off":
         return {}
     fm = (lat.quality or {}).get("flexure_model") if lat is not None else None
     if (isinstance(fm, dict) and fm.get("sigma_deg") is not None and fm.get("beta_1_s") is not None
-            and float(fm["beta_1_s"]) >= FLEX_MIN_BETA and max(fm["sigma_deg"]) <= FLEX_MAX_DEG):
+            and accepts_flexure_model(fm["sigma_deg"], fm["beta_1_s"], ALIGNMENT_CONFIG)):
         return {"flexure": True, "flex_sigma_deg": tuple(float(x) for x in fm["sigma_deg"]),
                 "flex_beta": float(fm["beta_1_s"])}
-    return {"flexure": True, **SEED000_FLEXURE} if opts.flexure == "on" else {"flexure": "auto"}
+    if opts.flexure == "on":  # seed 000's flexure (eq 8)
+        return {"flexure": True, "flex_sigma_deg": ALIGNMENT_CONFIG.flex_auto_sigma_deg,
+                "flex_beta": ALIGNMENT_CONFIG.flex_auto_beta_1_s}
+    return {"flexure": "auto"}
 
 
 def _alignment(master: InsLog, slave: InsLog, run: str, opts: AnalyzeOptions, progress,
@@ -296,8 +300,7 @@ def _alignment(master: InsLog, slave: InsLog, run: str, opts: AnalyzeOptions, pr
         return f"alignment is not available in this installation ({exc})"
     try:
         return run_alignment(master, slave, filter=opts.filter, match=match, smoother=opts.smoother,
-                             progress=progress, **_filter_options(slave, opts), **_lever_options(opts, lat),
-                             **_flexure_options(opts, lat))
+                             progress=progress, options=alignment_options(slave, opts, lat))
     except AnalysisError as exc:
         return exc.problem
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -10,7 +11,7 @@ import pytest
 from scipy.stats import chi2
 
 from logtools import earth
-from logtools.alignment import run_alignment
+from logtools.alignment import CONFIG, AlignmentOptions, run_alignment
 from logtools.alignment import kf as kfm
 from logtools.alignment import model as mdl
 from logtools.errors import AnalysisError
@@ -189,7 +190,7 @@ def test_s004_ship_no_delay_accurate_fast_and_quick():
 def test_s004_ship_100ms_delay_kf_delay_recovers_delay_and_mounting():
     m, s, truth = _pair(latency_s=0.1)
     # the delay left in spoils the plain filter (as in S004 Fig. 2 / PSINS) ...
-    plain = run_alignment(m, s, filter="kf", recalibrate_noise=False)
+    plain = run_alignment(m, s, filter="kf", options=AlignmentOptions(recalibrate_noise=False))
     assert not _within(_err_arcmin(plain, truth))
     assert plain.residual_rms["nis_mean"] > 100 * plain.residual_rms["nis_dof"]
     # ... the noise re-estimated from its residuals keeps it near, but far worse than with the delay state
@@ -200,10 +201,10 @@ def test_s004_ship_100ms_delay_kf_delay_recovers_delay_and_mounting():
     assert res.delay_s == pytest.approx(0.1, abs=0.002)
     assert res.delay_sigma_s < 0.002
     assert _within(_err_arcmin(res, truth), (0.1, 0.1, 0.1))
-    pure = run_alignment(m, s, filter="kf-delay", delay_s=0.0)  # S004's augmentation alone, from 0
+    pure = run_alignment(m, s, filter="kf-delay", options=AlignmentOptions(delay_s=0.0))  # S004's augmentation alone, from 0
     assert pure.delay_s == pytest.approx(0.1, abs=0.002)
     assert _within(_err_arcmin(pure, truth), (0.1, 0.1, 0.1))
-    split = run_alignment(m, s, filter="kf-split", delay_s=0.08)
+    split = run_alignment(m, s, filter="kf-split", options=AlignmentOptions(delay_s=0.08))
     assert split.delay_s == pytest.approx(0.1, abs=0.002)
     assert _within(_err_arcmin(split, truth), (0.1, 0.1, 0.1))
 
@@ -255,7 +256,7 @@ def test_smoother_and_other_matches_run():
 def test_hinf_filters_run_on_ship(flt, latency, kw):
     pytest.importorskip("logtools.alignment.hinf")
     m, s, truth = _pair(duration_s=60.0, latency_s=latency)
-    res = run_alignment(m, s, filter=flt, **kw)
+    res = run_alignment(m, s, filter=flt, options=AlignmentOptions(**kw))
     assert _within(_err_arcmin(res, truth)), _err_arcmin(res, truth)
     if latency:
         assert res.delay_s == pytest.approx(latency, abs=0.002)
@@ -281,14 +282,13 @@ def test_errors_are_one_line_analysis_errors():
 @pytest.mark.parametrize("kw,latency,gaps", [({}, 0.0, ()), ({"filter": "kf-delay", "smoother": True}, 0.1, ()),
                                              ({"match": "att", "flexure": True}, 0.0, ()),
                                              ({}, 0.0, ((8.0, 3.0),))])
-def test_compiled_loop_equals_python_reference_loop(kw, latency, gaps, monkeypatch):
-    import logtools.alignment.run as run_mod
+def test_compiled_loop_equals_python_reference_loop(kw, latency, gaps):
     m, s, truth = _pair(latency_s=latency, duration_s=20.0, slave_gaps_s=gaps)
-    fast = run_alignment(m, s, **kw)
-    ref_filter = run_mod.run_filter
-    monkeypatch.setattr(run_mod, "run_filter",
-                        lambda inp, st, progress=None: ref_filter(inp, st, progress=progress, compiled=False))
-    ref = run_alignment(m, s, **kw)
+    top = {k: kw[k] for k in ("filter", "smoother", "match") if k in kw}
+    opts = AlignmentOptions(**{k: v for k, v in kw.items() if k not in top})
+    fast = run_alignment(m, s, **top, options=opts)
+    # the reference: the Python loop for the KF kinds too (every pass of the run)
+    ref = run_alignment(m, s, **top, options=opts, config=replace(CONFIG, compiled_kf=False))
     assert np.allclose(fast.history_x, ref.history_x, rtol=1e-9, atol=1e-12)
     assert np.allclose(fast.history_sigma, ref.history_sigma, rtol=1e-9, atol=1e-12)
     assert np.allclose(fast.mounting_rpy_deg, ref.mounting_rpy_deg, rtol=1e-12, atol=1e-12)
@@ -356,12 +356,12 @@ def test_real_ardupilot_imu2_aligned_to_imu_ekf(name):
 
 def test_lever_arm_estimated_and_flexure_states_keep_the_filter_consistent():
     m, s, truth = _pair(lever_arm_m=(2.0, -1.0, 0.5), duration_s=60.0)
-    res = run_alignment(m, s, estimate_lever_arm=True)
+    res = run_alignment(m, s, options=AlignmentOptions(estimate_lever_arm=True))
     i = res.history_names.index("lever_arm_x_m")
     lev, sig = res.history_x[-1, i:i + 3], res.history_sigma[-1, i:i + 3]
     assert np.all(np.abs(lev - [2.0, -1.0, 0.5]) < np.maximum(4 * sig, 0.01)), (lev, sig)
     assert np.allclose(res.lever_arm_m, lev) and np.all(np.asarray(res.lever_arm_sigma_m) >= sig - 1e-12)
-    given = run_alignment(m, s, lever_arm_m=(2.0, -1.0, 0.5))  # known: reported as given, no states
+    given = run_alignment(m, s, options=AlignmentOptions(lever_arm_m=(2.0, -1.0, 0.5)))  # known: reported as given, no states
     assert given.lever_arm_m == (2.0, -1.0, 0.5) and given.lever_arm_sigma_m is None
     assert "lever_arm_x_m" not in given.history_names
     assert run_alignment(m, s).lever_arm_m is None  # not modelled
@@ -369,8 +369,8 @@ def test_lever_arm_estimated_and_flexure_states_keep_the_filter_consistent():
     # flexure (S000 eq 8) in the data: without flexure states the residuals blow up, with them the
     # filter is consistent and the mounting within a few sigma
     m, s, truth = _pair(flexure=True, duration_s=60.0)
-    rigid = run_alignment(m, s, recalibrate_noise=False)
-    flex = run_alignment(m, s, flexure=True, flex_beta=2.0)
+    rigid = run_alignment(m, s, options=AlignmentOptions(recalibrate_noise=False))
+    flex = run_alignment(m, s, options=AlignmentOptions(flexure=True, flex_beta=2.0))
     assert rigid.residual_rms["nis_mean"] > 50 * rigid.residual_rms["nis_dof"]
     assert flex.residual_rms["nis_mean"] < 2 * flex.residual_rms["nis_dof"]
     z = _err_arcmin(flex, truth) / 60.0 / np.asarray(flex.mounting_sigma_deg)
@@ -401,7 +401,7 @@ def test_attitude_only_matching_with_a_rolled_mounting_does_not_diverge(mount):
                               slave_imu_rate_hz=200.0, master_imu_rate_hz=400.0, master_nav_rate_hz=200.0,
                               duration_s=40.0)
     p = sim.simulate(cfg)
-    res = run_alignment(p.master, p.slave, match="att", recalibrate_noise=False, r_att_arcsec=1.83, update_hz=20.0)
+    res = run_alignment(p.master, p.slave, match="att", options=AlignmentOptions(recalibrate_noise=False, r_att_arcsec=1.83, update_hz=20.0))
     assert np.nanmax(np.linalg.norm(res.residuals, axis=1)) < 0.01  # deg
     from logtools.conventions import dcm_from_euler, quat_from_dcm, rotvec_from_quat
     e = dcm_from_euler(np.radians(res.mounting_rpy_deg)) @ dcm_from_euler(np.radians(mount)).T
@@ -418,8 +418,8 @@ def test_flexure_auto_adds_the_states_where_the_residuals_call_for_them():
               lever_arm_m=(-0.17, 0.12, 1.21), slave_vel_noise_m_s=0.005, slave_att_noise_deg=0.01,
               speed_m_s=4.0, turn_amp_deg=37.0, turn_period_s=44.3)
     p = sim.simulate(sim.scenario_config("multirotor", seed=62015, flexure=True, **kw))
-    rigid = run_alignment(p.master, p.slave, estimate_lever_arm=True)
-    auto = run_alignment(p.master, p.slave, estimate_lever_arm=True, flexure="auto")
+    rigid = run_alignment(p.master, p.slave, options=AlignmentOptions(estimate_lever_arm=True))
+    auto = run_alignment(p.master, p.slave, options=AlignmentOptions(estimate_lever_arm=True, flexure="auto"))
     from logtools.conventions import dcm_from_euler
 
     def z(r):  # the rotation between estimate and truth over the largest sigma (Euler angles past 90 deg pitch)
@@ -429,8 +429,8 @@ def test_flexure_auto_adds_the_states_where_the_residuals_call_for_them():
     assert any(n.startswith("flexure states added") for n in auto.notes)
     assert z(rigid) > 3.0 and z(auto) < 2.5, (z(rigid), z(auto))
     p = sim.simulate(sim.scenario_config("multirotor", seed=62015, flexure=False, **kw))
-    rigid = run_alignment(p.master, p.slave, estimate_lever_arm=True)
-    auto = run_alignment(p.master, p.slave, estimate_lever_arm=True, flexure="auto")
+    rigid = run_alignment(p.master, p.slave, options=AlignmentOptions(estimate_lever_arm=True))
+    auto = run_alignment(p.master, p.slave, options=AlignmentOptions(estimate_lever_arm=True, flexure="auto"))
     assert not any("flexure" in n for n in auto.notes)
     assert auto.mounting_rpy_deg == rigid.mounting_rpy_deg
 
@@ -441,11 +441,11 @@ def test_a_lever_arm_that_absorbs_an_uncompensated_delay_is_called_implausible()
     plainly. The compensated pair has no such note."""
     kw = dict(seed=3, drift_ppm=0.0, duration_s=60.0, mount_rpy_deg=(10.0, 20.0, 30.0))
     late = sim.simulate(sim.scenario_config("aircraft", latency_s=0.5, **kw))
-    res = run_alignment(late.master, late.slave, estimate_lever_arm=True)
+    res = run_alignment(late.master, late.slave, options=AlignmentOptions(estimate_lever_arm=True))
     assert np.linalg.norm(res.lever_arm_m) > 10.0
     assert any("far beyond its prior" in n for n in res.notes)
     ok = sim.simulate(sim.scenario_config("aircraft", latency_s=0.0, **kw))
-    res = run_alignment(ok.master, ok.slave, estimate_lever_arm=True)
+    res = run_alignment(ok.master, ok.slave, options=AlignmentOptions(estimate_lever_arm=True))
     assert np.linalg.norm(res.lever_arm_m) < 0.1 and not any("far beyond" in n for n in res.notes)
 
 
@@ -459,7 +459,7 @@ def test_coarse_mounting_from_rates_and_specific_forces_when_a_car_turns_about_o
                               slave_nav=False, speed_m_s=15.1, turn_amp_deg=23.0, turn_period_s=64.6,
                               climb_amp_deg=0.7, speed_var_m_s=3.0)
     p = sim.simulate(cfg)
-    res = run_alignment(p.master, p.slave, estimate_lever_arm=True)
+    res = run_alignment(p.master, p.slave, options=AlignmentOptions(estimate_lever_arm=True))
     assert any("rates and specific forces together" in n for n in res.notes), res.notes
     from logtools.conventions import dcm_from_euler
 
@@ -483,7 +483,7 @@ def test_coarse_mounting_of_a_master_that_logs_only_its_navigation_solution():
                               climb_amp_deg=0.7, speed_var_m_s=3.0)
     p = sim.simulate(cfg)
     master = InsLog(imu=p.master.imu.iloc[:0], nav=p.master.nav, meta=p.master.meta)
-    res = run_alignment(master, p.slave, estimate_lever_arm=True)
+    res = run_alignment(master, p.slave, options=AlignmentOptions(estimate_lever_arm=True))
     assert any("rates and specific forces together instead" in n for n in res.notes), res.notes
     d = dcm_from_euler(np.radians(res.mounting_rpy_deg)).T @ dcm_from_euler(np.radians(cfg.mount_rpy_deg))
     err_arcmin = np.degrees(np.arccos(np.clip((np.trace(d) - 1) / 2, -1, 1))) * 60
@@ -498,7 +498,7 @@ def test_coarse_mounting_weakly_determined_starts_from_the_joint_fit_with_a_wide
                               mount_rpy_deg=(135.6, 44.2, 52.7), slave_nav=False, lever_arm_m=(0.11, -0.97, -0.03),
                               speed_var_m_s=0.21, sway_amp_deg=(0.2, 0.2, 3.0))
     p = sim.simulate(cfg)
-    res = run_alignment(p.master, p.slave, estimate_lever_arm=True)
+    res = run_alignment(p.master, p.slave, options=AlignmentOptions(estimate_lever_arm=True))
     assert any("weakly determined" in n for n in res.notes), res.notes
     from logtools.conventions import dcm_from_euler
 

@@ -79,6 +79,7 @@ def install_fake_numerics(setitem=None, setattr_=None) -> None:
     processes forked from it). With a pytest monkeypatch the change is undone after the test."""
     import logtools
     import logtools.alignment as la
+    import pipelines.analyze  # noqa: F401 - its option tables come from the real modules, imported first
 
     setitem = setitem or (lambda d, k, v: d.__setitem__(k, v))
     setattr_ = setattr_ or (lambda o, k, v, raising=False: setattr(o, k, v))

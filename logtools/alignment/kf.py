@@ -23,14 +23,9 @@ from logtools.conventions import dcm_from_quat, quat_from_dcm
 from logtools.errors import AnalysisError
 from logtools.strapdown import _WIE, _radii, nav_step, njit
 
+from .options import FilterKind
 from .model import StateLayout, _discretise, _fill_dynamics, _fill_h, att_residual, exp_so3, rotvec_small
 
-FILTERS = ("kf", "kf-delay", "kf-split", "hinf", "ahinf")
-#: attitude-only matching takes the mounting's Jacobian at the running slave attitude, not the first-estimate
-#: one (C_nm R0^T): with tight attitude noise and a mounting rolled past ~80 deg the first-estimate Jacobian
-#: made the aircraft's straight, unobservable start drift and diverge (residuals of 180 deg); velocity
-#: matching keeps it (there it stops the filter from inventing information)
-ATT_ONLY_FEJ = False  # (a compile-time constant of the compiled loop)
 
 
 # ---- measurement updates ------------------------------------------------------------------------
@@ -228,7 +223,7 @@ class AlignInputs:
 
 @dataclass(frozen=True)
 class FilterSettings:
-    kind: str
+    kind: FilterKind
     layout: StateLayout
     p0_sigma: np.ndarray  # (n,) initial sigmas
     qc: np.ndarray  # (n,) continuous process noise densities^2 on each state
@@ -238,6 +233,7 @@ class FilterSettings:
     delay_bounds_s: tuple[float, float] = (-1.0, 1.0)
     hinf_gamma: float = 1.0
     smoother: bool = False
+    att_only_fej: bool = False  # AlignmentConfig.att_only_fej
 
 
 @dataclass
@@ -267,268 +263,362 @@ def _initial_cov(s: FilterSettings) -> np.ndarray:
     return np.diag(np.asarray(s.p0_sigma, float) ** 2)
 
 
+def _r_diag(lay: StateLayout, s: FilterSettings) -> np.ndarray:
+    """The measurement noise variances (velocity rows, then attitude rows)."""
+    return np.concatenate([[s.r_vel_m_s**2] * 3 if lay.uses_vel else [],
+                           [s.r_att_rad**2] * 3 if lay.uses_att else []]).astype(float)
+
+
+def _feedback_mask(lay: StateLayout) -> np.ndarray:
+    """The states fed back into the nominal after each update (and reset to zero)."""
+    mask = np.zeros(lay.n, np.bool_)
+    for sl in (lay.att, lay.vel, lay.mount, lay.lever):
+        if sl is not None:
+            mask[sl] = True
+    if lay.delay is not None:
+        mask[lay.delay] = True
+    return mask
+
+
 def run_filter(inp: AlignInputs, s: FilterSettings, *, progress: Callable | None = None,
                compiled: bool = True) -> FilterRun:
-    """The forward pass (closed loop). Raises AnalysisError when the filter diverges (non-finite).
-    The KF kinds run as one compiled loop (``compiled=True``, the default); this Python loop is the
-    reference and runs the H-infinity kinds."""
-    if compiled and s.kind in ("kf", "kf-delay", "kf-split"):
+    """The forward pass (closed loop), then the RTS smoother where asked for. Raises AnalysisError when
+    the filter diverges (non-finite). The KF kinds run as one compiled loop (``compiled=True``, the
+    default: :func:`run_filter_compiled`); this Python loop is the reference and runs the H-infinity kinds.
+
+    Each epoch: :func:`_propagate` (error dynamics, slave mechanised over the segment) -> the master
+    sampled at t_k - tau_hat -> :func:`_restarts` (master attitude resets, gaps in the slave's IMU) ->
+    :func:`_measurement` -> :meth:`_Updater.update` -> :func:`_feedback` -> :meth:`_Histories.record`."""
+    if compiled and not s.kind.is_hinf:
         run = run_filter_compiled(inp, s)
         if progress is not None:
             progress(1.0, "alignment filter")
         return run
     lay = s.layout
-    n, m_meas = lay.n, lay.n_meas
-    m_seg = len(inp.seg_dt_s)
-    ne = m_seg + 1
-    if s.kind in ("hinf", "ahinf"):
-        try:
-            from . import hinf as _hinf
-        except ImportError as exc:  # pragma: no cover
-            raise AnalysisError(f"filter {s.kind} not available ({exc})") from exc
-    gstate = None
-    if s.kind == "ahinf":
-        gstate = _hinf.initial_gamma_state(sigma0=s.p0_sigma)
-
-    # output storage
-    xs = np.zeros((ne, n))
-    pd = np.zeros((ne, n))
-    r_hist = np.zeros((ne, 3, 3))
-    pm_hist = np.zeros((ne, 3, 3))
-    tau_hist = np.zeros(ne)
-    lev_hist = np.zeros((ne, 3))
-    innov = np.full((ne, m_meas), np.nan)
-    nis = np.full(ne, np.nan)
-    q_hist = np.zeros((ne, 4))
-    cnm_hist = np.zeros((ne, 3, 3)) if lay.uses_att or inp.master.quat is not None else None
-    gam = np.full(ne, np.inf)
-    keep = s.smoother
-    if keep:
-        sm_phi = np.zeros((ne, n, n))
-        sm_xpred = np.zeros((ne, n))
-        sm_ppred = np.zeros((ne, n, n))
-        sm_xf = np.zeros((ne, n))
-        sm_pf = np.zeros((ne, n, n))
-        sm_fb = np.zeros((ne, n))
-
-    # nominal
-    q = np.array(inp.q0, float)
-    v = np.array(inp.v0, float)
-    llh = np.array(inp.llh0, float)
-    q_new = np.empty(4)
-    v_new = np.empty(3)
-    llh_new = np.empty(3)
-    r_hat = np.array(inp.r0, float)
-    r_fej = r_hat.copy()
-    lever = np.array(inp.lever0_m, float)
-    tau = float(inp.tau0_s)
-    x = np.zeros(n)
-    P = np.ascontiguousarray(_initial_cov(s))
-    qc = np.asarray(s.qc, float)
-    r_diag = np.concatenate([[s.r_vel_m_s**2] * 3 if lay.uses_vel else [],
-                             [s.r_att_rad**2] * 3 if lay.uses_att else []])
-    R = np.diag(r_diag)
-    fb_idx = np.zeros(n, bool)
-    for sl in (lay.att, lay.vel, lay.mount, lay.lever):
-        if sl is not None:
-            fb_idx[sl] = True
-    if lay.delay is not None:
-        fb_idx[lay.delay] = True
-    gyro = lay.gyro
-    eye_n = np.eye(n)
-    lo_tau, hi_tau = s.delay_bounds_s
-    master = inp.master
-    prog_every = max(ne // 50, 1)
-
-    is_kf = s.kind in ("kf", "kf-delay", "kf-split")
-    n_resets = len(master.reset_t_s)
-    n_reinit = 0
-    n_restart = 0
-    n_skipped = 0
+    ne = len(inp.seg_dt_s) + 1
+    upd = _Updater.for_settings(s)
+    hist = _Histories.empty(ne, lay, s.smoother, lay.uses_att or inp.master.quat is not None)
+    st = _LoopState.start(inp, s)
     restart = np.zeros(ne, bool)
     if len(inp.restart):
         restart[:] = np.asarray(inp.restart, bool)
-    offs = lay.offsets
-    no_phi = np.zeros((0, 0))
-    e_buf = np.zeros(m_meas)
-    h_buf = np.zeros((m_meas, n))
-    f_buf = np.zeros((n, n))
-    z3 = np.zeros(3)
-    eye3 = np.eye(3)
-    w_ie = np.zeros(3)
-    w_en = np.zeros(3)
-    mav = np.zeros((3, 3))
-    att_sl, vel_sl, mount_sl, lev_sl, d_i = lay.att, lay.vel, lay.mount, lay.lever, lay.delay
-
-    p0_var = np.asarray(s.p0_sigma, float) ** 2
-
-    def reset(sl: slice) -> None:
-        """A state block back to its prior (``_reset_block`` of the compiled loop)."""
-        P[sl, :] = 0.0
-        P[:, sl] = 0.0
-        P[sl, sl] = np.diag(p0_var[sl])
-        x[sl] = 0.0
-
-    def record(k, x, P, q, r_hat, tau, lever, c_nm, fb) -> None:
-        """The per-epoch histories (and the smoother's filtered values) after epoch k."""
-        r_hist[k] = r_hat
-        if mount_sl is not None:
-            pm_hist[k] = P[mount_sl, mount_sl]
-        else:
-            cq = _dcm(q)
-            pm_hist[k] = cq.T @ P[att_sl, att_sl] @ cq
-        tau_hist[k] = tau
-        lev_hist[k] = lever
-        q_hist[k] = q
-        if cnm_hist is not None and c_nm is not None:
-            cnm_hist[k] = c_nm
-        if keep:
-            sm_xf[k] = x
-            sm_pf[k] = P
-            sm_fb[k] = fb
-
+    master = inp.master
+    prog_every = max(ne // 50, 1)
     for k in range(ne):
-        c_ns = _dcm(q)
-        phi_k, qd_k = no_phi, no_phi
-        if k > 0:
-            j = k - 1
-            dt = float(inp.seg_dt_s[j])
-            # --- error dynamics at the segment start
-            lat, h = llh[0], llh[2]
-            r_m, r_n = earth.radii_m(lat)
-            cl, sl_, tl = np.cos(lat), np.sin(lat), np.tan(lat)
-            w_ie[0], w_ie[2] = earth.OMEGA_IE_RAD_S * cl, -earth.OMEGA_IE_RAD_S * sl_
-            w_en[0], w_en[1], w_en[2] = v[1] / (r_n + h), -v[0] / (r_m + h), -v[1] * tl / (r_n + h)
-            mav[0, 1], mav[1, 0], mav[2, 1] = 1.0 / (r_n + h), -1.0 / (r_m + h), -tl / (r_n + h)
-            f_n = c_ns @ (inp.seg_dv_b[j] / dt)
-            f_buf[:] = 0.0
-            _fill_dynamics(f_buf, offs, c_ns, f_n, w_ie, w_en, v, mav, s.flex_beta)
-            phi_k = np.empty((n, n))
-            qd_k = np.empty((n, n))
-            _discretise(f_buf, qc, dt, phi_k, qd_k)
-            if restart[k]:  # a gap: the error state is not propagated through unknown motion
-                phi_k, qd_k = np.eye(n), np.diag(qc * dt)
-            # --- mechanise the slave over the segment
-            nav_step(q, v, llh, inp.seg_dq[j], inp.seg_dv_b[j], dt, q_new, v_new, llh_new)
-            q, q_new = q_new, q
-            v, v_new = v_new, v
-            llh, llh_new = llh_new, llh
-            c_ns = _dcm(q)
-        # --- measurement at t_k (master read at t_k - tau_hat)
+        phi_k, qd_k = _propagate(st, inp, s, k, bool(restart[k])) if k > 0 else (_NO_PHI, _NO_PHI)
         tk = float(inp.t_epoch_s[k])
-        c_nm, v_m, a_m, w_m = master.sample(tk - tau)
-        if n_resets and k > 0:
-            t_prev = float(inp.t_epoch_s[k - 1]) - tau
-            if np.any((master.reset_t_s > t_prev) & (master.reset_t_s <= tk - tau)) and c_nm is not None:
-                # the master's attitude jumped (EKF reset): restart the slave attitude from it
-                q = quat_from_dcm(c_nm @ r_hat.T)
-                c_ns = _dcm(q)
-                reset(att_sl)
-                n_reinit += 1
-        if k > 0 and restart[k]:
-            # after a gap in the slave's IMU: its navigation restarts from the master's (attitude through
-            # the mounting estimate, velocity with the lever arm), those error states from their priors
-            if c_nm is not None:
-                q = quat_from_dcm(c_nm @ r_hat.T)
-                c_ns = _dcm(q)
-            if v_m is not None:
-                v = v_m + (c_nm if c_nm is not None else eye3) @ _cross3(w_m if w_m is not None else z3, lever)
-            reset(att_sl)
-            if vel_sl is not None:
-                reset(vel_sl)
-            n_restart += 1
-        if not master.usable(tk - tau):
+        ms_k = master.sample(tk - st.tau)
+        _restarts(st, inp, lay, k, bool(restart[k]), ms_k)
+        if not master.usable(tk - st.tau):
             # no usable master sample: prediction only
             if k > 0:
-                x = phi_k @ x
-                P = phi_k @ P @ phi_k.T + qd_k
-            if keep and k > 0:
-                sm_phi[k] = phi_k
-                sm_xpred[k] = x
-                sm_ppred[k] = P
-            xs[k] = x
-            pd[k] = np.diag(P)
-            record(k, x, P, q, r_hat, tau, lever, c_nm, 0.0)
-            n_skipped += 1
+                st.x = phi_k @ st.x
+                st.P = phi_k @ st.P @ phi_k.T + qd_k
+                hist.keep_prediction(k, phi_k, st.x, st.P)
+            hist.record_state(k, st.x, st.P)
+            hist.record(k, st, lay, ms_k[0], 0.0)
+            st.n_skipped += 1
             continue
-        zs = []
-        if lay.uses_vel:
-            wl = w_m if w_m is not None else z3
-            cm = c_nm if c_nm is not None else eye3
-            zs.append(v - v_m - cm @ _cross3(wl, lever))
-        if lay.uses_att:
-            zs.append(att_residual(c_ns, c_nm, r_hat))
-        z = np.concatenate(zs) if len(zs) > 1 else zs[0]
-        w_ns_n = z3
-        if d_i is not None and lay.uses_att:
-            # slave rate relative to NED in NED: the segment's mean body rate (bias removed) minus w_in
-            j = max(k - 1, 0)
-            w_b = _rotvec_q(inp.seg_dq[j]) / float(inp.seg_dt_s[j]) - x[gyro]
-            lat, h = llh[0], llh[2]
-            r_m, r_n = earth.radii_m(lat)
-            w_in = np.array([earth.OMEGA_IE_RAD_S * np.cos(lat) + v[1] / (r_n + h), -v[0] / (r_m + h),
-                             -earth.OMEGA_IE_RAD_S * np.sin(lat) - v[1] * np.tan(lat) / (r_n + h)])
-            w_ns_n = c_ns @ w_b - w_in
-        # first-estimate Jacobian: the mounting enters H through the coarse mounting r0, not the running
-        # r_hat; feeding back along an unobservable direction would otherwise rotate H and invent
-        # information (the EKF inconsistency known from SLAM heading)
-        c_ref = (c_nm @ r_fej.T) if c_nm is not None and (lay.uses_vel or ATT_ONLY_FEJ) else c_ns
-        h_buf[:] = 0.0
-        _fill_h(h_buf, offs, c_ref, c_nm if c_nm is not None else eye3, w_m if w_m is not None else z3,
-                w_ns_n, a_m if a_m is not None else z3)
-        H = h_buf
-        if is_kf:
-            nis_k = kf_step_nb(x, P, phi_k, qd_k, z, H, r_diag, e_buf)
-            e_prior = e_buf.copy()
-        else:
-            if k > 0:
-                x = phi_k @ x
-                P = phi_k @ P @ phi_k.T + qd_k
-            e_prior = z - H @ x
-            if s.kind == "hinf":
-                x, P, info = _hinf.hinf_update(x, P, z, H, R, s.hinf_gamma, weight=gstate_weight(s))
-            else:
-                x, P, gstate, info = _hinf.ahinf_update(x, P, z, H, R, gstate)
-            gam[k] = info["gamma"]
-            nis_k = info["nis"]
-        if keep and k > 0:
-            sm_phi[k] = phi_k
-            sm_xpred[k] = phi_k @ sm_xf[k - 1]
-            sm_ppred[k] = phi_k @ sm_pf[k - 1] @ phi_k.T + qd_k
-        innov[k] = e_prior
-        nis[k] = nis_k
-        if not (np.isfinite(x).all() and np.isfinite(P).all()):
+        z, H = _measurement(st, inp, lay, s.att_only_fej, k, ms_k)
+        e_prior, nis_k, gam_k = upd.update(st, phi_k, qd_k, z, H, k)
+        if hist.keep and k > 0:
+            hist.keep_prediction(k, phi_k, phi_k @ hist.sm_xf[k - 1], phi_k @ hist.sm_pf[k - 1] @ phi_k.T + qd_k)
+        hist.innov[k] = e_prior
+        hist.nis[k] = nis_k
+        hist.gamma[k] = gam_k
+        if not (np.isfinite(st.x).all() and np.isfinite(st.P).all()):
             raise AnalysisError(f"alignment filter diverged at t = {tk:.2f} s (non-finite state)")
-        xs[k] = x
-        pd[k] = np.diag(P)
-        # --- feedback into the nominal
-        fb = np.where(fb_idx, x, 0.0)
-        q = _q_left_rotvec(x[att_sl], q)
-        if vel_sl is not None:
-            v = v - x[vel_sl]
-        if mount_sl is not None:
-            r_hat = exp_so3(-x[mount_sl]) @ r_hat
-        if lev_sl is not None:
-            lever = lever + x[lev_sl]
-        if d_i is not None:
-            t_new = min(max(tau + x[d_i], lo_tau), hi_tau)
-            fb[d_i] = t_new - tau
-            tau = t_new
-        x = np.where(fb_idx, 0.0, x)
-        record(k, x, P, q, r_hat, tau, lever, c_nm, fb)
+        hist.record_state(k, st.x, st.P)
+        fb = _feedback(st, lay, s.delay_bounds_s)
+        hist.record(k, st, lay, ms_k[0], fb)
         if progress is not None and k % prog_every == 0:
             progress(k / ne, "alignment filter")
-
-    cns_hist = dcm_from_quat(q_hist)
-    if n_skipped == ne:
+    if st.n_skipped == ne:
         raise AnalysisError("the master's attitude/velocity is unusable (frozen or jumping) over the whole overlap")
-    run = FilterRun(inp.t_epoch_s.copy(), xs, pd, r_hist, pm_hist, tau_hist, lev_hist, innov, nis, cns_hist,
-                    cnm_hist if (cnm_hist is not None and master.quat is not None) else None, gam,
-                    n_skipped=n_skipped, n_reinit=n_reinit, n_restart=n_restart)
-    if keep:
-        run.p_mount_fwd = run.p_mount.copy()
-        _rts(run, lay, sm_phi, sm_xpred, sm_ppred, sm_xf, sm_pf, sm_fb)
-    return run
+    return hist.to_run(inp, lay, st)
+
+
+_NO_PHI = np.zeros((0, 0))  # "no prediction" (the first epoch)
+
+
+@dataclass
+class _LoopState:
+    """The reference loop's running values: the nominal (slave attitude, velocity, position, mounting,
+    lever arm, delay), the error state and its covariance, and the event counts."""
+
+    q: np.ndarray
+    v: np.ndarray
+    llh: np.ndarray
+    r_hat: np.ndarray
+    r_fej: np.ndarray  # the first-estimate mounting (H of velocity matching)
+    lever: np.ndarray
+    tau: float
+    x: np.ndarray
+    P: np.ndarray
+    p0_var: np.ndarray
+    qc: np.ndarray
+    fb_mask: np.ndarray
+    q_new: np.ndarray = field(default_factory=lambda: np.empty(4))  # nav_step's output buffers
+    v_new: np.ndarray = field(default_factory=lambda: np.empty(3))
+    llh_new: np.ndarray = field(default_factory=lambda: np.empty(3))
+    n_reinit: int = 0
+    n_restart: int = 0
+    n_skipped: int = 0
+
+    @classmethod
+    def start(cls, inp: AlignInputs, s: FilterSettings) -> "_LoopState":
+        r_hat = np.array(inp.r0, float)
+        return cls(q=np.array(inp.q0, float), v=np.array(inp.v0, float), llh=np.array(inp.llh0, float),
+                   r_hat=r_hat, r_fej=r_hat.copy(), lever=np.array(inp.lever0_m, float), tau=float(inp.tau0_s),
+                   x=np.zeros(s.layout.n), P=np.ascontiguousarray(_initial_cov(s)),
+                   p0_var=np.asarray(s.p0_sigma, float) ** 2, qc=np.asarray(s.qc, float),
+                   fb_mask=_feedback_mask(s.layout))
+
+    def reset(self, sl: slice) -> None:
+        """A state block back to its prior (``_reset_block`` of the compiled loop)."""
+        self.P[sl, :] = 0.0
+        self.P[:, sl] = 0.0
+        self.P[sl, sl] = np.diag(self.p0_var[sl])
+        self.x[sl] = 0.0
+
+
+def _propagate(st: _LoopState, inp: AlignInputs, s: FilterSettings, k: int, restart: bool
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """(Phi, Qd) of segment k-1 -> k from the error dynamics at the segment start; the slave mechanised
+    over the segment (st.q, st.v, st.llh). Over a gap in the slave's IMU the error state is not
+    propagated through the unknown motion (identity, white noise)."""
+    lay = s.layout
+    n = lay.n
+    j = k - 1
+    dt = float(inp.seg_dt_s[j])
+    c_ns = _dcm(st.q)
+    lat, h = st.llh[0], st.llh[2]
+    v = st.v
+    r_m, r_n = earth.radii_m(lat)
+    cl, sl_, tl = np.cos(lat), np.sin(lat), np.tan(lat)
+    w_ie, w_en, mav = np.zeros(3), np.zeros(3), np.zeros((3, 3))
+    w_ie[0], w_ie[2] = earth.OMEGA_IE_RAD_S * cl, -earth.OMEGA_IE_RAD_S * sl_
+    w_en[0], w_en[1], w_en[2] = v[1] / (r_n + h), -v[0] / (r_m + h), -v[1] * tl / (r_n + h)
+    mav[0, 1], mav[1, 0], mav[2, 1] = 1.0 / (r_n + h), -1.0 / (r_m + h), -tl / (r_n + h)
+    f_n = c_ns @ (inp.seg_dv_b[j] / dt)
+    f_buf = np.zeros((n, n))
+    _fill_dynamics(f_buf, lay.offsets, c_ns, f_n, w_ie, w_en, v, mav, s.flex_beta)
+    phi_k = np.empty((n, n))
+    qd_k = np.empty((n, n))
+    _discretise(f_buf, st.qc, dt, phi_k, qd_k)
+    if restart:  # a gap: the error state is not propagated through unknown motion
+        phi_k, qd_k = np.eye(n), np.diag(st.qc * dt)
+    nav_step(st.q, st.v, st.llh, inp.seg_dq[j], inp.seg_dv_b[j], dt, st.q_new, st.v_new, st.llh_new)
+    st.q, st.q_new = st.q_new, st.q
+    st.v, st.v_new = st.v_new, st.v
+    st.llh, st.llh_new = st.llh_new, st.llh
+    return phi_k, qd_k
+
+
+def _restarts(st: _LoopState, inp: AlignInputs, lay: StateLayout, k: int, restart: bool, ms_k: tuple) -> None:
+    """The slave's attitude restarted from the master's where the master's attitude jumped (EKF reset)
+    since the last epoch; its navigation restarted from the master's after a gap in its IMU (attitude
+    through the mounting estimate, velocity with the lever arm), those error states from their priors."""
+    if k == 0:
+        return
+    c_nm, v_m, _, w_m = ms_k
+    resets = inp.master.reset_t_s
+    if len(resets):
+        t_prev = float(inp.t_epoch_s[k - 1]) - st.tau
+        t_now = float(inp.t_epoch_s[k]) - st.tau
+        if np.any((resets > t_prev) & (resets <= t_now)) and c_nm is not None:
+            st.q = quat_from_dcm(c_nm @ st.r_hat.T)
+            st.reset(lay.att)
+            st.n_reinit += 1
+    if restart:
+        if c_nm is not None:
+            st.q = quat_from_dcm(c_nm @ st.r_hat.T)
+        if v_m is not None:
+            cm = c_nm if c_nm is not None else np.eye(3)
+            st.v = v_m + cm @ _cross3(w_m if w_m is not None else np.zeros(3), st.lever)
+        st.reset(lay.att)
+        if lay.vel is not None:
+            st.reset(lay.vel)
+        st.n_restart += 1
+
+
+def _measurement(st: _LoopState, inp: AlignInputs, lay: StateLayout, att_only_fej: bool, k: int, ms_k: tuple
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """(z, H) at epoch k: velocity (master's, lever arm carried) and/or attitude (through the mounting)."""
+    c_nm, v_m, a_m, w_m = ms_k
+    z3, eye3 = np.zeros(3), np.eye(3)
+    c_ns = _dcm(st.q)
+    zs = []
+    if lay.uses_vel:
+        wl = w_m if w_m is not None else z3
+        cm = c_nm if c_nm is not None else eye3
+        zs.append(st.v - v_m - cm @ _cross3(wl, st.lever))
+    if lay.uses_att:
+        zs.append(att_residual(c_ns, c_nm, st.r_hat))
+    z = np.concatenate(zs) if len(zs) > 1 else zs[0]
+    w_ns_n = z3
+    if lay.delay is not None and lay.uses_att:
+        # slave rate relative to NED in NED: the segment's mean body rate (bias removed) minus w_in
+        j = max(k - 1, 0)
+        w_b = _rotvec_q(inp.seg_dq[j]) / float(inp.seg_dt_s[j]) - st.x[lay.gyro]
+        lat, h = st.llh[0], st.llh[2]
+        v = st.v
+        r_m, r_n = earth.radii_m(lat)
+        w_in = np.array([earth.OMEGA_IE_RAD_S * np.cos(lat) + v[1] / (r_n + h), -v[0] / (r_m + h),
+                         -earth.OMEGA_IE_RAD_S * np.sin(lat) - v[1] * np.tan(lat) / (r_n + h)])
+        w_ns_n = c_ns @ w_b - w_in
+    # first-estimate Jacobian: the mounting enters H through the coarse mounting r0, not the running
+    # r_hat; feeding back along an unobservable direction would otherwise rotate H and invent
+    # information (the EKF inconsistency known from SLAM heading)
+    c_ref = (c_nm @ st.r_fej.T) if c_nm is not None and (lay.uses_vel or att_only_fej) else c_ns
+    h_buf = np.zeros((lay.n_meas, lay.n))
+    _fill_h(h_buf, lay.offsets, c_ref, c_nm if c_nm is not None else eye3, w_m if w_m is not None else z3,
+            w_ns_n, a_m if a_m is not None else z3)
+    return z, h_buf
+
+
+@dataclass
+class _Updater:
+    """The measurement update of one filter kind (KF: Joseph form; H-infinity: hinf.py, with the adaptive
+    kind's gamma state)."""
+
+    kind: FilterKind
+    r_diag: np.ndarray
+    R: np.ndarray
+    hinf_gamma: float
+    weight: np.ndarray | None = None
+    gstate: object = None
+    hinf: object = None
+
+    @classmethod
+    def for_settings(cls, s: FilterSettings) -> "_Updater":
+        r_diag = _r_diag(s.layout, s)
+        upd = cls(s.kind, r_diag, np.diag(r_diag), s.hinf_gamma)
+        if s.kind.is_hinf:
+            try:
+                from . import hinf as _hinf
+            except ImportError as exc:  # pragma: no cover
+                raise AnalysisError(f"filter {s.kind.value} not available ({exc})") from exc
+            upd.hinf = _hinf
+            if s.kind.is_adaptive:
+                upd.gstate = _hinf.initial_gamma_state(sigma0=s.p0_sigma)
+            else:
+                upd.weight = gstate_weight(s)
+        return upd
+
+    def update(self, st: _LoopState, phi_k: np.ndarray, qd_k: np.ndarray, z: np.ndarray, H: np.ndarray, k: int
+               ) -> tuple[np.ndarray, float, float]:
+        """Predict (k > 0) and update st.x, st.P; (prior innovation, NIS, gamma used)."""
+        if not self.kind.is_hinf:
+            e_buf = np.zeros(len(z))
+            nis_k = kf_step_nb(st.x, st.P, phi_k, qd_k, z, H, self.r_diag, e_buf)
+            return e_buf, nis_k, np.inf
+        if k > 0:
+            st.x = phi_k @ st.x
+            st.P = phi_k @ st.P @ phi_k.T + qd_k
+        e_prior = z - H @ st.x
+        if self.kind.is_adaptive:
+            st.x, st.P, self.gstate, info = self.hinf.ahinf_update(st.x, st.P, z, H, self.R, self.gstate)
+        else:
+            st.x, st.P, info = self.hinf.hinf_update(st.x, st.P, z, H, self.R, self.hinf_gamma, weight=self.weight)
+        return e_prior, info["nis"], info["gamma"]
+
+
+def _feedback(st: _LoopState, lay: StateLayout, delay_bounds_s: tuple[float, float]) -> np.ndarray:
+    """The error estimates fed back into the nominal and reset to zero; returns what was fed back (the
+    smoother's fb; the delay's as clamped to its bounds)."""
+    x = st.x
+    fb = np.where(st.fb_mask, x, 0.0)
+    st.q = _q_left_rotvec(x[lay.att], st.q)
+    if lay.vel is not None:
+        st.v = st.v - x[lay.vel]
+    if lay.mount is not None:
+        st.r_hat = exp_so3(-x[lay.mount]) @ st.r_hat
+    if lay.lever is not None:
+        st.lever = st.lever + x[lay.lever]
+    if lay.delay is not None:
+        lo_tau, hi_tau = delay_bounds_s
+        t_new = min(max(st.tau + x[lay.delay], lo_tau), hi_tau)
+        fb[lay.delay] = t_new - st.tau
+        st.tau = t_new
+    st.x = np.where(st.fb_mask, 0.0, x)
+    return fb
+
+
+@dataclass
+class _Histories:
+    """The per-epoch outputs of the reference loop (and what the smoother needs)."""
+
+    keep: bool
+    xs: np.ndarray
+    pd: np.ndarray
+    r_hist: np.ndarray
+    pm_hist: np.ndarray
+    tau_hist: np.ndarray
+    lev_hist: np.ndarray
+    innov: np.ndarray
+    nis: np.ndarray
+    q_hist: np.ndarray
+    cnm_hist: np.ndarray | None
+    gamma: np.ndarray
+    sm_phi: np.ndarray | None = None
+    sm_xpred: np.ndarray | None = None
+    sm_ppred: np.ndarray | None = None
+    sm_xf: np.ndarray | None = None
+    sm_pf: np.ndarray | None = None
+    sm_fb: np.ndarray | None = None
+
+    @classmethod
+    def empty(cls, ne: int, lay: StateLayout, keep: bool, with_cnm: bool) -> "_Histories":
+        n, m = lay.n, lay.n_meas
+        h = cls(keep, np.zeros((ne, n)), np.zeros((ne, n)), np.zeros((ne, 3, 3)), np.zeros((ne, 3, 3)),
+                np.zeros(ne), np.zeros((ne, 3)), np.full((ne, m), np.nan), np.full(ne, np.nan), np.zeros((ne, 4)),
+                np.zeros((ne, 3, 3)) if with_cnm else None, np.full(ne, np.inf))
+        if keep:
+            h.sm_phi, h.sm_xpred, h.sm_ppred = np.zeros((ne, n, n)), np.zeros((ne, n)), np.zeros((ne, n, n))
+            h.sm_xf, h.sm_pf, h.sm_fb = np.zeros((ne, n)), np.zeros((ne, n, n)), np.zeros((ne, n))
+        return h
+
+    def keep_prediction(self, k: int, phi_k: np.ndarray, x_pred: np.ndarray, p_pred: np.ndarray) -> None:
+        if self.keep:
+            self.sm_phi[k] = phi_k
+            self.sm_xpred[k] = x_pred
+            self.sm_ppred[k] = p_pred
+
+    def record_state(self, k: int, x: np.ndarray, P: np.ndarray) -> None:
+        """The posterior error state (before feedback) and its variances."""
+        self.xs[k] = x
+        self.pd[k] = np.diag(P)
+
+    def record(self, k: int, st: _LoopState, lay: StateLayout, c_nm: np.ndarray | None, fb) -> None:
+        """The nominal after epoch k's feedback (and the smoother's filtered values)."""
+        self.r_hist[k] = st.r_hat
+        if lay.mount is not None:
+            self.pm_hist[k] = st.P[lay.mount, lay.mount]
+        else:
+            cq = _dcm(st.q)
+            self.pm_hist[k] = cq.T @ st.P[lay.att, lay.att] @ cq
+        self.tau_hist[k] = st.tau
+        self.lev_hist[k] = st.lever
+        self.q_hist[k] = st.q
+        if self.cnm_hist is not None and c_nm is not None:
+            self.cnm_hist[k] = c_nm
+        if self.keep:
+            self.sm_xf[k] = st.x
+            self.sm_pf[k] = st.P
+            self.sm_fb[k] = fb
+
+    def to_run(self, inp: AlignInputs, lay: StateLayout, st: _LoopState) -> FilterRun:
+        """The FilterRun (smoothed when asked for)."""
+        cnm = self.cnm_hist if (self.cnm_hist is not None and inp.master.quat is not None) else None
+        run = FilterRun(inp.t_epoch_s.copy(), self.xs, self.pd, self.r_hist, self.pm_hist, self.tau_hist,
+                        self.lev_hist, self.innov, self.nis, dcm_from_quat(self.q_hist), cnm, self.gamma,
+                        n_skipped=st.n_skipped, n_reinit=st.n_reinit, n_restart=st.n_restart)
+        if self.keep:
+            run.p_mount_fwd = run.p_mount.copy()
+            _rts(run, lay, self.sm_phi, self.sm_xpred, self.sm_ppred, self.sm_xf, self.sm_pf, self.sm_fb)
+        return run
+
 
 
 @njit
@@ -629,109 +719,204 @@ def _reset_block(P, x, p0, blk):
 
 
 @njit
-def _kf_loop(t_ep, seg_dq, seg_dv, seg_dt, mt, mq, mv, ma, mw, mvalid, resets, restart, has_q, has_v, has_w,
-             q0, v0, llh0, r0, lever0, tau0, offs, n, m_meas, p0, qc, r_diag, beta, lo_tau, hi_tau, fb_mask,
-             keep, xs, pd, r_hist, pm_hist, tau_hist, lev_hist, innov, nis, q_hist, cnm_hist,
-             sm_phi, sm_xpred, sm_ppred, sm_xf, sm_pf, sm_fb, counters):
-    ne = len(t_ep)
-    a0, v_off, g0, mo, lev, d_i = offs[0], offs[1], offs[2], offs[4], offs[7], offs[8]
-    uses_vel, uses_att = offs[9] == 1, offs[10] == 1
-    q = q0.copy()
-    v = v0.copy()
-    llh = llh0.copy()
-    q_new = np.empty(4)
-    v_new = np.empty(3)
-    llh_new = np.empty(3)
-    r_hat = r0.copy()
-    r_fej = r0.copy()
-    lever = lever0.copy()
-    tau = tau0
-    x = np.zeros(n)
-    P = p0.copy()
-    f_buf = np.zeros((n, n))
-    h_buf = np.zeros((m_meas, n))
-    e_buf = np.zeros(m_meas)
-    z = np.zeros(m_meas)
-    phi_k = np.eye(n)
-    qd_k = np.zeros((n, n))
-    no_phi = np.zeros((0, 0))
+def _nb_propagate(q, v, llh, dq, dv_b, dt, restart_k, offs, qc, beta, f_buf, phi_k, qd_k, q_new, v_new, llh_new):
+    """:func:`_propagate` compiled: Phi, Qd of one segment (in place) from the error dynamics at its start,
+    then the slave mechanised over it (q, v, llh in place)."""
+    n = phi_k.shape[0]
+    c_ns = _dcm(q)
+    lat, h = llh[0], llh[2]
+    r_m, r_n = _radii(lat)
+    cl, sl, tl = np.cos(lat), np.sin(lat), np.tan(lat)
     w_ie = np.zeros(3)
     w_en = np.zeros(3)
     mav = np.zeros((3, 3))
-    eye3 = np.eye(3)
-    c_nm = eye3.copy()
-    v_m = np.zeros(3)
-    a_m = np.zeros(3)
-    w_m = np.zeros(3)
+    w_ie[0], w_ie[2] = _WIE * cl, -_WIE * sl
+    w_en[0], w_en[1], w_en[2] = v[1] / (r_n + h), -v[0] / (r_m + h), -v[1] * tl / (r_n + h)
+    mav[0, 1], mav[1, 0], mav[2, 1] = 1.0 / (r_n + h), -1.0 / (r_m + h), -tl / (r_n + h)
+    f_n = c_ns @ (dv_b / dt)
+    f_buf[:, :] = 0.0
+    _fill_dynamics(f_buf, offs, c_ns, f_n, w_ie, w_en, v, mav, beta)
+    _discretise(f_buf, qc, dt, phi_k, qd_k)
+    if restart_k:  # a gap: the error state is not propagated through unknown motion
+        for ii in range(n):
+            for jj in range(n):
+                phi_k[ii, jj] = 1.0 if ii == jj else 0.0
+                qd_k[ii, jj] = qc[ii] * dt if ii == jj else 0.0
+    nav_step(q, v, llh, dq, dv_b, dt, q_new, v_new, llh_new)
+    q[:] = q_new
+    v[:] = v_new
+    llh[:] = llh_new
+
+
+@njit
+def _nb_master_at(mt, mq, mv, ma, mw, has_q, has_v, has_w, t, c_nm, v_m, a_m, w_m):
+    """:meth:`MasterSeries.sample` compiled: the master at time t into c_nm, v_m, a_m, w_m (those it has);
+    returns the index of the master sample at or before t."""
+    km = len(mt)
+    i = np.searchsorted(mt, t, side="right") - 1
+    i = min(max(i, 0), km - 2)
+    al = (t - mt[i]) / (mt[i + 1] - mt[i])
+    al = min(max(al, -1.0), 2.0)
+    if has_q:
+        c_nm[:, :] = _dcm((1.0 - al) * mq[i] + al * mq[i + 1])
+    if has_v:
+        v_m[:] = (1.0 - al) * mv[i] + al * mv[i + 1]
+        a_m[:] = (1.0 - al) * ma[i] + al * ma[i + 1]
+    if has_w:
+        w_m[:] = (1.0 - al) * mw[i] + al * mw[i + 1]
+    return i
+
+
+@njit
+def _nb_restarts(t_prev, t_now, resets, restart_k, has_q, has_v, c_nm, v_m, w_m, r_hat, lever, q, v, P, x, p0,
+                 a0, v_off):
+    """:func:`_restarts` compiled (q, v, P, x in place); returns (attitude restarts at master resets, 1 when
+    the navigation restarted after a gap)."""
+    n_reinit = 0
+    if len(resets) > 0 and has_q:
+        hit = False
+        for rr in range(len(resets)):
+            if resets[rr] > t_prev and resets[rr] <= t_now:
+                hit = True
+        if hit:
+            q[:] = _quat_from_dcm_nb(c_nm @ r_hat.T)
+            _reset_block(P, x, p0, a0)
+            n_reinit += 1
+    if not restart_k:
+        return n_reinit, 0
+    # after a gap in the slave's IMU: its navigation restarts from the master's (attitude through the
+    # mounting estimate, velocity with the lever arm), those error states from their priors
+    if has_q:
+        q[:] = _quat_from_dcm_nb(c_nm @ r_hat.T)
+    if has_v:
+        lt = _cross3(w_m, lever)
+        v[:] = v_m + c_nm @ lt
+    _reset_block(P, x, p0, a0)
+    if v_off >= 0:
+        _reset_block(P, x, p0, v_off)
+    return n_reinit, 1
+
+
+@njit
+def _nb_measurement(k, q, v, llh, x, r_hat, r_fej, lever, c_nm, v_m, a_m, w_m, seg_dq, seg_dt, offs, has_q,
+                    att_only_fej, z, h_buf):
+    """:func:`_measurement` compiled: z and H of epoch k (in place)."""
+    g0, d_i = offs[2], offs[8]
+    uses_vel, uses_att = offs[9] == 1, offs[10] == 1
+    c_ns = _dcm(q)
+    row = 0
+    if uses_vel:
+        lt = _cross3(w_m, lever)
+        zv = v - v_m - c_nm @ lt
+        z[0], z[1], z[2] = zv[0], zv[1], zv[2]
+        row = 3
+    if uses_att:
+        za = rotvec_small(c_nm @ r_hat.T @ c_ns.T)
+        z[row], z[row + 1], z[row + 2] = za[0], za[1], za[2]
     w_ns = np.zeros(3)
+    if d_i >= 0 and uses_att:
+        jj = max(k - 1, 0)
+        w_b = _rotvec_nb(seg_dq[jj]) / seg_dt[jj] - x[g0:g0 + 3]
+        lat, h = llh[0], llh[2]
+        r_m, r_n = _radii(lat)
+        w_in = np.array([_WIE * np.cos(lat) + v[1] / (r_n + h), -v[0] / (r_m + h),
+                         -_WIE * np.sin(lat) - v[1] * np.tan(lat) / (r_n + h)])
+        w_ns = c_ns @ w_b - w_in
+    c_ref = c_nm @ r_fej.T if has_q and (uses_vel or att_only_fej) else c_ns
+    h_buf[:, :] = 0.0
+    _fill_h(h_buf, offs, c_ref, c_nm, w_m, w_ns, a_m)
+
+
+@njit
+def _nb_feedback(x, q, v, r_hat, lever, tau, offs, fb_mask, lo_tau, hi_tau, keep, sm_fb_k):
+    """:func:`_feedback` compiled (q, v, r_hat, lever, x and the smoother's fb row in place); returns tau."""
+    a0, v_off, mo, lev, d_i = offs[0], offs[1], offs[4], offs[7], offs[8]
+    n = x.shape[0]
+    q[:] = _q_left_rotvec(x[a0:a0 + 3].copy(), q)
+    if v_off >= 0:
+        v[:] = v - x[v_off:v_off + 3]
+    if mo >= 0:
+        r_hat[:, :] = exp_so3(-x[mo:mo + 3].copy()) @ r_hat
+    if lev >= 0:
+        lever[:] = lever + x[lev:lev + 3]
+    if keep:
+        for ii in range(n):
+            sm_fb_k[ii] = x[ii] if fb_mask[ii] else 0.0
+    if d_i >= 0:
+        t_new = min(max(tau + x[d_i], lo_tau), hi_tau)
+        if keep:
+            sm_fb_k[d_i] = t_new - tau
+        tau = t_new
+    for ii in range(n):
+        if fb_mask[ii]:
+            x[ii] = 0.0
+    return tau
+
+
+@njit
+def _nb_record(k, x, P, q, r_hat, tau, lever, c_nm, offs, keep, r_hist, pm_hist, tau_hist, lev_hist, q_hist,
+               cnm_hist, sm_xf, sm_pf):
+    """:meth:`_Histories.record` compiled."""
+    a0, mo = offs[0], offs[4]
+    r_hist[k] = r_hat
+    if mo >= 0:
+        pm_hist[k] = P[mo:mo + 3, mo:mo + 3]
+    else:
+        cq = _dcm(q)
+        pm_hist[k] = cq.T @ np.ascontiguousarray(P[a0:a0 + 3, a0:a0 + 3]) @ cq
+    tau_hist[k] = tau
+    lev_hist[k] = lever
+    q_hist[k] = q
+    cnm_hist[k] = c_nm
+    if keep:
+        sm_xf[k] = x
+        sm_pf[k] = P
+
+
+@njit
+def _nb_finite(x, P):
+    for ii in range(x.shape[0]):
+        if not np.isfinite(x[ii]) or not np.isfinite(P[ii, ii]):
+            return False
+    return True
+
+
+@njit
+def _kf_loop(t_ep, seg_dq, seg_dv, seg_dt, mt, mq, mv, ma, mw, mvalid, resets, restart, has_q, has_v, has_w,
+             q0, v0, llh0, r0, lever0, tau0, offs, n, m_meas, p0, qc, r_diag, beta, lo_tau, hi_tau, fb_mask,
+             att_only_fej, keep, xs, pd, r_hist, pm_hist, tau_hist, lev_hist, innov, nis, q_hist, cnm_hist,
+             sm_phi, sm_xpred, sm_ppred, sm_xf, sm_pf, sm_fb, counters):
+    """The reference loop of :func:`run_filter` compiled, for the KF kinds, step for step (the ``_nb_*``
+    functions). Histories filled in place; counters = [skipped, attitude restarts at resets, the epoch
+    of a divergence or -1, restarts after gaps]."""
+    ne = len(t_ep)
+    a0, v_off = offs[0], offs[1]
+    q, v, llh = q0.copy(), v0.copy(), llh0.copy()
+    q_new, v_new, llh_new = np.empty(4), np.empty(3), np.empty(3)
+    r_hat, r_fej, lever, tau = r0.copy(), r0.copy(), lever0.copy(), tau0
+    x = np.zeros(n)
+    P = p0.copy()
+    f_buf, h_buf = np.zeros((n, n)), np.zeros((m_meas, n))
+    e_buf, z = np.zeros(m_meas), np.zeros(m_meas)
+    phi_k, qd_k, no_phi = np.eye(n), np.zeros((n, n)), np.zeros((0, 0))
+    c_nm = np.eye(3)
+    v_m, a_m, w_m = np.zeros(3), np.zeros(3), np.zeros(3)
     n_skip = 0
     n_reinit = 0
-    km = len(mt)
     for k in range(ne):
-        c_ns = _dcm(q)
         if k > 0:
             j = k - 1
-            dt = seg_dt[j]
-            lat, h = llh[0], llh[2]
-            r_m, r_n = _radii(lat)
-            cl, sl, tl = np.cos(lat), np.sin(lat), np.tan(lat)
-            w_ie[0], w_ie[2] = _WIE * cl, -_WIE * sl
-            w_en[0], w_en[1], w_en[2] = v[1] / (r_n + h), -v[0] / (r_m + h), -v[1] * tl / (r_n + h)
-            mav[0, 1], mav[1, 0], mav[2, 1] = 1.0 / (r_n + h), -1.0 / (r_m + h), -tl / (r_n + h)
-            f_n = c_ns @ (seg_dv[j] / dt)
-            f_buf[:, :] = 0.0
-            _fill_dynamics(f_buf, offs, c_ns, f_n, w_ie, w_en, v, mav, beta)
-            _discretise(f_buf, qc, dt, phi_k, qd_k)
-            if restart[k]:  # a gap: the error state is not propagated through unknown motion
-                for ii in range(n):
-                    for jj in range(n):
-                        phi_k[ii, jj] = 1.0 if ii == jj else 0.0
-                        qd_k[ii, jj] = qc[ii] * dt if ii == jj else 0.0
-            nav_step(q, v, llh, seg_dq[j], seg_dv[j], dt, q_new, v_new, llh_new)
-            q[:] = q_new
-            v[:] = v_new
-            llh[:] = llh_new
-            c_ns = _dcm(q)
-        tk = t_ep[k]
-        tm_ = tk - tau
-        i = np.searchsorted(mt, tm_, side="right") - 1
-        i = min(max(i, 0), km - 2)
-        al = (tm_ - mt[i]) / (mt[i + 1] - mt[i])
-        al = min(max(al, -1.0), 2.0)
-        if has_q:
-            c_nm = _dcm((1.0 - al) * mq[i] + al * mq[i + 1])
-        if has_v:
-            v_m = (1.0 - al) * mv[i] + al * mv[i + 1]
-            a_m = (1.0 - al) * ma[i] + al * ma[i + 1]
-        if has_w:
-            w_m = (1.0 - al) * mw[i] + al * mw[i + 1]
-        # master attitude reset since the last epoch: restart the slave attitude from it
-        if k > 0 and len(resets) > 0 and has_q:
-            t_prev = t_ep[k - 1] - tau
-            hit = False
-            for rr in range(len(resets)):
-                if resets[rr] > t_prev and resets[rr] <= tm_:
-                    hit = True
-            if hit:
-                q = _quat_from_dcm_nb(c_nm @ r_hat.T)
-                c_ns = _dcm(q)
-                _reset_block(P, x, p0, a0)
-                n_reinit += 1
-        if k > 0 and restart[k]:
-            # after a gap in the slave's IMU: its navigation restarts from the master's (attitude through
-            # the mounting estimate, velocity with the lever arm), those error states from their priors
-            if has_q:
-                q = _quat_from_dcm_nb(c_nm @ r_hat.T)
-                c_ns = _dcm(q)
-            if has_v:
-                lt = _cross3(w_m, lever)
-                v = v_m + c_nm @ lt
-            _reset_block(P, x, p0, a0)
-            if v_off >= 0:
-                _reset_block(P, x, p0, v_off)
-            counters[3] += 1
+            _nb_propagate(q, v, llh, seg_dq[j], seg_dv[j], seg_dt[j], restart[k], offs, qc, beta, f_buf, phi_k,
+                          qd_k, q_new, v_new, llh_new)
+        tm_ = t_ep[k] - tau
+        i = _nb_master_at(mt, mq, mv, ma, mw, has_q, has_v, has_w, tm_, c_nm, v_m, a_m, w_m)
+        if k > 0:
+            n_r, n_g = _nb_restarts(t_ep[k - 1] - tau, tm_, resets, restart[k], has_q, has_v, c_nm, v_m, w_m,
+                                    r_hat, lever, q, v, P, x, p0, a0, v_off)
+            n_reinit += n_r
+            counters[3] += n_g
         usable = mvalid[i] and mvalid[i + 1]
-        if not usable:
+        if not usable:  # prediction only
             if k > 0:
                 x = phi_k @ x
                 P = phi_k @ P @ phi_k.T + qd_k
@@ -744,75 +929,25 @@ def _kf_loop(t_ep, seg_dq, seg_dv, seg_dt, mt, mq, mv, ma, mw, mvalid, resets, r
             nis[k] = np.nan
             n_skip += 1
         else:
-            row = 0
-            if uses_vel:
-                lt = _cross3(w_m, lever)
-                zv = v - v_m - c_nm @ lt
-                z[0], z[1], z[2] = zv[0], zv[1], zv[2]
-                row = 3
-            if uses_att:
-                za = rotvec_small(c_nm @ r_hat.T @ c_ns.T)
-                z[row], z[row + 1], z[row + 2] = za[0], za[1], za[2]
-            if d_i >= 0 and uses_att:
-                jj = max(k - 1, 0)
-                w_b = _rotvec_nb(seg_dq[jj]) / seg_dt[jj] - x[g0:g0 + 3]
-                lat, h = llh[0], llh[2]
-                r_m, r_n = _radii(lat)
-                w_in = np.array([_WIE * np.cos(lat) + v[1] / (r_n + h), -v[0] / (r_m + h),
-                                 -_WIE * np.sin(lat) - v[1] * np.tan(lat) / (r_n + h)])
-                w_ns = c_ns @ w_b - w_in
-            c_ref = c_nm @ r_fej.T if has_q and (uses_vel or ATT_ONLY_FEJ) else c_ns
-            h_buf[:, :] = 0.0
-            _fill_h(h_buf, offs, c_ref, c_nm, w_m, w_ns, a_m)
+            _nb_measurement(k, q, v, llh, x, r_hat, r_fej, lever, c_nm, v_m, a_m, w_m, seg_dq, seg_dt, offs,
+                            has_q, att_only_fej, z, h_buf)
             nis[k] = kf_step_nb(x, P, phi_k if k > 0 else no_phi, qd_k, z, h_buf, r_diag, e_buf)
             innov[k] = e_buf
             if keep and k > 0:
                 sm_phi[k] = phi_k
                 sm_xpred[k] = phi_k @ sm_xf[k - 1]
                 sm_ppred[k] = phi_k @ sm_pf[k - 1] @ phi_k.T + qd_k
-        ok = True
-        for ii in range(n):
-            if not np.isfinite(x[ii]) or not np.isfinite(P[ii, ii]):
-                ok = False
-        if not ok:
+        if not _nb_finite(x, P):
             counters[2] = k
             return
         xs[k] = x
         for ii in range(n):
             pd[k, ii] = P[ii, ii]
-        if usable:
-            # feedback into the nominal
-            q = _q_left_rotvec(x[a0:a0 + 3].copy(), q)
-            if v_off >= 0:
-                v = v - x[v_off:v_off + 3]
-            if mo >= 0:
-                r_hat = exp_so3(-x[mo:mo + 3].copy()) @ r_hat
-            if lev >= 0:
-                lever = lever + x[lev:lev + 3]
-            if keep:
-                for ii in range(n):
-                    sm_fb[k, ii] = x[ii] if fb_mask[ii] else 0.0
-            if d_i >= 0:
-                t_new = min(max(tau + x[d_i], lo_tau), hi_tau)
-                if keep:
-                    sm_fb[k, d_i] = t_new - tau
-                tau = t_new
-            for ii in range(n):
-                if fb_mask[ii]:
-                    x[ii] = 0.0
-        r_hist[k] = r_hat
-        if mo >= 0:
-            pm_hist[k] = P[mo:mo + 3, mo:mo + 3]
-        else:
-            cq = _dcm(q)
-            pm_hist[k] = cq.T @ np.ascontiguousarray(P[a0:a0 + 3, a0:a0 + 3]) @ cq
-        tau_hist[k] = tau
-        lev_hist[k] = lever
-        q_hist[k] = q
-        cnm_hist[k] = c_nm
-        if keep:
-            sm_xf[k] = x
-            sm_pf[k] = P
+        if usable:  # feedback into the nominal
+            tau = _nb_feedback(x, q, v, r_hat, lever, tau, offs, fb_mask, lo_tau, hi_tau, keep,
+                               sm_fb[k] if keep else e_buf)
+        _nb_record(k, x, P, q, r_hat, tau, lever, c_nm, offs, keep, r_hist, pm_hist, tau_hist, lev_hist, q_hist,
+                   cnm_hist, sm_xf, sm_pf)
     counters[0] = n_skip
     counters[1] = n_reinit
     counters[2] = -1
@@ -843,14 +978,8 @@ def run_filter_compiled(inp: AlignInputs, s: FilterSettings) -> FilterRun:
     kk = ne if keep else 0
     sm = (np.zeros((kk, n, n)), np.zeros((kk, n)), np.zeros((kk, n, n)), np.zeros((kk, n)),
           np.zeros((kk, n, n)), np.zeros((kk, n)))
-    fb_mask = np.zeros(n, np.bool_)
-    for sl in (lay.att, lay.vel, lay.mount, lay.lever):
-        if sl is not None:
-            fb_mask[sl] = True
-    if lay.delay is not None:
-        fb_mask[lay.delay] = True
-    r_diag = np.concatenate([[s.r_vel_m_s**2] * 3 if lay.uses_vel else [],
-                             [s.r_att_rad**2] * 3 if lay.uses_att else []]).astype(float)
+    fb_mask = _feedback_mask(lay)
+    r_diag = _r_diag(lay, s)
     counters = np.zeros(4, np.int64)
     restart = np.zeros(ne, np.bool_)
     if len(inp.restart):
@@ -869,7 +998,7 @@ def run_filter_compiled(inp: AlignInputs, s: FilterSettings) -> FilterRun:
              np.asarray(inp.llh0, float).copy(), np.ascontiguousarray(inp.r0, float),
              np.asarray(inp.lever0_m, float).copy(), float(inp.tau0_s), lay.offsets, n, m_meas,
              np.ascontiguousarray(_initial_cov(s)), np.asarray(s.qc, float), r_diag, float(s.flex_beta),
-             float(s.delay_bounds_s[0]), float(s.delay_bounds_s[1]), fb_mask, keep,
+             float(s.delay_bounds_s[0]), float(s.delay_bounds_s[1]), fb_mask, bool(s.att_only_fej), keep,
              xs, pd, r_hist, pm_hist, tau_hist, lev_hist, innov, nis, q_hist, cnm_hist, *sm, counters)
     if counters[2] >= 0:
         raise AnalysisError(f"alignment filter diverged at t = {inp.t_epoch_s[counters[2]]:.2f} s "

@@ -1,40 +1,27 @@
 """``run_alignment``: transfer alignment of the slave to the master (both on the master's clock).
 
-Steps: check the inputs -> master quality (frozen output, attitude jumps = EKF resets) -> overlap ->
-coarse mounting (Wahba/Kabsch on the angular rates of both units,
-SVD) -> update epochs on the slave's IMU stamps (``update_hz``, default 20 Hz) -> body increments of
-the slave IMU folded per segment (vectorised + numba) -> slave initialised from the master at the first
-epoch -> closed-loop filter (kf.py) -> optional RTS smoother -> AlignmentResult with totals (coarse
-mounting combined with the filter's residual), sigmas, convergence time, residual RMS, observability
-flags and decimated histories.
+Steps (each a function below, in this order): check the inputs -> slave IMU and master series (master
+quality: frozen output, attitude jumps = EKF resets) -> delay window (the kinds with a delay state) ->
+overlap -> coarse mounting (Wahba/Kabsch on the angular rates of both units) -> update epochs on the
+slave's IMU stamps (``update_hz``, default 20 Hz) with the slave IMU's body increments folded per segment
+-> slave initialised from the master at the first epoch -> filter passes (kf.py; flexure "auto" and the
+noise recalibration may run it again) -> AlignmentResult with totals (coarse mounting combined with the
+filter's residual), sigmas, convergence time, residual RMS, observability flags and decimated histories.
 
-Options (keyword, all optional): update_hz, lever_arm_m (3, master frame, master -> slave: known, or the
-start of the estimate), estimate_lever_arm (velocity matching: the lever arm as 3 more states; the
-result then reports it), lever_arm_sigma_m (its prior sigma, default LEVER_ARM_SIGMA_M), flexure (seed
-000's second-order Markov flexure as 6 more states; "auto": added when the residuals call for them, see
-FLEX_AUTO_NIS), flex_beta (1/s), flex_sigma_deg (one or per axis),
-mounting_sigma_deg, gyro_bias_sigma_dph,
-accel_bias_sigma_mg, gyro_arw_dpsh, accel_vrw_ug_psh (noise densities; estimated from the data when
-absent), r_vel_m_s, r_att_arcsec (measurement noise; estimated when absent), delay_s (initial delay;
-for kf-split the constant part shifted before the filter; for kf-delay, when absent, the delay state
-starts from a coarse fit of the angular-rate magnitudes; delay_s=0 gives S004's augmentation alone),
-delay_sigma_s, delay_max_s, delay_state (carry the delay state with any filter, e.g. hinf/ahinf:
-S002's H-infinity filter with delay compensation), hinf_gamma,
-lat_deg (when neither log has a position), mounting_guess_rpy_deg (skip the coarse step),
-max_history_rows, recalibrate_noise (default True: when the first pass's mean NIS exceeds 3 x its
-degrees of freedom, rerun with the measurement noise taken from the residual RMS).
+What the caller knows goes in :class:`~logtools.alignment.options.AlignmentOptions`, the tuning in
+:class:`~logtools.alignment.options.AlignmentConfig` (both documented field by field there).
 """
 from __future__ import annotations
 
 import weakref
-from dataclasses import fields, replace
+from dataclasses import dataclass, fields, replace
 from typing import Callable
 
 import numpy as np
 
 from logtools.conventions import (ARCMIN, ARCSEC, DEG, DEG_PER_H, G0_M_S2, MG, UG, dcm_from_euler, dcm_from_quat,
-                                  euler_from_dcm, quat_from_dcm, quat_make_continuous, quat_mul,
-                                  rotvec_from_quat, quat_conj)
+                                  euler_from_dcm, median_step_s, quat_from_dcm, quat_make_continuous, quat_mul,
+                                  rotvec_from_quat, quat_conj, wahba)
 from logtools import earth
 from logtools.errors import AnalysisError
 from logtools.inslog import InsLog
@@ -42,44 +29,17 @@ from logtools.navcheck import output_validity
 from logtools.results import AlignmentResult
 from logtools.strapdown import body_increments, compose_segments
 
-from .kf import FILTERS, AlignInputs, FilterRun, FilterSettings, MasterSeries, run_filter
-from .model import MATCHES, StateLayout, exp_so3, make_layout
-
-CONVERGED_ARCMIN = (1.0, 1.0, 2.0)  # roll, pitch, yaw thresholds on the mounting sigma
-IMU_GAP_S = 0.25  # a step of the slave's IMU stamps beyond this (and beyond IMU_GAP_PERIODS of its median step)
-IMU_GAP_PERIODS = 10.0  # is a gap: the slave's navigation restarts from the master after it (not bridged)
-#: flexure="auto": without flexure states first; when the mean NIS exceeds FLEX_AUTO_NIS x dof, again with
-#: them (FLEX_AUTO_MODEL unless flex_sigma_deg / flex_beta are given: seed 000's flexure), kept when the
-#: mean NIS falls below FLEX_AUTO_GAIN x the first pass's
-FLEX_AUTO_NIS = 10.0
-FLEX_AUTO_GAIN = 0.5
-FLEX_AUTO_MODEL = {"flex_sigma_deg": 0.05, "flex_beta": 2.0}
-IMPLAUSIBLE_R_VEL_M_S = 1.0  # re-estimated measurement noise beyond these: a note that the filter did
-IMPLAUSIBLE_R_ATT_DEG = 2.0  # ... not follow the data (no navigation output is that noisy)
-COARSE_JOINT = True  # where the rates turn about one axis, rates and specific forces in one Wahba problem
-COARSE_JOINT_RATIO = 0.05  # rates + specific forces: a start when the 2nd singular value is this much of the 1st
-COARSE_MIN_FORCE_M_S2 = 0.02  # ... and the specific forces move (rms, 2nd principal axis) at least this much
-LEVER_RATE_MAX_HALF_SPAN_S = 0.05  # a nav-only master's rate (lever arm) from its attitude differenced over
-LEVER_RATE_ATTENUATION = 1e-4  # ... +- this at most, shorter where the motion would be attenuated beyond this
-LEVER_ARM_SIGMA_M = 1.0  # prior sigma of an estimated lever arm (per axis, m)
-LEVER_ARM_IMPLAUSIBLE_SIGMAS = 10.0  # an estimate beyond this many prior sigmas gets a note
-OBSERVABLE_SHRINK = 0.5  # a state is observable when its sigma fell below this fraction of its prior
-_KNOWN_OPTIONS = {
-    "update_hz", "lever_arm_m", "estimate_lever_arm", "lever_arm_sigma_m", "flexure", "flex_beta", "flex_sigma_deg",
-    "mounting_sigma_deg", "gyro_bias_sigma_dph", "accel_bias_sigma_mg", "gyro_arw_dpsh", "accel_vrw_ug_psh",
-    "r_vel_m_s", "r_att_arcsec", "delay_s", "delay_sigma_s", "delay_max_s", "hinf_gamma", "lat_deg",
-    "mounting_guess_rpy_deg", "max_history_rows", "recalibrate_noise", "delay_state",
-}
+from .kf import AlignInputs, FilterRun, FilterSettings, MasterSeries, run_filter
+from .model import StateLayout, exp_so3, make_layout
+from .options import CONFIG, MATCHES, AlignmentConfig, AlignmentOptions, FilterKind
 
 
-def run_alignment(master: InsLog, slave: InsLog, *, filter: str = "kf", match: str = "vel+att",
-                  smoother: bool = False, progress: Callable | None = None, **options) -> AlignmentResult:
+def run_alignment(master: InsLog, slave: InsLog, *, filter: str | FilterKind = "kf", match: str = "vel+att",
+                  smoother: bool = False, progress: Callable | None = None,
+                  options: AlignmentOptions | None = None, config: AlignmentConfig = CONFIG) -> AlignmentResult:
     """Transfer alignment; ``slave`` already on the master's clock (DESIGN.md). See the module doc."""
-    unknown = set(options) - _KNOWN_OPTIONS
-    if unknown:
-        raise AnalysisError(f"unknown alignment option(s): {', '.join(sorted(unknown))}")
-    if filter not in FILTERS:
-        raise AnalysisError(f"filter must be one of {', '.join(FILTERS)}, not {filter!r}")
+    opts = AlignmentOptions() if options is None else options
+    kind = FilterKind.parse(filter)
     if match not in MATCHES:
         raise AnalysisError(f"match must be one of {', '.join(MATCHES)}, not {match!r}")
     src = slave.meta.source_path or "slave"
@@ -87,50 +47,123 @@ def run_alignment(master: InsLog, slave: InsLog, *, filter: str = "kf", match: s
     # is already rebased, as compensate() leaves it)
     if slave.meta.t0_ns != master.meta.t0_ns:
         slave = slave.rebased(master.meta.t0_ns)
+    _check_inputs(master, slave, kind, match, src)
+    notes: list[str] = []
+    prog = progress or (lambda f, s="": None)
+    prog(0.0, "alignment: preparing")
+
+    t_imu, gyro, accel = _slave_imu(slave, src)
+    ms = _master_series_cached(master, config)
+    win = _delay_window(kind, opts, config, master, ms, t_imu, gyro, notes)
+    t_imu, gyro, accel, span_s = _overlap(master, ms, t_imu, gyro, accel, win, src)
+    if opts.mounting_guess_rpy_deg is not None:
+        r0, coarse_ok = dcm_from_euler(np.radians(np.asarray(opts.mounting_guess_rpy_deg, float))), True
+    else:
+        r0, coarse_ok, why = _coarse_mounting(master, slave, ms, t_imu, gyro, win.tau0_s, accel, config)
+        if why:
+            notes.append(why)
+    ep = _epochs(t_imu, gyro, accel, win.dt_upd_s, span_s, config, src, notes)
+    q0, v0, lever0 = _initial_state(master, slave, ms, ep.t_s[0], win.tau0_s, r0, opts, src, notes)
+    llh0 = _initial_position(master, slave, ep.t_s[0], opts, notes)
+    inp = AlignInputs(ep.t_s, ep.seg_dq, ep.seg_dv_b, ep.seg_dt_s, ms, q0, v0, llh0, r0, lever0, win.tau0_s,
+                      ep.restart)
+    prob = _Problem(kind, match, smoother, opts, config, master, t_imu, gyro, accel, coarse_ok, win, span_s)
+    run, lay, settings, sig0 = _filter_passes(prob, inp, src, progress, prog, notes)
+    res = _result(run, lay, settings, sig0, kind, match, opts, config, notes)
+    prog(1.0, "alignment done")
+    return res
+
+
+# ---- the steps of run_alignment ---------------------------------------------------------------------
+@dataclass(frozen=True)
+class DelayWindow:
+    """The update rate and the delay the slave's stamps may carry: slave stamps t read the master at
+    t - tau, tau within [lo_s, hi_s] (a single value without a delay state)."""
+
+    update_hz: float
+    dt_upd_s: float
+    tau0_s: float  # the delay the filter starts from (kf-split: the constant part, shifted out)
+    lo_s: float
+    hi_s: float
+    delay_state: bool  # the filter carries a delay state
+
+
+@dataclass(frozen=True)
+class Epochs:
+    """The update epochs on the slave's IMU stamps and the slave's increments between them."""
+
+    t_s: np.ndarray  # (M+1,)
+    seg_dq: np.ndarray  # (M, 4)
+    seg_dv_b: np.ndarray  # (M, 3)
+    seg_dt_s: np.ndarray  # (M,)
+    restart: np.ndarray  # (M+1,) True after a gap in the slave's IMU
+
+
+@dataclass(frozen=True)
+class _Problem:
+    """What the filter passes are set up from (everything but the prepared time series)."""
+
+    kind: FilterKind
+    match: str
+    smoother: bool
+    opts: AlignmentOptions
+    config: AlignmentConfig
+    master: InsLog
+    t_imu: np.ndarray
+    gyro: np.ndarray
+    accel: np.ndarray
+    coarse_ok: bool
+    win: DelayWindow
+    overlap_s: float
+
+
+def _check_inputs(master: InsLog, slave: InsLog, kind: FilterKind, match: str, src: str) -> None:
     if not (slave.has_gyro and slave.has_accel):
         raise AnalysisError(f"{src}: alignment needs the slave's IMU (angular rate and specific force)")
     if "att" in match and not master.has_quat:
         raise AnalysisError(f"{master.meta.source_path or 'master'}: match {match} needs the master's attitude")
     if "vel" in match and not master.has_vel:
         raise AnalysisError(f"{master.meta.source_path or 'master'}: match {match} needs the master's velocity")
-    if filter in ("hinf", "ahinf"):
+    if kind.is_hinf:
         try:
             from . import hinf  # noqa: F401
         except ImportError as exc:
-            raise AnalysisError(f"filter {filter} not available ({exc})") from exc
-    notes: list[str] = []
-    prog = progress or (lambda f, s="": None)
-    prog(0.0, "alignment: preparing")
+            raise AnalysisError(f"filter {kind.value} not available ({exc})") from exc
 
-    # ---- slave IMU, master series
-    t_imu, gyro, accel = _slave_imu(slave, src)
-    ms = _master_series_cached(master)
-    # default update rate: 20 Hz, but not faster than the master's navigation output (interpolated
-    # master samples between two updates would count the same information twice)
-    nav_hz = 1.0 / float(np.median(np.diff(ms.t_s)))
-    update_hz = float(options.get("update_hz", min(20.0, nav_hz)))
-    delay_mode = filter in ("kf-delay", "kf-split") or bool(options.get("delay_state", False))
-    tau0 = float(options.get("delay_s", 0.0))
-    if delay_mode and filter != "kf-split" and "delay_s" not in options:
+
+def _delay_window(kind: FilterKind, opts: AlignmentOptions, config: AlignmentConfig, master: InsLog,
+                  ms: MasterSeries, t_imu: np.ndarray, gyro: np.ndarray, notes: list[str]) -> DelayWindow:
+    # default update rate: config.default_update_hz, but not faster than the master's navigation output
+    # (interpolated master samples between two updates would count the same information twice)
+    nav_hz = 1.0 / median_step_s(ms.t_s)
+    update_hz = float(opts.update_hz if opts.update_hz is not None else min(config.default_update_hz, nav_hz))
+    delay_mode = kind.has_delay_state or bool(opts.delay_state)
+    tau0 = float(opts.delay_s if opts.delay_s is not None else 0.0)
+    if delay_mode and not kind.splits_delay and opts.delay_s is None:
         # start the delay state near the answer: the EKF's linearisation in the delay holds over a
         # fraction of the motion's period only (S004), so a coarse start keeps it from diverging
-        tau0, why = _coarse_delay(master, ms, t_imu, gyro, float(options.get("delay_max_s", 1.0)))
+        tau0, why = _coarse_delay(master, ms, t_imu, gyro, float(opts.delay_max_s))
         notes.append(why)
     dt_upd = 1.0 / update_hz
-    if filter == "kf-split":
+    if kind.splits_delay:
         lo_tau, hi_tau = tau0 - dt_upd, tau0 + dt_upd
     else:
-        dmax = float(options.get("delay_max_s", 1.0))
+        dmax = float(opts.delay_max_s)
         lo_tau, hi_tau = (-dmax, dmax) if delay_mode else (tau0, tau0)
-    # overlap: slave stamps t read the master at t - tau, tau within [lo, hi]; start and end on usable
-    # master output (an EKF that has not started yet outputs frozen values)
+    return DelayWindow(update_hz, dt_upd, tau0, lo_tau, hi_tau, delay_mode)
+
+
+def _overlap(master: InsLog, ms: MasterSeries, t_imu: np.ndarray, gyro: np.ndarray, accel: np.ndarray,
+             win: DelayWindow, src: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """The slave's IMU samples inside the overlap and the overlap's length (s): start and end on usable
+    master output (an EKF that has not started yet outputs frozen values), for any delay in the window."""
     good = np.nonzero(ms.valid)[0] if ms.valid is not None else np.arange(len(ms.t_s))
     if len(good) < 3:
         raise AnalysisError(f"{master.meta.source_path or 'master'}: the master's attitude/velocity is frozen "
                             "or jumping over the whole log")
-    t_a = max(t_imu[0], ms.t_s[good[0]] + hi_tau)
-    t_b = min(t_imu[-1], ms.t_s[good[-1]] + lo_tau)
-    if not t_b - t_a > 5 * dt_upd:
+    t_a = max(t_imu[0], ms.t_s[good[0]] + win.hi_s)
+    t_b = min(t_imu[-1], ms.t_s[good[-1]] + win.lo_s)
+    if not t_b - t_a > 5 * win.dt_upd_s:
         raise AnalysisError(f"{src}: no time overlap between the master's nav and the slave's IMU "
                             f"(slave {t_imu[0]:.2f}..{t_imu[-1]:.2f} s, master {ms.t_s[0]:.2f}..{ms.t_s[-1]:.2f} s)")
     sel = (t_imu >= t_a) & (t_imu <= t_b)
@@ -138,44 +171,44 @@ def run_alignment(master: InsLog, slave: InsLog, *, filter: str = "kf", match: s
     if len(t_imu) < 10:
         raise AnalysisError(f"{src}: too few slave IMU samples in the overlap ({len(t_imu)})")
     _check_motion(gyro, accel, src)
+    return t_imu, gyro, accel, float(t_b - t_a)
 
-    # ---- coarse mounting
-    if "mounting_guess_rpy_deg" in options:
-        r0 = dcm_from_euler(np.radians(np.asarray(options["mounting_guess_rpy_deg"], float)))
-        coarse_ok = True
-    else:
-        r0, coarse_ok, why = _coarse_mounting(master, slave, ms, t_imu, gyro, tau0, accel)
-        if why:
-            notes.append(why)
 
-    # ---- epochs and segments
+def _epochs(t_imu: np.ndarray, gyro: np.ndarray, accel: np.ndarray, dt_upd: float, overlap_s: float,
+            config: AlignmentConfig, src: str, notes: list[str]) -> Epochs:
     grid = np.arange(t_imu[0], t_imu[-1] + 1e-9, dt_upd)
     idx = np.unique(np.clip(np.searchsorted(t_imu, grid - 1e-9), 0, len(t_imu) - 1))
     if len(idx) < 5:
-        raise AnalysisError(f"{src}: overlap too short for alignment ({t_b - t_a:.2f} s)")
+        raise AnalysisError(f"{src}: overlap too short for alignment ({overlap_s:.2f} s)")
     rv, dv, _ = body_increments(t_imu[idx[0]:idx[-1] + 1], gyro[idx[0]:idx[-1] + 1], accel[idx[0]:idx[-1] + 1])
     starts, stops = idx[:-1] - idx[0], idx[1:] - idx[0]
     seg_dq, seg_dv = compose_segments(rv, dv, starts, stops)
     t_ep = t_imu[idx]
-    seg_dt = np.diff(t_ep)
     # gaps in the slave's IMU: the motion over them is unknown, so the slave's navigation restarts from
     # the master after each one (the mounting, biases and their covariance carry on)
-    steps = np.diff(t_imu[idx[0]:idx[-1] + 1])
-    gap_s = max(IMU_GAP_S, IMU_GAP_PERIODS * float(np.median(steps)))
+    stamps = t_imu[idx[0]:idx[-1] + 1]
+    steps = np.diff(stamps)
+    gap_s = max(config.imu_gap_s, config.imu_gap_periods * median_step_s(stamps))
     seg_max = np.maximum.reduceat(steps, starts)
     restart = np.concatenate([[False], seg_max > gap_s])
     if restart.any():
         notes.append(f"{int(restart.sum())} gap(s) in the slave's IMU (longest {float(seg_max.max()):.2f} s): "
                      "its navigation restarted from the master after each")
+    return Epochs(t_ep, seg_dq, seg_dv, np.diff(t_ep), restart)
 
-    # ---- initial state from the master at the first epoch
-    lever0 = np.asarray(options.get("lever_arm_m", np.zeros(3)), float)
-    c_nm0, v_m0, _, w_m0 = ms.sample(t_ep[0] - tau0)
+
+def _initial_state(master: InsLog, slave: InsLog, ms: MasterSeries, t0: float, tau0: float, r0: np.ndarray,
+                   opts: AlignmentOptions, src: str, notes: list[str]
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(q0, v0, lever0): the slave's attitude and velocity from the master at the first epoch (else from
+    the slave's own), the lever arm the filter starts from."""
+    lever0 = np.asarray(opts.lever_arm_m if opts.lever_arm_m is not None else np.zeros(3), float)
+    c_nm0, v_m0, _, w_m0 = ms.sample(t0 - tau0)
     if c_nm0 is not None:
         q0 = quat_from_dcm(c_nm0 @ r0.T)
     elif slave.has_quat:
         tq, qs = slave.quat_wxyz()
-        q0 = qs[int(np.clip(np.searchsorted(tq, t_ep[0]), 0, len(tq) - 1))]
+        q0 = qs[int(np.clip(np.searchsorted(tq, t0), 0, len(tq) - 1))]
         notes.append("initial slave attitude from the slave's own attitude (the master has none)")
     else:
         raise AnalysisError(f"{src}: velocity matching needs an initial attitude: neither the master nor "
@@ -185,64 +218,64 @@ def run_alignment(master: InsLog, slave: InsLog, *, filter: str = "kf", match: s
         v0 = v_m0 + cm @ np.cross(w_m0 if w_m0 is not None else np.zeros(3), lever0)
     elif slave.has_vel:
         tv, vs = slave.vel_ned_m_s()
-        v0 = vs[int(np.clip(np.searchsorted(tv, t_ep[0]), 0, len(tv) - 1))]
+        v0 = vs[int(np.clip(np.searchsorted(tv, t0), 0, len(tv) - 1))]
     else:
         v0 = np.zeros(3)
         notes.append("initial slave velocity set to zero (neither log has a velocity)")
-    llh0 = _initial_position(master, slave, t_ep[0], options, notes)
+    return q0, v0, lever0
 
-    # ---- settings
-    flex_opt = options.get("flexure", False)
-    flex_auto = isinstance(flex_opt, str) and flex_opt == "auto"
 
-    def setup(flexure: bool) -> tuple[StateLayout, FilterSettings, np.ndarray]:
-        ly = make_layout(match, flexure=flexure, lever_arm=bool(options.get("estimate_lever_arm", False)),
-                         delay=delay_mode)
-        opts = {**FLEX_AUTO_MODEL, **options} if flex_auto else options
-        st, s0 = _settings(filter, ly, master, t_imu, gyro, accel, opts, coarse_ok, dt_upd, tau0,
-                           (lo_tau, hi_tau), smoother)
-        return ly, st, s0
+def _setup(prob: _Problem, flexure: bool) -> tuple[StateLayout, FilterSettings, np.ndarray]:
+    """The state layout, filter settings and prior sigmas of one pass (with or without flexure states)."""
+    ly = make_layout(prob.match, flexure=flexure, lever_arm=bool(prob.opts.estimate_lever_arm),
+                     delay=prob.win.delay_state)
+    st, s0 = _settings(prob.kind, ly, prob.master, prob.t_imu, prob.gyro, prob.accel, prob.opts, prob.config,
+                       prob.coarse_ok, prob.win.dt_upd_s, prob.win.tau0_s, (prob.win.lo_s, prob.win.hi_s),
+                       prob.smoother)
+    return ly, st, s0
 
-    lay, settings, sig0 = setup(bool(flex_opt) and not flex_auto)
-    if smoother:
-        need_gb = len(t_ep) * lay.n**2 * 8 * 3 / 1e9
+
+def _filter_passes(prob: _Problem, inp: AlignInputs, src: str, progress: Callable | None, prog: Callable,
+                   notes: list[str]) -> tuple[FilterRun, StateLayout, FilterSettings, np.ndarray]:
+    """The forward pass, and where called for the pass with flexure states (flexure="auto") and the pass
+    with the measurement noise re-estimated from the residuals."""
+    opts, cfg = prob.opts, prob.config
+    lay, settings, sig0 = _setup(prob, bool(opts.flexure) and not opts.flexure_auto)
+    if prob.smoother:
+        need_gb = len(inp.t_epoch_s) * lay.n**2 * 8 * 3 / 1e9
         if need_gb > 2.0:
-            raise AnalysisError(f"{src}: the RTS smoother would store {need_gb:.1f} GB for {t_b - t_a:.0f} s at "
-                                f"{update_hz:g} Hz; lower update_hz or run without the smoother")
-    inp = AlignInputs(t_ep, seg_dq, seg_dv, seg_dt, ms, q0, v0, llh0, r0, lever0, tau0, restart)
+            raise AnalysisError(f"{src}: the RTS smoother would store {need_gb:.1f} GB for {prob.overlap_s:.0f} s at "
+                                f"{prob.win.update_hz:g} Hz; lower update_hz or run without the smoother")
     prog(0.05, "alignment filter")
     sub = (lambda f, s="": prog(0.05 + 0.9 * f, s)) if progress else None
-    run = run_filter(inp, settings, progress=sub)
+    run = run_filter(inp, settings, progress=sub, compiled=cfg.compiled_kf)
     nis_rigid = _mean_nis(run)
-    if flex_auto and lay.flex_ang is None and nis_rigid > FLEX_AUTO_NIS * lay.n_meas:
+    if opts.flexure_auto and lay.flex_ang is None and nis_rigid > cfg.flex_auto_nis * lay.n_meas:
         # residuals far beyond the noise model: is it a flexing slave? The flexure states are kept when
-        # they explain most of the excess (mean NIS down by FLEX_AUTO_GAIN at least)
-        lay_f, st_f, sig0_f = setup(True)
-        run_f = run_filter(inp, st_f, progress=None)
-        if _mean_nis(run_f) < FLEX_AUTO_GAIN * nis_rigid:
+        # they explain most of the excess (mean NIS down by flex_auto_gain at least)
+        lay_f, st_f, sig0_f = _setup(prob, True)
+        run_f = run_filter(inp, st_f, progress=None, compiled=cfg.compiled_kf)
+        if _mean_nis(run_f) < cfg.flex_auto_gain * nis_rigid:
             notes.append(f"flexure states added (mean NIS/dof {nis_rigid / lay.n_meas:.1f} without them, "
                          f"{_mean_nis(run_f) / lay_f.n_meas:.1f} with)")
             lay, settings, sig0, run = lay_f, st_f, sig0_f, run_f
     if lay.flex_ang is not None:
         notes.append(f"flexure states (seed 000 eq 8): sigma {_fmt3(np.degrees(sig0[lay.flex_ang]))} deg, "
                      f"beta {settings.flex_beta:.3g} 1/s")
-    recal = _recalibrated(run, lay, settings, options) if options.get("recalibrate_noise", True) else None
+    recal = _recalibrated(run, lay, settings, opts) if opts.recalibrate_noise else None
     if recal is not None:
         # the residuals are far larger than the noise model says (real data: vibration, EKF smoothing,
         # flexure): rerun with the measurement noise taken from the first pass's residuals
         nis0 = _mean_nis(run)
         settings = recal
-        run = run_filter(inp, settings, progress=None)
+        run = run_filter(inp, settings, progress=None, compiled=cfg.compiled_kf)
         notes.append(f"measurement noise re-estimated from the residuals (first pass NIS/dof "
                      f"{nis0 / lay.n_meas:.1f}): velocity {settings.r_vel_m_s:.3g} m/s, attitude "
                      f"{settings.r_att_rad / DEG:.3g} deg")
-        if settings.r_vel_m_s > IMPLAUSIBLE_R_VEL_M_S or settings.r_att_rad > IMPLAUSIBLE_R_ATT_DEG * DEG:
+        if settings.r_vel_m_s > cfg.implausible_r_vel_m_s or settings.r_att_rad > cfg.implausible_r_att_deg * DEG:
             notes.append("residuals this large are no INS's noise: the filter did not follow the data (a wrong "
                          "start, an uncompensated delay or reset, other units); the mounting is doubtful")
-    res = _result(run, lay, settings, sig0, filter, match, options, notes)
-    prog(1.0, "alignment done")
-    return res
-
+    return run, lay, settings, sig0
 
 # ---- inputs ---------------------------------------------------------------------------------------
 def _slave_imu(slave: InsLog, src: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -259,22 +292,23 @@ def _slave_imu(slave: InsLog, src: str) -> tuple[np.ndarray, np.ndarray, np.ndar
     return t[keep], g[keep], a[keep]
 
 
-_LAST_MASTER: list = []  # [(weak ref to the master, its series)]: the one most recently prepared
+_LAST_MASTER: list = []  # [(weak ref to the master, config key, its series)]: the one most recently prepared
 
 
-def _master_series_cached(master: InsLog) -> MasterSeries:
-    """:func:`_master_series`, prepared once for the same master object (analyze runs the alignment
-    before and after compensation against one master; InsLog is immutable)."""
-    if _LAST_MASTER and _LAST_MASTER[0][0]() is master:
-        return _LAST_MASTER[0][1]
-    ms = _master_series(master)
+def _master_series_cached(master: InsLog, config: AlignmentConfig = CONFIG) -> MasterSeries:
+    """:func:`_master_series`, prepared once for the same master object and rate settings (analyze runs
+    the alignment before and after compensation against one master; InsLog is immutable)."""
+    key = (config.lever_rate_max_half_span_s, config.lever_rate_attenuation)
+    if _LAST_MASTER and _LAST_MASTER[0][0]() is master and _LAST_MASTER[0][1] == key:
+        return _LAST_MASTER[0][2]
+    ms = _master_series(master, config)
     for f in fields(ms):  # shared between runs: read-only
         v = getattr(ms, f.name)
         if isinstance(v, np.ndarray):
             v.flags.writeable = False
     # held weakly: the series goes when the master does (a batch does not keep the last pair's master)
     ref = weakref.ref(master)
-    _LAST_MASTER[:] = [(ref, ms)]
+    _LAST_MASTER[:] = [(ref, key, ms)]
     weakref.finalize(master, _forget_master, ref)
     return ms
 
@@ -284,7 +318,7 @@ def _forget_master(ref) -> None:
         _LAST_MASTER.clear()
 
 
-def _master_series(master: InsLog) -> MasterSeries:
+def _master_series(master: InsLog, config: AlignmentConfig = CONFIG) -> MasterSeries:
     src = master.meta.source_path or "master"
     t_nav = master.t_nav_s()
     if len(t_nav) < 3:
@@ -332,7 +366,7 @@ def _master_series(master: InsLog) -> MasterSeries:
                 w_ie_m = np.einsum("kji,j->ki", dcm_from_quat(quat), earth.earth_rate_ned(lat))
                 w = w_ib - w_ie_m
         if w is None:
-            w = _rate_from_attitude(t, quat)
+            w = _rate_from_attitude(t, quat, config)
     if master.has_vel:
         vel = v[ok]
         acc = _derivative(t, vel, span_s=0.1)
@@ -382,16 +416,17 @@ def _nav_common_stamps(tq: np.ndarray, q: np.ndarray, tv: np.ndarray, v: np.ndar
     return t, q[np.searchsorted(tq, t)], y
 
 
-def _rate_from_attitude(t: np.ndarray, quat: np.ndarray) -> np.ndarray:
+def _rate_from_attitude(t: np.ndarray, quat: np.ndarray, config: AlignmentConfig = CONFIG) -> np.ndarray:
     """Body rate relative to NED (master frame) from the attitude, central differences over +- h.
 
-    h is the longest span (at most LEVER_RATE_MAX_HALF_SPAN_S: the fewer the samples differenced, the noisier
+    h is the longest span (at most config.lever_rate_max_half_span_s: the fewer the samples differenced, the noisier
     the rate, and a noisy rate in H biases the lever arm toward zero, errors in variables) whose
-    attenuation of the motion stays below LEVER_RATE_ATTENUATION at its rate-weighted mean frequency (the
+    attenuation of the motion stays below config.lever_rate_attenuation at its rate-weighted mean frequency (the
     difference quotient's gain is sin(2 pi f h) / (2 pi f h)). A fixed +- 0.05 s took 2-6 % off a
     multirotor's 1-2 Hz rates: with a 2.9 m lever arm and flexure states its mounting came out 2.5 arcmin
     off at a sigma of 0.37 arcmin; +- one 100 Hz sample: 0.6 arcmin."""
-    dt_med = float(np.median(np.diff(t)))
+    dt_med = median_step_s(t)
+    half_max, atten = config.lever_rate_max_half_span_s, config.lever_rate_attenuation
 
     def diff_rate(y: np.ndarray, half_s: float, rot: bool) -> np.ndarray:
         kk = max(int(round(half_s / dt_med)), 1)
@@ -400,13 +435,13 @@ def _rate_from_attitude(t: np.ndarray, quat: np.ndarray) -> np.ndarray:
         span = np.maximum(t[i1] - t[i0], 1e-9)[:, None]
         return (rotvec_from_quat(quat_mul(quat_conj(y[i0]), y[i1])) if rot else y[i1] - y[i0]) / span
 
-    w = diff_rate(quat, LEVER_RATE_MAX_HALF_SPAN_S, True)
-    dw = diff_rate(w, LEVER_RATE_MAX_HALF_SPAN_S, False)
+    w = diff_rate(quat, half_max, True)
+    dw = diff_rate(w, half_max, False)
     motion = float(np.sqrt(np.mean(np.sum((w - w.mean(axis=0)) ** 2, axis=1))))
     f_hz = float(np.sqrt(np.mean(np.sum(dw ** 2, axis=1)))) / (2.0 * np.pi * motion) if motion > 0 else 0.0
     # sin(x)/x = 1 - x^2/6: below the attenuation a up to x = sqrt(6 a)
-    h = np.sqrt(6.0 * LEVER_RATE_ATTENUATION) / (2.0 * np.pi * f_hz) if f_hz > 0 else np.inf
-    if h >= LEVER_RATE_MAX_HALF_SPAN_S:
+    h = np.sqrt(6.0 * atten) / (2.0 * np.pi * f_hz) if f_hz > 0 else np.inf
+    if h >= half_max:
         return w
     return diff_rate(quat, h, True)
 
@@ -431,7 +466,7 @@ def _interp_cols(t: np.ndarray, tp: np.ndarray, yp: np.ndarray) -> np.ndarray:
 
 def _derivative(t: np.ndarray, y: np.ndarray, span_s: float) -> np.ndarray:
     """Central difference over ~span_s (noise-tolerant), one-sided at the ends."""
-    dt = float(np.median(np.diff(t)))
+    dt = median_step_s(t)
     k = max(int(round(0.5 * span_s / dt)), 1)
     n = len(t)
     i0 = np.clip(np.arange(n) - k, 0, n - 1)
@@ -445,7 +480,8 @@ def _check_motion(gyro: np.ndarray, accel: np.ndarray, src: str) -> None:
 
 
 def _coarse_mounting(master: InsLog, slave: InsLog, ms: MasterSeries, t_imu: np.ndarray, gyro: np.ndarray,
-                     tau0: float, accel: np.ndarray | None = None) -> tuple[np.ndarray, bool, str]:
+                     tau0: float, accel: np.ndarray | None = None, config: AlignmentConfig = CONFIG
+                     ) -> tuple[np.ndarray, bool, str]:
     """(R0, ok, note). Wahba/Kabsch on angular rates: min sum |w_s - R w_m|^2 by SVD of sum w_s w_m^T. Where
     the rates turn about one axis only, the specific forces' motion joins them (``accel``: the slave's, at
     t_imu); then the slave's own attitude; then that joint fit however weakly it is determined (not ok: a
@@ -462,10 +498,6 @@ def _coarse_mounting(master: InsLog, slave: InsLog, ms: MasterSeries, t_imu: np.
         w_m = None
     weak = None  # a joint rate + specific-force start that is only weakly determined
 
-    def wahba(B: np.ndarray) -> np.ndarray:
-        u, _, vt = np.linalg.svd(B)
-        return u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
-
     if w_m is not None:
         w_s = _interp_cols(grid, t_imu, gyro)
         # remove slow parts (biases, earth rate) so the fit sees the motion
@@ -475,12 +507,12 @@ def _coarse_mounting(master: InsLog, slave: InsLog, ms: MasterSeries, t_imu: np.
         sv = np.linalg.svd(b, compute_uv=False)
         motion = np.sqrt(sv / max(len(grid), 1))  # rms rate on the principal axes
         if sv[0] > 0 and motion[1] > 2e-3 and sv[1] / sv[0] > 1e-3:
-            return wahba(b), True, ""
+            return wahba(b)[0], True, ""
         why = "coarse mounting: too little rotation about two axes for the rate fit"
         # a car turning on a level road rotates about one axis: its accelerations (speed changes along the
         # track, centripetal across it) give another direction, and two fix a rotation. Rates and specific
         # forces (motion parts, each set normalised by its power) in one Wahba problem
-        f_m = _master_specific_force(master, ms, grid - tau0) if COARSE_JOINT and accel is not None else None
+        f_m = _master_specific_force(master, ms, grid - tau0) if config.coarse_joint and accel is not None else None
         if f_m is not None:
             f_s = _interp_cols(grid, t_imu, accel)
             f_m, f_s = f_m - f_m.mean(0), f_s - f_s.mean(0)
@@ -489,13 +521,14 @@ def _coarse_mounting(master: InsLog, slave: InsLog, ms: MasterSeries, t_imu: np.
             motion_f = np.sqrt(np.linalg.svd(bf, compute_uv=False) / max(len(grid), 1))  # m/s^2 rms
             # two directions of real motion, not noise: the rates' first and the specific forces' first, or
             # the specific forces' first two (whether they differ, the joint fit's singular values say)
-            real = motion_f[0] > COARSE_MIN_FORCE_M_S2 and (motion[0] > 2e-3 or motion_f[1] > COARSE_MIN_FORCE_M_S2)
+            f_min = config.coarse_min_force_m_s2
+            real = motion_f[0] > f_min and (motion[0] > 2e-3 or motion_f[1] > f_min)
             if real and pw > 0 and pf > 0:
                 B = b / pw + bf / pf
                 svj = np.linalg.svd(B, compute_uv=False)
-                if svj[1] / svj[0] >= COARSE_JOINT_RATIO:
-                    return wahba(B), True, why + "; rates and specific forces together instead"
-                weak = wahba(B)
+                if svj[1] / svj[0] >= config.coarse_joint_ratio:
+                    return wahba(B)[0], True, why + "; rates and specific forces together instead"
+                weak = wahba(B)[0]
     else:
         why = "coarse mounting: the master has no angular rate or attitude"
     if slave.has_quat and ms.quat is not None:
@@ -504,7 +537,7 @@ def _coarse_mounting(master: InsLog, slave: InsLog, ms: MasterSeries, t_imu: np.
         inside = (ts - tau0 >= ms.t_s[0]) & (ts - tau0 <= ms.t_s[-1])
         if inside.sum() >= 1:
             m = np.einsum("kji,kjl->il", dcm_from_quat(qs[inside]), dcm_from_quat(qm[inside]))  # sum C_sn C_nm
-            return wahba(m), True, why + "; used the slave's own attitude instead"
+            return wahba(m)[0], True, why + "; used the slave's own attitude instead"
     if weak is not None:
         return weak, False, why + "; rates and specific forces together, weakly determined (wider prior)"
     return np.eye(3), False, why + "; started from a zero mounting"
@@ -559,13 +592,14 @@ def _coarse_delay(master: InsLog, ms: MasterSeries, t_imu: np.ndarray, gyro: np.
     return tau0, f"delay state started at {tau0 * 1e3:+.0f} ms (angular-rate magnitudes)"
 
 
-def _initial_position(master: InsLog, slave: InsLog, t0: float, options: dict, notes: list[str]) -> np.ndarray:
+def _initial_position(master: InsLog, slave: InsLog, t0: float, opts: AlignmentOptions, notes: list[str]
+                      ) -> np.ndarray:
     for log in (master, slave):
         if log.has_pos:
             tp, p = log.lat_lon_alt()
             i = int(np.clip(np.searchsorted(tp, t0), 0, len(tp) - 1))
             return np.array([np.radians(p[i, 0]), np.radians(p[i, 1]), p[i, 2]])
-    lat = float(options.get("lat_deg", 45.0))
+    lat = float(opts.lat_deg if opts.lat_deg is not None else 45.0)
     notes.append(f"no position in either log: latitude {lat:g} deg assumed (earth rate, gravity)")
     return np.array([np.radians(lat), 0.0, 0.0])
 
@@ -580,38 +614,40 @@ def _hf_sigma(y: np.ndarray) -> float:
     return float(np.max(mad) / np.sqrt(20.0))
 
 
-def _settings(kind: str, lay: StateLayout, master: InsLog, t_imu, gyro, accel, options: dict, coarse_ok: bool,
-              dt_upd: float, tau0: float, tau_bounds: tuple[float, float], smoother: bool
-              ) -> tuple[FilterSettings, np.ndarray]:
-    dt_imu = float(np.median(np.diff(t_imu)))
+def _settings(kind: FilterKind, lay: StateLayout, master: InsLog, t_imu, gyro, accel, opts: AlignmentOptions,
+              config: AlignmentConfig, coarse_ok: bool, dt_upd: float, tau0: float, tau_bounds: tuple[float, float],
+              smoother: bool) -> tuple[FilterSettings, np.ndarray]:
+    """The filter settings and prior sigmas: noise densities, priors and measurement noise from the
+    options, else from the data (with floors)."""
+    dt_imu = median_step_s(t_imu)
     # slave noise densities from the data (sample sigma * sqrt(dt)), with floors
-    if "gyro_arw_dpsh" in options:
-        arw = float(options["gyro_arw_dpsh"]) * DEG / 60.0
+    if opts.gyro_arw_dpsh is not None:
+        arw = float(opts.gyro_arw_dpsh) * DEG / 60.0
     else:
         arw = max(_hf_sigma(gyro) * np.sqrt(dt_imu), 0.002 * DEG / 60.0)
-    if "accel_vrw_ug_psh" in options:
-        vrw = float(options["accel_vrw_ug_psh"]) * UG
+    if opts.accel_vrw_ug_psh is not None:
+        vrw = float(opts.accel_vrw_ug_psh) * UG
     else:
         vrw = max(_hf_sigma(accel) * np.sqrt(dt_imu), 5.0 * UG)
     arw_dpsh = arw / (DEG / 60.0)
     vrw_ug = vrw / UG
     # bias priors from the sensor grade its noise reveals (navigation grade ~0.002 deg/rt-h, 20 ug/rt-Hz;
     # MEMS ~0.2-1 deg/rt-h, 150-400 ug/rt-Hz); options override
-    sg_gyro = float(options.get("gyro_bias_sigma_dph", np.clip(300.0 * arw_dpsh, 2.0, 2000.0))) * DEG_PER_H
-    sg_acc = float(options.get("accel_bias_sigma_mg",
-                               np.clip(0.01 * vrw_ug * max(1.0, vrw_ug / 50.0), 0.1, 50.0))) * MG
-    sg_mount = float(options.get("mounting_sigma_deg", 1.0 if coarse_ok else 5.0)) * DEG
+    sg_gyro = float(_given(opts.gyro_bias_sigma_dph, np.clip(300.0 * arw_dpsh, 2.0, 2000.0))) * DEG_PER_H
+    sg_acc = float(_given(opts.accel_bias_sigma_mg,
+                          np.clip(0.01 * vrw_ug * max(1.0, vrw_ug / 50.0), 0.1, 50.0))) * MG
+    sg_mount = float(_given(opts.mounting_sigma_deg, 1.0 if coarse_ok else 5.0)) * DEG
     # measurement noise from the master's data, with floors
     tq, q = master.quat_wxyz() if master.has_quat else (None, None)
-    if "r_att_arcsec" in options:
-        r_att = float(options["r_att_arcsec"]) * ARCSEC
+    if opts.r_att_arcsec is not None:
+        r_att = float(opts.r_att_arcsec) * ARCSEC
     elif q is not None and len(q) > 8:
         rv = rotvec_from_quat(quat_mul(quat_conj(q[:1]), quat_make_continuous(q)))
         r_att = max(_hf_sigma(rv), 1.0 * ARCSEC)
     else:
         r_att = 10.0 * ARCSEC
-    if "r_vel_m_s" in options:
-        r_vel = float(options["r_vel_m_s"])
+    if opts.r_vel_m_s is not None:
+        r_vel = float(opts.r_vel_m_s)
     elif master.has_vel:
         r_vel = max(_hf_sigma(master.vel_ned_m_s()[1]), 5e-4)
     else:
@@ -630,23 +666,31 @@ def _settings(kind: str, lay: StateLayout, master: InsLog, t_imu, gyro, accel, o
         qc[lay.accel] = (0.01 * sg_acc) ** 2 / 3600.0
     if lay.mount is not None:
         sig[lay.mount] = sg_mount
-    beta = float(options.get("flex_beta", 0.5))
+    # flexure="auto" starts from config.flex_auto_* (seed 000's model) where the options give none
+    auto = opts.flexure_auto
+    beta = float(_given(opts.flex_beta, config.flex_auto_beta_1_s if auto else 0.5))
     if lay.flex_ang is not None:
-        s_l = np.broadcast_to(np.asarray(options.get("flex_sigma_deg", 0.05), float), (3,)) * DEG
+        s_l = np.broadcast_to(np.asarray(_given(opts.flex_sigma_deg, config.flex_auto_sigma_deg if auto else 0.05),
+                                         float), (3,)) * DEG
         sig[lay.flex_ang] = s_l
         sig[lay.flex_rate] = s_l * beta
         qc[lay.flex_rate] = 4.0 * beta**3 * s_l**2
     if lay.lever is not None:
-        sig[lay.lever] = float(options.get("lever_arm_sigma_m", LEVER_ARM_SIGMA_M))
+        sig[lay.lever] = float(_given(opts.lever_arm_sigma_m, config.lever_arm_sigma_m))
     if lay.delay is not None:
-        if kind == "kf-split":
+        if kind.splits_delay:
             sig[lay.delay] = dt_upd / np.sqrt(3.0)
         else:
-            sig[lay.delay] = float(options.get("delay_sigma_s", 0.1))
+            sig[lay.delay] = float(_given(opts.delay_sigma_s, 0.1))
     st = FilterSettings(kind=kind, layout=lay, p0_sigma=sig, qc=qc, r_vel_m_s=r_vel, r_att_rad=r_att,
                         flex_beta=beta, delay_bounds_s=tau_bounds,
-                        hinf_gamma=float(options.get("hinf_gamma", 1.0)), smoother=smoother)
+                        hinf_gamma=float(opts.hinf_gamma), smoother=smoother, att_only_fej=config.att_only_fej)
     return st, sig
+
+
+def _given(value, default):
+    """An option's value where given (not None), else its default."""
+    return default if value is None else value
 
 
 def _mean_nis(run: FilterRun) -> float:
@@ -654,7 +698,8 @@ def _mean_nis(run: FilterRun) -> float:
     return float(np.mean(v[len(v) // 10:])) if len(v) else float("nan")
 
 
-def _recalibrated(run: FilterRun, lay: StateLayout, st: FilterSettings, options: dict) -> FilterSettings | None:
+def _recalibrated(run: FilterRun, lay: StateLayout, st: FilterSettings, opts: AlignmentOptions
+                  ) -> FilterSettings | None:
     """Settings with the measurement noise from the residual RMS when the mean NIS exceeds 3 x dof
     (and the user did not fix the noise)."""
     nis = _mean_nis(run)
@@ -665,10 +710,10 @@ def _recalibrated(run: FilterRun, lay: StateLayout, st: FilterSettings, options:
     r_vel, r_att = st.r_vel_m_s, st.r_att_rad
     col = 0
     if lay.uses_vel:
-        if "r_vel_m_s" not in options:
+        if opts.r_vel_m_s is None:
             r_vel = max(r_vel, float(np.sqrt(np.mean(e[:, :3] ** 2))))
         col = 3
-    if lay.uses_att and "r_att_arcsec" not in options:
+    if lay.uses_att and opts.r_att_arcsec is None:
         r_att = max(r_att, float(np.sqrt(np.mean(e[:, col:col + 3] ** 2))))
     if r_vel == st.r_vel_m_s and r_att == st.r_att_rad:
         return None
@@ -691,14 +736,10 @@ def _euler_jacobian(r: np.ndarray) -> np.ndarray:
     return j
 
 
-def _mean_rotation(ms: np.ndarray) -> np.ndarray:
-    u, _, vt = np.linalg.svd(ms.sum(0))
-    d = np.sign(np.linalg.det(u @ vt))
-    return u @ np.diag([1.0, 1.0, d]) @ vt
-
-
-def _result(run: FilterRun, lay: StateLayout, st: FilterSettings, sig0: np.ndarray, kind: str, match: str,
-            options: dict, notes: list[str]) -> AlignmentResult:
+def _result(run: FilterRun, lay: StateLayout, st: FilterSettings, sig0: np.ndarray, kind: FilterKind, match: str,
+            opts: AlignmentOptions, config: AlignmentConfig, notes: list[str]) -> AlignmentResult:
+    """The AlignmentResult of the final pass: the values at the last epoch (the smoother's: the middle),
+    the sigmas scaled by the a-posteriori variance factor, the notes in the order of the steps."""
     ne = len(run.t_s)
     k_rep = ne // 2 if run.smoothed else ne - 1
     # a-posteriori variance factor: when the residuals exceed the noise model (mean NIS > dof), the
@@ -707,45 +748,7 @@ def _result(run: FilterRun, lay: StateLayout, st: FilterSettings, sig0: np.ndarr
     sig_scale = float(np.sqrt(max(1.0, nis_m / lay.n_meas))) if np.isfinite(nis_m) else 1.0
     if sig_scale > 1.05:
         notes.append(f"reported sigmas scaled by {sig_scale:.2f} = sqrt(mean NIS / dof)")
-    # mounting totals per epoch
-    if lay.mount is not None:
-        r_ep = run.r_hat
-    elif run.c_nm is not None:
-        r_ep = np.einsum("kji,kjl->kil", run.c_ns, run.c_nm)  # C_sn C_nm
-    else:
-        r_ep = None
-    if r_ep is not None:
-        if lay.mount is None:  # velocity matching: average the last tenth (master attitude noise)
-            r_fin = _mean_rotation(r_ep[max(k_rep - max(ne // 10, 1), 0):k_rep + 1])
-        else:
-            r_fin = r_ep[k_rep]
-        jac = _euler_jacobian(r_fin)
-        rpy = euler_from_dcm(r_fin)
-        cov_e = np.einsum("ij,kjl,ml->kim", jac, run.p_mount, jac)
-        sig_e = np.sqrt(np.maximum(np.einsum("kii->ki", cov_e), 0.0))
-        mount_rpy = tuple(float(x) for x in np.degrees(rpy))
-        mount_sig = tuple(float(x) for x in sig_scale * np.degrees(sig_e[k_rep]))
-        hist_mount = np.degrees(euler_from_dcm(r_ep))
-        # keep yaw continuous around the final value
-        hist_mount = rpy_unwrap(hist_mount, np.degrees(rpy))
-    else:
-        notes.append("mounting not determined: the master has no attitude")
-        mount_rpy = (float("nan"),) * 3
-        mount_sig = (float("nan"),) * 3
-        sig_e = np.full((ne, 3), np.nan)
-        hist_mount = np.full((ne, 3), np.nan)
-    # convergence (forward filter sigma; the smoother's is not a convergence)
-    conv = None
-    if r_ep is not None:
-        p_fwd = run.p_mount_fwd if run.p_mount_fwd is not None else run.p_mount
-        cov_f = np.einsum("ij,kjl,ml->kim", jac, p_fwd, jac)
-        sig_f = np.sqrt(np.maximum(np.einsum("kii->ki", cov_f), 0.0))
-        thr = np.array(CONVERGED_ARCMIN) * ARCMIN / DEG
-        ok = (np.degrees(sig_f) < thr).all(1)
-        if ok[-1]:
-            bad = np.nonzero(~ok)[0]
-            first = 0 if len(bad) == 0 else bad[-1] + 1
-            conv = float(run.t_s[first] - run.t_s[0])
+    mnt = _mounting(run, lay, k_rep, sig_scale, config, notes)
     gb = run.x[k_rep, lay.gyro] / DEG_PER_H
     gbs = sig_scale * np.sqrt(run.p_diag[k_rep, lay.gyro]) / DEG_PER_H
     if lay.accel is not None:
@@ -755,25 +758,118 @@ def _result(run: FilterRun, lay: StateLayout, st: FilterSettings, sig0: np.ndarr
         ab = np.full(3, np.nan)
         abs_ = np.full(3, np.nan)
         notes.append("accelerometer bias not estimated: attitude matching only")
-    # observability: sigma shrink relative to the prior
+    obs = _observability(run, lay, sig0, k_rep, mnt.sig_e if mnt.determined else None, config, notes)
+    rn, resid, rms = _residual_summary(run, lay, notes)
+    if run.n_reinit:
+        notes.append(f"the master's attitude jumped {run.n_reinit} time(s) (EKF reset): slave attitude restarted")
+    if run.n_skipped:
+        notes.append(f"{run.n_skipped} of {ne} updates skipped: the master's output was frozen or jumping")
+    # histories, decimated to at most max_history_rows (the last epoch kept)
+    names, cols, sigs = _histories(run, lay, mnt.hist_deg, mnt.sig_e)
+    step = max(int(np.ceil(ne / int(opts.max_history_rows))), 1)
+    rows = np.arange(0, ne, step)
+    if rows[-1] != ne - 1:
+        rows = np.append(rows, ne - 1)
+    lever_m, lever_sig = _lever_arm(run, lay, sig0, k_rep, sig_scale, opts, config, notes)
+    delay_s = delay_sig = None
+    if lay.delay is not None:
+        delay_s = float(run.tau_hat[k_rep])
+        delay_sig = float(sig_scale * np.sqrt(run.p_diag[k_rep, lay.delay]))
+    if run.smoothed:
+        notes.append("RTS smoother: values are the smoothed estimates at the middle of the run")
+    if np.isfinite(run.gamma).any():
+        g = run.gamma[np.isfinite(run.gamma)]
+        notes.append(f"H-infinity gamma: median {np.median(g):.3g}, min {g.min():.3g}")
+    return AlignmentResult(
+        filter=kind.value, match=match, mounting_rpy_deg=mnt.rpy_deg, mounting_sigma_deg=mnt.sigma_deg,
+        gyro_bias_dph=tuple(float(x) for x in gb), accel_bias_mg=tuple(float(x) for x in ab),
+        converged_s=mnt.converged_s, residual_rms=rms,
+        gyro_bias_sigma_dph=tuple(float(x) for x in gbs), accel_bias_sigma_mg=tuple(float(x) for x in abs_),
+        delay_s=delay_s, delay_sigma_s=delay_sig, lever_arm_m=lever_m, lever_arm_sigma_m=lever_sig,
+        observability=obs, notes=tuple(notes),
+        history_t_s=run.t_s[rows].copy(), history_names=tuple(names), history_x=cols[rows],
+        history_sigma=sigs[rows], residual_t_s=run.t_s[rows].copy(), residual_names=tuple(rn),
+        residuals=resid[rows],
+    )
+
+
+@dataclass(frozen=True)
+class MountingSummary:
+    """The mounting total (coarse mounting combined with the filter's residual) and its history."""
+
+    determined: bool  # False: the master has no attitude
+    rpy_deg: tuple[float, float, float]
+    sigma_deg: tuple[float, float, float]  # scaled by the a-posteriori variance factor
+    sig_e: np.ndarray  # (M+1, 3) rad, unscaled: the history's sigma
+    hist_deg: np.ndarray  # (M+1, 3) yaw continuous around the final value
+    converged_s: float | None  # from the start, by the forward filter's sigma (config.converged_arcmin)
+
+
+def _mounting(run: FilterRun, lay: StateLayout, k_rep: int, sig_scale: float, config: AlignmentConfig,
+              notes: list[str]) -> MountingSummary:
+    ne = len(run.t_s)
+    if lay.mount is not None:
+        r_ep = run.r_hat
+    elif run.c_nm is not None:
+        r_ep = np.einsum("kji,kjl->kil", run.c_ns, run.c_nm)  # C_sn C_nm
+    else:
+        notes.append("mounting not determined: the master has no attitude")
+        nan3 = (float("nan"),) * 3
+        return MountingSummary(False, nan3, nan3, np.full((ne, 3), np.nan), np.full((ne, 3), np.nan), None)
+    if lay.mount is None:  # velocity matching: average the last tenth (master attitude noise)
+        r_fin = wahba(r_ep[max(k_rep - max(ne // 10, 1), 0):k_rep + 1].sum(0))[0]  # their mean rotation
+    else:
+        r_fin = r_ep[k_rep]
+    jac = _euler_jacobian(r_fin)
+    rpy = euler_from_dcm(r_fin)
+    cov_e = np.einsum("ij,kjl,ml->kim", jac, run.p_mount, jac)
+    sig_e = np.sqrt(np.maximum(np.einsum("kii->ki", cov_e), 0.0))
+    mount_rpy = tuple(float(x) for x in np.degrees(rpy))
+    mount_sig = tuple(float(x) for x in sig_scale * np.degrees(sig_e[k_rep]))
+    # keep yaw continuous around the final value
+    hist_mount = rpy_unwrap(np.degrees(euler_from_dcm(r_ep)), np.degrees(rpy))
+    # convergence (forward filter sigma; the smoother's is not a convergence)
+    conv = None
+    p_fwd = run.p_mount_fwd if run.p_mount_fwd is not None else run.p_mount
+    cov_f = np.einsum("ij,kjl,ml->kim", jac, p_fwd, jac)
+    sig_f = np.sqrt(np.maximum(np.einsum("kii->ki", cov_f), 0.0))
+    thr = np.array(config.converged_arcmin) * ARCMIN / DEG
+    ok = (np.degrees(sig_f) < thr).all(1)
+    if ok[-1]:
+        bad = np.nonzero(~ok)[0]
+        first = 0 if len(bad) == 0 else bad[-1] + 1
+        conv = float(run.t_s[first] - run.t_s[0])
+    return MountingSummary(True, mount_rpy, mount_sig, sig_e, hist_mount, conv)
+
+
+def _observability(run: FilterRun, lay: StateLayout, sig0: np.ndarray, k_rep: int, sig_e: np.ndarray | None,
+                   config: AlignmentConfig, notes: list[str]) -> dict[str, bool]:
+    """Observable: the sigma shrank below config.observable_shrink x its prior."""
     obs: dict[str, bool] = {}
+    shrink = config.observable_shrink
     p_fin = np.sqrt(run.p_diag[k_rep])
-    if r_ep is not None:
+    if sig_e is not None:
         s0m = np.degrees(sig0[lay.mount] if lay.mount is not None else sig0[lay.att])
         for i, ax in enumerate(("roll", "pitch", "yaw")):
-            obs[f"mounting_{ax}"] = bool(np.degrees(sig_e[k_rep, i]) < OBSERVABLE_SHRINK * s0m[i])
+            obs[f"mounting_{ax}"] = bool(np.degrees(sig_e[k_rep, i]) < shrink * s0m[i])
     for name, sl in (("gyro_bias", lay.gyro), ("accel_bias", lay.accel), ("lever_arm", lay.lever)):
         if sl is None:
             continue
         for i, ax in enumerate("xyz"):
-            obs[f"{name}_{ax}"] = bool(p_fin[sl][i] < OBSERVABLE_SHRINK * sig0[sl][i])
+            obs[f"{name}_{ax}"] = bool(p_fin[sl][i] < shrink * sig0[sl][i])
     if lay.delay is not None:
-        obs["delay"] = bool(p_fin[lay.delay] < OBSERVABLE_SHRINK * sig0[lay.delay])
+        obs["delay"] = bool(p_fin[lay.delay] < shrink * sig0[lay.delay])
     unobs = [k for k, v in obs.items() if not v]
     if unobs:
         notes.append("not observable with this motion (sigma did not shrink below "
-                     f"{OBSERVABLE_SHRINK:g} x prior): {', '.join(unobs)}; values are the prior, not estimates")
-    # residuals
+                     f"{shrink:g} x prior): {', '.join(unobs)}; values are the prior, not estimates")
+    return obs
+
+
+def _residual_summary(run: FilterRun, lay: StateLayout, notes: list[str]
+                      ) -> tuple[list[str], np.ndarray, dict[str, float]]:
+    """(names, residual history in reported units, RMS and mean NIS after the initial transient)."""
+    ne = len(run.t_s)
     rn: list[str] = []
     scale = []
     if lay.uses_vel:
@@ -797,48 +893,24 @@ def _result(run: FilterRun, lay: StateLayout, st: FilterSettings, sig0: np.ndarr
     if rms["nis_mean"] > 3.0 * lay.n_meas:
         notes.append(f"residuals {np.sqrt(rms['nis_mean'] / lay.n_meas):.1f}x larger than the noise model: "
                      "unmodelled flexure, lever arm or delay? sigmas are optimistic")
-    if run.n_reinit:
-        notes.append(f"the master's attitude jumped {run.n_reinit} time(s) (EKF reset): slave attitude restarted")
-    if run.n_skipped:
-        notes.append(f"{run.n_skipped} of {ne} updates skipped: the master's output was frozen or jumping")
-    # histories
-    names, cols, sigs = _histories(run, lay, hist_mount, sig_e)
-    max_rows = int(options.get("max_history_rows", 2000))
-    step = max(int(np.ceil(ne / max_rows)), 1)
-    rows = np.arange(0, ne, step)
-    if rows[-1] != ne - 1:
-        rows = np.append(rows, ne - 1)
-    # the lever arm: estimated (a state), or the one given (not estimated), else not modelled (None)
-    lever_m = lever_sig = None
+    return rn, resid, rms
+
+
+def _lever_arm(run: FilterRun, lay: StateLayout, sig0: np.ndarray, k_rep: int, sig_scale: float,
+               opts: AlignmentOptions, config: AlignmentConfig, notes: list[str]
+               ) -> tuple[tuple | None, tuple | None]:
+    """The lever arm: estimated (a state), or the one given (not estimated), else not modelled (None)."""
     if lay.lever is not None:
         lever_m = tuple(float(x) for x in run.lever_hat[k_rep])
         lever_sig = tuple(float(x) for x in sig_scale * np.sqrt(np.maximum(run.p_diag[k_rep, lay.lever], 0.0)))
         prior = float(sig0[lay.lever][0])
-        if np.linalg.norm(lever_m) > LEVER_ARM_IMPLAUSIBLE_SIGMAS * prior:
+        if np.linalg.norm(lever_m) > config.lever_arm_implausible_sigmas * prior:
             notes.append(f"lever arm estimate {np.linalg.norm(lever_m):.3g} m is far beyond its prior "
                          f"({prior:g} m per axis): it is absorbing something else (an uncompensated delay?)")
-    elif "lever_arm_m" in options and lay.uses_vel:
-        lever_m = tuple(float(x) for x in np.asarray(options["lever_arm_m"], float))
-    delay_s = delay_sig = None
-    if lay.delay is not None:
-        delay_s = float(run.tau_hat[k_rep])
-        delay_sig = float(sig_scale * np.sqrt(run.p_diag[k_rep, lay.delay]))
-    if run.smoothed:
-        notes.append("RTS smoother: values are the smoothed estimates at the middle of the run")
-    if np.isfinite(run.gamma).any():
-        g = run.gamma[np.isfinite(run.gamma)]
-        notes.append(f"H-infinity gamma: median {np.median(g):.3g}, min {g.min():.3g}")
-    return AlignmentResult(
-        filter=kind, match=match, mounting_rpy_deg=mount_rpy, mounting_sigma_deg=mount_sig,
-        gyro_bias_dph=tuple(float(x) for x in gb), accel_bias_mg=tuple(float(x) for x in ab),
-        converged_s=conv, residual_rms=rms,
-        gyro_bias_sigma_dph=tuple(float(x) for x in gbs), accel_bias_sigma_mg=tuple(float(x) for x in abs_),
-        delay_s=delay_s, delay_sigma_s=delay_sig, lever_arm_m=lever_m, lever_arm_sigma_m=lever_sig,
-        observability=obs, notes=tuple(notes),
-        history_t_s=run.t_s[rows].copy(), history_names=tuple(names), history_x=cols[rows],
-        history_sigma=sigs[rows], residual_t_s=run.t_s[rows].copy(), residual_names=tuple(rn),
-        residuals=resid[rows],
-    )
+        return lever_m, lever_sig
+    if opts.lever_arm_m is not None and lay.uses_vel:
+        return tuple(float(x) for x in np.asarray(opts.lever_arm_m, float)), None
+    return None, None
 
 
 def _fmt3(v) -> str:

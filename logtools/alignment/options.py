@@ -1,0 +1,177 @@
+"""What the alignment is asked to do and how it is tuned: the one table of filter kinds (``FilterKind``),
+the measurement choices (``MATCHES``), the caller's options (``AlignmentOptions``: what is known about
+this pair) and the tuning (``AlignmentConfig``: every number the method uses, with the reason for it).
+
+A light module (no numba, no numerics) so the CLI can build its choices from it without loading the
+filters. Change a tuning value through ``dataclasses.replace(CONFIG, ...)`` passed as
+``run_alignment(..., config=...)``, never by setting module attributes.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import Enum
+
+from logtools.errors import AnalysisError
+
+#: what the master is matched on (velocity, attitude or both)
+MATCHES = ("vel", "att", "vel+att")
+
+
+class FilterKind(Enum):
+    """The alignment filters. ``value`` is the name used on the command line and in report.json."""
+
+    KF = "kf"  # Kalman filter (closed loop, Joseph update)
+    KF_DELAY = "kf-delay"  # S004's delay-augmented KF: the delay as one more state
+    KF_SPLIT = "kf-split"  # S004's split: constant part shifted before the filter, the residual a state
+    HINF = "hinf"  # S002's H-infinity update, fixed gamma
+    AHINF = "ahinf"  # S002's adaptive H-infinity update
+
+    @classmethod
+    def parse(cls, name: "str | FilterKind") -> "FilterKind":
+        """The kind named ``name``; an AnalysisError naming the choices otherwise."""
+        if isinstance(name, cls):
+            return name
+        for kind in cls:
+            if kind.value == name:
+                return kind
+        raise AnalysisError(f"filter must be one of {', '.join(FILTERS)}, not {name!r}")
+
+    @property
+    def is_hinf(self) -> bool:
+        """An H-infinity update (hinf.py; the Python loop), else the Kalman update (the compiled loop)."""
+        return self in (FilterKind.HINF, FilterKind.AHINF)
+
+    @property
+    def is_adaptive(self) -> bool:
+        """The H-infinity bound gamma adapted per update (S002) rather than fixed."""
+        return self is FilterKind.AHINF
+
+    @property
+    def has_delay_state(self) -> bool:
+        """The kind carries a delay state by itself (any kind can with ``delay_state=True``)."""
+        return self in (FilterKind.KF_DELAY, FilterKind.KF_SPLIT)
+
+    @property
+    def splits_delay(self) -> bool:
+        """S004's split: the known constant delay shifted out first, the state bounded to one update period."""
+        return self is FilterKind.KF_SPLIT
+
+
+#: the filter names, in table order (argparse choices, error messages)
+FILTERS = tuple(k.value for k in FilterKind)
+
+
+@dataclass(frozen=True)
+class AlignmentOptions:
+    """What the caller knows or wants for one pair (all optional). None: estimated from the data, or the
+    configuration's default. Units in the names; frames as in DESIGN.md (lever arm: master frame,
+    master -> slave)."""
+
+    update_hz: float | None = None  # filter update rate; default min(20 Hz, the master's nav rate)
+    lever_arm_m: tuple[float, float, float] | None = None  # known, or the start of the estimate
+    estimate_lever_arm: bool = False  # velocity matching: the lever arm as 3 more states (reported)
+    lever_arm_sigma_m: float | None = None  # its prior sigma per axis (default config.lever_arm_sigma_m)
+    #: seed 000's second-order Markov flexure as 6 more states; "auto": added when the residuals call for
+    #: them (config.flex_auto_*)
+    flexure: bool | str = False
+    flex_beta: float | None = None  # 1/s (default 0.5; with flexure="auto" config.flex_auto_beta_1_s)
+    flex_sigma_deg: float | tuple[float, float, float] | None = None  # one or per axis (default 0.05)
+    mounting_sigma_deg: float | None = None  # prior; default 1 deg after a good coarse fit, else 5
+    gyro_bias_sigma_dph: float | None = None  # priors; default from the grade the noise reveals
+    accel_bias_sigma_mg: float | None = None
+    gyro_arw_dpsh: float | None = None  # slave noise densities; estimated from the data when None
+    accel_vrw_ug_psh: float | None = None
+    r_vel_m_s: float | None = None  # measurement noise; estimated from the master's data when None
+    r_att_arcsec: float | None = None
+    #: initial delay: for kf-split the constant part shifted before the filter; for kf-delay, when None, the
+    #: delay state starts from a coarse fit of the angular-rate magnitudes (0.0: S004's augmentation alone)
+    delay_s: float | None = None
+    delay_sigma_s: float | None = None  # prior of the delay state (default 0.1 s)
+    delay_max_s: float = 1.0  # bound of the delay state and of its coarse search
+    delay_state: bool = False  # carry the delay state with any filter (e.g. ahinf: S002 with delay)
+    hinf_gamma: float = 1.0
+    lat_deg: float | None = None  # when neither log has a position (default 45 deg)
+    mounting_guess_rpy_deg: tuple[float, float, float] | None = None  # skip the coarse step
+    max_history_rows: int = 2000
+    #: when the first pass's mean NIS exceeds 3 x its dof, rerun with the measurement noise taken from the
+    #: residual RMS
+    recalibrate_noise: bool = True
+
+    def __post_init__(self):
+        if not (isinstance(self.flexure, bool) or self.flexure == "auto"):
+            raise AnalysisError(f"flexure must be True, False or 'auto', not {self.flexure!r}")
+
+    @property
+    def flexure_auto(self) -> bool:
+        return isinstance(self.flexure, str) and self.flexure == "auto"
+
+
+@dataclass(frozen=True)
+class AlignmentConfig:
+    """Every tuning value of the alignment, each with why it is what it is (the test or benchmark that set
+    it). Frozen; vary with ``dataclasses.replace``."""
+
+    #: the filter's update rate when the options give none (and the master's navigation output is not
+    #: slower: interpolated master samples between two updates would count the same information twice)
+    default_update_hz: float = 20.0
+    #: roll, pitch, yaw thresholds on the mounting sigma for "converged" (arcmin; the S004 ship case,
+    #: tests/test_alignment.py::test_s004_ship_no_delay_accurate_fast_and_quick)
+    converged_arcmin: tuple[float, float, float] = (1.0, 1.0, 2.0)
+    #: a step of the slave's IMU stamps beyond imu_gap_s and beyond imu_gap_periods x its median step is a gap:
+    #: the slave's navigation restarts from the master after it (tests: slave_gaps_s in the compiled/reference test)
+    imu_gap_s: float = 0.25
+    imu_gap_periods: float = 10.0
+    #: flexure="auto": a second pass with flexure states when the mean NIS exceeds flex_auto_nis x dof ...
+    flex_auto_nis: float = 10.0
+    #: ... kept when its mean NIS falls below flex_auto_gain x the rigid pass's (the flexing-multirotor tests)
+    flex_auto_gain: float = 0.5
+    #: the flexure model of that pass, and of ``--flexure on`` without a fitted one: seed 000's (eq 8)
+    flex_auto_sigma_deg: float = 0.05
+    flex_auto_beta_1_s: float = 2.0
+    #: a fitted (latency) flexure model goes into the alignment only when it looks like a structure's
+    #: flexure: correlated over at most 1/flex_model_min_beta_1_s seconds and of at most flex_model_max_deg
+    #: (a slow wander of degrees, the ArduCopter log0036 pair's 4.7 deg at beta 0.013, is not separable
+    #: from the mounting and would only blur it). See :func:`accepts_flexure_model`.
+    flex_model_min_beta_1_s: float = 0.2
+    flex_model_max_deg: float = 1.0
+    #: re-estimated measurement noise beyond these: a note that the filter did not follow the data (no
+    #: navigation output is that noisy)
+    implausible_r_vel_m_s: float = 1.0
+    implausible_r_att_deg: float = 2.0
+    #: where the rates turn about one axis (a car on a level road), rates and specific forces in one Wahba
+    #: problem (benchmarks/bench_alignment_random.py: the "rigid" variant turns it off)
+    coarse_joint: bool = True
+    #: ... a start when the joint problem's 2nd singular value is this much of the 1st
+    coarse_joint_ratio: float = 0.05
+    #: ... and the specific forces move (rms, on their principal axes) at least this much (m/s^2)
+    coarse_min_force_m_s2: float = 0.02
+    #: a nav-only master's rate (lever arm) from its attitude differenced over +- this at most (s) ...
+    lever_rate_max_half_span_s: float = 0.05
+    #: ... shorter where the motion would be attenuated beyond this (a multirotor's 1-2 Hz rates: 2.5 arcmin
+    #: off with +- 0.05 s; tests/test_alignment.py, the rate-from-attitude test)
+    lever_rate_attenuation: float = 1e-4
+    #: prior sigma of an estimated lever arm (per axis, m)
+    lever_arm_sigma_m: float = 1.0
+    #: an estimated lever arm beyond this many prior sigmas gets a note (absorbing an uncompensated delay?)
+    lever_arm_implausible_sigmas: float = 10.0
+    #: a state is observable when its sigma fell below this fraction of its prior
+    observable_shrink: float = 0.5
+    #: attitude-only matching takes the mounting's Jacobian at the running slave attitude, not the
+    #: first-estimate one (C_nm R0^T): with tight attitude noise and a mounting rolled past ~80 deg the
+    #: first-estimate Jacobian made the aircraft's straight, unobservable start diverge (residuals of 180
+    #: deg); velocity matching keeps it (there it stops the filter from inventing information)
+    att_only_fej: bool = False
+    #: the KF kinds run as the compiled loop; False: the Python reference loop (the test that they agree)
+    compiled_kf: bool = True
+
+
+#: the configuration the benchmarks measured
+CONFIG = AlignmentConfig()
+
+
+def accepts_flexure_model(sigma_deg, beta_1_s: float, config: AlignmentConfig = CONFIG) -> bool:
+    """Whether a fitted flexure model (sigma per axis, deg; beta, 1/s) is a structure's flexure the
+    alignment should carry as states (config.flex_model_*). The latency's own "is this flexure?" guard
+    (a Kalman candidate or not) is a separate, looser one in logtools.latency."""
+    return bool(float(beta_1_s) >= config.flex_model_min_beta_1_s
+                and max(float(s) for s in sigma_deg) <= config.flex_model_max_deg)
