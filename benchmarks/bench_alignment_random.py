@@ -182,6 +182,8 @@ def run_one(d: dict) -> dict:
                "rigid": AlignmentOptions()}
     # rigid: the coarse mounting from the rates alone, as before
     configs = {"tapost": CONFIG, "rigid": dataclasses.replace(CONFIG, coarse_joint=False)}
+    if d.get("widen"):  # the sigmas widened by the innovations' correlation time (issue 22)
+        configs = {k: dataclasses.replace(c, innov_corr_min=2.0) for k, c in configs.items()}
     for v in VARIANTS:
         t0 = time.perf_counter()
         try:
@@ -241,12 +243,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default=None, help=f"default {OUT} ({OUT_REAL} with --real-errors)")
     ap.add_argument("--real-errors", action="store_true",
                     help="add real boards' error sources (see real_errors()) and check alignment.imu_to_imu")
+    ap.add_argument("--widen", action="store_true",
+                    help="alignment sigmas widened by the innovations' correlation time (AlignmentConfig.innov_corr_min)")
     a = ap.parse_args(argv)
     a.out = a.out or (OUT_REAL if a.real_errors else OUT)
     jobs = ([draw(i, a.seed) for i in range(a.runs)] + [draw_one_axis(a.runs + i, a.seed) for i in range(a.one_axis)]
             + [draw_nav_master(a.runs + a.one_axis + i, a.seed) for i in range(a.nav_master)])
     if a.real_errors:
         jobs = [real_errors(d, k, a.seed) for k, d in enumerate(jobs)]
+    if a.widen:
+        jobs = [dict(d, widen=True) for d in jobs]
     t0 = time.time()
     rows = bl.run_pool(run_one, jobs, a.workers, every=8)
     rows.sort(key=lambda r: r["run"])
@@ -258,6 +264,7 @@ def main(argv: list[str] | None = None) -> int:
                wall_time_s=time.time() - t0, summary=summary, rows=rows)
     if a.real_errors:
         out["config"]["real_errors"] = True
+    out["config"]["widen"] = bool(a.widen)
         out["imu_to_imu"] = summarize_imu_to_imu(rows)
     bl.write_json_atomic(a.out, out)
     for s, summ in summary.items():

@@ -34,6 +34,7 @@ from logtools.conventions import dcm_from_rotvec, euler_from_dcm, median_step_s,
 from logtools.inslog import InsLog
 
 HIGHPASS_S = 4.0  # the slow part (biases, mean gravity, earth rate) removed: a centred moving mean this long
+HIGHPASS_RETRY_S = (30.0,)  # ... longer where that leaves too little motion (a ship's sway, gentle S-turns)
 MIN_SAMPLES = 50  # fewer common samples: not measured
 MIN_EXPLAINED = 0.5  # the fitted rotation must explain this fraction of the slave's (high-passed) signal power
 MAX_SIGMA_DEG = 5.0  # an axis less determined than this: the triad's rotation is not reported (null)
@@ -248,6 +249,47 @@ def _triad(u: np.ndarray, v: np.ndarray, k: np.ndarray | None, dt: float, min_ex
                          lever, float(lev[-1]) if lev is not None else None)
 
 
+def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highpass_s: float
+               ) -> TriadRotation | str:
+    """One triad's rotation on common samples (t, master u, slave v), the slow part out over highpass_s."""
+    dt = median_step_s(t)
+    nwin = max(int(round(highpass_s / dt)), 3)
+    k = None
+    if name == "accel" and gm is not None and len(gm[0]) >= 3:
+        w, okw = _interp_at(t, *gm)
+        if okw.all() and float(np.sqrt(np.mean(np.sum(_highpass(w, nwin) ** 2, axis=1)))) > LEVER_MIN_RATE_RAD_S:
+            dw = np.gradient(w, t, axis=0)
+            k = skew(dw) + skew(w) @ skew(w)  # f at r = f + dw x r + w x (w x r)
+            k = _highpass(k.reshape(len(t), 9), nwin).reshape(len(t), 3, 3)
+    # the slow part out; the ends (shorter means) trimmed
+    u, v = _highpass(u, nwin), _highpass(v, nwin)
+    # a delay left between the two (the latency's error, the sensors' own sampling instants) as one more
+    # parameter: v(t) = R u(t - d) ~ R (u - d du/dt); a delay of 1.4 ms turned the rotation of IMU2's gyro
+    # triad by 0.2 deg on a hand-carried ArduPlane (rates and their derivatives correlate across axes)
+    kd = -np.gradient(u, t, axis=0)[:, :, None]
+    k = kd if k is None else np.concatenate([k, kd], axis=2)
+    cut = slice(nwin // 2, len(t) - nwin // 2)
+    res = _triad(u[cut], v[cut], k[cut], dt)
+    if isinstance(res, str):
+        return res
+    # a rotation is the same at every frequency: fitted on the slow and on the fast part of the motion
+    # apart, two figures beyond BAND_Z sigmas say the triads differ by more than a rotation (the
+    # sensors' own filters, vibration aliased into the snapshots, scale factors)
+    nlp = max(int(round(BAND_SPLIT_S / dt)), 2)
+    lo = [u - _highpass(u, nlp), v - _highpass(v, nlp), k - _highpass(k.reshape(len(t), -1), nlp).reshape(k.shape)]
+    hi = [u - lo[0], v - lo[1], k - lo[2]]
+    # (a band the rotation explains poorly is itself the sign: no minimum there, the sigmas judge)
+    bands = [_triad(b[0][cut], b[1][cut], b[2][cut], dt, min_explained=0.0) for b in (lo, hi)]
+    if all(isinstance(b, TriadRotation) for b in bands):
+        zb, _ = _z(bands[0].rpy_deg, bands[0].sigma_deg, bands[1].rpy_deg, bands[1].sigma_deg)
+        res = replace(res, band_z=zb, band_rpy_deg=(bands[0].rpy_deg, bands[1].rpy_deg))
+        if zb > BAND_Z:  # not one rotation: half the bands' spread joins the sigma (the model's error)
+            d = (np.asarray(bands[0].rpy_deg) - np.asarray(bands[1].rpy_deg) + 180.0) % 360.0 - 180.0
+            res = replace(res, sigma_deg=tuple(float(x) for x in np.hypot(res.sigma_deg, 0.5 * d)),
+                          sigma_data_deg=res.sigma_deg)
+    return res
+
+
 def imu_to_imu(master: InsLog, slave: InsLog, *, highpass_s: float = HIGHPASS_S) -> ImuToImu:
     """The rotations of the slave's gyro and accelerometer triads relative to the master's (module doc).
     ``slave`` on the master's clock (compensated). A triad that cannot be measured is None with its reason."""
@@ -268,42 +310,14 @@ def imu_to_imu(master: InsLog, slave: InsLog, *, highpass_s: float = HIGHPASS_S)
             reasons[name] = "too few common IMU samples of the two units"
             continue
         t, u, v = com
-        dt = median_step_s(t)
-        nwin = max(int(round(highpass_s / dt)), 3)
-        k = None
-        if name == "accel" and gm is not None and len(gm[0]) >= 3:
-            w, okw = _interp_at(t, *gm)
-            if okw.all() and float(np.sqrt(np.mean(np.sum(_highpass(w, nwin) ** 2, axis=1)))) > LEVER_MIN_RATE_RAD_S:
-                dw = np.gradient(w, t, axis=0)
-                k = skew(dw) + skew(w) @ skew(w)  # f at r = f + dw x r + w x (w x r)
-                k = _highpass(k.reshape(len(t), 9), nwin).reshape(len(t), 3, 3)
-        # the slow part out; the ends (shorter means) trimmed
-        u, v = _highpass(u, nwin), _highpass(v, nwin)
-        # a delay left between the two (the latency's error, the sensors' own sampling instants) as one more
-        # parameter: v(t) = R u(t - d) ~ R (u - d du/dt); a delay of 1.4 ms turned the rotation of IMU2's gyro
-        # triad by 0.2 deg on a hand-carried ArduPlane (rates and their derivatives correlate across axes)
-        kd = -np.gradient(u, t, axis=0)[:, :, None]
-        k = kd if k is None else np.concatenate([k, kd], axis=2)
-        cut = slice(nwin // 2, len(t) - nwin // 2)
-        res = _triad(u[cut], v[cut], k[cut], dt)
+        res: TriadRotation | str = ""
+        for hp in (highpass_s, *HIGHPASS_RETRY_S):  # slow motion (a ship's sway, S-turns): a longer window
+            res = _one_triad(name, t, u, v, gm, hp)
+            if isinstance(res, TriadRotation):
+                break
         if isinstance(res, str):
             reasons[name] = res
             continue
-        # a rotation is the same at every frequency: fitted on the slow and on the fast part of the motion
-        # apart, two figures beyond BAND_Z sigmas say the triads differ by more than a rotation (the
-        # sensors' own filters, vibration aliased into the snapshots, scale factors)
-        nlp = max(int(round(BAND_SPLIT_S / dt)), 2)
-        lo = [u - _highpass(u, nlp), v - _highpass(v, nlp), k - _highpass(k.reshape(len(t), -1), nlp).reshape(k.shape)]
-        hi = [u - lo[0], v - lo[1], k - lo[2]]
-        # (a band the rotation explains poorly is itself the sign: no minimum there, the sigmas judge)
-        bands = [_triad(b[0][cut], b[1][cut], b[2][cut], dt, min_explained=0.0) for b in (lo, hi)]
-        if all(isinstance(b, TriadRotation) for b in bands):
-            zb, _ = _z(bands[0].rpy_deg, bands[0].sigma_deg, bands[1].rpy_deg, bands[1].sigma_deg)
-            res = replace(res, band_z=zb, band_rpy_deg=(bands[0].rpy_deg, bands[1].rpy_deg))
-            if zb > BAND_Z:  # not one rotation: half the bands' spread joins the sigma (the model's error)
-                d = (np.asarray(bands[0].rpy_deg) - np.asarray(bands[1].rpy_deg) + 180.0) % 360.0 - 180.0
-                res = replace(res, sigma_deg=tuple(float(x) for x in np.hypot(res.sigma_deg, 0.5 * d)),
-                              sigma_data_deg=res.sigma_deg)
         out[name] = res
     return ImuToImu(out["gyro"], out["accel"], reasons)
 

@@ -748,6 +748,14 @@ def _result(run: FilterRun, lay: StateLayout, st: FilterSettings, sig0: np.ndarr
     sig_scale = float(np.sqrt(max(1.0, nis_m / lay.n_meas))) if np.isfinite(nis_m) else 1.0
     if sig_scale > 1.05:
         notes.append(f"reported sigmas scaled by {sig_scale:.2f} = sqrt(mean NIS / dof)")
+    corr = _innovation_correlation_factor(run) if config.innov_corr_min is not None else 1.0
+    if config.innov_corr_min is not None and corr > config.innov_corr_min:
+        # the filter takes the master's errors as white; correlated in time (its EKF's attitude error, a
+        # Markov process), they carry fewer independent samples than epochs: sigmas widened by
+        # sqrt(integrated correlation time in epochs), as the latency's sigma already is
+        sig_scale *= float(np.sqrt(corr))
+        notes.append(f"reported sigmas widened by {np.sqrt(corr):.2f} = sqrt(the innovations' correlation time, "
+                     f"{corr:.1f} epochs): the master's errors are correlated in time")
     mnt = _mounting(run, lay, k_rep, sig_scale, config, notes)
     gb = run.x[k_rep, lay.gyro] / DEG_PER_H
     gbs = sig_scale * np.sqrt(run.p_diag[k_rep, lay.gyro]) / DEG_PER_H
@@ -803,6 +811,35 @@ class MountingSummary:
     sig_e: np.ndarray  # (M+1, 3) rad, unscaled: the history's sigma
     hist_deg: np.ndarray  # (M+1, 3) yaw continuous around the final value
     converged_s: float | None  # from the start, by the forward filter's sigma (config.converged_arcmin)
+
+
+def _innovation_correlation_factor(run: FilterRun) -> float:
+    """The median over the innovation channels of their integrated correlation time (epochs, 1 + 2 sum of
+    the autocorrelation up to its first zero crossing), at most a tenth of the epochs with an update (1.0
+    when too few). The median, not the largest: a channel that carries little of the mounting (the
+    attitude's on an agile multirotor) would widen every sigma by its own correlation."""
+    inn = run.innov
+    if inn is None or inn.ndim != 2 or inn.shape[0] < 20:
+        return 1.0
+    rows = np.isfinite(inn).all(axis=1)
+    x = inn[rows]
+    if len(x) < 20:
+        return 1.0
+    x = x - x.mean(axis=0)
+    var = np.sum(x * x, axis=0)
+    x = x[:, var > 0]
+    if x.shape[1] == 0:
+        return 1.0
+    n = len(x)
+    nfft = 1 << int(np.ceil(np.log2(2 * n)))
+    f = np.fft.rfft(x, nfft, axis=0)
+    ac = np.fft.irfft(f * np.conj(f), nfft, axis=0)[:n] / np.sum(x * x, axis=0)
+    taus = []
+    for c in range(ac.shape[1]):  # over the (at most 6) channels
+        neg = np.nonzero(ac[1:, c] <= 0)[0]
+        m = int(neg[0]) if len(neg) else n - 1
+        taus.append(1.0 + 2.0 * float(np.sum(ac[1:m + 1, c])))
+    return float(min(np.median(taus), n / 10.0))
 
 
 def _mounting(run: FilterRun, lay: StateLayout, k_rep: int, sig_scale: float, config: AlignmentConfig,
