@@ -28,7 +28,8 @@ PAIRS = [
     (C36, ATT_GPS, "imu=IMU2,att=AHR2"),
     (C14, ATT_GPS, "imu=IMU2"),
     (TLOG, "imu=RAW_IMU,att=ATTITUDE,vel=GLOBAL_POSITION_INT,pos=GLOBAL_POSITION_INT", "imu=SCALED_IMU2,att=AHRS2"),
-    (ULG, "", ""),
+    (ULG, "imu=sensor_combined,att=vehicle_attitude,vel=vehicle_local_position",
+     "imu=sensor_combined,att=vehicle_attitude,vel=vehicle_local_position"),  # against itself
     (BAG, "odom=/stereo_odometer/odometry", "imu=/xsens/imu_data"),
     (BAG, "odom=/wheel_odometry", "imu=/xsens/imu_data"),
     ("ngimu_session/blue", "", ""),
