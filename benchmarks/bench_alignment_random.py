@@ -262,9 +262,9 @@ def main(argv: list[str] | None = None) -> int:
                config=dict(runs=a.runs, seed=a.seed, max_lag_s=bl.MAX_LAG_S),
                machine=dict(python=platform.python_version(), cpus=os.cpu_count(), workers=a.workers),
                wall_time_s=time.time() - t0, summary=summary, rows=rows)
+    out["config"]["widen"] = bool(a.widen)
     if a.real_errors:
         out["config"]["real_errors"] = True
-    out["config"]["widen"] = bool(a.widen)
         out["imu_to_imu"] = summarize_imu_to_imu(rows)
     bl.write_json_atomic(a.out, out)
     for s, summ in summary.items():
