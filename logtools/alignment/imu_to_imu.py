@@ -40,6 +40,9 @@ MIN_EXPLAINED = 0.5  # the fitted rotation must explain this fraction of the sla
 MAX_SIGMA_DEG = 5.0  # an axis less determined than this: the triad's rotation is not reported (null)
 GAP_STEPS = 3.0  # a step of a unit's stamps beyond this many of its median steps is a gap (not bridged)
 CONSISTENCY_Z = 3.0  # beyond this many combined sigmas the two views disagree
+#: ... the combined sigma taken as at least this (deg): a log against itself agrees to 1e-4 deg, which is
+#: no disagreement however small its sigma (interpolation between the two units' stamps)
+CONSISTENCY_FLOOR_DEG = 0.005
 BAND_SPLIT_S = 0.4  # the slow and the fast part of the motion split at this period (moving mean)
 BAND_Z = 3.0  # the two bands' rotations further apart than this many combined sigmas: not one rotation
 LEVER_MIN_RATE_RAD_S = 0.3  # the accelerometers' lever arm is estimated where the rates move at least this (rms)
@@ -326,7 +329,7 @@ def imu_to_imu(master: InsLog, slave: InsLog, *, highpass_s: float = HIGHPASS_S)
 def _z(a_rpy: np.ndarray, a_sig: np.ndarray, b_rpy: np.ndarray, b_sig: np.ndarray) -> tuple[float, np.ndarray]:
     d = (_arr(a_rpy) - _arr(b_rpy) + 180.0) % 360.0 - 180.0
     s = np.sqrt(_arr(a_sig) ** 2 + _arr(b_sig) ** 2)
-    z = np.abs(d) / np.maximum(s, 1e-12)
+    z = np.abs(d) / np.maximum(s, CONSISTENCY_FLOOR_DEG)
     return float(np.nanmax(z)), d  # axes not determined (null) are left out
 
 
@@ -380,6 +383,10 @@ def consistency(mount_rpy_deg, mount_sigma_deg, imu: ImuToImu) -> dict:
     figures = ", ".join(f"{k[2:].replace('_', ' vs ')} z {z:.1f}" for k, (z, _) in views.items())
     if out["agrees"]:
         out["note"] = f"agree within {CONSISTENCY_Z:g} combined sigma ({figures})"
+        loose = [n for n, tr in (("gyro", imu.gyro), ("accel", imu.accel)) if tr is not None and tr.rigid is False]
+        if loose:
+            out["note"] += (f"; but the {' and '.join(loose)} triads differ by more than a rotation (slow and fast "
+                            "motion disagree), so their sigmas carry that spread and the check is weak")
     else:
         out["note"] = f"disagree beyond {CONSISTENCY_Z:g} combined sigma ({figures}): likely " + "; ".join(causes)
         out["warning"] = out["note"]
