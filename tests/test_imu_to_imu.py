@@ -169,3 +169,24 @@ def test_triads_that_differ_by_more_than_a_rotation_are_flagged_and_their_sigma_
     assert res.gyro.rigid is True  # the gyros were not touched
     straight = imu_to_imu(master, slave)
     assert straight.accel.rigid is True and straight.accel.sigma_data_deg is None
+
+
+def test_a_mounting_axis_the_data_did_not_determine_is_null_with_its_reason():
+    """DESIGN.md: an estimate the data cannot determine is null with a reason, never its prior (the SITL
+    tlog's yaw was printed while report.json called it not observable)."""
+    from logtools.results import AlignmentResult
+    from pipelines.analyze import summary_lines
+    from pipelines.report import alignment_section
+
+    res = AlignmentResult(filter="kf", match="att", mounting_rpy_deg=(0.03, 0.49, -0.20),
+                          mounting_sigma_deg=(0.01, 0.01, 5.0), gyro_bias_dph=(0.0, 0.0, 0.0),
+                          accel_bias_mg=(0.0, 0.0, 0.0), converged_s=None,
+                          observability={"mounting_roll": True, "mounting_pitch": True, "mounting_yaw": False})
+    sec = alignment_section(res)
+    assert sec["mounting_rpy_deg"] == [0.03, 0.49, None]
+    assert "not observable" in sec["mounting_not_determined"]["yaw"]
+    rep = {"master": {"path": "m", "format": "f", "clock": "boot", "duration_s": 1.0},
+           "slave": {"path": "s", "format": "f", "clock": "boot", "duration_s": 1.0},
+           "latency": {"failed": "x"}, "alignment": {"uncompensated": sec, "compensated": sec}}
+    lines = "\n".join(summary_lines(rep, {}))
+    assert "-0.2000" not in lines and "n/a" in lines and "not determined (n/a): yaw" in lines
