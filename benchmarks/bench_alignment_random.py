@@ -42,6 +42,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import bench_latency as bl  # noqa: E402
 
 OUT = os.path.join(bl.RESULTS_DIR, "alignment_random.json")
+OUT_REAL = os.path.join(bl.RESULTS_DIR, "alignment_random_real_errors.json")
 VARIANTS = ("tapost", "rigid")
 SETS = ("neither", "lever arm", "flexure", "both")
 
@@ -80,6 +81,60 @@ def draw_nav_master(i: int, base_seed: int) -> dict:
     return d
 
 
+def real_errors(d: dict, i: int, base_seed: int) -> dict:
+    """The error sources of real boards (issue 22) added to a draw: the slave's accelerometer triad 0.5-2 deg
+    off its gyro triad (random axis), the master's attitude with a first-order Markov error of 0.05-0.2 deg
+    and 10-100 s correlation, the slave's IMU as 25 or 50 Hz snapshots with 0.05-0.3 m/s^2 / 0.05-0.3 deg/s
+    of vibration near 97 Hz (aliased into the motion's band)."""
+    rng = np.random.default_rng([base_seed, i, 53])
+    axis = rng.standard_normal(3)
+    axis /= np.linalg.norm(axis)
+    from logtools.conventions import dcm_from_rotvec, euler_from_dcm
+
+    mis = np.degrees(euler_from_dcm(dcm_from_rotvec(np.radians(rng.uniform(0.5, 2.0)) * axis)))
+    d = dict(d)
+    d["extra"] = {**d.get("extra", {}),
+                  "slave_accel_misalign_rpy_deg": tuple(float(x) for x in mis),
+                  "master_att_markov_deg": float(rng.uniform(0.05, 0.2)),
+                  "master_att_markov_tau_s": float(rng.uniform(10.0, 100.0)),
+                  "slave_vibration_accel_m_s2": float(rng.uniform(0.05, 0.3)),
+                  "slave_vibration_gyro_dps": float(rng.uniform(0.05, 0.3))}
+    d["slave_imu_rate_hz"] = float(rng.choice([25.0, 50.0]))
+    d["real_errors"] = True
+    return d
+
+
+def _imu_to_imu_row(pair, slave) -> dict:
+    """alignment.imu_to_imu against its truth: per triad the error (deg) and z per axis."""
+    from logtools.alignment.imu_to_imu import imu_to_imu
+
+    res = imu_to_imu(pair.master, slave)
+    out = {}
+    for name, tr, truth in (("gyro", res.gyro, pair.truth.imu_to_imu_gyro_rpy_deg),
+                            ("accel", res.accel, pair.truth.imu_to_imu_accel_rpy_deg)):
+        if tr is None or truth is None:
+            out[name] = dict(note=res.reasons.get(name, "not measured"))
+            continue
+        e = (np.asarray(tr.rpy_deg) - np.asarray(truth) + 180.0) % 360.0 - 180.0
+        out[name] = dict(error_deg=[float(x) for x in e], z=[float(x) for x in np.abs(e) / np.asarray(tr.sigma_deg)],
+                         rigid=tr.rigid)
+    return out
+
+
+def summarize_imu_to_imu(rows: list[dict]) -> dict:
+    out = {}
+    for name in ("gyro", "accel"):
+        z = np.array([r["imu_to_imu"][name]["z"] for r in rows if "z" in r.get("imu_to_imu", {}).get(name, {})])
+        e = np.array([r["imu_to_imu"][name]["error_deg"] for r in rows
+                      if "z" in r.get("imu_to_imu", {}).get(name, {})])
+        out[name] = dict(n=int(len(z)), not_measured=int(sum(1 for r in rows if "imu_to_imu" in r) - len(z)),
+                         axes_within_2_sigma=float(np.mean(z <= 2.0)) if len(z) else None,
+                         runs_all_axes_within_2_sigma=float(np.mean((z <= 2.0).all(axis=1))) if len(z) else None,
+                         rms_error_arcmin=float(np.sqrt(np.mean(e ** 2)) * 60.0) if len(e) else None,
+                         worst_z=float(z.max()) if len(z) else None)
+    return out
+
+
 def set_of(d: dict) -> str:
     if d.get("set") in ("one-axis", "nav-master"):
         return d["set"]
@@ -113,6 +168,8 @@ def run_one(d: dict) -> dict:
     try:
         lat = estimate(pair.master, pair.slave, max_lag_s=bl.MAX_LAG_S, compare=False)
         slave = compensate(pair.slave, lat, pair.master)
+        if d.get("real_errors") and pair.master.has_gyro:
+            row["imu_to_imu"] = _imu_to_imu_row(pair, slave)
         match, why = _resolve_match(pair.master, "auto")
         if match is None:
             raise RuntimeError(why)
@@ -125,6 +182,8 @@ def run_one(d: dict) -> dict:
                "rigid": AlignmentOptions()}
     # rigid: the coarse mounting from the rates alone, as before
     configs = {"tapost": CONFIG, "rigid": dataclasses.replace(CONFIG, coarse_joint=False)}
+    if d.get("widen"):  # the sigmas widened by the innovations' correlation time (issue 22)
+        configs = {k: dataclasses.replace(c, innov_corr_min=2.0) for k, c in configs.items()}
     for v in VARIANTS:
         t0 = time.perf_counter()
         try:
@@ -181,10 +240,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--nav-master", type=int, default=24,
                     help="further pairs whose master logs only its navigation solution (half of them one-axis)")
     ap.add_argument("--seed", type=int, default=2027)
-    ap.add_argument("--out", default=OUT)
+    ap.add_argument("--out", default=None, help=f"default {OUT} ({OUT_REAL} with --real-errors)")
+    ap.add_argument("--real-errors", action="store_true",
+                    help="add real boards' error sources (see real_errors()) and check alignment.imu_to_imu")
+    ap.add_argument("--widen", action="store_true",
+                    help="alignment sigmas widened by the innovations' correlation time (AlignmentConfig.innov_corr_min)")
     a = ap.parse_args(argv)
+    a.out = a.out or (OUT_REAL if a.real_errors else OUT)
     jobs = ([draw(i, a.seed) for i in range(a.runs)] + [draw_one_axis(a.runs + i, a.seed) for i in range(a.one_axis)]
             + [draw_nav_master(a.runs + a.one_axis + i, a.seed) for i in range(a.nav_master)])
+    if a.real_errors:
+        jobs = [real_errors(d, k, a.seed) for k, d in enumerate(jobs)]
+    if a.widen:
+        jobs = [dict(d, widen=True) for d in jobs]
     t0 = time.time()
     rows = bl.run_pool(run_one, jobs, a.workers, every=8)
     rows.sort(key=lambda r: r["run"])
@@ -194,11 +262,18 @@ def main(argv: list[str] | None = None) -> int:
                config=dict(runs=a.runs, seed=a.seed, max_lag_s=bl.MAX_LAG_S),
                machine=dict(python=platform.python_version(), cpus=os.cpu_count(), workers=a.workers),
                wall_time_s=time.time() - t0, summary=summary, rows=rows)
+    out["config"]["widen"] = bool(a.widen)
+    if a.real_errors:
+        out["config"]["real_errors"] = True
+        out["imu_to_imu"] = summarize_imu_to_imu(rows)
     bl.write_json_atomic(a.out, out)
     for s, summ in summary.items():
         n = summ["tapost"]["n"] + summ["tapost"]["failed"]
         print(md_table(summ, f"{s} ({n} runs)"))
         print()
+    if a.real_errors:
+        for name, si in out["imu_to_imu"].items():
+            print(f"imu_to_imu {name}: {si}")
     print(f"wrote {a.out} ({time.time() - t0:.0f} s)")
     return 0
 

@@ -53,6 +53,7 @@ from logtools.conventions import (
     UG_PER_SQRT_HZ,
     dcm_from_euler,
     dcm_from_rotvec,
+    euler_from_dcm,
     quat_conj,
     quat_from_dcm,
     quat_from_euler,
@@ -150,6 +151,18 @@ class SimConfig:
     slave_start_phase: float | None = None
     #: slave data dropped where the true time is in [start, start + length)
     slave_gaps_s: tuple[tuple[float, float], ...] = ()
+    # -- real-board error sources (issue 22) ---------------------------------------------------
+    #: the slave's accelerometer triad rotated from its gyro triad (deg, [r, p, y], v_accel = M v_gyro)
+    slave_accel_misalign_rpy_deg: Vec3 = (0.0, 0.0, 0.0)
+    #: the master's attitude output with a first-order Markov error (deg per axis, correlation time s):
+    #: its EKF's attitude error, correlated in time, not white
+    master_att_markov_deg: float = 0.0
+    master_att_markov_tau_s: float = 30.0
+    #: vibration on the slave's IMU (rms of a narrow band around vibration_hz, per axis); sampled as
+    #: snapshots at a low slave_imu_rate_hz (25-50 Hz) it aliases into the band of the motion
+    slave_vibration_accel_m_s2: float = 0.0
+    slave_vibration_gyro_dps: float = 0.0
+    vibration_hz: float = 97.0
     # -- flexure (seed 000 eq. 8) -------------------------------------------------------------
     flexure: bool = False
     flexure_sigma_deg: Vec3 = (0.05, 0.05, 0.05)
@@ -167,7 +180,8 @@ class SimConfig:
             master_accel_vrw_ug_rthz=0.0, master_att_noise_deg=0.0, master_vel_noise_m_s=0.0,
             master_pos_noise_m=0.0, master_jitter_s=0.0, slave_gyro_bias_dph=z3, slave_accel_bias_mg=z3,
             slave_gyro_arw_dpsh=0.0, slave_accel_vrw_ug_rthz=0.0, slave_att_noise_deg=0.0,
-            slave_vel_noise_m_s=0.0, slave_pos_noise_m=0.0, slave_jitter_s=0.0)
+            slave_vel_noise_m_s=0.0, slave_pos_noise_m=0.0, slave_jitter_s=0.0, master_att_markov_deg=0.0,
+            slave_vibration_accel_m_s2=0.0, slave_vibration_gyro_dps=0.0)
 
 
 def _validate(c: SimConfig) -> None:
@@ -184,7 +198,7 @@ def _validate(c: SimConfig) -> None:
             raise bad(f"{name} must be in [1, 10000] Hz, got {v}")
     for name in ("sway_amp_deg", "sway_period_s", "master_gyro_bias_dph", "master_accel_bias_mg",
                  "mount_rpy_deg", "lever_arm_m", "slave_gyro_bias_dph", "slave_accel_bias_mg",
-                 "flexure_sigma_deg", "flexure_beta_1_s"):
+                 "flexure_sigma_deg", "flexure_beta_1_s", "slave_accel_misalign_rpy_deg"):
         v = getattr(c, name)
         if len(v) != 3 or not all(math.isfinite(float(x)) for x in v):
             raise bad(f"{name} needs 3 finite numbers, got {v!r}")
@@ -213,8 +227,11 @@ def _validate(c: SimConfig) -> None:
     if min(c.master_jitter_s, c.slave_jitter_s, c.master_gyro_arw_dpsh, c.slave_gyro_arw_dpsh,
            c.master_accel_vrw_ug_rthz, c.slave_accel_vrw_ug_rthz, c.master_att_noise_deg,
            c.master_vel_noise_m_s, c.master_pos_noise_m, c.slave_att_noise_deg,
-           c.slave_vel_noise_m_s, c.slave_pos_noise_m) < 0:
+           c.slave_vel_noise_m_s, c.slave_pos_noise_m, c.master_att_markov_deg, c.slave_vibration_accel_m_s2,
+           c.slave_vibration_gyro_dps) < 0:
         raise bad("noise and jitter levels must be >= 0")
+    if not (c.master_att_markov_tau_s > 0 and c.vibration_hz > 0):
+        raise bad("master_att_markov_tau_s and vibration_hz must be positive")
 
 
 _SCENARIO_DEFAULTS: dict[str, dict] = {
@@ -784,6 +801,10 @@ class Truth:
     flexure: dict = field(default_factory=dict)
     rates_hz: dict = field(default_factory=dict)
     config: SimConfig | None = None
+    #: the slave's gyro and accelerometer triads relative to the master's IMU (what alignment.imu_to_imu
+    #: measures): the mounting, and the accelerometers' misalignment composed with it
+    imu_to_imu_gyro_rpy_deg: Vec3 | None = None
+    imu_to_imu_accel_rpy_deg: Vec3 | None = None
 
     @property
     def t_mid_s(self) -> float:
@@ -832,6 +853,10 @@ class Truth:
             "clocks": {"master": self.master_clock, "slave": self.slave_clock,
                        "master_t0_ns": int(self.master_t0_ns), "slave_t0_ns": int(self.slave_t0_ns)},
             "flexure": dict(self.flexure),
+            "imu_to_imu_gyro_rpy_deg": (list(self.imu_to_imu_gyro_rpy_deg)
+                                        if self.imu_to_imu_gyro_rpy_deg is not None else None),
+            "imu_to_imu_accel_rpy_deg": (list(self.imu_to_imu_accel_rpy_deg)
+                                         if self.imu_to_imu_accel_rpy_deg is not None else None),
             "notes": ("latency_s = slave stamp - master stamp for the same physical instant at t_mid_s; "
                       "latency(t) = latency_s + drift_ppm*1e-6*(t - t_mid_s). With slave_clock='boot' "
                       "it includes clock_offset_s; latency_excl_clock_offset_s is the physical part."),
@@ -906,6 +931,28 @@ def _imu_errors(rng: np.random.Generator, n: int, rate_hz: float, gyro_bias_dph,
     a = np.asarray(accel_bias_mg, float) * MG + rng.standard_normal((n, 3)) * (
         accel_vrw * UG_PER_SQRT_HZ * math.sqrt(rate_hz))
     return g, a
+
+
+def _markov(rng: np.random.Generator, t_s: np.ndarray, sigma: float, tau_s: float) -> np.ndarray:
+    """First-order Gauss-Markov process (n, 3) on the uniform stamps t_s: stationary sigma, correlation
+    time tau_s (exact discretisation, run by lfilter)."""
+    n = len(t_s)
+    if n == 0:
+        return np.zeros((0, 3))
+    a = math.exp(-(float(np.median(np.diff(t_s))) if n > 1 else 0.0) / tau_s)
+    w = rng.standard_normal((n, 3)) * (sigma * math.sqrt(1.0 - a * a))
+    x0 = rng.standard_normal(3) * sigma
+    return lfilter([1.0], [1.0, -a], w, axis=0, zi=(a * x0)[None, :])[0]
+
+
+def _vibration(rng: np.random.Generator, t_s: np.ndarray, f_hz: float, rms: float) -> np.ndarray:
+    """Narrow-band vibration (n, 3): per axis five tones within +-10 % of f_hz, random phases, total rms."""
+    if rms <= 0:
+        return np.zeros((len(t_s), 3))
+    f = f_hz * rng.uniform(0.9, 1.1, (5, 3))
+    ph = rng.uniform(0.0, 2 * np.pi, (5, 3))
+    tones = np.sin(2 * np.pi * f[None] * t_s[:, None, None] + ph[None])  # (n, 5, 3)
+    return tones.sum(axis=1) * (rms * np.sqrt(2.0 / 5.0))
 
 
 def _keep_outside_gaps(t_s: np.ndarray, gaps) -> np.ndarray:
@@ -990,6 +1037,10 @@ def simulate(cfg: SimConfig) -> SimPair:
     m_gyro = m_w + g_err
     m_accel = m_f + a_err
     m_quat = _perturb_quat(quat_make_continuous(m_q[i_nav]), cfg.master_att_noise_deg * DEG, rng_m_nav)
+    if cfg.master_att_markov_deg > 0:  # its own random stream: the other outputs stay as they were
+        rng_mk = np.random.default_rng(ss.spawn(1)[0])
+        err = _markov(rng_mk, m_nav_t, cfg.master_att_markov_deg * DEG, cfg.master_att_markov_tau_s)
+        m_quat = quat_make_continuous(quat_mul(quat_from_rotvec(err), m_quat))
     m_vel = m_v[i_nav] + rng_m_nav.standard_normal((len(i_nav), 3)) * cfg.master_vel_noise_m_s
     m_lla = _perturb_llh(m_p[i_nav], cfg.master_pos_noise_m, rng_m_nav)
     del m_w, m_f, m_q, m_v, m_p
@@ -1035,7 +1086,13 @@ def simulate(cfg: SimConfig) -> SimPair:
     s_gyro, s_accel = (body[0], body[1]) if i_imu is None else (body[0][i_imu], body[1][i_imu])
     g_err, a_err = _imu_errors(rng_s_imu, len(s_imu_t), cfg.slave_imu_rate_hz, cfg.slave_gyro_bias_dph,
                                cfg.slave_gyro_arw_dpsh, cfg.slave_accel_bias_mg, cfg.slave_accel_vrw_ug_rthz)
+    if any(cfg.slave_accel_misalign_rpy_deg):
+        s_accel = _mv(dcm_from_euler(np.radians(np.asarray(cfg.slave_accel_misalign_rpy_deg, float))), s_accel)
     s_gyro, s_accel = s_gyro + g_err, s_accel + a_err
+    if cfg.slave_vibration_accel_m_s2 > 0 or cfg.slave_vibration_gyro_dps > 0:
+        rng_vib = np.random.default_rng(ss.spawn(1)[0])
+        s_accel = s_accel + _vibration(rng_vib, s_imu_t, cfg.vibration_hz, cfg.slave_vibration_accel_m_s2)
+        s_gyro = s_gyro + _vibration(rng_vib, s_imu_t, cfg.vibration_hz, cfg.slave_vibration_gyro_dps * DEG)
     s_imu_abs = int(cfg.t0_ns) + offset_ns + s_imu_sig + _jitter_ns(
         rng_s_jit, len(s_imu_sig), cfg.slave_jitter_s, cfg.slave_imu_rate_hz)
     nav_kw: dict = {}
@@ -1083,5 +1140,8 @@ def simulate(cfg: SimConfig) -> SimPair:
                   "slave_imu": cfg.slave_imu_rate_hz,
                   "slave_nav": cfg.slave_nav_rate_hz if cfg.slave_nav else 0.0},
         config=cfg,
+        imu_to_imu_gyro_rpy_deg=tuple(float(x) for x in cfg.mount_rpy_deg),
+        imu_to_imu_accel_rpy_deg=tuple(float(x) for x in np.degrees(euler_from_dcm(
+            dcm_from_euler(np.radians(np.asarray(cfg.slave_accel_misalign_rpy_deg, float))) @ mat_sm0))),
     )
     return SimPair(master=master, slave=slave, truth=truth)

@@ -387,9 +387,16 @@ def unit_selectors(cat: Catalog) -> list[dict[str, str]]:
                     sel["vel"] = vel
                 if pos:
                     sel["pos"] = pos
+            if "imu" not in sel and sel.get("att") in NO_TIME_FIELD and "vel" not in sel:
+                # an attitude-only unit whose attitude has no time field: its stamps are the tlog's receive
+                # times (link delay, bursts), and the latency would rest on them alone: not offered
+                continue
             if "imu" in sel or "att" in sel:
                 out.append(sel)
     return out
+
+
+NO_TIME_FIELD = ("AHRS2", "AHRS3")  # messages stamped with their receive time (see _stamp_kinds)
 
 
 def _sel_text(sel: dict[str, str]) -> str:

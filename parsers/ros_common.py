@@ -557,6 +557,17 @@ def _imu_has_orientation(rawlog: RawLog, topic: str) -> bool:
     return bool(np.any(ok & (c["q_cov0"] != -1)))
 
 
+def _imu_all_zero(rawlog: RawLog, topic: str, n: int = 200) -> bool:
+    """True when the first ``n`` messages of an Imu topic hold only zero rates and specific forces (a
+    placeholder topic: nothing to estimate from, so not offered as a unit)."""
+    raw = rawlog.topics[topic]
+    sub = RawTopic(raw.name, raw.msgtype, raw.encoding, raw.log_ns[:n], raw.data[:n])
+    keys = [f"g{c}" for c in "xyz"] + [f"a{c}" for c in "xyz"]
+    c = decode_topic(rawlog.typestore, sub, {k: FIELDS[IMU][k] for k in keys}).columns
+    vals = np.stack([np.asarray(c[k], float) for k in keys])
+    return bool(vals.size) and bool(np.all(vals == 0.0))
+
+
 def plan_unit(rawlog: RawLog, selector: Selector) -> tuple[Plan, list[str]]:
     """Decide the topics of the unit (selector, else defaults); notes say what was picked."""
     notes: list[str] = []
@@ -782,6 +793,9 @@ def to_inventory(rawlog: RawLog) -> Inventory:
     if fixes:
         nav_extra.append(f"pos={fixes[0]}")
     for imu in _topics_of(rawlog, IMU):
+        if _imu_all_zero(rawlog, imu):
+            notes.append(f"{imu}: every reading zero (a placeholder topic): not offered as a unit")
+            continue
         items = [f"imu={imu}"]
         if atts and not _imu_has_orientation(rawlog, imu):
             items.append(f"att={atts[0]}")

@@ -305,6 +305,35 @@ def _alignment(master: InsLog, slave: InsLog, run: str, opts: AnalyzeOptions, pr
         return exc.problem
 
 
+def _imu_to_imu_sections(master: InsLog, an: rp.Analysis, align_sections: dict, extra: dict) -> None:
+    """``alignment.imu_to_imu`` and ``alignment.consistency`` (DESIGN.md) where both units log an IMU: the
+    slave's triads against the master's, on the compensated slave; a disagreement with the compensated
+    nav-referenced mounting beyond 3 combined sigma is a warning naming the likely cause."""
+    slave = an.slave_comp
+    if not ((master.has_gyro or master.has_accel) and (an.slave.has_gyro or an.slave.has_accel)):
+        return  # the contract: only where both units log an IMU
+    from logtools.alignment.imu_to_imu import consistency, imu_to_imu
+
+    if slave is None:
+        align_sections["imu_to_imu"] = {"gyro_rpy_deg": None, "gyro_sigma_deg": None, "accel_rpy_deg": None,
+                                        "accel_sigma_deg": None,
+                                        "reasons": {"gyro": "no compensated slave (latency or compensation "
+                                                            "failed)", "accel": "no compensated slave"}}
+        return
+    res = imu_to_imu(master, slave)
+    align_sections["imu_to_imu"] = res.section()
+    comp = align_sections.get("compensated")
+    mount = sig = None
+    if isinstance(comp, AlignmentResult):
+        sec = rp.alignment_section(comp)
+        mount, sig = sec["mounting_rpy_deg"], sec["mounting_sigma_deg"]
+    cons = consistency(mount, sig, res)
+    warning = cons.pop("warning")
+    align_sections["consistency"] = cons
+    if warning:
+        extra.setdefault("warnings", []).append({"stage": "alignment", "text": warning})
+
+
 def _fmt_ms(x: float | None) -> str:
     return "n/a" if x is None or not np.isfinite(x) else f"{x * 1e3:+.3f} ms"
 
@@ -353,10 +382,14 @@ def summary_lines(rep: dict, paths: dict[str, str | None]) -> list[str]:
         conv = f"{a['converged_s']:.1f} s" if a.get("converged_s") is not None else "not converged"
         out.append(f"mounting ({run}, {a['filter']}/{a['match']}): roll pitch yaw = {rpy} deg "
                    f"+/- {sig} (arcmin, 1 sigma), {conv}")
+        if a.get("mounting_not_determined"):
+            out.append(f"        not determined (n/a): {', '.join(a['mounting_not_determined'])}: not observable "
+                       "with this motion (the value would be its prior)")
         la, ls = a.get("lever_arm_m"), a.get("lever_arm_sigma_m")
         if la is not None and None not in la:
             tail = (" +/- " + " ".join(f"{x:.3f}" for x in ls) + " m (1 sigma)") if ls and None not in ls else " m (given)"
             out.append(f"        lever arm x y z = {' '.join(f'{x:+.3f}' for x in la)}{tail}")
+    out += _imu_to_imu_lines(rep["alignment"])
     for k, v in rep.get("skipped", {}).items():
         if k == "recording":
             out.append(f"skipped recording: {v}")
@@ -364,6 +397,25 @@ def summary_lines(rep: dict, paths: dict[str, str | None]) -> list[str]:
     if nwarn:
         out.append(f"warnings: {nwarn} (see report)")
     out.append("outputs " + ", ".join(p for p in paths.values() if p))
+    return out
+
+
+def _imu_to_imu_lines(align: dict) -> list[str]:
+    """Summary lines of ``alignment.imu_to_imu`` / ``consistency`` (none when the section is absent)."""
+    ii = align.get("imu_to_imu")
+    if not ii:
+        return []
+    out = []
+    for name, label in (("gyro", "gyro triad"), ("accel", "accel triad")):
+        rpy, sig = ii.get(f"{name}_rpy_deg"), ii.get(f"{name}_sigma_deg")
+        if rpy is None:
+            out.append(f"imu-to-imu {label}: not measured: {ii.get('reasons', {}).get(name, 'unknown')}")
+        else:
+            out.append(f"imu-to-imu {label}: roll pitch yaw = {' '.join(f'{x:+.4f}' for x in rpy)} deg +/- "
+                       f"{' '.join(f'{x * 60:.3g}' + chr(39) for x in sig)} (arcmin, 1 sigma)")
+    cons = align.get("consistency")
+    if cons and cons.get("note"):
+        out.append(("WARNING: " if cons.get("agrees") is False else "") + "mounting vs imu-to-imu: " + cons["note"])
     return out
 
 
@@ -464,6 +516,7 @@ def analyze_pair(master_arg: str, slave_arg: str, out_dir: str, opts: AnalyzeOpt
         else:
             an.alignment[run] = None
             align_sections[run] = rp.alignment_skipped(res, opts.filter, opts.match)
+    _imu_to_imu_sections(master, an, align_sections, extra)
     tim["alignment"] = time.perf_counter() - t
 
     # -- outputs: html, recording, then report.json last

@@ -366,6 +366,35 @@ def _summary_html(rep: dict) -> str:
     return "".join(out)
 
 
+def _imu_to_imu_html(rep: dict) -> str:
+    """The IMU-to-IMU block of the summary: each triad's rotation beside the nav-referenced mounting, and
+    whether they agree (empty when the report has no ``alignment.imu_to_imu``)."""
+    al = rep.get("alignment", {})
+    ii = al.get("imu_to_imu")
+    if not ii:
+        return ""
+    t = ["<h3>IMU-to-IMU rotation (slave triads relative to the master's)</h3><table>"
+         "<tr><th></th><th>roll / pitch / yaw</th><th>1 sigma</th></tr>"]
+    comp = al.get("compensated", {})
+    if "mounting_rpy_deg" in comp:
+        t.append(f"<tr><th>nav-referenced mounting (compensated)</th><td class=num>{_vec(comp['mounting_rpy_deg'])} deg"
+                 f"</td><td class=num>{_vec(comp['mounting_sigma_deg'], '.4f')} deg</td></tr>")
+    for name, label in (("gyro", "gyro triad"), ("accel", "accelerometer triad")):
+        rpy = ii.get(f"{name}_rpy_deg")
+        if rpy is None:
+            why = (ii.get("reasons") or {}).get(name, "not measured")
+            t.append(f"<tr><th>{label}</th><td colspan=2 class=warn>not measured: {_esc(why)}</td></tr>")
+        else:
+            t.append(f"<tr><th>{label}</th><td class=num>{_vec(rpy)} deg</td>"
+                     f"<td class=num>{_vec(ii.get(f'{name}_sigma_deg'), '.4f')} deg</td></tr>")
+    t.append("</table>")
+    cons = al.get("consistency")
+    if cons and cons.get("note"):
+        cls = "warn" if cons.get("agrees") is False else "note"
+        t.append(f"<p class={cls}>{'WARNING: ' if cons.get('agrees') is False else ''}{_esc(cons['note'])}</p>")
+    return "".join(t)
+
+
 def render(rep: dict, an: Analysis) -> str:
     """The report page as a string (pure function of the report dict and the analysis data)."""
     with _MPL_LOCK:
@@ -377,7 +406,8 @@ def _render(rep: dict, an: Analysis) -> str:
     sections: list[tuple[str, str, str]] = []  # (id, title, html)
     status = rep.get("status", "ok")
     sections.append(("summary", "Summary",
-                     f"<p>Status: <span class={_status_cls(status)}>{_esc(status)}</span></p>" + _summary_html(rep)))
+                     f"<p>Status: <span class={_status_cls(status)}>{_esc(status)}</span></p>" + _summary_html(rep)
+                     + _imu_to_imu_html(rep)))
 
     def img(b64: str | None, alt: str, missing: str) -> str:
         return (f'<img alt="{_esc(alt)}" src="data:image/png;base64,{b64}">' if b64

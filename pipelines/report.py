@@ -142,11 +142,24 @@ def latency_failed(reason: str, method: str = "tapost") -> dict:
             "window_s": None, "quality": {}, "methods": {}}
 
 
+def _undetermined_mounting(res: AlignmentResult) -> dict[str, str]:
+    """Mounting axes the data did not determine (their sigma never shrank from the prior): axis -> reason."""
+    return {ax: "not observable with this motion: its sigma did not shrink from the prior, so the value "
+                "would be the prior, not an estimate"
+            for ax in ("roll", "pitch", "yaw") if res.observability.get(f"mounting_{ax}") is False}
+
+
 def alignment_section(res: AlignmentResult) -> dict:
-    return {
+    """One run's section. A mounting axis the data did not determine is null (DESIGN.md: never the prior),
+    its reason in ``mounting_not_determined``."""
+    undetermined = _undetermined_mounting(res)
+    mount = _vec(res.mounting_rpy_deg)
+    if mount is not None:
+        mount = [None if ax in undetermined else x for ax, x in zip(("roll", "pitch", "yaw"), mount)]
+    sec = {
         "filter": res.filter,
         "match": res.match,
-        "mounting_rpy_deg": _vec(res.mounting_rpy_deg),
+        "mounting_rpy_deg": mount,
         "mounting_sigma_deg": _vec(res.mounting_sigma_deg),
         "gyro_bias_dph": _vec(res.gyro_bias_dph),
         "accel_bias_mg": _vec(res.accel_bias_mg),
@@ -162,6 +175,9 @@ def alignment_section(res: AlignmentResult) -> dict:
         "notes": list(res.notes),
         "states": list(res.history_names),
     }
+    if undetermined:
+        sec["mounting_not_determined"] = undetermined
+    return sec
 
 
 def alignment_skipped(reason: str, filter: str, match: str) -> dict:

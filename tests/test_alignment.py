@@ -529,3 +529,28 @@ def test_nav_only_master_rate_from_attitude_keeps_fast_motion_and_smooths_slow()
             # quieter than the +- one-sample difference's: the noise of the rate's roll-yaw axis (no motion)
             one = np.degrees(np.std(np.diff(np.unwrap(eul[:, 2]))[mid] / 0.01))
             assert np.degrees(np.std(w[mid, 2])) < 0.25 * one
+
+
+def test_master_attitude_and_velocity_at_their_own_stamps_and_rates():
+    """ATT at 10 Hz and GPS velocity at 5 Hz that never share a stamp (ArduPilot's ATT + GPS selector): each
+    used at its own instant (the velocity's stamps, the attitude interpolated at them), not a failure."""
+    import pandas as pd
+
+    m, s, truth = _pair(duration_s=90.0)
+    nav = m.nav
+    t = nav.index.to_numpy()
+    qc, vc = ["quat_w", "quat_x", "quat_y", "quat_z"], ["vel_n_m_s", "vel_e_m_s", "vel_d_m_s"]
+    tq = np.arange(t[0] + 0.013, t[-1], 0.1)
+    tv = np.arange(t[0] + 0.071, t[-1], 0.2)
+    q = np.stack([np.interp(tq, t, nav[c].to_numpy()) for c in qc], -1)
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    v = np.stack([np.interp(tv, t, nav[c].to_numpy()) for c in vc], -1)
+    both = pd.concat([pd.DataFrame(q, index=pd.Index(tq, name=nav.index.name), columns=qc),
+                      pd.DataFrame(v, index=pd.Index(tv, name=nav.index.name), columns=vc)]).sort_index()
+    assert len(np.intersect1d(tq, tv)) == 0
+    split = type(m)(imu=m.imu, nav=both, meta=m.meta)
+    res = run_alignment(split, s, match="vel+att")
+    err = _err_arcmin(res, truth)
+    assert _within(err, (1.0, 1.0, 2.0)), err
+    sig = np.asarray(res.mounting_sigma_deg) * 60.0
+    assert np.all(np.abs(err) < 3.0 * sig + 0.05), (err, sig)

@@ -331,20 +331,22 @@ def _master_series(master: InsLog, config: AlignmentConfig = CONFIG) -> MasterSe
     if master.has_vel:
         tv, v = master.vel_ned_m_s()
         cols_t.append(tv)
-    t = cols_t[0]
-    for other in cols_t[1:]:
-        t = np.intersect1d(t, other)
+    if master.has_quat and master.has_vel:
+        t, q, v = _nav_common_stamps(tq, q, tv, v)  # q, v at t
+    else:
+        t = np.unique(cols_t[0])
+        if master.has_quat:
+            q = q[np.searchsorted(tq, t)]
+        else:
+            v = v[np.searchsorted(tv, t)]
     if len(t) < 3:
-        raise AnalysisError(f"{src}: the master's attitude and velocity share fewer than 3 stamps")
-    t = np.unique(t)
+        raise AnalysisError(f"{src}: the master's attitude and velocity overlap in fewer than 3 samples")
     if master.has_quat:
-        q = q[np.searchsorted(tq, t)]
         ok = np.isfinite(q).all(1)
         quat = quat_make_continuous(q / np.linalg.norm(q, axis=1, keepdims=True))
     else:
         ok = np.ones(len(t), bool)
     if master.has_vel:
-        v = v[np.searchsorted(tv, t)]
         ok &= np.isfinite(v).all(1)
     t = t[ok]
     if len(t) < 3:
@@ -370,6 +372,48 @@ def _master_series(master: InsLog, config: AlignmentConfig = CONFIG) -> MasterSe
         acc = _derivative(t, vel, span_s=0.1)
     valid, resets = _master_quality(master, t, quat, vel)
     return MasterSeries(t, quat, vel, acc, w, valid, resets)
+
+
+#: the attitude's and the velocity's stamps are taken as one set when they share at least this fraction of
+#: the sparser stream's stamps (one EKF output); else each is a stream of its own (ATT 10 Hz, GPS 5 Hz)
+NAV_SHARED_STAMPS = 0.9
+NAV_GAP_STEPS = 3.0  # an interpolated stream's step beyond this many of its median steps is a gap (dropped)
+
+
+def _nav_common_stamps(tq: np.ndarray, q: np.ndarray, tv: np.ndarray, v: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(t, quat, vel) of a master whose attitude and velocity come with their own stamps and rates.
+
+    Where they share (nearly) all stamps (one EKF output), the shared stamps. Else the sparser stream's
+    stamps inside the other's span, the denser interpolated at them (the attitude by normalised linear
+    interpolation of sign-continuous quaternions, the velocity linearly; samples in a gap of the
+    interpolated stream dropped): each measurement used once, at its own instant, at the sparser rate
+    (the filter's update rate follows it), the interpolation's small error left to the measurement noise
+    the filter estimates from its residuals."""
+    t_shared = np.intersect1d(tq, tv)
+    if len(t_shared) >= NAV_SHARED_STAMPS * min(len(np.unique(tq)), len(np.unique(tv))):
+        return t_shared, q[np.searchsorted(tq, t_shared)], v[np.searchsorted(tv, t_shared)]
+    okq, okv = np.isfinite(q).all(1), np.isfinite(v).all(1)
+    tq, q, tv, v = tq[okq], q[okq], tv[okv], v[okv]
+    tq, iq = np.unique(tq, return_index=True)
+    tv, iv = np.unique(tv, return_index=True)
+    q, v = q[iq], v[iv]
+    if len(tq) < 2 or len(tv) < 2:
+        return np.zeros(0), q[:0], v[:0]
+    q = quat_make_continuous(q / np.linalg.norm(q, axis=1, keepdims=True))
+    if len(tv) <= len(tq):  # attitude onto the velocity's stamps
+        t = tv[(tv >= tq[0]) & (tv <= tq[-1])]
+        src_t, src_y = tq, q
+    else:
+        t = tq[(tq >= tv[0]) & (tq <= tv[-1])]
+        src_t, src_y = tv, v
+    j = np.clip(np.searchsorted(src_t, t), 1, len(src_t) - 1)
+    keep = (src_t[j] - src_t[j - 1]) <= NAV_GAP_STEPS * float(np.median(np.diff(src_t)))
+    t = t[keep]
+    y = _interp_cols(t, src_t, src_y)
+    if len(tv) <= len(tq):
+        return t, y / np.linalg.norm(y, axis=1, keepdims=True), v[np.searchsorted(tv, t)]
+    return t, q[np.searchsorted(tq, t)], y
 
 
 def _rate_from_attitude(t: np.ndarray, quat: np.ndarray, config: AlignmentConfig = CONFIG) -> np.ndarray:
@@ -704,6 +748,14 @@ def _result(run: FilterRun, lay: StateLayout, st: FilterSettings, sig0: np.ndarr
     sig_scale = float(np.sqrt(max(1.0, nis_m / lay.n_meas))) if np.isfinite(nis_m) else 1.0
     if sig_scale > 1.05:
         notes.append(f"reported sigmas scaled by {sig_scale:.2f} = sqrt(mean NIS / dof)")
+    corr = _innovation_correlation_factor(run) if config.innov_corr_min is not None else 1.0
+    if config.innov_corr_min is not None and corr > config.innov_corr_min:
+        # the filter takes the master's errors as white; correlated in time (its EKF's attitude error, a
+        # Markov process), they carry fewer independent samples than epochs: sigmas widened by
+        # sqrt(integrated correlation time in epochs), as the latency's sigma already is
+        sig_scale *= float(np.sqrt(corr))
+        notes.append(f"reported sigmas widened by {np.sqrt(corr):.2f} = sqrt(the innovations' correlation time, "
+                     f"{corr:.1f} epochs): the master's errors are correlated in time")
     mnt = _mounting(run, lay, k_rep, sig_scale, config, notes)
     gb = run.x[k_rep, lay.gyro] / DEG_PER_H
     gbs = sig_scale * np.sqrt(run.p_diag[k_rep, lay.gyro]) / DEG_PER_H
@@ -759,6 +811,35 @@ class MountingSummary:
     sig_e: np.ndarray  # (M+1, 3) rad, unscaled: the history's sigma
     hist_deg: np.ndarray  # (M+1, 3) yaw continuous around the final value
     converged_s: float | None  # from the start, by the forward filter's sigma (config.converged_arcmin)
+
+
+def _innovation_correlation_factor(run: FilterRun) -> float:
+    """The median over the innovation channels of their integrated correlation time (epochs, 1 + 2 sum of
+    the autocorrelation up to its first zero crossing), at most a tenth of the epochs with an update (1.0
+    when too few). The median, not the largest: a channel that carries little of the mounting (the
+    attitude's on an agile multirotor) would widen every sigma by its own correlation."""
+    inn = run.innov
+    if inn is None or inn.ndim != 2 or inn.shape[0] < 20:
+        return 1.0
+    rows = np.isfinite(inn).all(axis=1)
+    x = inn[rows]
+    if len(x) < 20:
+        return 1.0
+    x = x - x.mean(axis=0)
+    var = np.sum(x * x, axis=0)
+    x = x[:, var > 0]
+    if x.shape[1] == 0:
+        return 1.0
+    n = len(x)
+    nfft = 1 << int(np.ceil(np.log2(2 * n)))
+    f = np.fft.rfft(x, nfft, axis=0)
+    ac = np.fft.irfft(f * np.conj(f), nfft, axis=0)[:n] / np.sum(x * x, axis=0)
+    taus = []
+    for c in range(ac.shape[1]):  # over the (at most 6) channels
+        neg = np.nonzero(ac[1:, c] <= 0)[0]
+        m = int(neg[0]) if len(neg) else n - 1
+        taus.append(1.0 + 2.0 * float(np.sum(ac[1:m + 1, c])))
+    return float(min(np.median(taus), n / 10.0))
 
 
 def _mounting(run: FilterRun, lay: StateLayout, k_rep: int, sig_scale: float, config: AlignmentConfig,

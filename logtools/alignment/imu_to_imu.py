@@ -1,0 +1,393 @@
+"""The rotation of the slave's IMU triads relative to the master's, measured directly from the two IMUs.
+
+Where both units log an IMU, two rotations can be measured without any navigation solution:
+
+- the **gyro triad**: Wahba on the angular rates, ``w_slave = R w_master`` (the same angular velocity
+  everywhere on a rigid body);
+- the **accelerometer triad**: Wahba on the part of the specific force that moves (high-passed: the
+  biases and the mean gravity go), ``f_slave = R (f_master + K(w, dw/dt) r)`` with the lever arm ``r``
+  (master frame) estimated with it: the slave's accelerometers sit elsewhere and feel the centripetal and
+  angular accelerations of that offset.
+
+Both in the convention of ``mounting_rpy_deg`` (DESIGN.md: ``v_slave_FRD = R v_master_FRD``, intrinsic
+Z-Y-X, listed [roll, pitch, yaw] degrees). The slave must already be on the master's clock (the
+compensated slave): a latency left in it turns into a rotation error where the rates change.
+
+Each rotation is refined by Gauss-Newton from the Wahba (SVD) start, the perturbation on the slave's side
+(``R = exp([d x]) R_hat``); its sigma is the sandwich ``J^-1 Omega J^-1`` with ``J = sum H^T H`` and
+``Omega`` the long-run covariance of the scores ``H^T e`` (Newey-West, Bartlett weights, bandwidth from
+the scores' correlation time): residuals correlated in time (vibration, scale-factor errors, flexure)
+count as the fewer independent samples they are. A residual delay between the two IMUs is estimated with
+each rotation (it would turn into one). The rotation is fitted again on the slow and on the fast part of
+the motion apart: a rotation is the same at every frequency, so where the two differ beyond 3 sigma the
+triads differ by more than a rotation (filters, aliased vibration, scale factors) and half the spread
+joins the sigma as the model's error. ``consistency`` compares the rotations with the
+nav-referenced mounting of the transfer alignment and names the likely cause when they differ.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from logtools.conventions import dcm_from_rotvec, euler_from_dcm, median_step_s, skew, wahba
+from logtools.inslog import InsLog
+
+HIGHPASS_S = 4.0  # the slow part (biases, mean gravity, earth rate) removed: a centred moving mean this long
+HIGHPASS_RETRY_S = (30.0,)  # ... longer where that leaves too little motion (a ship's sway, gentle S-turns)
+MIN_SAMPLES = 50  # fewer common samples: not measured
+MIN_EXPLAINED = 0.5  # the fitted rotation must explain this fraction of the slave's (high-passed) signal power
+MAX_SIGMA_DEG = 5.0  # an axis less determined than this: the triad's rotation is not reported (null)
+GAP_STEPS = 3.0  # a step of a unit's stamps beyond this many of its median steps is a gap (not bridged)
+CONSISTENCY_Z = 3.0  # beyond this many combined sigmas the two views disagree
+#: ... the combined sigma taken as at least this (deg): a log against itself agrees to 1e-4 deg, which is
+#: no disagreement however small its sigma (interpolation between the two units' stamps)
+CONSISTENCY_FLOOR_DEG = 0.005
+BAND_SPLIT_S = 0.4  # the slow and the fast part of the motion split at this period (moving mean)
+BAND_Z = 3.0  # the two bands' rotations further apart than this many combined sigmas: not one rotation
+LEVER_MIN_RATE_RAD_S = 0.3  # the accelerometers' lever arm is estimated where the rates move at least this (rms)
+
+
+@dataclass(frozen=True)
+class TriadRotation:
+    """One triad's rotation (slave relative to master) with its 1-sigma from the data."""
+
+    rpy_deg: tuple[float, float, float]
+    sigma_deg: tuple[float, float, float]
+    n: int  # common samples used
+    residual_rms: float  # of the fit, in the triad's units (rad/s or m/s^2)
+    corr_time_s: float  # the scores' integrated correlation time (what inflated the white sigma)
+    lever_arm_m: tuple[float, float, float] | None = None  # accelerometers: the offset estimated with it
+    delay_s: float | None = None  # the delay left between the two units' samples, estimated with it
+    #: the rotation fitted on the slow (periods > BAND_SPLIT_S) and on the fast part of the motion apart, and
+    #: the largest z between them (beyond BAND_Z: the triads differ by more than a rotation)
+    band_rpy_deg: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+    band_z: float | None = None
+    sigma_data_deg: tuple[float, float, float] | None = None  # the sigma from the residuals alone, where the
+    # bands disagreed and half their spread was added to ``sigma_deg``
+
+    @property
+    def rigid(self) -> bool | None:
+        return None if self.band_z is None else bool(self.band_z <= BAND_Z)
+
+
+@dataclass(frozen=True)
+class ImuToImu:
+    gyro: TriadRotation | None
+    accel: TriadRotation | None
+    reasons: dict[str, str] = field(default_factory=dict)  # triad -> why it is not measured
+
+    def section(self) -> dict:
+        """The report.json form (DESIGN.md: ``alignment.imu_to_imu``)."""
+        out: dict = {}
+        for name, tr in (("gyro", self.gyro), ("accel", self.accel)):
+            out[f"{name}_rpy_deg"] = list(tr.rpy_deg) if tr else None
+            out[f"{name}_sigma_deg"] = list(tr.sigma_deg) if tr else None
+            if tr:
+                out[f"{name}_residual_rms"] = tr.residual_rms
+                out[f"{name}_corr_time_s"] = tr.corr_time_s
+                out[f"{name}_samples"] = tr.n
+                out[f"{name}_delay_s"] = tr.delay_s
+                if tr.band_z is not None:
+                    out[f"{name}_band_z"] = tr.band_z
+                    out[f"{name}_band_rpy_deg"] = {"slow": list(tr.band_rpy_deg[0]), "fast": list(tr.band_rpy_deg[1])}
+                if tr.sigma_data_deg is not None:
+                    out[f"{name}_sigma_data_deg"] = list(tr.sigma_data_deg)
+        if self.accel and self.accel.lever_arm_m is not None:
+            out["accel_lever_arm_m"] = list(self.accel.lever_arm_m)
+        if self.reasons:
+            out["reasons"] = dict(self.reasons)
+        return out
+
+
+# ---- common samples --------------------------------------------------------------------------------
+def _clean(t: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    ok = np.isfinite(t) & np.isfinite(y).all(1)
+    t, y = t[ok], y[ok]
+    order = np.argsort(t, kind="stable")
+    t, y = t[order], y[order]
+    keep = np.concatenate([[True], np.diff(t) > 0]) if len(t) else np.zeros(0, bool)
+    return t[keep], y[keep]
+
+
+def _interp_at(t: np.ndarray, tp: np.ndarray, yp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """yp (n, k) at t, linearly; and the mask of t not inside a gap of tp (nor outside it)."""
+    step = median_step_s(tp, default=np.inf)
+    j = np.searchsorted(tp, t)
+    inside = (j > 0) & (j < len(tp))
+    jj = np.clip(j, 1, len(tp) - 1)
+    inside &= (tp[jj] - tp[jj - 1]) <= GAP_STEPS * step
+    y = np.stack([np.interp(t, tp, yp[:, i]) for i in range(yp.shape[1])], -1)
+    return y, inside
+
+
+def _highpass(y: np.ndarray, n_win: int) -> np.ndarray:
+    """y minus its centred moving mean over n_win samples (shorter at the ends), per column."""
+    n = len(y)
+    h = max(n_win // 2, 1)
+    c = np.concatenate([np.zeros((1, y.shape[1])), np.cumsum(y, axis=0)])
+    i0 = np.clip(np.arange(n) - h, 0, n)
+    i1 = np.clip(np.arange(n) + h + 1, 0, n)
+    return y - (c[i1] - c[i0]) / (i1 - i0)[:, None]
+
+
+def _common(t_m: np.ndarray, y_m: np.ndarray, t_s: np.ndarray, y_s: np.ndarray
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(t, master, slave) on the sparser unit's stamps inside both spans, the other interpolated."""
+    if len(t_m) < 2 or len(t_s) < 2:
+        return None
+    lo, hi = max(t_m[0], t_s[0]), min(t_m[-1], t_s[-1])
+    if median_step_s(t_m) >= median_step_s(t_s):
+        t = t_m[(t_m >= lo) & (t_m <= hi)]
+        ym = y_m[(t_m >= lo) & (t_m <= hi)]
+        ys, ok = _interp_at(t, t_s, y_s)
+    else:
+        t = t_s[(t_s >= lo) & (t_s <= hi)]
+        ys = y_s[(t_s >= lo) & (t_s <= hi)]
+        ym, ok = _interp_at(t, t_m, y_m)
+    return t[ok], ym[ok], ys[ok]
+
+
+# ---- the estimate ----------------------------------------------------------------------------------
+def _long_run_cov(s: np.ndarray) -> tuple[np.ndarray, float]:
+    """Newey-West (Bartlett) long-run covariance of the score series s (n, p) summed over n; and the
+    scores' integrated correlation time in samples (1 + 2 sum rho up to its first zero crossing)."""
+    n = len(s)
+    s = s - s.mean(axis=0)
+    tot = float(np.sum(s * s))
+    if tot <= 0:
+        return np.zeros((s.shape[1], s.shape[1])), 1.0
+    # integrated correlation time of the scores (their summed autocorrelation), by FFT
+    nfft = 1 << int(np.ceil(np.log2(2 * n)))
+    f = np.fft.rfft(s, nfft, axis=0)
+    ac = np.fft.irfft(np.sum(f * np.conj(f), axis=1), nfft)[:n] / tot
+    neg = np.nonzero(ac[1:] <= 0)[0]
+    m = int(neg[0]) if len(neg) else n - 1
+    tau = max(1.0 + 2.0 * float(np.sum(ac[1:m + 1])), 1.0)
+    nw = 4.0 * (n / 100.0) ** (2.0 / 9.0)
+    L = int(min(max(np.ceil(nw), np.ceil(5.0 * tau)), n // 3))
+    om = s.T @ s
+    for j in range(1, L + 1):  # over lags (at most n/3), each vectorised over the samples
+        g = s[j:].T @ s[:-j]
+        om += (1.0 - j / (L + 1.0)) * (g + g.T)
+    return om, tau
+
+
+def _euler_sigma_deg(r: np.ndarray, cov_rad2: np.ndarray) -> np.ndarray:
+    """1-sigma of euler(exp([d x]) R) (deg) for d with covariance cov (rad^2), central differences."""
+    jac = np.zeros((3, 3))
+    e = 1e-6
+    for i in range(3):
+        d = np.zeros(3)
+        d[i] = e
+        diff = euler_from_dcm(dcm_from_rotvec(d) @ r) - euler_from_dcm(dcm_from_rotvec(-d) @ r)
+        jac[:, i] = ((diff + np.pi) % (2 * np.pi) - np.pi) / (2 * e)
+    return np.degrees(np.sqrt(np.maximum(np.diag(jac @ cov_rad2 @ jac.T), 0.0)))
+
+
+def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = None, *, dt_s: float = 1.0,
+                 iterations: int = 5) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray, float, float]:
+    """R (and nuisance parameters r with regressors ``k_lever`` (n, 3, m): a lever arm, a residual delay)
+    minimising sum |v_s - R (u_m + K r)|^2.
+
+    Returns (R, cov of the slave-side rotation perturbation (rad^2, 3x3), r or None, cov of r or None,
+    residual rms, the scores' correlation time in seconds (``dt_s`` per sample))."""
+    n = len(u_m)
+    r_mat, _ = wahba(v_s.T @ u_m)
+    lev = np.zeros(k_lever.shape[2]) if k_lever is not None else None
+    p = 3 if k_lever is None else 3 + k_lever.shape[2]
+    for _ in range(iterations):
+        um = u_m if lev is None else u_m + np.einsum("kij,j->ki", k_lever, lev)
+        pred = um @ r_mat.T
+        e = v_s - pred
+        h = np.zeros((n, 3, p))
+        h[:, :, :3] = -skew(pred)
+        if lev is not None:
+            h[:, :, 3:] = np.einsum("ij,kjl->kil", r_mat, k_lever)
+        jtj = np.einsum("kia,kib->ab", h, h)
+        x = np.linalg.solve(jtj, np.einsum("kia,ki->a", h, e))
+        r_mat = dcm_from_rotvec(x[:3]) @ r_mat
+        if lev is not None:
+            lev = lev + x[3:]
+        if np.linalg.norm(x[:3]) < 1e-12:
+            break
+    um = u_m if lev is None else u_m + np.einsum("kij,j->ki", k_lever, lev)
+    pred = um @ r_mat.T
+    e = v_s - pred
+    h = np.zeros((n, 3, p))
+    h[:, :, :3] = -skew(pred)
+    if lev is not None:
+        h[:, :, 3:] = np.einsum("ij,kjl->kil", r_mat, k_lever)
+    jtj = np.einsum("kia,kib->ab", h, h)
+    scores = np.einsum("kia,ki->ka", h, e)
+    om, tau = _long_run_cov(scores)
+    jinv = np.linalg.inv(jtj)
+    cov = jinv @ om @ jinv * (n / max(n - p, 1))
+    rms = float(np.sqrt(np.mean(np.sum(e * e, axis=1))))
+    return r_mat, cov[:3, :3], lev, (cov[3:, 3:] if lev is not None else None), rms, tau * dt_s
+
+
+def _triad(u: np.ndarray, v: np.ndarray, k: np.ndarray | None, dt: float, min_explained: float = None
+           ) -> TriadRotation | str:
+    if len(u) < MIN_SAMPLES:
+        return f"only {len(u)} common samples (at least {MIN_SAMPLES} needed)"
+    sv = np.linalg.svd(v.T @ u, compute_uv=False)
+    if not sv[1] > 1e-6 * sv[0]:
+        return "the motion is about one axis only: the rotation is not determined"
+    try:
+        r_mat, cov, lev, _, rms, tau_s = fit_rotation(u, v, k, dt_s=dt)
+    except np.linalg.LinAlgError:
+        return "the fit is singular (too little motion)"
+    explained = 1.0 - rms ** 2 / max(float(np.mean(np.sum(v * v, axis=1))), 1e-300)
+    min_explained = MIN_EXPLAINED if min_explained is None else min_explained
+    if explained < min_explained:
+        return (f"too little motion: the rotation explains {100 * max(explained, 0):.0f} % of the slave's "
+                f"signal (at least {100 * MIN_EXPLAINED:.0f} % needed)")
+    sig = _euler_sigma_deg(r_mat, cov)
+    if not np.all(np.isfinite(sig)) or sig.max() > MAX_SIGMA_DEG:
+        return f"too little motion: sigma {' '.join(f'{x:.3g}' for x in sig)} deg"
+    rpy = np.degrees(euler_from_dcm(r_mat))
+    lever = tuple(float(x) for x in lev[:3]) if lev is not None and len(lev) == 4 else None
+    return TriadRotation(tuple(float(x) for x in rpy), tuple(float(x) for x in sig), len(u), rms, float(tau_s),
+                         lever, float(lev[-1]) if lev is not None else None)
+
+
+def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highpass_s: float
+               ) -> TriadRotation | str:
+    """One triad's rotation on common samples (t, master u, slave v), the slow part out over highpass_s."""
+    dt = median_step_s(t)
+    nwin = max(int(round(highpass_s / dt)), 3)
+    k = None
+    if name == "accel" and gm is not None and len(gm[0]) >= 3:
+        w, okw = _interp_at(t, *gm)
+        if okw.all() and float(np.sqrt(np.mean(np.sum(_highpass(w, nwin) ** 2, axis=1)))) > LEVER_MIN_RATE_RAD_S:
+            dw = np.gradient(w, t, axis=0)
+            k = skew(dw) + skew(w) @ skew(w)  # f at r = f + dw x r + w x (w x r)
+            k = _highpass(k.reshape(len(t), 9), nwin).reshape(len(t), 3, 3)
+    # the slow part out; the ends (shorter means) trimmed
+    u, v = _highpass(u, nwin), _highpass(v, nwin)
+    # a delay left between the two (the latency's error, the sensors' own sampling instants) as one more
+    # parameter: v(t) = R u(t - d) ~ R (u - d du/dt); a delay of 1.4 ms turned the rotation of IMU2's gyro
+    # triad by 0.2 deg on a hand-carried ArduPlane (rates and their derivatives correlate across axes)
+    kd = -np.gradient(u, t, axis=0)[:, :, None]
+    k = kd if k is None else np.concatenate([k, kd], axis=2)
+    cut = slice(nwin // 2, len(t) - nwin // 2)
+    res = _triad(u[cut], v[cut], k[cut], dt)
+    if isinstance(res, str):
+        return res
+    # a rotation is the same at every frequency: fitted on the slow and on the fast part of the motion
+    # apart, two figures beyond BAND_Z sigmas say the triads differ by more than a rotation (the
+    # sensors' own filters, vibration aliased into the snapshots, scale factors)
+    nlp = max(int(round(BAND_SPLIT_S / dt)), 2)
+    lo = [u - _highpass(u, nlp), v - _highpass(v, nlp), k - _highpass(k.reshape(len(t), -1), nlp).reshape(k.shape)]
+    hi = [u - lo[0], v - lo[1], k - lo[2]]
+    # (a band the rotation explains poorly is itself the sign: no minimum there, the sigmas judge)
+    bands = [_triad(b[0][cut], b[1][cut], b[2][cut], dt, min_explained=0.0) for b in (lo, hi)]
+    if all(isinstance(b, TriadRotation) for b in bands):
+        zb, _ = _z(bands[0].rpy_deg, bands[0].sigma_deg, bands[1].rpy_deg, bands[1].sigma_deg)
+        res = replace(res, band_z=zb, band_rpy_deg=(bands[0].rpy_deg, bands[1].rpy_deg))
+        if zb > BAND_Z:  # not one rotation: half the bands' spread joins the sigma (the model's error)
+            d = (np.asarray(bands[0].rpy_deg) - np.asarray(bands[1].rpy_deg) + 180.0) % 360.0 - 180.0
+            res = replace(res, sigma_deg=tuple(float(x) for x in np.hypot(res.sigma_deg, 0.5 * d)),
+                          sigma_data_deg=res.sigma_deg)
+    return res
+
+
+def imu_to_imu(master: InsLog, slave: InsLog, *, highpass_s: float = HIGHPASS_S) -> ImuToImu:
+    """The rotations of the slave's gyro and accelerometer triads relative to the master's (module doc).
+    ``slave`` on the master's clock (compensated). A triad that cannot be measured is None with its reason."""
+    if slave.meta.t0_ns != master.meta.t0_ns:
+        slave = slave.rebased(master.meta.t0_ns)
+    reasons: dict[str, str] = {}
+    out: dict[str, TriadRotation | None] = {"gyro": None, "accel": None}
+    gm = _clean(master.t_imu_s(), master.gyro_rad_s()) if master.has_gyro else None
+    for name, has, get in (("gyro", "has_gyro", "gyro_rad_s"), ("accel", "has_accel", "accel_m_s2")):
+        if not (getattr(master, has) and getattr(slave, has)):
+            who = " and ".join(r for r, lg in (("master", master), ("slave", slave)) if not getattr(lg, has))
+            reasons[name] = f"the {who} logs no {'angular rate' if name == 'gyro' else 'specific force'}"
+            continue
+        tm, ym = _clean(master.t_imu_s(), getattr(master, get)())
+        ts, ys = _clean(slave.t_imu_s(), getattr(slave, get)())
+        com = _common(tm, ym, ts, ys)
+        if com is None or len(com[0]) < MIN_SAMPLES:
+            reasons[name] = "too few common IMU samples of the two units"
+            continue
+        t, u, v = com
+        res: TriadRotation | str = ""
+        for hp in (highpass_s, *HIGHPASS_RETRY_S):  # slow motion (a ship's sway, S-turns): a longer window
+            res = _one_triad(name, t, u, v, gm, hp)
+            if isinstance(res, TriadRotation):
+                break
+        if isinstance(res, str):
+            reasons[name] = res
+            continue
+        out[name] = res
+    return ImuToImu(out["gyro"], out["accel"], reasons)
+
+
+# ---- the two views compared ------------------------------------------------------------------------
+def _z(a_rpy: np.ndarray, a_sig: np.ndarray, b_rpy: np.ndarray, b_sig: np.ndarray) -> tuple[float, np.ndarray]:
+    d = (_arr(a_rpy) - _arr(b_rpy) + 180.0) % 360.0 - 180.0
+    s = np.sqrt(_arr(a_sig) ** 2 + _arr(b_sig) ** 2)
+    z = np.abs(d) / np.maximum(s, CONSISTENCY_FLOOR_DEG)
+    return float(np.nanmax(z)), d  # axes not determined (null) are left out
+
+
+def _arr(v) -> np.ndarray:
+    return np.array([np.nan if x is None else float(x) for x in v])
+
+
+def consistency(mount_rpy_deg, mount_sigma_deg, imu: ImuToImu) -> dict:
+    """``alignment.consistency``: the compensated nav-referenced mounting against the gyro triad's rotation
+    (and the accelerometer triad's), ``{agrees, z, note}`` plus the per-view figures; ``warning`` holds the
+    text of a disagreement (None when they agree)."""
+    out: dict = {"agrees": None, "z": None, "note": "", "warning": None}
+    mount_ok = (mount_rpy_deg is not None and mount_sigma_deg is not None
+                and bool(np.isfinite(_arr(mount_rpy_deg) + _arr(mount_sigma_deg)).any()))
+    views = {}
+    if mount_ok and imu.gyro:
+        views["z_mount_gyro"] = _z(mount_rpy_deg, mount_sigma_deg, imu.gyro.rpy_deg, imu.gyro.sigma_deg)
+    if mount_ok and imu.accel:
+        views["z_mount_accel"] = _z(mount_rpy_deg, mount_sigma_deg, imu.accel.rpy_deg, imu.accel.sigma_deg)
+    if imu.gyro and imu.accel:
+        views["z_gyro_accel"] = _z(imu.gyro.rpy_deg, imu.gyro.sigma_deg, imu.accel.rpy_deg, imu.accel.sigma_deg)
+    for k, (z, d) in views.items():
+        out[k] = z
+        out[k.replace("z_", "diff_") + "_deg"] = [float(x) if np.isfinite(x) else None for x in d]
+    if not views or ("z_mount_gyro" not in views and "z_mount_accel" not in views and "z_gyro_accel" not in views):
+        why = ("no nav-referenced mounting to compare" if not mount_ok else "no IMU-to-IMU rotation measured")
+        out["note"] = f"not compared: {why}"
+        return out
+    z_all = max(z for z, _ in views.values())
+    out["z"] = z_all
+    out["agrees"] = bool(z_all <= CONSISTENCY_Z)
+    causes = []
+    zg = views.get("z_mount_gyro", (None,))[0]
+    za = views.get("z_mount_accel", (None,))[0]
+    zt = views.get("z_gyro_accel", (None,))[0]
+    if zt is not None and zt > CONSISTENCY_Z:
+        causes.append(f"the slave's accelerometer triad is not its gyro triad (or the master's is not its own: "
+                      f"gyro vs accel triad rotations differ at z {zt:.1f})")
+    if (zg is not None and zg > CONSISTENCY_Z) or (zg is None and za is not None and za > CONSISTENCY_Z):
+        zz = zg if zg is not None else za
+        causes.append(f"the master's navigation frame is not its IMU frame (board trim or its EKF's attitude "
+                      f"error: the nav-referenced mounting differs from the IMU-to-IMU rotation at z {zz:.1f})")
+    elif za is not None and za > CONSISTENCY_Z and not (zt is not None and zt > CONSISTENCY_Z):
+        causes.append(f"the accelerometer triad's rotation differs from the mounting at z {za:.1f} while the gyro "
+                      "triad's agrees: the accelerometers' scale factors, lever arm or vibration")
+    for name, tr in (("gyro", imu.gyro), ("accel", imu.accel)):
+        if tr is not None and tr.rigid is False:
+            causes.append(f"the {name} triads differ by more than a rotation (slow and fast motion give rotations "
+                          f"z {tr.band_z:.1f} apart: the sensors' filters, vibration aliased into the "
+                          "snapshots or scale factors), so its rotation is a compromise")
+    figures = ", ".join(f"{k[2:].replace('_', ' vs ')} z {z:.1f}" for k, (z, _) in views.items())
+    if out["agrees"]:
+        out["note"] = f"agree within {CONSISTENCY_Z:g} combined sigma ({figures})"
+        loose = [n for n, tr in (("gyro", imu.gyro), ("accel", imu.accel)) if tr is not None and tr.rigid is False]
+        if loose:
+            out["note"] += (f"; but the {' and '.join(loose)} triads differ by more than a rotation (slow and fast "
+                            "motion disagree), so their sigmas carry that spread and the check is weak")
+    else:
+        out["note"] = f"disagree beyond {CONSISTENCY_Z:g} combined sigma ({figures}): likely " + "; ".join(causes)
+        out["warning"] = out["note"]
+    return out
