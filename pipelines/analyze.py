@@ -23,6 +23,7 @@ import numpy as np
 
 from logtools.errors import AnalysisError, InputError
 from logtools.inslog import InsLog
+from logtools.latency.methods import METHODS
 from logtools.results import AlignmentResult, LatencyResult
 from parsers import load
 from pipelines import report as rp
@@ -31,7 +32,7 @@ from pipelines.progress import Progress, null_progress
 FILTERS = ("kf", "kf-delay", "kf-split", "hinf", "ahinf")
 MATCHES = ("auto", "vel", "att", "vel+att")
 COMPENSATIONS = ("restamp", "interp", "shift", "poly2", "split")
-LATENCY_METHODS = ("tapost", "s000-rate-integral", "s002-attitude-shift", "xcorr-norm")
+LATENCY_METHODS = METHODS  # logtools.latency.methods: the one table of the latency methods
 REPORT, HTML, RECORDING = "report.json", "report.html", "recording.rrd"
 
 

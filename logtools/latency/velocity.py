@@ -33,158 +33,16 @@ with the same EKF output) are recognised and not fitted.
 """
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
 
-from logtools.conventions import dcm_from_quat, dcm_from_rotvec, skew
-from logtools.inslog import InsLog
-from logtools.latency_gls import (NoiseModel, delay_step, end_taper, gls_covariance, gn_step, grid_offset_sigma_s,
+from logtools.conventions import dcm_from_rotvec, skew
+from logtools.latency.config import DEFAULT, LatencyConfig
+from logtools.latency.gls import (NoiseModel, delay_step, end_taper, gls_covariance, gn_step, grid_offset_sigma_s,
                                   leverage_spectrum, noise_model, stamp_noise_variance, window_chi2)
-from logtools.resample import Interpolant, interpolant, lowpass, median_rate_hz, stamp_noise_s, to_uniform
-
-VEL_MAX_CUTOFF_HZ = 5.0  # the velocities are low-passed at the rate fit's cutoff, at most this
-VEL_CUTOFF_FRACTION = 0.2  # ... and at most this fraction of the slower nav rate (0.4, 80 % of its Nyquist: a
-#   5 Hz nav velocity came out 6 ms late on an aircraft, its whitened fit weighing the band where the spline
-#   and the two low-passes differ; 0.2: unbiased over 12 runs)
-VEL_MIN_GRID_HZ = 20.0  # fit samples at 5x the cutoff, at least this (at most the slower nav rate)
-VEL_MAX_FIT_SAMPLES = 60_000  # fit samples at most (a 4 h record at 1 Hz cutoff: one every 0.24 s)
-VEL_MIN_SAMPLES = 64  # finite velocity samples each unit needs
-VEL_ITERS = 6  # Gauss-Newton iterations per pass
-VEL_GLS_PASSES = 2  # whitened passes after the first (unweighted) one, the spectrum re-estimated before each
-VEL_TAPER_S = 2.0  # ramp of the weights at the ends of the used data (whitening transients)
-VEL_QUANTA = (0.1, 0.01, 0.001)  # m/s: the velocity grids recognised (logged as integers of these)
-VEL_TILT = True  # the slave's attitude error phi as unknowns: its velocity error (v - v_mid) x phi (below)
-VEL_STEP_RATIO = 10.0  # a jump of the residual's local mean beyond this times its median is a reset ...
-VEL_STEP_CYCLES = 2.0  # ... the means over this many cutoff periods either side (and left out around it)
-VEL_STEP_SHARP = 0.5  # ... and keeping this much of it at half the scale (a step, not a manoeuvre's curvature)
-VEL_MAX_STEPS = 12  # more resets than this: no velocity fit
-VEL_WINDOW_MIN = 50  # samples a drift window needs
-VEL_STAMP_RESOLUTION_FLOOR = True  # velocity stamps on a coarse grid floor its sigma at step / sqrt(12)
-VEL_FRAME_MIN_DEG = 0.2  # a rotation between the units' velocity frames beyond this is undone before the fit
-VEL_FRAME_MIN_RANK = 0.02  # ... when the velocity varies in at least two directions (2nd/1st singular value)
-VEL_FRAME_ITERS = 3  # the fitted tilt, when above VEL_TILT_EXACT_DEG, undone exactly and the fit redone
-VEL_TILT_EXACT_DEG = 0.05  # (the linear tilt model errs by |v| tilt^2 / 2: 1 mm/s at 200 m/s and 0.2 deg)
-VEL_LEVERAGE = True  # the residual spectrum corrected for what the fitted columns take out of it (short records:
-#                     uncorrected, the lever arm / delay / tilt columns emptied the low frequencies, the GLS
-#                     overweighted them and its sigma came out 1.4x small)
-VEL_EDGE_CYCLES = 4.0  # samples within this many cutoff periods of a series' ends are not used (the
-#                        zero-phase filter's mirrored ends distort a velocity that is not level there)
-
-
-@dataclass(frozen=True)
-class VelocityPair:
-    """Both units' NED velocities, low-passed at the same cutoff, continuous; and the master's lever-arm
-    rows C_nb [w x] (None without the master's attitude: no lever arm then)."""
-
-    master: Interpolant
-    slave: Interpolant
-    lever: Callable[[np.ndarray], np.ndarray] | None
-    cutoff_hz: float
-    dt_s: float
-    #: per unit: (quantum of the logged velocity in m/s or 0, total variation per axis (3,) m/s)
-    steps: tuple[tuple[float, np.ndarray], ...] = ()
-    #: per unit: the step of the velocity's stamps when coarse (s; 0 when fine)
-    stamp_resolutions_s: tuple[float, ...] = ()
-    #: per unit: (white noise on the velocity's stamps, s; the velocity's sample rate, Hz)
-    stamp_jitter: tuple[tuple[float, float], ...] = ()
-
-
-@dataclass(frozen=True)
-class VelocityFit:
-    latency_s: float
-    drift: float  # s/s
-    sigma_latency_s: float  # window-checked (inflated by the windows' scatter when chi2 > 1)
-    sigma_drift: float
-    corr_ld: float
-    lever_arm_m: tuple[float, float, float] | None
-    residual_rms_m_s: float
-    window_chi2_red: float
-    n_windows: int
-    n_steps: int = 0  # resets of the slave's velocity found and solved
-    frame_rotation_deg: float = 0.0  # the rotation between the velocities' frames undone before the fit
-
-
-def _finite(t: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    ok = np.isfinite(t) & np.all(np.isfinite(v), axis=1)
-    return t[ok], v[ok]
-
-
-def _same_stream(tm: np.ndarray, vm: np.ndarray, ts: np.ndarray, vs: np.ndarray) -> bool:
-    """True when the slave's velocity is the master's own samples (one nav solution logged for both)."""
-    if len(tm) != len(ts):
-        return False
-    return bool(np.allclose(tm, ts, rtol=0.0, atol=1e-6) and np.allclose(vm, vs, rtol=0.0, atol=1e-9))
-
-
-def velocity_pair(master: InsLog, slave: InsLog, cutoff_hz: float, master_rate: Interpolant
-                  ) -> VelocityPair | None:
-    """The pair for a velocity fit (``slave`` already on the master's relative clock), or None when either
-    unit has no (or too little finite) velocity, or both carry the same nav stream."""
-    if not (master.has_vel and slave.has_vel):
-        return None
-    tm, vm = _finite(*master.vel_ned_m_s())
-    ts, vs = _finite(*slave.vel_ned_m_s())
-    if min(len(tm), len(ts)) < VEL_MIN_SAMPLES or _same_stream(tm, vm, ts, vs):
-        return None
-    f_min = min(median_rate_hz(tm), median_rate_hz(ts))
-    cut = float(min(cutoff_hz, VEL_MAX_CUTOFF_HZ, VEL_CUTOFF_FRACTION * f_min))
-    try:
-        itps = [interpolant(lowpass(to_uniform(t, v, name=f"{role} velocity"), cut))
-                for t, v, role in ((tm, vm, "master"), (ts, vs, "slave"))]
-    except ValueError:
-        return None
-    lever = None
-    if master.has_quat:
-        tq, q = _finite(*master.quat_wxyz())
-        o = np.argsort(tq, kind="stable")
-        tq, q = tq[o], q[o]
-        w, okw = master_rate(tq) if len(tq) else (np.zeros((0, 3)), np.zeros(0, bool))
-        if okw.sum() >= VEL_MIN_SAMPLES:
-            # C_nb [w x] at the attitude's instants, low-passed like the velocities: the lever arm's part of
-            # the slave's velocity is filtered with it, and noise in the rows above the velocities' cutoff
-            # (a rate from a noisy attitude: a master logging its navigation solution alone) would only
-            # dilute the lever arm's regression (measured: an aircraft's along-track lever arm 14 % short,
-            # its latency 2 ms off at a sigma of 0.5 ms, with the rows at the rate fit's 4 Hz)
-            rows = (dcm_from_quat(q[okw]) @ skew(w[okw])).reshape(-1, 9)
-            try:
-                lev_itp = interpolant(lowpass(to_uniform(tq[okw], rows, name="master lever-arm rows"), cut))
-            except ValueError:
-                lev_itp = None
-            if lev_itp is not None:
-                def lever(t: np.ndarray) -> np.ndarray:
-                    """C_nb(t) [w(t) x] (n, 3, 3), low-passed: d(v_s)/d(l)."""
-                    v, ok = lev_itp(t)
-                    return np.where(ok[:, None, None], v.reshape(-1, 3, 3), 0.0)
-    dt = 1.0 / min(max(5.0 * cut, VEL_MIN_GRID_HZ), f_min)
-    steps = tuple((velocity_quantum_m_s(v), np.sum(np.abs(np.diff(v, axis=0)), axis=0)) for v in (vm, vs))
-    stamps = (master.stamp_resolution_s("vel"), slave.stamp_resolution_s("vel"))
-    jitter = tuple((stamp_noise_s(t), median_rate_hz(t)) for t in (tm, ts))
-    return VelocityPair(itps[0], itps[1], lever, cut, dt, steps, stamps, jitter)
-
-
-def velocity_quantum_m_s(v: np.ndarray) -> float:
-    """The step the velocity was logged with (MAVLink GLOBAL_POSITION_INT: 0.01 m/s), 0 when it is not on
-    a grid: the largest of VEL_QUANTA that every sample is a whole multiple of."""
-    for q in VEL_QUANTA:
-        x = v / q
-        if np.all(np.abs(x - np.round(x)) < 1e-3):
-            return q
-    return 0.0
-
-
-def _quantization_sigma_s(vp: VelocityPair, accel: np.ndarray) -> float:
-    """Latency sigma from the velocities' quantization: a logged velocity on a grid of step q errs by a
-    sawtooth that is not white where the velocity changes slowly (one error per level crossing, with
-    variance q^2 / 12), which the residual spectrum does not show. Per axis the level crossings are
-    total variation / q, each weighed by the acceleration's mean square ``accel`` (3,)."""
-    info = 0.0
-    for q, tv in vp.steps:
-        if q > 0:
-            info += float(np.sum(accel * (tv / q))) / (q * q / 12.0)
-    return float(1.0 / np.sqrt(info)) if info > 0 else 0.0
-
+from logtools.latency.velocity_pair import (VelocityFit, VelocityPair, angle_deg, frame_rotation, near,
+                                            quantization_sigma_s)
 
 
 @dataclass(frozen=True)
@@ -203,7 +61,8 @@ class _Solved:
 
 def _solve(vp: VelocityPair, t: np.ndarray, vm: np.ndarray, Lr: np.ndarray | None, use0: np.ndarray,
            d0: float, dr0: float, t_mid: float, noise: NoiseModel | None, fit_drift: bool, *,
-           tilt: bool, steps: np.ndarray | None = None, leverage: bool = False) -> _Solved | None:
+           tilt: bool, steps: np.ndarray | None = None, leverage: bool = False, cfg: LatencyConfig = DEFAULT
+           ) -> _Solved | None:
     """Gauss-Newton on (L[, drift] | lever arm (with Lr), tilt, steps, offset, ramp), whitened with
     ``noise`` (None: unweighted). The residual is r = v_s(t + L + drift (t - t_mid)) - v_m + J_lin x_lin;
     ``steps``: sample indices where the slave's velocity jumps (a reset), a step per axis from each.
@@ -212,7 +71,7 @@ def _solve(vp: VelocityPair, t: np.ndarray, vm: np.ndarray, Lr: np.ndarray | Non
     tt = t - t_mid
     T = max(float(np.max(np.abs(tt))), dt)
     nd = 1 + int(fit_drift)
-    margin = (VEL_ITERS + 1) * dt
+    margin = (cfg.velocity.iters + 1) * dt
     use = use0 & vp.slave.ok(t + d0 + dr0 * tt - margin) & vp.slave.ok(t + d0 + dr0 * tt + margin)
     nl, nt = (0 if Lr is None else 3), (3 if tilt else 0)
     steps = np.zeros(0, int) if steps is None else np.asarray(steps, int)
@@ -240,11 +99,11 @@ def _solve(vp: VelocityPair, t: np.ndarray, vm: np.ndarray, Lr: np.ndarray | Non
     J_lin[~use] = 0.0
     if nt:
         tilt_columns(None)
-    tap = end_taper(use, int(np.ceil(VEL_TAPER_S / dt)))
+    tap = end_taper(use, int(np.ceil(cfg.velocity.taper_s / dt)))
     wts = noise.weights(n, dt) if noise is not None else None
     lin = np.zeros(P - nd)
     d, dr = float(d0), float(dr0)
-    iters = VEL_ITERS
+    iters = cfg.velocity.iters
     for it in range(iters + 1):
         tau = t + d + dr * tt
         vs, ok = vp.slave(tau)
@@ -284,13 +143,13 @@ def _solve(vp: VelocityPair, t: np.ndarray, vm: np.ndarray, Lr: np.ndarray | Non
     n_use = int(use.sum())
     s2 = float(np.sum(rw * rw)) / max(1, 3 * n_use - P)
     u = np.sum(Jw * rw[:, :, None], axis=1) @ Ninv[:, :nd]
-    var, corr, _fac, _ = gls_covariance(Ninv, s2, u, dt, fit_drift)
+    var, corr, _fac, _ = gls_covariance(Ninv, s2, u, dt, fit_drift, cfg=cfg)
     lin = lin + step[nd:]
     resid = r + J_lin @ step[nd:]
     resid[~use] = 0.0
     fixed = J_lin[:, :, :nf] @ lin[:nf]
     rms = float(np.sqrt(np.sum(resid ** 2) / (3 * n_use)))
-    lev = leverage_spectrum(J * tap[:, None, None], use) if (leverage and VEL_LEVERAGE) else None
+    lev = leverage_spectrum(J * tap[:, None, None], use) if (leverage and cfg.velocity.leverage) else None
     return _Solved(d, dr, var, corr, lin[:3] if nl else None, lin[nl:nl + 3] if nt else None, fixed, rms, resid,
                    lev)
 
@@ -308,9 +167,9 @@ def _step_score(S: np.ndarray, C: np.ndarray, k: np.ndarray, half: int) -> np.nd
     return np.linalg.norm((mC - mB) - (mD - mA) / 3.0, axis=1)
 
 
-def _find_steps(x: np.ndarray, use: np.ndarray, half: int) -> np.ndarray:
+def _find_steps(x: np.ndarray, use: np.ndarray, half: int, cfg: LatencyConfig = DEFAULT) -> np.ndarray:
     """Sample indices where x (n, 3) jumps: local maxima of the step score (``_step_score``) beyond
-    VEL_STEP_RATIO times its median that are sharp, i.e. keep at least VEL_STEP_SHARP of their score at
+    cfg.velocity.step_ratio times its median that are sharp, i.e. keep at least cfg.velocity.step_sharp of their score at
     half the scale (a step keeps it all, the curvature of a manoeuvre a quarter)."""
     n = len(x)
     if n < 8 * half or half < 4:
@@ -324,7 +183,7 @@ def _find_steps(x: np.ndarray, use: np.ndarray, half: int) -> np.ndarray:
     if not ok.any():
         return np.zeros(0, int)
     m = np.where(ok, m, 0.0)
-    thr = VEL_STEP_RATIO * float(np.median(m[ok]))
+    thr = cfg.velocity.step_ratio * float(np.median(m[ok]))
     out: list[int] = []
     for i in np.argsort(-m):
         if m[i] <= thr:
@@ -332,24 +191,25 @@ def _find_steps(x: np.ndarray, use: np.ndarray, half: int) -> np.ndarray:
         if any(abs(int(i) - j) <= 2 * half for j in out):
             continue
         fine = _step_score(S, C, k[i:i + 1], half // 2)[0]
-        if np.isfinite(fine) and fine >= VEL_STEP_SHARP * m[i]:
+        if np.isfinite(fine) and fine >= cfg.velocity.step_sharp * m[i]:
             out.append(int(i))
     return np.sort(np.asarray(out, int) + 2 * half)
 
 
 def velocity_fit(vp: VelocityPair, w0: float, w1: float, d0: float, drift0: float, t_mid: float, *,
-                 fit_drift: bool, windows: list[tuple[float, float]]) -> VelocityFit | None:
+                 fit_drift: bool, windows: list[tuple[float, float]], cfg: LatencyConfig = DEFAULT
+                 ) -> VelocityFit | None:
     """The velocity-matched (L, drift) over [w0, w1] (master's relative clock), started from the rate fit's
-    (d0, drift0): the resets found (steps), one unweighted pass, then VEL_GLS_PASSES whitened ones; sigma
+    (d0, drift0): the resets found (steps), one unweighted pass, then cfg.velocity.gls_passes whitened ones; sigma
     from the whitened curvature with a HAC floor, inflated by the scatter of the windows' delays (each
     window: the delay alone, whitened alike) about the fit's line when their reduced chi-square exceeds
     1, and floored by the velocity's and the stamps' quantization. None when the data do not support a
-    fit (too few samples, a singular system, more than VEL_MAX_STEPS resets)."""
-    # long records: at most VEL_MAX_FIT_SAMPLES samples, still above twice the cutoff (band-limited data)
-    dt = max(vp.dt_s, min((w1 - w0) / VEL_MAX_FIT_SAMPLES, 1.0 / (2.5 * vp.cutoff_hz)))
+    fit (too few samples, a singular system, more than cfg.velocity.max_steps resets)."""
+    # long records: at most cfg.velocity.max_fit_samples samples, still above twice the cutoff (band-limited data)
+    dt = max(vp.dt_s, min((w1 - w0) / cfg.velocity.max_fit_samples, 1.0 / (2.5 * vp.cutoff_hz)))
     vp = replace(vp, dt_s=dt)
     t = np.arange(np.ceil(w0 / dt), np.floor(w1 / dt) + 1) * dt
-    edge = VEL_EDGE_CYCLES / vp.cutoff_hz
+    edge = cfg.velocity.edge_cycles / vp.cutoff_hz
     vm, okm = vp.master(t)
     okm &= (t >= vp.master.t_first_s + edge) & (t <= vp.master.t_last_s - edge)
     lag = d0 + drift0 * (t - t_mid)
@@ -360,42 +220,43 @@ def velocity_fit(vp: VelocityPair, w0: float, w1: float, d0: float, drift0: floa
     vm = np.where(okm[:, None], vm, 0.0)
     # resets of the slave's velocity (an aided filter's jumps): found in the raw difference at the rate
     # fit's (L, drift), a step per axis solved from each, the low-passed transition around it left out
-    half = max(2, int(round(VEL_STEP_CYCLES / (vp.cutoff_hz * dt))))
+    half = max(2, int(round(cfg.velocity.step_cycles / (vp.cutoff_hz * dt))))
     vs0, ok0 = vp.slave(t + d0 + drift0 * (t - t_mid))
     # a slave whose velocity frame is rotated from the master's (an INS with a heading error, an odometry
     # frame): the rotation found (Wahba) and undone, the tilt then solves what is left; the linear tilt
     # model alone errs by |v| angle^2 / 2 (0.1 m/s at 200 m/s and 2 deg)
     slave0 = vp.slave
-    R_f = _frame_rotation(vs0, vm, okm & ok0)
-    if R_f is not None and _angle_deg(R_f) > VEL_FRAME_MIN_DEG:
+    R_f = frame_rotation(vs0, vm, okm & ok0, cfg)
+    if R_f is not None and angle_deg(R_f) > cfg.velocity.frame_min_deg:
         vp = replace(vp, slave=slave0.transformed(R_f.T))
         vs0, ok0 = vp.slave(t + d0 + drift0 * (t - t_mid))
     else:
         R_f = np.eye(3)
-    steps = _find_steps(np.where(ok0[:, None], vs0, 0.0) - vm, okm & ok0, half)
-    if len(steps) > VEL_MAX_STEPS:
+    steps = _find_steps(np.where(ok0[:, None], vs0, 0.0) - vm, okm & ok0, half, cfg)
+    if len(steps) > cfg.velocity.max_steps:
         return None  # a velocity that jumps this often carries no delay worth the risk
     if len(steps):
-        okm = okm & ~_near(t, t[steps], half * dt)
-    s = _solve(vp, t, vm, Lr, okm, d0, drift0, t_mid, None, fit_drift, tilt=VEL_TILT, steps=steps, leverage=True)
+        okm = okm & ~near(t, t[steps], half * dt)
+    s = _solve(vp, t, vm, Lr, okm, d0, drift0, t_mid, None, fit_drift, tilt=cfg.velocity.tilt, steps=steps,
+               leverage=True, cfg=cfg)
     # the tilt found is a rotation: undone exactly (and the fit redone) where its square would show
-    for _ in range(VEL_FRAME_ITERS):
-        if s is None or s.tilt is None or np.degrees(np.linalg.norm(s.tilt)) <= VEL_TILT_EXACT_DEG:
+    for _ in range(cfg.velocity.frame_iters):
+        if s is None or s.tilt is None or np.degrees(np.linalg.norm(s.tilt)) <= cfg.velocity.tilt_exact_deg:
             break
         R_f = R_f @ dcm_from_rotvec(s.tilt)  # slave_now = R_f^T v_s = (I + [tilt x]) v
         vp = replace(vp, slave=slave0.transformed(R_f.T))
-        s = _solve(vp, t, vm, Lr, okm, s.d, s.dr, t_mid, None, fit_drift, tilt=VEL_TILT, steps=steps,
-                   leverage=True)
-    rot_deg = _angle_deg(R_f)
+        s = _solve(vp, t, vm, Lr, okm, s.d, s.dr, t_mid, None, fit_drift, tilt=cfg.velocity.tilt, steps=steps,
+                   leverage=True, cfg=cfg)
+    rot_deg = angle_deg(R_f)
     noise = None
-    for k in range(VEL_GLS_PASSES):
+    for k in range(cfg.velocity.gls_passes):
         if s is None:
             return None
-        nm = noise_model(s.resid, np.any(s.resid != 0.0, axis=1), vp.dt_s, leverage=s.leverage)
+        nm = noise_model(s.resid, np.any(s.resid != 0.0, axis=1), vp.dt_s, leverage=s.leverage, cfg=cfg)
         if nm is None:
             break
-        s2 = _solve(vp, t, vm, Lr, okm, s.d, s.dr, t_mid, nm, fit_drift, tilt=VEL_TILT, steps=steps,
-                    leverage=k < VEL_GLS_PASSES - 1)
+        s2 = _solve(vp, t, vm, Lr, okm, s.d, s.dr, t_mid, nm, fit_drift, tilt=cfg.velocity.tilt, steps=steps,
+                    leverage=k < cfg.velocity.gls_passes - 1, cfg=cfg)
         if s2 is None:
             break
         s, noise = s2, nm
@@ -407,11 +268,11 @@ def velocity_fit(vp: VelocityPair, w0: float, w1: float, d0: float, drift0: floa
     c, lat, sig = [], [], []
     for a0, a1 in windows if len(windows) >= 3 else []:
         ws = (t >= a0) & (t <= a1)
-        if ws.sum() < VEL_WINDOW_MIN:
+        if ws.sum() < cfg.velocity.window_min:
             continue
         tc = 0.5 * (a0 + a1)
         pred = s.d + s.dr * (tc - t_mid)
-        sw = _solve(vp, t[ws], vm_w[ws], None, okm[ws], pred, s.dr, tc, noise, False, tilt=False)
+        sw = _solve(vp, t[ws], vm_w[ws], None, okm[ws], pred, s.dr, tc, noise, False, tilt=False, cfg=cfg)
         if sw is not None and np.isfinite(sw.var[0]) and sw.var[0] > 0:
             c.append(tc)
             lat.append(sw.d)
@@ -420,10 +281,10 @@ def velocity_fit(vp: VelocityPair, w0: float, w1: float, d0: float, drift0: floa
     infl = float(np.sqrt(max(1.0, chi2)))
     # the quantization floors (in quadrature; the drift's sigma scaled alike)
     acc, ok_a = vp.master(t, 1)
-    s_q = _quantization_sigma_s(vp, np.mean(acc[ok_a & okm] ** 2, axis=0)) if (ok_a & okm).any() else 0.0
+    s_q = quantization_sigma_s(vp, np.mean(acc[ok_a & okm] ** 2, axis=0)) if (ok_a & okm).any() else 0.0
     # stamps on a coarse grid: a common offset of up to half of it, uniform (the rates' own stamps are
     # another stream's: this is the velocity's)
-    if VEL_STAMP_RESOLUTION_FLOOR:
+    if cfg.velocity.stamp_resolution_floor:
         s_q = float(np.hypot(s_q, grid_offset_sigma_s(vp.stamp_resolutions_s)))
     # white stamp noise: the delay is a weighted mean of the stamps' errors, weights |a|^2 per sample
     # (as the rate fit's floor; the GLS residuals do not show it); f dt stamps behind each fit point
@@ -438,37 +299,3 @@ def velocity_fit(vp: VelocityPair, w0: float, w1: float, d0: float, drift0: floa
         residual_rms_m_s=s.rms, window_chi2_red=chi2, n_windows=len(c), n_steps=int(len(steps)),
         frame_rotation_deg=rot_deg)
 
-
-def _angle_deg(R: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
-
-
-def _frame_rotation(vs: np.ndarray, vm: np.ndarray, use: np.ndarray) -> np.ndarray | None:
-    """The rotation R with v_s ~ R v_m + c, from the velocities' changes about their means: Kabsch when the
-    velocity varies in two directions or more; else (an aircraft's S-turns, a straight road) the rotation
-    about the one is undetermined and only a heading rotation is found (2-D, from the horizontal changes,
-    which one direction determines); None when neither is determined."""
-    if use.sum() < VEL_MIN_SAMPLES:
-        return None
-    a, b = vs[use] - vs[use].mean(axis=0), vm[use] - vm[use].mean(axis=0)
-    H = a.T @ b
-    U, sv, Vt = np.linalg.svd(H)
-    if not sv[0] > 0:
-        return None
-    if sv[1] > VEL_FRAME_MIN_RANK * sv[0]:
-        D = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(U @ Vt)))])
-        return U @ D @ Vt
-    h = H[:2, :2]
-    if np.linalg.norm(h) < 0.1 * sv[0]:  # the changes are vertical: the heading is not seen
-        return None
-    psi = float(np.arctan2(h[1, 0] - h[0, 1], h[0, 0] + h[1, 1]))
-    c, s_ = np.cos(psi), np.sin(psi)
-    return np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def _near(t: np.ndarray, at: np.ndarray, half_s: float) -> np.ndarray:
-    """True where t is within half_s of any of the (sorted) instants ``at``."""
-    j = np.searchsorted(at, t)
-    before = np.abs(t - at[np.clip(j - 1, 0, len(at) - 1)])
-    after = np.abs(t - at[np.clip(j, 0, len(at) - 1)])
-    return np.minimum(before, after) <= half_s
