@@ -9,7 +9,7 @@ import pytest
 from logtools.conventions import skew
 from logtools.latency import LatencyConfig, Stages, estimate
 from logtools.latency.flexure import FlexureModel, block_mean, fit_model, whitened_normal
-from logtools.latency.refine import refine_flex
+from logtools.latency.kalman import refine_flex
 
 DEG = np.pi / 180.0
 #: the spectral GLS alone (no Kalman flexure-model stage)

@@ -58,7 +58,7 @@ def test_kalman_fit_falls_back_to_the_gyros_when_its_own_accelerometers_fail():
     fit fails, the gyro-only Kalman fit (what ran before) is still a candidate."""
     from dataclasses import replace
 
-    from logtools.latency.refine import refine_flex as real
+    from logtools.latency.kalman import refine_flex as real
 
     calls = []
 

@@ -26,11 +26,13 @@ module                open it to change
 ``fit``               the delay problem (``Fit``, Jacobian, residuals) and the first Gauss-Newton fit
 ``system``            the whitened fits' joint system, accelerometer rows (``Accel``)
 ``gls``               residual spectra, whitening, HAC; ``gls_covariance``: every fit's covariance
-``refine``            refinement stages: spectral GLS, accelerometer-aided passes, Kalman flexure fit and
-                      the one "is this flexure?" criterion (``flexure_like``)
+``refine``            refinement stages: the spectral GLS and the accelerometer-aided passes
+``kalman``            the Kalman flexure-model refinement and the one "is this flexure?" criterion
+                      (``flexure_like``)
 ``flexure``           the flexure state-space model, its Kalman whitening kernel (numba) and likelihood
-``windows``           drift windows, the joint (L, drift) fit, the choice among the refinement candidates
-                      and the windows' check of the one kept
+``windows``           drift windows, their line, the joint (L, drift) fit, the windows' check of a sigma
+``candidates``        the refinement candidates over the whole overlap (spectral GLS, aided, Kalman) and
+                      the choice between them (``fit_all``)
 ``velocity_pair``     the units' velocities for matching, grids, frame rotation
 ``velocity``          the velocity-matched (L, drift) fit
 ``fusion``            velocity and rate fits fused; periodic alternatives tried on the velocities

@@ -9,6 +9,7 @@ import numpy as np
 from logtools.conventions import euler_from_dcm
 from logtools.errors import AnalysisError
 from logtools.inslog import InsLog
+from logtools.latency.candidates import fit_all
 from logtools.latency.coarse import Coarse, coarse, xcorr_estimate
 from logtools.latency.config import DEFAULT, LatencyConfig
 from logtools.latency.fit import best_cutoff, refine, residual
@@ -20,7 +21,7 @@ from logtools.latency.prepare import Ctx, prepare, refiltered_ctx
 from logtools.latency.quality import cost_curve, quality_record
 from logtools.latency.uncertainty import RateSigma, budget, centroid_term, drift_prior, fused, jitter_sigma_s, rate_sigma
 from logtools.latency.velocity_pair import VelocityPair, velocity_pair
-from logtools.latency.windows import fit_all, fit_window_chi2
+from logtools.latency.windows import Overlap, fit_window_chi2
 from logtools.resample import UniformSeries
 from logtools.results import LatencyResult, MethodEstimate
 
@@ -153,8 +154,8 @@ def tapost(ctx: Ctx, progress: Progress) -> tuple[LatencyResult, Coarse]:
     ctx, smp, d_center, noise = first_fit(ctx, co, smp)
     t_mid, w0, w1 = smp.t_mid, smp.w0, smp.w1
     prog(0.55, "windows and drift")
-    fin, centers, lats, sigs = fit_all(ctx, smp.t_m, smp.a, smp.valid, w0, w1, d_center, 0.0,
-                                       cfg.windows.drift_search_ppm, noise)
+    ov = Overlap(smp.t_m, smp.a, smp.valid, ctx.slave.itp, w0, w1)
+    fin, centers, lats, sigs = fit_all(ctx, ov, d_center, 0.0, cfg.windows.drift_search_ppm, noise)
     prog(0.8, "drift")
     fit_drift = len(centers) >= 3
     rs = rate_sigma(fin, centers, lats, sigs, t_mid, ctx, fit_window_chi2(fin, centers, lats, sigs, t_mid))

@@ -79,26 +79,7 @@ def _solve(vp: VelocityPair, t: np.ndarray, vm: np.ndarray, Lr: np.ndarray | Non
     P = nd + nf + 6
     if use.sum() < max(20, 2 * P):
         return None
-    # the linear columns: lever arm, tilt, steps, offset, ramp (the tilt's follow the lever arm)
-    eye = np.eye(3)
-    J_lin = np.zeros((n, 3, P - nd))
-    if nl:
-        J_lin[:, :, :3] = -Lr
-    k_mid = np.flatnonzero(use)[np.argmin(np.abs(tt[use]))]
-
-    def tilt_columns(lever: np.ndarray | None) -> None:
-        """d(delta v)/d(phi) = [(v - v_mid) x]: the velocity change since t_mid seen through the slave's
-        tilt, v the slave's true velocity (the master's plus the lever arm's, at the current lever arm)."""
-        v = vm if lever is None else vm + Lr @ lever
-        J_lin[:, :, nl:nl + 3] = np.where(use[:, None, None], skew(v - v[k_mid]), 0.0)
-
-    for j, k in enumerate(steps):
-        J_lin[k:, :, nl + nt + 3 * j:nl + nt + 3 * j + 3] = -eye
-    J_lin[:, :, nf:nf + 3] = -eye
-    J_lin[:, :, nf + 3:] = -eye * (tt / T)[:, None, None]
-    J_lin[~use] = 0.0
-    if nt:
-        tilt_columns(None)
+    J_lin, k_mid = _linear_columns(vm, Lr, use, tt, T, steps, nt, P - nd)
     tap = end_taper(use, int(np.ceil(cfg.velocity.taper_s / dt)))
     wts = noise.weights(n, dt) if noise is not None else None
     lin = np.zeros(P - nd)
@@ -132,15 +113,58 @@ def _solve(vp: VelocityPair, t: np.ndarray, vm: np.ndarray, Lr: np.ndarray | Non
         d, dr = d + sd, dr + sdr
         lin = lin + step[nd:]
         if nt and nl:
-            tilt_columns(lin[:3])
+            _tilt_columns(J_lin, vm, Lr, lin[:3], use, k_mid)
         if abs(sd) < 1e-4 * dt:
             iters = it + 1
+    return _solved(J, Jw, Jf, Nm, step, lin, rw, r, J_lin, tap, use, d, dr, nd, nl, nt, nf, fit_drift, dt,
+                   leverage and cfg.velocity.leverage, cfg)
+
+
+def _linear_columns(vm: np.ndarray, Lr: np.ndarray | None, use: np.ndarray, tt: np.ndarray, T: float,
+                    steps: np.ndarray, nt: int, n_lin: int) -> tuple[np.ndarray, int]:
+    """The linear columns (n, 3, n_lin): lever arm, tilt, steps, offset, ramp (the tilt's follow the lever
+    arm); and the row of t_mid (the tilt's reference)."""
+    n = len(tt)
+    nl = 0 if Lr is None else 3
+    nf = nl + nt + 3 * len(steps)
+    eye = np.eye(3)
+    J_lin = np.zeros((n, 3, n_lin))
+    if nl:
+        J_lin[:, :, :3] = -Lr
+    k_mid = np.flatnonzero(use)[np.argmin(np.abs(tt[use]))]
+    for j, k in enumerate(steps):
+        J_lin[k:, :, nl + nt + 3 * j:nl + nt + 3 * j + 3] = -eye
+    J_lin[:, :, nf:nf + 3] = -eye
+    J_lin[:, :, nf + 3:] = -eye * (tt / T)[:, None, None]
+    J_lin[~use] = 0.0
+    if nt:
+        _tilt_columns(J_lin, vm, Lr, None, use, k_mid)
+    return J_lin, k_mid
+
+
+def _tilt_columns(J_lin: np.ndarray, vm: np.ndarray, Lr: np.ndarray | None, lever: np.ndarray | None,
+                  use: np.ndarray, k_mid: int) -> None:
+    """d(delta v)/d(phi) = [(v - v_mid) x] into J_lin's tilt columns (in place: the design being built): the
+    velocity change since t_mid seen through the slave's tilt, v the slave's true velocity (the master's
+    plus the lever arm's, at the current lever arm)."""
+    nl = 0 if Lr is None else 3
+    v = vm if lever is None else vm + Lr @ lever
+    J_lin[:, :, nl:nl + 3] = np.where(use[:, None, None], skew(v - v[k_mid]), 0.0)
+
+
+def _solved(J, Jw, Jf, Nm, step, lin, rw, r, J_lin, tap, use, d, dr, nd, nl, nt, nf, fit_drift, dt, leverage, cfg
+            ) -> _Solved | None:
+    """The fit at the last step: covariance (``gls_covariance``), the linear unknowns, the residual, the
+    columns the windows keep fixed, and the leverage spectrum where asked (``lin``: the linear unknowns
+    before the last step)."""
+    n = len(use)
     try:
         Ninv = np.linalg.inv(Nm)
     except np.linalg.LinAlgError:
         return None
     rw = rw + (Jf @ step).reshape(n, 3)
     n_use = int(use.sum())
+    P = Jf.shape[1]
     s2 = float(np.sum(rw * rw)) / max(1, 3 * n_use - P)
     u = np.sum(Jw * rw[:, :, None], axis=1) @ Ninv[:, :nd]
     var, corr, _fac, _ = gls_covariance(Ninv, s2, u, dt, fit_drift, cfg=cfg)
@@ -149,7 +173,7 @@ def _solve(vp: VelocityPair, t: np.ndarray, vm: np.ndarray, Lr: np.ndarray | Non
     resid[~use] = 0.0
     fixed = J_lin[:, :, :nf] @ lin[:nf]
     rms = float(np.sqrt(np.sum(resid ** 2) / (3 * n_use)))
-    lev = leverage_spectrum(J * tap[:, None, None], use) if (leverage and cfg.velocity.leverage) else None
+    lev = leverage_spectrum(J * tap[:, None, None], use) if leverage else None
     return _Solved(d, dr, var, corr, lin[:3] if nl else None, lin[nl:nl + 3] if nt else None, fixed, rms, resid,
                    lev)
 
@@ -200,53 +224,19 @@ def velocity_fit(vp: VelocityPair, w0: float, w1: float, d0: float, drift0: floa
                  fit_drift: bool, windows: list[tuple[float, float]], cfg: LatencyConfig = DEFAULT
                  ) -> VelocityFit | None:
     """The velocity-matched (L, drift) over [w0, w1] (master's relative clock), started from the rate fit's
-    (d0, drift0): the resets found (steps), one unweighted pass, then cfg.velocity.gls_passes whitened ones; sigma
-    from the whitened curvature with a HAC floor, inflated by the scatter of the windows' delays (each
+    (d0, drift0): the resets found (steps), one unweighted pass, then ``velocity.gls_passes`` whitened ones;
+    sigma from the whitened curvature with a HAC floor, inflated by the scatter of the windows' delays (each
     window: the delay alone, whitened alike) about the fit's line when their reduced chi-square exceeds
     1, and floored by the velocity's and the stamps' quantization. None when the data do not support a
-    fit (too few samples, a singular system, more than cfg.velocity.max_steps resets)."""
-    # long records: at most cfg.velocity.max_fit_samples samples, still above twice the cutoff (band-limited data)
-    dt = max(vp.dt_s, min((w1 - w0) / cfg.velocity.max_fit_samples, 1.0 / (2.5 * vp.cutoff_hz)))
-    vp = replace(vp, dt_s=dt)
-    t = np.arange(np.ceil(w0 / dt), np.floor(w1 / dt) + 1) * dt
-    edge = cfg.velocity.edge_cycles / vp.cutoff_hz
-    vm, okm = vp.master(t)
-    okm &= (t >= vp.master.t_first_s + edge) & (t <= vp.master.t_last_s - edge)
-    lag = d0 + drift0 * (t - t_mid)
-    okm &= (t + lag >= vp.slave.t_first_s + edge) & (t + lag <= vp.slave.t_last_s - edge)
-    Lr = vp.lever(t) if vp.lever is not None else None
-    if Lr is not None and not np.any(Lr):
-        Lr = None
-    vm = np.where(okm[:, None], vm, 0.0)
-    # resets of the slave's velocity (an aided filter's jumps): found in the raw difference at the rate
-    # fit's (L, drift), a step per axis solved from each, the low-passed transition around it left out
-    half = max(2, int(round(cfg.velocity.step_cycles / (vp.cutoff_hz * dt))))
-    vs0, ok0 = vp.slave(t + d0 + drift0 * (t - t_mid))
-    # a slave whose velocity frame is rotated from the master's (an INS with a heading error, an odometry
-    # frame): the rotation found (Wahba) and undone, the tilt then solves what is left; the linear tilt
-    # model alone errs by |v| angle^2 / 2 (0.1 m/s at 200 m/s and 2 deg)
-    slave0 = vp.slave
-    R_f = frame_rotation(vs0, vm, okm & ok0, cfg)
-    if R_f is not None and angle_deg(R_f) > cfg.velocity.frame_min_deg:
-        vp = replace(vp, slave=slave0.transformed(R_f.T))
-        vs0, ok0 = vp.slave(t + d0 + drift0 * (t - t_mid))
-    else:
-        R_f = np.eye(3)
-    steps = _find_steps(np.where(ok0[:, None], vs0, 0.0) - vm, okm & ok0, half, cfg)
-    if len(steps) > cfg.velocity.max_steps:
+    fit (too few samples, a singular system, more than ``velocity.max_steps`` resets)."""
+    vp, t, vm, okm, Lr = _fit_rows(vp, w0, w1, d0, drift0, t_mid, cfg)
+    framed = _frame_and_steps(vp, t, vm, okm, d0, drift0, t_mid, cfg)
+    if framed is None:
         return None  # a velocity that jumps this often carries no delay worth the risk
-    if len(steps):
-        okm = okm & ~near(t, t[steps], half * dt)
+    vp, slave0, R_f, steps, okm = framed
     s = _solve(vp, t, vm, Lr, okm, d0, drift0, t_mid, None, fit_drift, tilt=cfg.velocity.tilt, steps=steps,
                leverage=True, cfg=cfg)
-    # the tilt found is a rotation: undone exactly (and the fit redone) where its square would show
-    for _ in range(cfg.velocity.frame_iters):
-        if s is None or s.tilt is None or np.degrees(np.linalg.norm(s.tilt)) <= cfg.velocity.tilt_exact_deg:
-            break
-        R_f = R_f @ dcm_from_rotvec(s.tilt)  # slave_now = R_f^T v_s = (I + [tilt x]) v
-        vp = replace(vp, slave=slave0.transformed(R_f.T))
-        s = _solve(vp, t, vm, Lr, okm, s.d, s.dr, t_mid, None, fit_drift, tilt=cfg.velocity.tilt, steps=steps,
-                   leverage=True, cfg=cfg)
+    vp, s, R_f = _tilt_undone(vp, s, R_f, slave0, t, vm, Lr, okm, t_mid, fit_drift, steps, cfg)
     rot_deg = angle_deg(R_f)
     noise = None
     for k in range(cfg.velocity.gls_passes):
@@ -262,8 +252,83 @@ def velocity_fit(vp: VelocityPair, w0: float, w1: float, d0: float, drift0: floa
         s, noise = s2, nm
     if s is None or not np.all(np.isfinite(s.var)) or s.var[0] <= 0:
         return None
-    # the windows' delays, each with the whole fit's drift, lever arm and tilt (constants of the pair; a
-    # window cannot tell a lever arm along the flight path from a delay in a level turn)
+    c, lat, sig = _window_delays(vp, s, t, vm, okm, t_mid, noise, windows, cfg)
+    chi2 = window_chi2(c, lat, sig, s.d, s.dr, t_mid)
+    infl = float(np.sqrt(max(1.0, chi2)))
+    s_q = _quantization_floor(vp, t, okm, cfg)
+    s_l = float(np.sqrt(s.var[0])) * infl
+    q_infl = float(np.sqrt(1.0 + (s_q / s_l) ** 2))
+    sd = float(np.sqrt(s.var[1])) * infl * q_infl if fit_drift else 0.0
+    return VelocityFit(
+        latency_s=s.d, drift=s.dr, sigma_latency_s=s_l * q_infl, sigma_drift=sd,
+        corr_ld=s.corr, lever_arm_m=None if s.lever is None else tuple(float(x) for x in s.lever),
+        residual_rms_m_s=s.rms, window_chi2_red=chi2, n_windows=len(c), n_steps=int(len(steps)),
+        frame_rotation_deg=rot_deg)
+
+
+def _fit_rows(vp: VelocityPair, w0: float, w1: float, d0: float, drift0: float, t_mid: float,
+              cfg: LatencyConfig) -> tuple:
+    """(pair on the fit's grid, t, master velocity, usable rows, lever-arm rows or None): at most
+    ``max_fit_samples`` samples, still above twice the cutoff (band-limited data), the series' ends left out."""
+    dt = max(vp.dt_s, min((w1 - w0) / cfg.velocity.max_fit_samples, 1.0 / (2.5 * vp.cutoff_hz)))
+    vp = replace(vp, dt_s=dt)
+    t = np.arange(np.ceil(w0 / dt), np.floor(w1 / dt) + 1) * dt
+    edge = cfg.velocity.edge_cycles / vp.cutoff_hz
+    vm, okm = vp.master(t)
+    okm &= (t >= vp.master.t_first_s + edge) & (t <= vp.master.t_last_s - edge)
+    lag = d0 + drift0 * (t - t_mid)
+    okm &= (t + lag >= vp.slave.t_first_s + edge) & (t + lag <= vp.slave.t_last_s - edge)
+    Lr = vp.lever(t) if vp.lever is not None else None
+    if Lr is not None and not np.any(Lr):
+        Lr = None
+    vm = np.where(okm[:, None], vm, 0.0)
+    return vp, t, vm, okm, Lr
+
+
+def _frame_and_steps(vp: VelocityPair, t: np.ndarray, vm: np.ndarray, okm: np.ndarray, d0: float, drift0: float,
+                     t_mid: float, cfg: LatencyConfig) -> tuple | None:
+    """A slave whose velocity frame is rotated from the master's (an INS with a heading error, an odometry
+    frame): the rotation found (Wahba) and undone, the tilt then solves what is left (the linear tilt model
+    alone errs by |v| angle^2 / 2: 0.1 m/s at 200 m/s and 2 deg). Then the resets of the slave's velocity
+    (an aided filter's jumps), found in the raw difference at the rate fit's (L, drift), the low-passed
+    transition around each left out. Returns (pair, the slave's velocity as logged, R_f, steps, rows) or
+    None beyond ``max_steps`` resets."""
+    dt = vp.dt_s
+    half = max(2, int(round(cfg.velocity.step_cycles / (vp.cutoff_hz * dt))))
+    vs0, ok0 = vp.slave(t + d0 + drift0 * (t - t_mid))
+    slave0 = vp.slave
+    R_f = frame_rotation(vs0, vm, okm & ok0, cfg)
+    if R_f is not None and angle_deg(R_f) > cfg.velocity.frame_min_deg:
+        vp = replace(vp, slave=slave0.transformed(R_f.T))
+        vs0, ok0 = vp.slave(t + d0 + drift0 * (t - t_mid))
+    else:
+        R_f = np.eye(3)
+    steps = _find_steps(np.where(ok0[:, None], vs0, 0.0) - vm, okm & ok0, half, cfg)
+    if len(steps) > cfg.velocity.max_steps:
+        return None
+    if len(steps):
+        okm = okm & ~near(t, t[steps], half * dt)
+    return vp, slave0, R_f, steps, okm
+
+
+def _tilt_undone(vp: VelocityPair, s, R_f: np.ndarray, slave0, t: np.ndarray, vm: np.ndarray, Lr, okm: np.ndarray,
+                 t_mid: float, fit_drift: bool, steps: np.ndarray, cfg: LatencyConfig) -> tuple:
+    """The tilt found is a rotation: undone exactly (and the fit redone) where its square would show
+    (``slave0``: the slave's velocity as logged)."""
+    for _ in range(cfg.velocity.frame_iters):
+        if s is None or s.tilt is None or np.degrees(np.linalg.norm(s.tilt)) <= cfg.velocity.tilt_exact_deg:
+            break
+        R_f = R_f @ dcm_from_rotvec(s.tilt)  # slave_now = R_f^T v_s = (I + [tilt x]) v
+        vp = replace(vp, slave=slave0.transformed(R_f.T))
+        s = _solve(vp, t, vm, Lr, okm, s.d, s.dr, t_mid, None, fit_drift, tilt=cfg.velocity.tilt, steps=steps,
+                   leverage=True, cfg=cfg)
+    return vp, s, R_f
+
+
+def _window_delays(vp: VelocityPair, s, t: np.ndarray, vm: np.ndarray, okm: np.ndarray, t_mid: float,
+                   noise: NoiseModel | None, windows: list, cfg: LatencyConfig) -> tuple[list, list, list]:
+    """The windows' delays, each with the whole fit's drift, lever arm and tilt (constants of the pair; a
+    window cannot tell a lever arm along the flight path from a delay in a level turn)."""
     vm_w = vm - s.fixed
     c, lat, sig = [], [], []
     for a0, a1 in windows if len(windows) >= 3 else []:
@@ -277,25 +342,16 @@ def velocity_fit(vp: VelocityPair, w0: float, w1: float, d0: float, drift0: floa
             c.append(tc)
             lat.append(sw.d)
             sig.append(float(np.sqrt(sw.var[0])))
-    chi2 = window_chi2(c, lat, sig, s.d, s.dr, t_mid)
-    infl = float(np.sqrt(max(1.0, chi2)))
-    # the quantization floors (in quadrature; the drift's sigma scaled alike)
+    return c, lat, sig
+
+
+def _quantization_floor(vp: VelocityPair, t: np.ndarray, okm: np.ndarray, cfg: LatencyConfig) -> float:
+    """The velocity fit's floors, in quadrature: the velocity grid's, the stamps' grid offset (a common offset
+    of up to half a step, uniform; the velocity's stamps, not the rates'), and white stamp noise (the delay
+    a weighted mean of the stamps' errors, weights |a|^2 per sample; f dt stamps behind each fit point)."""
     acc, ok_a = vp.master(t, 1)
     s_q = quantization_sigma_s(vp, np.mean(acc[ok_a & okm] ** 2, axis=0)) if (ok_a & okm).any() else 0.0
-    # stamps on a coarse grid: a common offset of up to half of it, uniform (the rates' own stamps are
-    # another stream's: this is the velocity's)
     if cfg.velocity.stamp_resolution_floor:
         s_q = float(np.hypot(s_q, grid_offset_sigma_s(vp.stamp_resolutions_s)))
-    # white stamp noise: the delay is a weighted mean of the stamps' errors, weights |a|^2 per sample
-    # (as the rate fit's floor; the GLS residuals do not show it); f dt stamps behind each fit point
     g = np.sum(acc[ok_a & okm] ** 2, axis=1)
-    s_q = float(np.sqrt(s_q ** 2 + sum(stamp_noise_variance(sj, g, f * vp.dt_s) for sj, f in vp.stamp_jitter)))
-    s_l = float(np.sqrt(s.var[0])) * infl
-    q_infl = float(np.sqrt(1.0 + (s_q / s_l) ** 2))
-    sd = float(np.sqrt(s.var[1])) * infl * q_infl if fit_drift else 0.0
-    return VelocityFit(
-        latency_s=s.d, drift=s.dr, sigma_latency_s=s_l * q_infl, sigma_drift=sd,
-        corr_ld=s.corr, lever_arm_m=None if s.lever is None else tuple(float(x) for x in s.lever),
-        residual_rms_m_s=s.rms, window_chi2_red=chi2, n_windows=len(c), n_steps=int(len(steps)),
-        frame_rotation_deg=rot_deg)
-
+    return float(np.sqrt(s_q ** 2 + sum(stamp_noise_variance(sj, g, f * vp.dt_s) for sj, f in vp.stamp_jitter)))

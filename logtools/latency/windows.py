@@ -1,21 +1,19 @@
-"""Stage 5, windows and drift: the drift windows, their line, the joint (L, drift) fit over the whole
-overlap, the GLS / aided / Kalman candidates and the windows' check of the one kept."""
+"""Stage 5, windows and drift: the drift windows, their delays and line (outliers rejected), the joint
+(L, drift) fit over the whole overlap started from them, and the windows' check of a fit's sigma."""
 from __future__ import annotations
 
-from dataclasses import replace
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
 from logtools.conventions import median_step_s
 from logtools.errors import AnalysisError
 from logtools.latency.coarse import window_start
-from logtools.latency.fit import Fit, refine, residual
-from logtools.latency.gls import NoiseModel, noise_model, window_chi2
-from logtools.latency.prepare import Ctx, accel_pair
-from logtools.latency.refine import accel_aided as _accel_aided_builtin
-from logtools.latency.refine import accel_lag_agrees, refine_gls
-from logtools.latency.refine import refine_flex as _refine_flex_builtin
-from logtools.latency.system import Accel
+from logtools.latency.fit import Fit, refine
+from logtools.latency.gls import window_chi2
+from logtools.latency.prepare import Ctx
+from logtools.resample import Interpolant
 
 
 def drift_windows(ctx: Ctx, t0: float, t1: float, t_ok: np.ndarray | None = None) -> list[tuple[float, float]]:
@@ -74,208 +72,157 @@ def fit_window_chi2(f: Fit, centers: np.ndarray, lats: np.ndarray, sigs: np.ndar
     return window_chi2(centers, lats, sigs, f.latency_s, f.drift, t_mid)
 
 
-def fit_all(ctx: Ctx, t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, w0: float, w1: float,
-             d_center: float, drift_center: float, search_ppm: float, noise: NoiseModel | None = None
-             ) -> tuple[Fit, np.ndarray, np.ndarray, np.ndarray]:
-    """Windows along the overlap (each: integer-lag search around the predicted lag, then refinement),
-    a weighted line through them, then the joint (L, drift) fit over the whole overlap. With fewer than
-    3 usable windows, one global fit without drift."""
+@dataclass(frozen=True)
+class Overlap:
+    """The refinement rows of the analysed window [w0, w1]: master instants, rates, validity, and the
+    slave's interpolant."""
+
+    t_m: np.ndarray
+    a: np.ndarray
+    valid: np.ndarray
+    itp: Interpolant
+    w0: float
+    w1: float
+
+    @property
+    def t_mid(self) -> float:
+        return 0.5 * (self.w0 + self.w1)
+
+
+@dataclass(frozen=True)
+class WindowSet:
+    """Window delay estimates at their centres (s, master relative), their sigmas, and each centre's
+    window bounds (every window that fitted, before the motion and outlier checks)."""
+
+    centers: np.ndarray
+    lats: np.ndarray
+    sigs: np.ndarray
+    bounds: dict
+
+    @staticmethod
+    def empty() -> "WindowSet":
+        return WindowSet(np.zeros(0), np.zeros(0), np.zeros(0), {})
+
+    def __len__(self) -> int:
+        return len(self.centers)
+
+
+def window_fits(ctx: Ctx, ov: Overlap, wins: list, line: tuple[float, float] | None, d_center: float,
+                drift_center: float, search_ppm: float) -> WindowSet:
+    """Each window's delay at its centre. The drift inside a window is that of ``line`` (L, drift at
+    t_mid), else none: a window's delay without it is that of the window's motion centroid, not its
+    centre (100 ppm over a 15 s window whose motion sits at one end: 0.7 ms). Windows with little motion
+    (below a fifth of the median's) are left out."""
     cfg = ctx.cfg
-    refine_flex = cfg.stages.refine_flex or _refine_flex_builtin
-    accel_aided = cfg.stages.accel_aided or _accel_aided_builtin
-    t_mid = 0.5 * (w0 + w1)
-    itp = ctx.slave.itp
-    wins = drift_windows(ctx, w0, w1, t_m[valid & itp.ok(t_m + d_center)])
-    bounds: dict[float, tuple[float, float]] = {}
-
-    def fit_windows(line: tuple[float, float] | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Each window's delay at its centre. The drift inside a window is that of ``line`` (L, drift at
-        t_mid), else none: a window's delay without it is that of the window's motion centroid, not its
-        centre (100 ppm over a 15 s window whose motion sits at one end: 0.7 ms)."""
-        centers, lats, sigs, wmot = [], [], [], []
-        for (a0, a1) in wins if len(wins) >= 3 else []:
-            ws = (t_m >= a0) & (t_m <= a1)
-            if ws.sum() < 50:
+    t_m, a, valid, t_mid = ov.t_m, ov.a, ov.valid, ov.t_mid
+    centers, lats, sigs, wmot, bounds = [], [], [], [], {}
+    for (a0, a1) in wins if len(wins) >= 3 else []:
+        ws = (t_m >= a0) & (t_m <= a1)
+        if ws.sum() < 50:
+            continue
+        tc = 0.5 * (a0 + a1)
+        if line is None:
+            dr_w = 0.0
+            pred = d_center + drift_center * (tc - t_mid)
+            band = search_ppm * 1e-6 * abs(tc - t_mid) + 2.0 * ctx.dt_s
+            dw = window_start(ctx, a0, a1, pred, band)
+            if dw is None:
                 continue
-            tc = 0.5 * (a0 + a1)
-            if line is None:
-                dr_w = 0.0
-                pred = d_center + drift_center * (tc - t_mid)
-                band = search_ppm * 1e-6 * abs(tc - t_mid) + 2.0 * ctx.dt_s
-                dw = window_start(ctx, a0, a1, pred, band)
-                if dw is None:
-                    continue
-            else:
-                dr_w = line[1]
-                dw = line[0] + dr_w * (tc - t_mid)
-            f = refine(t_m[ws], a[ws], valid[ws], itp, dw, dr_w, tc, fit_drift=False, iters=8, cfg=cfg)
-            if f.ok and np.isfinite(f.sigma_latency_s):
-                bounds[float(tc)] = (a0, a1)
-                centers.append(tc)
-                lats.append(f.latency_s)
-                sigs.append(max(f.sigma_latency_s, cfg.uncertainty.sigma_floor_s))
-                wmot.append(f.motion_rms)
-        centers, lats, sigs, wmot = map(np.asarray, (centers, lats, sigs, wmot))
-        if len(wmot):
-            keep = wmot >= 0.2 * np.median(wmot)  # windows with enough motion
-            centers, lats, sigs = centers[keep], lats[keep], sigs[keep]
-        return centers, lats, sigs
-
-    def reject(centers: np.ndarray, lats: np.ndarray, sigs: np.ndarray
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
-        """Windows that locked on a wrong minimum (little motion in them: the linearised sigma does not
-        hold there) are outliers of the line: rejected one at a time beyond cfg.windows.window_reject sigma."""
-        keep = np.ones(len(centers), bool)
-        while keep.sum() > 3:
-            L0, dr0, _ = wls_line(centers[keep] - t_mid, lats[keep], sigs[keep])
-            z = np.abs(lats - (L0 + dr0 * (centers - t_mid))) / sigs
-            j = int(np.argmax(np.where(keep, z, -1.0)))
-            if z[j] <= cfg.windows.window_reject:
-                break
-            keep[j] = False
+        else:
+            dr_w = line[1]
+            dw = line[0] + dr_w * (tc - t_mid)
+        f = refine(t_m[ws], a[ws], valid[ws], ov.itp, dw, dr_w, tc, fit_drift=False, iters=8, cfg=cfg)
+        if f.ok and np.isfinite(f.sigma_latency_s):
+            bounds[float(tc)] = (a0, a1)
+            centers.append(tc)
+            lats.append(f.latency_s)
+            sigs.append(max(f.sigma_latency_s, cfg.uncertainty.sigma_floor_s))
+            wmot.append(f.motion_rms)
+    centers, lats, sigs, wmot = map(np.asarray, (centers, lats, sigs, wmot))
+    if len(wmot):
+        keep = wmot >= 0.2 * np.median(wmot)  # windows with enough motion
         centers, lats, sigs = centers[keep], lats[keep], sigs[keep]
-        L0, dr0, _ = wls_line(centers - t_mid, lats, sigs)
-        return centers, lats, sigs, L0, dr0
+    return WindowSet(centers, lats, sigs, bounds)
 
-    centers, lats, sigs = fit_windows(None)
+
+def reject_outliers(w: WindowSet, t_mid: float, reject_sigmas: float) -> tuple[WindowSet, float, float]:
+    """Windows that locked on a wrong minimum (little motion in them: the linearised sigma does not
+    hold there) are outliers of the line: rejected one at a time beyond ``reject_sigmas``. Returns the
+    windows kept and their line (L, drift at t_mid)."""
+    centers, lats, sigs = w.centers, w.lats, w.sigs
+    keep = np.ones(len(centers), bool)
+    while keep.sum() > 3:
+        L0, dr0, _ = wls_line(centers[keep] - t_mid, lats[keep], sigs[keep])
+        z = np.abs(lats - (L0 + dr0 * (centers - t_mid))) / sigs
+        j = int(np.argmax(np.where(keep, z, -1.0)))
+        if z[j] <= reject_sigmas:
+            break
+        keep[j] = False
+    centers, lats, sigs = centers[keep], lats[keep], sigs[keep]
+    L0, dr0, _ = wls_line(centers - t_mid, lats, sigs)
+    return WindowSet(centers, lats, sigs, w.bounds), L0, dr0
+
+
+def joint_fit(ctx: Ctx, ov: Overlap, d_center: float, drift_center: float, search_ppm: float
+              ) -> tuple[Fit, WindowSet, dict]:
+    """Windows along the overlap (each: integer-lag search around the predicted lag, then refinement),
+    a weighted line through them, then the joint (L, drift) fit over the whole overlap, started from the
+    line and from the central fit (the lower cost wins); the windows again with its drift where that
+    matters. With fewer than 3 usable windows, one global fit without drift. Returns (fit, windows,
+    the bounds of every window that fitted)."""
+    cfg = ctx.cfg
+    t_m, a, valid, itp, t_mid = ov.t_m, ov.a, ov.valid, ov.itp, ov.t_mid
+    wins = drift_windows(ctx, ov.w0, ov.w1, t_m[valid & itp.ok(t_m + d_center)])
+    w = window_fits(ctx, ov, wins, None, d_center, drift_center, search_ppm)
+    bounds = dict(w.bounds)
     fin = None
-    if len(centers) >= 3:
-        centers, lats, sigs, L0, dr0 = reject(centers, lats, sigs)
-        # two starts: the windows' line and the central fit without drift; the lower cost wins
+    if len(w) >= 3:
+        w, L0, dr0 = reject_outliers(w, t_mid, cfg.windows.window_reject)
         cands = [refine(t_m, a, valid, itp, L0, dr0, t_mid, fit_drift=True, cfg=cfg),
                  refine(t_m, a, valid, itp, d_center, 0.0, t_mid, fit_drift=True, cfg=cfg)]
         cands = [c for c in cands if c.ok]
         fin = min(cands, key=lambda c: c.residual_rms) if cands else None
         half = 0.5 * max(b - a for a, b in bounds.values())
         if (cfg.windows.window_drift and fin is not None
-                and abs(fin.drift) * half > cfg.windows.window_drift_fraction * float(np.median(sigs))):
+                and abs(fin.drift) * half > cfg.windows.window_drift_fraction * float(np.median(w.sigs))):
             # the windows again, with the joint fit's drift inside each (a window's own drift-free delay
             # is its motion centroid's: windows of uneven motion scatter about the line for nothing)
-            c2, l2, s2 = fit_windows((fin.latency_s, fin.drift))
-            if len(c2) >= 3:
-                centers, lats, sigs, _, _ = reject(c2, l2, s2)
+            w2 = window_fits(ctx, ov, wins, (fin.latency_s, fin.drift), d_center, drift_center, search_ppm)
+            bounds.update(w2.bounds)
+            if len(w2) >= 3:
+                w, _, _ = reject_outliers(w2, t_mid, cfg.windows.window_reject)
     if fin is None:
-        centers = lats = sigs = np.zeros(0)
+        w = WindowSet.empty()
         fin = refine(t_m, a, valid, itp, d_center, 0.0, t_mid, fit_drift=False, cfg=cfg)
         if not fin.ok:
             raise AnalysisError("latency refinement failed (too little valid overlapping data)")
-    if noise is not None:
-        # GLS on the whole overlap, with the residual spectrum re-estimated from this fit
-        fd = len(centers) >= 3
+    return fin, w, bounds
 
-        def wants_accel(f: Fit) -> bool:  # below cfg.accel.min_sigma_s the accelerometers cannot matter
-            return ctx.acc_src is not None and f.sigma_latency_s > cfg.accel.min_sigma_s
 
-        # with accelerometers, one gyro-only pass (their start and fall-back), then the aided passes
-        gls_done = False
-        for k in range(cfg.refine.gls_passes):
-            if k == 1 and wants_accel(fin):
-                break
-            r = residual(t_m, a, valid, itp, fin, t_mid)
-            nm = noise_model(r, np.any(r != 0.0, axis=1), median_step_s(t_m), cfg=cfg) or noise
-            f2 = refine_gls(t_m, a, valid, itp, fin.latency_s, fin.drift, t_mid, nm, fit_drift=fd, cfg=cfg)
-            if not f2.ok:
-                break
-            fin, gls_done = f2, True
-        final_noise, final_acc = None, None
-        acc = accel_pair(*ctx.acc_src) if gls_done and wants_accel(fin) else None
-        if acc is not None:
-            fa, nm6, acc_used = accel_aided(t_m, a, valid, itp, acc, fin, t_mid, fit_drift=fd, cfg=cfg)
-            if fa.aided:
-                fin, final_noise, final_acc = fa, nm6, acc_used
-            else:
-                fin = fa  # the gyro-only fit, with the model check's figures
+#: a window refit: (rows of the window, its centre, start lag, drift) -> Fit
+Refit = Callable[[np.ndarray, float, float, float], Fit]
 
-        def windows(f: Fit, refit) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-            """The windows for the check of f's sigma: again with f's own estimator (``refit``: its noise
-            model and channels; gyro-only windows scatter with the flexure it took out), else the ordinary
-            ones (gyro-only spectral fits: the conservative check, GLS windows of gyros alone measured
-            worse). Fewer than 3 windows with the motion for f's estimator: nothing checks its sigma (the
-            ordinary windows' sigmas ignore the flexure and would inflate it for nothing)."""
-            if not fd or refit is None:
-                return centers, lats, sigs
-            c2, l2, s2 = [], [], []
-            for tc in centers:
-                a0, a1 = bounds[float(tc)]
-                ws = (t_m >= a0) & (t_m <= a1)
-                fw = refit(ws, tc, f.latency_s + f.drift * (tc - t_mid), f.drift if cfg.windows.window_drift else 0.0)
-                if fw.ok and np.isfinite(fw.sigma_latency_s):
-                    c2.append(tc)
-                    l2.append(fw.latency_s)
-                    s2.append(max(fw.sigma_latency_s, cfg.uncertainty.sigma_floor_s))
-            if len(c2) >= 3:
-                return np.asarray(c2), np.asarray(l2), np.asarray(s2)
-            return centers, lats, np.full(len(sigs), np.inf)
 
-        refit = None
-        if final_acc is not None:
-            def refit(ws, tc, lag, drift):
-                return refine_gls(t_m[ws], a[ws], valid[ws], itp, lag, drift, tc, final_noise, fit_drift=False,
-                                  acc=final_acc, cfg=cfg)
-        cands = [(fin, refit)]
-        if cfg.flexure.kalman and gls_done and fin.sigma_latency_s > cfg.accel.min_sigma_s:
-            # Kalman whitening with the flexure model, from the spectral GLS fit, the second candidate
-            # (a gyro-only Kalman fit keeps the accelerometer model check's figures)
-            def flex_fit(acc: Accel | None) -> Fit:
-                return refine_flex(t_m, a, valid, itp, fin.latency_s, fin.drift, t_mid, ctx.cutoff_hz,
-                                   fit_drift=fd, acc=acc, h0=fin.sigma_latency_s, cfg=cfg)
-
-            acc_x = final_acc  # cfg.flexure.accel_own: the accelerometers whenever both units have them
-            own = cfg.flexure.accel_own and acc_x is None and ctx.acc_src is not None
-            if own:
-                acc_x = accel_pair(*ctx.acc_src)
-            ff = flex_fit(acc_x)
-            if acc_x is not None and not acc_x.lag_free and ff.ok and not accel_lag_agrees(ff, cfg) and cfg.accel.lag_free:
-                # the accelerometers' own delay differs from the gyros' (real IMUs may filter them
-                # differently): solved as a further unknown
-                acc_x = replace(acc_x, lag_free=True)
-                ff = flex_fit(acc_x)
-            if acc_x is not None and ((ff.ok and not accel_lag_agrees(ff, cfg)) or ((own or acc_x.lag_free) and not ff.ok)):
-                # that delay beyond what a linearised unknown allows, or the fit with the accelerometers
-                # taken here failed: the gyros alone
-                acc_x = None
-                ff = flex_fit(None)
-            if ff.ok and np.isfinite(ff.sigma_latency_s):
-                ff = ff if ff.accel_lag_s[1] > 0 else replace(ff, accel_lag_s=fin.accel_lag_s,
-                                                             accel_lag_free=fin.accel_lag_free)
-                gap = abs(ff.latency_s - fin.latency_s)
-                if gap > cfg.flexure.agree_sigmas * max(ff.sigma_latency_s, fin.sigma_latency_s):
-                    # one of the two models is wrong (the spectral sigma is optimistic where flexure is
-                    # estimated from a few cycles; the Kalman fit where the disturbance is not flexure):
-                    # both go to the windows' check, and the one kept covers the other in its sigma
-                    fin = replace(fin, model_gap_s=gap)
-                    ff = replace(ff, model_gap_s=gap)
-                    cands[0] = (fin, refit)
-
-                def refit_flex(ws, tc, lag, drift):
-                    return refine_flex(t_m[ws], a[ws], valid[ws], itp, lag, drift, tc, ctx.cutoff_hz,
-                                       fit_drift=False, acc=acc_x, model=ff.flex, h0=ff.sigma_latency_s, cfg=cfg)
-                cands.append((ff, refit_flex))
-        if len(cands) == 1 or not fd:
-            fin, refit = cands[-1]  # without windows the Kalman fit is taken (see cfg.flexure.agree_sigmas)
-            centers, lats, sigs = windows(fin, refit)
-        else:
-            # each candidate's sigma as checked by its own windows' scatter. The Kalman fit is kept unless
-            # its windows disagree (the flexure model does not describe the data: vibration, filters) and
-            # the spectral fit's checked sigma is smaller. Not the bare sigmas: where the spectrum is
-            # estimated from a few cycles of slow motion, the spectral sigma is the optimistic one
-            scored = []
-            for f, rf in cands:
-                w = windows(f, rf)
-                chi2 = fit_window_chi2(f, *w, t_mid)
-                scored.append((f.sigma_latency_s * np.sqrt(max(1.0, chi2)), chi2, f, w))
-            (s_spec, chi2_spec, f_spec, w_spec), (s_flex, chi2_flex, f_flex, w_flex) = scored
-            if chi2_flex > cfg.flexure.windows_chi2 and s_spec < s_flex:
-                fin, (centers, lats, sigs), s_kept, chi2_kept = f_spec, w_spec, s_spec, chi2_spec
-            else:
-                fin, (centers, lats, sigs), s_kept, chi2_kept = f_flex, w_flex, s_flex, chi2_flex
-            # the other model's estimate beyond cfg.flexure.agree_sigmas of the kept one's checked sigma while the
-            # kept one's windows disagree too: neither model is borne out, the sigma covers both (a gently
-            # turning aircraft kept a spectral fit 4.75 ms from the Kalman one at a checked sigma of 0.28 ms,
-            # both fits' windows at chi2 5-12, 5.7 ms off the truth: z 17). Where the kept fit's windows
-            # agree (ships: the spectral fit right, the Kalman one 1 ms off) its checked sigma stands
-            gap = abs(f_spec.latency_s - f_flex.latency_s)
-            if fin.model_gap_s == 0 and gap > cfg.flexure.agree_sigmas * s_kept and chi2_kept > cfg.flexure.windows_chi2:
-                fin = replace(fin, model_gap_s=gap)
-    return fin, centers, lats, sigs
-
+def checked_windows(ov: Overlap, f: Fit, refit: Refit | None, fd: bool, w: WindowSet, bounds: dict,
+                    ctx: Ctx) -> WindowSet:
+    """The windows for the check of f's sigma: again with f's own estimator (``refit``: its noise model
+    and channels; gyro-only windows scatter with the flexure it took out), else the ordinary ones ``w``
+    (gyro-only spectral fits: the conservative check, GLS windows of gyros alone measured worse). Fewer
+    than 3 windows with the motion for f's estimator: nothing checks its sigma (the ordinary windows'
+    sigmas ignore the flexure and would inflate it for nothing)."""
+    cfg = ctx.cfg
+    if not fd or refit is None:
+        return w
+    t_m, t_mid = ov.t_m, ov.t_mid
+    c2, l2, s2 = [], [], []
+    for tc in w.centers:
+        a0, a1 = bounds[float(tc)]
+        ws = (t_m >= a0) & (t_m <= a1)
+        fw = refit(ws, tc, f.latency_s + f.drift * (tc - t_mid), f.drift if cfg.windows.window_drift else 0.0)
+        if fw.ok and np.isfinite(fw.sigma_latency_s):
+            c2.append(tc)
+            l2.append(fw.latency_s)
+            s2.append(max(fw.sigma_latency_s, cfg.uncertainty.sigma_floor_s))
+    if len(c2) >= 3:
+        return WindowSet(np.asarray(c2), np.asarray(l2), np.asarray(s2), bounds)
+    return WindowSet(w.centers, w.lats, np.full(len(w.sigs), np.inf), bounds)
