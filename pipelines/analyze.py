@@ -23,6 +23,7 @@ import numpy as np
 
 from logtools.errors import AnalysisError, InputError
 from logtools.inslog import InsLog
+from logtools.latency.config import FlexureConfig
 from logtools.latency.methods import METHODS
 from logtools.results import AlignmentResult, LatencyResult
 from parsers import load
@@ -100,12 +101,11 @@ def parse_max_lag(text) -> float | None:
 
 FLEXURE_MODES = ("auto", "on", "off")
 SEED000_FLEXURE = {"flex_sigma_deg": 0.05, "flex_beta": 2.0}  # seed 000's flexure (eq 8), for --flexure on
-#: the latency fit's flexure model goes into the alignment when it looks like a structure's flexure: a
-#: correlation time of at most 1/FLEX_MIN_BETA seconds and at most FLEX_MAX_DEG (a slow wander of degrees,
-#: what two MEMS IMUs' scale and bias errors give, e.g. the ArduCopter log0036 pair's 4.7 deg at beta 0.013,
-#: is not separable from the mounting and would only blur it)
-FLEX_MIN_BETA = 0.2
-FLEX_MAX_DEG = 1.0
+#: the latency fit's flexure model goes into the alignment when it looks like a structure's flexure the
+#: alignment can separate from the mounting (``FlexureConfig.is_flexure(..., for_alignment=True)``: a slow
+#: wander of degrees, what two MEMS IMUs' scale and bias errors give, e.g. the ArduCopter log0036 pair's
+#: 4.7 deg at beta 0.013, would only blur the mounting)
+FLEXURE_CRITERION = FlexureConfig()
 
 
 def parse_lever_arm(text) -> str | tuple[float, float, float]:
@@ -271,7 +271,7 @@ def _flexure_options(opts: AnalyzeOptions, lat: LatencyResult | None) -> dict:
         return {}
     fm = (lat.quality or {}).get("flexure_model") if lat is not None else None
     if (isinstance(fm, dict) and fm.get("sigma_deg") is not None and fm.get("beta_1_s") is not None
-            and float(fm["beta_1_s"]) >= FLEX_MIN_BETA and max(fm["sigma_deg"]) <= FLEX_MAX_DEG):
+            and FLEXURE_CRITERION.is_flexure(float(fm["beta_1_s"]), max(fm["sigma_deg"]), for_alignment=True)):
         return {"flexure": True, "flex_sigma_deg": tuple(float(x) for x in fm["sigma_deg"]),
                 "flex_beta": float(fm["beta_1_s"])}
     return {"flexure": True, **SEED000_FLEXURE} if opts.flexure == "on" else {"flexure": "auto"}

@@ -34,10 +34,14 @@ class PrepareConfig:
     #: ... that floor at most this fraction of the common rate (a 10 Hz attitude-only slave was 7.7 ms off
     #: at 80 % of its Nyquist, right at 2 Hz) -- test_latency_flexure_band
     min_cutoff_fraction: float = 0.2
+    band_factor: float = 3.0  # the low-pass cutoff at this x the motion's band (the noise above would bias the delay)
+    refine_band_factor: float = 5.0  # refinement samples at this x the cutoff (band-limited: all the information) ...
+    min_refine_rate_hz: float = 20.0  # ... and at least this rate
     min_overlap_s: float = 5.0  # less overlap than this: an AnalysisError (test_latency short-log tests)
     min_motion_snr: float = 2.0  # in-band motion/noise RMS below this: "no motion" AnalysisError (test_latency)
     low_motion_snr: float = 10.0  # ... below this: the "too_little_motion" flag (test_latency)
     low_motion_dps: float = 0.5  # ... or a master motion below this RMS (deg/s): the same flag
+    min_motion_dps: float = 1e-3  # a master motion below this RMS (deg/s): "no motion" whatever its SNR
     accel_aided: bool = True  # accelerometer rows in the final GLS when both units log IMUs (bench_latency gyro-only)
     velocity_aided: bool = True  # velocity matching when both units log NED velocity (bench_latency no-velocity)
 
@@ -80,6 +84,10 @@ class RefineConfig:
     min_adapt_cutoff_hz: float = 0.05  # the adapted cutoff at least this
     min_adapt_cycles: float = 20.0  # ... and at least this many cycles over the overlap
     adapt_gain: float = 0.7  # narrow only when the predicted variance drops below this fraction (> 20 % in sigma)
+    adapt_min_ratio: float = 0.7  # ... and re-filter only where the new cutoff is below this x the old one
+    gn_iters: int = 12  # Gauss-Newton iterations of the unwhitened fit (converges in 3-6)
+    window_iters: int = 8  # ... of a drift window's fit
+    gls_iters: int = 4  # whitened Gauss-Newton steps per GLS pass (converges in 2-3)
 
 
 @dataclass(frozen=True)
@@ -110,9 +118,12 @@ class FlexureConfig:
     #: the Kalman fit takes the accelerometers on its own delay check (the 6-channel coherence model mismatched
     #: a turning car's) -- test_latency_flexure_band
     accel_own: bool = True
-    #: one "is this flexure?" criterion: a model correlated longer than 1 / this (20 s) ... -- test_latency_flexure_band
+    #: "is this flexure?" (``is_flexure``): a model correlated longer than 1 / this (20 s) ... -- test_latency_flexure_band
     beta_min_1_s: float = 0.05
     sigma_max_deg: float = 1.0  # ... or beyond this sigma is not flexure (seed 000: 0.05 deg; benchmarks 0.02-0.1)
+    #: ... and for the alignment's flexure states a model correlated over at most 1 / this (5 s): a slower
+    #: wander is not separable from the mounting there (pipelines.analyze; the alignment benchmarks)
+    alignment_beta_min_1_s: float = 0.2
     ml_span_s: float = 120.0  # the model is fitted on at most this much of the overlap (its middle): runtime
     ml_blocks: int = 1500  # ... and on at most this many blocks: runtime
     decimate_factor: float = 2.5  # block rate = this x the low-pass cutoff (the low-passed noise near white)
@@ -120,6 +131,13 @@ class FlexureConfig:
     #: bench_latency_hard short-flexure
     ml_blocks_per_unknown: float = 2.0
     max_ml_iter: int = 30  # L-BFGS-B iterations of the model's likelihood (runtime; converged well before)
+
+    def is_flexure(self, beta_1_s: float, sigma_deg_max: float, *, for_alignment: bool = False) -> bool:
+        """The one criterion of a fitted flexure model (bandwidth beta, largest sigma per axis in degrees):
+        a structure's flexure for the latency's Kalman fit, and with ``for_alignment`` (stricter in beta) one
+        the alignment can separate from the mounting."""
+        beta_min = self.alignment_beta_min_1_s if for_alignment else self.beta_min_1_s
+        return bool(beta_1_s >= beta_min and sigma_deg_max <= self.sigma_max_deg)
 
 
 @dataclass(frozen=True)
@@ -132,6 +150,9 @@ class WindowConfig:
     min_window_s: float = 5.0  # ... each at least this long (bench_latency_hard dropout)
     windows3_min_s: float = 20.0  # overlaps this long get at least 3 drift windows (bench_latency_hard short)
     drift_search_ppm: float = 250.0  # a window's search band grows with the distance from the middle at this rate
+    min_window_samples: int = 50  # a drift window needs this many refinement samples
+    window_motion_fraction: float = 0.2  # windows with less motion than this x the median window's are left out
+    window_search_margin_steps: float = 2.0  # a window's lag search band: the drift's reach plus this many grid steps
     window_reject: float = 5.0  # a window this many sigma off the drift line is an outlier (a wrong minimum)
     window_drift: bool = True  # the windows' delays fitted with the joint fit's drift inside each (test_latency)
     window_drift_fraction: float = 0.1  # ... where it moves a window's delay end to end by more than this x sigma

@@ -52,8 +52,9 @@ def check_motion(ctx: Ctx) -> tuple[float, float, float, float]:
     motion_dps, snr = motion_snr(ctx.master, ctx.band_cutoff_hz)
     motion_s_dps, snr_s = motion_snr(ctx.slave, ctx.band_cutoff_hz)
     need = cfg.prepare.min_motion_snr
-    if min(snr, snr_s) < need or motion_dps < 1e-3:
-        if motion_dps >= 1e-3 and snr_s < need <= snr:  # the master moves; the slave's rate is noise
+    still = cfg.prepare.min_motion_dps
+    if min(snr, snr_s) < need or motion_dps < still:
+        if motion_dps >= still and snr_s < need <= snr:  # the master moves; the slave's rate is noise
             raise AnalysisError(
                 f"the slave's angular rate is mostly noise (signal/noise {snr_s:.2g}, need {need:g}) while "
                 f"the master moves {motion_dps:.3g} deg/s RMS" + (
@@ -105,7 +106,7 @@ def first_fit(ctx: Ctx, co: Coarse, smp: Samples) -> tuple[Ctx, Samples, float, 
     if cfg.refine.adapt_band and first.ok and noise is None:
         new_cut = best_cutoff(t_m[cs], a[cs], valid[cs], residual(t_m[cs], a[cs], valid[cs], itp, first, t_mid),
                               ctx.dt_r, ctx.cutoff_hz, float(np.ptp(t_m[cs])), cfg=cfg)
-        if new_cut < 0.7 * ctx.cutoff_hz:
+        if new_cut < cfg.refine.adapt_min_ratio * ctx.cutoff_hz:
             ctx = refiltered_ctx(ctx, new_cut)
             gr = _refine_grid(ctx)
             sel = (gr.t_s >= smp.w0) & (gr.t_s <= smp.w1)

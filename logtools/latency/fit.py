@@ -88,10 +88,12 @@ def residuals(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolan
 
 
 def refine(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant, d0: float,
-            drift0: float, t_mid: float, *, fit_drift: bool, iters: int = 12, cfg: LatencyConfig = DEFAULT) -> Fit:
+            drift0: float, t_mid: float, *, fit_drift: bool, iters: int | None = None,
+           cfg: LatencyConfig = DEFAULT) -> Fit:
     """Gauss-Newton on (L[, drift]) with R, b re-solved (Kabsch with means) at every step, the delay's
     gradient and curvature from the cleaner unit's derivative (``gls.delay_normal``); covariance of
     the joint (L, drift, rotation, bias) problem with a HAC score variance (``gls.gls_covariance``)."""
+    iters = cfg.refine.gn_iters if iters is None else iters
     d, dr = float(d0), float(drift0)
     dt = median_step_s(t_m, 1.0)
     tt = t_m - t_mid

@@ -19,7 +19,7 @@ def flexure_like(model: FlexureModel, cfg: LatencyConfig = DEFAULT) -> bool:
     within cfg.flexure.sigma_max_deg. Beyond, the residual is something else the model bends to (an attitude-only
     slave with jittered stamps: its rates' noise, proportional to the rate, came out as a 14 deg "flexure"
     of beta 0.013/s, the fit 3 ms off at a sigma of 0.6 ms and the velocity, right to 0.01 ms, left out)."""
-    return bool(model.beta_1_s >= cfg.flexure.beta_min_1_s and np.degrees(np.max(model.sigma_rad)) <= cfg.flexure.sigma_max_deg)
+    return cfg.flexure.is_flexure(model.beta_1_s, np.degrees(np.max(model.sigma_rad)))
 
 
 @dataclass(frozen=True)

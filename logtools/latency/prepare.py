@@ -70,11 +70,12 @@ def prepare(master: InsLog, slave: InsLog, max_lag_s: float | None, *, accelerom
     # between the motion's band and Nyquist would otherwise bias a spline-interpolated sub-sample delay)
     band = (min if cfg.prepare.band_common else max)(signal_band_hz(natm, nm), signal_band_hz(nats, ns))
     floor = min(cfg.prepare.min_cutoff_hz, max(cfg.prepare.band_min_cutoff_hz, cfg.prepare.min_cutoff_fraction * f_c))
-    cutoff = float(np.clip(3.0 * band, floor, cfg.prepare.cutoff_fraction * f_c))
-    band_cutoff = float(np.clip(3.0 * band, cfg.prepare.band_min_cutoff_hz, cfg.prepare.cutoff_fraction * f_c))
+    cutoff = float(np.clip(cfg.prepare.band_factor * band, floor, cfg.prepare.cutoff_fraction * f_c))
+    band_cutoff = float(np.clip(cfg.prepare.band_factor * band, cfg.prepare.band_min_cutoff_hz,
+                                cfg.prepare.cutoff_fraction * f_c))
     # both units are band-limited at the cutoff: refinement samples at 5x the cutoff carry all the
     # information (a denser grid only costs time; the residuals' correlation is handled by the HAC)
-    f_r = min(f_c, max(5.0 * cutoff, 20.0))
+    f_r = min(f_c, max(cfg.prepare.refine_band_factor * cutoff, cfg.prepare.min_refine_rate_hz))
     f_s = min(f_r, cfg.prepare.max_coarse_rate_hz)
     um = make_unit(natm, nm, srcm, "master", fm, 1.0 / f_s, cutoff)
     us = make_unit(nats, ns, srcs, "slave", fs, 1.0 / f_s, cutoff)

@@ -16,7 +16,7 @@ from logtools.resample import Interpolant
 
 
 def refine_gls(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant, d0: float,
-                drift0: float, t_mid: float, noise: NoiseModel, *, fit_drift: bool, iters: int = 4,
+                drift0: float, t_mid: float, noise: NoiseModel, *, fit_drift: bool, iters: int | None = None,
                 acc: Accel | None = None, cfg: LatencyConfig = DEFAULT) -> Fit:
     """Generalised least squares: Gauss-Newton on the whitened residual and whitened Jacobian of the
     joint (L[, drift], rotation, bias) problem; the L[, drift] part of each step is taken and R, b
@@ -27,6 +27,7 @@ def refine_gls(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpola
     gyros' (accelerometer bias and lever arm as further linear unknowns, the rotation shared): the
     whitening then uses their coherence, i.e. the flexure seen as a tilt of the specific force is
     taken out of the differential rate, and the specific force's own motion adds delay information."""
+    iters = cfg.refine.gls_iters if iters is None else iters
     d, dr, dt, tt, span, fail = fit_start(t_m, t_mid, d0, drift0)
     n, nd = len(t_m), 1 + int(fit_drift)
     # the samples used are fixed for all iterations (no sample switches in or out with d: a switch is

@@ -118,20 +118,20 @@ def window_fits(ctx: Ctx, ov: Overlap, wins: list, line: tuple[float, float] | N
     centers, lats, sigs, wmot, bounds = [], [], [], [], {}
     for (a0, a1) in wins if len(wins) >= 3 else []:
         ws = (t_m >= a0) & (t_m <= a1)
-        if ws.sum() < 50:
+        if ws.sum() < cfg.windows.min_window_samples:
             continue
         tc = 0.5 * (a0 + a1)
         if line is None:
             dr_w = 0.0
             pred = d_center + drift_center * (tc - t_mid)
-            band = search_ppm * 1e-6 * abs(tc - t_mid) + 2.0 * ctx.dt_s
+            band = search_ppm * 1e-6 * abs(tc - t_mid) + cfg.windows.window_search_margin_steps * ctx.dt_s
             dw = window_start(ctx, a0, a1, pred, band)
             if dw is None:
                 continue
         else:
             dr_w = line[1]
             dw = line[0] + dr_w * (tc - t_mid)
-        f = refine(t_m[ws], a[ws], valid[ws], ov.itp, dw, dr_w, tc, fit_drift=False, iters=8, cfg=cfg)
+        f = refine(t_m[ws], a[ws], valid[ws], ov.itp, dw, dr_w, tc, fit_drift=False, iters=cfg.refine.window_iters, cfg=cfg)
         if f.ok and np.isfinite(f.sigma_latency_s):
             bounds[float(tc)] = (a0, a1)
             centers.append(tc)
@@ -140,7 +140,7 @@ def window_fits(ctx: Ctx, ov: Overlap, wins: list, line: tuple[float, float] | N
             wmot.append(f.motion_rms)
     centers, lats, sigs, wmot = map(np.asarray, (centers, lats, sigs, wmot))
     if len(wmot):
-        keep = wmot >= 0.2 * np.median(wmot)  # windows with enough motion
+        keep = wmot >= cfg.windows.window_motion_fraction * np.median(wmot)  # windows with enough motion
         centers, lats, sigs = centers[keep], lats[keep], sigs[keep]
     return WindowSet(centers, lats, sigs, bounds)
 
