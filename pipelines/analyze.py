@@ -23,9 +23,7 @@ import numpy as np
 
 from logtools.errors import AnalysisError, InputError
 from logtools.inslog import InsLog
-from logtools.latency.config import FlexureConfig
-from logtools.latency.methods import METHODS
-from logtools.results import AlignmentResult, LatencyResult
+from logtools.results import LATENCY_METHODS, AlignmentResult, LatencyResult
 from parsers import load
 from pipelines import report as rp
 from pipelines.progress import Progress, null_progress
@@ -33,7 +31,6 @@ from pipelines.progress import Progress, null_progress
 FILTERS = ("kf", "kf-delay", "kf-split", "hinf", "ahinf")
 MATCHES = ("auto", "vel", "att", "vel+att")
 COMPENSATIONS = ("restamp", "interp", "shift", "poly2", "split")
-LATENCY_METHODS = METHODS  # logtools.latency.methods: the one table of the latency methods
 REPORT, HTML, RECORDING = "report.json", "report.html", "recording.rrd"
 
 
@@ -105,7 +102,6 @@ SEED000_FLEXURE = {"flex_sigma_deg": 0.05, "flex_beta": 2.0}  # seed 000's flexu
 #: alignment can separate from the mounting (``FlexureConfig.is_flexure(..., for_alignment=True)``: a slow
 #: wander of degrees, what two MEMS IMUs' scale and bias errors give, e.g. the ArduCopter log0036 pair's
 #: 4.7 deg at beta 0.013, would only blur the mounting)
-FLEXURE_CRITERION = FlexureConfig()
 
 
 def parse_lever_arm(text) -> str | tuple[float, float, float]:
@@ -263,6 +259,14 @@ def _lever_options(opts: AnalyzeOptions, lat: LatencyResult | None) -> dict:
     return out
 
 
+def _separable_flexure(beta_1_s: float, sigma_deg_max: float) -> bool:
+    """The latency's flexure criterion for the alignment (``FlexureConfig.is_flexure``; loaded here, with
+    the numerics, not when the CLI starts)."""
+    from logtools.latency.config import FlexureConfig
+
+    return FlexureConfig().is_flexure(beta_1_s, sigma_deg_max, for_alignment=True)
+
+
 def _flexure_options(opts: AnalyzeOptions, lat: LatencyResult | None) -> dict:
     """run_alignment's flexure options: the model the latency's rate fit found (sigma per axis, beta); where
     it found none, with ``--flexure auto`` the alignment adds seed 000's when its residuals call for it,
@@ -271,7 +275,7 @@ def _flexure_options(opts: AnalyzeOptions, lat: LatencyResult | None) -> dict:
         return {}
     fm = (lat.quality or {}).get("flexure_model") if lat is not None else None
     if (isinstance(fm, dict) and fm.get("sigma_deg") is not None and fm.get("beta_1_s") is not None
-            and FLEXURE_CRITERION.is_flexure(float(fm["beta_1_s"]), max(fm["sigma_deg"]), for_alignment=True)):
+            and _separable_flexure(float(fm["beta_1_s"]), max(fm["sigma_deg"]))):
         return {"flexure": True, "flex_sigma_deg": tuple(float(x) for x in fm["sigma_deg"]),
                 "flex_beta": float(fm["beta_1_s"])}
     return {"flexure": True, **SEED000_FLEXURE} if opts.flexure == "on" else {"flexure": "auto"}

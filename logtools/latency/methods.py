@@ -1,22 +1,15 @@
-"""The latency methods by name: one table (report.json ``latency.methods``, the CLI's --latency-method)."""
+"""The latency methods by name (``logtools.results.LatencyMethod``) and the seeds' methods' dispatch."""
 from __future__ import annotations
-
-from enum import Enum
 
 from logtools.inslog import InsLog
 from logtools.latency.config import DEFAULT, LatencyConfig
-from logtools.results import MethodEstimate
+from logtools.results import LATENCY_METHODS, LatencyMethod, MethodEstimate
 
 
-class Method(str, Enum):
-    TAPOST = "tapost"
-    S000 = "s000-rate-integral"  # logtools.latency_seeds.s000_rate_integral
-    S002 = "s002-attitude-shift"  # logtools.latency_seeds.s002_attitude_shift
-    XCORR = "xcorr-norm"  # |w| normalised cross-correlation (logtools.latency.coarse.xcorr_estimate)
-
-
-#: the names, in report order
-METHODS: tuple[str, ...] = tuple(m.value for m in Method)
+#: the method names (``Method.TAPOST`` ...) and the names in report order: the table lives with the result
+#: records (``logtools.results``), where the CLI reads its choices without loading the numerics
+Method = LatencyMethod
+METHODS: tuple[str, ...] = LATENCY_METHODS
 #: the seeds' methods' functions in logtools.latency_seeds
 SEED_FUNCTIONS = {Method.S000.value: "s000_rate_integral", Method.S002.value: "s002_attitude_shift"}
 
