@@ -16,7 +16,7 @@ one thing:
   asking for 4 blocks per unknown, as before 2026-11-24, which kept records under ~40 s from the Kalman stage).
 
 Every run is estimated twice: ``tapost`` and ``tapost-without`` (the remedy of that set switched off
-through its module flag: 1-2 drift windows below 45 s as before; no stamp-resolution floor; no frame
+through its configuration (``WITHOUT``, ``without_config``): 1-2 drift windows below 45 s as before; no stamp-resolution floor; no frame
 rotation, the linear tilt model only; 4 blocks per unknown). The dropout set has no switch (its remedies are structural: the
 band from the longest run, the overlap count from the valid samples, windows inside the runs of data).
 Per set and variant: RMS, worst, within 1 ms, coverage of sigma (|error| <= 2 sigma).
@@ -102,23 +102,31 @@ def _rotated_velocity(slave, rpy_deg):
     return InsLog(imu=slave.imu, nav=nav, meta=slave.meta)
 
 
-#: the module flags that switch each set's remedy off
+#: the configuration changes (section -> {field: value}) that switch each set's remedy off
 WITHOUT = {
-    "short": {"logtools.latency": {"WINDOWS3_MIN_S": 60.0}},
-    "ms-stamps": {"logtools.latency": {"STAMP_RESOLUTION_FLOOR": False},
-                  "logtools.latency_velocity": {"VEL_STAMP_RESOLUTION_FLOOR": False}},
-    "rotated-velocity": {"logtools.latency_velocity": {"VEL_FRAME_MIN_DEG": float("inf"),
-                                                       "VEL_TILT_EXACT_DEG": float("inf")}},
+    "short": {"windows": {"windows3_min_s": 60.0}},
+    "ms-stamps": {"uncertainty": {"stamp_resolution_floor": False}, "velocity": {"stamp_resolution_floor": False}},
+    "rotated-velocity": {"velocity": {"frame_min_deg": float("inf"), "tilt_exact_deg": float("inf")}},
     "dropout": {},
-    "short-flexure": {"logtools.latency_flexure": {"ML_BLOCKS_PER_UNKNOWN": 4.0}},
+    "short-flexure": {"flexure": {"ml_blocks_per_unknown": 4.0}},
 }
 
 
-def run_one(d: dict) -> dict:
-    import importlib
+def without_config(set_name: str):
+    """The default LatencyConfig with the set's remedy switched off (``WITHOUT``)."""
+    from dataclasses import replace
 
+    from logtools.latency import LatencyConfig
+
+    cfg = LatencyConfig()
+    for section, fields in WITHOUT[set_name].items():
+        cfg = replace(cfg, **{section: replace(getattr(cfg, section), **fields)})
+    return cfg
+
+
+def run_one(d: dict) -> dict:
     from logtools import sim
-    from logtools.latency import estimate
+    from logtools.latency import LatencyConfig, estimate
 
     pair = sim.simulate(bl.sim_config(d))
     master, slave = pair.master, pair.slave
@@ -129,16 +137,10 @@ def run_one(d: dict) -> dict:
     row = dict(d)
     row["mount_rpy_deg"] = list(d["mount_rpy_deg"])
     for variant in VARIANTS:
-        saved = []
-        if variant == "tapost-without":
-            for mod_name, flags in WITHOUT[d["set"]].items():
-                mod = importlib.import_module(mod_name)
-                for k, v in flags.items():
-                    saved.append((mod, k, getattr(mod, k, None)))
-                    setattr(mod, k, v)
+        config = without_config(d["set"]) if variant == "tapost-without" else LatencyConfig()
         t0 = time.perf_counter()
         try:
-            res = estimate(master, slave, max_lag_s=bl.MAX_LAG_S, compare=False)
+            res = estimate(master, slave, max_lag_s=bl.MAX_LAG_S, compare=False, config=config)
             truth = float(pair.truth.latency_at(res.t_mid_rel_s))
             row[variant] = dict(latency_s=float(res.latency_s), sigma_s=float(res.sigma_s),
                                 error_s=float(res.latency_s) - truth, note="")
@@ -146,8 +148,6 @@ def run_one(d: dict) -> dict:
             row[variant] = dict(latency_s=float("nan"), sigma_s=float("nan"), error_s=float("nan"),
                                 note=f"{type(exc).__name__}: {exc}"[:200])
         row[f"runtime_{variant}_s"] = time.perf_counter() - t0
-        for mod, k, v in saved:
-            setattr(mod, k, v)
     return row
 
 

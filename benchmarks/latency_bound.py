@@ -3,7 +3,7 @@
 For a pair from ``logtools.sim`` the disturbance of the latency fit is known exactly: the slave's
 flexure (seed 000 eq. 8, the simulator's second-order Markov rotation with its sigma and beta) and both
 units' white sensor noise (ARW, VRW). The signals are known too, noise-free, from the simulator's truth.
-The residual model is the one ``logtools.latency_flexure`` whitens::
+The residual model is the one ``logtools.latency.flexure`` whitens::
 
     y_k = J_k p + H_k x_k + v_k,   x = (lam, lam'),   H_k = [[[w_k x], I], [[f_k x], 0]]
 
@@ -11,7 +11,7 @@ with p = (delay, drift, rotation, gyro bias, accelerometer bias, lever arm) and 
 from the truth (slave frame: w, w', f, f' of the master rotated by the mounting). The Fisher information
 of p is sum_k Jw_k^T Jw_k with Jw the Kalman-whitened columns of J (innovations of the exact model);
 the bound on the latency is sqrt(inv(F)[0, 0]), the other unknowns estimated jointly, the drift with the
-Gaussian prior tapost's estimator uses (DRIFT_PRIOR_PPM; a Bayesian bound for that part). It is evaluated on
+Gaussian prior tapost's estimator uses (its configuration's drift_prior_ppm; a Bayesian bound for that part). It is evaluated on
 samples every ``dt_s`` (the truth is smooth; the flexure model is exact at any step) over the pair's
 overlap, and with the gyros alone (``gyro``) as well as gyros and accelerometers (``aided``); when the
 slave logs a nav velocity, also with the velocity matching's information added (``aided+velocity``).
@@ -25,8 +25,10 @@ import numpy as np
 
 from logtools import sim
 from logtools.conventions import DEG, DEG_PER_SQRT_H, UG_PER_SQRT_HZ, dcm_from_euler, skew
-from logtools.latency import DRIFT_PRIOR_PPM
-from logtools.latency_flexure import FlexureModel, whitened_normal
+from logtools.latency import LatencyConfig
+from logtools.latency.flexure import FlexureModel, whitened_normal
+
+DRIFT_PRIOR_PPM = LatencyConfig().uncertainty.drift_prior_ppm  # the prior tapost's estimator uses
 
 
 def latency_bound_s(cfg: "sim.SimConfig", truth: "sim.Truth", dt_s: float = 0.05) -> dict:
@@ -79,7 +81,7 @@ def _schur2(F: np.ndarray) -> np.ndarray:
 
 
 def _velocity_information(cfg: "sim.SimConfig", tr, tt: np.ndarray, dt_s: float) -> np.ndarray:
-    """(delay, drift) information of the velocity matching (``logtools.latency_velocity``'s model: lever
+    """(delay, drift) information of the velocity matching (``logtools.latency.velocity``'s model: lever
     arm, offset, ramp and tilt estimated jointly) from both units' white velocity noise (the simulator's
     per-sample std at each unit's nav rate, as a density on the dt_s grid). Flexure rotates the slave
     without moving it: it does not enter."""

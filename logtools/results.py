@@ -6,8 +6,23 @@ defaults); never renamed: report.json is built from them (DESIGN.md, "report.jso
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import Enum
 
 import numpy as np
+
+
+class LatencyMethod(str, Enum):
+    """The latency methods by name: one table (``LatencyResult.method``, report.json ``latency.methods``,
+    the CLI's --latency-method). Here, beside the records, so that the CLI's choices need no numerics."""
+
+    TAPOST = "tapost"
+    S000 = "s000-rate-integral"  # logtools.latency_seeds.s000_rate_integral
+    S002 = "s002-attitude-shift"  # logtools.latency_seeds.s002_attitude_shift
+    XCORR = "xcorr-norm"  # |w| normalised cross-correlation (logtools.latency.coarse.xcorr_estimate)
+
+
+#: the method names, in report order
+LATENCY_METHODS: tuple[str, ...] = tuple(m.value for m in LatencyMethod)
 
 
 @dataclass(frozen=True)

@@ -27,13 +27,12 @@ from logtools.alignment.options import MATCHES as ALIGNMENT_MATCHES
 from logtools.compensate import METHODS as COMPENSATIONS
 from logtools.errors import AnalysisError, InputError
 from logtools.inslog import InsLog
-from logtools.results import AlignmentResult, LatencyResult
+from logtools.results import LATENCY_METHODS, AlignmentResult, LatencyResult
 from parsers import load
 from pipelines import report as rp
 from pipelines.progress import Progress, null_progress
 
 MATCHES = ("auto",) + ALIGNMENT_MATCHES  # auto: vel+att when the master has both, else what it has
-LATENCY_METHODS = ("tapost", "s000-rate-integral", "s002-attitude-shift", "xcorr-norm")
 REPORT, HTML, RECORDING = "report.json", "report.html", "recording.rrd"
 
 

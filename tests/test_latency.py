@@ -10,7 +10,7 @@ import pytest
 from logtools.conventions import dcm_from_euler, dcm_from_quat, quat_from_rotvec
 from logtools.errors import AnalysisError
 from logtools.inslog import InsLog, LogMeta
-from logtools.latency import METHODS, estimate, rate_from_attitude
+from logtools.latency import METHODS, LatencyConfig, estimate, rate_from_attitude
 
 T0_NS = 1_700_000_000_000_000_000
 REALDATA = Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
@@ -370,7 +370,7 @@ def markov_rate(rng, t: np.ndarray, beta_1_s: float = 2.0, sigma_deg: float = 0.
 
 
 def test_noise_model_whitens_a_coloured_residual():
-    from logtools.latency_gls import noise_model
+    from logtools.latency.gls import noise_model
 
     rng = np.random.default_rng(5)
     dt = 0.02
@@ -410,7 +410,9 @@ def test_coloured_disturbance_estimated_with_honest_sigma():
 
 
 def test_cost_curve_is_fine_near_the_minimum():
-    from logtools.latency import FINE_COST_POINTS
+    from logtools.latency import LatencyConfig
+
+    FINE_COST_POINTS = LatencyConfig().output.fine_cost_points
 
     rng = np.random.default_rng(23)
     master, slave = make_pair(rng, w=Motion(rng, fmax_hz=0.3), f_m=100.0, f_s=100.0, latency_s=0.2345)
@@ -434,7 +436,7 @@ def test_cross_spectral_noise_model_whitens_coherent_channels():
     matrix whitening leaves them white and uncorrelated with each other."""
     from scipy.signal import lfilter
 
-    from logtools.latency_gls import noise_model
+    from logtools.latency.gls import noise_model
 
     rng = np.random.default_rng(9)
     dt = 0.05
@@ -751,3 +753,28 @@ def test_short_log_gets_its_drift_fitted_and_checked():
     assert abs(res.drift_ppm - 90.0) < 20.0
     err = res.latency_s - p.truth.latency_at(res.t_mid_rel_s)
     assert abs(err) < 3.0 * res.sigma_s and abs(err) < 0.2e-3, (err, res.sigma_s)
+
+
+@pytest.mark.parametrize("case", ["drift", "short", "jitter"])
+def test_sigma_budget_adds_up_to_sigma(case):
+    """report.json latency.quality.sigma_budget: the named terms of sigma_s, whose root-sum-square is sigma_s
+    (the floors represented as the terms that make it come out so; logtools.latency.uncertainty). The best
+    instant's sigma goes through the same floors and is at most sigma_s (the instant of least variance)."""
+    rng = np.random.default_rng(71)
+    kw = {"drift": dict(drift_ppm=60.0, dur_s=120.0), "short": dict(dur_s=18.0),
+          "jitter": dict(f_m=50.0, f_s=400.0, jitter=0.3, dur_s=90.0)}[case]
+    master, slave = make_pair(rng, latency_s=0.0317, R=random_rotation(rng), **kw)
+    res = estimate(master, slave, compare=False)
+    q = res.quality
+    b = q["sigma_budget"]
+    assert b["fit_curvature"] > 0
+    assert all(np.isfinite(v) and v >= 0 for v in b.values()), b
+    rss = float(np.sqrt(sum(v * v for v in b.values())))
+    assert rss == pytest.approx(res.sigma_s, rel=1e-12, abs=0.0), (rss, res.sigma_s, b)
+    assert q["sigma_at_best_instant_s"] <= res.sigma_s * (1 + 1e-12)
+    if q["stamp_jitter_latency_sigma_s"] > 0:  # the best instant's sigma has the jitter floor too
+        cal = LatencyConfig().uncertainty.sigma_calibration
+        assert q["sigma_at_best_instant_s"] >= cal * q["stamp_jitter_latency_sigma_s"] * (1 - 1e-12)
+    assert q["drift_estimated"] == (case != "short")
+    if case == "short":  # no drift fitted: the best instant is the middle, its sigma sigma_s
+        assert q["sigma_at_best_instant_s"] == res.sigma_s

@@ -1,5 +1,5 @@
 """The delay fits' curvature and gradient: from the cleaner of the two units' derivatives, not from the
-slave's derivative alone (``latency_gls.delay_normal``). A slave whose noise has a large derivative
+slave's derivative alone (``logtools.latency.gls.delay_normal``). A slave whose noise has a large derivative
 (flexure or vibration in a wide band) used to make every Gauss-Newton step go a fraction of the way
 and its sigma many times too small."""
 from __future__ import annotations
@@ -9,7 +9,8 @@ from scipy.signal import butter, sosfiltfilt
 
 import logtools.latency as L
 from logtools import sim
-from logtools.latency_gls import delay_normal, grid_derivative
+from logtools.latency.fit import refine
+from logtools.latency.gls import delay_normal, grid_derivative
 from logtools.resample import UniformSeries, interpolant
 
 
@@ -71,7 +72,7 @@ def test_refine_converges_and_its_sigma_holds_with_a_noisy_slave_derivative():
         ad, _ = grid_derivative(w, valid, t[1] - t[0])
         assert np.sum(bd ** 2) > 10 * np.sum(ad ** 2)
         # the slave reads s(t + L) = w(t): L = d_true
-        f = L._refine(t, w, valid, itp, d_true + 0.03, 0.0, 150.0, fit_drift=False)
+        f = refine(t, w, valid, itp, d_true + 0.03, 0.0, 150.0, fit_drift=False)
         assert f.ok
         errs.append(f.latency_s - d_true)
         sigs.append(f.sigma_latency_s)

@@ -1,15 +1,19 @@
 """The Kalman (state-space flexure model) whitening of the latency fit: kernel, likelihood, estimator."""
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
-import logtools.latency as L
 from logtools.conventions import skew
-from logtools.latency import estimate
-from logtools.latency_flexure import FlexureModel, block_mean, fit_model, whitened_normal
+from logtools.latency import LatencyConfig, Stages, estimate
+from logtools.latency.flexure import FlexureModel, block_mean, fit_model, whitened_normal
+from logtools.latency.kalman import refine_flex
 
 DEG = np.pi / 180.0
+#: the spectral GLS alone (no Kalman flexure-model stage)
+NO_KALMAN = replace(LatencyConfig(), flexure=replace(LatencyConfig().flexure, kalman=False))
 
 
 def _reference_kf(y, ws, fs, use, model):
@@ -118,7 +122,7 @@ def _ship_flexure(seed: int):
     return sim.simulate(cfg)
 
 
-def test_kalman_whitening_beats_the_spectral_gls_on_flexure(monkeypatch):
+def test_kalman_whitening_beats_the_spectral_gls_on_flexure():
     """Ship with seed 000's flexure, 120 s: the fit whitened by the flexure model is kept (quality says
     so), is more accurate than the spectral GLS alone over seeds, and its sigma covers its error. (On the
     rates and specific forces: the slave's velocity is left out, whose matching would blur the comparison.)"""
@@ -131,9 +135,7 @@ def test_kalman_whitening_beats_the_spectral_gls_on_flexure(monkeypatch):
         assert 0.01 < min(res.quality["flexure_model"]["sigma_deg"]) < 0.2  # the simulator's 0.05 deg
         e_flex.append(res.latency_s - truth)
         z.append(abs(res.latency_s - truth) / res.sigma_s)
-        monkeypatch.setattr(L, "FLEX_SS", False)
-        spec = estimate(p.master, p.slave, compare=False, velocity=False)
-        monkeypatch.setattr(L, "FLEX_SS", True)
+        spec = estimate(p.master, p.slave, compare=False, velocity=False, config=NO_KALMAN)
         assert spec.quality["flexure_model"] is None
         e_spec.append(spec.latency_s - p.truth.latency_at(spec.t_mid_rel_s))
     rms = lambda e: float(np.sqrt(np.mean(np.square(e))))  # noqa: E731
@@ -152,7 +154,7 @@ def test_without_flexure_the_kalman_stage_is_not_run():
     assert abs(res.latency_s - p.truth.latency_at(res.t_mid_rel_s)) < 1e-4
 
 
-def test_disagreeing_rate_models_both_go_to_the_windows_and_the_sigma_covers_them(monkeypatch):
+def test_disagreeing_rate_models_both_go_to_the_windows_and_the_sigma_covers_them():
     """Where the Kalman (flexure) fit lands far from the spectral GLS (> FLEX_AGREE_SIGMAS), one of the
     two models is wrong: both are scored by their windows, and the sigma of the one kept covers the
     other (an aircraft with a lever arm, 300 s, once kept the spectral fit at 0.3 ms, 5.5 ms off, and
@@ -160,20 +162,20 @@ def test_disagreeing_rate_models_both_go_to_the_windows_and_the_sigma_covers_the
     p = _ship_flexure(1)
     base = estimate(p.master, p.slave, compare=False, velocity=False)
     assert base.quality["rate_models_gap_s"] == 0.0
-    orig = L._refine_flex
+    orig = refine_flex
     push = {}
 
     def pushed(*a, **k):
         f = orig(*a, **k)
         if k.get("model") is None and f.ok:  # the whole-overlap fit (window refits pass the model)
             push["gap"] = 12.0 * max(f.sigma_latency_s, k["h0"])  # h0: the spectral fit's sigma
-        return L.replace(f, latency_s=f.latency_s + push.get("gap", 0.0)) if f.ok else f
+        return replace(f, latency_s=f.latency_s + push.get("gap", 0.0)) if f.ok else f
 
-    monkeypatch.setattr(L, "_refine_flex", pushed)
-    res = estimate(p.master, p.slave, compare=False, velocity=False)
+    cfg = replace(LatencyConfig(), stages=Stages(refine_flex=pushed))
+    res = estimate(p.master, p.slave, compare=False, velocity=False, config=cfg)
     gap = res.quality["rate_models_gap_s"]
     assert gap > 0.5 * push["gap"]
-    assert res.sigma_s >= L.FLEX_GAP_COVER * gap
+    assert res.sigma_s >= cfg.uncertainty.flex_gap_cover * gap
     assert any("disagree" in w for w in res.quality["warnings"])
 
 

@@ -30,7 +30,7 @@ def car():
 def test_turning_car_with_flexure_reaches_about_its_bound(car):
     p, res = car
     err = res.latency_s - p.truth.latency_at(res.t_mid_rel_s)
-    assert res.quality["lowpass_hz"] >= L.MIN_CUTOFF_HZ
+    assert res.quality["lowpass_hz"] >= L.LatencyConfig().prepare.min_cutoff_hz
     assert res.quality["flexure_model"] is not None and res.quality["accel_aided"]
     assert abs(err) < 2.5 * res.sigma_s, (err, res.sigma_s)
     assert res.sigma_s < 1.2e-3, res.sigma_s  # 2.09 ms at the 1 Hz low-pass; the bound x 1.2 x 1.5
@@ -53,12 +53,13 @@ def test_short_flexing_aircraft_velocity_keeps_the_motion_band():
     assert abs(err) < 2.5 * res.sigma_s, (err, res.sigma_s)
 
 
-def test_kalman_fit_falls_back_to_the_gyros_when_its_own_accelerometers_fail(monkeypatch):
+def test_kalman_fit_falls_back_to_the_gyros_when_its_own_accelerometers_fail():
     """FLEX_ACCEL_OWN hands the Kalman fit accelerometers the spectral fit did not take; where that aided
     fit fails, the gyro-only Kalman fit (what ran before) is still a candidate."""
     from dataclasses import replace
 
-    real = L._refine_flex
+    from logtools.latency.kalman import refine_flex as real
+
     calls = []
 
     def aided_fails(*a, **kw):
@@ -66,11 +67,11 @@ def test_kalman_fit_falls_back_to_the_gyros_when_its_own_accelerometers_fail(mon
         f = real(*a, **kw)
         return replace(f, ok=False) if kw.get("acc") is not None else f
 
-    monkeypatch.setattr(L, "_refine_flex", aided_fails)
     p = sim.simulate(_turning_car())
-    # the spectral fit without accelerometers: every aided Kalman fit is FLEX_ACCEL_OWN's
-    monkeypatch.setattr(L, "_accel_aided", lambda t_m, a, valid, itp, acc, fin, t_mid, **kw: (fin, None, None))
-    res = L.estimate(p.master, p.slave, compare=False)
+    # the spectral fit without accelerometers: every aided Kalman fit is the accel_own switch's
+    stages = L.Stages(refine_flex=aided_fails,
+                      accel_aided=lambda t_m, a, valid, itp, acc, fin, t_mid, **kw: (fin, None, None))
+    res = L.estimate(p.master, p.slave, compare=False, config=replace(L.LatencyConfig(), stages=stages))
     err = res.latency_s - p.truth.latency_at(res.t_mid_rel_s)
     assert calls[:2] == [True, False]  # the aided try, then the gyros alone
     assert res.quality["flexure_model"] is not None and not res.quality["accel_aided"]

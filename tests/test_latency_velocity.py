@@ -1,4 +1,4 @@
-"""Velocity matching in the latency estimate (logtools.latency_velocity): recovery of a known delay with
+"""Velocity matching in the latency estimate (logtools.latency.velocity): recovery of a known delay with
 a lever arm and a slave INS's tilt error, the fusion rule, shared nav streams, slaves without an IMU."""
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pytest
 from logtools import sim
 from logtools.inslog import VEL, InsLog
 from logtools.latency import estimate
-from logtools.latency_velocity import velocity_pair
+from logtools.latency.velocity_pair import velocity_pair
 
 G_NED = np.array([0.0, 0.0, 9.81])
 
@@ -112,7 +112,7 @@ def test_attitude_only_slave_with_flexure(nav_rate_hz):
 
 
 def test_velocity_quantum_is_recognised():
-    from logtools.latency_velocity import velocity_quantum_m_s
+    from logtools.latency.velocity_pair import velocity_quantum_m_s
 
     rng = np.random.default_rng(0)
     v = rng.normal(0.0, 3.0, (500, 3))
@@ -197,7 +197,7 @@ def test_leverage_corrected_residual_spectrum_is_unbiased_for_white_noise():
     frequencies out of the residual; a noise spectrum estimated from it is low exactly there, and the GLS
     overweights them (the velocity fit's sigma on a 45 s car came out 1.4x small). Divided by
     1 - leverage, the residual periodogram of white noise is unbiased again."""
-    from logtools.latency_gls import leverage_spectrum, noise_model
+    from logtools.latency.gls import leverage_spectrum, noise_model
 
     rng = np.random.default_rng(1)
     n, dt, sigma = 900, 0.05, 0.003

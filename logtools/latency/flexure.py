@@ -31,7 +31,9 @@ import numpy as np
 from scipy import linalg as sla
 from scipy import optimize
 
-try:  # numba is a dependency; the kernel is valid Python too
+from logtools.latency.config import DEFAULT, LatencyConfig
+
+try:
     from numba import njit as _njit
 
     def njit(fn):
@@ -41,13 +43,6 @@ except ImportError:  # pragma: no cover
         return fn
 
 __all__ = ["FlexureModel", "block_mean", "fit_model", "whitened_normal"]
-
-DECIMATE_FACTOR = 2.5  # block rate = this x the low-pass cutoff
-#: the maximum-likelihood fit wants at least this many blocks per unknown (regressors, the 4 flexure and the
-#: C noise parameters; each block has C rows). 4 kept 30 s aircraft records out of the Kalman stage, whose
-#: spectral fit then claimed 0.9 ms for a 4.2 ms error
-ML_BLOCKS_PER_UNKNOWN = 2.0
-MAX_ML_ITER = 30
 
 
 @dataclass(frozen=True)
@@ -235,12 +230,12 @@ def _model(theta: np.ndarray, C: int, dt_s: float) -> FlexureModel:
     return FlexureModel(np.exp(theta[:3]), float(np.exp(theta[3])), np.exp(theta[4:4 + C]), dt_s)
 
 
-def fit_model(y: np.ndarray, ws: np.ndarray, fs: np.ndarray | None, use: np.ndarray, dt_s: float, p: int
-              ) -> FlexureModel | None:
+def fit_model(y: np.ndarray, ws: np.ndarray, fs: np.ndarray | None, use: np.ndarray, dt_s: float, p: int,
+              cfg: LatencyConfig = DEFAULT) -> FlexureModel | None:
     """Maximum (restricted) likelihood flexure and noise parameters for the residual column y[:, :, 0]
     with the p regressors y[:, :, 1:p + 1] concentrated out; None when the data cannot support it."""
     n, C, _ = y.shape
-    if use.sum() < ML_BLOCKS_PER_UNKNOWN * (p + 4 + C):
+    if use.sum() < cfg.flexure.ml_blocks_per_unknown * (p + 4 + C):
         return None
     y = y[:, :, :p + 1]
     # column scaling: the likelihood is invariant to it up to a constant, the numerics are not
@@ -262,8 +257,9 @@ def fit_model(y: np.ndarray, ws: np.ndarray, fs: np.ndarray | None, use: np.ndar
         return val if np.isfinite(val) else 1e300
 
     res = optimize.minimize(f, theta0, method="L-BFGS-B", bounds=list(zip(lo, hi)),
-                            options={"maxiter": MAX_ML_ITER})
+                            options={"maxiter": cfg.flexure.max_ml_iter})
     if not np.isfinite(res.fun):
         return None
     m = _model(res.x, C, dt_s)
     return FlexureModel(m.sigma_rad * sc[0], m.beta_1_s, m.noise_var * sc[0] ** 2, dt_s)
+

@@ -8,17 +8,12 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import fft as sfft
 
-GLS_SMOOTH_HZ = 0.05  # the residual spectrum is smoothed over this band
-GLS_FLOOR = 1e-4  # PSD floor (fraction of its peak): the low-pass stop band is not amplified beyond it
-GLS_CSD_BINS = 15  # a cross-spectral matrix is smoothed over at least this many bins (conditioning)
-LEVERAGE_MIN_KEEP = 0.2  # a residual periodogram is scaled up by at most 1 / this (see leverage_spectrum)
-HAC_BANDWIDTH_FACTOR = 4  # Newey-West bandwidth = this x the lag where the scores decorrelate
-CORR_MAX = 0.99  # |correlation| of (L, drift) at most this (the curvature and HAC parts may disagree)
+from logtools.latency.config import DEFAULT, LatencyConfig
 
 
-def hac_cov(u: np.ndarray, max_lag: int) -> tuple[np.ndarray, float]:
+def hac_cov(u: np.ndarray, max_lag: int, cfg: LatencyConfig = DEFAULT) -> tuple[np.ndarray, float]:
     """Newey-West (Bartlett) covariance of sum_k u_k for serially correlated u (N, p); the bandwidth is
-    HAC_BANDWIDTH_FACTOR times the lag where u's mean autocorrelation first drops below 0.1.
+    cfg.gls.hac_bandwidth_factor times the lag where u's mean autocorrelation first drops below 0.1.
     Returns (covariance (p, p), bandwidth in samples)."""
     N, p = u.shape
     nfft = sfft.next_fast_len(2 * N, real=True)
@@ -34,7 +29,7 @@ def hac_cov(u: np.ndarray, max_lag: int) -> tuple[np.ndarray, float]:
     rho = (np.diagonal(ac, axis1=1, axis2=2) / g0).mean(axis=1)
     below = np.flatnonzero(rho < 0.1)
     h1 = int(below[0]) if len(below) else nl - 1
-    H = int(np.clip(HAC_BANDWIDTH_FACTOR * h1, 1, nl - 1)) if nl > 1 else 0
+    H = int(np.clip(cfg.gls.hac_bandwidth_factor * h1, 1, nl - 1)) if nl > 1 else 0
     if H == 0:
         return ac[0], 0.0
     w = 1.0 - np.arange(1, H + 1) / (H + 1.0)
@@ -121,33 +116,33 @@ def leverage_spectrum(J: np.ndarray, use: np.ndarray) -> np.ndarray:
 
 
 def noise_model(r: np.ndarray, use: np.ndarray, dt_s: float, *, matrix: bool = False,
-                leverage: np.ndarray | None = None) -> NoiseModel | None:
+                leverage: np.ndarray | None = None, cfg: LatencyConfig = DEFAULT) -> NoiseModel | None:
     """Residual spectrum from one fit's residuals (N, C) (0 where unused): periodogram over the whole
-    span smoothed over GLS_SMOOTH_HZ (a 2nd-order Markov spectrum is smooth on that scale); averaged
+    span smoothed over cfg.gls.smooth_hz (a 2nd-order Markov spectrum is smooth on that scale); averaged
     over the axes (one spectrum), or with ``matrix`` the C x C cross-spectral density, smoothed over at
-    least GLS_CSD_BINS bins so that it is well conditioned. ``leverage`` (``leverage_spectrum`` of the
+    least cfg.gls.csd_bins bins so that it is well conditioned. ``leverage`` (``leverage_spectrum`` of the
     fit's design; single spectrum only): the periodogram is divided by 1 - leverage (at most by
-    1 / LEVERAGE_MIN_KEEP) before smoothing."""
+    1 / cfg.gls.leverage_min_keep) before smoothing."""
     n, C = r.shape
     if n < 256 or use.sum() < 128:
         return None
     x = np.where(use[:, None], r, 0.0)
     X = sfft.rfft(x, axis=0)
     f = sfft.rfftfreq(n, dt_s)
-    k = max(3, int(round(GLS_SMOOTH_HZ * n * dt_s))) | 1
+    k = max(3, int(round(cfg.gls.smooth_hz * n * dt_s))) | 1
     if matrix:
-        k = max(k, GLS_CSD_BINS | 1)
+        k = max(k, cfg.gls.csd_bins | 1)
     k = min(k, (len(f) // 4) | 1)
     norm = max(1.0, float(use.sum()))
     if not matrix:
         p = np.mean(np.abs(X) ** 2, axis=1) / norm
         if leverage is not None:
-            p = p / np.clip(1.0 - leverage, LEVERAGE_MIN_KEEP, 1.0)
+            p = p / np.clip(1.0 - leverage, cfg.gls.leverage_min_keep, 1.0)
         ps = np.convolve(np.pad(p, k // 2, mode="reflect"), np.ones(k) / k, mode="valid")
         top = float(ps.max())
         if not top > 0:
             return None
-        return NoiseModel(f, ps, GLS_FLOOR * top, 1.0 / GLS_SMOOTH_HZ)
+        return NoiseModel(f, ps, cfg.gls.floor * top, 1.0 / cfg.gls.smooth_hz)
     from scipy.ndimage import uniform_filter1d
 
     P = (X[:, :, None] * np.conj(X[:, None, :])).reshape(len(f), C * C) / norm
@@ -156,30 +151,35 @@ def noise_model(r: np.ndarray, use: np.ndarray, dt_s: float, *, matrix: bool = F
     top = np.max(np.real(np.diagonal(P, axis1=1, axis2=2)), axis=0)
     if not np.all(top > 0):
         return None
-    return NoiseModel(f, P, GLS_FLOOR * top, 1.0 / GLS_SMOOTH_HZ)
+    return NoiseModel(f, P, cfg.gls.floor * top, 1.0 / cfg.gls.smooth_hz)
 
 
 def gls_covariance(Ninv: np.ndarray, s2: float, u: np.ndarray, dt_s: float, fit_drift: bool, *,
                     check: tuple[np.ndarray, np.ndarray] | None = None, free_step: np.ndarray | None = None,
-                    var_floor: float = 0.0) -> tuple[np.ndarray, float, float, tuple[float, float]]:
-    """Variances of (L[, drift]) of a whitened least-squares fit: the curvature's (s2 diag(Ninv)) with the
+                    var_floor: float = 0.0, hac_corr: bool = False, cfg: LatencyConfig = DEFAULT
+                    ) -> tuple[np.ndarray, float, float, tuple[float, float]]:
+    """Variances of (L[, drift]) of a (whitened) least-squares fit -- every fit's covariance comes from here: the curvature's (s2 diag(Ninv)) with the
     Newey-West variance of the per-sample scores u (n, nd) as a floor (what the whitening missed; lags
     up to 20 s at the samples' interval dt_s), and the latency's at least ``var_floor`` (the drift's
     scaled alike). Returns (var (nd,), corr(L, drift), variance factor over the curvature's, (delay of the
     accelerometers' own, its sigma)) -- the last from ``check`` = (augmented normal matrix, right-hand
     side) with the model-check column last, or, where that delay is the fit's last unknown, from
-    ``free_step`` (the fit's last step, its last element that delay) and Ninv; else (0, 0)."""
+    ``free_step`` (the fit's last step, its last element that delay) and Ninv; else (0, 0). ``hac_corr``
+    (the unwhitened first fit, ``fit.refine``): corr(L, drift) from the HAC covariance alone."""
     nd = u.shape[1]
     var_cls = s2 * np.diag(Ninv)[:nd]
-    V_hac, _H = hac_cov(u, int(min(len(u) // 4, max(10, 20.0 / dt_s))))
+    V_hac, _H = hac_cov(u, int(min(len(u) // 4, max(10, 20.0 / dt_s))), cfg)
     var_h = np.diag(V_hac)
     var = np.maximum(var_h, var_cls)
     up = max(1.0, var_floor / var[0]) if var[0] > 0 else 1.0
     var = var * up
     corr = 0.0
-    if fit_drift and var[0] > 0 and var[1] > 0:
+    if hac_corr:
+        if fit_drift and var_h[0] > 0 and var_h[1] > 0:
+            corr = float(np.clip(V_hac[0, 1] / np.sqrt(var_h[0] * var_h[1]), -cfg.gls.corr_max, cfg.gls.corr_max))
+    elif fit_drift and var[0] > 0 and var[1] > 0:
         cv = (V_hac[0, 1] if var_h[0] >= var_cls[0] else s2 * Ninv[0, 1]) * up
-        corr = float(np.clip(cv / np.sqrt(var[0] * var[1]), -CORR_MAX, CORR_MAX))
+        corr = float(np.clip(cv / np.sqrt(var[0] * var[1]), -cfg.gls.corr_max, cfg.gls.corr_max))
     fac = float(var[0] / var_cls[0]) if var_cls[0] > 0 else 1.0
     acc_lag = (0.0, 0.0)
     if check is not None:
@@ -293,3 +293,4 @@ def stamp_noise_variance(sigma_stamp_s: float, g: np.ndarray, samples_per_point:
     if not (sigma_stamp_s > 0 and den > 0 and samples_per_point > 0):
         return 0.0
     return sigma_stamp_s ** 2 * float(np.sum(g * g)) / den / samples_per_point
+

@@ -1,0 +1,137 @@
+"""Stage 1, prepare: both units on the master's relative clock, on grids, low-passed at one cutoff;
+stamp statistics; the accelerometer and velocity sources. Returns a frozen ``Ctx``."""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from logtools.errors import AnalysisError
+from logtools.inslog import InsLog
+from logtools.latency.config import DEFAULT, LatencyConfig
+from logtools.latency.inputs import Unit, make_unit, series_on_grid, signal_band_hz, uniform_native, unit_rate
+from logtools.latency.system import Accel
+from logtools.resample import Interpolant, interpolant, lowpass, median_rate_hz, stamp_noise_s, to_uniform
+
+
+@dataclass(frozen=True)
+class Ctx:
+    """Everything the stages read about the pair, frozen (a stage that changes it returns a new one)."""
+
+    master: Unit
+    slave: Unit
+    dt_c: float  # common rate (the slower unit's, at most cfg.prepare.max_common_rate_hz)
+    cutoff_hz: float
+    max_lag_s: float | None
+    band_cutoff_hz: float  # the motion's band (signal/noise, the velocities' low-pass)
+    dt_s: float = 0.0  # integer-lag search grid
+    dt_r: float = 0.0  # continuous refinement samples (master)
+    raw: tuple = ()  # (master, slave) unfiltered native uniform series (baseline method)
+    adapted_cutoff: bool = False
+    warnings: tuple[str, ...] = ()  # the inputs' warnings (the stages return their own as data)
+    t0_abs_s: float = 0.0
+    stamp_jitter_s: tuple[float, float] = (0.0, 0.0)  # (master, slave) white stamp noise, s
+    stamp_resolution_s: tuple[float, float] = (0.0, 0.0)  # (master, slave) coarse stamp step of the rates' source
+    acc_src: tuple | None = None  # (master, slave, cutoff, master rate) for the accelerometer-aided GLS
+    vel_src: tuple | None = None  # (master, slave) for the velocity fit, both with NED velocity
+    cfg: LatencyConfig = DEFAULT
+
+
+def prepare(master: InsLog, slave: InsLog, max_lag_s: float | None, *, accelerometers: bool = True,
+            velocity: bool = True, cfg: LatencyConfig = DEFAULT) -> Ctx:
+    """Both units on the master's relative clock, gridded, low-passed at one cutoff; AnalysisError for
+    no or too short overlap and unusable rates."""
+    if max_lag_s is not None and not (np.isfinite(max_lag_s) and max_lag_s > 0):
+        raise AnalysisError(f"max_lag_s must be positive or None (whole overlap), not {max_lag_s!r}")
+    slave_r = slave.rebased(master.meta.t0_ns)
+    tm, wm, srcm = unit_rate(master, "master")
+    ts, ws, srcs = unit_rate(slave_r, "slave")
+    fm, fs = median_rate_hz(tm), median_rate_hz(ts)
+    f_c = min(fm, fs, cfg.prepare.max_common_rate_hz)
+    dt_c = 1.0 / f_c
+    # master and slave spans (finite samples), face value
+    okm = np.all(np.isfinite(wm), axis=1) & np.isfinite(tm)
+    oks = np.all(np.isfinite(ws), axis=1) & np.isfinite(ts)
+    m0, m1 = float(np.min(tm[okm])), float(np.max(tm[okm]))
+    s0, s1 = float(np.min(ts[oks])), float(np.max(ts[oks]))
+    if min(m1 - m0, s1 - s0) < cfg.prepare.min_overlap_s:
+        raise AnalysisError(f"logs too short for a latency estimate: master {m1 - m0:.1f} s, slave "
+                            f"{s1 - s0:.1f} s of angular rate (need {cfg.prepare.min_overlap_s:g} s of overlap)")
+    if max_lag_s is not None:
+        ov = min(m1, s1 + max_lag_s) - max(m0, s0 - max_lag_s)
+        if ov < cfg.prepare.min_overlap_s:
+            raise AnalysisError(
+                f"no overlap between master [{m0 + master.t0_s:.3f}, {m1 + master.t0_s:.3f}] s and slave "
+                f"[{s0 + master.t0_s:.3f}, {s1 + master.t0_s:.3f}] s within +-{max_lag_s:g} s at face value "
+                f"(clocks unrelated? use --max-lag auto)")
+    natm, nm = uniform_native(tm, wm, "master")
+    nats, ns = uniform_native(ts, ws, "slave")
+    # zero-phase low-pass of both units at the same cutoff: a few times the motion's band (the noise
+    # between the motion's band and Nyquist would otherwise bias a spline-interpolated sub-sample delay)
+    band = (min if cfg.prepare.band_common else max)(signal_band_hz(natm, nm), signal_band_hz(nats, ns))
+    floor = min(cfg.prepare.min_cutoff_hz, max(cfg.prepare.band_min_cutoff_hz, cfg.prepare.min_cutoff_fraction * f_c))
+    cutoff = float(np.clip(cfg.prepare.band_factor * band, floor, cfg.prepare.cutoff_fraction * f_c))
+    band_cutoff = float(np.clip(cfg.prepare.band_factor * band, cfg.prepare.band_min_cutoff_hz,
+                                cfg.prepare.cutoff_fraction * f_c))
+    # both units are band-limited at the cutoff: refinement samples at 5x the cutoff carry all the
+    # information (a denser grid only costs time; the residuals' correlation is handled by the HAC)
+    f_r = min(f_c, max(cfg.prepare.refine_band_factor * cutoff, cfg.prepare.min_refine_rate_hz))
+    f_s = min(f_r, cfg.prepare.max_coarse_rate_hz)
+    um = make_unit(natm, nm, srcm, "master", fm, 1.0 / f_s, cutoff)
+    us = make_unit(nats, ns, srcs, "slave", fs, 1.0 / f_s, cutoff)
+    res_s = (master.stamp_resolution_s("gyro" if srcm == "gyro" else "att"),
+             slave.stamp_resolution_s("gyro" if srcs == "gyro" else "att"))
+    warnings = list(um.native.warnings) + list(us.native.warnings)
+    acc_src = vel_src = None
+    if (accelerometers and cfg.prepare.accel_aided and srcm == "gyro" and srcs == "gyro" and master.has_accel
+            and slave_r.has_accel):
+        acc_src = (master, slave_r, cutoff, um.itp)  # built when needed (accel_pair)
+    if velocity and cfg.prepare.velocity_aided and master.has_vel and slave_r.has_vel:
+        vel_src = (master, slave_r)  # built when needed (velocity_step)
+    for role, q in zip(("master", "slave"), res_s):
+        if q > 0:
+            warnings.append(f"{role} stamps are whole multiples of {q * 1e3:g} ms: the latency's sigma is "
+                            f"at least {q / np.sqrt(12.0) * 1e3:.3g} ms (a fixed sampling phase offsets "
+                            f"every stamp alike)")
+    if srcm == "attitude" or srcs == "attitude":
+        warnings.append("angular rate derived from attitude for the " +
+                        " and ".join(r for r, s in (("master", srcm), ("slave", srcs)) if s == "attitude"))
+    for role, src, w in (("master", srcm, wm), ("slave", srcs, ws)):
+        n_bad = int(np.sum(~np.all(np.isfinite(w), axis=1))) if src == "attitude" else 0
+        if n_bad:
+            warnings.append(f"{role}: {n_bad} of {len(w)} attitude intervals frozen (an EKF not running) or "
+                            f"at a reset left out of the rates")
+    return Ctx(um, us, dt_c, cutoff, max_lag_s, band_cutoff_hz=band_cutoff, t0_abs_s=master.t0_s,
+               dt_s=1.0 / f_s, dt_r=1.0 / f_r, raw=(natm, nats),
+               stamp_jitter_s=(stamp_noise_s(tm), stamp_noise_s(ts)), stamp_resolution_s=res_s,
+               warnings=tuple(warnings), acc_src=acc_src, vel_src=vel_src, cfg=cfg)
+
+
+def refiltered_ctx(ctx: "Ctx", cutoff_hz: float) -> "Ctx":
+    """The units low-passed again (zero-phase) from their raw series at a new cutoff."""
+    units = []
+    for u, nat in zip((ctx.master, ctx.slave), ctx.raw):
+        lp = lowpass(nat, cutoff_hz)
+        itp = interpolant(lp)
+        units.append(replace(u, native=lp, itp=itp, grid=series_on_grid(itp, ctx.dt_s)))
+    return replace(ctx, master=units[0], slave=units[1], cutoff_hz=cutoff_hz, adapted_cutoff=True)
+
+
+def accel_pair(master: InsLog, slave: InsLog, cutoff_hz: float, master_rate: Interpolant) -> Accel | None:
+    """Both units' specific force, uniform and low-passed at the rates' cutoff; None when either unit
+    has no (or too little finite) accelerometer data."""
+    itps = []
+    for log, role in ((master, "master"), (slave, "slave")):
+        if not log.has_accel:
+            return None
+        t, f = log.t_imu_s(), log.accel_m_s2()
+        ok = np.isfinite(t) & np.all(np.isfinite(f), axis=1)
+        if ok.sum() < 256:
+            return None
+        try:
+            nat = to_uniform(t[ok], f[ok], name=f"{role} accelerometer")
+            itps.append(interpolant(lowpass(nat, cutoff_hz)))
+        except ValueError:
+            return None
+    return Accel(itps[0], itps[1], master_rate)
+
