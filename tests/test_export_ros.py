@@ -156,6 +156,12 @@ def test_mcap_schemas_channels_metadata_attachments_kept(tmp_path, slave):
     dst = str(tmp_path / "out.mcap")
     shift = _shift_for(parsers.load(full))
     rr.restamp_mcap(full, dst, shift)
+    from mcap.stream_reader import StreamReader
+
+    with open(dst, "rb") as fb:  # every record, CRCs checked (chunks, attachments)
+        kinds = [type(r).__name__ for r in StreamReader(fb, skip_magic=False, validate_crcs=True).records]
+    assert kinds[0] == "Header" and kinds[-1] == "Footer" and "DataEnd" in kinds and "SummaryOffset" in kinds
+    assert kinds.count("Message") == 1000 and "ChunkIndex" in kinds and "Statistics" in kinds
     with open(full, "rb") as fa, open(dst, "rb") as fb:
         ra, rb = make_reader(fa), make_reader(fb)
         ha, hb = ra.get_header(), rb.get_header()
@@ -166,6 +172,8 @@ def test_mcap_schemas_channels_metadata_attachments_kept(tmp_path, slave):
         assert sorted((c.topic, c.message_encoding, tuple(c.metadata.items())) for c in sa.channels.values()) == \
             sorted((c.topic, c.message_encoding, tuple(c.metadata.items())) for c in sb.channels.values())
         assert sb.statistics.message_count == sa.statistics.message_count
+        assert sb.statistics.channel_message_counts == {
+            c2: sa.statistics.channel_message_counts[c1] for c1, c2 in zip(sorted(sa.channels), sorted(sb.channels))}
         assert [(m.name, m.metadata) for m in rb.iter_metadata()] == [("calib", {"lever_arm_m": "0.1 0.2 0.3"})]
         assert [(x.name, x.media_type, x.data) for x in rb.iter_attachments()] == [("notes.txt", "text/plain", b"hello")]
         ma = list(ra.iter_messages(log_time_order=False))
@@ -344,7 +352,7 @@ def test_truncated_input_writes_the_readable_part_and_names_the_damage(big, tmp_
     shift = _shift_for(a)
     st = RESTAMP[fmt](cut, dst, shift)
     assert any("truncated" in d for d in st.damage)
-    n_read = len(rr._scan_mcap(cut).data) if fmt == "mcap" else sum(map(len, rr._scan_rosbag1(cut).times.values()))
+    n_read = rr._scan_mcap(cut).count if fmt == "mcap" else sum(map(len, rr._scan_rosbag1(cut).times.values()))
     assert st.records == n_read and 0.3 * 3 * 6000 < st.records < 3 * 6000
     lib = _library_messages(dst, "mcap" if fmt == "mcap" else "rosbag1")
     assert sum(len(v) for v in lib.values()) == st.records  # the output is complete and indexed
@@ -399,15 +407,16 @@ def test_interrupted_write_leaves_no_partial_output(big, tmp_path, fmt, monkeypa
         if calls["n"] > 5000:
             raise KeyboardInterrupt  # the user pressing Ctrl-C half way
 
-    if fmt == "mcap":
-        import mcap.writer
+    if fmt == "rosbag2":  # the messages are in the database, the writer about to close (metadata.yaml)
+        from rosbags.rosbag2 import Writer
 
-        real = mcap.writer.Writer.add_message
-        monkeypatch.setattr(mcap.writer.Writer, "add_message", lambda self, **k: (boom(), real(self, **k)))
-    else:
-        mod = __import__(f"rosbags.{fmt}", fromlist=["Writer"])
-        real = mod.Writer.write
-        monkeypatch.setattr(mod.Writer, "write", lambda self, *a: (boom(), real(self, *a)))
+        real = Writer.close
+        calls["n"] = 5000
+        monkeypatch.setattr(Writer, "close", lambda self: (boom(), real(self)))
+    else:  # our container writers: interrupted at the third chunk
+        calls["n"] = 4998
+        real = rr._compress_chunk
+        monkeypatch.setattr(rr, "_compress_chunk", lambda *a: (boom(), real(*a))[1])
     with pytest.raises(KeyboardInterrupt):
         RESTAMP[fmt](src, str(dst), _shift_for(big["log"]))
     assert calls["n"] > 5000
