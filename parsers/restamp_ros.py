@@ -405,7 +405,7 @@ def _compress_chunk(kind: str, data: bytes) -> bytes:
     if kind == "zstd":
         import zstandard
 
-        return zstandard.ZstdCompressor().compress(data)
+        return zstandard.ZstdCompressor(level=1).compress(data)
     if kind == "lz4":
         import lz4.frame
 
@@ -682,9 +682,9 @@ def _mcap_streams(sc: _McapScan, typestore) -> tuple[list[int], list[_Stream]]:
 
 def _mcap_msgs(sc: _McapScan, cids: list[int]) -> tuple[_Msgs, np.ndarray, np.ndarray]:
     cat = (lambda v: np.concatenate(v) if v else np.zeros(0, np.int64))
-    pos = {c: k for k, c in enumerate(cids)}
-    raw = cat(sc.cid)
-    conn = np.array([pos[c] for c in raw.tolist()], np.int64) if len(raw) else np.zeros(0, np.int64)
+    lut = np.zeros(max(cids, default=0) + 1, np.int64)
+    lut[cids] = np.arange(len(cids))
+    conn = lut[cat(sc.cid)]
     base = np.cumsum([len(b[0]) for b in sc.blocks]) - [len(b[0]) for b in sc.blocks] if sc.blocks else []
     buf = np.concatenate([b[0] for b in sc.blocks]) if sc.blocks else np.zeros(0, np.uint8)
     starts = cat([b[1] + o for b, o in zip(sc.blocks, base)])
@@ -853,10 +853,94 @@ def _sqlite_rows(path: str, damage: list[str]) -> tuple[dict[int, tuple[str, str
     return topics, rows
 
 
+def _concat(parts: list[_Msgs]) -> _Msgs:
+    if not parts:
+        return _pack(np.zeros(0, np.int64), np.zeros(0, np.int64), [])
+    base = np.cumsum([len(m.buf) for m in parts]) - [len(m.buf) for m in parts]
+    return _Msgs(np.concatenate([m.conn for m in parts]), np.concatenate([m.log_ns for m in parts]),
+                 np.concatenate([m.buf for m in parts]) if len(parts) > 1 else parts[0].buf,
+                 np.concatenate([m.starts + o for m, o in zip(parts, base)]), np.concatenate([m.lens for m in parts]))
+
+
+@dataclasses.dataclass
+class _Part:
+    """One storage file of a ROS 2 bag: its messages (``conn`` = bag stream) and, for mcap, its scan."""
+
+    name: str  # storage file name in the output (compressed name for file compression)
+    msgs: _Msgs
+    scan: _McapScan | None = None
+    local: np.ndarray | None = None  # index into sorted(scan.channels) per message
+    pub: np.ndarray | None = None
+    seq: np.ndarray | None = None
+
+
+def _ros2_streams(conns, typestore) -> tuple[list[_Stream], dict[tuple[str, str], int]]:
+    base = None
+    streams: list[_Stream] = []
+    by_key: dict[tuple[str, str], int] = {}
+    for c in conns:
+        fmt = "idl" if c.msgdef.format.name == "IDL" else "msg"
+        _registered(typestore, c.msgtype, c.msgdef.data, fmt)
+        if c.msgtype not in typestore.fielddefs:  # old bags: no definitions stored; the built-in ones
+            base = base or rc.default_typestore("cdr")
+            if c.msgtype in base.fielddefs:
+                typestore.register({k: base.fielddefs[k] for k in mcap_ros._closure(base, {c.msgtype})
+                                    if k not in typestore.fielddefs})
+        enc = c.ext.serialization_format
+        by_key[(c.topic, c.msgtype)] = len(streams)
+        streams.append(_Stream(c.topic, c.msgtype, enc, _header_kind(typestore, c.msgtype) if enc == "cdr" else _NONE))
+    return streams, by_key
+
+
+def _read_ros2_part(f: str, g: str, storage: str, by_key, damage: list[str]) -> _Part:
+    name = os.path.basename(f)
+    if g.endswith(".mcap") or storage == "mcap":
+        sc = _scan_mcap(g)
+        damage += [f"{name}: {d}" for d in sc.damage]
+        cids = sorted(sc.channels)
+        m, pub, seq = _mcap_msgs(sc, cids)
+        keys = [by_key.get((sc.channels[c][0], rc.normalize_msgtype(sc.schemas.get(sc.channels[c][2], ("", "", b""))[0])))
+                for c in cids]
+        if any(k is None for k in keys):
+            raise InputError("an mcap channel is not among metadata.yaml's topics", f)
+        local = m.conn
+        m.conn = np.asarray(keys, np.int64)[local] if len(local) else np.zeros(0, np.int64)
+        return _Part(name, m, sc, local, pub, seq)
+    topics, rows = _sqlite_rows(g, damage)
+    tk = {}
+    for tid, (tname, ttype, _fmt) in topics.items():
+        tk[tid] = by_key.get((tname, rc.normalize_msgtype(ttype)))
+        if tk[tid] is None:
+            raise InputError(f"topic {tname} of the storage file is not among the bag's connections", f)
+    conn = np.fromiter((tk[r[0]] for r in rows), np.int64, len(rows))
+    log = np.fromiter((r[1] for r in rows), np.int64, len(rows))
+    return _Part(name, _pack(conn, log, [r[2] for r in rows]))
+
+
+def _unzstd_part(part: _Part, damage: list[str]) -> None:
+    """Message compression undone (a message that does not decompress is dropped, named)."""
+    import zstandard
+
+    dctx = zstandard.ZstdDecompressor()
+    m = part.msgs
+    out, keep = [], []
+    for i, d in enumerate(m.views()):
+        try:
+            out.append(dctx.decompressobj().decompress(d))
+            keep.append(i)
+        except zstandard.ZstdError:
+            pass
+    if len(keep) < len(m.lens):
+        damage.append(f"{part.name}: {len(m.lens) - len(keep)} compressed messages do not decompress; "
+                      "not in the output")
+    part.msgs = _pack(m.conn[keep], m.log_ns[keep], out)
+    if part.local is not None:
+        part.local, part.pub, part.seq = part.local[keep], part.pub[keep], part.seq[keep]
+
+
 def restamp_rosbag2(src: str, dst: str, shift: ClockShift, *, selector: str | None = None) -> RestampStats:
     """A ROS 2 bag folder (same storage plugin and compression) on the master's clock."""
-    from rosbags.rosbag2 import Reader, StoragePlugin, Writer
-    from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
+    from rosbags.rosbag2 import Reader
     from rosbags.typesys import Stores, get_typestore
 
     check_readable(src)
@@ -873,100 +957,33 @@ def restamp_rosbag2(src: str, dst: str, shift: ClockShift, *, selector: str | No
     except Exception as exc:
         raise InputError(f"ROS 2 bag unreadable by rosbags ({type(exc).__name__}: {exc})", bagdir) from None
     typestore = get_typestore(Stores.EMPTY)
-    base = rc.default_typestore("cdr")
-    streams: list[_Stream] = []
-    by_key: dict[tuple[str, str], int] = {}
-    for c in conns:
-        fmt = "idl" if c.msgdef.format.name == "IDL" else "msg"
-        _registered(typestore, c.msgtype, c.msgdef.data, fmt)
-        if c.msgtype not in typestore.fielddefs and c.msgtype in base.fielddefs:
-            typestore.register({k: base.fielddefs[k] for k in mcap_ros._closure(base, {c.msgtype})
-                                if k not in typestore.fielddefs})
-        enc = c.ext.serialization_format
-        by_key[(c.topic, c.msgtype)] = len(streams)
-        streams.append(_Stream(c.topic, c.msgtype, enc, _header_kind(typestore, c.msgtype) if enc == "cdr" else _NONE))
+    streams, by_key = _ros2_streams(conns, typestore)
     damage: list[str] = []
-    conn_l, log_l, data = [], [], []
-
+    parts: list[_Part] = []
     with tempfile.TemporaryDirectory(prefix="tapost-restamp-") as tmpd:
         for f in files:
             g = rosbag2._unzstd_file(f, tmpd) if (mode == "file" or f.endswith(".zstd")) else f
-            if g.endswith(".mcap") or storage == "mcap":
-                sc = _scan_mcap(g)
-                damage += [f"{os.path.basename(f)}: {d}" for d in sc.damage]
-                cids = sorted(sc.channels)
-                m, _pub, _seq = _mcap_msgs(sc, cids)
-                keys = []
-                for c in cids:
-                    topic, _enc, sid, _meta = sc.channels[c]
-                    keys.append(by_key.get((topic, rc.normalize_msgtype(sc.schemas.get(sid, ("", "", b""))[0]))))
-                if any(k is None for k in keys):
-                    raise InputError("an mcap channel is not in metadata.yaml's topics", f)
-                conn_l.append(np.asarray(keys, np.int64)[m.conn] if len(m.conn) else np.zeros(0, np.int64))
-                log_l.append(m.log_ns)
-                data += m.views()
-            else:
-                topics, rows = _sqlite_rows(g, damage)
-                tk = {}
-                for tid, (name, ttype, _fmt) in topics.items():
-                    tk[tid] = by_key.get((name, rc.normalize_msgtype(ttype)))
-                    if tk[tid] is None:
-                        raise InputError(f"topic {name} of the storage file is not in the bag's connections", f)
-                conn_l.append(np.fromiter((tk[r[0]] for r in rows), np.int64, len(rows)))
-                log_l.append(np.fromiter((r[1] for r in rows), np.int64, len(rows)))
-                data += [r[2] for r in rows]
-    conn = np.concatenate(conn_l) if conn_l else np.zeros(0, np.int64)
-    log = np.concatenate(log_l) if log_l else np.zeros(0, np.int64)
+            parts.append(_read_ros2_part(f, g, storage, by_key, damage))
     if mode == "message":
-        import zstandard
-
-        dctx = zstandard.ZstdDecompressor()
-        keep = []
-        for i, d in enumerate(data):
-            try:
-                data[i] = dctx.decompressobj().decompress(d)
-                keep.append(i)
-            except zstandard.ZstdError:
-                pass
-        if len(keep) < len(data):
-            damage.append(f"{len(data) - len(keep)} compressed messages do not decompress; not in the output")
-            conn, log, data = conn[keep], log[keep], [data[i] for i in keep]
-    msgs = _pack(conn, log, data)
-    del data
+        for part in parts:
+            _unzstd_part(part, damage)
+    msgs = _concat([p.msgs for p in parts])
     declared = int(meta.get("message_count") or 0)
     if declared and len(msgs.log_ns) < declared:
         damage.append(f"read {len(msgs.log_ns)} of the {declared} messages metadata.yaml declares")
     new_log, msgs, notes = _apply(streams, msgs, typestore, shift, selector, bagdir)
-    plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
     parent = os.path.dirname(os.path.abspath(dst)) or "."
     os.makedirs(parent, exist_ok=True)
     tmpdir = tempfile.mkdtemp(prefix="." + os.path.basename(dst) + ".", dir=parent)
     tmp = os.path.join(tmpdir, "bag")
     try:
-        w = Writer(tmp, version=int(meta.get("version") or 9) if int(meta.get("version") or 9) >= 8 else 8,
-                   storage_plugin=plugin)
-        if mode in ("file", "message"):
-            w.set_compression(CompressionMode[mode.upper()], CompressionFormat.ZSTD)
-        for key, value in (meta.get("custom_data") or {}).items():
-            w.set_custom_data(str(key), str(value))
-        with w:
-            wc = [w.add_connection(c.topic, c.msgtype, msgdef=c.msgdef.data or None, rihs01=c.digest or None,
-                                   typestore=base, serialization_format=c.ext.serialization_format,
-                                   offered_qos_profiles=c.ext.offered_qos_profiles) for c in conns]
-            cur = getattr(w.storage, "cursor", None)
-            if plugin == StoragePlugin.SQLITE3 and mode != "message" and cur is not None and len(new_log):
-                # one executemany (what Writer.write does row by row), the writer's counts kept in step
-                ids = np.asarray([c.id for c in wc], np.int64)[msgs.conn]
-                cur.executemany("INSERT INTO messages (topic_id, timestamp, data) VALUES(?, ?, ?)",
-                                zip(ids.tolist(), new_log.tolist(), msgs.views()))
-                for k, c in zip(*np.unique(msgs.conn, return_counts=True)):
-                    w.counts[wc[int(k)].id] += int(c)
-                w.min_timestamp = min(w.min_timestamp, int(new_log.min()))
-                w.max_timestamp = max(w.max_timestamp, int(new_log.max()))
-            else:
-                write = w.write
-                for k, t, d in zip(msgs.conn.tolist(), new_log.tolist(), msgs.views()):
-                    write(wc[k], t, d)
+        if storage == "mcap" and mode != "message" and all(p.scan is not None for p in parts):
+            _write_ros2_mcap(tmp, meta, mode, parts, streams, msgs, new_log)
+            how = ("mcap storage files by tapost's vectorised MCAP writer (schemas, channels, metadata as the "
+                   "input's), metadata.yaml times and counts updated")
+        else:
+            _write_ros2_rosbags(tmp, meta, mode, storage, conns, msgs, new_log)
+            how = f"rosbags.rosbag2.Writer ({storage} storage)"
         old = None
         if os.path.exists(dst):
             old = tmpdir + ".old"
@@ -976,9 +993,96 @@ def restamp_rosbag2(src: str, dst: str, shift: ClockShift, *, selector: str | No
             shutil.rmtree(old, ignore_errors=True) if os.path.isdir(old) else os.remove(old)
     finally:
         shutil.rmtree(tmpdir, ignore_errors=True)
-    return RestampStats(path=dst, format="rosbag2", how=f"rosbags.rosbag2.Writer ({storage} storage); Header "
-                        "stamps patched in the payload bytes (nested Headers through rosbags (de)serialisation)",
+    return RestampStats(path=dst, format="rosbag2", how=how + "; Header stamps patched in the payload bytes "
+                        "(nested Headers through rosbags (de)serialisation)",
                         records=len(new_log), records_by_type=_counts(streams, msgs.conn),
                         time_fields=("messages.timestamp" if storage != "mcap" else "log_time", "header.stamp",
                                      "metadata.yaml starting_time/duration"),
                         damage=tuple(damage) + tuple(notes))
+
+
+def _write_ros2_rosbags(tmp: str, meta: dict, mode: str, storage: str, conns, msgs: _Msgs, new_log: np.ndarray) -> None:
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
+
+    plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+    version = int(meta.get("version") or 9)
+    w = Writer(tmp, version=max(version, 8), storage_plugin=plugin)
+    if mode in ("file", "message"):
+        w.set_compression(CompressionMode[mode.upper()], CompressionFormat.ZSTD)
+    for key, value in (meta.get("custom_data") or {}).items():
+        w.set_custom_data(str(key), str(value))
+    base = None
+    with w:
+        wc = []
+        for c in conns:
+            if not (c.msgdef.data and c.digest):
+                base = base or rc.default_typestore("cdr")
+            wc.append(w.add_connection(c.topic, c.msgtype, msgdef=c.msgdef.data or None, rihs01=c.digest or None,
+                                       typestore=base, serialization_format=c.ext.serialization_format,
+                                       offered_qos_profiles=c.ext.offered_qos_profiles))
+        cur = getattr(w.storage, "cursor", None)
+        if plugin == StoragePlugin.SQLITE3 and mode != "message" and cur is not None and len(new_log):
+            # one executemany (what Writer.write does row by row), the writer's counts kept in step
+            ids = np.asarray([c.id for c in wc], np.int64)[msgs.conn]
+            cur.executemany("INSERT INTO messages (topic_id, timestamp, data) VALUES(?, ?, ?)",
+                            zip(ids.tolist(), new_log.tolist(), msgs.views()))
+            for k, c in zip(*np.unique(msgs.conn, return_counts=True)):
+                w.counts[wc[int(k)].id] += int(c)
+            w.min_timestamp = min(w.min_timestamp, int(new_log.min()))
+            w.max_timestamp = max(w.max_timestamp, int(new_log.max()))
+        else:
+            write = w.write
+            for k, t, d in zip(msgs.conn.tolist(), new_log.tolist(), msgs.views()):
+                write(wc[k], t, d)
+
+
+def _write_ros2_mcap(tmp: str, meta: dict, mode: str, parts: list[_Part], streams: list[_Stream], msgs: _Msgs,
+                     new_log: np.ndarray) -> None:
+    """mcap storage: each storage file rewritten like a bare MCAP file, metadata.yaml updated."""
+    import yaml
+
+    os.makedirs(tmp)
+    delta = msgs.log_ns - new_log
+    files_meta = []
+    at = 0
+    for part in parts:
+        n = len(part.msgs.log_ns)
+        sl = slice(at, at + n)
+        at += n
+        sc = part.scan
+        cids = sorted(sc.channels)
+        sub = _Msgs(part.local, msgs.log_ns[sl], msgs.buf, msgs.starts[sl], msgs.lens[sl])
+        t = new_log[sl]
+        pub = np.where(part.pub != 0, part.pub - delta[sl], 0)
+        name = part.name[:-5] if part.name.endswith(".zstd") else part.name
+        path = os.path.join(tmp, name)
+        with open(path, "wb") as fh:
+            _write_mcap(fh, sc, cids, sub, t, pub, part.seq, sc.compression if sc.compression is not None else "zstd",
+                        max(sc.chunk_size, 1 << 16))
+        if mode == "file":
+            import zstandard
+
+            with open(path, "rb") as fi, open(path + ".zstd", "wb") as fo:
+                zstandard.ZstdCompressor().copy_stream(fi, fo)
+            os.remove(path)
+            name += ".zstd"
+        files_meta.append({"path": name, "starting_time": {"nanoseconds_since_epoch": int(t.min()) if n else 0},
+                           "duration": {"nanoseconds": int(t.max() - t.min()) if n else 0}, "message_count": n})
+    info = dict(meta)
+    n = len(new_log)
+    info["starting_time"] = {"nanoseconds_since_epoch": int(new_log.min()) if n else 0}
+    info["duration"] = {"nanoseconds": int(new_log.max() - new_log.min()) if n else 0}
+    info["message_count"] = n
+    counts = _counts(streams, msgs.conn)
+    twc = []
+    for entry in meta.get("topics_with_message_count") or []:
+        e = dict(entry)
+        e["message_count"] = counts.get((entry.get("topic_metadata") or {}).get("name"), 0)
+        twc.append(e)
+    info["topics_with_message_count"] = twc
+    info["relative_file_paths"] = [f["path"] for f in files_meta]
+    if "files" in meta:
+        info["files"] = files_meta
+    with open(os.path.join(tmp, "metadata.yaml"), "w", encoding="utf-8") as fh:
+        yaml.safe_dump({"rosbag2_bagfile_information": info}, fh, sort_keys=False)

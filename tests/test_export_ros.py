@@ -129,6 +129,22 @@ def test_library_reads_same_messages_only_time_fields_changed(slaves, fmt, opts,
             assert ta - tb == sa - sb  # the record time moved by the stamp's shift
 
 
+@pytest.mark.parametrize("name", ["bag_sqlite", "bag_mcap", "bag_mcap_zfile", "bag_sqlite_zmsg"])
+def test_rosbag2_metadata_times_and_counts(slaves, name, tmp_path):
+    from rosbags.highlevel import AnyReader
+
+    src = slaves[name]
+    dst = tmp_path / name
+    rr.restamp_rosbag2(src, str(dst), _shift_for(parsers.load(src)))
+    with AnyReader([Path(src)]) as ra, AnyReader([dst]) as rb:
+        times = [t for _c, t, _r in rb.messages()]
+        assert (rb.start_time, rb.end_time) == (min(times), max(times) + 1)  # rosbags: end = last + 1 ns
+        assert ra.start_time - rb.start_time > 0.9 * LATENCY_S * 1e9
+        assert sorted((c.topic, c.msgcount, c.msgtype) for c in rb.connections) == \
+            sorted((c.topic, c.msgcount, c.msgtype) for c in ra.connections)
+        assert sorted(os.listdir(dst)) == sorted(os.listdir(src))  # same storage files (and compression)
+
+
 def test_mcap_schemas_channels_metadata_attachments_kept(tmp_path, slave):
     from mcap.reader import make_reader
     from mcap.writer import CompressionType, Writer
