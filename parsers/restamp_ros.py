@@ -379,14 +379,14 @@ def _kernel():
     return _KERNEL[0]
 
 
-def _records(prefix: np.ndarray, msgs: _Msgs, sel: slice) -> bytes:
+def _records(prefix: np.ndarray, msgs: _Msgs, sel: slice) -> np.ndarray:
     """The records (prefix + payload) of messages ``sel``, concatenated."""
     lens = msgs.lens[sel]
     size = prefix.shape[1] + lens
     rec_off = np.cumsum(size) - size
     out = np.empty(int(size.sum()), np.uint8)
     _kernel()(out, rec_off, prefix, msgs.buf, msgs.starts[sel], lens)
-    return out.tobytes()
+    return out
 
 
 def _chunks(size: np.ndarray, target: int) -> list[slice]:
@@ -399,9 +399,9 @@ def _chunks(size: np.ndarray, target: int) -> list[slice]:
     return [slice(a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a]
 
 
-def _compress_chunk(kind: str, data: bytes) -> bytes:
+def _compress_chunk(kind: str, data: np.ndarray) -> bytes:
     if kind in ("", "none"):
-        return data
+        return data.tobytes()
     if kind == "zstd":
         import zstandard
 
@@ -462,7 +462,9 @@ def _write_bag1(fh, fields: list[dict[str, bytes]], cids: list[int], msgs: _Msgs
     for sl in _chunks(size, chunk_bytes):
         lead = b"".join(conn_recs.values()) if first else b""
         first = False
-        body = lead + _records(pre[sl], msgs, sl)
+        body = _records(pre[sl], msgs, sl)
+        if lead:
+            body = np.concatenate([np.frombuffer(lead, np.uint8), body])
         pos = fh.tell()
         fh.write(_bag1_record([(b"op", b"\x05"), (b"compression", comp.encode()),
                                (b"size", struct.pack("<I", len(body)))], _compress_chunk(comp, body)))
@@ -1025,8 +1027,15 @@ def _write_ros2_rosbags(tmp: str, meta: dict, mode: str, storage: str, conns, ms
         if plugin == StoragePlugin.SQLITE3 and mode != "message" and cur is not None and len(new_log):
             # one executemany (what Writer.write does row by row), the writer's counts kept in step
             ids = np.asarray([c.id for c in wc], np.int64)[msgs.conn]
+            # the timestamp index built once after the rows (the schema ends up as the writer's own)
+            idx_sql = w.storage.conn.execute("SELECT sql FROM sqlite_master WHERE type='index' AND "
+                                             "name='timestamp_idx'").fetchone()
+            if idx_sql:
+                w.storage.conn.execute("DROP INDEX timestamp_idx")
             cur.executemany("INSERT INTO messages (topic_id, timestamp, data) VALUES(?, ?, ?)",
                             zip(ids.tolist(), new_log.tolist(), msgs.views()))
+            if idx_sql:
+                w.storage.conn.execute(idx_sql[0])
             for k, c in zip(*np.unique(msgs.conn, return_counts=True)):
                 w.counts[wc[int(k)].id] += int(c)
             w.min_timestamp = min(w.min_timestamp, int(new_log.min()))
