@@ -438,3 +438,35 @@ def test_interrupted_write_leaves_no_partial_output(big, tmp_path, fmt, monkeypa
     assert calls["n"] > 5000
     assert list(tmp_path.iterdir()) == []  # neither the output nor a temporary file
     assert _digest(src) == before
+
+
+def test_big_endian_cdr_stamps(tmp_path, slave):
+    """CDR with a big-endian encapsulation header (00 00): the stamp is read and written big-endian."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    ts = _store("cdr")
+    imu = _topics(slave)[0]
+    src = str(tmp_path / "be.mcap")
+    with open(src, "wb") as fh:
+        w = Writer(fh)
+        w.start(profile="ros2")
+        sid = w.register_schema(rr.rc.IMU, "ros2msg", ts.generate_msgdef(rr.rc.IMU, ros_version=2)[0].encode())
+        ch = w.register_channel("/imu", "cdr", sid)
+        for i in range(100):
+            m = ts.deserialize_cdr(imu.data[i], rr.rc.IMU)
+            w.add_message(ch, int(imu.stamp_ns[i]) + 1000, bytes(ts.serialize_cdr(m, rr.rc.IMU, little_endian=False)), 0)
+        w.finish()
+    a = parsers.load(src)
+    shift = _shift_for(a)
+    dst = str(tmp_path / "be_out.mcap")
+    rr.restamp_mcap(src, dst, shift)
+    b = parsers.load(dst)
+    np.testing.assert_array_equal(_t_ns(b, b.imu), shift.to_master_ns(_t_ns(a, a.imu)))
+    with open(src, "rb") as fa, open(dst, "rb") as fb:
+        for (_1, _2, x), (_3, _4, y) in zip(make_reader(fa).iter_messages(), make_reader(fb).iter_messages()):
+            assert y.data[:2] == b"\x00\x00" and x.data[12:] == y.data[12:]
+            mx, my = ts.deserialize_cdr(x.data, rr.rc.IMU), ts.deserialize_cdr(y.data, rr.rc.IMU)
+            tx = mx.header.stamp.sec * 10**9 + mx.header.stamp.nanosec
+            ty = my.header.stamp.sec * 10**9 + my.header.stamp.nanosec
+            assert tx - ty == x.log_time - y.log_time > 0
