@@ -431,8 +431,10 @@ def test_interrupted_write_leaves_no_partial_output(big, tmp_path, fmt, monkeypa
         monkeypatch.setattr(Writer, "close", lambda self: (boom(), real(self)))
     else:  # our container writers: interrupted at the third chunk
         calls["n"] = 4998
-        real = rr._compress_chunk
-        monkeypatch.setattr(rr, "_compress_chunk", lambda *a: (boom(), real(*a))[1])
+        from parsers import ros_containers
+
+        real = ros_containers.compress_chunk
+        monkeypatch.setattr(ros_containers, "compress_chunk", lambda *a: (boom(), real(*a))[1])
     with pytest.raises(KeyboardInterrupt):
         RESTAMP[fmt](src, str(dst), _shift_for(big["log"]))
     assert calls["n"] > 5000
