@@ -349,7 +349,8 @@ def restamp_rosbag1(src: str, dst: str, shift: ClockShift, *, selector: str | No
     msgs = _pack(conn, log, data).take(order)
     new_log, msgs, notes = _apply(streams, msgs, typestore, shift, selector, src)
     comp = scan.compression or "none"
-    fields = [scan.fields[c] for c in cids]
+    # (a bag with the topic only in the connection record's header: kept in the record header)
+    fields = [{"topic": scan.conns[c][0].encode(), **scan.fields[c]} for c in cids]
     with atomic_path(dst) as tmp, open(tmp, "wb") as fh:
         rcw.write_bag1(fh, fields, cids, msgs, new_log, comp)
     return RestampStats(path=dst, format="rosbag1", how="tapost's vectorised ROS 1 bag writer (records as the "
