@@ -1,0 +1,474 @@
+"""Native restamped copies of ROS 1 bags, ROS 2 bags (sqlite3, mcap storage) and MCAP files.
+
+Slaves written by the repo's own writers (and hand-built MCAPs for the message types tapost does not
+write), restamped with a known latency and drift, then read back twice: by tapost (the stamps equal
+``ClockShift.to_master_ns`` of the stamps it read from the input, ns exact; the data columns identical)
+and by the formats' own readers (rosbags AnyReader, mcap reader: same messages per topic, payload
+bytes equal except the header stamp, record times shifted by the same amount as the stamps).
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import parsers
+from logtools.errors import InputError
+from parsers import mcap_ros, registry, rosbag1, rosbag2
+from parsers import restamp_ros as rr
+from parsers.restamp import ClockShift
+from tests.test_parsers_ros import CAR_BAG, WRITERS, synthetic_log
+
+RESTAMP = {"mcap": rr.restamp_mcap, "rosbag1": rr.restamp_rosbag1, "rosbag2": rr.restamp_rosbag2}
+LATENCY_S, DRIFT_PPM = 0.0123456789, 87.5
+
+
+def _t_ns(log, frame) -> np.ndarray:
+    return log.meta.t0_ns + np.round(frame.index.to_numpy() * 1e9).astype(np.int64)
+
+
+def _shift_for(log) -> ClockShift:
+    t = _t_ns(log, log.imu)
+    return ClockShift(LATENCY_S, DRIFT_PPM, int(t[len(t) // 3]))
+
+
+def _digest(path: str) -> str:
+    h = hashlib.sha256()
+    files = [path] if os.path.isfile(path) else sorted(
+        os.path.join(d, f) for d, _, fs in os.walk(path) for f in fs)
+    for f in files:
+        h.update(os.path.relpath(f, path).encode())
+        h.update(open(f, "rb").read())
+    return h.hexdigest()
+
+
+def _library_messages(path: str, fmt: str) -> dict[str, list[tuple[int, bytes]]]:
+    """(record time, payload) per topic, in order, read by the format's own library."""
+    out: dict[str, list[tuple[int, bytes]]] = {}
+    if fmt == "mcap":
+        from mcap.reader import make_reader
+
+        with open(path, "rb") as fh:
+            for _s, ch, m in make_reader(fh).iter_messages(log_time_order=False):
+                out.setdefault(ch.topic, []).append((m.log_time, bytes(m.data)))
+        return out
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([Path(path)]) as rd:
+        for c, t, raw in rd.messages():
+            out.setdefault(c.topic, []).append((t, bytes(raw)))
+    return out
+
+
+def _sorted(msgs):
+    """Per topic in header-stamp order (the shift keeps it), then record time."""
+    return {k: sorted(v, key=lambda x: (_stamp(x[1]), x[0])) for k, v in msgs.items()}
+
+
+def _stamp(raw: bytes) -> int:
+    sec, nsec = np.frombuffer(raw[4:12], "<u4")
+    return int(sec) * 1_000_000_000 + int(nsec)
+
+
+@pytest.fixture(scope="module")
+def slave():
+    return synthetic_log(400, nav_same_stamps=False)
+
+
+@pytest.fixture(scope="module")
+def slaves(tmp_path_factory, slave) -> dict[str, str]:
+    d = tmp_path_factory.mktemp("restamp_src")
+    out = {}
+    for fmt, opts, name in WRITERS:
+        p = str(d / name)
+        registry.write(p, slave, fmt, **opts, log_delay_ns=3_210_987)  # record time = stamp + 3.2 ms
+        out[name] = p
+    return out
+
+
+# ---- tapost reads the export on the master's clock ------------------------------------------------
+@pytest.mark.parametrize("fmt,opts,name", WRITERS)
+def test_tapost_reads_the_compensated_stamps(slaves, fmt, opts, name, tmp_path):
+    src = slaves[name]
+    before = _digest(src)
+    a = parsers.load(src)
+    shift = _shift_for(a)
+    dst = str(tmp_path / ("out_" + name))
+    st = RESTAMP[fmt](src, dst, shift)
+    assert _digest(src) == before  # the input is never modified
+    assert st.format == fmt and st.damage == () and st.records == 1000  # imu 400; vel, fix, att 200 each
+    assert st.records_by_type == {"/imu": 400, "/velocity": 200, "/fix": 200, "/attitude": 200}
+    b = parsers.load(dst)
+    assert b.meta.format == fmt and b.meta.clock == a.meta.clock
+    for fa, fb in ((a.imu, b.imu), (a.nav, b.nav)):
+        np.testing.assert_array_equal(_t_ns(b, fb), shift.to_master_ns(_t_ns(a, fa)))  # ns exact
+        np.testing.assert_array_equal(fb.to_numpy(), fa.to_numpy())
+        assert list(fb.columns) == list(fa.columns)
+    lat = shift.shift_ns(_t_ns(a, a.imu))
+    assert lat.min() != lat.max()  # the drift is in it
+
+
+@pytest.mark.parametrize("fmt,opts,name", WRITERS)
+def test_library_reads_same_messages_only_time_fields_changed(slaves, fmt, opts, name, tmp_path):
+    src = slaves[name]
+    shift = _shift_for(parsers.load(src))
+    dst = str(tmp_path / ("lib_" + name))
+    RESTAMP[fmt](src, dst, shift)
+    a = _sorted(_library_messages(src, fmt))  # (message-compressed rosbag2: decompressed by rosbags)
+    b = _sorted(_library_messages(dst, fmt))
+    assert {k: len(v) for k, v in b.items()} == {k: len(v) for k, v in a.items()}
+    for topic in a:
+        for (ta, pa), (tb, pb) in zip(a[topic], b[topic]):
+            assert len(pa) == len(pb) and pa[:4] == pb[:4] and pa[12:] == pb[12:]  # only the stamp differs
+            sa, sb = _stamp(pa), _stamp(pb)
+            assert sb == int(shift.to_master_ns(np.array([sa]))[0])
+            assert ta - tb == sa - sb  # the record time moved by the stamp's shift
+
+
+@pytest.mark.parametrize("name", ["bag_sqlite", "bag_mcap", "bag_mcap_zfile", "bag_sqlite_zmsg"])
+def test_rosbag2_metadata_times_and_counts(slaves, name, tmp_path):
+    from rosbags.highlevel import AnyReader
+
+    src = slaves[name]
+    dst = tmp_path / name
+    rr.restamp_rosbag2(src, str(dst), _shift_for(parsers.load(src)))
+    with AnyReader([Path(src)]) as ra, AnyReader([dst]) as rb:
+        times = [t for _c, t, _r in rb.messages()]
+        assert (rb.start_time, rb.end_time) == (min(times), max(times) + 1)  # rosbags: end = last + 1 ns
+        assert ra.start_time - rb.start_time > 0.9 * LATENCY_S * 1e9
+        assert sorted((c.topic, c.msgcount, c.msgtype) for c in rb.connections) == \
+            sorted((c.topic, c.msgcount, c.msgtype) for c in ra.connections)
+        assert sorted(os.listdir(dst)) == sorted(os.listdir(src))  # same storage files (and compression)
+
+
+def test_mcap_schemas_channels_metadata_attachments_kept(tmp_path, slave):
+    from mcap.reader import make_reader
+    from mcap.writer import CompressionType, Writer
+
+    src = str(tmp_path / "extra.mcap")
+    with open(src, "wb") as fh:
+        mcap_ros.write_topics(fh, _topics(slave), _store("cdr"), "cdr", 1_000, "lz4")
+    # append a metadata record and an attachment by writing a second file around the same content
+    full = str(tmp_path / "full.mcap")
+    with open(src, "rb") as fh:
+        rd = make_reader(fh)
+        summ = rd.get_summary()
+        msgs = list(rd.iter_messages(log_time_order=False))
+    with open(full, "wb") as fh:
+        w = Writer(fh, compression=CompressionType.LZ4)
+        w.start(profile="ros2", library="someone else 1.0")
+        ids = {sid: w.register_schema(s.name, s.encoding, s.data) for sid, s in summ.schemas.items()}
+        chans = {cid: w.register_channel(c.topic, c.message_encoding, ids[c.schema_id], {"k": cid and "v" or "w"})
+                 for cid, c in summ.channels.items()}
+        w.add_metadata("calib", {"lever_arm_m": "0.1 0.2 0.3"})
+        w.add_attachment(5, 6, "notes.txt", "text/plain", b"hello")
+        for _s, ch, m in msgs:
+            w.add_message(chans[ch.id], m.log_time, m.data, m.publish_time, m.sequence + 7)
+        w.finish()
+    dst = str(tmp_path / "out.mcap")
+    shift = _shift_for(parsers.load(full))
+    rr.restamp_mcap(full, dst, shift)
+    from mcap.stream_reader import StreamReader
+
+    with open(dst, "rb") as fb:  # every record, CRCs checked (chunks, attachments)
+        kinds = [type(r).__name__ for r in StreamReader(fb, skip_magic=False, validate_crcs=True).records]
+    assert kinds[0] == "Header" and kinds[-1] == "Footer" and "DataEnd" in kinds and "SummaryOffset" in kinds
+    assert kinds.count("Message") == 1000 and "ChunkIndex" in kinds and "Statistics" in kinds
+    with open(full, "rb") as fa, open(dst, "rb") as fb:
+        ra, rb = make_reader(fa), make_reader(fb)
+        ha, hb = ra.get_header(), rb.get_header()
+        assert (ha.profile, ha.library) == (hb.profile, hb.library)
+        sa, sb = ra.get_summary(), rb.get_summary()
+        assert sorted((s.name, s.encoding, s.data) for s in sa.schemas.values()) == \
+            sorted((s.name, s.encoding, s.data) for s in sb.schemas.values())
+        assert sorted((c.topic, c.message_encoding, tuple(c.metadata.items())) for c in sa.channels.values()) == \
+            sorted((c.topic, c.message_encoding, tuple(c.metadata.items())) for c in sb.channels.values())
+        assert sb.statistics.message_count == sa.statistics.message_count
+        assert sb.statistics.channel_message_counts == {
+            c2: sa.statistics.channel_message_counts[c1] for c1, c2 in zip(sorted(sa.channels), sorted(sb.channels))}
+        assert [(m.name, m.metadata) for m in rb.iter_metadata()] == [("calib", {"lever_arm_m": "0.1 0.2 0.3"})]
+        assert [(x.name, x.media_type, x.data) for x in rb.iter_attachments()] == [("notes.txt", "text/plain", b"hello")]
+        ma = list(ra.iter_messages(log_time_order=False))
+        mb = list(rb.iter_messages(log_time_order=False))
+        assert len(ma) == len(mb)
+        d = np.array([a.log_time - b.log_time for (_1, _2, a), (_3, _4, b) in zip(ma, mb)])
+        dp = np.array([a.publish_time - b.publish_time for (_1, _2, a), (_3, _4, b) in zip(ma, mb)])
+        np.testing.assert_array_equal(d, dp)
+        assert [a.sequence for *_x, a in ma] == [b.sequence for *_x, b in mb]
+        # the statistics and the chunk indexes are the new times (rebuilt by the writer)
+        assert sb.statistics.message_start_time == min(m.log_time for *_x, m in mb)
+        assert max(ci.message_end_time for ci in sb.chunk_indexes) == max(m.log_time for *_x, m in mb)
+
+
+def _store(encoding):
+    from parsers import ros_common as rc
+
+    return rc.default_typestore(encoding)
+
+
+def _topics(log, encoding="cdr"):
+    from parsers import ros_common as rc
+
+    return rc.ros_topics_from_inslog(log, _store(encoding), encoding)
+
+
+@pytest.mark.parametrize("encoding", ["cdr", "ros1"])
+def test_nested_headers_and_headerless_types(tmp_path, slave, encoding):
+    """tf2_msgs/TFMessage (Headers inside a sequence) restamped through rosbags; std_msgs/String
+    (no Header) byte for byte; an Imu with a zero (unset) stamp keeps it."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    ts = _store(encoding)
+    if "tf2_msgs/msg/TFMessage" not in ts.fielddefs:  # not in rosbags' noetic store
+        from rosbags.typesys import get_types_from_msg
+
+        ts.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms", "tf2_msgs/msg/TFMessage"))
+    ser = ts.serialize_cdr if encoding == "cdr" else ts.serialize_ros1
+    des = ts.deserialize_cdr if encoding == "cdr" else ts.deserialize_ros1
+    T = ts.types
+    t0 = 1_700_000_000_000_000_000
+
+    def header(t):
+        return T["std_msgs/msg/Header"](**({"seq": 3} if encoding == "ros1" else {}),
+                                         stamp=T["builtin_interfaces/msg/Time"](sec=t // 10**9, nanosec=t % 10**9),
+                                         frame_id="map")
+
+    def tf(t):
+        v = T["geometry_msgs/msg/Vector3"](x=1.0, y=2.0, z=3.0)
+        q = T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)
+        tr = [T["geometry_msgs/msg/TransformStamped"](header=header(t + k), child_frame_id=f"c{k}",
+                                                       transform=T["geometry_msgs/msg/Transform"](translation=v, rotation=q))
+              for k in range(2)]
+        return T["tf2_msgs/msg/TFMessage"](transforms=tr)
+
+    imu = _topics(slave, encoding)[0]
+    src = str(tmp_path / "nested.mcap")
+    types = ["tf2_msgs/msg/TFMessage", "std_msgs/msg/String", "sensor_msgs/msg/Imu"]
+    with open(src, "wb") as fh:
+        w = Writer(fh)
+        w.start(profile="ros2" if encoding == "cdr" else "ros1")
+        ch = []
+        for name in types:
+            text = ts.generate_msgdef(name, ros_version=2 if encoding == "cdr" else 1)[0]
+            sid = w.register_schema(name if encoding == "cdr" else name.replace("/msg/", "/"),
+                                    "ros2msg" if encoding == "cdr" else "ros1msg", text.encode())
+            ch.append(w.register_channel(f"/{name.split('/')[-1].lower()}", encoding, sid))
+        zero = bytearray(imu.data[0])
+        zero[4:12] = bytes(8)
+        for i in range(50):
+            t = t0 + i * 10_000_000
+            w.add_message(ch[0], t + 1000, bytes(ser(tf(t), types[0])), t + 1000)
+            w.add_message(ch[1], t + 2000, bytes(ser(T["std_msgs/msg/String"](data=f"s{i}"), types[1])), t + 2000)
+            w.add_message(ch[2], int(imu.stamp_ns[i]), imu.data[i] if i else bytes(zero), 0)
+        w.finish()
+    dst = str(tmp_path / "nested_out.mcap")
+    shift = ClockShift(0.5, 100.0, t0)
+    st = rr.restamp_mcap(src, dst, shift, selector="imu=/imu")
+    assert st.damage == () and st.records_by_type == {"/tfmessage": 50, "/string": 50, "/imu": 50}
+    with open(src, "rb") as fa, open(dst, "rb") as fb:
+        ma = list(make_reader(fa).iter_messages(log_time_order=False))
+        mb = list(make_reader(fb).iter_messages(log_time_order=False))
+    assert [c.topic for _s, c, _m in ma] == [c.topic for _s, c, _m in mb]
+    for (_s, c, a), (_s2, _c2, b) in zip(ma, mb):
+        d = a.log_time - b.log_time
+        assert d > 0.49e9
+        if c.topic == "/string":
+            assert a.data == b.data
+        elif c.topic == "/tfmessage":
+            xa, xb = des(a.data, types[0]), des(b.data, types[0])
+            for ta, tb in zip(xa.transforms, xb.transforms):
+                na = ta.header.stamp.sec * 10**9 + ta.header.stamp.nanosec
+                nb = tb.header.stamp.sec * 10**9 + tb.header.stamp.nanosec
+                assert na - nb == d and ta.child_frame_id == tb.child_frame_id and ta.header.frame_id == "map"
+            xa.transforms[0].header.stamp = xb.transforms[0].header.stamp
+            xa.transforms[1].header.stamp = xb.transforms[1].header.stamp
+            assert bytes(ser(xa, types[0])) == bytes(b.data)  # nothing else changed
+        else:
+            assert a.data[12:] == b.data[12:]
+            if _stamp(a.data) == 0:
+                assert _stamp(b.data) == 0  # an unset stamp stays unset
+            else:
+                assert _stamp(a.data) - _stamp(b.data) == d
+
+
+def test_log_clock_selector(tmp_path, slave):
+    """``time=log``: the shift is on the record-time clock; tapost reading with time=log gets the
+    compensated record times, the header stamps moved by the same amounts."""
+    src = str(tmp_path / "log.mcap")
+    mcap_ros.write(src, slave, log_delay_ns=250_000_000)
+    a = parsers.load(src + "::time=log")
+    t = _t_ns(a, a.imu)
+    shift = ClockShift(-0.02, -40.0, int(t[100]))
+    dst = str(tmp_path / "log_out.mcap")
+    rr.restamp_mcap(src, dst, shift, selector="time=log")
+    b = parsers.load(dst + "::time=log")
+    np.testing.assert_array_equal(_t_ns(b, b.imu), shift.to_master_ns(t))
+    ha, hb = parsers.load(src), parsers.load(dst)
+    np.testing.assert_array_equal(_t_ns(ha, ha.imu) - _t_ns(hb, hb.imu), shift.shift_ns(t))
+
+
+# ---- real data --------------------------------------------------------------------------------------
+@pytest.mark.realdata
+@pytest.mark.slow
+@pytest.mark.skipif(not CAR_BAG.exists(), reason="../shared/realdata absent")
+def test_real_car_bag(tmp_path):
+    src = str(CAR_BAG)
+    before = _digest(src)
+    sel = "imu=/xsens/imu_data"
+    a = parsers.load(f"{src}::{sel}")
+    shift = _shift_for(a)
+    dst = str(tmp_path / "car_on_master.bag")
+    st = rr.restamp_rosbag1(src, dst, shift, selector=sel)
+    assert _digest(src) == before
+    assert st.damage == ()
+    b = parsers.load(f"{dst}::{sel}")
+    np.testing.assert_array_equal(_t_ns(b, b.imu), shift.to_master_ns(_t_ns(a, a.imu)))
+    np.testing.assert_array_equal(b.imu.to_numpy(), a.imu.to_numpy())
+    la, lb = _sorted(_library_messages(src, "rosbag1")), _sorted(_library_messages(dst, "rosbag1"))
+    assert {k: len(v) for k, v in lb.items()} == {k: len(v) for k, v in la.items()} == st.records_by_type
+    for topic in la:
+        for (ta, pa), (tb, pb) in zip(la[topic], lb[topic]):
+            assert pa[:4] == pb[:4] and pa[12:] == pb[12:] and ta - tb == _stamp(pa) - _stamp(pb)
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([Path(src)]) as ra, AnyReader([Path(dst)]) as rb:
+        ca = sorted((c.topic, c.msgtype, c.digest, c.msgdef.data) for c in ra.connections)
+        cb = sorted((c.topic, c.msgtype, c.digest, c.msgdef.data) for c in rb.connections)
+        assert ca == cb
+
+
+# ---- damage, atomicity -------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def big(tmp_path_factory):
+    d = tmp_path_factory.mktemp("restamp_big")
+    log = synthetic_log(6000, rate_hz=200.0)
+    out = {"log": log}
+    for fmt, opts, name in [("mcap", {}, "b.mcap"), ("rosbag1", {"compression": "lz4"}, "b.bag"),
+                            ("rosbag2", {"storage": "sqlite3"}, "bdir")]:
+        p = str(d / name)
+        registry.write(p, log, fmt, **opts)
+        out[fmt] = p
+    return out
+
+
+@pytest.mark.parametrize("fmt", ["mcap", "rosbag1"])
+def test_truncated_input_writes_the_readable_part_and_names_the_damage(big, tmp_path, fmt):
+    src = big[fmt]
+    data = open(src, "rb").read()
+    cut = str(tmp_path / ("cut_" + os.path.basename(src)))
+    with open(cut, "wb") as fh:
+        fh.write(data[: int(len(data) * 0.55)])
+    a = parsers.load(cut)
+    dst = str(tmp_path / ("out_" + os.path.basename(src)))
+    shift = _shift_for(a)
+    st = RESTAMP[fmt](cut, dst, shift)
+    assert any("truncated" in d for d in st.damage)
+    n_read = rr._scan_mcap(cut).count if fmt == "mcap" else sum(map(len, rr._scan_rosbag1(cut).times.values()))
+    assert st.records == n_read and 0.3 * 3 * 6000 < st.records < 3 * 6000
+    lib = _library_messages(dst, "mcap" if fmt == "mcap" else "rosbag1")
+    assert sum(len(v) for v in lib.values()) == st.records  # the output is complete and indexed
+    b = parsers.load(dst)
+    assert len(b.imu) == len(a.imu)  # everything tapost reads from the damaged input is in the output
+    np.testing.assert_array_equal(_t_ns(b, b.imu), shift.to_master_ns(_t_ns(a, a.imu)))
+
+
+def test_damaged_mcap_chunk_is_named(big, tmp_path):
+    src = big["mcap"]
+    data = bytearray(open(src, "rb").read())
+    off, chunks = 8, []
+    while data[off] != 2:  # the top-level records up to the footer
+        op, ln = struct.unpack_from("<BQ", data, off)
+        if op == 6:
+            chunks.append((off, ln))
+        off += 9 + ln
+    assert len(chunks) > 2
+    off, ln = chunks[1]
+    data[off + 9 + ln // 2] ^= 0xFF  # inside the second chunk's compressed records
+    bad = str(tmp_path / "flip.mcap")
+    open(bad, "wb").write(bytes(data))
+    st = rr.restamp_mcap(bad, str(tmp_path / "flip_out.mcap"), _shift_for(big["log"]))
+    assert len(st.damage) == 1 and f"chunk at byte {off}" in st.damage[0]
+    assert 0 < st.records < 3 * 6000
+    assert sum(map(len, _library_messages(str(tmp_path / "flip_out.mcap"), "mcap").values())) == st.records
+
+
+def test_unreadable_or_wrong_input_is_one_clear_error(big, tmp_path):
+    junk = tmp_path / "junk.bag"
+    junk.write_bytes(b"not a bag at all")
+    with pytest.raises(InputError, match="not a ROS 1 bag"):
+        rr.restamp_rosbag1(str(junk), str(tmp_path / "o.bag"), ClockShift(0.0, 0.0, 0))
+    with pytest.raises(InputError, match="not an MCAP"):
+        rr.restamp_mcap(str(junk), str(tmp_path / "o.mcap"), ClockShift(0.0, 0.0, 0))
+    with pytest.raises(InputError):
+        rr.restamp_rosbag2(str(tmp_path), str(tmp_path / "o_bag"), ClockShift(0.0, 0.0, 0))
+    with pytest.raises(InputError, match="negative"):
+        rr.restamp_mcap(big["mcap"], str(tmp_path / "neg.mcap"), ClockShift(2e9, 0.0, 0))
+    assert not any(p.name.startswith(("o", "neg", ".o", ".neg")) for p in tmp_path.iterdir() if p.name != "junk.bag")
+
+
+@pytest.mark.parametrize("fmt", ["mcap", "rosbag1", "rosbag2"])
+def test_interrupted_write_leaves_no_partial_output(big, tmp_path, fmt, monkeypatch):
+    src = big[fmt]
+    before = _digest(src)
+    dst = tmp_path / ("never" if fmt == "rosbag2" else f"never.{'mcap' if fmt == 'mcap' else 'bag'}")
+    calls = {"n": 0}
+
+    def boom(*_a, **_k):
+        calls["n"] += 1
+        if calls["n"] > 5000:
+            raise KeyboardInterrupt  # the user pressing Ctrl-C half way
+
+    if fmt == "rosbag2":  # the messages are in the database, the writer about to close (metadata.yaml)
+        from rosbags.rosbag2 import Writer
+
+        real = Writer.close
+        calls["n"] = 5000
+        monkeypatch.setattr(Writer, "close", lambda self: (boom(), real(self)))
+    else:  # our container writers: interrupted at the third chunk
+        calls["n"] = 4998
+        from parsers import ros_containers
+
+        real = ros_containers.compress_chunk
+        monkeypatch.setattr(ros_containers, "compress_chunk", lambda *a: (boom(), real(*a))[1])
+    with pytest.raises(KeyboardInterrupt):
+        RESTAMP[fmt](src, str(dst), _shift_for(big["log"]))
+    assert calls["n"] > 5000
+    assert list(tmp_path.iterdir()) == []  # neither the output nor a temporary file
+    assert _digest(src) == before
+
+
+def test_big_endian_cdr_stamps(tmp_path, slave):
+    """CDR with a big-endian encapsulation header (00 00): the stamp is read and written big-endian."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    ts = _store("cdr")
+    imu = _topics(slave)[0]
+    src = str(tmp_path / "be.mcap")
+    with open(src, "wb") as fh:
+        w = Writer(fh)
+        w.start(profile="ros2")
+        sid = w.register_schema(rr.rc.IMU, "ros2msg", ts.generate_msgdef(rr.rc.IMU, ros_version=2)[0].encode())
+        ch = w.register_channel("/imu", "cdr", sid)
+        for i in range(100):
+            m = ts.deserialize_cdr(imu.data[i], rr.rc.IMU)
+            w.add_message(ch, int(imu.stamp_ns[i]) + 1000, bytes(ts.serialize_cdr(m, rr.rc.IMU, little_endian=False)), 0)
+        w.finish()
+    a = parsers.load(src)
+    shift = _shift_for(a)
+    dst = str(tmp_path / "be_out.mcap")
+    rr.restamp_mcap(src, dst, shift)
+    b = parsers.load(dst)
+    np.testing.assert_array_equal(_t_ns(b, b.imu), shift.to_master_ns(_t_ns(a, a.imu)))
+    with open(src, "rb") as fa, open(dst, "rb") as fb:
+        for (_1, _2, x), (_3, _4, y) in zip(make_reader(fa).iter_messages(), make_reader(fb).iter_messages()):
+            assert y.data[:2] == b"\x00\x00" and x.data[12:] == y.data[12:]
+            mx, my = ts.deserialize_cdr(x.data, rr.rc.IMU), ts.deserialize_cdr(y.data, rr.rc.IMU)
+            tx = mx.header.stamp.sec * 10**9 + mx.header.stamp.nanosec
+            ty = my.header.stamp.sec * 10**9 + my.header.stamp.nanosec
+            assert tx - ty == x.log_time - y.log_time > 0
