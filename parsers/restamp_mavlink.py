@@ -1,0 +1,264 @@
+"""The slave on the master's clock, natively: MAVLink tlog and ArduPilot DataFlash (.bin).
+
+Both are byte-level rewrites: the input is read once, copied, and only the bytes of the time fields
+(and, in a tlog, the CRC of each changed frame) are overwritten, vectorised with numpy over the record
+offsets the readers already find (``parsers.mavlink_common`` walkers). Every other byte -- FMT/FMTU/
+UNIT/MULT records, parameters, messages, damaged stretches the reader skipped -- is copied unchanged, so
+the output has the input's length and record order. Going through pymavlink instead would re-encode
+every message (payload truncation, field order and float formatting would all have to round-trip) and
+would take minutes on a 1 h log; the byte rewrite takes about the time of one walk of the file.
+
+The clocks. A writer gets a :class:`parsers.restamp.ClockShift` on the slave's *analysis* clock (the
+clock the reader put the slave on: UNIX time through GPS / SYSTEM_TIME, or boot time). Each time field
+keeps its own clock domain (boot microseconds stay boot microseconds): the shift is evaluated at the
+record's instant on the analysis clock and subtracted from the field in the field's unit. The records
+that tie boot time to UNIX time (DataFlash GPS week/ms, tlog SYSTEM_TIME) get the same whole-millisecond
+shift on both of their time fields, so that the boot -> UNIX offset a reader derives from them is exactly
+the input's, and reading the output with the same selector gives the compensated stamps.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from logtools.errors import InputError
+from parsers.base import Selector
+from parsers.restamp import ClockShift, RestampStats, get_le, put_le, read_bytes, write_bytes_atomic
+
+HOW = "byte-level rewrite of the time fields (every other byte copied)"
+MS_NS, US_NS = 1_000_000, 1_000
+WEEK_MS = 604_800_000
+
+
+def _selector(selector) -> Selector:
+    if selector is None:
+        return Selector()
+    if isinstance(selector, Selector):
+        return selector
+    return Selector.parse(str(selector))
+
+
+def _check_nonneg(values: np.ndarray, what: str, path: str) -> None:
+    if len(values) and int(values.min()) < 0:
+        raise InputError(f"native export: shifted {what} would be negative (the master's clock starts later "
+                         f"than this field's clock can express; export csv/parquet instead)", path)
+
+
+def _shift_gps_week_ms(buf: np.ndarray, o_wk: np.ndarray, o_ms: np.ndarray, valid: np.ndarray,
+                       k_ms: np.ndarray) -> None:
+    """GPS week (u16) / ms of week (u32) minus ``k_ms`` whole milliseconds, with week carry."""
+    if not valid.any():
+        return
+    wk = get_le(buf, o_wk[valid], 2)
+    ms = get_le(buf, o_ms[valid], 4)
+    tot = wk * WEEK_MS + ms - k_ms[valid]
+    put_le(buf, o_wk[valid], tot // WEEK_MS, 2)
+    put_le(buf, o_ms[valid], tot % WEEK_MS, 4)
+
+
+# ==== DataFlash ========================================================================================
+def restamp_dataflash(src: str, dst: str, shift: ClockShift, *, selector=None) -> RestampStats:
+    """Rewrite ``TimeUS`` (old logs: ``TimeMS``; old GPS: ``T`` and ``Week``/``TimeMS``; GPS/GPS2
+    ``GWk``/``GMS``) of every record of a DataFlash log; every other byte copied."""
+    from parsers import dataflash as df
+
+    sel = _selector(selector)
+    log = df.read_log(src)
+    buf = read_bytes(src)
+    mode = (sel.get("time") or sel.get("clock") or "gps").lower()
+    off = None if mode == "boot" else df._gps_epoch_offset_ns(log)[0]
+    off_ns = np.int64(off or 0)
+    by_type: dict[str, int] = {}
+    fields_done: set[str] = set()
+    total = 0
+    for typ, offs in log.offsets.items():
+        f = log.formats.get(typ)
+        if f is None:
+            continue
+        by_type[f.name] = by_type.get(f.name, 0) + len(offs)
+        total += len(offs)
+        if typ == df.FMT_TYPE or not len(offs):
+            continue
+        dt = f.dtype
+        cols = dt.names or ()
+
+        def at(col):
+            return offs + 3 + dt.fields[col][1]
+
+        gps = f.name.startswith("GPS")
+        if "TimeUS" in cols:
+            boot_ns = get_le(buf, at("TimeUS"), 8) * US_NS
+        elif gps and "T" in cols:
+            boot_ns = get_le(buf, at("T"), 4) * MS_NS
+        elif "TimeMS" in cols:
+            boot_ns = get_le(buf, at("TimeMS"), 4) * MS_NS
+        else:
+            continue  # a record without a time field (e.g. FMTU in some logs): copied as it is
+        t_a = boot_ns + off_ns
+        if gps:  # the boot -> UNIX anchor: whole milliseconds on boot and GPS time alike
+            k_ms = shift.shift_units(t_a, MS_NS)
+            if "TimeUS" in cols:
+                new = get_le(buf, at("TimeUS"), 8) - k_ms * 1000
+                _check_nonneg(new, f"{f.name}.TimeUS", src)
+                put_le(buf, at("TimeUS"), new, 8)
+                fields_done.add(f"{f.name}.TimeUS")
+            if "T" in cols and "TimeUS" not in cols:
+                new = get_le(buf, at("T"), 4) - k_ms
+                _check_nonneg(new, f"{f.name}.T", src)
+                put_le(buf, at("T"), new, 4)
+                fields_done.add(f"{f.name}.T")
+            for wk_col, ms_col in (("GWk", "GMS"), ("Week", "TimeMS")):
+                if wk_col in cols and ms_col in cols:
+                    wk = get_le(buf, at(wk_col), 2)
+                    _shift_gps_week_ms(buf, at(wk_col), at(ms_col), wk > 0, k_ms)
+                    fields_done.add(f"{f.name}.{wk_col}/{ms_col}")
+            continue
+        if "TimeUS" in cols:
+            new = get_le(buf, at("TimeUS"), 8) - shift.shift_units(t_a, US_NS)
+            _check_nonneg(new, f"{f.name}.TimeUS", src)
+            put_le(buf, at("TimeUS"), new, 8)
+            fields_done.add("TimeUS")
+        elif "TimeMS" in cols:
+            new = get_le(buf, at("TimeMS"), 4) - shift.shift_units(t_a, MS_NS)
+            _check_nonneg(new, f"{f.name}.TimeMS", src)
+            put_le(buf, at("TimeMS"), new, 4)
+            fields_done.add("TimeMS")
+    write_bytes_atomic(dst, buf)
+    return RestampStats(path=dst, format="dataflash", how=HOW, records=total, records_by_type=by_type,
+                        time_fields=tuple(sorted(fields_done)),
+                        damage=tuple(w + " (those bytes copied unchanged)" for w in log.warnings))
+
+
+# ==== tlog =============================================================================================
+#: message time fields rewritten (name -> (dtype size, unit ns)); time_usec is UNIX time above 1e15 us
+_TLOG_FIELDS = (("time_usec", 8, US_NS), ("time_boot_ms", 4, MS_NS), ("time_unix_usec", 8, US_NS))
+
+
+def _tlog_plan(path: str, sel: Selector):
+    """The reader's own clock plan for this selector: (frames, sysid, compid, mode, plan, recv lag ns)."""
+    from parsers import mavlink_tlog as tl
+
+    fr = tl.read_frames(path)
+    cat = tl.catalog(fr)
+    chosen, _ = tl._resolve(path, sel, cat)
+    sysid, compid, mode = int(chosen["sysid"]), int(chosen["compid"]), chosen["time"]
+    picked = []
+    for key in ("imu", "att", "vel", "pos"):
+        if key in chosen:
+            name = tl._INST.match(chosen[key]).group(1)
+            s = tl._raw(fr, name, sysid, compid)
+            if len(s.rec):
+                picked.append(s)
+    timing = [tl._msg_time(s) for s in picked]
+    plan = tl.plan_clock([(k, t, s.recv_ns) for (k, t), s in zip(timing, picked)],
+                         tl._system_time_offset_ns(fr, sysid, compid), mode)
+    # receive stamp -> analysis clock: minus the median link lag of the selected timed streams
+    lags = [s.recv_ns[k != 2] - tl.apply_clock(plan, k, t, s.recv_ns, mode)[k != 2]
+            for (k, t), s in zip(timing, picked)]
+    lags = np.concatenate(lags) if lags else np.zeros(0, np.int64)
+    lag = 0 if mode == "receive" or not len(lags) else int(np.sort(lags)[len(lags) // 2])
+    return fr, sysid, compid, mode, plan, lag
+
+
+def _crc_in_buf(buf: np.ndarray, starts: np.ndarray, lengths: np.ndarray, extra: int) -> np.ndarray:
+    from parsers.mavlink_common import gather_rows, x25_crc_block
+
+    w = int(lengths.max())
+    block = gather_rows(buf, starts, w, lengths)
+    return x25_crc_block(block, 0, lengths, extra)
+
+
+def restamp_tlog(src: str, dst: str, shift: ClockShift, *, selector=None) -> RestampStats:
+    """Rewrite every record's 8-byte big-endian receive stamp (UNIX us) and, in every intact frame, the
+    message time fields ``time_usec`` / ``time_boot_ms`` / ``time_unix_usec``; the CRC of each changed
+    frame is recomputed. SYSTEM_TIME's two fields move by the same whole millisecond (its boot -> UNIX
+    offset is kept). MAVLink 2 signatures cannot be recomputed without the key: they are kept as they
+    are and the signed frames that changed are counted in ``damage`` (they no longer verify)."""
+    from parsers import mavlink_tlog as tl
+    from parsers.mavlink_common import index_tlog_frames, walk_tlog
+
+    sel = _selector(selector)
+    fr, sysid, compid, mode, plan, lag = _tlog_plan(src, sel)
+    buf = read_bytes(src)
+    starts, skipped, resyncs, tail = walk_tlog(buf)
+    recv, v2, plen, sys_a, comp_a, msgid, pay, status = index_tlog_frames(buf, starts, tl._crc_extra_table())
+    recv = recv.astype(np.int64)
+    add = np.asarray(plan.add_ns, dtype=np.int64)
+    # receive stamps: each record's own instant on the analysis clock
+    t_recv_a = recv * US_NS - (0 if mode == "receive" else lag)
+    new_recv = recv - shift.shift_units(t_recv_a, US_NS)
+    _check_nonneg(new_recv, "receive stamps", src)
+    be = np.ascontiguousarray(new_recv.astype(">u8")).view(np.uint8).reshape(-1, 8)
+    for k in range(8):
+        buf[starts + k] = be[:, k]
+    by_type: dict[str, int] = {}
+    fields_done = {"receive stamp"}
+    signed_changed = 0
+    sys_time_id = tl.msgdef("SYSTEM_TIME").id
+    for mid in np.unique(msgid[status == 0]).tolist():
+        d = tl.msgdef_by_id(mid)
+        rows = np.flatnonzero((msgid == mid) & (status == 0))
+        by_type[d.name] = len(rows)
+        names = d.dtype.names
+        present = [(n, size, unit) for n, size, unit in _TLOG_FIELDS if n in names]
+        if not present:
+            continue
+        p0, pl = pay[rows], plen[rows].astype(np.int64)
+        changed = np.zeros(len(rows), bool)
+        if mid == sys_time_id:  # the boot <-> UNIX anchor: one whole-ms shift on both fields
+            o_b, o_u = d.dtype.fields["time_boot_ms"][1], d.dtype.fields["time_unix_usec"][1]
+            full = pl >= max(o_b + 4, o_u + 8)
+            rr = np.flatnonzero(full)
+            boot = get_le(buf, p0[rr] + o_b, 4)
+            unix = get_le(buf, p0[rr] + o_u, 8)
+            t_a = np.where(unix > tl.EPOCH_US_THRESHOLD, unix * US_NS + add[1], boot * MS_NS + add[0])
+            k_ms = shift.shift_units(t_a, MS_NS)
+            new_b = boot - k_ms
+            _check_nonneg(new_b, "SYSTEM_TIME.time_boot_ms", src)
+            put_le(buf, p0[rr] + o_b, new_b, 4)
+            has_u = unix > 0
+            put_le(buf, p0[rr][has_u] + o_u, unix[has_u] - k_ms[has_u] * 1000, 8)
+            changed[rr] = True
+            fields_done |= {"SYSTEM_TIME.time_boot_ms", "SYSTEM_TIME.time_unix_usec"}
+        else:
+            for n, size, unit in present:
+                o = d.dtype.fields[n][1]
+                # a MAVLink 2 payload may end early (trailing zeros truncated): only the bytes present
+                # are rewritten, and a field cut short holds zeros there (value unchanged if so)
+                full = pl >= o + size
+                rr = np.flatnonzero(full)
+                v = get_le(buf, p0[rr] + o, size)
+                live = v > 0  # 0: not set
+                rr, v = rr[live], v[live]
+                if n == "time_boot_ms":
+                    t_a = v * MS_NS + add[0]
+                else:
+                    t_a = np.where(v > tl.EPOCH_US_THRESHOLD, v * US_NS + add[1], v * US_NS + add[0])
+                new = v - shift.shift_units(t_a, unit)
+                _check_nonneg(new, f"{d.name}.{n}", src)
+                put_le(buf, p0[rr] + o, new, size)
+                changed[rr] = True
+                fields_done.add(n)
+        rr = np.flatnonzero(changed)
+        if not len(rr):
+            continue
+        frame = starts[rows[rr]] + 8  # magic byte
+        crc_len = (p0[rr] - frame - 1) + pl[rr]
+        crc = _crc_in_buf(buf, frame + 1, crc_len, d.crc_extra)
+        at = p0[rr] + pl[rr]
+        buf[at] = (crc & 0xFF).astype(np.uint8)
+        buf[at + 1] = (crc >> 8).astype(np.uint8)
+        is_v2 = v2[rows[rr]].astype(bool)
+        signed = is_v2 & ((buf[frame + 2] & 1) == 1)
+        signed_changed += int(signed.sum())
+    damage = [w + " (those bytes copied unchanged, receive stamps rewritten where a record was walked)"
+              for w in fr.warnings]
+    n_unknown = int((status == 2).sum())
+    if n_unknown:
+        damage.append(f"{n_unknown} frame(s) of unknown message ids: receive stamp rewritten, payload copied")
+    if signed_changed:
+        damage.append(f"{signed_changed} signed MAVLink 2 frame(s) changed: signatures kept as they were "
+                      "and no longer verify (the key is needed to re-sign)")
+    write_bytes_atomic(dst, buf)
+    return RestampStats(path=dst, format="tlog", how=HOW + "; CRC recomputed for changed frames",
+                        records=int(len(starts)), records_by_type=by_type,
+                        time_fields=tuple(sorted(fields_done)), damage=tuple(damage))
