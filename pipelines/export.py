@@ -247,7 +247,9 @@ def attach_to_analysis(kinds: tuple[str, ...], out_dir: str, slave: InsLog, mast
     entries = write_slave(tuple(kinds), out_dir, slave, shift)
     paths.update(output_keys(entries))
     extra["slave_on_master_clock"] = report_section(entries, shift)
-    extra.setdefault("warnings", []).extend({"stage": "outputs", "text": w} for w in warnings_of(entries))
+    warns = warnings_of(entries)
+    if warns:
+        extra.setdefault("warnings", []).extend({"stage": "outputs", "text": w} for w in warns)
     return entries
 
 
