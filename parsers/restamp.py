@@ -104,22 +104,23 @@ def read_bytes(src: str) -> np.ndarray:
     return np.fromfile(src, dtype=np.uint8)
 
 
+_LE = {1: "<u1", 2: "<u2", 4: "<u4", 8: "<u8"}
+_LE_SIGNED = {1: "<i1", 2: "<i2", 4: "<i4", 8: "<i8"}
+
+
 def put_le(buf: np.ndarray, offsets: np.ndarray, values: np.ndarray, nbytes: int) -> None:
     """Write little-endian unsigned ``values`` of ``nbytes`` bytes at byte ``offsets`` of ``buf``."""
-    v = np.asarray(values).astype(np.int64).astype(np.uint64)
     offs = np.asarray(offsets, dtype=np.int64)
-    for k in range(nbytes):  # nbytes columns, vectorised over the records
-        buf[offs + k] = ((v >> np.uint64(8 * k)) & np.uint64(0xFF)).astype(np.uint8)
+    if not len(offs):
+        return
+    raw = np.ascontiguousarray(np.asarray(values).astype(np.int64).astype(_LE[nbytes]))
+    buf[offs[:, None] + np.arange(nbytes)] = raw.view(np.uint8).reshape(len(offs), nbytes)
 
 
 def get_le(buf: np.ndarray, offsets: np.ndarray, nbytes: int, signed: bool = False) -> np.ndarray:
     """Little-endian unsigned (or signed) integers of ``nbytes`` bytes at ``offsets`` (int64)."""
     offs = np.asarray(offsets, dtype=np.int64)
-    v = np.zeros(len(offs), dtype=np.uint64)
-    for k in range(nbytes):
-        v |= buf[offs + k].astype(np.uint64) << np.uint64(8 * k)
-    out = v.astype(np.int64)
-    if signed and nbytes < 8:
-        top = np.int64(1) << np.int64(8 * nbytes - 1)
-        out = np.where(out >= top, out - (top << np.int64(1)), out)
-    return out
+    if not len(offs):
+        return np.zeros(0, dtype=np.int64)
+    block = np.ascontiguousarray(buf[offs[:, None] + np.arange(nbytes)])
+    return block.view((_LE_SIGNED if signed else _LE)[nbytes]).reshape(-1).astype(np.int64)

@@ -15,7 +15,6 @@ import shutil
 import tempfile
 
 import numpy as np
-import pandas as pd
 
 from logtools.errors import InputError
 from parsers.atomic import atomic_path
@@ -27,67 +26,210 @@ HOW = "text rewrite of the time column (every other cell's text kept)"
 _POW10 = {"s": 9, "sec": 9, "ms": 6, "us": 3, "ns": 0}
 
 
-def _format(ns: np.ndarray, p: int) -> list[str]:
-    ns = np.asarray(ns, dtype=np.int64)
-    neg = ns < 0
-    a = np.abs(ns)
-    q = 10 ** p
-    whole = (a // q).astype(str)
-    if p:
-        frac = np.char.zfill((a % q).astype(str), p)
-        txt = np.char.add(np.char.add(whole, "."), frac)
-    else:
-        txt = whole
-    return np.where(neg, np.char.add("-", txt), txt).tolist()
+def _cells(buf, k, sep):  # pragma: no cover - compiled
+    """Per data line (after the header): (line start, line end, time cell start, end) of column k."""
+    n = buf.shape[0]
+    nl = 0
+    for i in range(n):
+        if buf[i] == 10:
+            nl += 1
+    ls = np.empty(nl + 1, np.int64)
+    le = np.empty(nl + 1, np.int64)
+    cs = np.empty(nl + 1, np.int64)
+    ce = np.empty(nl + 1, np.int64)
+    pos = 0
+    # skip the header
+    while pos < n and buf[pos] != 10:
+        pos += 1
+    pos += 1
+    m = 0
+    while pos < n:
+        start = pos
+        col = 0
+        c0 = -1
+        c1 = -1
+        if k == 0:
+            c0 = start
+        while pos < n and buf[pos] != 10:
+            if buf[pos] == sep:
+                if col == k:
+                    c1 = pos
+                col += 1
+                if col == k:
+                    c0 = pos + 1
+            pos += 1
+        end = pos
+        if c0 >= 0 and c1 < 0:
+            c1 = end - 1 if end > start and buf[end - 1] == 13 else end
+        ls[m] = start
+        le[m] = end
+        cs[m] = c0
+        ce[m] = c1
+        m += 1
+        pos += 1
+    return ls[:m], le[:m], cs[:m], ce[:m]
 
 
-def restamp_text(text: str, time_col: str, unit: str, shift: ClockShift, path: str) -> tuple[str, int, int]:
-    """(new text, data lines rewritten, damaged lines kept as they were)."""
+def _parse(buf, cs, ce, p):  # pragma: no cover - compiled
+    """Decimal text -> value * 10**p (int64) exactly; spaces and quotes around it allowed."""
+    m = cs.shape[0]
+    out = np.zeros(m, np.int64)
+    ok = np.zeros(m, np.bool_)
+    for i in range(m):
+        a = cs[i]
+        b = ce[i]
+        if a < 0:
+            continue
+        while a < b and (buf[a] == 32 or buf[a] == 34):
+            a += 1
+        while b > a and (buf[b - 1] == 32 or buf[b - 1] == 34 or buf[b - 1] == 13):
+            b -= 1
+        if a >= b:
+            continue
+        neg = False
+        if buf[a] == 45 or buf[a] == 43:
+            neg = buf[a] == 45
+            a += 1
+        whole = np.int64(0)
+        frac = np.int64(0)
+        nf = 0
+        nd = 0
+        dot = False
+        good = True
+        for j in range(a, b):
+            c = buf[j]
+            if c == 46 and not dot:
+                dot = True
+            elif 48 <= c <= 57:
+                nd += 1
+                if dot:
+                    if nf < p:
+                        frac = frac * 10 + (c - 48)
+                        nf += 1
+                else:
+                    whole = whole * 10 + (c - 48)
+            else:
+                good = False
+                break
+        if not good or nd == 0 or nd - nf > 18:
+            continue
+        while nf < p:
+            frac *= 10
+            nf += 1
+        scale = np.int64(1)
+        for _ in range(p):
+            scale *= 10
+        if whole > np.int64(9223372036854775807) // scale - 1:  # would overflow int64
+            continue
+        v = whole * scale + frac
+        out[i] = -v if neg else v
+        ok[i] = True
+    return out, ok
+
+
+def _emit(buf, ls, le, cs, ce, ok, new, p, out):  # pragma: no cover - compiled
+    """Copy the data lines into ``out``, the time cell of each ``ok`` line replaced by ``new`` with
+    ``p`` decimals (the cell's surrounding spaces/quotes kept). Returns the bytes written."""
+    o = 0
+    digits = np.empty(24, np.uint8)
+    scale = np.int64(1)
+    for _ in range(p):
+        scale *= 10
+    for i in range(ls.shape[0]):
+        if not ok[i]:
+            for j in range(ls[i], le[i]):
+                out[o] = buf[j]
+                o += 1
+        else:
+            a = cs[i]
+            b = ce[i]
+            while a < b and (buf[a] == 32 or buf[a] == 34):
+                a += 1
+            while b > a and (buf[b - 1] == 32 or buf[b - 1] == 34 or buf[b - 1] == 13):
+                b -= 1
+            for j in range(ls[i], a):
+                out[o] = buf[j]
+                o += 1
+            v = new[i]
+            if v < 0:
+                out[o] = 45
+                o += 1
+                v = -v
+            w = v // scale
+            f = v % scale
+            nd = 0
+            if w == 0:
+                digits[0] = 48
+                nd = 1
+            while w > 0:
+                digits[nd] = 48 + w % 10
+                w //= 10
+                nd += 1
+            for j in range(nd):
+                out[o] = digits[nd - 1 - j]
+                o += 1
+            if p > 0:
+                out[o] = 46
+                o += 1
+                for j in range(p):
+                    digits[p - 1 - j] = 48 + f % 10
+                    f //= 10
+                for j in range(p):
+                    out[o] = digits[j]
+                    o += 1
+            for j in range(b, le[i]):
+                out[o] = buf[j]
+                o += 1
+        if le[i] < buf.shape[0]:
+            out[o] = 10
+            o += 1
+    return o
+
+
+_COMPILED: dict[str, object] = {}
+
+
+def _kernel(name: str):
+    fn = _COMPILED.get(name)
+    if fn is None:
+        import numba
+
+        fn = _COMPILED[name] = numba.njit(cache=True)(globals()[name])
+    return fn
+
+
+def restamp_bytes(raw: bytes, time_col: str, unit: str, shift: ClockShift, path: str) -> tuple[np.ndarray, int, int]:
+    """(new file bytes, data lines rewritten, damaged lines kept as they were)."""
     if unit not in _POW10:
         raise InputError(f"native CSV export: time unit {unit!r} not supported", path)
     p = _POW10[unit]
-    lines = text.split("\n")
-    head = lines[0]
+    buf = np.frombuffer(raw, dtype=np.uint8)
+    nl = raw.find(b"\n")
+    head = (raw if nl < 0 else raw[:nl]).decode("utf-8", "replace")
     sep = delimiter(head)
     cols = [c.strip().strip('"').lstrip("\ufeff") for c in head.rstrip("\r").split(sep)]
     if time_col not in cols:
         raise InputError(f"native CSV export: no time column {time_col!r} in the header", path)
     k = cols.index(time_col)
-    body = lines[1:]
-    parts = [ln.split(sep, k + 1) for ln in body]
-    cells = [pr[k] if len(pr) > k else "" for pr in parts]
-    stripped = pd.Series([c.strip().strip('"') for c in cells], dtype=object)
-    ns, ok, _ = decimal_text_to_int(stripped, p) if len(stripped) else (np.zeros(0, np.int64), np.zeros(0, bool), None)
-    blank = np.array([not ln.strip() for ln in body], dtype=bool)
-    ok = np.asarray(ok, bool) & ~blank
-    # a value in the unit is value * 10**p == nanoseconds exactly (s: p=9, ms: 6, us: 3, ns: 0)
-    new = np.asarray(ns, np.int64).copy()
-    new[ok] = shift.to_master_ns(new[ok])
-    txt = _format(new, p)
-    out = [head]
-    for i, pr in enumerate(parts):
-        if ok[i]:
-            cell = cells[i]
-            lead = cell[:len(cell) - len(cell.lstrip())]
-            trail = "\r" if cell.endswith("\r") else ""
-            pr = list(pr)
-            pr[k] = lead + txt[i] + trail
-            out.append(sep.join(pr))
-        else:
-            out.append(body[i])
-    return "\n".join(out), int(ok.sum()), int((~ok & ~blank).sum())
+    ls, le, cs, ce = _kernel("_cells")(buf, k, ord(sep))
+    ns, ok = _kernel("_parse")(buf, cs, ce, p)
+    blank = le <= ls
+    # a value in the unit times 10**p is nanoseconds exactly (s: p=9, ms: 6, us: 3, ns: 0)
+    new = ns.copy()
+    new[ok] = shift.to_master_ns(ns[ok])
+    head_end = len(raw) if nl < 0 else nl + 1
+    out = np.empty(len(raw) + 24 * len(ls) + 1, dtype=np.uint8)
+    out[:head_end] = buf[:head_end]
+    n = _kernel("_emit")(buf, ls, le, cs, ce, ok, new, p, out[head_end:])
+    return out[:head_end + n], int(ok.sum()), int((~ok & ~blank).sum())
 
 
 def _rewrite_file(src: str, dst: str, time_col: str, unit: str, shift: ClockShift) -> tuple[int, int]:
     with open(src, "rb") as fh:
         raw = fh.read()
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError:
-        raise InputError("native CSV export: the file is not UTF-8 text", src) from None
-    new, n, bad = restamp_text(text, time_col, unit, shift, src)
-    with atomic_path(dst) as tmp, open(tmp, "wb") as fh:
-        fh.write(new.encode("utf-8"))
+    new, n, bad = restamp_bytes(raw, time_col, unit, shift, src)
+    with atomic_path(dst) as tmp:
+        new.tofile(tmp)
     return n, bad
 
 

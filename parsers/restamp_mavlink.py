@@ -133,11 +133,36 @@ def restamp_dataflash(src: str, dst: str, shift: ClockShift, *, selector=None) -
 _TLOG_FIELDS = (("time_usec", 8, US_NS), ("time_boot_ms", 4, MS_NS), ("time_unix_usec", 8, US_NS))
 
 
-def _tlog_plan(path: str, sel: Selector):
-    """The reader's own clock plan for this selector: (frames, sysid, compid, mode, plan, recv lag ns)."""
+def _frames(path: str, buf: np.ndarray):
+    """One walk + index of a tlog: (the reader's Frames of the intact frames, starts, index columns)."""
+    from parsers import mavlink_tlog as tl
+    from parsers.mavlink_common import index_tlog_frames, walk_tlog
+
+    if len(buf) == 0:
+        raise InputError("empty file", path)
+    starts, skipped, resyncs, tail = walk_tlog(buf)
+    if len(starts) == 0:
+        raise InputError("no MAVLink frames found (not a tlog, or damaged beyond use)", path)
+    idx = index_tlog_frames(buf, starts, tl._crc_extra_table())
+    recv, v2, plen, sysid, compid, msgid, pay, status = idx
+    ok = status == 0
+    warns = []
+    if skipped:
+        warns.append(f"damaged tlog: skipped {skipped} bad bytes ({resyncs + (0 if resyncs else 1)} place(s))")
+    n_bad = int(((status != 2) & ~ok).sum())
+    if n_bad:
+        warns.append(f"damaged tlog: {n_bad} frame(s) with bad CRC (copied unchanged but for the receive stamp)")
+    if tail:
+        warns.append(f"truncated tlog: last {tail} byte(s) hold an incomplete frame")
+    fr = tl.Frames(buf=buf, recv_us=recv[ok], v2=v2[ok], plen=plen[ok], sysid=sysid[ok], compid=compid[ok],
+                   msgid=msgid[ok], pay=pay[ok], warnings=tuple(warns), n_corrupt=n_bad)
+    return fr, starts, idx
+
+
+def _tlog_plan(path: str, sel: Selector, fr):
+    """The reader's own clock plan for this selector: (sysid, compid, mode, plan, recv lag ns)."""
     from parsers import mavlink_tlog as tl
 
-    fr = tl.read_frames(path)
     cat = tl.catalog(fr)
     chosen, _ = tl._resolve(path, sel, cat)
     sysid, compid, mode = int(chosen["sysid"]), int(chosen["compid"]), chosen["time"]
@@ -156,13 +181,17 @@ def _tlog_plan(path: str, sel: Selector):
             for (k, t), s in zip(timing, picked)]
     lags = np.concatenate(lags) if lags else np.zeros(0, np.int64)
     lag = 0 if mode == "receive" or not len(lags) else int(np.sort(lags)[len(lags) // 2])
-    return fr, sysid, compid, mode, plan, lag
+    return sysid, compid, mode, plan, lag
 
 
 def _crc_in_buf(buf: np.ndarray, starts: np.ndarray, lengths: np.ndarray, extra: int) -> np.ndarray:
-    from parsers.mavlink_common import gather_rows, x25_crc_block
+    from parsers import mavlink_common as mc
 
+    if mc.HAVE_NUMBA:  # straight from the buffer
+        return mc._crc_var_nb(buf, np.asarray(starts, np.int64), np.asarray(lengths, np.int64), int(extra),
+                              mc.CRC_TABLE)
     w = int(lengths.max())
+    gather_rows, x25_crc_block = mc.gather_rows, mc.x25_crc_block
     block = gather_rows(buf, starts, w, lengths)
     return x25_crc_block(block, 0, lengths, extra)
 
@@ -174,13 +203,13 @@ def restamp_tlog(src: str, dst: str, shift: ClockShift, *, selector=None) -> Res
     offset is kept). MAVLink 2 signatures cannot be recomputed without the key: they are kept as they
     are and the signed frames that changed are counted in ``damage`` (they no longer verify)."""
     from parsers import mavlink_tlog as tl
-    from parsers.mavlink_common import index_tlog_frames, walk_tlog
 
     sel = _selector(selector)
-    fr, sysid, compid, mode, plan, lag = _tlog_plan(src, sel)
-    buf = read_bytes(src)
-    starts, skipped, resyncs, tail = walk_tlog(buf)
-    recv, v2, plen, sys_a, comp_a, msgid, pay, status = index_tlog_frames(buf, starts, tl._crc_extra_table())
+    orig = read_bytes(src)
+    fr, starts, idx = _frames(src, orig)
+    sysid, compid, mode, plan, lag = _tlog_plan(src, sel, fr)
+    recv, v2, plen, sys_a, comp_a, msgid, pay, status = idx
+    buf = orig.copy()
     recv = recv.astype(np.int64)
     add = np.asarray(plan.add_ns, dtype=np.int64)
     # receive stamps: each record's own instant on the analysis clock

@@ -104,6 +104,8 @@ def real(name: str) -> Path:
 @pytest.mark.slow
 @pytest.mark.parametrize("name", [
     "arduplane_box_pilot.BIN",
+    "arduplane_elevator.BIN",  # no GPS: boot time
+    "arducopter_2014-10-18_20-04-24.bin",  # old layout: TimeMS (whole ms), GPS T and Week/TimeMS
     # log0036's drift is undetermined (1.7 +/- 3.6 ppm) and the estimator shrinks it toward 0 (a drift
     # prior): removing the 1.68 ppm it reports leaves 1.69 ppm (removing 11.68 leaves -8.20: the response
     # is 1:1, the reported value is about half the data's). The exported stamps are exact (<= 0.5 us);
