@@ -27,6 +27,7 @@ from parsers.restamp import ClockShift, RestampStats, get_le, put_le, read_bytes
 HOW = "byte-level rewrite of the time fields (every other byte copied)"
 MS_NS, US_NS = 1_000_000, 1_000
 WEEK_MS = 604_800_000
+PLAN_ROWS = 20_000  # rows per selected tlog stream decoded to rebuild the reader's clock plan
 
 
 def _selector(selector) -> Selector:
@@ -170,9 +171,12 @@ def _tlog_plan(path: str, sel: Selector, fr):
     for key in ("imu", "att", "vel", "pos"):
         if key in chosen:
             name = tl._INST.match(chosen[key]).group(1)
-            s = tl._raw(fr, name, sysid, compid)
-            if len(s.rec):
-                picked.append(s)
+            d = tl.msgdef(name)
+            rows = fr.rows(d.id, sysid, compid)
+            # the plan needs the clock kinds and the link lag: a uniform subsample of a long stream is enough
+            rows = rows[::max(1, len(rows) // PLAN_ROWS)]
+            if len(rows):
+                picked.append(tl.RawStream(name, sysid, compid, fr.decode(rows, d), fr.recv_us[rows] * 1000))
     timing = [tl._msg_time(s) for s in picked]
     plan = tl.plan_clock([(k, t, s.recv_ns) for (k, t), s in zip(timing, picked)],
                          tl._system_time_offset_ns(fr, sysid, compid), mode)
@@ -196,12 +200,132 @@ def _crc_in_buf(buf: np.ndarray, starts: np.ndarray, lengths: np.ndarray, extra:
     return x25_crc_block(block, 0, lengths, extra)
 
 
+def _tlog_kernel(buf, starts, pay, plen, status, msgid, v2, o_usec, o_boot, o_unix, extra, sys_id,
+                 lag, add0, add1, receive, lat_s, d, t_ref, thr_us, table):  # pragma: no cover - compiled
+    """One pass over the records: receive stamp, message time fields, CRC of changed frames.
+    Returns (changed frames, signed changed frames, first record index whose new stamp is negative or -1,
+    fields rewritten as bits: 1 time_usec, 2 time_boot_ms, 4 SYSTEM_TIME)."""
+    n = starts.shape[0]
+    changed_n = 0
+    signed_n = 0
+    negative = -1
+    bits = 0
+    for i in range(n):
+        s = starts[i]
+        recv = np.int64(0)
+        for k in range(8):
+            recv = (recv << 8) | np.int64(buf[s + k])
+        t_a = recv * 1000 - lag
+        sh = np.int64(np.rint((lat_s + d * ((t_a - t_ref) * 1e-9)) / (1.0 + d) * 1e9))
+        new = recv - (sh + 500) // 1000
+        if new < 0 and negative < 0:
+            negative = i
+        for k in range(8):
+            buf[s + 7 - k] = np.uint8((new >> (8 * k)) & 0xFF)
+        if status[i] != 0:
+            continue
+        mid = msgid[i]
+        p0 = pay[i]
+        pl = plen[i]
+        changed = False
+        if mid == sys_id:
+            ob = o_boot[mid]
+            ou = o_unix[mid]
+            if pl >= ob + 4 and pl >= ou + 8:
+                boot = np.int64(0)
+                for k in range(4):
+                    boot |= np.int64(buf[p0 + ob + k]) << (8 * k)
+                unix = np.int64(0)
+                for k in range(8):
+                    unix |= np.int64(buf[p0 + ou + k]) << (8 * k)
+                t_a = unix * 1000 + add1 if unix > thr_us else boot * 1000000 + add0
+                sh = np.int64(np.rint((lat_s + d * ((t_a - t_ref) * 1e-9)) / (1.0 + d) * 1e9))
+                k_ms = (sh + 500000) // 1000000
+                nb = boot - k_ms
+                if nb < 0 and negative < 0:
+                    negative = i
+                for k in range(4):
+                    buf[p0 + ob + k] = np.uint8((nb >> (8 * k)) & 0xFF)
+                if unix > 0:
+                    nu = unix - k_ms * 1000
+                    for k in range(8):
+                        buf[p0 + ou + k] = np.uint8((nu >> (8 * k)) & 0xFF)
+                changed = True
+                bits |= 4
+        else:
+            for which in range(2):
+                o = o_usec[mid] if which == 0 else o_boot[mid]
+                size = 8 if which == 0 else 4
+                if o < 0 or pl < o + size:
+                    continue
+                v = np.int64(0)
+                for k in range(size):
+                    v |= np.int64(buf[p0 + o + k]) << (8 * k)
+                if v <= 0:
+                    continue
+                if which == 0:
+                    t_a = v * 1000 + (add1 if v > thr_us else add0)
+                    unit = np.int64(1000)
+                else:
+                    t_a = v * 1000000 + add0
+                    unit = np.int64(1000000)
+                sh = np.int64(np.rint((lat_s + d * ((t_a - t_ref) * 1e-9)) / (1.0 + d) * 1e9))
+                nv = v - (sh + unit // 2) // unit
+                if nv < 0 and negative < 0:
+                    negative = i
+                for k in range(size):
+                    buf[p0 + o + k] = np.uint8((nv >> (8 * k)) & 0xFF)
+                changed = True
+                bits |= 1 if which == 0 else 2
+        if changed:
+            changed_n += 1
+            f = s + 8
+            crc = np.uint16(0xFFFF)
+            for j in range(f + 1, p0 + pl):
+                crc = (crc >> 8) ^ table[(crc ^ buf[j]) & 0xFF]
+            crc = (crc >> 8) ^ table[(crc ^ extra[mid]) & 0xFF]
+            buf[p0 + pl] = np.uint8(crc & 0xFF)
+            buf[p0 + pl + 1] = np.uint8(crc >> 8)
+            if v2[i] and (buf[f + 2] & 1) == 1:
+                signed_n += 1
+    return changed_n, signed_n, negative, bits
+
+
+_COMPILED: dict[str, object] = {}
+
+
+def _kernel(name: str):
+    fn = _COMPILED.get(name)
+    if fn is None:
+        import numba
+
+        fn = _COMPILED[name] = numba.njit(cache=True)(globals()[name])
+    return fn
+
+
+def _field_tables(n_ids: int):
+    """Per message id: byte offsets of time_usec, time_boot_ms, time_unix_usec in the payload (-1: none)."""
+    from parsers import mavlink_tlog as tl
+
+    o = {f: np.full(n_ids, -1, np.int64) for f in ("time_usec", "time_boot_ms", "time_unix_usec")}
+    for mid, cls in tl._dialect().mavlink_map.items():
+        d = tl.msgdef_by_id(mid)
+        if d is None:
+            continue
+        for f in o:
+            if f in d.dtype.names:
+                o[f][mid] = d.dtype.fields[f][1]
+    return o
+
+
 def restamp_tlog(src: str, dst: str, shift: ClockShift, *, selector=None) -> RestampStats:
     """Rewrite every record's 8-byte big-endian receive stamp (UNIX us) and, in every intact frame, the
-    message time fields ``time_usec`` / ``time_boot_ms`` / ``time_unix_usec``; the CRC of each changed
-    frame is recomputed. SYSTEM_TIME's two fields move by the same whole millisecond (its boot -> UNIX
-    offset is kept). MAVLink 2 signatures cannot be recomputed without the key: they are kept as they
-    are and the signed frames that changed are counted in ``damage`` (they no longer verify)."""
+    message time fields ``time_usec`` / ``time_boot_ms`` (and SYSTEM_TIME's ``time_unix_usec``); the CRC
+    of each changed frame is recomputed. SYSTEM_TIME's two fields move by the same whole millisecond (its
+    boot -> UNIX offset is kept). MAVLink 2 signatures cannot be recomputed without the key: they are kept
+    as they are and the signed frames that changed are counted in ``damage`` (they no longer verify).
+    One compiled pass over the records (numba), after the reader's walk and index."""
+    from parsers import mavlink_common as mc
     from parsers import mavlink_tlog as tl
 
     sel = _selector(selector)
@@ -210,78 +334,28 @@ def restamp_tlog(src: str, dst: str, shift: ClockShift, *, selector=None) -> Res
     sysid, compid, mode, plan, lag = _tlog_plan(src, sel, fr)
     recv, v2, plen, sys_a, comp_a, msgid, pay, status = idx
     buf = orig.copy()
-    recv = recv.astype(np.int64)
-    add = np.asarray(plan.add_ns, dtype=np.int64)
-    # receive stamps: each record's own instant on the analysis clock
-    t_recv_a = recv * US_NS - (0 if mode == "receive" else lag)
-    new_recv = recv - shift.shift_units(t_recv_a, US_NS)
-    _check_nonneg(new_recv, "receive stamps", src)
-    be = np.ascontiguousarray(new_recv.astype(">u8")).view(np.uint8).reshape(-1, 8)
-    for k in range(8):
-        buf[starts + k] = be[:, k]
-    by_type: dict[str, int] = {}
-    fields_done = {"receive stamp"}
-    signed_changed = 0
-    sys_time_id = tl.msgdef("SYSTEM_TIME").id
-    for mid in np.unique(msgid[status == 0]).tolist():
-        d = tl.msgdef_by_id(mid)
-        rows = np.flatnonzero((msgid == mid) & (status == 0))
-        by_type[d.name] = len(rows)
-        names = d.dtype.names
-        present = [(n, size, unit) for n, size, unit in _TLOG_FIELDS if n in names]
-        if not present:
-            continue
-        p0, pl = pay[rows], plen[rows].astype(np.int64)
-        changed = np.zeros(len(rows), bool)
-        if mid == sys_time_id:  # the boot <-> UNIX anchor: one whole-ms shift on both fields
-            o_b, o_u = d.dtype.fields["time_boot_ms"][1], d.dtype.fields["time_unix_usec"][1]
-            full = pl >= max(o_b + 4, o_u + 8)
-            rr = np.flatnonzero(full)
-            boot = get_le(buf, p0[rr] + o_b, 4)
-            unix = get_le(buf, p0[rr] + o_u, 8)
-            t_a = np.where(unix > tl.EPOCH_US_THRESHOLD, unix * US_NS + add[1], boot * MS_NS + add[0])
-            k_ms = shift.shift_units(t_a, MS_NS)
-            new_b = boot - k_ms
-            _check_nonneg(new_b, "SYSTEM_TIME.time_boot_ms", src)
-            put_le(buf, p0[rr] + o_b, new_b, 4)
-            has_u = unix > 0
-            put_le(buf, p0[rr][has_u] + o_u, unix[has_u] - k_ms[has_u] * 1000, 8)
-            changed[rr] = True
-            fields_done |= {"SYSTEM_TIME.time_boot_ms", "SYSTEM_TIME.time_unix_usec"}
-        else:
-            for n, size, unit in present:
-                o = d.dtype.fields[n][1]
-                # a MAVLink 2 payload may end early (trailing zeros truncated): only the bytes present
-                # are rewritten, and a field cut short holds zeros there (value unchanged if so)
-                full = pl >= o + size
-                rr = np.flatnonzero(full)
-                v = get_le(buf, p0[rr] + o, size)
-                live = v > 0  # 0: not set
-                rr, v = rr[live], v[live]
-                if n == "time_boot_ms":
-                    t_a = v * MS_NS + add[0]
-                else:
-                    t_a = np.where(v > tl.EPOCH_US_THRESHOLD, v * US_NS + add[1], v * US_NS + add[0])
-                new = v - shift.shift_units(t_a, unit)
-                _check_nonneg(new, f"{d.name}.{n}", src)
-                put_le(buf, p0[rr] + o, new, size)
-                changed[rr] = True
-                fields_done.add(n)
-        rr = np.flatnonzero(changed)
-        if not len(rr):
-            continue
-        frame = starts[rows[rr]] + 8  # magic byte
-        crc_len = (p0[rr] - frame - 1) + pl[rr]
-        crc = _crc_in_buf(buf, frame + 1, crc_len, d.crc_extra)
-        at = p0[rr] + pl[rr]
-        buf[at] = (crc & 0xFF).astype(np.uint8)
-        buf[at + 1] = (crc >> 8).astype(np.uint8)
-        is_v2 = v2[rows[rr]].astype(bool)
-        signed = is_v2 & ((buf[frame + 2] & 1) == 1)
-        signed_changed += int(signed.sum())
-    damage = [w + " (those bytes copied unchanged, receive stamps rewritten where a record was walked)"
+    extra = tl._crc_extra_table().astype(np.int64)
+    tabs = _field_tables(len(extra))
+    ids = np.asarray(msgid, np.int64)
+    stat = np.where(ids < len(extra), np.asarray(status), 2).astype(np.int64)
+    ids = np.where(ids < len(extra), ids, 0)
+    changed, signed_changed, negative, bits = _kernel("_tlog_kernel")(
+        buf, np.asarray(starts, np.int64), np.asarray(pay, np.int64), np.asarray(plen, np.int64), stat, ids,
+        np.asarray(v2, np.bool_), tabs["time_usec"], tabs["time_boot_ms"], tabs["time_unix_usec"], extra,
+        int(tl.msgdef("SYSTEM_TIME").id), int(0 if mode == "receive" else lag), int(plan.add_ns[0]),
+        int(plan.add_ns[1]), mode == "receive", float(shift.latency_s), float(shift.drift_ppm * 1e-6),
+        int(shift.t_ref_ns), int(tl.EPOCH_US_THRESHOLD), mc.CRC_TABLE)
+    if negative >= 0:
+        raise InputError(f"native export: a shifted stamp of record {negative} would be negative (the master's "
+                         "clock starts later than the field's clock can express; export csv/parquet instead)", src)
+    u, c = np.unique(ids[stat == 0], return_counts=True)
+    by_type = {tl.msgdef_by_id(int(m)).name: int(k) for m, k in zip(u, c)}
+    fields_done = ["receive stamp"] + [name for bit, name in ((1, "time_usec"), (2, "time_boot_ms"),
+                                                              (4, "SYSTEM_TIME.time_boot_ms/time_unix_usec"))
+                                       if bits & bit]
+    damage = [w + " (receive stamps rewritten where a record was walked; the rest copied unchanged)"
               for w in fr.warnings]
-    n_unknown = int((status == 2).sum())
+    n_unknown = int((stat == 2).sum())
     if n_unknown:
         damage.append(f"{n_unknown} frame(s) of unknown message ids: receive stamp rewritten, payload copied")
     if signed_changed:
@@ -290,4 +364,4 @@ def restamp_tlog(src: str, dst: str, shift: ClockShift, *, selector=None) -> Res
     write_bytes_atomic(dst, buf)
     return RestampStats(path=dst, format="tlog", how=HOW + "; CRC recomputed for changed frames",
                         records=int(len(starts)), records_by_type=by_type,
-                        time_fields=tuple(sorted(fields_done)), damage=tuple(damage))
+                        time_fields=tuple(fields_done), damage=tuple(damage))
