@@ -83,10 +83,6 @@ class RestampStats:
     damage: tuple[str, ...] = ()  # what could not be read and is therefore not in the output
 
 
-class RestampError(ValueError):
-    """A native export that cannot be done (the format module translates it to an InputError)."""
-
-
 def write_bytes_atomic(dst: str, buf: np.ndarray | bytes) -> None:
     """Write ``buf`` to ``dst`` atomically (temporary sibling + rename)."""
     with atomic_path(dst) as tmp:

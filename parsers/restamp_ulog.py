@@ -117,7 +117,7 @@ def restamp_ulog(src: str, dst: str, shift: ClockShift, *, selector=None) -> Res
         for n, o in tf:
             fit = room >= o + 8
             at = base[fit] + o
-            v = get_le(buf, at, 8)
+            v = t_us[fit] if o == ts_o else get_le(buf, at, 8)
             live = v > 0
             new = v[live] - k_us[fit][live]
             if len(new) and int(new.min()) < 0:
