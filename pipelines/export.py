@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import importlib
 import os
+import struct
 import time
 from dataclasses import dataclass
 
@@ -213,6 +214,14 @@ def write_slave(kinds: tuple[str, ...], out_dir: str, slave: InsLog, shift: Cloc
                                            st.time_fields, st.damage, time.perf_counter() - t))
         except InputError as exc:
             entries.append(ExportEntry(kind, None, meta.format if kind == "native" else kind, "", failed=str(exc),
+                                       seconds=time.perf_counter() - t))
+        except OSError as exc:  # the output could not be written (disk full, permissions...)
+            why = f"cannot write: {exc.strerror or exc}" + (f" ({exc.filename})" if exc.filename else "")
+            entries.append(ExportEntry(kind, None, meta.format if kind == "native" else kind, "", failed=why,
+                                       seconds=time.perf_counter() - t))
+        except (ValueError, IndexError, KeyError, struct.error) as exc:  # a damaged input a writer choked on
+            entries.append(ExportEntry(kind, None, meta.format if kind == "native" else kind, "",
+                                       failed=f"{meta.source_path}: cannot export: {type(exc).__name__}: {exc}",
                                        seconds=time.perf_counter() - t))
     return entries
 

@@ -326,3 +326,30 @@ def test_export_table_has_every_channel(pair):
     assert tab.index.dtype == np.int64 and tab.index.is_monotonic_increasing
     n_imu = len(pair.slave.imu)
     assert tab["gyro_x_rad_s"].notna().sum() == n_imu
+
+
+def test_unwritable_output_is_a_failed_entry(slaves, pair, tmp_path):
+    blocker = tmp_path / "not_a_dir"
+    blocker.write_text("x")
+    slave = registry.load(str(slaves["csv"]))
+    (e,) = export.write_slave(("csv",), str(blocker / "sub"), slave, shift_of(pair))
+    assert e.failed and e.failed.startswith("cannot write") and e.path is None
+    assert export.warnings_of([e]) == [f"slave export csv failed: {e.failed}"]
+
+
+def test_batch_passes_write_slave_to_every_pair(slaves, tmp_path, monkeypatch):
+    """tapost batch --write-slave: each pair's analysis gets it, unless its manifest options set it."""
+    from pipelines import analyze, batch
+
+    seen = {}
+
+    def fake(master, slave, out_dir, opts, progress=None):
+        seen[os.path.basename(out_dir)] = opts.write_slave
+        raise InputError("stub: not analysed", slave)
+
+    monkeypatch.setattr(analyze, "analyze_pair", fake)
+    man = tmp_path / "campaign.csv"
+    s = slaves["csv"]
+    man.write_text(f"master,slave,options,name\n{s},{s},,a\n{s},{s},--write-slave parquet,b\n")
+    batch.run_batch(str(man), str(tmp_path / "out"), write_slave="native,csv", log=lambda m: None)
+    assert seen == {"a": ("native", "csv"), "b": ("parquet",)}
