@@ -6,18 +6,26 @@ units and clocks); this module holds what they share.
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from parsers.atomic import atomic_path
+
 
 @dataclass(frozen=True)
 class ClockShift:
-    """``t_master = t_slave - latency(t)``, ``latency(t) = latency_s + drift_ppm 1e-6 (t - t_ref_ns)``.
+    """``t_master = t_slave - latency``, with ``latency`` linear in time (drift), exactly as
+    ``logtools.compensate`` applies it.
 
     Instants are int64 nanoseconds on the slave's analysis clock (``meta.t0_ns + t_s 1e9`` of the slave's
-    InsLog: UNIX or boot, whichever the parser put it on). ``t_ref_ns`` is where ``latency_s`` holds (the
-    middle of the analysed window, on the slave's clock)."""
+    InsLog: UNIX or boot, whichever the parser put it on; the master's stamps use the same numbers, the
+    latency holds any offset between the two clocks). The slave stamp ``t`` of the physical instant
+    ``tau`` (master's clock) is ``t = tau + L0 + d (tau - t_ref)`` (``L0 = latency_s``, ``d = drift_ppm
+    1e-6``, ``t_ref_ns`` the master-clock instant where ``latency_s`` holds: the middle of the analysed
+    window, report.json ``master.t0_ns + latency.t_mid_rel_s 1e9``), hence
+    ``tau = (t - L0 + d t_ref) / (1 + d)`` and the shift ``t - tau = (L0 + d (t - t_ref)) / (1 + d)``."""
 
     latency_s: float
     drift_ppm: float
@@ -26,12 +34,40 @@ class ClockShift:
     def shift_ns(self, t_ns: np.ndarray) -> np.ndarray:
         """The nanoseconds to subtract from each slave instant (int64, rounded to the nearest ns)."""
         t = np.asarray(t_ns, dtype=np.int64)
-        dt_s = (t - np.int64(self.t_ref_ns)).astype(np.float64) * 1e-9
-        return np.rint((self.latency_s + self.drift_ppm * 1e-6 * dt_s) * 1e9).astype(np.int64)
+        d = self.drift_ppm * 1e-6
+        dt_s = (t - np.int64(self.t_ref_ns)).astype(np.float64) * 1e-9  # exact difference first
+        return np.rint((self.latency_s + d * dt_s) / (1.0 + d) * 1e9).astype(np.int64)
 
     def to_master_ns(self, t_ns: np.ndarray) -> np.ndarray:
         t = np.asarray(t_ns, dtype=np.int64)
         return t - self.shift_ns(t)
+
+    def shift_units(self, t_ns: np.ndarray, unit_ns: int) -> np.ndarray:
+        """The shift at each instant in whole ``unit_ns`` (1000: microseconds), rounded to the nearest."""
+        s = self.shift_ns(t_ns)
+        return np.floor_divide(s + unit_ns // 2, unit_ns)
+
+    @classmethod
+    def from_latency(cls, lat, master_t0_ns: int) -> ClockShift:
+        """From a ``logtools.results.LatencyResult`` (``t_mid_rel_s`` relative to the master's t0)."""
+        return cls(float(lat.latency_s), float(lat.drift_ppm),
+                   int(master_t0_ns) + int(round(float(lat.t_mid_rel_s) * 1e9)))
+
+    @classmethod
+    def from_report(cls, rep: dict) -> ClockShift:
+        """From a report.json dict; raises ValueError when it holds no usable latency estimate."""
+        lat = rep.get("latency") or {}
+        if lat.get("failed") or lat.get("latency_s") is None:
+            raise ValueError(f"the report holds no latency estimate ({lat.get('failed') or 'latency_s is null'})")
+        drift = lat.get("drift_ppm")
+        drift = 0.0 if drift is None else float(drift)
+        if lat.get("t_mid_rel_s") is not None and (rep.get("master") or {}).get("t0_ns") is not None:
+            t_ref = int(rep["master"]["t0_ns"]) + int(round(float(lat["t_mid_rel_s"]) * 1e9))
+        elif lat.get("window_s"):
+            t_ref = int(round(0.5 * (float(lat["window_s"][0]) + float(lat["window_s"][1])) * 1e9))
+        else:
+            raise ValueError("the report states neither latency.t_mid_rel_s nor latency.window_s")
+        return cls(float(lat["latency_s"]), drift, t_ref)
 
 
 @dataclass(frozen=True)
@@ -45,3 +81,42 @@ class RestampStats:
     records_by_type: dict[str, int] = field(default_factory=dict)
     time_fields: tuple[str, ...] = ()  # which fields were rewritten
     damage: tuple[str, ...] = ()  # what could not be read and is therefore not in the output
+
+
+def write_bytes_atomic(dst: str, buf: np.ndarray | bytes) -> None:
+    """Write ``buf`` to ``dst`` atomically (temporary sibling + rename)."""
+    with atomic_path(dst) as tmp:
+        if isinstance(buf, np.ndarray):
+            buf.tofile(tmp)
+        else:
+            with open(tmp, "wb") as fh:
+                fh.write(buf)
+
+
+def read_bytes(src: str) -> np.ndarray:
+    """The whole file as a writable uint8 copy (the input is never written)."""
+    if os.path.isdir(src):
+        raise IsADirectoryError(src)
+    return np.fromfile(src, dtype=np.uint8)
+
+
+_LE = {1: "<u1", 2: "<u2", 4: "<u4", 8: "<u8"}
+_LE_SIGNED = {1: "<i1", 2: "<i2", 4: "<i4", 8: "<i8"}
+
+
+def put_le(buf: np.ndarray, offsets: np.ndarray, values: np.ndarray, nbytes: int) -> None:
+    """Write little-endian unsigned ``values`` of ``nbytes`` bytes at byte ``offsets`` of ``buf``."""
+    offs = np.asarray(offsets, dtype=np.int64)
+    if not len(offs):
+        return
+    raw = np.ascontiguousarray(np.asarray(values).astype(np.int64).astype(_LE[nbytes]))
+    buf[offs[:, None] + np.arange(nbytes)] = raw.view(np.uint8).reshape(len(offs), nbytes)
+
+
+def get_le(buf: np.ndarray, offsets: np.ndarray, nbytes: int, signed: bool = False) -> np.ndarray:
+    """Little-endian unsigned (or signed) integers of ``nbytes`` bytes at ``offsets`` (int64)."""
+    offs = np.asarray(offsets, dtype=np.int64)
+    if not len(offs):
+        return np.zeros(0, dtype=np.int64)
+    block = np.ascontiguousarray(buf[offs[:, None] + np.arange(nbytes)])
+    return block.view((_LE_SIGNED if signed else _LE)[nbytes]).reshape(-1).astype(np.int64)

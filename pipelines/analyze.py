@@ -61,6 +61,8 @@ class AnalyzeOptions:
     #: seed 000's when the alignment's residuals call for them), "on" (that model, else seed 000's
     #: 0.05 deg / 2 1/s), "off"
     flexure: str = "auto"
+    #: also write the slave on the master's clock: any of "csv", "parquet", "native" (pipelines.export)
+    write_slave: tuple[str, ...] = ()
 
     def __post_init__(self):
         parse_lever_arm(self.lever_arm)
@@ -132,12 +134,12 @@ def read_config(path: str) -> dict:
 
 
 _CONFIG_KEYS = {"max_lag", "filter", "match", "compensation", "smoother", "no_recording", "recording",
-                "latency_method", "compare", "out", "recording_max_rows", "lever_arm", "flexure"}
+                "latency_method", "compare", "out", "recording_max_rows", "lever_arm", "flexure", "write_slave"}
 
 
 #: the analysis options add_arguments defines (argparse dests), as options_from takes them
 CLI_KEYS = ("max_lag", "filter", "match", "compensation", "smoother", "no_recording", "latency_method", "compare",
-            "lever_arm", "flexure")
+            "lever_arm", "flexure", "write_slave")
 
 
 def cli_values(ns: argparse.Namespace) -> dict:
@@ -169,6 +171,10 @@ def options_from(cli: dict, config: dict | None = None) -> tuple[AnalyzeOptions,
         kw["recording"] = False
     if kw.get("filter") in FILTERS and FilterKind.parse(kw["filter"]).splits_delay and "compensation" not in kw:
         kw["compensation"] = "split"  # S004: integer-sample lag applied, the residual left to the delay state
+    if "write_slave" in merged:
+        from pipelines.export import parse_kinds
+
+        kw["write_slave"] = parse_kinds(merged["write_slave"])
     if "recording_max_rows" in merged:
         kw["recording_max_rows"] = int(merged["recording_max_rows"])
     if "lever_arm" in merged:
@@ -203,6 +209,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--flexure", default=None, choices=FLEXURE_MODES,
                    help="flexure states in the alignment: auto (default: with the latency fit's flexure "
                         "model when it found one, else when the residuals call for them), on, off")
+    p.add_argument("--write-slave", default=None, metavar="csv|parquet|native[,...]",
+                   help="also write the slave on the master's clock next to the report "
+                        "(slave_on_master_clock.*: canonical CSV, Parquet, and/or the slave's own format)")
     p.add_argument("--config", default=None, metavar="FILE", help="TOML or JSON file with the same options")
 
 
@@ -395,6 +404,9 @@ def summary_lines(rep: dict, paths: dict[str, str | None]) -> list[str]:
     nwarn = len(m.get("warnings", [])) + len(s.get("warnings", []))
     if nwarn:
         out.append(f"warnings: {nwarn} (see report)")
+    from pipelines.export import summary_from_report
+
+    out += summary_from_report(rep)
     out.append("outputs " + ", ".join(p for p in paths.values() if p))
     return out
 
@@ -517,6 +529,12 @@ def analyze_pair(master_arg: str, slave_arg: str, out_dir: str, opts: AnalyzeOpt
             align_sections[run] = rp.alignment_skipped(res, opts.filter, opts.match)
     _imu_to_imu_sections(master, an, align_sections, extra)
     tim["alignment"] = time.perf_counter() - t
+    if opts.write_slave and an.latency is not None:  # the slave on the master's clock (pipelines.export)
+        from pipelines.export import attach_to_analysis
+
+        t = time.perf_counter()
+        attach_to_analysis(opts.write_slave, out_dir, slave, master, an.latency, paths, extra)
+        tim["export"] = time.perf_counter() - t
 
     # -- outputs: html, recording, then report.json last
     t = time.perf_counter()

@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import concurrent.futures as cf
 import csv
+import dataclasses
 import glob
 import hashlib
 import html
@@ -483,10 +484,18 @@ def _run_dask(jobs: list[PairJob], address: str, on_result) -> None:
 
 
 def run_batch(campaign: str, out_root: str, *, jobs: int = 1, scheduler: str | None = None,
-              log=None) -> tuple[list[dict], dict[str, int]]:
-    """Analyze every pair; returns (rows sorted by pair, counts {"ran", "skipped", "failed"})."""
+              log=None, write_slave: str | None = None) -> tuple[list[dict], dict[str, int]]:
+    """Analyze every pair; returns (rows sorted by pair, counts {"ran", "skipped", "failed"}).
+    ``write_slave`` (csv,parquet,native) is added to every pair's options that do not set it."""
     log = log or (lambda msg: print(msg, file=sys.stderr))
     pair_jobs = discover(campaign, out_root)
+    if write_slave:
+        from pipelines.export import parse_kinds
+
+        kinds = ",".join(parse_kinds(write_slave))
+        pair_jobs = [j if any(o.startswith("--write-slave") for o in j.options)
+                     else dataclasses.replace(j, options=tuple(j.options) + ("--write-slave", kinds))
+                     for j in pair_jobs]
     os.makedirs(out_root, exist_ok=True)
     rows: dict[str, dict] = {}
     counts = {"ran": 0, "skipped": 0, "failed": 0}
@@ -530,12 +539,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--jobs", type=int, default=1, help="pairs analyzed in parallel (processes)")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="run the pairs on a Dask cluster (e.g. tcp://host:8786)")
+    p.add_argument("--write-slave", default=None, metavar="csv|parquet|native[,...]",
+                   help="also write each pair's slave on the master's clock (see tapost analyze)")
 
 
 def run(args: argparse.Namespace) -> int:
     if args.jobs < 1:
         raise InputError("--jobs must be at least 1")
-    rows, counts = run_batch(args.campaign, args.out, jobs=args.jobs, scheduler=args.scheduler)
+    rows, counts = run_batch(args.campaign, args.out, jobs=args.jobs, scheduler=args.scheduler,
+                             write_slave=args.write_slave)
     n_ok = sum(r["status"] in ("ok", "partial") for r in rows)
     print(f"{len(rows)} pairs: {n_ok} analyzed, {counts['failed']} failed; "
           f"{counts['ran']} run now, {counts['skipped']} already done")

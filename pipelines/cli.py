@@ -18,6 +18,7 @@ COMMANDS = {
     "inspect": ("pipelines.inspect_cmd", "list a log's channels, rates, durations, clocks, selectors"),
     "analyze": ("pipelines.analyze", "latency + compensation + transfer alignment for one pair"),
     "batch": ("pipelines.batch", "analyze every pair of a campaign folder or manifest"),
+    "restamp": ("pipelines.restamp_cmd", "write a slave log on the master's clock from a finished report"),
     "simulate": ("pipelines.simulate_cmd", "write a synthetic master/slave pair with truth.json"),
     "view": ("pipelines.view_cmd", "open a recording in the rerun viewer"),
 }

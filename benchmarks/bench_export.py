@@ -1,0 +1,93 @@
+"""Speed of the native export (the slave on the master's clock) against parsing the same file.
+
+A 1 h slave at 200 Hz (IMU 200 Hz; attitude, velocity, position 50 Hz) is written in each format by the
+repository's writers (tlog, DataFlash, ULog, canonical CSV). In the same run, for each file:
+* parse: ``parsers.registry.load`` (file -> InsLog, what ``tapost analyze`` does with a slave);
+* export: the native writer (``pipelines.export.write_native``: every record copied, the time fields
+  rewritten with a ClockShift of 37.2 ms and 30 ppm);
+* the ratio export / parse (the target: at most 1);
+* the CSV and Parquet exports from the parsed InsLog.
+Times are the best of ``--repeat`` runs, after one warm-up run of each (numba caches loaded).
+
+    python benchmarks/bench_export.py            # 1 h logs
+    python benchmarks/bench_export.py --quick    # 10 min logs
+
+Figures go to ``benchmarks/results/export.json``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+RESULTS = ROOT / "benchmarks" / "results" / "export.json"
+FORMATS = {"tlog": ".tlog", "dataflash": ".bin", "ulog": ".ulg", "csv": ".csv"}
+
+
+def best_of(fn, repeat: int) -> tuple[float, object]:
+    best, out = float("inf"), None
+    for _ in range(repeat):
+        t = time.perf_counter()
+        out = fn()
+        best = min(best, time.perf_counter() - t)
+    return best, out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="10 min logs instead of 1 h")
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--formats", default=",".join(FORMATS))
+    args = ap.parse_args(argv)
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from bench_parse_ulog_csv import synthetic_log
+
+    from parsers import registry
+    from parsers.restamp import ClockShift
+    from pipelines import export
+
+    duration = 600.0 if args.quick else 3600.0
+    log = synthetic_log(duration)
+    shift = ClockShift(0.0372, 30.0, log.meta.t0_ns + int(duration / 2 * 1e9))
+    out: dict = {"duration_s": duration, "imu_hz": 200.0, "nav_hz": 50.0, "repeat": args.repeat,
+                 "python": platform.python_version(), "machine": platform.machine(), "cpus": os.cpu_count(),
+                 "formats": {}}
+    with tempfile.TemporaryDirectory() as tmp:
+        d = Path(tmp)
+        for fmt in args.formats.split(","):
+            src = d / f"slave{FORMATS[fmt]}"
+            registry.write(str(src), log, fmt)
+            dst = d / f"slave_on_master_clock{FORMATS[fmt]}"
+            registry.load(str(src))  # warm-up (numba caches)
+            t_parse, parsed = best_of(lambda: registry.load(str(src)), args.repeat)
+            export.write_native(str(src), str(dst), fmt, shift, parsed.meta.selector)
+            t_exp, st = best_of(lambda: export.write_native(str(src), str(dst), fmt, shift, parsed.meta.selector),
+                                args.repeat)
+            row = {"file_mb": src.stat().st_size / 1e6, "records": st.records, "parse_s": t_parse,
+                   "export_native_s": t_exp, "ratio_export_over_parse": t_exp / t_parse,
+                   "imu_samples": int(len(parsed.imu))}
+            if fmt == "tlog":  # CSV/Parquet from the parsed slave, once
+                t_csv, _ = best_of(lambda: export.write_slave(("csv",), str(d), parsed, shift), 1)
+                t_pq, _ = best_of(lambda: export.write_slave(("parquet",), str(d), parsed, shift), 1)
+                out["csv_export_s"], out["parquet_export_s"] = t_csv, t_pq
+            out["formats"][fmt] = row
+            print(f"{fmt:10s} {row['file_mb']:8.1f} MB  parse {t_parse:7.2f} s  export {t_exp:7.2f} s  "
+                  f"ratio {row['ratio_export_over_parse']:.2f}", flush=True)
+            src.unlink()
+            dst.unlink()
+    if not args.quick:
+        RESULTS.parent.mkdir(parents=True, exist_ok=True)
+        RESULTS.write_text(json.dumps(out, indent=2) + "\n")
+        print(f"-> {RESULTS.relative_to(ROOT)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

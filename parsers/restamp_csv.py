@@ -1,0 +1,296 @@
+"""The slave on the master's clock, natively: canonical CSV and vendor CSV (the time column rewritten).
+
+A text-level rewrite: every line is copied as it is except its time cell, which is replaced by the
+master-clock time in the column's own unit at full precision (nanoseconds: 9 decimals of a second, 6 of
+a millisecond, 3 of a microsecond). Other columns keep their exact text (no float re-formatting), the
+header and line endings are kept, and a line whose time cell is not a decimal number (a damaged line)
+is copied unchanged and counted in ``damage``. A vendor session folder (NGIMU: ``sensors.csv``,
+``quaternion.csv``...) is written as a folder: every CSV of the unit whose header has the same time
+column is restamped, every other file copied byte for byte.
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+
+import numpy as np
+
+from logtools.errors import InputError
+from parsers.atomic import atomic_path
+from parsers.base import Selector
+from parsers.csvtable import decimal_text_to_int, delimiter
+from parsers.restamp import ClockShift, RestampStats
+
+HOW = "text rewrite of the time column (every other cell's text kept)"
+_POW10 = {"s": 9, "sec": 9, "ms": 6, "us": 3, "ns": 0}
+
+
+def _cells(buf, k, sep):  # pragma: no cover - compiled
+    """Per data line (after the header): (line start, line end, time cell start, end) of column k."""
+    n = buf.shape[0]
+    nl = 0
+    for i in range(n):
+        if buf[i] == 10:
+            nl += 1
+    ls = np.empty(nl + 1, np.int64)
+    le = np.empty(nl + 1, np.int64)
+    cs = np.empty(nl + 1, np.int64)
+    ce = np.empty(nl + 1, np.int64)
+    pos = 0
+    # skip the header
+    while pos < n and buf[pos] != 10:
+        pos += 1
+    pos += 1
+    m = 0
+    while pos < n:
+        start = pos
+        col = 0
+        c0 = -1
+        c1 = -1
+        if k == 0:
+            c0 = start
+        while pos < n and buf[pos] != 10:
+            if buf[pos] == sep:
+                if col == k:
+                    c1 = pos
+                col += 1
+                if col == k:
+                    c0 = pos + 1
+            pos += 1
+        end = pos
+        if c0 >= 0 and c1 < 0:
+            c1 = end - 1 if end > start and buf[end - 1] == 13 else end
+        ls[m] = start
+        le[m] = end
+        cs[m] = c0
+        ce[m] = c1
+        m += 1
+        pos += 1
+    return ls[:m], le[:m], cs[:m], ce[:m]
+
+
+def _parse(buf, cs, ce, p):  # pragma: no cover - compiled
+    """Decimal text -> value * 10**p (int64) exactly; spaces and quotes around it allowed."""
+    m = cs.shape[0]
+    out = np.zeros(m, np.int64)
+    ok = np.zeros(m, np.bool_)
+    for i in range(m):
+        a = cs[i]
+        b = ce[i]
+        if a < 0:
+            continue
+        while a < b and (buf[a] == 32 or buf[a] == 34):
+            a += 1
+        while b > a and (buf[b - 1] == 32 or buf[b - 1] == 34 or buf[b - 1] == 13):
+            b -= 1
+        if a >= b:
+            continue
+        neg = False
+        if buf[a] == 45 or buf[a] == 43:
+            neg = buf[a] == 45
+            a += 1
+        whole = np.int64(0)
+        frac = np.int64(0)
+        nf = 0
+        nd = 0
+        dot = False
+        good = True
+        for j in range(a, b):
+            c = buf[j]
+            if c == 46 and not dot:
+                dot = True
+            elif 48 <= c <= 57:
+                nd += 1
+                if dot:
+                    if nf < p:
+                        frac = frac * 10 + (c - 48)
+                        nf += 1
+                else:
+                    whole = whole * 10 + (c - 48)
+            else:
+                good = False
+                break
+        if not good or nd == 0 or nd - nf > 18:
+            continue
+        while nf < p:
+            frac *= 10
+            nf += 1
+        scale = np.int64(1)
+        for _ in range(p):
+            scale *= 10
+        if whole > np.int64(9223372036854775807) // scale - 1:  # would overflow int64
+            continue
+        v = whole * scale + frac
+        out[i] = -v if neg else v
+        ok[i] = True
+    return out, ok
+
+
+def _emit(buf, ls, le, cs, ce, ok, new, p, out):  # pragma: no cover - compiled
+    """Copy the data lines into ``out``, the time cell of each ``ok`` line replaced by ``new`` with
+    ``p`` decimals (the cell's surrounding spaces/quotes kept). Returns the bytes written."""
+    o = 0
+    digits = np.empty(24, np.uint8)
+    scale = np.int64(1)
+    for _ in range(p):
+        scale *= 10
+    for i in range(ls.shape[0]):
+        if not ok[i]:
+            for j in range(ls[i], le[i]):
+                out[o] = buf[j]
+                o += 1
+        else:
+            a = cs[i]
+            b = ce[i]
+            while a < b and (buf[a] == 32 or buf[a] == 34):
+                a += 1
+            while b > a and (buf[b - 1] == 32 or buf[b - 1] == 34 or buf[b - 1] == 13):
+                b -= 1
+            for j in range(ls[i], a):
+                out[o] = buf[j]
+                o += 1
+            v = new[i]
+            if v < 0:
+                out[o] = 45
+                o += 1
+                v = -v
+            w = v // scale
+            f = v % scale
+            nd = 0
+            if w == 0:
+                digits[0] = 48
+                nd = 1
+            while w > 0:
+                digits[nd] = 48 + w % 10
+                w //= 10
+                nd += 1
+            for j in range(nd):
+                out[o] = digits[nd - 1 - j]
+                o += 1
+            if p > 0:
+                out[o] = 46
+                o += 1
+                for j in range(p):
+                    digits[p - 1 - j] = 48 + f % 10
+                    f //= 10
+                for j in range(p):
+                    out[o] = digits[j]
+                    o += 1
+            for j in range(b, le[i]):
+                out[o] = buf[j]
+                o += 1
+        if le[i] < buf.shape[0]:
+            out[o] = 10
+            o += 1
+    return o
+
+
+_COMPILED: dict[str, object] = {}
+
+
+def _kernel(name: str):
+    fn = _COMPILED.get(name)
+    if fn is None:
+        import numba
+
+        fn = _COMPILED[name] = numba.njit(cache=True)(globals()[name])
+    return fn
+
+
+def restamp_bytes(raw: bytes, time_col: str, unit: str, shift: ClockShift, path: str) -> tuple[np.ndarray, int, int]:
+    """(new file bytes, data lines rewritten, damaged lines kept as they were)."""
+    if unit not in _POW10:
+        raise InputError(f"native CSV export: time unit {unit!r} not supported", path)
+    p = _POW10[unit]
+    buf = np.frombuffer(raw, dtype=np.uint8)
+    nl = raw.find(b"\n")
+    head = (raw if nl < 0 else raw[:nl]).decode("utf-8", "replace")
+    sep = delimiter(head)
+    cols = [c.strip().strip('"').lstrip("\ufeff") for c in head.rstrip("\r").split(sep)]
+    if time_col not in cols:
+        raise InputError(f"native CSV export: no time column {time_col!r} in the header", path)
+    k = cols.index(time_col)
+    ls, le, cs, ce = _kernel("_cells")(buf, k, ord(sep))
+    ns, ok = _kernel("_parse")(buf, cs, ce, p)
+    blank = le <= ls
+    # a value in the unit times 10**p is nanoseconds exactly (s: p=9, ms: 6, us: 3, ns: 0)
+    new = ns.copy()
+    new[ok] = shift.to_master_ns(ns[ok])
+    head_end = len(raw) if nl < 0 else nl + 1
+    out = np.empty(len(raw) + 24 * len(ls) + 1, dtype=np.uint8)
+    out[:head_end] = buf[:head_end]
+    n = _kernel("_emit")(buf, ls, le, cs, ce, ok, new, p, out[head_end:])
+    return out[:head_end + n], int(ok.sum()), int((~ok & ~blank).sum())
+
+
+def _rewrite_file(src: str, dst: str, time_col: str, unit: str, shift: ClockShift) -> tuple[int, int]:
+    with open(src, "rb") as fh:
+        raw = fh.read()
+    new, n, bad = restamp_bytes(raw, time_col, unit, shift, src)
+    with atomic_path(dst) as tmp:
+        new.tofile(tmp)
+    return n, bad
+
+
+def restamp_csv(src: str, dst: str, shift: ClockShift, *, selector=None) -> RestampStats:
+    """Canonical CSV: the ``time_s`` column (UNIX or boot seconds)."""
+    from parsers.csv_canonical import TIME
+
+    n, bad = _rewrite_file(src, dst, TIME, "s", shift)
+    return RestampStats(path=dst, format="csv", how=HOW, records=n, records_by_type={"rows": n},
+                        time_fields=(TIME,),
+                        damage=(f"{bad} line(s) without a readable time copied unchanged",) if bad else ())
+
+
+def _replace_dir(tmp_dir: str, dst: str) -> None:
+    if os.path.isdir(dst):
+        old = dst + ".old-" + os.path.basename(tmp_dir)
+        os.replace(dst, old)
+        os.replace(tmp_dir, dst)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(tmp_dir, dst)
+
+
+def restamp_csv_vendor(src: str, dst: str, shift: ClockShift, *, selector=None) -> RestampStats:
+    """Vendor CSV (a column map's time column, in its unit); a session/unit folder -> a folder."""
+    from parsers import csv_vendor as cv
+
+    sel = selector if isinstance(selector, Selector) else Selector.parse(str(selector or ""))
+    s = cv._resolve(src, sel)
+    cmap = cv.column_map_for(s, sel)
+    time_col = cmap.column_for("time")
+    unit = cmap.columns[time_col][1]
+    if not os.path.isdir(src):
+        n, bad = _rewrite_file(src, dst, time_col, unit, shift)
+        return RestampStats(path=dst, format="csv-vendor", how=HOW, records=n, records_by_type={"rows": n},
+                            time_fields=(time_col,),
+                            damage=(f"{bad} line(s) without a readable time copied unchanged",) if bad else ())
+    unit_dir = os.path.dirname(s.table)
+    parent = os.path.dirname(os.path.abspath(dst)) or "."
+    os.makedirs(parent, exist_ok=True)
+    tmp_dir = tempfile.mkdtemp(prefix="." + os.path.basename(dst) + ".", suffix=".tmp", dir=parent)
+    by_file: dict[str, int] = {}
+    damage: list[str] = []
+    try:
+        for name in sorted(os.listdir(unit_dir)):
+            a, b = os.path.join(unit_dir, name), os.path.join(tmp_dir, name)
+            if os.path.isdir(a):
+                continue
+            header = cv._header_of(a) if name.lower().endswith(".csv") else []
+            if time_col in header:
+                n, bad = _rewrite_file(a, b, time_col, unit, shift)
+                by_file[name] = n
+                if bad:
+                    damage.append(f"{name}: {bad} line(s) without a readable time copied unchanged")
+            else:
+                shutil.copyfile(a, b)
+        os.chmod(tmp_dir, 0o755)
+        _replace_dir(tmp_dir, dst)
+    except BaseException:
+        shutil.rmtree(tmp_dir, ignore_errors=True)
+        raise
+    return RestampStats(path=dst, format="csv-vendor", how=HOW + "; a folder: other files copied",
+                        records=sum(by_file.values()), records_by_type=by_file, time_fields=(time_col,),
+                        damage=tuple(damage))

@@ -1,0 +1,79 @@
+"""``tapost restamp SLAVE --from DIR/report.json [-o OUT] [--format native|csv|parquet]``.
+
+The slave log put on the master's clock with a finished analysis' latency and drift (report.json
+``latency``: ``latency_s``, ``drift_ppm``, ``t_mid_rel_s`` with ``master.t0_ns``), without analysing
+again. The slave is read with the report's selector unless one is given (``SLAVE::SELECTOR``), so that
+its clock is the one the latency was measured on. Default output: next to the report,
+``slave_on_master_clock.<ext>``. The report is not changed.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+
+from logtools.errors import InputError
+from parsers import load
+from parsers.registry import parse_log_arg
+from parsers.restamp import ClockShift
+from pipelines import export
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("slave", help="slave log, PATH[::SELECTOR] (default selector: the report's)")
+    p.add_argument("--from", dest="report", required=True, metavar="DIR/report.json",
+                   help="report.json of a finished analysis of this slave (or its folder)")
+    p.add_argument("-o", "--out", default=None, metavar="OUT",
+                   help="output file (folder for folder formats); default next to the report")
+    p.add_argument("--format", default="native", metavar="native|csv|parquet[,...]",
+                   help="native (the slave's own format, default), csv or parquet; comma-separated for several")
+
+
+def read_report(path: str) -> dict:
+    if os.path.isdir(path):
+        path = os.path.join(path, "report.json")
+    try:
+        with open(path, encoding="utf-8") as fh:
+            rep = json.load(fh)
+    except OSError as exc:
+        raise InputError(f"cannot read the report: {exc.strerror}", path) from None
+    except ValueError as exc:
+        raise InputError(f"not a JSON report: {exc}", path) from None
+    if not isinstance(rep, dict) or not str(rep.get("schema", "")).startswith("tapost.report/"):
+        raise InputError("not a tapost report.json (no schema tapost.report/...)", path)
+    return rep
+
+
+def run(args: argparse.Namespace) -> int:
+    kinds = export.parse_kinds(args.format)
+    if not kinds:
+        raise InputError("--format names nothing to write (native, csv or parquet)")
+    if args.out and len(kinds) > 1:
+        raise InputError("-o names one file: give one --format with it (or omit -o)")
+    rep = read_report(args.report)
+    report_path = args.report if not os.path.isdir(args.report) else os.path.join(args.report, "report.json")
+    try:
+        shift = ClockShift.from_report(rep)
+    except ValueError as exc:
+        raise InputError(str(exc), report_path) from None
+    path, sel = parse_log_arg(args.slave)
+    slave_rep = rep.get("slave") or {}
+    arg = args.slave if sel else (f"{path}::{slave_rep['selector']}" if slave_rep.get("selector") else path)
+    slave = load(arg)
+    notes = []
+    if slave_rep.get("format") and slave_rep["format"] != slave.meta.format:
+        raise InputError(f"the report's slave is {slave_rep['format']}, this log is {slave.meta.format}", path)
+    if slave_rep.get("path") and os.path.basename(slave_rep["path"]) != os.path.basename(path):
+        notes.append(f"note: the report's slave was {slave_rep['path']}")
+    if slave_rep.get("clock") and slave_rep["clock"] != slave.meta.clock:
+        raise InputError(f"the report's slave was read on the {slave_rep['clock']} clock, this one on "
+                         f"{slave.meta.clock}: give the report's selector ({slave_rep.get('selector')})", path)
+    out_dir = os.path.dirname(os.path.abspath(report_path))
+    entries = export.write_slave(kinds, out_dir, slave, shift, out_path=args.out)
+    sec = export.report_section(entries, shift)
+    for line in notes + export.summary_from_report({"slave_on_master_clock": sec}):
+        print(line)
+    failed = [e for e in entries if e.failed]
+    if failed:
+        raise InputError("; ".join(f"{e.kind}: {e.failed}" for e in failed))
+    return 0

@@ -1,0 +1,355 @@
+"""The slave on the master's clock (pipelines.export, parsers.restamp*): the shift's arithmetic, the
+byte-level writers (only the time fields change: message counts per type, payloads compared with the
+formats' own readers), damaged input, unchanged inputs, atomic outputs, the CLI. The latency round trips
+(analysis -> export -> analysis) are in test_export_roundtrip.py."""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from logtools import sim
+from logtools.compensate import true_time_s
+from logtools.errors import InputError
+from logtools.results import LatencyResult
+from parsers import registry
+from parsers.restamp import ClockShift
+from pipelines import export
+from pipelines.cli import main as cli_main
+
+LAT_S, DRIFT_PPM = 0.0372, 30.0
+EXT = {"tlog": ".tlog", "dataflash": ".bin", "ulog": ".ulg", "csv": ".csv"}
+
+
+def sha(path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+@pytest.fixture(scope="module")
+def pair():
+    cfg = sim.scenario_config("ship", duration_s=12.0, seed=3, latency_s=LAT_S, drift_ppm=DRIFT_PPM)
+    return sim.simulate(cfg)
+
+
+@pytest.fixture(scope="module")
+def slaves(pair, tmp_path_factory):
+    d = tmp_path_factory.mktemp("slaves")
+    out = {}
+    for fmt, ext in EXT.items():
+        p = d / f"slave{ext}"
+        registry.write(str(p), pair.slave, fmt)
+        out[fmt] = p
+    return out
+
+
+def shift_of(pair) -> ClockShift:
+    t = pair.truth
+    return ClockShift(t.latency_s, t.drift_ppm, int(t.t_mid_ns))
+
+
+# ---- the shift ------------------------------------------------------------------------------------
+def test_clock_shift_is_compensate_tau():
+    """ClockShift gives logtools.compensate's exact tau = (t - L0 + d t_mid)/(1 + d), to the ns."""
+    t0 = 1_700_000_000_000_000_000
+    lat = LatencyResult(latency_s=0.25, sigma_s=1e-4, drift_ppm=120.0, method="x", window_s=(0.0, 1.0),
+                        quality={}, methods={}, t_mid_rel_s=1800.0)
+    rel = np.linspace(-10.0, 3700.0, 101)
+    t_ns = t0 + np.round(rel * 1e9).astype(np.int64)
+    sh = ClockShift.from_latency(lat, t0)
+    tau_rel = true_time_s((t_ns - t0) * 1e-9, lat)
+    got_rel = (sh.to_master_ns(t_ns) - t0) * 1e-9
+    assert np.max(np.abs(got_rel - tau_rel)) < 2e-9
+    # the shift differs from the first-order t - L(t) by d L: 30 ns here, and is not the same thing
+    first_order = 0.25 + 120e-6 * ((t_ns - t0) * 1e-9 - 1800.0)
+    assert np.max(np.abs(sh.shift_ns(t_ns) * 1e-9 - first_order)) > 1e-8
+
+
+def test_clock_shift_from_report_uses_master_t0_and_t_mid():
+    rep = {"master": {"t0_ns": 5_000_000_000}, "latency": {"latency_s": 0.01, "drift_ppm": 2.0, "t_mid_rel_s": 1.5,
+                                                          "window_s": [0.0, 100.0]}}
+    sh = ClockShift.from_report(rep)
+    assert sh.t_ref_ns == 6_500_000_000 and sh.latency_s == 0.01 and sh.drift_ppm == 2.0
+    with pytest.raises(ValueError, match="no latency"):
+        ClockShift.from_report({"latency": {"failed": "no motion", "latency_s": None}})
+
+
+def test_parse_kinds():
+    assert export.parse_kinds("csv, native,csv") == ("csv", "native")
+    assert export.parse_kinds(None) == ()
+    with pytest.raises(InputError, match="--write-slave takes"):
+        export.parse_kinds("csv,hdf5")
+
+
+def test_missing_ros_writer_is_one_clear_error(monkeypatch):
+    import importlib
+
+    real = importlib.import_module
+
+    def fake(name, *a, **k):
+        if name == "parsers.restamp_ros":
+            err = ModuleNotFoundError(f"No module named {name!r}")
+            err.name = name
+            raise err
+        return real(name, *a, **k)
+
+    monkeypatch.setattr(export.importlib, "import_module", fake)
+    with pytest.raises(InputError, match="native export for rosbag1 not available"):
+        export.native_writer("rosbag1")
+    with pytest.raises(InputError, match="not available"):
+        export.native_writer("hdf5")
+
+
+# ---- format by format: only the time fields change ---------------------------------------------------
+def _tlog_msgs(path):
+    from parsers.mavlink_tlog import reference_messages
+
+    return reference_messages(str(path))
+
+
+TLOG_TIME = {"time_usec", "time_boot_ms", "time_unix_usec"}
+
+
+def test_tlog_only_time_fields_change(slaves, pair, tmp_path):
+    from parsers.restamp_mavlink import restamp_tlog
+
+    src = slaves["tlog"]
+    h = sha(src)
+    dst = tmp_path / "out.tlog"
+    sh = shift_of(pair)
+    st = restamp_tlog(str(src), str(dst), sh)
+    assert sha(src) == h
+    assert dst.stat().st_size == src.stat().st_size
+    a, b = _tlog_msgs(src), _tlog_msgs(dst)  # pymavlink mavutil: every CRC must check
+    assert len(a) == len(b) and len(a) == st.records
+    ca = pd.Series([m.get_type() for m in a]).value_counts().to_dict()
+    cb = pd.Series([m.get_type() for m in b]).value_counts().to_dict()
+    assert ca == cb == st.records_by_type
+    n_time = 0
+    for ma, mb in zip(a, b):
+        assert ma.get_type() == mb.get_type()
+        da, db = ma.to_dict(), mb.to_dict()
+        for k in da:
+            if k in TLOG_TIME:
+                n_time += da[k] != db[k]
+            else:
+                assert da[k] == db[k], (ma.get_type(), k)
+        # the receive stamp moves by the shift (to the microsecond)
+        assert abs((ma._timestamp - mb._timestamp) - LAT_S) < 2e-3
+    assert n_time > 0.9 * len(a)
+    # SYSTEM_TIME keeps its boot -> UNIX offset exactly
+    sa = [m for m in a if m.get_type() == "SYSTEM_TIME"]
+    sb = [m for m in b if m.get_type() == "SYSTEM_TIME"]
+    assert sa and all(x.time_unix_usec - x.time_boot_ms * 1000 == y.time_unix_usec - y.time_boot_ms * 1000
+                      for x, y in zip(sa, sb))
+
+
+def test_dataflash_only_time_fields_change(slaves, pair, tmp_path):
+    from parsers.dataflash import reference_messages
+    from parsers.restamp_mavlink import restamp_dataflash
+
+    src = slaves["dataflash"]
+    h = sha(src)
+    dst = tmp_path / "out.bin"
+    st = restamp_dataflash(str(src), str(dst), shift_of(pair))
+    assert sha(src) == h and dst.stat().st_size == src.stat().st_size
+    a, b = reference_messages(str(src)), reference_messages(str(dst))
+    assert [m.get_type() for m in a] == [m.get_type() for m in b]
+    assert pd.Series([m.get_type() for m in a]).value_counts().to_dict() == \
+        {k: v for k, v in st.records_by_type.items() if k in {m.get_type() for m in a}}
+    time_cols = {"TimeUS", "TimeMS", "GMS", "GWk", "T"}
+    for ma, mb in zip(a, b):
+        da, db = ma.to_dict(), mb.to_dict()
+        for k in da:
+            if k not in time_cols:
+                assert da[k] == db[k], (ma.get_type(), k)
+        if ma.get_type() == "IMU":
+            assert abs((ma.TimeUS - mb.TimeUS) * 1e-6 - LAT_S) < 1e-3
+    # FMT records byte-identical
+    raw_a, raw_b = src.read_bytes(), dst.read_bytes()
+    fmt_at = [i for i in range(len(raw_a) - 2) if raw_a[i:i + 3] == b"\xa3\x95\x80"][:5]
+    assert fmt_at and all(raw_a[i:i + 89] == raw_b[i:i + 89] for i in fmt_at)
+
+
+def test_ulog_only_time_fields_change(slaves, pair, tmp_path):
+    from pyulog import ULog
+
+    from parsers.restamp_ulog import restamp_ulog
+
+    src = slaves["ulog"]
+    h = sha(src)
+    dst = tmp_path / "out.ulg"
+    restamp_ulog(str(src), str(dst), shift_of(pair))
+    assert sha(src) == h and dst.stat().st_size == src.stat().st_size
+    a, b = ULog(str(src)), ULog(str(dst))
+    assert a.start_timestamp == b.start_timestamp  # header kept
+    assert a.msg_info_dict == b.msg_info_dict
+    da = {(d.name, d.multi_id): d.data for d in a.data_list}
+    db = {(d.name, d.multi_id): d.data for d in b.data_list}
+    assert da.keys() == db.keys()
+    for key in da:
+        assert da[key].keys() == db[key].keys()
+        for f in da[key]:
+            assert len(da[key][f]) == len(db[key][f])
+            if f in ("timestamp", "timestamp_sample", "ref_timestamp", "time_utc_usec"):
+                d = (da[key][f].astype(np.int64) - db[key][f].astype(np.int64)) * 1e-6
+                assert np.all(np.abs(d[da[key][f] > 0] - LAT_S) < 1e-3), (key, f)
+            else:
+                np.testing.assert_array_equal(da[key][f], db[key][f], err_msg=f"{key}.{f}")
+    gps = [k for k in da if k[0] == "vehicle_gps_position"]
+    for k in gps:  # the boot -> UTC offset is kept exactly
+        off_a = da[k]["time_utc_usec"].astype(np.int64) - da[k]["timestamp"].astype(np.int64)
+        off_b = db[k]["time_utc_usec"].astype(np.int64) - db[k]["timestamp"].astype(np.int64)
+        np.testing.assert_array_equal(off_a, off_b)
+
+
+def test_csv_only_time_column_changes(slaves, pair, tmp_path):
+    from parsers.restamp_csv import restamp_csv
+
+    src = slaves["csv"]
+    h = sha(src)
+    dst = tmp_path / "out.csv"
+    sh = shift_of(pair)
+    st = restamp_csv(str(src), str(dst), sh)
+    assert sha(src) == h
+    a = pd.read_csv(src, dtype=str, keep_default_na=False)
+    b = pd.read_csv(dst, dtype=str, keep_default_na=False)
+    assert len(a) == len(b) == st.records and list(a.columns) == list(b.columns)
+    pd.testing.assert_frame_equal(a.drop(columns="time_s"), b.drop(columns="time_s"))
+    from parsers.csv_canonical import seconds_text_to_ns
+
+    ta, tb = seconds_text_to_ns(a["time_s"]), seconds_text_to_ns(b["time_s"])
+    np.testing.assert_array_equal(tb, sh.to_master_ns(ta))  # exact to the nanosecond
+    assert b["time_s"].str.split(".").str[1].str.len().eq(9).all()
+
+
+def test_vendor_csv_folder(tmp_path):
+    """An NGIMU-style folder: every CSV with the time column restamped in its unit, other files copied."""
+    from parsers.restamp_csv import restamp_csv_vendor
+
+    d = tmp_path / "unit"
+    d.mkdir()
+    t = np.arange(0, 2.0, 0.02)
+    g = pd.DataFrame({"Time (s)": [f"{x:.3f}" for x in t], **{f"Gyroscope {a} (deg/s)": np.sin(t + i)
+                                                            for i, a in enumerate("XYZ")},
+                      **{f"Accelerometer {a} (g)": np.cos(t + i) for i, a in enumerate("XYZ")}})
+    g.to_csv(d / "sensors.csv", index=False)
+    pd.DataFrame({"Time (s)": [f"{x:.3f}" for x in t], "W": 1.0, "X": 0.0, "Y": 0.0, "Z": 0.0}).to_csv(
+        d / "quaternion.csv", index=False)
+    (d / "Settings.txt").write_text("keep me\n")
+    sh = ClockShift(0.0015, 0.0, 0)
+    st = restamp_csv_vendor(str(d), str(tmp_path / "out"), sh)
+    assert st.records_by_type == {"quaternion.csv": len(t), "sensors.csv": len(t)}
+    assert (tmp_path / "out" / "Settings.txt").read_text() == "keep me\n"
+    b = pd.read_csv(tmp_path / "out" / "sensors.csv", dtype=str)
+    assert b["Time (s)"].iloc[1] == "0.018500000"
+    reread = registry.load(str(tmp_path / "out"))
+    assert abs(reread.meta.t0_ns - (-1_500_000)) == 0
+
+
+# ---- damage, atomicity, the CLI ----------------------------------------------------------------
+@pytest.mark.parametrize("fmt", ["tlog", "dataflash", "ulog"])
+def test_damaged_input_written_whole_and_named(slaves, pair, tmp_path, fmt):
+    from parsers import restamp_mavlink, restamp_ulog
+
+    raw = bytearray(slaves[fmt].read_bytes())
+    cut = len(raw) - 7
+    mid = len(raw) // 2
+    raw[mid:mid + 5] = b"\x00\x01\x02\x03\x04" if fmt != "ulog" else raw[mid:mid + 5]
+    src = tmp_path / f"bad{EXT[fmt]}"
+    src.write_bytes(bytes(raw[:cut]))
+    dst = tmp_path / f"out{EXT[fmt]}"
+    fn = {"tlog": restamp_mavlink.restamp_tlog, "dataflash": restamp_mavlink.restamp_dataflash,
+          "ulog": restamp_ulog.restamp_ulog}[fmt]
+    st = fn(str(src), str(dst), shift_of(pair))
+    assert dst.stat().st_size == src.stat().st_size  # never a silently shorter file
+    assert st.damage and any("trunc" in d or "damaged" in d for d in st.damage)
+    # the readable part reads back, compensated
+    log = registry.load(str(dst))
+    assert len(log.imu) > 0.9 * len(pair.slave.imu)
+
+
+def test_interrupted_write_leaves_nothing(slaves, pair, tmp_path, monkeypatch):
+    import parsers.atomic as atomic
+
+    def boom(a, b):
+        raise KeyboardInterrupt
+
+    slave = registry.load(str(slaves["tlog"]))
+    monkeypatch.setattr(atomic.os, "replace", boom)
+    for kind in ("native", "csv", "parquet"):
+        with pytest.raises(KeyboardInterrupt):
+            export.write_slave((kind,), str(tmp_path), slave, shift_of(pair))
+    assert os.listdir(tmp_path) == []
+
+
+def test_restamp_cli(slaves, pair, tmp_path, capsys):
+    t = pair.truth
+    rep = {"schema": "tapost.report/1", "master": {"t0_ns": int(t.t_mid_ns) - 6_000_000_000},
+           "slave": {"path": str(slaves["ulog"]), "format": "ulog", "selector": "", "clock": "epoch"},
+           "latency": {"latency_s": t.latency_s, "drift_ppm": t.drift_ppm, "t_mid_rel_s": 6.0}}
+    (tmp_path / "report.json").write_text(json.dumps(rep))
+    h = sha(slaves["ulog"])
+    code = cli_main(["restamp", str(slaves["ulog"]), "--from", str(tmp_path / "report.json"),
+                     "--format", "native,csv,parquet"])
+    assert code == 0
+    assert sha(slaves["ulog"]) == h
+    for name in ("slave_on_master_clock.ulg", "slave_on_master_clock.csv", "slave_on_master_clock.parquet"):
+        assert (tmp_path / name).stat().st_size > 0
+    pq = pd.read_parquet(tmp_path / "slave_on_master_clock.parquet")
+    assert pq["time_ns"].dtype == np.int64
+    csv = registry.load(str(tmp_path / "slave_on_master_clock.csv"))
+    native = registry.load(str(tmp_path / "slave_on_master_clock.ulg"))
+    # the exports agree: same IMU stamps to the microsecond (ULog's resolution)
+    a = csv.meta.t0_ns + np.round(csv.imu.dropna().index.to_numpy() * 1e9)
+    b = native.meta.t0_ns + np.round(native.imu.index.to_numpy() * 1e9)
+    assert len(a) == len(b) and np.max(np.abs(a - b)) <= 1000
+    capsys.readouterr()
+    assert cli_main(["restamp", str(slaves["ulog"]), "--from", str(tmp_path / "nope.json")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "nope.json" in err
+    rep["latency"] = {"failed": "no motion", "latency_s": None}
+    (tmp_path / "failed.json").write_text(json.dumps(rep))
+    assert cli_main(["restamp", str(slaves["ulog"]), "--from", str(tmp_path / "failed.json")]) == 2
+    assert "no latency estimate" in capsys.readouterr().err
+
+
+def test_export_table_has_every_channel(pair):
+    sh = shift_of(pair)
+    tab = export.table_on_master_clock(pair.slave, sh)
+    for c in ("gyro_x_rad_s", "accel_z_m_s2", "qw", "vel_n_m_s", "lat_deg", "alt_m"):
+        assert c in tab.columns
+    assert tab.index.dtype == np.int64 and tab.index.is_monotonic_increasing
+    n_imu = len(pair.slave.imu)
+    assert tab["gyro_x_rad_s"].notna().sum() == n_imu
+
+
+def test_unwritable_output_is_a_failed_entry(slaves, pair, tmp_path):
+    blocker = tmp_path / "not_a_dir"
+    blocker.write_text("x")
+    slave = registry.load(str(slaves["csv"]))
+    (e,) = export.write_slave(("csv",), str(blocker / "sub"), slave, shift_of(pair))
+    assert e.failed and e.failed.startswith("cannot write") and e.path is None
+    assert export.warnings_of([e]) == [f"slave export csv failed: {e.failed}"]
+
+
+def test_batch_passes_write_slave_to_every_pair(slaves, tmp_path, monkeypatch):
+    """tapost batch --write-slave: each pair's analysis gets it, unless its manifest options set it."""
+    from pipelines import analyze, batch
+
+    seen = {}
+
+    def fake(master, slave, out_dir, opts, progress=None):
+        seen[os.path.basename(out_dir)] = opts.write_slave
+        raise InputError("stub: not analysed", slave)
+
+    monkeypatch.setattr(analyze, "analyze_pair", fake)
+    man = tmp_path / "campaign.csv"
+    s = slaves["csv"]
+    man.write_text(f"master,slave,options,name\n{s},{s},,a\n{s},{s},--write-slave parquet,b\n")
+    batch.run_batch(str(man), str(tmp_path / "out"), write_slave="native,csv", log=lambda m: None)
+    assert seen == {"a": ("native", "csv"), "b": ("parquet",)}

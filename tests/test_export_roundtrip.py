@@ -1,0 +1,139 @@
+"""Round trips of the native export: a pair with a known latency and drift is analysed, the slave is
+exported in its own format on the master's clock, and the master against the exported slave gives
+latency 0 within max(3 sigma, 0.05 ms) and drift 0 within 1 ppm. Simulated pairs (tlog, DataFlash,
+ULog, canonical CSV) and the real logs of ../shared/realdata (IMU2 vs IMU of ArduPilot logs; the PX4
+ULog against a shifted copy of itself)."""
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import pytest
+
+from logtools import sim
+from logtools.latency import estimate
+from parsers import registry
+from parsers.restamp import ClockShift
+from pipelines import export
+from pipelines.cli import main as cli_main
+
+REAL = Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
+EXT = {"tlog": ".tlog", "dataflash": ".bin", "ulog": ".ulg", "csv": ".csv"}
+TOL_S, TOL_PPM = 5e-5, 1.0
+
+
+def sha(path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def assert_zero(lat, what: str) -> None:
+    tol = max(3 * lat.sigma_s, TOL_S)
+    assert abs(lat.latency_s) <= tol, f"{what}: latency {lat.latency_s * 1e3:+.4f} ms (tol {tol * 1e3:.4f} ms)"
+    assert abs(lat.drift_ppm) <= TOL_PPM, f"{what}: drift {lat.drift_ppm:+.3f} ppm"
+
+
+def roundtrip(master_arg: str, slave_arg: str, out_dir: Path, *, max_lag_s: float = 2.0):
+    """analyse -> export natively -> analyse again; returns (before, after, export entry)."""
+    master, slave = registry.load(master_arg), registry.load(slave_arg)
+    before = estimate(master, slave, compare=False, max_lag_s=max_lag_s)
+    shift = ClockShift.from_latency(before, master.meta.t0_ns)
+    src = slave.meta.source_path
+    h = sha(src)
+    (entry,) = export.write_slave(("native",), str(out_dir), slave, shift)
+    assert entry.failed is None, entry.failed
+    assert sha(src) == h  # the input is never modified
+    again = registry.load(f"{entry.path}::{slave.meta.selector}" if slave.meta.selector else entry.path)
+    assert again.meta.clock == slave.meta.clock
+    after = estimate(master, again, compare=False, max_lag_s=max_lag_s)
+    return before, after, entry
+
+
+@pytest.fixture(scope="module")
+def sim_dir(tmp_path_factory):
+    cfg = sim.scenario_config("ship", duration_s=60.0, seed=7, latency_s=0.0372, drift_ppm=30.0)
+    pair = sim.simulate(cfg)
+    d = tmp_path_factory.mktemp("rt")
+    registry.write(str(d / "master.csv"), pair.master, "csv")
+    for fmt, ext in EXT.items():
+        registry.write(str(d / f"slave{ext}"), pair.slave, fmt)
+    return d
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("fmt", list(EXT))
+def test_simulated_roundtrip(sim_dir, tmp_path, fmt):
+    before, after, entry = roundtrip(str(sim_dir / "master.csv"), str(sim_dir / f"slave{EXT[fmt]}"), tmp_path)
+    assert abs(before.latency_s - 0.0372) < 1e-3 and abs(before.drift_ppm - 30.0) < 2.0
+    assert_zero(after, fmt)
+    assert entry.format == fmt and not entry.damage
+
+
+@pytest.mark.slow
+def test_analyze_write_slave_cli(sim_dir, tmp_path, capsys):
+    """tapost analyze --write-slave csv,parquet,native: the files, report.json outputs (schema-valid)."""
+    out = tmp_path / "an"
+    code = cli_main(["analyze", str(sim_dir / "master.csv"), str(sim_dir / "slave.ulg"), "-o", str(out),
+                     "--no-recording", "--no-compare", "--write-slave", "csv,parquet,native"])
+    assert code == 0
+    text = capsys.readouterr().out
+    assert "slave on master clock (native): slave_on_master_clock.ulg" in text
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["outputs"]["slave_native"] == "slave_on_master_clock.ulg"
+    assert rep["outputs"]["slave_csv"] == "slave_on_master_clock.csv"
+    assert rep["outputs"]["slave_parquet"] == "slave_on_master_clock.parquet"
+    files = {f["kind"]: f for f in rep["slave_on_master_clock"]["files"]}
+    assert files["native"]["records"] > 0 and files["native"]["damage"] == []
+    from pipelines.report import validate
+
+    validate(rep)
+    master = registry.load(str(sim_dir / "master.csv"))
+    for name in ("slave_on_master_clock.ulg", "slave_on_master_clock.csv"):
+        assert_zero(estimate(master, registry.load(str(out / name)), compare=False), name)
+
+
+# ---- real logs ------------------------------------------------------------------------------------
+def real(name: str) -> Path:
+    p = REAL / name
+    if not p.exists():
+        pytest.skip("shared/realdata absent")
+    return p
+
+
+@pytest.mark.realdata
+@pytest.mark.slow
+@pytest.mark.parametrize("name", [
+    "arduplane_box_pilot.BIN",
+    "arduplane_elevator.BIN",  # no GPS: boot time
+    "arducopter_2014-10-18_20-04-24.bin",  # old layout: TimeMS (whole ms), GPS T and Week/TimeMS
+    # log0036's drift is undetermined (1.7 +/- 3.6 ppm) and the estimator shrinks it toward 0 (a drift
+    # prior): removing the 1.68 ppm it reports leaves 1.69 ppm (removing 11.68 leaves -8.20: the response
+    # is 1:1, the reported value is about half the data's). The exported stamps are exact (<= 0.5 us);
+    # the criterion is not met by this estimator on this log.
+    pytest.param("arducopter_log0036.bin", marks=pytest.mark.xfail(
+        strict=True, reason="estimator's drift prior: the reported drift is about half the data's")),
+])
+def test_real_dataflash_imu2_vs_imu(tmp_path, name):
+    p = real(name)
+    before, after, entry = roundtrip(f"{p}::imu=IMU", f"{p}::imu=IMU2", tmp_path)
+    assert abs(before.latency_s) < 0.01  # a few ms between the two IMUs
+    assert_zero(after, name)
+    assert entry.path.endswith(".bin")
+
+
+@pytest.mark.realdata
+@pytest.mark.slow
+def test_real_ulog_against_shifted_copy(tmp_path):
+    from parsers.restamp_ulog import restamp_ulog
+
+    p = real("px4_sample.ulg")
+    log = registry.load(str(p))
+    mid = log.meta.t0_ns + int(0.5 * log.duration_s * 1e9)
+    # a copy whose stamps are 12.3456 ms late and run 40 ppm slow (t_copy = to_master(t))
+    copy = tmp_path / "late.ulg"
+    restamp_ulog(str(p), str(copy), ClockShift(-0.0123456, -40.0, mid), selector=log.meta.selector)
+    before, after, _ = roundtrip(f"{p}::{log.meta.selector}" if log.meta.selector else str(p),
+                                 f"{copy}::{log.meta.selector}" if log.meta.selector else str(copy),
+                                 tmp_path / "out")
+    assert abs(before.latency_s - 0.0123456) < 1e-4, before.latency_s
+    assert_zero(after, "px4_sample.ulg")
