@@ -437,6 +437,8 @@ def write_summary(out_root: str, rows: list[dict]) -> dict[str, str]:
 
 
 def index_html(df) -> str:
+    import pandas as pd
+
     e = html.escape
 
     def cell(v, spec=".3f"):
@@ -460,8 +462,8 @@ def index_html(df) -> str:
         dmg = r.input_damage if isinstance(r.input_damage, str) else ""
         status = display_status(str(r.status), dmg)
         at = (e(r.latency_at_utc) if isinstance(r.latency_at_utc, str)
-              else (f"{r.latency_at_s:.3f} s" if r.latency_at_s == r.latency_at_s else "&ndash;"))
-        nw = 0 if r.warnings is None or r.warnings != r.warnings else int(r.warnings)
+              else ("&ndash;" if pd.isna(r.latency_at_s) else f"{r.latency_at_s:.3f} s"))
+        nw = 0 if pd.isna(r.warnings) else int(r.warnings)
         worst = e(r.worst_warning) if isinstance(r.worst_warning, str) else ""
         warn = f"{nw}" + (f": {worst}" if worst else "")
         cls = "damaged" if dmg and r.status != "failed" else str(r.status)

@@ -24,6 +24,9 @@ def _damaged_campaign(root: Path) -> Path:
     s = camp / "damaged" / "slave.csv"
     data = s.read_bytes()
     s.write_bytes(data[: len(data) // 2 + 5])  # half the slave, its last row cut short
+    (camp / "broken").mkdir()  # unreadable: a failed row (no report, no warnings count)
+    (camp / "broken" / "master.csv").write_bytes(b"\x89garbage\x00" * 50)
+    (camp / "broken" / "slave.csv").write_bytes(b"\x89garbage\x00" * 50)
     return camp
 
 
@@ -32,7 +35,8 @@ def test_batch_summary_shows_a_damaged_input_warnings_and_the_quoted_instant(tmp
     out = tmp_path / "out"
     rows, counts = batch.run_batch(str(camp), str(out), jobs=1, log=lambda m: None)
     by = {r["pair"]: r for r in rows}
-    assert set(by) == {"good", "damaged"} and counts["failed"] == 0
+    assert set(by) == {"good", "damaged", "broken"} and counts["failed"] == 1
+    assert by["broken"]["status"] == "failed" and by["broken"]["latency_at_s"] is None
     csv = pd.read_csv(out / "summary.csv").set_index("pair")
     pq = pd.read_parquet(out / "summary.parquet").set_index("pair")
     for df in (csv, pq):
