@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+import time
 from pathlib import Path
 
 import pandas as pd
@@ -87,3 +88,94 @@ def test_latency_instant_in_utc_for_an_epoch_master():
             "latency": {"latency_s": 0.1, "window_s": [10.0, 30.0]}}
     assert batch.latency_instant(boot) == (20.0, None)
     assert batch.latency_instant({"master": {}, "latency": {"failed": "x", "latency_s": None}}) == (None, None)
+
+
+# ---- tapost view ------------------------------------------------------------------------------
+def _tiny_rrd(path: Path) -> Path:
+    import rerun as rr
+
+    rec = rr.RecordingStream("tapost", recording_id=None)
+    rec.save(str(path))
+    rec.log("/a", rr.Scalars(1.0))
+    rec.flush()
+    rec.disconnect()
+    return path
+
+
+def test_view_without_a_display_says_what_to_do_in_one_line(tmp_path, monkeypatch, capsys):
+    import subprocess
+
+    from pipelines import view_cmd
+    from pipelines.cli import main
+
+    _tiny_rrd(tmp_path / "recording.rrd")
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    monkeypatch.setattr(view_cmd.sys, "platform", "linux")
+
+    def no_viewer(*a, **k):
+        raise AssertionError("the viewer must not be started without a display")
+
+    monkeypatch.setattr(subprocess, "Popen", no_viewer)
+    monkeypatch.setattr(subprocess, "call", no_viewer)
+    assert main(["view", str(tmp_path)]) == 1
+    cap = capsys.readouterr()
+    lines = cap.err.strip().splitlines()
+    assert len(lines) == 1 and cap.out == ""
+    assert "--web" in lines[0] and "report.html" in lines[0] and "no display" in lines[0]
+
+
+def _listening(port: int) -> list[str]:
+    """Local addresses (hex, as in /proc/net/tcp{,6}) listening on ``port``."""
+    out = []
+    for f in ("/proc/net/tcp", "/proc/net/tcp6"):
+        try:
+            rows = Path(f).read_text().splitlines()[1:]
+        except OSError:
+            continue
+        for r in rows:
+            parts = r.split()
+            addr, p = parts[1].split(":")
+            if parts[3] == "0A" and int(p, 16) == port:
+                out.append(addr)
+    return out
+
+
+@pytest.mark.skipif(not Path("/proc/net/tcp").exists(), reason="reads the listening sockets from /proc/net/tcp")
+def test_view_web_listens_on_loopback_only_and_stops_on_ctrl_c(tmp_path):
+    import os
+    import re
+    import signal
+    import subprocess
+    import urllib.request
+
+    rrd = _tiny_rrd(tmp_path / "recording.rrd")
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    env["PYTHONPATH"] = str(HERE.parent) + os.pathsep + env.get("PYTHONPATH", "")
+    proc = subprocess.Popen([sys.executable, "-m", "pipelines.cli", "view", str(tmp_path), "--web"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        line = proc.stdout.readline()  # the one line with the address, printed once rerun runs
+        m = re.search(r"http://127\.0\.0\.1:(\d+)/\?url=http%3A%2F%2F127\.0\.0\.1%3A(\d+)%2Frecording\.rrd", line)
+        assert m, line
+        web, files = int(m[1]), int(m[2])
+        deadline = time.time() + 30
+        while not _listening(web) and time.time() < deadline:
+            time.sleep(0.2)
+        for port in (web, files):
+            assert _listening(port) == ["0100007F"], port  # 127.0.0.1 only, not 0.0.0.0
+        with urllib.request.urlopen(f"http://127.0.0.1:{files}/recording.rrd", timeout=10) as r:
+            assert r.read() == rrd.read_bytes() and r.headers["Access-Control-Allow-Origin"] == "*"
+        with pytest.raises(urllib.error.HTTPError):  # one file served, nothing else of the folder
+            urllib.request.urlopen(f"http://127.0.0.1:{files}/", timeout=10)
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(30) == 0
+        assert "stopped" in proc.stderr.read()
+        deadline = time.time() + 10
+        while _listening(web) and time.time() < deadline:  # rerun stopped with us
+            time.sleep(0.2)
+        assert not _listening(web) and not _listening(files)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
