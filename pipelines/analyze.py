@@ -60,6 +60,7 @@ class AnalyzeOptions:
     #: seed 000's when the alignment's residuals call for them), "on" (that model, else seed 000's
     #: 0.05 deg / 2 1/s), "off"
     flexure: str = "auto"
+    name: str | None = None  #: the pair's name (tapost batch): the recording is "tapost: <name>"
 
     def __post_init__(self):
         parse_lever_arm(self.lever_arm)

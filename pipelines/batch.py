@@ -40,7 +40,7 @@ import signal
 import sys
 import threading
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 from logtools.errors import InputError, TapostError
 from pipelines import report as rp
@@ -369,6 +369,8 @@ def run_pair(job: PairJob) -> dict:
             ns = _parse_options(job.options)
             config = analyze.read_config(ns.config) if ns.config else None
             opts, _ = analyze.options_from(analyze.cli_values(ns), config)
+            if hasattr(opts, "name"):  # names the pair's recording "tapost: <pair>"
+                opts = replace(opts, name=job.name)
             out = analyze.analyze_pair(job.master, job.slave, job.out_dir, opts)
             rep = out.report
             status = "ok" if rep.get("status") == "ok" else "partial"

@@ -56,6 +56,9 @@ def test_batch_summary_shows_a_damaged_input_warnings_and_the_quoted_instant(tmp
             assert df.loc[pair, "latency_at_s"] == pytest.approx(0.5 * (w0 + w1), abs=1e-6)
             assert w0 < df.loc[pair, "latency_at_s"] < w1
     assert csv.loc["good", "warnings"] == 0 and pd.isna(csv.loc["good", "worst_warning"])
+    from pipelines.recording import read_properties
+
+    assert read_properties(str(out / "good" / "recording.rrd"))["name"] == "tapost: good"  # the pair's name
     page = (out / "index.html").read_text()
     assert "ok (damaged input)" in page and "1 with a damaged input" in page
     assert "last row cut short" in page
@@ -179,3 +182,69 @@ def test_view_web_listens_on_loopback_only_and_stops_on_ctrl_c(tmp_path):
     finally:
         if proc.poll() is None:
             proc.kill()
+
+
+# ---- the recording ----------------------------------------------------------------------------
+def test_recording_name_properties_comparisons_and_utc_timeline(tmp_path):
+    import numpy as np
+
+    from pipelines.recording import read_entities, read_properties, write_recording
+    from test_report import fake_report, make_fake_analysis
+
+    an = make_fake_analysis(duration_s=20, rate_hz=50)
+    rep = fake_report(an)
+    path = tmp_path / "recording.rrd"
+    info = write_recording(str(path), an, rep)
+    props = read_properties(str(path))  # rerun's own reader: store entry + /__properties chunks
+    assert props["application_id"] == "tapost"
+    assert props["name"] == "tapost: master vs slave" == info["name"]  # <master stem> vs <slave stem>
+    res = props["results"]
+    assert res["latency_s"] == an.latency.latency_s and res["sigma_s"] == an.latency.sigma_s
+    assert res["drift_ppm"] == an.latency.drift_ppm and res["status"] == rep["status"] == "ok"
+    comp = an.alignment["compensated"]
+    assert res["mounting_run"] == "compensated"
+    assert np.allclose(res["mounting_rpy_deg"], comp.mounting_rpy_deg)
+    assert np.allclose(res["mounting_sigma_deg"], comp.mounting_sigma_deg)
+    ents = read_entities(str(path))
+    n = len(an.master.t_imu_s())
+    for ax in "xyz":
+        for who in ("master", "slave_raw", "slave_comp"):
+            e = ents[f"/accel/{ax}/{who}"]
+            assert e["rows"] == n and e["timelines"] == ["time", "utc"]  # master on UNIX time
+    for ax in "ned":  # the fake slave logs no velocity: the master's only
+        assert ents[f"/velocity/{ax}/master"]["rows"] == len(an.master.vel_ned_m_s()[0])
+        assert f"/velocity/{ax}/slave_raw" not in ents
+    assert info["comparisons"] == {"rates": ["master", "slave_raw", "slave_comp"],
+                                   "accel": ["master", "slave_raw", "slave_comp"], "velocity": ["master"]}
+
+    # a batch pair is named after the pair; a master on boot time has no timestamp timeline
+    boot = make_fake_analysis(duration_s=20, rate_hz=50)
+    boot.master = boot.master.with_meta(clock="boot")
+    rep2 = {**fake_report(boot), "options": {"name": "flight7"}}
+    p2 = tmp_path / "boot.rrd"
+    write_recording(str(p2), boot, rep2)
+    assert read_properties(str(p2))["name"] == "tapost: flight7"
+    ents2 = read_entities(str(p2))
+    assert ents2["/rates/x/master"]["timelines"] == ["time"]
+    assert all("utc" not in e["timelines"] for e in ents2.values())
+
+
+def test_utc_timeline_is_the_master_clock_in_ns(tmp_path):
+    import numpy as np
+    from rerun.chunk import RrdReader
+
+    from pipelines.recording import write_recording
+    from test_report import fake_report, make_fake_analysis
+
+    an = make_fake_analysis(duration_s=10, rate_hz=20)
+    path = tmp_path / "r.rrd"
+    write_recording(str(path), an, fake_report(an))
+    for ch in RrdReader(str(path)).stream().to_chunks():
+        if str(ch.entity_path) == "/rates/x/master" and not ch.is_static:
+            rb = ch.to_record_batch()
+            utc = np.asarray(rb.column("utc").cast("int64").to_pylist(), dtype=np.int64)
+            rel = np.asarray(rb.column("time").cast("int64").to_pylist(), dtype=np.int64)
+            assert np.array_equal(utc - rel, np.full(len(utc), an.master.meta.t0_ns))
+            break
+    else:
+        raise AssertionError("no /rates/x/master rows")
