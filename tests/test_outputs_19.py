@@ -248,3 +248,81 @@ def test_utc_timeline_is_the_master_clock_in_ns(tmp_path):
             break
     else:
         raise AssertionError("no /rates/x/master rows")
+
+
+# ---- report.html ------------------------------------------------------------------------------
+def _page(rep=None, an=None):
+    from pipelines.html import render
+    from test_report import fake_report, make_fake_analysis
+
+    an = an or make_fake_analysis(duration_s=30)
+    rep = rep or fake_report(an)
+    return render(rep, an), rep, an
+
+
+def test_html_headline_comes_first_and_states_the_results():
+    import re
+
+    page, rep, an = _page()
+    body = page.split("<main>", 1)[1]
+    first = re.search(r'<section id="([a-z]+)"', body)[1]
+    assert first == "headline"  # the verdict before any table or figure
+    head = body.split('<section id="summary"')[0]
+    lat = rep["latency"]
+    assert f"{lat['latency_s'] * 1e3:+.3f} ms" in head and f"{lat['sigma_s'] * 1e3:.3f}" in head
+    assert f"{lat['drift_ppm']:+.2f} ppm" in head
+    m = rep["alignment"]["compensated"]["mounting_rpy_deg"]
+    assert " / ".join(f"{x:+.4f}" for x in m) in head and "(1&sigma;, arcmin)" in head
+    assert "2023-11-14T22:13:35.000Z" in head  # quoted at the window middle (t0 + 15 s), UTC
+    assert "converged" in head and "Status <span class=ok>ok</span>" in head
+    assert "1 warning " in head or "1 warning (" in head  # the master's example warning; no notes counted
+
+
+def test_html_quality_is_a_grouped_table_with_the_raw_values_collapsed():
+    import json
+
+    from test_report import fake_report, make_fake_analysis
+
+    an = make_fake_analysis(duration_s=30)
+    an.latency.quality.update({
+        "coarse_latency_s": 0.0251, "stamp_resolution_s": {"master": 0.001, "slave": 0.0},
+        "velocity_fit": {"latency_s": 0.0249, "sigma_s": 0.0006, "agrees": True, "fused": False},
+        "sigma_budget": {"fit_curvature": 0.0003, "stamp_resolution": 0.0004},
+        "too_little_motion": False, "best_instant_s": 1_700_000_010.0, "some_new_figure": 3})
+    page, rep, _ = _page(fake_report(an), an)
+    q = page.split('<section id="quality"')[1].split("</section>")[0]
+    for group in ("Motion", "Search and fit", "Velocity fit", "Stamps", "Sigma budget", "Other"):
+        assert f"<th colspan=2 class=grp>{group}" in q, group
+    assert "<td>coarse search minimum</td><td class=num>25.100 ms</td>" in q
+    assert "master 1.000 ms, slave 0.000 ms" in q
+    assert "<b>0.500 ms</b>" in q  # the budget's root-sum-square, beside the quoted sigma
+    assert "(2023-11-14 22:13:30.000 UTC)" in q  # an absolute instant on UNIX time, in words
+    assert "some new figure" in q  # a key not in the table's groups is still shown
+    assert "<details><summary>raw values" in q and "<pre>" in q
+    raw = q.split("<pre>")[1].split("</pre>")[0]
+    import html
+
+    assert json.loads(html.unescape(raw))["some_new_figure"] == 3
+    assert "quality: " not in page and "{'" not in page  # no Python dict dump left
+
+
+def test_html_headline_of_a_damaged_input_and_of_a_failed_latency():
+    from pipelines import report as rp
+    from test_report import make_fake_analysis
+
+    an = make_fake_analysis(duration_s=30)
+    an.slave = an.slave.with_meta(warnings=("truncated tlog: last 23 byte(s) hold an incomplete frame",))
+    from test_report import fake_report
+
+    page, rep, _ = _page(fake_report(an), an)
+    head = page.split('<section id="summary"')[0]
+    assert "(damaged input)" in head and "Damaged input: slave: truncated tlog" in head
+    failed = rp.build_report(an.master, an.slave, latency=rp.latency_failed("too little motion"),
+                             alignment={r: rp.alignment_skipped("latency failed", "kf", "vel+att") for r in rp.RUNS},
+                             timings_s={})
+    an.latency, an.alignment, an.slave_comp = None, {}, None
+    page, _, _ = _page(failed, an)
+    head = page.split('<section id="summary"')[0]
+    assert "not determined" in head and "too little motion" in head
+    assert "Status <span class=fail>failed</span>" in head
+    assert "No quality figures" in page
