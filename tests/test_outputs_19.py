@@ -326,3 +326,41 @@ def test_html_headline_of_a_damaged_input_and_of_a_failed_latency():
     assert "not determined" in head and "too little motion" in head
     assert "Status <span class=fail>failed</span>" in head
     assert "No quality figures" in page
+
+
+# ---- tapost inspect ---------------------------------------------------------------------------
+def test_inspect_clock_wording_matches_what_analyze_loads(tmp_path, capsys):
+    from parsers import dataflash, inspect_log, load
+    from pipelines.cli import main
+    from test_report import make_fake_analysis
+
+    master = make_fake_analysis(duration_s=20).master  # on UNIX time: the .bin gets GPS week/ms
+    path = tmp_path / "flight.bin"
+    dataflash.write(str(path), master)
+    clock = load(str(path)).meta.clock  # what analyze prints as "<clock> clock"
+    assert clock == "epoch"
+    assert main(["inspect", str(path)]) == 0
+    out = capsys.readouterr().out
+    note = [ln for ln in out.splitlines() if ln.strip().startswith("note:")][0]
+    assert f"loaded on the {clock} clock" in note and "as analyze reports it" in note
+    assert "stamps are boot time (TimeUS)" in note  # the streams' own stamps (the start_s column)
+    assert all(s.clock == "boot (TimeUS)" for s in inspect_log(str(path)).streams)
+
+
+def test_inspect_shows_streams_that_are_not_time_series_as_such():
+    from parsers.base import Inventory, StreamInfo
+    from pipelines.inspect_cmd import format_inventory, inventory_dict
+
+    inv = Inventory(path="x.ulg", format="ulog", selectors=(), streams=(
+        StreamInfo("sensor_combined", "imu", 1000, 250.0, 112.6, 3.996, "boot"),
+        StreamInfo("ekf2_innovations", "other", 3271, 0.0, 0.0, 0.0, "boot"),
+        StreamInfo("commander_state", "other", 1, 0.0, 2.07, 0.0, "boot")))
+    lines = format_inventory(inv)
+    row = {ln.split()[0]: ln for ln in lines[2:5]}
+    assert "250.00" in row["sensor_combined"] and "not a time series" not in row["sensor_combined"]
+    tok = row["ekf2_innovations"].split()  # name kind count rate start dur clock...
+    assert tok[3] == "-" and tok[5] == "-" and tok[4] == "0.000"  # no rate, no duration; its one stamp
+    assert "not a time series (all 3271 records share one stamp)" in row["ekf2_innovations"]
+    assert "not a time series (one record)" in row["commander_state"]
+    d = inventory_dict(inv)
+    assert [s["time_series"] for s in d["streams"]] == [True, False, False]
