@@ -14,7 +14,11 @@ CAMPAIGN is
 Outputs in DIR (default ``tapost_batch``): ``<pair>/report.json|report.html|recording.rrd`` (as
 ``tapost analyze``), ``<pair>/done.json`` written last (status, reason, summary row and the inputs'
 fingerprint), ``summary.csv`` + ``summary.parquet`` (one row per pair, sorted by pair) and
-``index.html`` linking each report. Every file is written atomically (temp + rename); inputs are
+``index.html`` linking each report. Beside the numbers, each row carries ``input_damage`` (an input's
+damage warnings: the pair was analysed on the readable part; index.html shows "ok (damaged input)"),
+``warnings`` (how many) and ``worst_warning`` (damage first, then skipped steps, then the rest; notes
+are not warnings), and ``latency_at_s`` / ``latency_at_utc``: the instant ``latency_s`` is quoted at
+(the middle of the analysed window, master seconds as logged, and UTC when the master is on UNIX time). Every file is written atomically (temp + rename); inputs are
 only read. A broken pair is a failed row with its reason, never a crashed batch.
 
 Rerunning skips a pair whose ``done.json`` matches the current inputs and options (size and mtime of

@@ -1,9 +1,14 @@
 """report.html: one self-contained page (inline base64 PNG from matplotlib/Agg, inline CSS, no
 script, no network) a reviewer can open offline and paste into a flight-test report.
 
-Sections: summary table, angular rates before/after compensation (slave rotated into the master
+Sections: the headline (status and warnings count; latency +- sigma and the instant it is quoted at;
+drift; mounting +- sigma; converged or not), summary table, latency quality (a grouped table, raw
+values in a collapsed block), angular rates before/after compensation (slave rotated into the master
 frame so they overlay), latency cost curve(s), drift (per-window latency), alignment state histories
 with 3-sigma bounds (both runs), residuals, warnings.
+
+The figures use fixed layouts (margins in inches, ``_layout``), not ``tight_layout``, which drew every
+figure twice.
 """
 from __future__ import annotations
 
