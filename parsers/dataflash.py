@@ -559,8 +559,9 @@ def inventory(path: str) -> Inventory:
                 fields=f.columns))
     off, gps_name = _gps_epoch_offset_ns(log)
     notes = [f"{sum(len(v) for v in log.offsets.values())} records, {len(log.by_name)} message types; "
-             + (f"UNIX time available via {gps_name} week/ms (default time=gps)" if off is not None
-                else "no GPS time: stamps stay on boot time")]
+             + (f"stamps are boot time (TimeUS); loaded on the epoch clock (UNIX time from {gps_name} week/ms, "
+                "time=gps) by default, as analyze reports it; time=boot keeps boot time" if off is not None
+                else "no GPS time: loaded on the boot clock (TimeUS)")]
     return Inventory(path=path, format=NAME, streams=tuple(streams), selectors=tuple(unit_selectors(log)),
                      warnings=tuple(log.warnings), notes=tuple(notes))
 

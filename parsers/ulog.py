@@ -585,7 +585,8 @@ def inventory(path: str) -> Inventory:
         selectors.append(",".join(nav))
     notes = ["stamps: us since boot; PX4 data are FRD/NED already"]
     if any(n in GPS_TOPICS and "time_utc_usec" in d for (n, _), d in data.topics.items()):
-        notes.append("GPS UTC time present: loaded on the UNIX clock by default (clock=boot keeps boot time)")
+        notes.append("GPS UTC time present: loaded on the epoch clock (UNIX time) by default, as analyze reports "
+                     "it; clock=boot keeps boot time")
     return Inventory(path=path, format=NAME, streams=tuple(streams), selectors=tuple(selectors),
                      warnings=data.warnings, notes=tuple(notes))
 

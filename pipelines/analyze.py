@@ -63,6 +63,7 @@ class AnalyzeOptions:
     flexure: str = "auto"
     #: also write the slave on the master's clock: any of "csv", "parquet", "native" (pipelines.export)
     write_slave: tuple[str, ...] = ()
+    name: str | None = None  #: the pair's name (tapost batch): the recording is "tapost: <name>"
 
     def __post_init__(self):
         parse_lever_arm(self.lever_arm)

@@ -14,7 +14,11 @@ CAMPAIGN is
 Outputs in DIR (default ``tapost_batch``): ``<pair>/report.json|report.html|recording.rrd`` (as
 ``tapost analyze``), ``<pair>/done.json`` written last (status, reason, summary row and the inputs'
 fingerprint), ``summary.csv`` + ``summary.parquet`` (one row per pair, sorted by pair) and
-``index.html`` linking each report. Every file is written atomically (temp + rename); inputs are
+``index.html`` linking each report. Beside the numbers, each row carries ``input_damage`` (an input's
+damage warnings: the pair was analysed on the readable part; index.html shows "ok (damaged input)"),
+``warnings`` (how many) and ``worst_warning`` (damage first, then skipped steps, then the rest; notes
+are not warnings), and ``latency_at_s`` / ``latency_at_utc``: the instant ``latency_s`` is quoted at
+(the middle of the analysed window, master seconds as logged, and UTC when the master is on UNIX time). Every file is written atomically (temp + rename); inputs are
 only read. A broken pair is a failed row with its reason, never a crashed batch.
 
 Rerunning skips a pair whose ``done.json`` matches the current inputs and options (size and mtime of
@@ -41,20 +45,24 @@ import signal
 import sys
 import threading
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 from logtools.errors import InputError, TapostError
 from pipelines import report as rp
 
 DONE = "done.json"
 SUMMARY_COLUMNS = (
-    "pair", "status", "exit_code", "latency_s", "sigma_s", "drift_ppm",
+    "pair", "status", "input_damage", "exit_code", "latency_s", "sigma_s", "drift_ppm",
+    "latency_at_s", "latency_at_utc",
     "mount_unc_roll_deg", "mount_unc_pitch_deg", "mount_unc_yaw_deg",
     "mount_comp_roll_deg", "mount_comp_pitch_deg", "mount_comp_yaw_deg",
     "mount_comp_sigma_roll_deg", "mount_comp_sigma_pitch_deg", "mount_comp_sigma_yaw_deg",
     "lever_comp_x_m", "lever_comp_y_m", "lever_comp_z_m",
-    "reason", "master", "slave", "report",
+    "warnings", "worst_warning", "reason", "master", "slave", "report",
 )
+#: text columns of the summary (the rest are numbers)
+TEXT_COLUMNS = ("pair", "status", "input_damage", "latency_at_utc", "worst_warning", "reason", "master", "slave",
+                "report")
 
 
 @dataclass(frozen=True)
@@ -236,6 +244,83 @@ def _v(x, i):
         return None
 
 
+#: warnings that say an input file is damaged (truncated, corrupt): the worst kind, shown beside the status
+_DAMAGE = re.compile(r"damag|truncat|corrupt|cut short|incomplete frame|bad crc|undecodable|bad bytes", re.I)
+
+
+def warning_severity(stage: str, text: str) -> int:
+    """3 a damaged input, 2 a step skipped or failed, 1 any other warning (notes are not warnings)."""
+    if _DAMAGE.search(text):
+        return 3
+    if stage.startswith("skipped"):
+        return 2
+    return 1
+
+
+def report_warnings(rep: dict) -> list[tuple[str, str]]:
+    """Every warning of a report as (stage, text), notes left out.
+
+    Uses the top-level ``warnings`` list of the report contract when the report has one; otherwise
+    gathers them from the inputs' sections (their "note: ..." lines are notes), the latency quality
+    and the skipped steps. A step that was skipped is a warning either way."""
+    out: list[tuple[str, str]] = []
+    top = rep.get("warnings")
+    if isinstance(top, list):
+        for w in top:
+            if isinstance(w, dict):
+                out.append((str(w.get("stage") or ""), str(w.get("text") or "")))
+            else:
+                out.append(("", str(w)))
+    else:
+        for role in ("master", "slave"):
+            for w in (rep.get(role) or {}).get("warnings") or []:
+                if not str(w).lower().startswith("note:"):
+                    out.append((role, str(w)))
+        for w in ((rep.get("latency") or {}).get("quality") or {}).get("warnings") or []:
+            out.append(("latency", str(w)))
+    seen = {t for _, t in out}
+    for k, v in (rep.get("skipped") or {}).items():
+        text = f"{k}: {v}"
+        if text not in seen and str(v) not in seen:
+            out.append((f"skipped {k}", text))
+    return out
+
+
+def input_damage(rep: dict) -> str:
+    """The inputs' damage warnings as one line ("slave: truncated tlog: ..."), or "" when none."""
+    parts = []
+    for role in ("master", "slave"):
+        parts += [f"{role}: {w}" for w in (rep.get(role) or {}).get("warnings") or [] if _DAMAGE.search(str(w))]
+    if not parts and isinstance(rep.get("warnings"), list):  # the contract's list, stage naming the input
+        parts = [f"{w.get('stage')}: {w.get('text')}" for w in rep["warnings"]
+                 if isinstance(w, dict) and _DAMAGE.search(str(w.get("text")))]
+    return "; ".join(parts)
+
+
+def latency_instant(rep: dict) -> tuple[float | None, str | None]:
+    """The instant ``latency_s`` is quoted at (the middle of the analysed window): absolute master
+    seconds as logged (UNIX or boot), and as UTC (ISO 8601) when the master is on UNIX time."""
+    import datetime as dt
+
+    lat, m = rep.get("latency") or {}, rep.get("master") or {}
+    t = None
+    if isinstance(lat.get("t_mid_rel_s"), (int, float)) and isinstance(m.get("t0_ns"), int):
+        t = m["t0_ns"] * 1e-9 + lat["t_mid_rel_s"]
+    elif isinstance(lat.get("window_s"), list) and None not in lat["window_s"][:2] and len(lat["window_s"]) >= 2:
+        t = 0.5 * (lat["window_s"][0] + lat["window_s"][1])
+    if t is None or lat.get("latency_s") is None:
+        return None, None
+    utc = None
+    if m.get("clock") == "epoch":
+        utc = dt.datetime.fromtimestamp(t, dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%f")[:-3] + "Z"
+    return t, utc
+
+
+def display_status(status: str, damage: str | None) -> str:
+    """The status as index.html and the batch's printout show it: never a bare "ok" on a damaged input."""
+    return f"{status} (damaged input)" if damage and isinstance(damage, str) and status != "failed" else status
+
+
 def row_from_report(job: PairJob, rep: dict | None, status: str, exit_code: int, reason: str) -> dict:
     row = {c: None for c in SUMMARY_COLUMNS}
     row.update(pair=job.name, status=status, exit_code=exit_code, reason=reason, master=job.master,
@@ -255,6 +340,13 @@ def row_from_report(job: PairJob, rep: dict | None, status: str, exit_code: int,
                     row[f"lever_comp_{ax}_m"] = _v(a.get("lever_arm_m"), i)
         if not reason and rep.get("skipped"):
             row["reason"] = "; ".join(f"{k}: {v}" for k, v in rep["skipped"].items())
+        row["latency_at_s"], row["latency_at_utc"] = latency_instant(rep)
+        warns = report_warnings(rep)
+        row["warnings"] = len(warns)
+        if warns:
+            stage, text = max(warns, key=lambda w: warning_severity(*w))  # the first of the worst kind
+            row["worst_warning"] = f"{stage}: {text}" if stage and not text.startswith(stage.split()[-1]) else text
+        row["input_damage"] = input_damage(rep) or None
     return row
 
 
@@ -282,6 +374,8 @@ def run_pair(job: PairJob) -> dict:
             ns = _parse_options(job.options)
             config = analyze.read_config(ns.config) if ns.config else None
             opts, _ = analyze.options_from(analyze.cli_values(ns), config)
+            if hasattr(opts, "name"):  # names the pair's recording "tapost: <pair>"
+                opts = replace(opts, name=job.name)
             out = analyze.analyze_pair(job.master, job.slave, job.out_dir, opts)
             rep = out.report
             status = "ok" if rep.get("status") == "ok" else "partial"
@@ -334,8 +428,9 @@ def write_summary(out_root: str, rows: list[dict]) -> dict[str, str]:
     for c in SUMMARY_COLUMNS:
         if c.endswith(("_s", "_ppm", "_deg")):
             df[c] = pd.to_numeric(df[c], errors="coerce").astype("float64")
-    df["exit_code"] = pd.to_numeric(df["exit_code"], errors="coerce").astype("Int64")
-    for c in ("pair", "status", "reason", "master", "slave", "report"):
+    for c in ("exit_code", "warnings"):
+        df[c] = pd.to_numeric(df[c], errors="coerce").astype("Int64")
+    for c in TEXT_COLUMNS:
         df[c] = df[c].astype("string")
     paths = {k: os.path.join(out_root, f) for k, f in
              (("csv", "summary.csv"), ("parquet", "summary.parquet"), ("index", "index.html"))}
@@ -349,6 +444,8 @@ def write_summary(out_root: str, rows: list[dict]) -> dict[str, str]:
 
 
 def index_html(df) -> str:
+    import pandas as pd
+
     e = html.escape
 
     def cell(v, spec=".3f"):
@@ -362,25 +459,37 @@ def index_html(df) -> str:
     n_ok = int((df["status"] == "ok").sum())
     n_part = int((df["status"] == "partial").sum())
     n_fail = int((df["status"] == "failed").sum())
+    n_dmg = int(df["input_damage"].notna().sum())
     rows = []
     for r in df.itertuples(index=False):
         link = f'<a href="{e(str(r.report))}">{e(str(r.pair))}</a>' if isinstance(r.report, str) else e(str(r.pair))
         lat = "&ndash;" if r.latency_s != r.latency_s else f"{r.latency_s * 1e3:+.3f}"
         sig = "&ndash;" if r.sigma_s != r.sigma_s else f"{r.sigma_s * 1e3:.3f}"
         mount = " / ".join(cell(getattr(r, f"mount_comp_{a}_deg")) for a in ("roll", "pitch", "yaw"))
-        rows.append(f"<tr class={e(str(r.status))}><td>{link}</td><td>{e(str(r.status))}</td>"
+        dmg = r.input_damage if isinstance(r.input_damage, str) else ""
+        status = display_status(str(r.status), dmg)
+        at = (e(r.latency_at_utc) if isinstance(r.latency_at_utc, str)
+              else ("&ndash;" if pd.isna(r.latency_at_s) else f"{r.latency_at_s:.3f} s"))
+        nw = 0 if pd.isna(r.warnings) else int(r.warnings)
+        worst = e(r.worst_warning) if isinstance(r.worst_warning, str) else ""
+        warn = f"{nw}" + (f": {worst}" if worst else "")
+        cls = "damaged" if dmg and r.status != "failed" else str(r.status)
+        rows.append(f"<tr class={e(cls)}><td>{link}</td><td>{e(status)}</td>"
                     f"<td class=n>{lat}</td><td class=n>{sig}</td><td class=n>{cell(r.drift_ppm, '+.2f')}</td>"
-                    f"<td class=n>{mount}</td><td>{cell(r.reason) if isinstance(r.reason, str) else ''}</td></tr>")
+                    f"<td class=n>{at}</td><td class=n>{mount}</td><td>{warn}</td>"
+                    f"<td>{cell(r.reason) if isinstance(r.reason, str) else ''}</td></tr>")
     return (
         "<!DOCTYPE html><html lang=en><head><meta charset=utf-8><title>tapost batch summary</title><style>"
         "body{font-family:Helvetica,Arial,sans-serif;margin:24px;color:#1d2733}"
         "table{border-collapse:collapse;font-size:13px}th,td{border:1px solid #dde3ea;padding:4px 8px}"
         "th{background:#eef2f6}td.n{text-align:right;font-family:Menlo,Consolas,monospace}"
-        "tr.failed td{background:#fdecea}tr.partial td{background:#fff6e5}</style></head><body>"
-        f"<h1>tapost batch summary</h1><p>{len(df)} pairs: {n_ok} ok, {n_part} partial, {n_fail} failed. "
+        "tr.failed td{background:#fdecea}tr.partial td,tr.damaged td{background:#fff6e5}</style></head><body>"
+        f"<h1>tapost batch summary</h1><p>{len(df)} pairs: {n_ok} ok, {n_part} partial, {n_fail} failed"
+        + (f"; {n_dmg} with a damaged input (analysed on its readable part)" if n_dmg else "") + ". "
         "Also as <a href=summary.csv>summary.csv</a> and summary.parquet.</p>"
         "<table><tr><th>pair</th><th>status</th><th>latency (ms)</th><th>1&sigma; (ms)</th><th>drift (ppm)</th>"
-        "<th>mounting r/p/y, compensated (deg)</th><th>reason / skipped steps</th></tr>"
+        "<th>latency quoted at (window middle, master clock)</th>"
+        "<th>mounting r/p/y, compensated (deg)</th><th>warnings: worst</th><th>reason / skipped steps</th></tr>"
         + "".join(rows) + "</table></body></html>\n")
 
 
@@ -506,7 +615,7 @@ def run_batch(campaign: str, out_root: str, *, jobs: int = 1, scheduler: str | N
         counts["ran" if res["ran"] else "skipped"] += 1
         if res["row"]["status"] == "failed":
             counts["failed"] += 1
-        log(f"[{len(rows)}/{total}] {job.name}: {res['row']['status']}"
+        log(f"[{len(rows)}/{total}] {job.name}: {display_status(res['row']['status'], res['row'].get('input_damage'))}"
             + ("" if res["ran"] else " (already done)")
             + (f" - {res['row']['reason']}" if res["row"]["status"] == "failed" else ""))
 
@@ -553,6 +662,7 @@ def run(args: argparse.Namespace) -> int:
           f"{counts['ran']} run now, {counts['skipped']} already done")
     for r in rows:
         lat = f"{r['latency_s'] * 1e3:+.3f} ms" if isinstance(r.get("latency_s"), (int, float)) else "-"
-        print(f"  {r['pair']:<24} {r['status']:<8} {lat:>12}  {r.get('reason') or ''}")
+        status = display_status(r["status"], r.get("input_damage"))
+        print(f"  {r['pair']:<24} {status:<8} {lat:>12}  {r.get('reason') or r.get('input_damage') or ''}")
     print(f"summary: {os.path.join(args.out, 'summary.csv')}, {os.path.join(args.out, 'index.html')}")
     return 0

@@ -39,9 +39,17 @@ def _finite(x):
     return x
 
 
+def is_time_series(s) -> bool:
+    """False for a stream whose records do not spread over time (one record, or every stamp equal:
+    PX4 topics logged once, or stamped 0), whose rate and duration mean nothing."""
+    return s.count > 1 and math.isfinite(s.duration_s) and s.duration_s > 0
+
+
 def inventory_dict(inv: Inventory) -> dict:
-    """The JSON form of an inventory (what ``--json`` prints)."""
+    """The JSON form of an inventory (what ``--json`` prints); each stream says ``time_series``."""
     d = _finite(asdict(inv))
+    for sd, s in zip(d["streams"], inv.streams):
+        sd["time_series"] = is_time_series(s)
     return {"schema": SCHEMA, **d}
 
 
@@ -51,9 +59,15 @@ def format_inventory(inv: Inventory, *, fields: bool = False) -> list[str]:
     w = max([32] + [len(s.name) for s in inv.streams])
     out.append(f"  {'stream':<{w}} {'kind':<6} {'count':>8} {'rate_hz':>8} {'start_s':>16} {'dur_s':>9} clock")
     for s in inv.streams:
-        rate = f"{s.rate_hz:>8.2f}" if math.isfinite(s.rate_hz) else f"{'-':>8}"
-        out.append(f"  {s.name:<{w}} {s.kind:<6} {s.count:>8d} {rate} {s.start_s:>16.3f} "
-                   f"{s.duration_s:>9.2f} {s.clock}")
+        if is_time_series(s):
+            rate = f"{s.rate_hz:>8.2f}" if math.isfinite(s.rate_hz) else f"{'-':>8}"
+            dur, clock = f"{s.duration_s:>9.2f}", s.clock
+        else:  # not a time series: no rate, no duration
+            rate, dur = f"{'-':>8}", f"{'-':>9}"
+            clock = (f"{s.clock}; not a time series ("
+                     + ("one record" if s.count == 1 else "no records" if s.count == 0
+                        else f"all {s.count} records share one stamp") + ")")
+        out.append(f"  {s.name:<{w}} {s.kind:<6} {s.count:>8d} {rate} {s.start_s:>16.3f} {dur} {clock}")
         if fields and s.fields:
             out.append(f"  {'':<{w}}   fields: {', '.join(s.fields)}")
     if not inv.streams:

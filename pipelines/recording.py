@@ -1,11 +1,19 @@
 """recording.rrd: the analysis as a rerun recording (rerun-sdk 0.41), opened by ``tapost view``.
 
 Everything is sent column-wise (``send_columns`` with a time column), never one call per sample.
-Timeline ``time``: seconds since the master's first sample (master clock). Timeline ``lag``: the
-latency search grid (for the cost curve). Entity layout::
+Application id ``tapost``; recording name ``tapost: <pair name>`` (the batch pair name, else
+``<master stem> vs <slave stem>``); recording property ``results`` (``/__properties/results``) with the
+headline: latency_s, sigma_s, drift_ppm, mounting_rpy_deg, mounting_sigma_deg, mounting_run, status,
+master, slave (a value the analysis could not give is left out).
+
+Timeline ``time``: seconds since the master's first sample (master clock). A master on UNIX time also
+gets timeline ``utc`` (timestamps, the same instants) on every series of ``time``. Timeline ``lag``:
+the latency search grid (for the cost curve). Entity layout::
 
     /rates/{x,y,z}/{master,slave_raw,slave_comp}   angular rate (deg/s), slave rotated into the
                                                     master frame; slave_raw = stamps at face value
+    /accel/{x,y,z}/{master,slave_raw,slave_comp}   specific force (m/s^2), likewise rotated
+    /velocity/{n,e,d}/{master,slave_raw,slave_comp}  NED velocity (m/s)
     /world/track                                    master NED track (LineStrips3D, m, origin = start)
     /world/master                                   master body pose (Transform3D, FRD in NED)
     /latency/cost/<method>                          normalised cost vs lag (timeline ``lag``)
@@ -35,6 +43,7 @@ from parsers.atomic import atomic_path
 MAX_ROWS = 100_000
 POSE_RATE_HZ = 10.0
 AXES = ("x", "y", "z")
+NED = ("n", "e", "d")
 COLORS = {"master": [30, 30, 30], "slave_raw": [230, 120, 20], "slave_comp": [31, 119, 180]}
 RUN_COLORS = {"uncompensated": [214, 39, 40], "compensated": [31, 119, 180]}
 
@@ -75,16 +84,86 @@ def ned_track(log: InsLog) -> tuple[np.ndarray, np.ndarray] | None:
     return t, np.column_stack([n, e, d])
 
 
+def pair_name(an: Analysis, rep: dict | None = None) -> str:
+    """The pair's name: the batch's (report options ``name``), else ``<master stem> vs <slave stem>``."""
+    name = ((rep or {}).get("options") or {}).get("name")
+    if name:
+        return str(name)
+
+    def stem(log: InsLog) -> str:
+        p = (log.meta.source_path or "").rstrip("/\\")
+        base = os.path.basename(p) or p
+        return os.path.splitext(base)[0] or base or "?"
+
+    return f"{stem(an.master)} vs {stem(an.slave)}"
+
+
+def headline(an: Analysis, rep: dict | None = None) -> dict:
+    """The recording's ``results`` property: the headline numbers (None = not determined)."""
+    lat = an.latency
+    out: dict = {"status": (rep or {}).get("status")}
+    if lat is not None:
+        out.update(latency_s=float(lat.latency_s), sigma_s=float(lat.sigma_s), drift_ppm=float(lat.drift_ppm))
+    for run in ("compensated", "uncompensated"):
+        res = an.alignment.get(run)
+        if res is not None and np.all(np.isfinite(res.mounting_rpy_deg)):
+            out.update(mounting_rpy_deg=[float(x) for x in res.mounting_rpy_deg],
+                       mounting_sigma_deg=[float(x) for x in res.mounting_sigma_deg], mounting_run=run)
+            break
+    if rep is not None:
+        out.update(master=str(rep["master"].get("path")), slave=str(rep["slave"].get("path")))
+    return out
+
+
+class _Clock:
+    """The master's clock: ``utc`` timestamps beside ``time`` when the master is on UNIX time."""
+
+    def __init__(self, an: Analysis):
+        self.epoch_ns = int(an.master.meta.t0_ns) if an.master.meta.clock == "epoch" else None
+
+    def indexes(self, rr, t: np.ndarray, timeline: str) -> list:
+        idx = [rr.TimeColumn(timeline, duration=t)]
+        if timeline == "time" and self.epoch_ns is not None:
+            ns = self.epoch_ns + np.round(t * 1e9).astype(np.int64)
+            idx.append(rr.TimeColumn("utc", timestamp=ns.astype("datetime64[ns]")))
+        return idx
+
+
 def _send_scalars(rec, rr, path: str, t: np.ndarray, y: np.ndarray, max_rows: int,
-                  timeline: str = "time") -> int:
+                  timeline: str = "time", clock: _Clock | None = None) -> int:
     ok = np.isfinite(t) & np.isfinite(y)
     t, y = t[ok], y[ok]
     if len(t) == 0:
         return 0
     t, y, k = block_mean(t, y, max_rows)
-    rec.send_columns(path, indexes=[rr.TimeColumn(timeline, duration=t)],
-                     columns=rr.Scalars.columns(scalars=y))
+    idx = clock.indexes(rr, t, timeline) if clock is not None else [rr.TimeColumn(timeline, duration=t)]
+    rec.send_columns(path, indexes=idx, columns=rr.Scalars.columns(scalars=y))
     return k
+
+
+def _comparisons(an: Analysis) -> list[tuple[str, str, tuple[str, ...], str, object]]:
+    """(entity root, label, axis names, unit, getter(log) -> (t, values in the master frame) | None)."""
+    R, _ = an.mounting()
+
+    def gyro(log: InsLog, slave: bool):
+        if not log.has_gyro:
+            return None
+        g = np.degrees(log.gyro_rad_s())
+        return log.t_imu_s(), (g @ R if slave else g)  # rows of R.T @ w: slave rate in the master frame
+
+    def accel(log: InsLog, slave: bool):
+        if not log.has_accel:
+            return None
+        a = log.accel_m_s2()
+        return log.t_imu_s(), (a @ R if slave else a)
+
+    def vel(log: InsLog, slave: bool):
+        if not log.has_vel:
+            return None
+        return log.vel_ned_m_s()
+
+    return [("rates", "angular rate", AXES, "deg/s", gyro), ("accel", "specific force", AXES, "m/s²", accel),
+            ("velocity", "velocity", NED, "m/s", vel)]
 
 
 def build(an: Analysis, rep: dict | None = None, *, max_rows: int = MAX_ROWS,
@@ -94,25 +173,33 @@ def build(an: Analysis, rep: dict | None = None, *, max_rows: int = MAX_ROWS,
     import rerun.blueprint as rrb
 
     rec = rr.RecordingStream(application_id, recording_id=None, send_properties=True)
+    name = pair_name(an, rep)
+    rec.send_recording_name(f"tapost: {name}")
+    props = {k: v for k, v in headline(an, rep).items() if v is not None}
+    rec.send_property("results", rr.AnyValues(**props))
     R, mount_src = an.mounting()
+    clock = _Clock(an)
     info: dict = {"max_rows": max_rows, "rule": "block mean by k = ceil(n / max_rows)",
-                  "factors": {}, "mounting_for_plots": mount_src}
+                  "factors": {}, "mounting_for_plots": mount_src, "name": f"tapost: {name}",
+                  "timelines": ["time", "lag"] + (["utc"] if clock.epoch_ns is not None else [])}
 
-    # -- angular rates on one timeline
+    # -- angular rates, accelerometers, velocity: master, slave at face value, slave compensated
     streams: list[tuple[str, InsLog]] = [("master", an.master), ("slave_raw", an.slave_face_value())]
     if an.slave_comp is not None:
         streams.append(("slave_comp", an.slave_comp))
-    for name, log in streams:
-        if not log.has_gyro:
-            continue
-        g = np.degrees(log.gyro_rad_s())
-        if name != "master":
-            g = g @ R  # rows of R.T @ w: slave rate in the master frame
-        t = log.t_imu_s()
-        for i, ax in enumerate(AXES):
-            path = f"/rates/{ax}/{name}"
-            rec.log(path, rr.SeriesLines(names=name, colors=[COLORS[name]], widths=1.0), static=True)
-            info["factors"][path] = _send_scalars(rec, rr, path, t, g[:, i], max_rows)
+    comparisons = _comparisons(an)
+    info["comparisons"] = {}
+    for root, _label, axes, _unit, get in comparisons:
+        for who, log in streams:
+            got = get(log, who != "master")
+            if got is None:
+                continue
+            t, v = got
+            info["comparisons"].setdefault(root, []).append(who)
+            for i, ax in enumerate(axes):
+                path = f"/{root}/{ax}/{who}"
+                rec.log(path, rr.SeriesLines(names=who, colors=[COLORS[who]], widths=1.0), static=True)
+                info["factors"][path] = _send_scalars(rec, rr, path, t, v[:, i], max_rows, clock=clock)
 
     # -- 3D: track and attitude in NED
     rec.log("/world", rr.ViewCoordinates.FRD, static=True)  # x north, y east, z down
@@ -132,7 +219,7 @@ def build(an: Analysis, rep: dict | None = None, *, max_rows: int = MAX_ROWS,
             pos = np.zeros((len(tq), 3))
         span = float(np.ptp(trk[1], axis=0).max()) if trk is not None and len(trk[1]) else 10.0
         rec.log("/world/master", rr.TransformAxes3D(axis_length=max(span / 20.0, 1.0)), static=True)
-        rec.send_columns("/world/master", indexes=[rr.TimeColumn("time", duration=tq)],
+        rec.send_columns("/world/master", indexes=clock.indexes(rr, tq, "time"),
                          columns=rr.Transform3D.columns(translation=pos, quaternion=q[:, [1, 2, 3, 0]]))
         # the slave's body axes (master attitude composed with the mounting) as arrows
         axes_m = np.eye(3) * max(span / 30.0, 0.7)
@@ -163,10 +250,10 @@ def build(an: Analysis, rep: dict | None = None, *, max_rows: int = MAX_ROWS,
         rec.log("/latency/window", rr.SeriesPoints(names="per-window latency (ms)", marker_sizes=3.0),
                 static=True)
         _send_scalars(rec, rr, "/latency/window", np.asarray(lat.window_centers_s, float),
-                      np.asarray(lat.window_latency_s, float) * 1e3, max_rows)
+                      np.asarray(lat.window_latency_s, float) * 1e3, max_rows, clock=clock)
         tt = np.asarray(lat.window_centers_s, float)
         rec.log("/latency/fit", rr.SeriesLines(names="latency fit (ms)", colors=[[214, 39, 40]]), static=True)
-        _send_scalars(rec, rr, "/latency/fit", tt, lat.latency_at(tt) * 1e3, max_rows)
+        _send_scalars(rec, rr, "/latency/fit", tt, lat.latency_at(tt) * 1e3, max_rows, clock=clock)
 
     # -- alignment states with 3-sigma bounds, residuals
     state_rows = max(1000, max_rows // 10)
@@ -185,13 +272,14 @@ def build(an: Analysis, rep: dict | None = None, *, max_rows: int = MAX_ROWS,
                     rec.log(f"{base}/{part}", rr.SeriesLines(names=f"{name} {part if part != 'value' else ''}".strip(),
                                                              colors=[c], widths=w), static=True)
                     info["factors"][f"{base}/{part}"] = _send_scalars(rec, rr, f"{base}/{part}", t, y,
-                                                                       state_rows)
+                                                                       state_rows, clock=clock)
         if res.residuals.size:
             t = np.asarray(res.residual_t_s, float)
             for i, name in enumerate(res.residual_names):
                 path = f"/alignment/{run}/residuals/{rr.escape_entity_path_part(name)}"
                 rec.log(path, rr.SeriesPoints(names=name, colors=[c], marker_sizes=1.5), static=True)
-                info["factors"][path] = _send_scalars(rec, rr, path, t, res.residuals[:, i], state_rows)
+                info["factors"][path] = _send_scalars(rec, rr, path, t, res.residuals[:, i], state_rows,
+                                                      clock=clock)
 
     # -- summary text
     if rep is not None:
@@ -201,13 +289,17 @@ def build(an: Analysis, rep: dict | None = None, *, max_rows: int = MAX_ROWS,
             lines.append(f"- skipped {k}: {v}")
         rec.log("/summary", rr.TextDocument("\n".join(lines), media_type=rr.MediaType.MARKDOWN), static=True)
 
-    rec.send_blueprint(_blueprint(rrb, an))
+    rec.send_blueprint(_blueprint(rrb, an, [c for c in comparisons if c[0] in info["comparisons"]]))
     return rec, info
 
 
-def _blueprint(rrb, an: Analysis):
+def _blueprint(rrb, an: Analysis, comparisons=()):
     rates = rrb.Vertical(*[rrb.TimeSeriesView(origin=f"/rates/{ax}", name=f"angular rate {ax} (deg/s)")
                            for ax in AXES], name="rates")
+    # master, slave raw and slave compensated side by side: rates | accelerometers | velocity
+    columns = [rrb.Vertical(*[rrb.TimeSeriesView(origin=f"/{root}/{ax}", name=f"{label} {ax} ({unit})")
+                              for ax in axes], name=label)
+               for root, label, axes, unit, _ in comparisons]
     right = [rrb.Spatial3DView(origin="/world", name="master track and attitude (NED)")]
     if an.latency is not None:
         right.append(rrb.BarChartView(origin="/latency/cost_chart", name="latency cost vs lag (ms)"))
@@ -215,6 +307,8 @@ def _blueprint(rrb, an: Analysis):
                                         name="latency per window (ms)"))
     overview = rrb.Horizontal(rates, rrb.Vertical(*right), column_shares=[3, 2], name="overview")
     tabs = [overview]
+    if len(columns) > 1:
+        tabs.append(rrb.Horizontal(*columns, name="rates, accelerometers, velocity"))
     for run in RUNS:
         res = an.alignment.get(run)
         if res is None or not res.history_x.size:
@@ -266,4 +360,28 @@ def read_entities(path: str) -> dict[str, dict]:
             e["timelines"].update(ch.timeline_names)
     for e in out.values():
         e["timelines"] = sorted(e["timelines"])
+    return out
+
+
+def read_properties(path: str) -> dict:
+    """{"application_id", "name", "results": {...}} of a recording, read back with rerun's own reader
+    (``rerun.chunk.RrdReader``: the store entry and the ``/__properties`` chunks)."""
+    from rerun.chunk import RrdReader
+
+    reader = RrdReader(path)
+    entries = [e for e in reader.recordings() if e.kind == "recording"]
+    out: dict = {"application_id": entries[0].application_id if entries else None, "name": None, "results": {}}
+    for ch in reader.stream().to_chunks():
+        ent = str(ch.entity_path)
+        if not ent.startswith("/__properties"):
+            continue
+        for row in ch.to_record_batch().to_pylist():
+            for k, v in row.items():
+                if k.startswith("rerun.controls"):
+                    continue
+                v = v[0] if isinstance(v, list) and len(v) == 1 else v
+                if ent == "/__properties" and k == "RecordingInfo:name":
+                    out["name"] = v
+                elif ent == "/__properties/results":
+                    out["results"][k] = v
     return out

@@ -29,7 +29,8 @@ def test_entities_and_lengths(rec):
     for ax in "xyz":
         for who in ("master", "slave_raw", "slave_comp"):
             e = ents[f"/rates/{ax}/{who}"]
-            assert e["rows"] == 6000 // k and e["timelines"] == ["time"] and e["static"]
+            # the fake master is on UNIX time: a timestamp timeline "utc" beside "time" (DESIGN.md)
+            assert e["rows"] == 6000 // k and e["timelines"] == ["time", "utc"] and e["static"]
             assert info["factors"][f"/rates/{ax}/{who}"] == k
     assert ents["/world/master"]["rows"] == 600  # poses at 10 Hz over 60 s
     assert ents["/world/track"]["static"]
