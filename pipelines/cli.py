@@ -68,6 +68,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help(sys.stderr)
         return 2
     debug = args.debug or bool(os.environ.get("TAPOST_DEBUG"))
+    if args.command in ("analyze", "batch", "simulate", "inspect"):
+        from pipelines.firstrun import announce_compiling
+
+        announce_compiling()
     try:
         return int(args._run(args) or 0)
     except TapostError as exc:

@@ -285,15 +285,20 @@ def findings(rep: dict) -> tuple[list[dict], list[dict]]:
         if item not in kind:
             kind.append(item)
 
+    parsed: dict[str, tuple[list[str], list[str]]] = {}
     for role in ("master", "slave"):
         sec = rep.get(role) or {}
         ws, ns = [], []
         for w in sec.get("warnings", []) or []:
             (ns if _is_parse_note(w) else ws).append(w)
-        for w in _merge_stream_lines(ws):
-            add(warns, "parse", f"{role}: {w}")
-        for n in ns:
-            add(notes, "parse", f"{role}: {n[5:].strip() if n.startswith('note:') else n}")
+        parsed[role] = (_merge_stream_lines(ws), [n[5:].strip() if n.startswith("note:") else n for n in ns])
+    for i, kind in ((0, warns), (1, notes)):
+        m_list, s_list = parsed["master"][i], parsed["slave"][i]
+        for text in m_list:  # the same line on both sides (one file, two units): said once
+            add(kind, "parse", f"{'master and slave' if text in s_list else 'master'}: {text}")
+        for text in s_list:
+            if text not in m_list:
+                add(kind, "parse", f"slave: {text}")
     if rep.get("latency_search"):
         add(notes, "latency", f"searched the {rep['latency_search']}")
     lat = rep.get("latency") or {}
@@ -309,10 +314,14 @@ def findings(rep: dict) -> tuple[list[dict], list[dict]]:
     comp = rep.get("compensation") or {}
     if comp.get("skipped"):
         add(warns, "compensation", f"compensation skipped: {comp['skipped']}")
+    al = rep.get("alignment") or {}
+    why = [(al.get(run) or {}).get("skipped") for run in RUNS]
+    if why[0] is not None and why[0] == why[1]:
+        add(warns, "alignment", f"alignment skipped (both runs): {why[0]}")
     for run in RUNS:
-        sec = (rep.get("alignment") or {}).get(run) or {}
+        sec = al.get(run) or {}
         if "skipped" in sec:
-            if "failed" not in lat or run == "uncompensated":
+            if why[0] != why[1] and not ("failed" in lat and run == "compensated"):
                 add(warns, "alignment", f"{run} alignment skipped: {sec['skipped']}")
             continue
         for n in sec.get("notes", []) or []:
