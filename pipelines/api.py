@@ -55,4 +55,7 @@ def analyze(master: str | InsLog, slave: str | InsLog, progress=None, **opts) ->
 
     ``master``/``slave`` are ``PATH[::SELECTOR]`` strings or InsLogs (``load``). ``progress`` is an
     optional ``progress(fraction, stage)`` callback."""
+    from pipelines.firstrun import announce_compiling
+
+    announce_compiling()  # one line on stderr if numba compiles (the first run after installing)
     return _analyze.compute(master, slave, options(**opts), progress=progress)

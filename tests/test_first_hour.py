@@ -220,3 +220,43 @@ def test_the_readme_api_example_runs_on_the_sample_logs(tmp_path, monkeypatch):
 
     assert tapost.analyze is ns["api"].analyze and callable(tapost.load)
     assert os.path.basename(rep["master"]["path"]) == "master.mcap"
+
+
+def test_a_compile_is_announced_once_on_stderr(monkeypatch):
+    import io
+
+    numba = pytest.importorskip("numba")
+    from pipelines import firstrun
+
+    monkeypatch.setattr(firstrun, "_state", {"installed": False, "said": False})
+    buf = io.StringIO()
+    assert firstrun.announce_compiling(stream=buf) is True
+
+    @numba.njit  # not cached: compiles here, in this test
+    def _twice(x):
+        return 2.0 * x
+
+    assert _twice(1.5) == 3.0
+    assert _twice(2) == 4  # a second specialisation: no second line
+    lines = buf.getvalue().splitlines()
+    assert lines == [lines[0]] and lines[0].startswith("tapost: compiling numerical kernels on first use (once")
+
+
+def test_a_cold_cache_first_run_says_it_compiles_before_anything_else(tmp_path):
+    """``tapost inspect`` of a tlog on an empty numba cache (NUMBA_CACHE_DIR): stderr, not a terminal, gets
+    the compile line first."""
+    pytest.importorskip("numba")
+    import subprocess
+    import time
+
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "nbcache"),
+           "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    t0 = time.monotonic()
+    p = subprocess.run([sys.executable, "-m", "pipelines.cli", "inspect", str(SAMPLE / "slave.tlog")],
+                       capture_output=True, text=True, env=env, cwd=str(tmp_path), timeout=600)
+    took = time.monotonic() - t0
+    assert p.returncode == 0, p.stderr
+    err = p.stderr.splitlines()
+    assert err and err[0].startswith("tapost: compiling numerical kernels on first use"), p.stderr
+    assert "HIGHRES_IMU" in p.stdout
+    print(f"cold inspect of the sample tlog: {took:.1f} s")
