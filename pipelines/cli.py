@@ -62,6 +62,10 @@ def glue_vector_values(argv: list[str]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    if argv is None:  # a fresh process (the console script, python -m): say at once if it will compile
+        from pipelines.firstrun import early_notice
+
+        early_notice(next((a for a in sys.argv[1:] if not a.startswith("-")), None))
     parser = build_parser()
     args = parser.parse_args(glue_vector_values(list(sys.argv[1:] if argv is None else argv)))
     if not getattr(args, "_run", None):
