@@ -62,20 +62,20 @@ def glue_vector_values(argv: list[str]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    if argv is None:  # a fresh process (the console script, python -m): say at once if it will compile
-        from pipelines.firstrun import early_notice
+    fresh = argv is None  # a fresh process (the console script, python -m), not a call from Python
+    if fresh:  # say at once if this run will compile, and on any later compile
+        from pipelines.firstrun import announce_compiling, early_notice
 
-        early_notice(next((a for a in sys.argv[1:] if not a.startswith("-")), None))
+        command = next((a for a in sys.argv[1:] if not a.startswith("-")), None)
+        early_notice(command)
+        if command in ("analyze", "batch", "simulate", "inspect"):
+            announce_compiling()
     parser = build_parser()
     args = parser.parse_args(glue_vector_values(list(sys.argv[1:] if argv is None else argv)))
     if not getattr(args, "_run", None):
         parser.print_help(sys.stderr)
         return 2
     debug = args.debug or bool(os.environ.get("TAPOST_DEBUG"))
-    if args.command in ("analyze", "batch", "simulate", "inspect"):
-        from pipelines.firstrun import announce_compiling
-
-        announce_compiling()
     try:
         return int(args._run(args) or 0)
     except TapostError as exc:
