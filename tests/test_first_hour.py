@@ -23,7 +23,6 @@ ROOT = Path(__file__).resolve().parents[1]
 SAMPLE = ROOT / "sample_logs"
 REAL = ROOT.parent / "shared" / "realdata"
 PLANE = REAL / "arduplane_box_pilot.BIN"
-CAR = REAL / "car_xsens_stereo_test1.bag"
 
 
 def _report(**over) -> dict:
@@ -172,21 +171,6 @@ def test_one_file_two_selectors_stays_allowed_and_the_default_is_its_own_stream(
     assert "same stream" in capsys.readouterr().err
 
 
-@pytest.mark.skipif(not CAR.exists(), reason="real logs absent (../shared/realdata)")
-def test_car_bag_too_little_motion_is_said_in_words(tmp_path, capsys):
-    out = tmp_path / "car"
-    code = main(["analyze", f"{CAR}::imu=/xsens/imu_data", f"{CAR}::imu=/stereo_odometer/odometry",
-                 "-o", str(out), "--no-html", "--no-recording"])
-    text = capsys.readouterr().out
-    rep = json.loads((out / "report.json").read_text())
-    q = rep["latency"].get("quality") or {}
-    assert code in (0, 1)
-    if q.get("too_little_motion"):
-        assert any("too little motion" in w["text"] for w in rep["warnings"])
-        assert "too little motion" in text
-    assert f"status {rep['status']}: {len(rep['warnings'])} warning(s)" in text
-
-
 def _readme_python_block() -> str:
     text = (ROOT / "README.md").read_text(encoding="utf-8")
     start = text.index("<!-- api-example -->")
@@ -222,15 +206,13 @@ def test_the_readme_api_example_runs_on_the_sample_logs(tmp_path, monkeypatch):
     assert os.path.basename(rep["master"]["path"]) == "master.mcap"
 
 
-def test_a_compile_is_announced_once_on_stderr(monkeypatch):
-    import io
-
+def test_a_compile_is_announced_once_on_stderr(monkeypatch, capsys):
     numba = pytest.importorskip("numba")
     from pipelines import firstrun
 
+    # a listener an earlier test registered may say it first (on stderr): one line in all, either way
     monkeypatch.setattr(firstrun, "_state", {"installed": False, "said": False})
-    buf = io.StringIO()
-    assert firstrun.announce_compiling(stream=buf) is True
+    assert firstrun.announce_compiling() is True
 
     @numba.njit  # not cached: compiles here, in this test
     def _twice(x):
@@ -238,7 +220,7 @@ def test_a_compile_is_announced_once_on_stderr(monkeypatch):
 
     assert _twice(1.5) == 3.0
     assert _twice(2) == 4  # a second specialisation: no second line
-    lines = buf.getvalue().splitlines()
+    lines = capsys.readouterr().err.splitlines()
     assert lines == [lines[0]] and lines[0].startswith("tapost: compiling numerical kernels on first use (once")
 
 
