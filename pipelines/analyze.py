@@ -46,6 +46,7 @@ class AnalyzeOptions:
     compensation: str = "restamp"  # the slave's own samples, stamps corrected (nothing resampled)
     smoother: bool = False
     recording: bool = True
+    html: bool = True  # report.html (report.json is always written)
     latency_method: str = "tapost"
     compare: bool = True  # also run the seeds' latency methods (report.json latency.methods)
     recording_max_rows: int = 100_000
@@ -135,12 +136,13 @@ def read_config(path: str) -> dict:
 
 
 _CONFIG_KEYS = {"max_lag", "filter", "match", "compensation", "smoother", "no_recording", "recording",
+                "no_html", "html",
                 "latency_method", "compare", "out", "recording_max_rows", "lever_arm", "flexure", "write_slave"}
 
 
 #: the analysis options add_arguments defines (argparse dests), as options_from takes them
-CLI_KEYS = ("max_lag", "filter", "match", "compensation", "smoother", "no_recording", "latency_method", "compare",
-            "lever_arm", "flexure", "write_slave")
+CLI_KEYS = ("max_lag", "filter", "match", "compensation", "smoother", "no_recording", "no_html", "latency_method",
+            "compare", "lever_arm", "flexure", "write_slave")
 
 
 def cli_values(ns: argparse.Namespace) -> dict:
@@ -170,6 +172,10 @@ def options_from(cli: dict, config: dict | None = None) -> tuple[AnalyzeOptions,
         kw["recording"] = bool(merged["recording"])
     if merged.get("no_recording"):
         kw["recording"] = False
+    if "html" in merged:
+        kw["html"] = bool(merged["html"])
+    if merged.get("no_html"):
+        kw["html"] = False
     if kw.get("filter") in FILTERS and FilterKind.parse(kw["filter"]).splits_delay and "compensation" not in kw:
         kw["compensation"] = "split"  # S004: integer-sample lag applied, the residual left to the delay state
     if "write_slave" in merged:
@@ -204,6 +210,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="do not also run the other latency methods")
     p.add_argument("--no-recording", action="store_const", const=True, default=None,
                    help="do not write recording.rrd")
+    p.add_argument("--no-html", action="store_const", const=True, default=None,
+                   help="do not write report.html (report.json is always written)")
     p.add_argument("--lever-arm", default=None, metavar="auto|off|X,Y,Z",
                    help="slave position in the master body frame (FRD, m) for the alignment: auto (default: "
                         "estimated where velocity is matched), off, or known X,Y,Z")
@@ -347,6 +355,10 @@ def _fmt_ms(x: float | None) -> str:
     return "n/a" if x is None or not np.isfinite(x) else f"{x * 1e3:+.3f} ms"
 
 
+#: warnings printed in the summary (all of them are in report.json and report.html)
+SUMMARY_WARNINGS = 8
+
+
 def summary_lines(rep: dict, paths: dict[str, str | None]) -> list[str]:
     """The short human summary printed on stdout."""
     m, s, lat = rep["master"], rep["slave"], rep["latency"]
@@ -377,14 +389,17 @@ def summary_lines(rep: dict, paths: dict[str, str | None]) -> list[str]:
         others = [f"{k} {_fmt_ms(v['latency_s'])}" for k, v in lat.get("methods", {}).items() if k != lat["method"]]
         if others:
             out.append("        other methods: " + ", ".join(others))
-        flags = [f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
-                 for k, v in q.items() if isinstance(v, (bool, str, int, float)) and v is not None]
-        if flags:
-            out.append("quality " + ", ".join(flags[:8]))
+        if q.get("too_little_motion"):
+            out.append("        too little motion: this latency and its sigma are doubtful (see the warnings)")
     for run in rp.RUNS:
         a = rep["alignment"].get(run, {})
         if "skipped" in a:
             out.append(f"mounting ({run}): skipped: {a['skipped']}")
+            continue
+        if all(x is None for x in (a.get("mounting_rpy_deg") or [None])):
+            out.append(f"mounting ({run}, {a['filter']}/{a['match']}): not determined"
+                       + (f" ({', '.join(n for n in a.get('notes', []) if 'not determined' in n)})"
+                          if any('not determined' in n for n in a.get('notes', [])) else ""))
             continue
         rpy = " ".join(f"{x:+.4f}" if x is not None else "n/a" for x in a["mounting_rpy_deg"])
         sig = " ".join(f"{x * 60:.3g}'" if x is not None else "n/a" for x in a["mounting_sigma_deg"])
@@ -402,13 +417,18 @@ def summary_lines(rep: dict, paths: dict[str, str | None]) -> list[str]:
     for k, v in rep.get("skipped", {}).items():
         if k == "recording":
             out.append(f"skipped recording: {v}")
-    nwarn = len(m.get("warnings", [])) + len(s.get("warnings", []))
-    if nwarn:
-        out.append(f"warnings: {nwarn} (see report)")
+    warns, notes = rep.get("warnings", []), rep.get("notes", [])
+    out.append(f"status {rep.get('status', '?')}: {len(warns)} warning(s), {len(notes)} note(s)"
+               + (" (notes in report.json)" if notes else ""))
+    for w in warns[:SUMMARY_WARNINGS]:
+        out.append(f"  warning [{w['stage']}] {w['text']}")
+    if len(warns) > SUMMARY_WARNINGS:
+        out.append(f"  ... {len(warns) - SUMMARY_WARNINGS} more warning(s) in report.json")
     from pipelines.export import summary_from_report
 
     out += summary_from_report(rep)
-    out.append("outputs " + ", ".join(p for p in paths.values() if p))
+    if any(paths.values()):
+        out.append("outputs " + ", ".join(p for p in paths.values() if p))
     return out
 
 
@@ -431,13 +451,92 @@ def _imu_to_imu_lines(align: dict) -> list[str]:
     return out
 
 
-def analyze_pair(master_arg: str, slave_arg: str, out_dir: str, opts: AnalyzeOptions | None = None,
-                 progress=None) -> PairOutcome:
-    """Run the whole analysis of one pair and write its outputs in ``out_dir``.
+class Analysis(rp.Analysis):
+    """One analysed pair, in memory (DESIGN.md, "Python API"): the two logs, the latency, the slave on the
+    master's clock, both alignment runs; ``report`` is the report.json dict, ``frames()`` the data as pandas
+    DataFrames, ``write(dir)`` the CLI's outputs. Made by ``compute`` (``pipelines.api.analyze``)."""
 
-    Raises InputError (unreadable input, exit 2) before anything is written, AnalysisError (exit 1)
-    when the latency cannot be estimated (after writing report.json/report.html with the failure).
-    """
+    def __init__(self, master: InsLog, slave: InsLog, options: "AnalyzeOptions", master_arg: str = "",
+                 slave_arg: str = ""):
+        super().__init__(master=master, slave=slave)
+        self.options = options
+        self.master_arg = master_arg or master.meta.source_path
+        self.slave_arg = slave_arg or slave.meta.source_path
+        self.failure: str | None = None  # why the latency could not be estimated (None: it was)
+        self.extra: dict = {}  # report.json's further sections (compensation, latency_search, ...)
+        self.align_sections: dict[str, dict | AlignmentResult] = {}
+        self.timings_s: dict[str, float] = {}
+        self.skipped_steps: dict[str, str] = {}  # output steps that could not be done (recording)
+        self._report: dict | None = None
+
+    # -- results ------------------------------------------------------------------------------
+    @property
+    def slave_on_master_clock(self) -> InsLog | None:
+        """The compensated slave: its samples with stamps on the master's clock (None if latency failed)."""
+        return self.slave_comp
+
+    @property
+    def ok(self) -> bool:
+        """True when the latency was estimated (the CLI's exit 0)."""
+        return self.latency is not None
+
+    @property
+    def report(self) -> dict:
+        """The report.json dict (outputs none until ``write``)."""
+        if self._report is None:
+            self._report = self.build_report({**self.timings_s, "report": 0.0, "recording": 0.0}, {})
+        return self._report
+
+    def build_report(self, timings: dict, paths: dict[str, str | None]) -> dict:
+        lat_section = (self.latency if self.latency is not None
+                       else rp.latency_failed(self.failure or "unknown", self.options.latency_method))
+        options = {**asdict(self.options), "master": self.master_arg, "slave": self.slave_arg}
+        extra = {**self.extra, "mounting_for_plots": self.mounting()[1],
+                 "outputs": {k: (os.path.basename(v) if v else None) for k, v in paths.items()}}
+        r = rp.build_report(self.master, self.slave, latency=lat_section, alignment=self.align_sections,
+                            timings_s={k: timings.get(k, 0.0) for k in rp.TIMING_KEYS}, options=options,
+                            extra=extra)
+        if self.skipped_steps:
+            r["skipped"].update(self.skipped_steps)
+            if r["status"] == "ok":
+                r["status"] = "partial"
+            rp.add_findings(r)
+        return r
+
+    def frames(self) -> dict:
+        """The analysis as pandas DataFrames (see ``pipelines.frames``)."""
+        from pipelines.frames import analysis_frames
+
+        return analysis_frames(self)
+
+    def summary(self) -> str:
+        """The short summary ``tapost analyze`` prints."""
+        return "\n".join(summary_lines(self.report, {}))
+
+    def write(self, out_dir: str, progress=None) -> "PairOutcome":
+        """Write the CLI's outputs in ``out_dir`` (report.json last; see ``write_outputs``)."""
+        return write_outputs(self, out_dir, progress)
+
+
+def _arg_path(arg) -> str:
+    return arg.meta.source_path if isinstance(arg, InsLog) else str(arg).partition("::")[0]
+
+
+def same_stream(master: InsLog, slave: InsLog) -> bool:
+    """True when both sides are the same stream of the same file (same resolved selector)."""
+    try:
+        same_file = os.path.samefile(master.meta.source_path, slave.meta.source_path)
+    except OSError:
+        same_file = os.path.abspath(master.meta.source_path) == os.path.abspath(slave.meta.source_path)
+    return same_file and master.meta.selector == slave.meta.selector
+
+
+def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOptions | None = None,
+            progress=None) -> Analysis:
+    """Parse (or take) both logs -> latency -> compensation -> both alignment runs, in memory.
+
+    Raises InputError (unreadable input, the same stream on both sides: exit 2). A latency the data
+    cannot give is not raised: ``Analysis.failure`` says why (the CLI's exit 1)."""
     opts = opts or AnalyzeOptions()
     prog = progress if progress is not None else null_progress
     scaled = getattr(prog, "scaled", None)
@@ -448,23 +547,21 @@ def analyze_pair(master_arg: str, slave_arg: str, out_dir: str, opts: AnalyzeOpt
     # -- parse
     t = time.perf_counter()
     prog(0.0, "parse master")
-    master = load(master_arg)
+    master = master_arg if isinstance(master_arg, InsLog) else load(master_arg)
     prog(0.08, "parse slave")
-    slave = load(slave_arg)
+    slave = slave_arg if isinstance(slave_arg, InsLog) else load(slave_arg)
     tim["parse"] = time.perf_counter() - t
-    try:
-        os.makedirs(out_dir, exist_ok=True)
-    except OSError as exc:
-        raise InputError(f"cannot create the output folder: {exc.strerror}", out_dir) from None
-    paths = {"report": os.path.join(out_dir, REPORT), "html": os.path.join(out_dir, HTML),
-             "recording": os.path.join(out_dir, RECORDING) if opts.recording else None}
-    an = rp.Analysis(master=master, slave=slave)
-    align_sections: dict[str, dict | AlignmentResult] = {}
-    extra: dict = {}
+    if same_stream(master, slave):
+        raise InputError("master and slave are the same stream of the same file (nothing to compare); "
+                         "give two logs, or two units of one log with selectors "
+                         "(e.g. FILE::imu=IMU and FILE::imu=IMU2; `tapost inspect FILE` lists them)",
+                         _arg_path(slave_arg))
+    an = Analysis(master, slave, opts,
+                  master_arg if isinstance(master_arg, str) else "", slave_arg if isinstance(slave_arg, str) else "")
+    extra = an.extra
 
     # -- latency
     t = time.perf_counter()
-    lat_section: LatencyResult | dict
     failure: str | None = None
     missing = [role for role, log in (("master", master), ("slave", slave)) if not (log.has_gyro or log.has_quat)]
     if missing:
@@ -492,8 +589,8 @@ def analyze_pair(master_arg: str, slave_arg: str, out_dir: str, opts: AnalyzeOpt
                     and (master.meta.clock != slave.meta.clock or min(m1, s1) <= max(m0, s0))):
                 failure += (f" (clocks look unrelated: master {master.meta.clock}, slave {slave.meta.clock}, "
                             "no overlap at face value; try --max-lag auto)")
+    an.failure = failure
     tim["latency"] = time.perf_counter() - t
-    lat_section = an.latency if an.latency is not None else rp.latency_failed(failure or "unknown", opts.latency_method)
 
     # -- compensation and alignment
     t = time.perf_counter()
@@ -524,66 +621,94 @@ def analyze_pair(master_arg: str, slave_arg: str, out_dir: str, opts: AnalyzeOpt
             res = _alignment(master, slog, run, opts, p, an.latency)
         if isinstance(res, AlignmentResult):
             an.alignment[run] = res
-            align_sections[run] = res
+            an.align_sections[run] = res
         else:
             an.alignment[run] = None
-            align_sections[run] = rp.alignment_skipped(res, opts.filter, opts.match)
-    _imu_to_imu_sections(master, an, align_sections, extra)
+            an.align_sections[run] = rp.alignment_skipped(res, opts.filter, opts.match)
+    _imu_to_imu_sections(master, an, an.align_sections, extra)
     tim["alignment"] = time.perf_counter() - t
-    if opts.write_slave and an.latency is not None:  # the slave on the master's clock (pipelines.export)
-        from pipelines.export import attach_to_analysis
+    tim["total"] = time.perf_counter() - t_all
+    an.timings_s = tim
+    return an
 
-        t = time.perf_counter()
-        attach_to_analysis(opts.write_slave, out_dir, slave, master, an.latency, paths, extra)
-        tim["export"] = time.perf_counter() - t
 
-    # -- outputs: html, recording, then report.json last
+def write_outputs(an: Analysis, out_dir: str, progress=None) -> PairOutcome:
+    """Write an analysis's outputs in ``out_dir``: report.html (unless ``--no-html``), recording.rrd
+    (unless ``--no-recording``), then report.json last, so its presence marks a finished analysis. Every
+    file is written atomically. Returns the outcome (report, paths, summary, exit code)."""
+    opts = an.options
+    prog = progress if progress is not None else null_progress
+    t_out = time.perf_counter()
+    tim = {k: v for k, v in an.timings_s.items() if k != "total"}
+    try:
+        os.makedirs(out_dir, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"cannot create the output folder: {exc.strerror}", out_dir) from None
+    paths = {"report": os.path.join(out_dir, REPORT),
+             "html": os.path.join(out_dir, HTML) if opts.html else None,
+             "recording": os.path.join(out_dir, RECORDING) if opts.recording else None}
+    an.skipped_steps = {}
+
+    # -- html
     t = time.perf_counter()
     prog(0.9, "report")
-    options = {**asdict(opts), "master": master_arg, "slave": slave_arg}
-    extra["mounting_for_plots"] = an.mounting()[1]
-    extra["outputs"] = {k: (os.path.basename(v) if v else None) for k, v in paths.items()}
+    if opts.html:
+        rep = an.build_report({**tim, "report": 0.0, "recording": 0.0,
+                               "total": an.timings_s.get("total", 0.0) + time.perf_counter() - t_out}, paths)
+        from pipelines.html import write_html
 
-    skipped_steps: dict[str, str] = {}
-
-    def build(timings):
-        r = rp.build_report(master, slave, latency=lat_section, alignment=align_sections,
-                            timings_s=timings, options=options, extra=extra)
-        if skipped_steps:
-            r["skipped"].update(skipped_steps)
-            if r["status"] == "ok":
-                r["status"] = "partial"
-        return r
-
-    rep = build({**tim, "report": 0.0, "recording": 0.0, "total": time.perf_counter() - t_all})
-    from pipelines.html import write_html
-
-    write_html(paths["html"], rep, an)
+        write_html(paths["html"], rep, an)
     tim["report"] = time.perf_counter() - t
+
+    # -- recording
     t = time.perf_counter()
     if opts.recording and an.latency is not None:
         prog(0.95, "recording")
         try:
             from pipelines.recording import write_recording
 
-            extra["recording"] = write_recording(paths["recording"], an, rep, max_rows=opts.recording_max_rows)
+            rep = an.build_report({**tim, "recording": 0.0}, paths)
+            an.extra["recording"] = write_recording(paths["recording"], an, rep, max_rows=opts.recording_max_rows)
         except (ImportError, OSError, RuntimeError, ValueError) as exc:
-            skipped_steps["recording"] = f"{type(exc).__name__}: {exc}"
+            an.skipped_steps["recording"] = f"{type(exc).__name__}: {exc}"
             paths["recording"] = None
     elif opts.recording:
         paths["recording"] = None
     tim["recording"] = time.perf_counter() - t
-    extra["outputs"] = {k: (os.path.basename(v) if v else None) for k, v in paths.items()}
+
+    # -- the slave on the master's clock (--write-slave, pipelines.export), before report.json lists it
+    if opts.write_slave and an.latency is not None:
+        from pipelines.export import attach_to_analysis
+
+        t = time.perf_counter()
+        attach_to_analysis(opts.write_slave, out_dir, an.slave, an.master, an.latency, paths, an.extra)
+        tim["export"] = time.perf_counter() - t
+
+    # -- report.json last
     t = time.perf_counter()
-    tim["total"] = time.perf_counter() - t_all
-    rep = build(tim)
+    tim["total"] = an.timings_s.get("total", 0.0) + time.perf_counter() - t_out
+    rep = an.build_report(tim, paths)
     rp.write_report(paths["report"], rep)
     tim["report"] += time.perf_counter() - t
+    an._report = rep
     prog.done() if hasattr(prog, "done") else None
-    outcome = PairOutcome(report=rep, out_dir=out_dir, paths=paths, summary=summary_lines(rep, paths))
+    outcome = PairOutcome(report=rep, out_dir=out_dir, paths=paths, summary=summary_lines(rep, paths),
+                          exit_code=0 if an.latency is not None else 1)
+    return outcome
+
+
+def analyze_pair(master_arg: str, slave_arg: str, out_dir: str, opts: AnalyzeOptions | None = None,
+                 progress=None) -> PairOutcome:
+    """Run the whole analysis of one pair and write its outputs in ``out_dir`` (``compute`` then
+    ``write_outputs``; used by batch).
+
+    Raises InputError (unreadable input, exit 2) before anything is written, AnalysisError (exit 1)
+    when the latency cannot be estimated (after writing report.json/report.html with the failure).
+    """
+    an = compute(master_arg, slave_arg, opts, progress)
+    outcome = write_outputs(an, out_dir, progress)
     if an.latency is None:
-        outcome.exit_code = 1
-        raise AnalysisError(f"latency failed: {failure} (report: {paths['report']})")
+        raise AnalysisError(f"latency failed: {an.failure} (report: {outcome.paths['report']})")
     return outcome
 
 
@@ -592,9 +717,12 @@ def run(args: argparse.Namespace) -> int:
     opts, out = options_from({**cli_values(args), "out": args.out}, config)
     progress = Progress()
     try:
-        outcome = analyze_pair(args.master, args.slave, out or "tapost_out", opts, progress=progress)
+        an = compute(args.master, args.slave, opts, progress=progress)
+        outcome = write_outputs(an, out or "tapost_out", progress)
     finally:
         progress.done()
     print("\n".join(outcome.summary))
     sys.stdout.flush()
+    if not an.ok:
+        raise AnalysisError(f"latency failed: {an.failure} (report: {outcome.paths['report']})")
     return 0

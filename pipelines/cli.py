@@ -63,6 +63,14 @@ def glue_vector_values(argv: list[str]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    fresh = argv is None  # a fresh process (the console script, python -m), not a call from Python
+    if fresh:  # say at once if this run will compile, and on any later compile
+        from pipelines.firstrun import announce_compiling, early_notice
+
+        command = next((a for a in sys.argv[1:] if not a.startswith("-")), None)
+        early_notice(command)
+        if command in ("analyze", "batch", "simulate", "inspect"):
+            announce_compiling()
     parser = build_parser()
     args = parser.parse_args(glue_vector_values(list(sys.argv[1:] if argv is None else argv)))
     if not getattr(args, "_run", None):

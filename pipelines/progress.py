@@ -1,6 +1,7 @@
 """Progress on stderr for long steps: a one-line bar when stderr is a terminal, silent otherwise.
 
-A ``Progress`` object is the ``progress(fraction, stage)`` callback the numerics accept (APIS.md).
+A ``Progress`` object is the ``progress(fraction, stage)`` callback the numerics accept (their ``progress=``
+arguments; ``pipelines.api.analyze(..., progress=)`` passes one through).
 Redrawing is rate-limited (at most ~10 times a second) so a callback per window costs nothing.
 """
 from __future__ import annotations

@@ -10,6 +10,7 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import math
+import re
 from dataclasses import dataclass, field
 from importlib import resources
 from typing import Any
@@ -225,7 +226,141 @@ def build_report(
     }
     if extra:
         rep.update(json_safe(extra))
-    return json_safe(rep)
+    rep = json_safe(rep)
+    add_findings(rep)
+    return rep
+
+
+# ---- warnings and notes ------------------------------------------------------------------------
+#: a parser's line that says what was chosen, not what is wrong (they share ``meta.warnings``)
+_NOTE_STARTS = ("note:", "no selector given", "selected ")
+_NOTE_CONTAINS = (": picked ", "position from GPS")
+#: an alignment note that is a warning: the estimate is doubtful or not an estimate at all
+_ALIGN_WARN_CONTAINS = ("did not follow the data", "not determined", "not observable",
+                        "larger than the noise model", "far beyond its prior", "updates skipped")
+#: ``name (source): text`` lines of the parsers' stream checks (gaps, duplicates, NaNs...)
+_STREAM_LINE = re.compile(r"^(\w+) \(([^()]*)\): (.+)$")
+
+
+def _is_parse_note(text: str) -> bool:
+    return text.startswith(_NOTE_STARTS) or any(c in text for c in _NOTE_CONTAINS)
+
+
+def _merge_stream_lines(lines: list[str]) -> list[str]:
+    """One line per problem: ``gyro (IMU): 1 gap(s)...`` on five channels -> ``1 gap(s)...: gyro (IMU),
+    accel (IMU), ...``. Other lines are kept (exact repeats dropped), in their first order."""
+    order: list[str] = []
+    chans: dict[str, list[str]] = {}
+    for text in lines:
+        m = _STREAM_LINE.match(text)
+        key = m.group(3) if m else text
+        if key not in chans:
+            order.append(key)
+            chans[key] = []
+        if m:
+            chans[key].append(f"{m.group(1)} ({m.group(2)})")
+    out = []
+    for key in order:
+        c = chans[key]
+        out.append(key if not c else (f"{c[0]}: {key}" if len(c) == 1 else f"{key}: {', '.join(c)}"))
+    return out
+
+
+def _latency_flag_words(q: dict) -> list[str]:
+    """The latency quality flags that limit the result, said in words."""
+    out = []
+    if q.get("too_little_motion"):
+        snr, dps = _num(q.get("motion_snr")), _num(q.get("motion_dps"))
+        fig = ", ".join(x for x in ((f"signal/noise {snr:.3g}" if snr is not None else ""),
+                                    (f"motion {dps:.3g} deg/s" if dps is not None else "")) if x)
+        out.append(f"too little motion for a reliable latency ({fig}): the estimate and its sigma are doubtful")
+    if q.get("periodic"):
+        alts = ", ".join(f"{x:+.4f} s" for x in (q.get("periodic_alternatives_s") or [])[:4] if _num(x) is not None)
+        out.append("the motion repeats: other lags fit almost as well" + (f" ({alts})" if alts else "")
+                   + "; the sigma covers their spread")
+    if q.get("windows_disagree"):
+        chi = _num(q.get("window_chi2_red"))
+        out.append("the latency differs between parts of the log beyond their sigmas"
+                   + (f" (reduced chi-square {chi:.3g})" if chi is not None else ""))
+    vf = q.get("velocity_fit")
+    if q.get("velocity_disagrees") and isinstance(vf, dict):
+        v = _num(vf.get("latency_s"))
+        out.append("the velocities alone give a different latency"
+                   + (f" ({v * 1e3:+.3f} ms)" if v is not None else "") + ": not used")
+    return out
+
+
+def findings(rep: dict) -> tuple[list[dict], list[dict]]:
+    """(warnings, notes) of a report, each ``[{stage, text}]``: warnings say what may be wrong with the
+    data or the results; notes say what was chosen or done. Warnings are deduplicated."""
+    warns: list[dict] = []
+    notes: list[dict] = []
+
+    def add(kind: list[dict], stage: str, text: str) -> None:
+        item = {"stage": stage, "text": str(text)}
+        if item not in kind:
+            kind.append(item)
+
+    parsed: dict[str, tuple[list[str], list[str]]] = {}
+    for role in ("master", "slave"):
+        sec = rep.get(role) or {}
+        ws, ns = [], []
+        for w in sec.get("warnings", []) or []:
+            (ns if _is_parse_note(w) else ws).append(w)
+        parsed[role] = (_merge_stream_lines(ws), [n[5:].strip() if n.startswith("note:") else n for n in ns])
+    for i, kind in ((0, warns), (1, notes)):
+        m_list, s_list = parsed["master"][i], parsed["slave"][i]
+        for text in m_list:  # the same line on both sides (one file, two units): said once
+            add(kind, "parse", f"{'master and slave' if text in s_list else 'master'}: {text}")
+        for text in s_list:
+            if text not in m_list:
+                add(kind, "parse", f"slave: {text}")
+    if rep.get("latency_search"):
+        add(notes, "latency", f"searched the {rep['latency_search']}")
+    lat = rep.get("latency") or {}
+    if "failed" in lat:
+        add(warns, "latency", f"latency failed: {lat['failed']}")
+    q = lat.get("quality") or {}
+    for w in q.get("warnings", []) or []:
+        add(warns, "latency", w)
+    for w in _latency_flag_words(q):
+        add(warns, "latency", w)
+    if "failed" not in lat and lat.get("sigma_s") is None and lat.get("latency_s") is not None:
+        add(warns, "latency", "the latency's sigma could not be determined")
+    comp = rep.get("compensation") or {}
+    if comp.get("skipped"):
+        add(warns, "compensation", f"compensation skipped: {comp['skipped']}")
+    al = rep.get("alignment") or {}
+    why = [(al.get(run) or {}).get("skipped") for run in RUNS]
+    if why[0] is not None and why[0] == why[1]:
+        add(warns, "alignment", f"alignment skipped (both runs): {why[0]}")
+    for run in RUNS:
+        sec = al.get(run) or {}
+        if "skipped" in sec:
+            if why[0] != why[1] and not ("failed" in lat and run == "compensated"):
+                add(warns, "alignment", f"{run} alignment skipped: {sec['skipped']}")
+            continue
+        for n in sec.get("notes", []) or []:
+            bad = any(c in n for c in _ALIGN_WARN_CONTAINS)
+            # the uncompensated run shows what the delay does: its trouble is expected, a note
+            add(warns if bad and run == "compensated" else notes, "alignment", f"{run}: {n}")
+        if sec.get("mounting_rpy_deg") and None in sec["mounting_rpy_deg"] and run == "compensated":
+            add(warns, "alignment", f"{run}: the mounting was not determined")
+        if run == "compensated" and sec.get("converged_s") is None:
+            add(warns, "alignment", f"{run}: the mounting's sigma did not converge")
+    for step, why in (rep.get("skipped") or {}).items():
+        if not (step == "latency" or step.startswith("alignment.")):
+            add(warns, "outputs", f"{step} skipped: {why}")
+    # warnings a stage put in the report itself (the IMU-to-IMU consistency, an export's damage)
+    for w in list(rep.get("warnings") or []):  # already set: by a stage, or by an earlier call (deduplicated)
+        add(warns, w["stage"], w["text"])
+    return warns, notes
+
+
+def add_findings(rep: dict) -> dict:
+    """Set the report's top-level ``warnings`` and ``notes`` (DESIGN.md) from its sections."""
+    rep["warnings"], rep["notes"] = findings(rep)
+    return rep
 
 
 # ---- IO and validation ------------------------------------------------------------------------

@@ -1,0 +1,61 @@
+"""The Python API (DESIGN.md, "Python API"): what ``tapost analyze`` does, for notebooks and scripts.
+
+```python
+from pipelines import api                      # or: import tapost as api
+log = api.load("flight.BIN::imu=IMU2")          # InsLog
+an = api.analyze("master.mcap", "slave.tlog", max_lag="auto")   # in memory: nothing is written
+an.report                    # the report.json dict (status, latency, alignment, warnings, notes, ...)
+an.latency, an.alignment     # LatencyResult, {"uncompensated"|"compensated": AlignmentResult or None}
+an.slave_on_master_clock     # InsLog: the slave's samples with stamps on the master's clock
+an.frames()                  # dict of pandas DataFrames (rates, states, residuals, slave on master clock)
+an.write("out/")             # the CLI's outputs: report.json, report.html, recording.rrd
+```
+
+Keyword options are the CLI's long options with ``_`` for ``-`` (``max_lag=0.5``, ``filter="kf-delay"``,
+``lever_arm="0.1,0,0"``, ``no_recording=True``, ``no_html=True``, ``no_compare=True``, ``config="a.toml"``).
+Unreadable input raises ``InputError``; a latency the data cannot give does not raise: ``an.ok`` is False,
+``an.failure`` says why and ``an.report["status"]`` is "failed" (the CLI exits 1 there).
+"""
+from __future__ import annotations
+
+from logtools.errors import AnalysisError, InputError, TapostError
+from logtools.inslog import InsLog
+from logtools.results import AlignmentResult, LatencyResult
+from parsers import load as _load
+from pipelines import analyze as _analyze
+from pipelines.analyze import Analysis, AnalyzeOptions
+
+__all__ = ["load", "analyze", "options", "Analysis", "AnalyzeOptions", "InsLog", "LatencyResult",
+           "AlignmentResult", "TapostError", "InputError", "AnalysisError"]
+
+#: keyword options: the CLI's long options (``tapost analyze --help``), dashes as underscores
+OPTIONS = _analyze.CLI_KEYS + ("no_compare", "config")
+
+
+def load(arg: str) -> InsLog:
+    """Read one unit of a log, ``PATH[::SELECTOR]`` (``tapost inspect PATH`` lists the selectors)."""
+    return _load(arg)
+
+
+def options(**opts) -> AnalyzeOptions:
+    """The analysis options from keyword options named like the CLI's long options."""
+    unknown = set(opts) - set(OPTIONS)
+    if unknown:
+        raise InputError(f"unknown option(s): {', '.join(sorted(unknown))}; known: {', '.join(OPTIONS)}")
+    config = _analyze.read_config(opts.pop("config")) if opts.get("config") else None
+    opts.pop("config", None)
+    if opts.pop("no_compare", None):
+        opts["compare"] = False
+    cli = {k: opts.get(k) for k in _analyze.CLI_KEYS}
+    return _analyze.options_from(cli, config)[0]
+
+
+def analyze(master: str | InsLog, slave: str | InsLog, progress=None, **opts) -> Analysis:
+    """Analyze one pair in memory: latency, compensation, both alignment runs (nothing is written).
+
+    ``master``/``slave`` are ``PATH[::SELECTOR]`` strings or InsLogs (``load``). ``progress`` is an
+    optional ``progress(fraction, stage)`` callback."""
+    from pipelines.firstrun import announce_compiling
+
+    announce_compiling()  # one line on stderr if numba compiles (the first run after installing)
+    return _analyze.compute(master, slave, options(**opts), progress=progress)

@@ -1,0 +1,265 @@
+"""A newcomer's first hour: warnings vs notes, the same stream refused, ``--no-html``, the summary's words.
+
+Orchestration tests run with the stand-in numerics of test_analyze_cli.py (fast); the real-data ones skip
+when ../shared/realdata is absent.
+"""
+from __future__ import annotations
+
+import json
+import os
+import sys
+from pathlib import Path
+
+import pytest
+
+from pipelines import report as rp
+from pipelines.analyze import summary_lines
+from pipelines.cli import main
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_analyze_cli import fake_numerics, write_fake_pair  # noqa: E402,F401
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLE = ROOT / "sample_logs"
+REAL = ROOT.parent / "shared" / "realdata"
+PLANE = REAL / "arduplane_box_pilot.BIN"
+
+
+def _report(**over) -> dict:
+    """A small report dict as build_report makes it (sections only), for findings()."""
+    rep = {
+        "status": "ok",
+        "master": {"path": "m.BIN", "format": "dataflash", "clock": "epoch", "duration_s": 90.0, "warnings": [
+            "truncated DataFlash log: last 41 byte(s) hold an incomplete record",
+            "no selector given: picked imu=IMU,nav=XKF1 (other units: imu=IMU2,nav=XKF6)",
+            "gyro (IMU): 1 gap(s) in stamps, longest 1.240 s",
+            "accel (IMU): 1 gap(s) in stamps, longest 1.240 s",
+            "quat (XKQ1): 1 gap(s) in stamps, longest 1.240 s"]},
+        "slave": {"path": "s.mcap", "format": "mcap", "clock": "epoch", "duration_s": 90.0, "warnings": [
+            "note: selected imu=/imu", "note: selected att=/attitude"]},
+        "latency": {"latency_s": 0.01, "sigma_s": 0.001, "drift_ppm": 0.0, "method": "tapost",
+                    "window_s": [0.0, 90.0], "methods": {},
+                    "quality": {"too_little_motion": False, "periodic": False,
+                                "warnings": ["slave stamps are whole multiples of 1 ms: the latency's sigma is "
+                                             "floored at 0.29 ms"]}},
+        "alignment": {
+            "uncompensated": {"filter": "kf", "match": "vel+att", "mounting_rpy_deg": [0, 0, 0], "mounting_sigma_deg": [0.1, 0.1, 0.1],
+                              "converged_s": None, "notes": [
+                                  "residuals 9.0x larger than the noise model: unmodelled flexure, lever arm "
+                                  "or delay? sigmas are optimistic"]},
+            "compensated": {"filter": "kf", "match": "vel+att", "mounting_rpy_deg": [0, 0, 0], "mounting_sigma_deg": [0.1, 0.1, 0.1],
+                            "converged_s": 2.0,
+                            "notes": ["flexure states added (mean NIS/dof 5.0 without them, 1.0 with)"]}},
+        "skipped": {},
+    }
+    rep.update(over)
+    return rep
+
+
+def test_findings_split_warnings_from_notes_and_merge_a_gap_on_all_channels():
+    warns, notes = rp.findings(_report())
+    wtext = [w["text"] for w in warns]
+    ntext = [n["text"] for n in notes]
+    # the selector lines are notes, the ms-stamp line is a latency warning
+    assert "slave: selected imu=/imu" in ntext and "slave: selected att=/attitude" in ntext
+    assert any(t.startswith("master: no selector given: picked imu=IMU") for t in ntext)
+    assert {"stage": "latency", "text": _report()["latency"]["quality"]["warnings"][0]} in warns
+    assert not any("selected" in t or "picked" in t for t in wtext)
+    # one line for the gap on three channels, naming them
+    gaps = [t for t in wtext if "gap(s) in stamps" in t]
+    assert gaps == ["master: 1 gap(s) in stamps, longest 1.240 s: gyro (IMU), accel (IMU), quat (XKQ1)"]
+    assert "master: truncated DataFlash log: last 41 byte(s) hold an incomplete record" in wtext
+    # the uncompensated run's trouble is what the delay does (a note); the compensated run's notes are notes
+    assert any(t.startswith("uncompensated: residuals 9.0x") for t in ntext)
+    assert any(t.startswith("compensated: flexure states added") for t in ntext)
+    assert len(warns) == 3 and len(notes) == 5
+    assert all(set(w) == {"stage", "text"} for w in warns + notes)
+
+
+def test_findings_say_too_little_motion_and_not_determined_in_words():
+    rep = _report()
+    rep["latency"]["quality"].update(too_little_motion=True, motion_snr=3.2, motion_dps=0.4)
+    rep["alignment"]["compensated"].update(mounting_rpy_deg=[None, None, None], converged_s=None,
+                                           notes=["mounting not determined: the master has no attitude"])
+    warns, _ = rp.findings(rep)
+    text = " | ".join(w["text"] for w in warns)
+    assert "too little motion for a reliable latency (signal/noise 3.2, motion 0.4 deg/s)" in text
+    assert "compensated: mounting not determined: the master has no attitude" in text
+    assert "compensated: the mounting was not determined" in text
+    lines = summary_lines({**rep, "warnings": warns, "notes": []}, {})
+    assert any("too little motion" in ln for ln in lines)
+    assert any(ln.startswith("mounting (compensated, kf/vel+att): not determined") for ln in lines)
+    assert any(ln.startswith(f"status ok: {len(warns)} warning(s)") for ln in lines)
+
+
+def test_summary_counts_warnings_not_notes_and_prints_the_status(tmp_path, fake_numerics, capsys):
+    m, s = write_fake_pair(tmp_path)
+    out = tmp_path / "out"
+    assert main(["analyze", m, s, "-o", str(out), "--max-lag", "0.5", "--no-recording"]) == 0
+    text = capsys.readouterr().out
+    rep = json.loads((out / "report.json").read_text())
+    rp.validate(rep)
+    assert rep["status"] == "ok"
+    # a clean pair: nothing to warn about, and the summary says so with the status
+    assert rep["warnings"] == []
+    assert f"status ok: 0 warning(s), {len(rep['notes'])} note(s)" in text
+    assert "  warning [" not in text
+    # a damaged slave (rows written twice) gives a warning, counted and printed
+    lines = Path(s).read_text().splitlines()
+    Path(s).write_text("\n".join(lines[:1000] + lines[990:]) + "\n")
+    out2 = tmp_path / "out2"
+    assert main(["analyze", m, s, "-o", str(out2), "--max-lag", "0.5", "--no-recording"]) == 0
+    text = capsys.readouterr().out
+    rep = json.loads((out2 / "report.json").read_text())
+    assert any("duplicate" in w["text"] for w in rep["warnings"])
+    assert f"status {rep['status']}: {len(rep['warnings'])} warning(s)" in text
+    assert all(f"  warning [{w['stage']}] {w['text']}" in text for w in rep["warnings"])
+
+
+def test_no_html_writes_report_json_and_no_html(tmp_path, fake_numerics, capsys):
+    m, s = write_fake_pair(tmp_path)
+    out = tmp_path / "out"
+    assert main(["analyze", m, s, "-o", str(out), "--max-lag", "0.5", "--no-html", "--no-recording"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["report.json"]
+    rep = json.loads((out / "report.json").read_text())
+    rp.validate(rep)
+    assert rep["outputs"] == {"report": "report.json", "html": None, "recording": None}
+    assert rep["options"]["html"] is False
+    assert "report.html" not in capsys.readouterr().out
+    # the same from a config file, and in a batch manifest's per-pair options
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("no_html = true\nno_recording = true\nmax_lag = 0.5\n")
+    out2 = tmp_path / "out2"
+    assert main(["analyze", m, s, "-o", str(out2), "--config", str(cfg)]) == 0
+    assert sorted(p.name for p in out2.iterdir()) == ["report.json"]
+
+
+def test_the_same_stream_on_both_sides_is_refused_in_one_line(tmp_path, capsys):
+    log = str(SAMPLE / "master.mcap")
+    assert main(["analyze", log, log, "-o", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert "master.mcap" in err and "same stream" in err
+    assert not (tmp_path / "o").exists()
+    # the same selector given on both sides, and a selector that resolves to the default's stream
+    assert main(["analyze", f"{log}::imu=/imu", f"{log}::imu=/imu", "-o", str(tmp_path / "o")]) == 2
+    assert "same stream" in capsys.readouterr().err
+    from pipelines import api
+
+    with pytest.raises(api.InputError, match="same stream"):
+        api.analyze(log, api.load(log))
+
+
+@pytest.mark.skipif(not PLANE.exists(), reason="real logs absent (../shared/realdata)")
+def test_one_file_two_selectors_stays_allowed_and_the_default_is_its_own_stream(tmp_path, fake_numerics, capsys):
+    p = str(PLANE)
+    out = tmp_path / "o"
+    assert main(["analyze", f"{p}::imu=IMU", f"{p}::imu=IMU2", "-o", str(out), "--no-html",
+                 "--no-recording"]) == 0
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["master"]["selector"] != rep["slave"]["selector"]
+    # one line for the 1.24 s gap on every channel of a side (it was one line per channel)
+    gap_lines = [w for w in rep["warnings"] if "gap(s) in stamps" in w["text"]]
+    assert len(gap_lines) == 2 and all(w["stage"] == "parse" for w in gap_lines)
+    capsys.readouterr()
+    # the default unit and its selector written out in full are the same stream
+    from parsers import load
+
+    default = load(p).meta.selector
+    assert default.startswith("imu=IMU,")
+    assert main(["analyze", p, f"{p}::{default}", "-o", str(tmp_path / "o3")]) == 2
+    assert "same stream" in capsys.readouterr().err
+
+
+def _readme_python_block() -> str:
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    start = text.index("<!-- api-example -->")
+    block = text[start:].split("```python\n", 1)[1].split("```", 1)[0]
+    return block
+
+
+def test_the_readme_api_example_runs_on_the_sample_logs(tmp_path, monkeypatch):
+    block = _readme_python_block()
+    assert "api.analyze(" in block and ".frames()" in block and ".write(" in block
+    monkeypatch.chdir(ROOT)
+    out = tmp_path / "api_out"
+    ns: dict = {}
+    exec(compile(block.replace('"api_out"', repr(str(out))), "README.md", "exec"), ns)  # noqa: S102
+    an = ns["an"]
+    assert an.ok and an.report["status"] in ("ok", "partial")
+    # the sample pair's truth: 100 ms latency, mounting [0.3, 0.4, -1] deg
+    truth = json.loads((SAMPLE / "truth.json").read_text())
+    assert an.latency.latency_s == pytest.approx(truth["latency_s"], abs=1e-3)
+    rpy = an.alignment["compensated"].mounting_rpy_deg
+    assert rpy == pytest.approx(truth["mounting_rpy_deg"], abs=0.01)
+    frames = an.frames()
+    assert {"rates", "states_compensated", "residuals_compensated", "slave_on_master_clock_imu"} <= set(frames)
+    assert len(frames["slave_on_master_clock_imu"]) == len(an.slave_on_master_clock.imu)
+    assert (out / "report.json").exists() and (out / "report.html").exists()
+    rep = json.loads((out / "report.json").read_text())
+    rp.validate(rep)
+    assert rep["latency"]["latency_s"] == pytest.approx(an.report["latency"]["latency_s"])
+    assert not any("selected" in w["text"] for w in rep["warnings"])  # the selector lines are notes
+    import tapost
+
+    assert tapost.analyze is ns["api"].analyze and callable(tapost.load)
+    assert os.path.basename(rep["master"]["path"]) == "master.mcap"
+
+
+def test_a_compile_is_announced_once_on_stderr(monkeypatch, capsys):
+    numba = pytest.importorskip("numba")
+    from pipelines import firstrun
+
+    # a listener an earlier test registered may say it first (on stderr): one line in all, either way
+    monkeypatch.setattr(firstrun, "_state", {"installed": False, "said": False})
+    assert firstrun.announce_compiling() is True
+
+    @numba.njit  # not cached: compiles here, in this test
+    def _twice(x):
+        return 2.0 * x
+
+    assert _twice(1.5) == 3.0
+    assert _twice(2) == 4  # a second specialisation: no second line
+    lines = capsys.readouterr().err.splitlines()
+    assert lines == [lines[0]] and lines[0].startswith("tapost: compiling numerical kernels on first use (once")
+
+
+def test_a_cold_cache_first_run_says_it_compiles_before_anything_else(tmp_path):
+    """``tapost inspect`` of a tlog on an empty numba cache (NUMBA_CACHE_DIR): stderr, not a terminal, gets
+    the compile line first."""
+    pytest.importorskip("numba")
+    import subprocess
+    import time
+
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "nbcache"),
+           "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    t0 = time.monotonic()
+    p = subprocess.run([sys.executable, "-m", "pipelines.cli", "inspect", str(SAMPLE / "slave.tlog")],
+                       capture_output=True, text=True, env=env, cwd=str(tmp_path), timeout=600)
+    took = time.monotonic() - t0
+    assert p.returncode == 0, p.stderr
+    err = p.stderr.splitlines()
+    assert err and err[0].startswith("tapost: compiling numerical kernels on first use"), p.stderr
+    assert "HIGHRES_IMU" in p.stdout
+    print(f"cold inspect of the sample tlog: {took:.1f} s")
+
+
+def test_a_fresh_analyze_on_a_cold_cache_says_so_before_its_imports(tmp_path):
+    """The line comes from a file-system look before numpy/pandas/numba load (here followed by the
+    same-stream refusal, so nothing heavy runs)."""
+    import subprocess
+    import time
+
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "nbcache"),
+           "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    log = str(SAMPLE / "master.mcap")
+    t0 = time.monotonic()
+    p = subprocess.Popen([sys.executable, "-m", "pipelines.cli", "analyze", log, log, "-o", str(tmp_path / "o")],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=str(tmp_path))
+    first = p.stderr.readline()
+    t_first = time.monotonic() - t0
+    rest = p.stderr.read()
+    assert p.wait(timeout=600) == 2
+    assert first.startswith("tapost: compiling numerical kernels on first use (once"), first + rest
+    assert len(rest.splitlines()) == 1 and "same stream" in rest
+    print(f"compile line after {t_first:.2f} s")
