@@ -120,3 +120,19 @@ def get_le(buf: np.ndarray, offsets: np.ndarray, nbytes: int, signed: bool = Fal
         return np.zeros(0, dtype=np.int64)
     block = np.ascontiguousarray(buf[offs[:, None] + np.arange(nbytes)])
     return block.view((_LE_SIGNED if signed else _LE)[nbytes]).reshape(-1).astype(np.int64)
+
+
+def kernel_loader(namespace: dict):
+    """``kernel(name)``: the plain-Python function ``namespace[name]`` compiled by numba on first use (cached
+    on disk), so importing a writer costs no compile and numba loads only when a native export runs."""
+    compiled: dict[str, object] = {}
+
+    def kernel(name: str):
+        fn = compiled.get(name)
+        if fn is None:
+            import numba
+
+            fn = compiled[name] = numba.njit(cache=True)(namespace[name])
+        return fn
+
+    return kernel

@@ -20,7 +20,7 @@ from logtools.errors import InputError
 from parsers.atomic import atomic_path
 from parsers.base import Selector
 from parsers.csvtable import decimal_text_to_int, delimiter
-from parsers.restamp import ClockShift, RestampStats
+from parsers.restamp import ClockShift, RestampStats, kernel_loader
 
 HOW = "text rewrite of the time column (every other cell's text kept)"
 _POW10 = {"s": 9, "sec": 9, "ms": 6, "us": 3, "ns": 0}
@@ -186,16 +186,7 @@ def _emit(buf, ls, le, cs, ce, ok, new, p, out):  # pragma: no cover - compiled
     return o
 
 
-_COMPILED: dict[str, object] = {}
-
-
-def _kernel(name: str):
-    fn = _COMPILED.get(name)
-    if fn is None:
-        import numba
-
-        fn = _COMPILED[name] = numba.njit(cache=True)(globals()[name])
-    return fn
+_kernel = kernel_loader(globals())  # the numba kernels above, compiled (and cached) on first use
 
 
 def restamp_bytes(raw: bytes, time_col: str, unit: str, shift: ClockShift, path: str) -> tuple[np.ndarray, int, int]:

@@ -22,7 +22,7 @@ import numpy as np
 
 from logtools.errors import InputError
 from parsers.base import Selector
-from parsers.restamp import ClockShift, RestampStats, get_le, put_le, read_bytes, write_bytes_atomic
+from parsers.restamp import ClockShift, RestampStats, get_le, kernel_loader, put_le, read_bytes, write_bytes_atomic
 
 HOW = "byte-level rewrite of the time fields (every other byte copied)"
 MS_NS, US_NS = 1_000_000, 1_000
@@ -291,16 +291,7 @@ def _tlog_kernel(buf, starts, pay, plen, status, msgid, v2, o_usec, o_boot, o_un
     return changed_n, signed_n, negative, bits
 
 
-_COMPILED: dict[str, object] = {}
-
-
-def _kernel(name: str):
-    fn = _COMPILED.get(name)
-    if fn is None:
-        import numba
-
-        fn = _COMPILED[name] = numba.njit(cache=True)(globals()[name])
-    return fn
+_kernel = kernel_loader(globals())  # the numba kernels above, compiled (and cached) on first use
 
 
 def _field_tables(n_ids: int):

@@ -17,6 +17,7 @@ import os
 import sys
 import time
 import tomllib
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -34,6 +35,42 @@ from pipelines.progress import Progress, null_progress
 
 MATCHES = ("auto",) + ALIGNMENT_MATCHES  # auto: vel+att when the master has both, else what it has
 REPORT, HTML, RECORDING = "report.json", "report.html", "recording.rrd"
+
+
+@dataclass(frozen=True)
+class Numerics:
+    """The numerical stages an analysis calls; None: logtools' own, imported on first use (so the CLI starts
+    without loading numba). Orchestration tests hand in light stand-ins through ``use_numerics``."""
+
+    estimate: Callable | None = None  # logtools.latency.estimate
+    compensate: Callable | None = None  # logtools.compensate.compensate
+    run_alignment: Callable | None = None  # logtools.alignment.run_alignment
+
+
+_numerics = Numerics()
+
+
+def use_numerics(numerics: Numerics) -> Numerics:
+    """Make ``numerics`` the stages of every later analysis in this process (and in processes forked from
+    it); returns the ones before, to restore."""
+    global _numerics
+    before, _numerics = _numerics, numerics
+    return before
+
+
+def numerics_stage(name: str) -> Callable:
+    """The stage ``name`` ("estimate", "compensate", "run_alignment") in use (ImportError if logtools' own
+    cannot be loaded)."""
+    fn = getattr(_numerics, name)
+    if fn is not None:
+        return fn
+    if name == "estimate":
+        from logtools.latency import estimate as fn
+    elif name == "compensate":
+        from logtools.compensate import compensate as fn
+    else:
+        from logtools.alignment import run_alignment as fn
+    return fn
 
 
 @dataclass(frozen=True)
@@ -312,7 +349,7 @@ def _alignment(master: InsLog, slave: InsLog, run: str, opts: AnalyzeOptions, pr
         hint = " (clocks unrelated? the compensated run uses the estimated latency)" if run == "uncompensated" else ""
         return f"no time overlap between the master and the slave on {run} stamps{hint}"
     try:
-        from logtools.alignment import run_alignment
+        run_alignment = numerics_stage("run_alignment")
     except ImportError as exc:
         return f"alignment is not available in this installation ({exc})"
     try:
@@ -568,7 +605,7 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
         failure = f"latency needs angular rate or attitude from both units; the {' and '.join(missing)} has neither"
     else:
         try:
-            from logtools.latency import estimate
+            estimate = numerics_stage("estimate")
         except ImportError as exc:
             raise AnalysisError(f"latency estimation is not available in this installation ({exc})") from None
         max_lag = opts.max_lag_s
@@ -597,8 +634,7 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
     if an.latency is not None:
         prog(0.45, "compensate")
         try:
-            from logtools.compensate import compensate
-
+            compensate = numerics_stage("compensate")
             an.slave_comp = compensate(slave, an.latency, master, method=opts.compensation)
             extra["compensation"] = {"method": opts.compensation, "applied_latency_s": an.latency.latency_s,
                                      "applied_drift_ppm": an.latency.drift_ppm}

@@ -328,7 +328,8 @@ def row_from_report(job: PairJob, rep: dict | None, status: str, exit_code: int,
     if rep:
         lat = rep.get("latency", {})
         row.update(latency_s=lat.get("latency_s"), sigma_s=lat.get("sigma_s"), drift_ppm=lat.get("drift_ppm"),
-                   report=os.path.join(job.name, "report.html"))
+                   report=os.path.join(job.name, "report.html" if (rep.get("outputs") or {}).get("html")
+                                       else "report.json"))
         for run, tag in (("uncompensated", "unc"), ("compensated", "comp")):
             a = rep.get("alignment", {}).get(run, {})
             for i, ax in enumerate(("roll", "pitch", "yaw")):
@@ -593,9 +594,10 @@ def _run_dask(jobs: list[PairJob], address: str, on_result) -> None:
 
 
 def run_batch(campaign: str, out_root: str, *, jobs: int = 1, scheduler: str | None = None,
-              log=None, write_slave: str | None = None) -> tuple[list[dict], dict[str, int]]:
+              log=None, write_slave: str | None = None, no_html: bool = False) -> tuple[list[dict], dict[str, int]]:
     """Analyze every pair; returns (rows sorted by pair, counts {"ran", "skipped", "failed"}).
-    ``write_slave`` (csv,parquet,native) is added to every pair's options that do not set it."""
+    ``write_slave`` (csv,parquet,native) is added to every pair's options that do not set it, and with
+    ``no_html`` ``--no-html`` to every pair's (both are part of a pair's options, so of its fingerprint)."""
     log = log or (lambda msg: print(msg, file=sys.stderr))
     pair_jobs = discover(campaign, out_root)
     if write_slave:
@@ -604,6 +606,9 @@ def run_batch(campaign: str, out_root: str, *, jobs: int = 1, scheduler: str | N
         kinds = ",".join(parse_kinds(write_slave))
         pair_jobs = [j if any(o.startswith("--write-slave") for o in j.options)
                      else dataclasses.replace(j, options=tuple(j.options) + ("--write-slave", kinds))
+                     for j in pair_jobs]
+    if no_html:
+        pair_jobs = [j if "--no-html" in j.options else dataclasses.replace(j, options=tuple(j.options) + ("--no-html",))
                      for j in pair_jobs]
     os.makedirs(out_root, exist_ok=True)
     rows: dict[str, dict] = {}
@@ -650,13 +655,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="run the pairs on a Dask cluster (e.g. tcp://host:8786)")
     p.add_argument("--write-slave", default=None, metavar="csv|parquet|native[,...]",
                    help="also write each pair's slave on the master's clock (see tapost analyze)")
+    p.add_argument("--no-html", action="store_true",
+                   help="skip each pair's report.html (report.json is always written; index.html still is)")
 
 
 def run(args: argparse.Namespace) -> int:
     if args.jobs < 1:
         raise InputError("--jobs must be at least 1")
     rows, counts = run_batch(args.campaign, args.out, jobs=args.jobs, scheduler=args.scheduler,
-                             write_slave=args.write_slave)
+                             write_slave=args.write_slave, no_html=args.no_html)
     n_ok = sum(r["status"] in ("ok", "partial") for r in rows)
     print(f"{len(rows)} pairs: {n_ok} analyzed, {counts['failed']} failed; "
           f"{counts['ran']} run now, {counts['skipped']} already done")

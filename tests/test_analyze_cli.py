@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import sys
-import types
 
 import numpy as np
 import pytest
@@ -21,6 +20,7 @@ from logtools.inslog import InsLog
 from logtools.results import AlignmentResult, LatencyResult, MethodEstimate
 from parsers import registry
 from pipelines import report as rp
+from pipelines.analyze import Numerics, use_numerics
 from pipelines.cli import main
 
 sys.path.insert(0, str(__import__("pathlib").Path(__file__).parent))
@@ -74,25 +74,18 @@ def _fake_alignment(master: InsLog, slave: InsLog, *, filter="kf", match="vel+at
                            residual_rms={"gyro_rad_s": float(np.sqrt(np.mean(resid ** 2)))})
 
 
-def install_fake_numerics(setitem=None, setattr_=None) -> None:
-    """Replace logtools.latency/compensate/alignment by the stand-ins above (this process, and
-    processes forked from it). With a pytest monkeypatch the change is undone after the test."""
-    import logtools
-    import logtools.alignment as la
-    import pipelines.analyze  # noqa: F401 - its option tables come from the real modules, imported first
-
-    setitem = setitem or (lambda d, k, v: d.__setitem__(k, v))
-    setattr_ = setattr_ or (lambda o, k, v, raising=False: setattr(o, k, v))
-    setitem(sys.modules, "logtools.latency", types.SimpleNamespace(estimate=_fake_estimate))
-    setitem(sys.modules, "logtools.compensate", types.SimpleNamespace(compensate=_fake_compensate))
-    setattr_(la, "run_alignment", _fake_alignment, raising=False)
-    setattr_(logtools, "latency", sys.modules["logtools.latency"], raising=False)
-    setattr_(logtools, "compensate", sys.modules["logtools.compensate"], raising=False)
+def install_fake_numerics() -> Numerics:
+    """Make the stand-ins above the analysis's numerics (``pipelines.analyze.use_numerics``: this process,
+    and processes forked from it); returns the numerics before, to restore."""
+    return use_numerics(Numerics(estimate=_fake_estimate, compensate=_fake_compensate,
+                                 run_alignment=_fake_alignment))
 
 
 @pytest.fixture
-def fake_numerics(monkeypatch):
-    install_fake_numerics(monkeypatch.setitem, monkeypatch.setattr)
+def fake_numerics():
+    before = install_fake_numerics()
+    yield
+    use_numerics(before)
 
 
 def write_fake_pair(d, *, duration_s=40.0, slave_imu_only=True, slave_offset_ns=0, name=("m.csv", "s.csv"),

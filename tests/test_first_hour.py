@@ -10,6 +10,7 @@ import os
 import sys
 from pathlib import Path
 
+import pandas as pd
 import pytest
 
 from pipelines import report as rp
@@ -263,3 +264,20 @@ def test_a_fresh_analyze_on_a_cold_cache_says_so_before_its_imports(tmp_path):
     assert first.startswith("tapost: compiling numerical kernels on first use (once"), first + rest
     assert len(rest.splitlines()) == 1 and "same stream" in rest
     print(f"compile line after {t_first:.2f} s")
+
+
+def test_batch_no_html_skips_every_pairs_report_html_and_links_report_json(tmp_path, fake_numerics):
+    from test_batch import make_campaign
+
+    camp = make_campaign(tmp_path, n_good=2, duration_s=20.0)
+    out = tmp_path / "out"
+    assert main(["batch", str(camp), "-o", str(out), "--no-html"]) == 0
+    reports = sorted(out.glob("*/report.json"))
+    assert len(reports) == 2
+    assert not list(out.glob("*/report.html"))
+    for r in reports:
+        assert json.loads(r.read_text())["options"]["html"] is False
+    summary = pd.read_csv(out / "summary.csv")
+    ok = summary[summary.status != "failed"]
+    assert len(ok) == 2 and all(str(x).endswith("report.json") for x in ok.report)
+    assert (out / "index.html").exists()

@@ -185,6 +185,19 @@ def _euler_sigma_deg(r: np.ndarray, cov_rad2: np.ndarray) -> np.ndarray:
     return np.degrees(np.sqrt(np.maximum(np.diag(jac @ cov_rad2 @ jac.T), 0.0)))
 
 
+def _linearised(u_m: np.ndarray, v_s: np.ndarray, r_mat: np.ndarray, k_lever: np.ndarray | None,
+                lev: np.ndarray | None, p: int) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals e = v_s - R (u_m + K r) and their Jacobian h (n, 3, p) in the slave-side rotation
+    perturbation (and r)."""
+    um = u_m if lev is None else u_m + np.einsum("kij,j->ki", k_lever, lev)
+    pred = um @ r_mat.T
+    h = np.zeros((len(u_m), 3, p))
+    h[:, :, :3] = -skew(pred)
+    if lev is not None:
+        h[:, :, 3:] = np.einsum("ij,kjl->kil", r_mat, k_lever)
+    return v_s - pred, h
+
+
 def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = None, *, dt_s: float = 1.0,
                  iterations: int = 5) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray, float, float]:
     """R (and nuisance parameters r with regressors ``k_lever`` (n, 3, m): a lever arm, a residual delay)
@@ -197,13 +210,7 @@ def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = 
     lev = np.zeros(k_lever.shape[2]) if k_lever is not None else None
     p = 3 if k_lever is None else 3 + k_lever.shape[2]
     for _ in range(iterations):
-        um = u_m if lev is None else u_m + np.einsum("kij,j->ki", k_lever, lev)
-        pred = um @ r_mat.T
-        e = v_s - pred
-        h = np.zeros((n, 3, p))
-        h[:, :, :3] = -skew(pred)
-        if lev is not None:
-            h[:, :, 3:] = np.einsum("ij,kjl->kil", r_mat, k_lever)
+        e, h = _linearised(u_m, v_s, r_mat, k_lever, lev, p)
         jtj = np.einsum("kia,kib->ab", h, h)
         x = np.linalg.solve(jtj, np.einsum("kia,ki->a", h, e))
         r_mat = dcm_from_rotvec(x[:3]) @ r_mat
@@ -211,13 +218,7 @@ def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = 
             lev = lev + x[3:]
         if np.linalg.norm(x[:3]) < 1e-12:
             break
-    um = u_m if lev is None else u_m + np.einsum("kij,j->ki", k_lever, lev)
-    pred = um @ r_mat.T
-    e = v_s - pred
-    h = np.zeros((n, 3, p))
-    h[:, :, :3] = -skew(pred)
-    if lev is not None:
-        h[:, :, 3:] = np.einsum("ij,kjl->kil", r_mat, k_lever)
+    e, h = _linearised(u_m, v_s, r_mat, k_lever, lev, p)
     jtj = np.einsum("kia,kib->ab", h, h)
     scores = np.einsum("kia,ki->ka", h, e)
     om, tau = _long_run_cov(scores)
