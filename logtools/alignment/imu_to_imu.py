@@ -33,19 +33,29 @@ import numpy as np
 from logtools.conventions import dcm_from_rotvec, euler_from_dcm, median_step_s, skew, wahba
 from logtools.inslog import InsLog
 
-HIGHPASS_S = 4.0  # the slow part (biases, mean gravity, earth rate) removed: a centred moving mean this long
-HIGHPASS_RETRY_S = (30.0,)  # ... longer where that leaves too little motion (a ship's sway, gentle S-turns)
-MIN_SAMPLES = 50  # fewer common samples: not measured
-MIN_EXPLAINED = 0.5  # the fitted rotation must explain this fraction of the slave's (high-passed) signal power
-MAX_SIGMA_DEG = 5.0  # an axis less determined than this: the triad's rotation is not reported (null)
-GAP_STEPS = 3.0  # a step of a unit's stamps beyond this many of its median steps is a gap (not bridged)
-CONSISTENCY_Z = 3.0  # beyond this many combined sigmas the two views disagree
-#: ... the combined sigma taken as at least this (deg): a log against itself agrees to 1e-4 deg, which is
-#: no disagreement however small its sigma (interpolation between the two units' stamps)
-CONSISTENCY_FLOOR_DEG = 0.005
-BAND_SPLIT_S = 0.4  # the slow and the fast part of the motion split at this period (moving mean)
-BAND_Z = 3.0  # the two bands' rotations further apart than this many combined sigmas: not one rotation
-LEVER_MIN_RATE_RAD_S = 0.3  # the accelerometers' lever arm is estimated where the rates move at least this (rms)
+
+
+@dataclass(frozen=True)
+class ImuToImuConfig:
+    """Every tuning number of the IMU-to-IMU rotation and of the consistency check, with its reason
+    (tests/test_imu_to_imu.py; docs/alignment_real_logs.md)."""
+
+    highpass_s: float = 4.0  # the slow part (biases, mean gravity, earth rate) removed: a centred moving mean this long
+    highpass_retry_s: tuple[float, ...] = (30.0,)  # ... longer where that leaves too little motion (a ship's sway)
+    min_samples: int = 50  # fewer common samples: not measured
+    min_explained: float = 0.5  # the fitted rotation must explain this fraction of the slave's (high-passed) power
+    max_sigma_deg: float = 5.0  # an axis less determined than this: the triad's rotation is not reported (null)
+    gap_steps: float = 3.0  # a step of a unit's stamps beyond this many of its median steps is a gap (not bridged)
+    consistency_z: float = 3.0  # beyond this many combined sigmas the two views disagree
+    #: ... the combined sigma taken as at least this (deg): a log against itself agrees to 1e-4 deg, which is
+    #: no disagreement however small its sigma (interpolation between the two units' stamps)
+    consistency_floor_deg: float = 0.005
+    band_split_s: float = 0.4  # the slow and the fast part of the motion split at this period (moving mean)
+    band_z: float = 3.0  # the two bands' rotations further apart than this many combined sigmas: not one rotation
+    lever_min_rate_rad_s: float = 0.3  # the accelerometers' lever arm is estimated where the rates move this (rms)
+
+
+DEFAULT = ImuToImuConfig()
 
 
 @dataclass(frozen=True)
@@ -59,16 +69,13 @@ class TriadRotation:
     corr_time_s: float  # the scores' integrated correlation time (what inflated the white sigma)
     lever_arm_m: tuple[float, float, float] | None = None  # accelerometers: the offset estimated with it
     delay_s: float | None = None  # the delay left between the two units' samples, estimated with it
-    #: the rotation fitted on the slow (periods > BAND_SPLIT_S) and on the fast part of the motion apart, and
-    #: the largest z between them (beyond BAND_Z: the triads differ by more than a rotation)
+    #: the rotation fitted on the slow (periods > band_split_s) and on the fast part of the motion apart, and
+    #: the largest z between them (beyond the config's band_z: the triads differ by more than a rotation)
     band_rpy_deg: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
     band_z: float | None = None
     sigma_data_deg: tuple[float, float, float] | None = None  # the sigma from the residuals alone, where the
     # bands disagreed and half their spread was added to ``sigma_deg``
-
-    @property
-    def rigid(self) -> bool | None:
-        return None if self.band_z is None else bool(self.band_z <= BAND_Z)
+    rigid: bool | None = None  # one rotation at every frequency (band_z within the config's limit); None: not checked
 
 
 @dataclass(frozen=True)
@@ -110,13 +117,13 @@ def _clean(t: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return t[keep], y[keep]
 
 
-def _interp_at(t: np.ndarray, tp: np.ndarray, yp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _interp_at(t: np.ndarray, tp: np.ndarray, yp: np.ndarray, gap_steps: float) -> tuple[np.ndarray, np.ndarray]:
     """yp (n, k) at t, linearly; and the mask of t not inside a gap of tp (nor outside it)."""
     step = median_step_s(tp, default=np.inf)
     j = np.searchsorted(tp, t)
     inside = (j > 0) & (j < len(tp))
     jj = np.clip(j, 1, len(tp) - 1)
-    inside &= (tp[jj] - tp[jj - 1]) <= GAP_STEPS * step
+    inside &= (tp[jj] - tp[jj - 1]) <= gap_steps * step
     y = np.stack([np.interp(t, tp, yp[:, i]) for i in range(yp.shape[1])], -1)
     return y, inside
 
@@ -131,7 +138,7 @@ def _highpass(y: np.ndarray, n_win: int) -> np.ndarray:
     return y - (c[i1] - c[i0]) / (i1 - i0)[:, None]
 
 
-def _common(t_m: np.ndarray, y_m: np.ndarray, t_s: np.ndarray, y_s: np.ndarray
+def _common(t_m: np.ndarray, y_m: np.ndarray, t_s: np.ndarray, y_s: np.ndarray, gap_steps: float
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """(t, master, slave) on the sparser unit's stamps inside both spans, the other interpolated."""
     if len(t_m) < 2 or len(t_s) < 2:
@@ -140,11 +147,11 @@ def _common(t_m: np.ndarray, y_m: np.ndarray, t_s: np.ndarray, y_s: np.ndarray
     if median_step_s(t_m) >= median_step_s(t_s):
         t = t_m[(t_m >= lo) & (t_m <= hi)]
         ym = y_m[(t_m >= lo) & (t_m <= hi)]
-        ys, ok = _interp_at(t, t_s, y_s)
+        ys, ok = _interp_at(t, t_s, y_s, gap_steps)
     else:
         t = t_s[(t_s >= lo) & (t_s <= hi)]
         ys = y_s[(t_s >= lo) & (t_s <= hi)]
-        ym, ok = _interp_at(t, t_m, y_m)
+        ym, ok = _interp_at(t, t_m, y_m, gap_steps)
     return t[ok], ym[ok], ys[ok]
 
 
@@ -228,10 +235,10 @@ def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = 
     return r_mat, cov[:3, :3], lev, (cov[3:, 3:] if lev is not None else None), rms, tau * dt_s
 
 
-def _triad(u: np.ndarray, v: np.ndarray, k: np.ndarray | None, dt: float, min_explained: float = None
-           ) -> TriadRotation | str:
-    if len(u) < MIN_SAMPLES:
-        return f"only {len(u)} common samples (at least {MIN_SAMPLES} needed)"
+def _triad(u: np.ndarray, v: np.ndarray, k: np.ndarray | None, dt: float, cfg: ImuToImuConfig,
+           min_explained: float | None = None) -> TriadRotation | str:
+    if len(u) < cfg.min_samples:
+        return f"only {len(u)} common samples (at least {cfg.min_samples} needed)"
     sv = np.linalg.svd(v.T @ u, compute_uv=False)
     if not sv[1] > 1e-6 * sv[0]:
         return "the motion is about one axis only: the rotation is not determined"
@@ -240,12 +247,12 @@ def _triad(u: np.ndarray, v: np.ndarray, k: np.ndarray | None, dt: float, min_ex
     except np.linalg.LinAlgError:
         return "the fit is singular (too little motion)"
     explained = 1.0 - rms ** 2 / max(float(np.mean(np.sum(v * v, axis=1))), 1e-300)
-    min_explained = MIN_EXPLAINED if min_explained is None else min_explained
+    min_explained = cfg.min_explained if min_explained is None else min_explained
     if explained < min_explained:
         return (f"too little motion: the rotation explains {100 * max(explained, 0):.0f} % of the slave's "
-                f"signal (at least {100 * MIN_EXPLAINED:.0f} % needed)")
+                f"signal (at least {100 * cfg.min_explained:.0f} % needed)")
     sig = _euler_sigma_deg(r_mat, cov)
-    if not np.all(np.isfinite(sig)) or sig.max() > MAX_SIGMA_DEG:
+    if not np.all(np.isfinite(sig)) or sig.max() > cfg.max_sigma_deg:
         return f"too little motion: sigma {' '.join(f'{x:.3g}' for x in sig)} deg"
     rpy = np.degrees(euler_from_dcm(r_mat))
     lever = tuple(float(x) for x in lev[:3]) if lev is not None and len(lev) == 4 else None
@@ -253,15 +260,15 @@ def _triad(u: np.ndarray, v: np.ndarray, k: np.ndarray | None, dt: float, min_ex
                          lever, float(lev[-1]) if lev is not None else None)
 
 
-def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highpass_s: float
-               ) -> TriadRotation | str:
+def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highpass_s: float,
+               cfg: ImuToImuConfig) -> TriadRotation | str:
     """One triad's rotation on common samples (t, master u, slave v), the slow part out over highpass_s."""
     dt = median_step_s(t)
     nwin = max(int(round(highpass_s / dt)), 3)
     k = None
     if name == "accel" and gm is not None and len(gm[0]) >= 3:
-        w, okw = _interp_at(t, *gm)
-        if okw.all() and float(np.sqrt(np.mean(np.sum(_highpass(w, nwin) ** 2, axis=1)))) > LEVER_MIN_RATE_RAD_S:
+        w, okw = _interp_at(t, *gm, cfg.gap_steps)
+        if okw.all() and float(np.sqrt(np.mean(np.sum(_highpass(w, nwin) ** 2, axis=1)))) > cfg.lever_min_rate_rad_s:
             dw = np.gradient(w, t, axis=0)
             k = skew(dw) + skew(w) @ skew(w)  # f at r = f + dw x r + w x (w x r)
             k = _highpass(k.reshape(len(t), 9), nwin).reshape(len(t), 3, 3)
@@ -273,28 +280,29 @@ def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highp
     kd = -np.gradient(u, t, axis=0)[:, :, None]
     k = kd if k is None else np.concatenate([k, kd], axis=2)
     cut = slice(nwin // 2, len(t) - nwin // 2)
-    res = _triad(u[cut], v[cut], k[cut], dt)
+    res = _triad(u[cut], v[cut], k[cut], dt, cfg)
     if isinstance(res, str):
         return res
     # a rotation is the same at every frequency: fitted on the slow and on the fast part of the motion
-    # apart, two figures beyond BAND_Z sigmas say the triads differ by more than a rotation (the
+    # apart, two figures beyond band_z sigmas say the triads differ by more than a rotation (the
     # sensors' own filters, vibration aliased into the snapshots, scale factors)
-    nlp = max(int(round(BAND_SPLIT_S / dt)), 2)
+    nlp = max(int(round(cfg.band_split_s / dt)), 2)
     lo = [u - _highpass(u, nlp), v - _highpass(v, nlp), k - _highpass(k.reshape(len(t), -1), nlp).reshape(k.shape)]
     hi = [u - lo[0], v - lo[1], k - lo[2]]
     # (a band the rotation explains poorly is itself the sign: no minimum there, the sigmas judge)
-    bands = [_triad(b[0][cut], b[1][cut], b[2][cut], dt, min_explained=0.0) for b in (lo, hi)]
+    bands = [_triad(b[0][cut], b[1][cut], b[2][cut], dt, cfg, min_explained=0.0) for b in (lo, hi)]
     if all(isinstance(b, TriadRotation) for b in bands):
-        zb, _ = _z(bands[0].rpy_deg, bands[0].sigma_deg, bands[1].rpy_deg, bands[1].sigma_deg)
-        res = replace(res, band_z=zb, band_rpy_deg=(bands[0].rpy_deg, bands[1].rpy_deg))
-        if zb > BAND_Z:  # not one rotation: half the bands' spread joins the sigma (the model's error)
+        zb, _ = _z(bands[0].rpy_deg, bands[0].sigma_deg, bands[1].rpy_deg, bands[1].sigma_deg,
+                   cfg.consistency_floor_deg)
+        res = replace(res, band_z=zb, band_rpy_deg=(bands[0].rpy_deg, bands[1].rpy_deg), rigid=bool(zb <= cfg.band_z))
+        if zb > cfg.band_z:  # not one rotation: half the bands' spread joins the sigma (the model's error)
             d = (np.asarray(bands[0].rpy_deg) - np.asarray(bands[1].rpy_deg) + 180.0) % 360.0 - 180.0
             res = replace(res, sigma_deg=tuple(float(x) for x in np.hypot(res.sigma_deg, 0.5 * d)),
                           sigma_data_deg=res.sigma_deg)
     return res
 
 
-def imu_to_imu(master: InsLog, slave: InsLog, *, highpass_s: float = HIGHPASS_S) -> ImuToImu:
+def imu_to_imu(master: InsLog, slave: InsLog, *, config: ImuToImuConfig = DEFAULT) -> ImuToImu:
     """The rotations of the slave's gyro and accelerometer triads relative to the master's (module doc).
     ``slave`` on the master's clock (compensated). A triad that cannot be measured is None with its reason."""
     if slave.meta.t0_ns != master.meta.t0_ns:
@@ -309,14 +317,14 @@ def imu_to_imu(master: InsLog, slave: InsLog, *, highpass_s: float = HIGHPASS_S)
             continue
         tm, ym = _clean(master.t_imu_s(), getattr(master, get)())
         ts, ys = _clean(slave.t_imu_s(), getattr(slave, get)())
-        com = _common(tm, ym, ts, ys)
-        if com is None or len(com[0]) < MIN_SAMPLES:
+        com = _common(tm, ym, ts, ys, config.gap_steps)
+        if com is None or len(com[0]) < config.min_samples:
             reasons[name] = "too few common IMU samples of the two units"
             continue
         t, u, v = com
         res: TriadRotation | str = ""
-        for hp in (highpass_s, *HIGHPASS_RETRY_S):  # slow motion (a ship's sway, S-turns): a longer window
-            res = _one_triad(name, t, u, v, gm, hp)
+        for hp in (config.highpass_s, *config.highpass_retry_s):  # slow motion (a ship's sway, S-turns): a longer window
+            res = _one_triad(name, t, u, v, gm, hp, config)
             if isinstance(res, TriadRotation):
                 break
         if isinstance(res, str):
@@ -327,10 +335,11 @@ def imu_to_imu(master: InsLog, slave: InsLog, *, highpass_s: float = HIGHPASS_S)
 
 
 # ---- the two views compared ------------------------------------------------------------------------
-def _z(a_rpy: np.ndarray, a_sig: np.ndarray, b_rpy: np.ndarray, b_sig: np.ndarray) -> tuple[float, np.ndarray]:
+def _z(a_rpy: np.ndarray, a_sig: np.ndarray, b_rpy: np.ndarray, b_sig: np.ndarray, floor_deg: float
+       ) -> tuple[float, np.ndarray]:
     d = (_arr(a_rpy) - _arr(b_rpy) + 180.0) % 360.0 - 180.0
     s = np.sqrt(_arr(a_sig) ** 2 + _arr(b_sig) ** 2)
-    z = np.abs(d) / np.maximum(s, CONSISTENCY_FLOOR_DEG)
+    z = np.abs(d) / np.maximum(s, floor_deg)
     return float(np.nanmax(z)), d  # axes not determined (null) are left out
 
 
@@ -338,7 +347,7 @@ def _arr(v) -> np.ndarray:
     return np.array([np.nan if x is None else float(x) for x in v])
 
 
-def consistency(mount_rpy_deg, mount_sigma_deg, imu: ImuToImu) -> dict:
+def consistency(mount_rpy_deg, mount_sigma_deg, imu: ImuToImu, config: ImuToImuConfig = DEFAULT) -> dict:
     """``alignment.consistency``: the compensated nav-referenced mounting against the gyro triad's rotation
     (and the accelerometer triad's), ``{agrees, z, note}`` plus the per-view figures; ``warning`` holds the
     text of a disagreement (None when they agree)."""
@@ -347,11 +356,14 @@ def consistency(mount_rpy_deg, mount_sigma_deg, imu: ImuToImu) -> dict:
                 and bool(np.isfinite(_arr(mount_rpy_deg) + _arr(mount_sigma_deg)).any()))
     views = {}
     if mount_ok and imu.gyro:
-        views["z_mount_gyro"] = _z(mount_rpy_deg, mount_sigma_deg, imu.gyro.rpy_deg, imu.gyro.sigma_deg)
+        views["z_mount_gyro"] = _z(mount_rpy_deg, mount_sigma_deg, imu.gyro.rpy_deg, imu.gyro.sigma_deg,
+                                     config.consistency_floor_deg)
     if mount_ok and imu.accel:
-        views["z_mount_accel"] = _z(mount_rpy_deg, mount_sigma_deg, imu.accel.rpy_deg, imu.accel.sigma_deg)
+        views["z_mount_accel"] = _z(mount_rpy_deg, mount_sigma_deg, imu.accel.rpy_deg, imu.accel.sigma_deg,
+                                      config.consistency_floor_deg)
     if imu.gyro and imu.accel:
-        views["z_gyro_accel"] = _z(imu.gyro.rpy_deg, imu.gyro.sigma_deg, imu.accel.rpy_deg, imu.accel.sigma_deg)
+        views["z_gyro_accel"] = _z(imu.gyro.rpy_deg, imu.gyro.sigma_deg, imu.accel.rpy_deg, imu.accel.sigma_deg,
+                                      config.consistency_floor_deg)
     for k, (z, d) in views.items():
         out[k] = z
         out[k.replace("z_", "diff_") + "_deg"] = [float(x) if np.isfinite(x) else None for x in d]
@@ -361,19 +373,19 @@ def consistency(mount_rpy_deg, mount_sigma_deg, imu: ImuToImu) -> dict:
         return out
     z_all = max(z for z, _ in views.values())
     out["z"] = z_all
-    out["agrees"] = bool(z_all <= CONSISTENCY_Z)
+    out["agrees"] = bool(z_all <= config.consistency_z)
     causes = []
     zg = views.get("z_mount_gyro", (None,))[0]
     za = views.get("z_mount_accel", (None,))[0]
     zt = views.get("z_gyro_accel", (None,))[0]
-    if zt is not None and zt > CONSISTENCY_Z:
+    if zt is not None and zt > config.consistency_z:
         causes.append(f"the slave's accelerometer triad is not its gyro triad (or the master's is not its own: "
                       f"gyro vs accel triad rotations differ at z {zt:.1f})")
-    if (zg is not None and zg > CONSISTENCY_Z) or (zg is None and za is not None and za > CONSISTENCY_Z):
+    if (zg is not None and zg > config.consistency_z) or (zg is None and za is not None and za > config.consistency_z):
         zz = zg if zg is not None else za
         causes.append(f"the master's navigation frame is not its IMU frame (board trim or its EKF's attitude "
                       f"error: the nav-referenced mounting differs from the IMU-to-IMU rotation at z {zz:.1f})")
-    elif za is not None and za > CONSISTENCY_Z and not (zt is not None and zt > CONSISTENCY_Z):
+    elif za is not None and za > config.consistency_z and not (zt is not None and zt > config.consistency_z):
         causes.append(f"the accelerometer triad's rotation differs from the mounting at z {za:.1f} while the gyro "
                       "triad's agrees: the accelerometers' scale factors, lever arm or vibration")
     for name, tr in (("gyro", imu.gyro), ("accel", imu.accel)):
@@ -383,12 +395,12 @@ def consistency(mount_rpy_deg, mount_sigma_deg, imu: ImuToImu) -> dict:
                           "snapshots or scale factors), so its rotation is a compromise")
     figures = ", ".join(f"{k[2:].replace('_', ' vs ')} z {z:.1f}" for k, (z, _) in views.items())
     if out["agrees"]:
-        out["note"] = f"agree within {CONSISTENCY_Z:g} combined sigma ({figures})"
+        out["note"] = f"agree within {config.consistency_z:g} combined sigma ({figures})"
         loose = [n for n, tr in (("gyro", imu.gyro), ("accel", imu.accel)) if tr is not None and tr.rigid is False]
         if loose:
             out["note"] += (f"; but the {' and '.join(loose)} triads differ by more than a rotation (slow and fast "
                             "motion disagree), so their sigmas carry that spread and the check is weak")
     else:
-        out["note"] = f"disagree beyond {CONSISTENCY_Z:g} combined sigma ({figures}): likely " + "; ".join(causes)
+        out["note"] = f"disagree beyond {config.consistency_z:g} combined sigma ({figures}): likely " + "; ".join(causes)
         out["warning"] = out["note"]
     return out

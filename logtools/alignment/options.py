@@ -150,6 +150,12 @@ class AlignmentConfig:
     #: ... shorter where the motion would be attenuated beyond this (a multirotor's 1-2 Hz rates: 2.5 arcmin
     #: off with +- 0.05 s; tests/test_alignment.py, the rate-from-attitude test)
     lever_rate_attenuation: float = 1e-4
+    #: the master's attitude and velocity stamps are taken as one set when they share at least this fraction
+    #: of the sparser stream's stamps (one EKF output); else each is a stream of its own (ATT 10 Hz, GPS 5 Hz:
+    #: tests/test_alignment.py, every selector inspect offers for the real logs)
+    nav_shared_stamps: float = 0.9
+    #: ... and a step of the interpolated stream beyond this many of its median steps is a gap (dropped)
+    nav_gap_steps: float = 3.0
     #: prior sigma of an estimated lever arm (per axis, m)
     lever_arm_sigma_m: float = 1.0
     #: an estimated lever arm beyond this many prior sigmas gets a note (absorbing an uncompensated delay?)

@@ -298,7 +298,8 @@ _LAST_MASTER: list = []  # [(weak ref to the master, config key, its series)]: t
 def _master_series_cached(master: InsLog, config: AlignmentConfig = CONFIG) -> MasterSeries:
     """:func:`_master_series`, prepared once for the same master object and rate settings (analyze runs
     the alignment before and after compensation against one master; InsLog is immutable)."""
-    key = (config.lever_rate_max_half_span_s, config.lever_rate_attenuation)
+    key = (config.lever_rate_max_half_span_s, config.lever_rate_attenuation, config.nav_shared_stamps,
+           config.nav_gap_steps)
     if _LAST_MASTER and _LAST_MASTER[0][0]() is master and _LAST_MASTER[0][1] == key:
         return _LAST_MASTER[0][2]
     ms = _master_series(master, config)
@@ -332,7 +333,7 @@ def _master_series(master: InsLog, config: AlignmentConfig = CONFIG) -> MasterSe
         tv, v = master.vel_ned_m_s()
         cols_t.append(tv)
     if master.has_quat and master.has_vel:
-        t, q, v = _nav_common_stamps(tq, q, tv, v)  # q, v at t
+        t, q, v = _nav_common_stamps(tq, q, tv, v, config)  # q, v at t
     else:
         t = np.unique(cols_t[0])
         if master.has_quat:
@@ -374,13 +375,7 @@ def _master_series(master: InsLog, config: AlignmentConfig = CONFIG) -> MasterSe
     return MasterSeries(t, quat, vel, acc, w, valid, resets)
 
 
-#: the attitude's and the velocity's stamps are taken as one set when they share at least this fraction of
-#: the sparser stream's stamps (one EKF output); else each is a stream of its own (ATT 10 Hz, GPS 5 Hz)
-NAV_SHARED_STAMPS = 0.9
-NAV_GAP_STEPS = 3.0  # an interpolated stream's step beyond this many of its median steps is a gap (dropped)
-
-
-def _nav_common_stamps(tq: np.ndarray, q: np.ndarray, tv: np.ndarray, v: np.ndarray
+def _nav_common_stamps(tq: np.ndarray, q: np.ndarray, tv: np.ndarray, v: np.ndarray, config: AlignmentConfig
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(t, quat, vel) of a master whose attitude and velocity come with their own stamps and rates.
 
@@ -391,7 +386,7 @@ def _nav_common_stamps(tq: np.ndarray, q: np.ndarray, tv: np.ndarray, v: np.ndar
     (the filter's update rate follows it), the interpolation's small error left to the measurement noise
     the filter estimates from its residuals."""
     t_shared = np.intersect1d(tq, tv)
-    if len(t_shared) >= NAV_SHARED_STAMPS * min(len(np.unique(tq)), len(np.unique(tv))):
+    if len(t_shared) >= config.nav_shared_stamps * min(len(np.unique(tq)), len(np.unique(tv))):
         return t_shared, q[np.searchsorted(tq, t_shared)], v[np.searchsorted(tv, t_shared)]
     okq, okv = np.isfinite(q).all(1), np.isfinite(v).all(1)
     tq, q, tv, v = tq[okq], q[okq], tv[okv], v[okv]
@@ -408,7 +403,7 @@ def _nav_common_stamps(tq: np.ndarray, q: np.ndarray, tv: np.ndarray, v: np.ndar
         t = tq[(tq >= tv[0]) & (tq <= tv[-1])]
         src_t, src_y = tv, v
     j = np.clip(np.searchsorted(src_t, t), 1, len(src_t) - 1)
-    keep = (src_t[j] - src_t[j - 1]) <= NAV_GAP_STEPS * float(np.median(np.diff(src_t)))
+    keep = (src_t[j] - src_t[j - 1]) <= config.nav_gap_steps * median_step_s(src_t)
     t = t[keep]
     y = _interp_cols(t, src_t, src_y)
     if len(tv) <= len(tq):
