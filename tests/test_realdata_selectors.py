@@ -29,7 +29,7 @@ PAIRS = [
     (C14, ATT_GPS, "imu=IMU2"),
     (TLOG, "imu=RAW_IMU,att=ATTITUDE,vel=GLOBAL_POSITION_INT,pos=GLOBAL_POSITION_INT", "imu=SCALED_IMU2,att=AHRS2"),
     (ULG, "imu=sensor_combined,att=vehicle_attitude,vel=vehicle_local_position",
-     "imu=sensor_combined,att=vehicle_attitude,vel=vehicle_local_position"),  # against itself
+     "imu=sensor_combined,att=vehicle_attitude,vel=vehicle_local_position"),  # against a shifted copy
     (BAG, "odom=/stereo_odometer/odometry", "imu=/xsens/imu_data"),
     (BAG, "odom=/wheel_odometry", "imu=/xsens/imu_data"),
     ("ngimu_session/blue", "", ""),
@@ -73,6 +73,13 @@ def test_selector_pair_runs_analyze_with_an_alignment(log, master_sel, slave_sel
     if log.startswith("ngimu_session/"):
         other = "ngimu_session/green" if log == SLAVE_OF_NGIMU else SLAVE_OF_NGIMU
         master, slave = _arg(other, ""), _arg(log, "")
+    elif log == ULG:  # the log against a copy of itself 25 ms late (the same stream twice is refused)
+        from parsers.restamp import ClockShift
+        from parsers.restamp_ulog import restamp_ulog
+
+        copy = tmp_path / "late.ulg"
+        restamp_ulog(str(REAL / log), str(copy), ClockShift(-0.025, 0.0, 0))
+        master, slave = _arg(log, master_sel), f"{copy}::{slave_sel}"
     else:
         master, slave = _arg(log, master_sel), _arg(log, slave_sel)
     out = analyze_pair(master, slave, str(tmp_path), AnalyzeOptions(recording=False, compare=False))

@@ -21,9 +21,7 @@ def refine_gls(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpola
     """Generalised least squares: Gauss-Newton on the whitened residual and whitened Jacobian of the
     joint (L[, drift], rotation, bias) problem; the L[, drift] part of each step is taken and R, b
     re-solved (Kabsch), whose fixed point is the joint GLS estimate. Covariance: the whitened
-    curvature times the whitened residual variance (HAC-checked).
-
-    With ``acc`` (and a 6-channel cross-spectral ``noise``), the accelerometers' residuals join the
+    curvature times the whitened residual variance (HAC-checked). With ``acc`` (and a 6-channel cross-spectral ``noise``), the accelerometers' residuals join the
     gyros' (accelerometer bias and lever arm as further linear unknowns, the rotation shared): the
     whitening then uses their coherence, i.e. the flexure seen as a tilt of the specific force is
     taken out of the differential rate, and the specific force's own motion adds delay information."""
