@@ -22,22 +22,14 @@ import os
 import platform
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from bench_parse_ulog_csv import best_of  # noqa: E402 (one timing helper for the parse and export benchmarks)
 RESULTS = ROOT / "benchmarks" / "results" / "export.json"
 FORMATS = {"tlog": ".tlog", "dataflash": ".bin", "ulog": ".ulg", "csv": ".csv"}
-
-
-def best_of(fn, repeat: int) -> tuple[float, object]:
-    best, out = float("inf"), None
-    for _ in range(repeat):
-        t = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t)
-    return best, out
 
 
 def main(argv=None) -> int:
