@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import tempfile
 from collections.abc import Iterator
 
@@ -25,3 +26,16 @@ def atomic_path(path: str) -> Iterator[str]:
         with contextlib.suppress(FileNotFoundError):
             os.remove(tmp)
         raise
+
+
+def replace_path(tmp: str, dst: str, aside: str) -> None:
+    """Move a finished ``tmp`` (a file or a folder, e.g. a ROS 2 bag) onto ``dst``: an existing ``dst`` is
+    renamed to ``aside`` first and removed once ``tmp`` is in place (a folder cannot be replaced in one
+    rename)."""
+    old = None
+    if os.path.exists(dst):
+        old = aside
+        os.rename(dst, old)
+    os.rename(tmp, dst)
+    if old:
+        shutil.rmtree(old, ignore_errors=True) if os.path.isdir(old) else os.remove(old)

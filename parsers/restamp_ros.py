@@ -46,7 +46,7 @@ from logtools.errors import InputError
 from parsers import mcap_ros, rosbag1, rosbag2
 from parsers import ros_containers as rcw
 from parsers import ros_common as rc
-from parsers.atomic import atomic_path
+from parsers.atomic import atomic_path, replace_path
 from parsers.base import Selector, check_readable
 from parsers.restamp import ClockShift, RestampStats
 
@@ -745,13 +745,7 @@ def restamp_rosbag2(src: str, dst: str, shift: ClockShift, *, selector: str | No
         else:
             _write_ros2_rosbags(tmp, meta, mode, storage, conns, msgs, new_log)
             how = f"rosbags.rosbag2.Writer ({storage} storage)"
-        old = None
-        if os.path.exists(dst):
-            old = tmpdir + ".old"
-            os.rename(dst, old)
-        os.rename(tmp, dst)
-        if old:
-            shutil.rmtree(old, ignore_errors=True) if os.path.isdir(old) else os.remove(old)
+        replace_path(tmp, dst, tmpdir + ".old")
     finally:
         shutil.rmtree(tmpdir, ignore_errors=True)
     return RestampStats(path=dst, format="rosbag2", how=how + "; Header stamps patched in the payload bytes "

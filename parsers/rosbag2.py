@@ -29,6 +29,7 @@ import numpy as np
 from logtools.errors import InputError
 from logtools.inslog import InsLog
 from parsers import ros_common as rc
+from parsers.atomic import replace_path
 from parsers.base import Inventory, Selector, check_readable
 
 NAME = "rosbag2"
@@ -310,12 +311,6 @@ def write(path: str, log: InsLog, *, storage: str = "sqlite3", log_delay_ns: int
             conns = [w.add_connection(tp.name, tp.msgtype, typestore=typestore) for tp in topics]
             for t, k, i in rc.merged_order(topics, log_delay_ns):
                 w.write(conns[k], t, topics[k].data[i])
-        old = None
-        if os.path.exists(path):
-            old = tmpdir + ".old"
-            os.rename(path, old)
-        os.rename(tmp, path)
-        if old:
-            shutil.rmtree(old, ignore_errors=True) if os.path.isdir(old) else os.remove(old)
+        replace_path(tmp, path, tmpdir + ".old")
     finally:
         shutil.rmtree(tmpdir, ignore_errors=True)
