@@ -48,7 +48,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
+from logtools.jit import njit  # compiled in compiled mode, plain Python otherwise
 from scipy.signal import correlate
 
 from logtools.conventions import euler_from_quat, quat_make_continuous, quat_slerp
@@ -280,6 +280,28 @@ def _attitude_cost(e_m: np.ndarray, e_s: np.ndarray, starts: np.ndarray) -> np.n
     return out
 
 
+def _attitude_cost_np(e_m: np.ndarray, e_s: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """numpy :func:`_attitude_cost` (the reference code), in blocks of window starts (bounded memory)."""
+    n_rec = e_s.shape[0]
+    win = np.lib.stride_tricks.sliding_window_view(e_m, n_rec, axis=0)  # (positions, 3, n_rec), a view
+    out = np.empty(starts.shape[0])
+    step = max(1, 4_000_000 // max(3 * n_rec, 1))
+    for a in range(0, len(starts), step):
+        d = win[starts[a:a + step]] - e_s.T
+        for j in (0, 2):  # roll and heading wrap (Euler angles lie in [-pi, pi]: one correction)
+            dj = d[:, j]
+            dj[dj > np.pi] -= 2.0 * np.pi
+            dj[dj <= -np.pi] += 2.0 * np.pi
+        out[a:a + step] = np.einsum("kjn,kjn->k", d, d)
+    return out
+
+
+def _attitude_cost_kernel():
+    from logtools import jit
+
+    return _attitude_cost if jit.compiled() else _attitude_cost_np
+
+
 def s002_search(master: InsLog, slave: InsLog, *, max_lag_s: float | None = 1.0,
                 record_s: float | None = None, record_start_s: float | None = None) -> GridSearch:
     """Eq 10's cost for every candidate shift (see :func:`s002_attitude_shift`)."""
@@ -315,7 +337,8 @@ def s002_search(master: InsLog, slave: InsLog, *, max_lag_s: float | None = 1.0,
         raise AnalysisError(f"{name}: attitude too constant to estimate a delay "
                             f"(Euler-angle std < {MIN_ATT_MOTION_RAD:g} rad)")
     # eq 10: sum over the record of (H_M - H_S)^2 + (P_M - P_S)^2 + (R_M - R_S)^2 at every shift
-    cost = _attitude_cost(np.ascontiguousarray(e_m), np.ascontiguousarray(e_s), (p_all - lo).astype(np.int64))
+    cost = _attitude_cost_kernel()(np.ascontiguousarray(e_m), np.ascontiguousarray(e_s),
+                                   (p_all - lo).astype(np.int64))
     lags = gs[a] - gm[p_all]
     return _grid_search(lags, cost, dt, (float(gs[a]), float(gs[b - 1])))  # eq 11: the argmin
 

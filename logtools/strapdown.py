@@ -32,18 +32,14 @@ import numpy as np
 from logtools import earth
 from logtools.conventions import quat_normalize
 
-try:  # numba is optional at import time: the kernels below are valid Python too
-    from numba import njit as _njit
+from logtools import jit
 
-    def njit(fn):
-        return _njit(cache=True, fastmath=False)(fn)
+HAVE_NUMBA = jit.compiled()  # compiled kernels in this process (logtools.jit decides: cache, input size)
 
-    HAVE_NUMBA = True
-except ImportError:  # pragma: no cover - exercised only without numba
-    HAVE_NUMBA = False
 
-    def njit(fn):
-        return fn
+def njit(fn):
+    """numba.njit(cache=True, fastmath=False) when this process runs compiled kernels, else ``fn``."""
+    return jit.njit(fn, fastmath=False)
 
 
 # ---- earth model, scalar (numba) copies of logtools.earth (tested equal in tests/test_strapdown.py) ----

@@ -76,11 +76,12 @@ _DECIMAL_TO_NS = []
 
 
 def _decimal_kernel():
-    """``_decimal_to_ns`` compiled with numba on first use (cached on disk; numba is imported lazily)."""
+    """``_decimal_to_ns`` compiled with numba on first use (cached on disk) when this process runs compiled
+    kernels (logtools.jit), the plain function otherwise."""
     if not _DECIMAL_TO_NS:
-        import numba
+        from logtools import jit
 
-        _DECIMAL_TO_NS.append(numba.njit(cache=True)(_decimal_to_ns))
+        _DECIMAL_TO_NS.append(jit.njit(_decimal_to_ns))
     return _DECIMAL_TO_NS[0]
 
 

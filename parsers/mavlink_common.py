@@ -18,17 +18,14 @@ import re
 
 import numpy as np
 
-try:  # pragma: no cover - exercised implicitly
-    from numba import njit as _njit
+from logtools import jit
 
-    HAVE_NUMBA = True
-except Exception:  # pragma: no cover
-    HAVE_NUMBA = False
+HAVE_NUMBA = jit.compiled()  # compiled kernels in this process (logtools.jit decides: cache, input size)
 
-    def _njit(*args, **kwargs):
-        def wrap(fn):
-            return fn
-        return wrap
+
+def _njit(*args, **kwargs):
+    """numba.njit(cache=True) in compiled mode; the plain function otherwise."""
+    return jit.njit(**kwargs)
 
 
 # ---- X.25 CRC ----------------------------------------------------------------------------------

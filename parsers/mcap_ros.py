@@ -127,14 +127,15 @@ _WALK = []
 
 
 def _walk_kernel():
-    """``_walk`` compiled with numba on first use (cached on disk); the Python function without numba."""
+    """``_walk`` compiled with numba on first use (cached on disk) when this process runs compiled kernels
+    (logtools.jit); the plain Python function, over a memoryview (fast byte indexing), otherwise."""
     if not _WALK:
-        try:
-            import numba
+        from logtools import jit
 
-            _WALK.append(numba.njit(cache=True)(_walk))
-        except ImportError:  # pragma: no cover - numba is a dependency
-            _WALK.append(_walk)
+        if jit.compiled():
+            _WALK.append(jit.njit(_walk))
+        else:
+            _WALK.append(lambda arr, start, end: _walk(memoryview(arr), start, end))
     return _WALK[0]
 
 

@@ -124,15 +124,16 @@ def get_le(buf: np.ndarray, offsets: np.ndarray, nbytes: int, signed: bool = Fal
 
 def kernel_loader(namespace: dict):
     """``kernel(name)``: the plain-Python function ``namespace[name]`` compiled by numba on first use (cached
-    on disk), so importing a writer costs no compile and numba loads only when a native export runs."""
+    on disk) when this process runs compiled kernels (logtools.jit), else the function itself; importing a
+    writer costs no compile and numba loads only when a native export runs."""
     compiled: dict[str, object] = {}
 
     def kernel(name: str):
         fn = compiled.get(name)
         if fn is None:
-            import numba
+            from logtools import jit
 
-            fn = compiled[name] = numba.njit(cache=True)(namespace[name])
+            fn = compiled[name] = jit.njit(namespace[name])
         return fn
 
     return kernel

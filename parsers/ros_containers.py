@@ -32,12 +32,9 @@ _KERNEL: list = []
 
 def _kernel():
     if not _KERNEL:
-        try:
-            import numba
+        from logtools import jit  # compiled in compiled mode (cached on disk), plain Python otherwise
 
-            _KERNEL.append(numba.njit(cache=True)(_lay_out))
-        except ImportError:  # pragma: no cover - numba is a dependency
-            _KERNEL.append(_lay_out)
+        _KERNEL.append(jit.njit(_lay_out))
     return _KERNEL[0]
 
 

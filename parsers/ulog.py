@@ -150,14 +150,32 @@ def _scatter(out, rows, dst):  # pragma: no cover - compiled
 _COMPILED: dict[str, object] = {}
 
 
+def _gather_np(buf, offsets, skip, itemsize):
+    """numpy ``_gather`` (the reference code)."""
+    idx = (np.asarray(offsets, np.int64) + skip)[:, None] + np.arange(itemsize)
+    return buf[idx].reshape(-1)
+
+
+def _scatter_np(out, rows, dst):
+    """numpy ``_scatter`` (the reference code)."""
+    out[np.asarray(dst, np.int64)[:, None] + np.arange(rows.shape[1])] = rows
+
+
 def kernel(name: str):
-    """The numba-compiled version of ``_walk`` / ``_gather`` / ``_scatter`` (compiled on first use and
-    cached on disk, so that importing this module does not import numba)."""
+    """``_walk`` / ``_gather`` / ``_scatter``: numba-compiled on first use (cached on disk) when this process
+    runs compiled kernels (logtools.jit), else the reference code (numpy; the walk in plain Python over a
+    memoryview)."""
     fn = _COMPILED.get(name)
     if fn is None:
-        import numba
+        from logtools import jit
 
-        fn = _COMPILED[name] = numba.njit(cache=True)(globals()[name])
+        if jit.compiled():
+            fn = jit.njit(globals()[name])
+        elif name == "_walk":
+            fn = lambda buf, *a: _walk(memoryview(buf), *a)  # noqa: E731
+        else:
+            fn = {"_gather": _gather_np, "_scatter": _scatter_np}[name]
+        _COMPILED[name] = fn
     return fn
 
 

@@ -29,17 +29,25 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"tapost: {message} (see '{self.prog} --help')\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The parser; with ``command`` only that subcommand's module is imported (its options parsed), the
+    others are listed by name and help (importing every command's module cost 0.4 s per run)."""
     p = _Parser(prog="tapost", description="Latency and transfer alignment between two INS logs.")
     p.add_argument("--version", action="version", version=f"tapost {__version__}")
     p.add_argument("--debug", action="store_true", help="show full tracebacks on errors")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for name, (modname, help_text) in COMMANDS.items():
-        mod = importlib.import_module(modname)
         sp = sub.add_parser(name, help=help_text, description=help_text)
-        mod.add_arguments(sp)
-        sp.set_defaults(_run=mod.run)
+        if command is None or name == command:
+            mod = importlib.import_module(modname)
+            mod.add_arguments(sp)
+            sp.set_defaults(_run=mod.run)
     return p
+
+
+def command_of(argv: list[str]) -> str | None:
+    """The subcommand an argument list names (the first argument that is not an option)."""
+    return next((a for a in argv if not a.startswith("-")), None)
 
 
 #: options whose value is a list of numbers that may start with a minus sign ("-0.5,0.2,1")
@@ -64,15 +72,16 @@ def glue_vector_values(argv: list[str]) -> list[str]:
 
 def main(argv: list[str] | None = None) -> int:
     fresh = argv is None  # a fresh process (the console script, python -m), not a call from Python
-    if fresh:  # say at once if this run will compile, and on any later compile
-        from pipelines.firstrun import announce_compiling, early_notice
+    argv = list(sys.argv[1:] if argv is None else argv)
+    command = command_of(argv)
+    if fresh:  # decide the kernels from the inputs' size; say at once what that means, and on any compile
+        from pipelines.firstrun import LOG_COMMANDS, announce_compiling, early_notice
 
-        command = next((a for a in sys.argv[1:] if not a.startswith("-")), None)
-        early_notice(command)
-        if command in ("analyze", "batch", "simulate", "inspect"):
+        early_notice(command, argv)
+        if command in LOG_COMMANDS:
             announce_compiling()
-    parser = build_parser()
-    args = parser.parse_args(glue_vector_values(list(sys.argv[1:] if argv is None else argv)))
+    parser = build_parser(command if command in COMMANDS else None)
+    args = parser.parse_args(glue_vector_values(argv))
     if not getattr(args, "_run", None):
         parser.print_help(sys.stderr)
         return 2

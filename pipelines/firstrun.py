@@ -1,43 +1,55 @@
-"""Say on stderr when numba compiles tapost's kernels (the first run after installing, or a new kind of
-pair), terminal or not: that run is otherwise silent for tens of seconds.
+"""What a fresh ``tapost`` process says about its numerical kernels, on stderr, terminal or not.
 
-numba caches each compiled kernel next to its source file (``__pycache__/*.nbi|*.nbc``), so only the first
-use of a kernel compiles; a cache hit raises no ``numba:compile`` event and prints nothing.
+``logtools.jit`` decides per process whether the numba-compiled kernels run (they are in numba's cache,
+or the input is large enough for compiling to pay off) or the reference code does (the first runs after
+installing, while a background process compiles the kernels). The line comes before numpy, pandas or
+numba are imported, so that a run is never silent for long:
+
+* reference code, kernels compiling in the background: ``tapost: first run after installing: ...``;
+* compiled kernels not in the cache yet (a large input): ``tapost: compiling numerical kernels ...``,
+  and a numba ``numba:compile`` listener says the same once when a compile starts later (a new kind of
+  pair, a format not read before).
 """
 from __future__ import annotations
 
-import glob
 import os
 import sys
 
-#: what the message says the compiling costs (measured: a fresh clone's first ``tapost analyze`` of the
-#: sample pair against a warm one, on 2 cores)
+#: what compiling costs (measured: ``python -m pipelines.warmup`` on a fresh clone, quiet 2-core machine)
 COMPILE_ESTIMATE = "about 1 min on a 2-core machine"
 
+#: the commands whose inputs are logs (their size decides whether compiling pays off)
+LOG_COMMANDS = ("analyze", "batch", "restamp", "inspect", "simulate")
+
 _state = {"installed": False, "said": False}
+
+
+def _write(stream, text: str) -> None:
+    try:
+        stream.write(text + "\n")
+        stream.flush()
+    except (OSError, ValueError):
+        pass
 
 
 def _say(stream) -> None:
     if _state["said"]:
         return
     _state["said"] = True
-    try:
-        stream.write(f"tapost: compiling numerical kernels on first use (once, {COMPILE_ESTIMATE}; "
-                     "cached for later runs)...\n")
-        stream.flush()
-    except (OSError, ValueError):
-        pass
+    _write(stream, f"tapost: compiling numerical kernels on first use (once, {COMPILE_ESTIMATE}; "
+                   "cached for later runs)...")
 
 
 def announce_compiling(stream=None) -> bool:
     """Print one line on ``stream`` (stderr) when numba first compiles a kernel in this process.
-    Returns False when numba is not installed (nothing compiles then)."""
+    Returns False when this process runs no compiled kernels (nothing compiles then)."""
     if _state["installed"]:
         return True
-    try:
-        from numba.core import event
-    except ImportError:
+    from logtools import jit
+
+    if not jit.compiled():
         return False
+    from numba.core import event
 
     class _Listener(event.Listener):
         def on_start(self, ev):
@@ -51,27 +63,49 @@ def announce_compiling(stream=None) -> bool:
     return True
 
 
-#: the kernel every analysis compiles (the alignment filter's loop): no cache entry for it means this run
-#: compiles, and says so before the slow imports
-_PROBE = ("logtools", os.path.join("alignment", "__pycache__"), "kf._kf_loop-*.nbi")
+def input_bytes(command: str | None, args: list[str]) -> int | None:
+    """The size of the logs a command line names (``PATH[::SELECTOR]`` arguments, or a campaign folder's
+    files); None when it names none. A file-system look only."""
+    if command not in LOG_COMMANDS:
+        return None
+    total, seen = 0, False
+    for a in args:
+        if a.startswith("-") or a == command:
+            continue
+        path = a.split("::", 1)[0]
+        if os.path.isfile(path):
+            total += os.path.getsize(path)
+            seen = True
+        elif os.path.isdir(path):
+            for base, _dirs, files in os.walk(path):
+                for f in files:
+                    try:
+                        total += os.path.getsize(os.path.join(base, f))
+                        seen = True
+                    except OSError:
+                        pass
+    return total if seen else None
 
 
-def kernels_cached() -> bool:
-    """True when numba's cache holds the alignment loop (next to the sources, or in NUMBA_CACHE_DIR).
-    A file-system look only: imports nothing."""
-    import importlib.util
+def early_notice(command: str | None, args: list[str] | None = None, stream=None) -> str:
+    """For a fresh process: decide the kernels (logtools.jit, from the inputs' size) and say at once what
+    that means; start the background compile where the reference code runs. Returns the mode."""
+    from logtools import jit
 
-    if os.environ.get("NUMBA_CACHE_DIR"):  # numba then caches there only
-        pats = [os.path.join(os.environ["NUMBA_CACHE_DIR"], "**", _PROBE[2])]
-    else:
-        spec = importlib.util.find_spec(_PROBE[0])
-        pats = [os.path.join(loc, _PROBE[1], _PROBE[2])
-                for loc in ((spec.submodule_search_locations or []) if spec else [])]
-    return any(glob.glob(p, recursive=True) for p in pats)
-
-
-def early_notice(command: str | None, stream=None) -> None:
-    """For a fresh ``tapost analyze`` or ``batch`` process: the compile line at once (before numpy, pandas,
-    numba are imported) when the cache has no alignment kernel; later compiles are told by the listener."""
-    if command in ("analyze", "batch") and not kernels_cached():
-        _say(stream if stream is not None else sys.stderr)
+    jit.hint_input_bytes(input_bytes(command, list(args or [])))
+    mode = jit.mode()
+    auto = os.environ.get("TAPOST_KERNELS", "auto").strip().lower() == "auto"
+    out = stream if stream is not None else sys.stderr
+    if command in ("analyze", "batch"):
+        if mode == "reference" and jit.why() == "kernels not compiled yet":
+            if jit.start_background_warmup() or jit.warmup_running():
+                _write(out, "tapost: first run after installing: the fast numerical kernels compile in the "
+                            f"background (once, {COMPILE_ESTIMATE}); this run uses the reference code")
+            else:
+                _write(out, "tapost: the numerical kernels are not compiled yet: this run uses the reference "
+                            f"code ('python -m pipelines.warmup' compiles them, {COMPILE_ESTIMATE})")
+        elif jit.why().startswith("large input"):  # compiling pays off here: it starts now
+            _say(out)
+    if auto:  # the processes this one starts (batch workers) take the same kernels
+        os.environ["TAPOST_KERNELS"] = mode
+    return mode

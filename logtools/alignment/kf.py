@@ -17,14 +17,15 @@ from typing import Callable
 
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
+from scipy.linalg.lapack import dpotrf as _potrf, dpotrs as _potrs
 
 from logtools import earth
 from logtools.conventions import dcm_from_quat, quat_from_dcm
 from logtools.errors import AnalysisError
-from logtools.strapdown import _WIE, _radii, nav_step, njit
+from logtools.strapdown import HAVE_NUMBA, _WIE, _radii, nav_step, njit
 
 from .options import FilterKind
-from .model import StateLayout, _discretise, _fill_dynamics, _fill_h, att_residual, exp_so3, rotvec_small
+from .model import StateLayout, _discretise, _fill_dynamics, discretise_step, _fill_h, att_residual, exp_so3, rotvec_small
 
 
 
@@ -289,7 +290,7 @@ def run_filter(inp: AlignInputs, s: FilterSettings, *, progress: Callable | None
     Each epoch: :func:`_propagate` (error dynamics, slave mechanised over the segment) -> the master
     sampled at t_k - tau_hat -> :func:`_restarts` (master attitude resets, gaps in the slave's IMU) ->
     :func:`_measurement` -> :meth:`_Updater.update` -> :func:`_feedback` -> :meth:`_Histories.record`."""
-    if compiled and not s.kind.is_hinf:
+    if compiled and HAVE_NUMBA and not s.kind.is_hinf:
         run = run_filter_compiled(inp, s)
         if progress is not None:
             progress(1.0, "alignment filter")
@@ -405,7 +406,7 @@ def _propagate(st: _LoopState, inp: AlignInputs, s: FilterSettings, k: int, rest
     _fill_dynamics(f_buf, lay.offsets, c_ns, f_n, w_ie, w_en, v, mav, s.flex_beta)
     phi_k = np.empty((n, n))
     qd_k = np.empty((n, n))
-    _discretise(f_buf, st.qc, dt, phi_k, qd_k)
+    discretise_step(f_buf, st.qc, dt, phi_k, qd_k)
     if restart:  # a gap: the error state is not propagated through unknown motion
         phi_k, qd_k = np.eye(n), np.diag(st.qc * dt)
     nav_step(st.q, st.v, st.llh, inp.seg_dq[j], inp.seg_dv_b[j], dt, st.q_new, st.v_new, st.llh_new)
@@ -477,6 +478,40 @@ def _measurement(st: _LoopState, inp: AlignInputs, lay: StateLayout, att_only_fe
     return z, h_buf
 
 
+def _diag_view(a: np.ndarray) -> np.ndarray:
+    """The diagonal of a C-contiguous square matrix as a writable view."""
+    return a.reshape(-1)[:: a.shape[0] + 1]
+
+
+def kf_step_np(x, P, phi, qd, z, H, r_diag, e_out):
+    """numpy :func:`kf_step_nb` (the reference code: the same algebra with LAPACK's Cholesky)."""
+    n = x.shape[0]
+    if phi.shape[0] == n:
+        x[:] = phi @ x
+        P[:, :] = phi @ P @ phi.T + qd
+    e = z - H @ x
+    e_out[:] = e
+    ph = P @ H.T
+    s = H @ ph
+    _diag_view(s)[:] += r_diag
+    l, info = _potrf(s, lower=1, clean=1)
+    if info != 0:  # not positive definite: the compiled loop's clamped factor
+        l = _chol(s)
+    kt, _ = _potrs(l, ph.T, lower=1)
+    k = kt.T
+    x += k @ e
+    ikh = -k @ H
+    _diag_view(ikh)[:] += 1.0
+    pp = ikh @ P @ ikh.T + (k * r_diag) @ k.T
+    P[:, :] = 0.5 * (pp + pp.T)
+    se, _ = _potrs(l, e, lower=1)
+    return float(e @ se)
+
+
+#: the update the reference loop calls: compiled, or numpy in reference mode (logtools.jit)
+kf_step = kf_step_nb if HAVE_NUMBA else kf_step_np
+
+
 @dataclass
 class _Updater:
     """The measurement update of one filter kind (KF: Joseph form; H-infinity: hinf.py, with the adaptive
@@ -511,7 +546,7 @@ class _Updater:
         """Predict (k > 0) and update st.x, st.P; (prior innovation, NIS, gamma used)."""
         if not self.kind.is_hinf:
             e_buf = np.zeros(len(z))
-            nis_k = kf_step_nb(st.x, st.P, phi_k, qd_k, z, H, self.r_diag, e_buf)
+            nis_k = kf_step(st.x, st.P, phi_k, qd_k, z, H, self.r_diag, e_buf)
             return e_buf, nis_k, np.inf
         if k > 0:
             st.x = phi_k @ st.x

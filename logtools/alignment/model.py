@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from logtools.strapdown import njit
+from logtools.strapdown import HAVE_NUMBA, njit
 
 MATCHES = ("vel", "att", "vel+att")
 
@@ -199,6 +199,21 @@ def _discretise(f, qc, dt, phi, qd):
     for i in range(n):
         for j in range(n):
             qd[i, j] = 0.5 * dt * q[i, j]
+
+
+def _discretise_np(f, qc, dt, phi, qd):
+    """numpy ``_discretise`` (the reference code: same algebra, array operations)."""
+    ft = f * dt
+    n = f.shape[0]
+    phi[:, :] = ft + 0.5 * (ft @ ft)
+    phi.reshape(-1)[:: n + 1] += 1.0
+    q = (phi * qc) @ phi.T
+    q.reshape(-1)[:: n + 1] += qc
+    qd[:, :] = 0.5 * dt * q
+
+
+#: the discretisation the filter loop calls: compiled, or numpy in reference mode (logtools.jit)
+discretise_step = _discretise if HAVE_NUMBA else _discretise_np
 
 
 def measurement_matrix(lay: StateLayout, c_ns: np.ndarray, *, c_nm: np.ndarray | None = None,

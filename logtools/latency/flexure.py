@@ -33,14 +33,12 @@ from scipy import optimize
 
 from logtools.latency.config import DEFAULT, LatencyConfig
 
-try:
-    from numba import njit as _njit
+from logtools import jit
 
-    def njit(fn):
-        return _njit(cache=True, fastmath=False)(fn)
-except ImportError:  # pragma: no cover
-    def njit(fn):
-        return fn
+
+def njit(fn):
+    return jit.njit(fn, fastmath=False)
+
 
 __all__ = ["FlexureModel", "block_mean", "fit_model", "whitened_normal"]
 

@@ -1,0 +1,90 @@
+"""Compile tapost's numba kernels into numba's on-disk cache, then write the stamp that tells later runs
+to use them (logtools.jit).
+
+Started in the background, at low priority, by the first ``tapost analyze``/``batch`` after installing
+(which itself runs the reference code meanwhile); run it by hand to compile ahead, e.g. in a container
+image:
+
+    python -m pipelines.warmup          # about 1 min on 2 cores; prints what it compiles
+
+It simulates a 30-second pair, writes it in the formats whose readers have kernels (MCAP, tlog,
+DataFlash, ULog, CSV), reads each back and runs the whole analysis on the MCAP/tlog pair, so every kernel
+compiles with the argument types a real run passes.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+
+
+def _say(quiet: bool, text: str) -> None:
+    if not quiet:
+        print(text, flush=True)
+
+
+def warm(quiet: bool = False) -> float:
+    """Compile every kernel (this process in compiled mode); returns the seconds it took."""
+    os.environ["TAPOST_KERNELS"] = "compiled"
+    os.environ["TAPOST_WARMUP"] = "0"
+    t0 = time.perf_counter()
+    from logtools import jit, sim
+    from parsers import load, registry
+    from pipelines import analyze
+
+    if not jit.compiled():
+        raise SystemExit(f"tapost warmup: nothing to compile ({jit.why()})")
+    cfg = sim.scenario_config("aircraft", duration_s=30.0)
+    pair = sim.simulate(cfg)
+    with tempfile.TemporaryDirectory(prefix="tapost-warmup-") as d:
+        paths = {}
+        for fmt, ext, log in (("mcap", "mcap", pair.master), ("tlog", "tlog", pair.slave),
+                              ("dataflash", "bin", pair.slave), ("ulog", "ulg", pair.slave),
+                              ("csv", "csv", pair.slave)):
+            path = os.path.join(d, f"{fmt}.{ext}")
+            try:
+                registry.write(path, log, fmt)
+            except Exception as exc:  # noqa: BLE001 - a writer that cannot take this log: skip its reader
+                _say(quiet, f"  {fmt}: not written ({exc})")
+                continue
+            paths[fmt] = path
+            t = time.perf_counter()
+            load(path)
+            _say(quiet, f"  {fmt} reader: {time.perf_counter() - t:.1f} s")
+        t = time.perf_counter()
+        opts = analyze.options_from({k: None for k in analyze.CLI_KEYS})[0]
+        analyze.compute(paths["mcap"], paths["tlog"], opts)
+        _say(quiet, f"  latency, compensation, alignment: {time.perf_counter() - t:.1f} s")
+    return time.perf_counter() - t0
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m pipelines.warmup", description=__doc__.split("\n\n")[0])
+    p.add_argument("--lock", help="lock file to remove when done (the background start's)")
+    p.add_argument("--quiet", action="store_true")
+    a = p.parse_args(argv)
+    if a.lock and hasattr(os, "nice"):
+        try:
+            os.nice(19)  # in the background: never in the way of the user's own run
+        except OSError:
+            pass
+    try:
+        _say(a.quiet, "tapost: compiling the numerical kernels into numba's cache...")
+        seconds = warm(a.quiet)
+        from logtools import jit
+
+        path = jit.write_stamp(seconds)
+        _say(a.quiet, f"tapost: kernels compiled in {seconds:.0f} s; later runs use them ({path})")
+        return 0
+    finally:
+        if a.lock:
+            try:
+                os.unlink(a.lock)
+            except OSError:
+                pass
+
+
+if __name__ == "__main__":
+    sys.exit(main())
