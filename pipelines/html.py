@@ -1,23 +1,29 @@
-"""report.html: one self-contained page (inline base64 PNG from matplotlib/Agg, inline CSS, no
-script, no network) a reviewer can open offline and paste into a flight-test report.
+"""report.html: one self-contained page (inline CSS, inline SVG figures, no script, no network). A
+reviewer can open it offline, print it, and paste it into a flight-test report.
 
-Sections: the headline (status and warnings count; latency +- sigma and the instant it is quoted at;
-drift; mounting +- sigma; converged or not), summary table, latency quality (a grouped table, raw
-values in a collapsed block), angular rates before/after compensation (slave rotated into the master
-frame so they overlay), latency cost curve(s), drift (per-window latency), alignment state histories
-with 3-sigma bounds (both runs), residuals, warnings.
+Sections:
 
-The figures use fixed layouts (margins in inches, ``_layout``), not ``tight_layout``, which drew every
-figure twice.
+* the headline: status and warning count; latency ± sigma and the instant it is quoted at; drift;
+  mounting ± sigma; converged or not
+* summary table
+* latency quality: a grouped table, with the raw values in a collapsed block
+* angular rates before and after compensation (the slave rotated into the master frame, so the two
+  overlay)
+* latency cost curve(s)
+* drift (the latency per window)
+* alignment state histories with 3-sigma bounds, for both runs
+* residuals
+* warnings
+
+The figures are ``<svg>`` elements drawn straight from the numpy arrays by ``pipelines.svgplot``,
+in tens of milliseconds per page. They need no plotting library, and ``render`` is a pure function,
+safe to call from several threads at once.
 """
 from __future__ import annotations
 
-import base64
 import html
-import io
 import json
 import math
-import threading
 from collections.abc import Sequence
 
 import numpy as np
@@ -25,58 +31,20 @@ import numpy as np
 from logtools.inslog import InsLog
 from logtools.results import AlignmentResult
 from pipelines.report import RUNS, Analysis, write_text_atomic
+from pipelines.svgplot import Figure
 
 AXES = ("x", "y", "z")
-RUN_STYLE = {"uncompensated": dict(color="#d62728", ls="--"), "compensated": dict(color="#1f77b4", ls="-")}
-MAX_PLOT_POINTS = 4000
-#: matplotlib (pyplot, mathtext) is not thread-safe: one page is drawn at a time per process
-#: (Dask workers with several threads render concurrently otherwise)
-_MPL_LOCK = threading.RLock()
+RUN_STYLE = {"uncompensated": dict(color="uncompensated", dash="--"),
+             "compensated": dict(color="compensated", dash="-")}
+#: plot-area sizes (px) of the figures' panels: the figures come out about 1170 px wide, the page's
+#: content width, and scale down with the page
+PANEL_RATES = (515, 150)
+PANEL_COST = (500, 230)
+PANEL_DRIFT = (1090, 220)
+PANEL_GRID = (335, 165)  # the state and residual grids, three columns
 
 
 # ---- small helpers ---------------------------------------------------------------------------
-def _mpl():
-    import matplotlib
-
-    matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as plt
-
-    plt.rcParams.update({
-        "figure.dpi": 100, "savefig.dpi": 110, "font.size": 9, "axes.titlesize": 10,
-        "axes.grid": True, "grid.alpha": 0.3, "axes.spines.top": False, "axes.spines.right": False,
-        "legend.fontsize": 8, "legend.framealpha": 0.85,
-    })
-    return plt
-
-
-def _layout(fig, nrow: int, ncol: int, *, left: float = 0.8, right: float = 0.2, bottom: float = 0.5,
-            top: float = 0.4, hgap: float = 0.6, wgap: float = 0.7) -> None:
-    """A fixed layout, margins and gaps in inches: as readable as tight_layout for these figures, whose
-    labels are known, without its extra draw pass (tight_layout was a third of the report's time)."""
-    w, h = fig.get_size_inches()
-    aw = max((w - left - right - (ncol - 1) * wgap) / ncol, 0.5)
-    ah = max((h - top - bottom - (nrow - 1) * hgap) / nrow, 0.5)
-    fig.subplots_adjust(left=left / w, right=1 - right / w, bottom=bottom / h, top=1 - top / h,
-                        wspace=wgap / aw, hspace=hgap / ah)
-
-
-def _png(fig) -> str:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png")  # the figures are laid out (_layout) already
-    import matplotlib.pyplot as plt
-
-    plt.close(fig)
-    return base64.b64encode(buf.getvalue()).decode("ascii")
-
-
-def _decimate(t: np.ndarray, *ys: np.ndarray, n: int = MAX_PLOT_POINTS):
-    """Stride-decimate for plotting (at most ``n`` points); arrays returned as given if shorter."""
-    if len(t) <= n:
-        return (t, *ys)
-    k = int(math.ceil(len(t) / n))
-    return (t[::k], *(y[::k] for y in ys))
-
-
 def _fmt(x, spec: str = ".3f", unit: str = "") -> str:
     if x is None or (isinstance(x, float) and not math.isfinite(x)):
         return "&ndash;"
@@ -116,7 +84,6 @@ def fig_rates(an: Analysis, R: np.ndarray, mount_src: str, span_s: float | None 
     so that the shift is visible."""
     if not (an.master.has_gyro and an.slave.has_gyro):
         return None
-    plt = _mpl()
     tm, gm = an.master.t_imu_s(), np.degrees(an.master.gyro_rad_s())
     raw = an.slave_face_value()
     ts_raw, gs_raw = raw.t_imu_s(), np.degrees(raw.gyro_rad_s() @ R)  # (R.T @ w)^T = w^T R
@@ -134,80 +101,79 @@ def fig_rates(an: Analysis, R: np.ndarray, mount_src: str, span_s: float | None 
         sc = an.slave_comp
         cols.append(("after compensation", sc.t_imu_s(), np.degrees(sc.gyro_rad_s() @ R),
                      f"latency {an.latency.latency_s * 1e3:+.2f} ms removed" if an.latency else ""))
-    fig, axs = plt.subplots(3, len(cols), figsize=(6.2 * len(cols), 7.0), sharex=True, squeeze=False)
+    fig = Figure(3, len(cols), panel=PANEL_RATES, sharex=True,
+                 title=f"Angular rate, master vs slave, busiest {b - a:.1f} s window "
+                       f"(slave rotated by mounting from {mount_src})")
+    mm = (tm >= a) & (tm <= b)
     for j, (title, ts, gs, note) in enumerate(cols):
-        mm = (tm >= a) & (tm <= b)
         ms = (ts >= a) & (ts <= b)
         for i, ax_name in enumerate(AXES):
-            ax = axs[i, j]
-            ax.plot(tm[mm], gm[mm, i], color="black", lw=1.1, label="master")
-            ax.plot(ts[ms], gs[ms, i], color="#ff7f0e", lw=1.3, ls="--", alpha=0.9,
+            ax = fig.ax(i, j)
+            ax.line(tm[mm], gm[mm, i], color="master", width=1.1, label="master")
+            ax.line(ts[ms], gs[ms, i], color="slave", dash="--", width=1.3, opacity=0.9,
                     label="slave (in master frame)")
-            ax.set_ylabel(f"$\\omega_{ax_name}$ (deg/s)")
+            ax.ylabel(f"ω{ax_name} (deg/s)")
             if i == 0:
-                ax.set_title(f"{title}\n({note})" if note else title)
-                ax.legend(loc="upper right")
-        axs[-1, j].set_xlabel("time since master start (s)")
-    fig.suptitle(f"Angular rate, master vs slave, busiest {b - a:.1f} s window "
-                 f"(slave rotated by mounting from {mount_src})", fontsize=11)
-    _layout(fig, 3, len(cols), top=0.95, hgap=0.2, bottom=0.5)
-    return _png(fig)
+                ax.title(f"{title}\n({note})" if note else title)
+                ax.legend("best")
+        fig.ax(2, j).xlabel("time since master start (s)")
+    return fig.to_svg("angular rates, master vs slave, before and after compensation")
 
 
 def fig_cost(an: Analysis) -> str | None:
     lat = an.latency
     if lat is None or len(lat.cost_lag_s) == 0:
         return None
-    plt = _mpl()
     lag_ms = np.asarray(lat.cost_lag_s) * 1e3
     cost = np.asarray(lat.cost, float)
-    fig, axs = plt.subplots(1, 2, figsize=(12.4, 3.8))
-    for ax, zoom in zip(axs, (False, True)):
-        ax.plot(lag_ms, cost, color="#1f77b4", lw=1.2, label=f"cost ({lat.method})")
-        L, S = lat.latency_s * 1e3, lat.sigma_s * 1e3
-        ax.axvline(L, color="#d62728", lw=1.0, label=f"minimum {L:+.3f} ms")
+    L, S = lat.latency_s * 1e3, lat.sigma_s * 1e3
+    fig = Figure(1, 2, panel=PANEL_COST)
+    for k, zoom in enumerate((False, True)):
+        ax = fig.ax(0, k)
+        ax.line(lag_ms, cost, color="C0", width=1.2, label=f"cost ({lat.method})")
+        ax.vline(L, color="C3", width=1.0, label=f"minimum {L:+.3f} ms")
         if math.isfinite(S) and S > 0:
-            ax.axvspan(L - 3 * S, L + 3 * S, color="#d62728", alpha=0.15, label=f"$\\pm3\\sigma$ ({3 * S:.3f} ms)")
-        for k, (name, me) in enumerate(lat.methods.items()):
+            ax.vspan(L - 3 * S, L + 3 * S, color="C3", opacity=0.15, label=f"±3σ ({3 * S:.3f} ms)")
+        for n, (name, me) in enumerate(lat.methods.items()):
             if name != lat.method and math.isfinite(me.latency_s):
-                ax.axvline(me.latency_s * 1e3, color=f"C{k + 2}", lw=0.9, ls=":",
-                           label=f"{name}: {me.latency_s * 1e3:+.3f} ms")
-        ax.set_xlabel("lag of slave behind master (ms)")
-        ax.set_ylabel("normalised cost (-)")
+                ax.vline(me.latency_s * 1e3, color=f"C{(n + 2) % 10}", width=0.9, dash=":",
+                         label=f"{name}: {me.latency_s * 1e3:+.3f} ms")
+        ax.xlabel("lag of slave behind master (ms)")
+        ax.ylabel("normalised cost (-)")
         if zoom:
-            half = max(10 * S if math.isfinite(S) else 0.0, 5 * float(np.median(np.diff(lag_ms))) if len(lag_ms) > 1 else 1.0, 2.0)
-            ax.set_xlim(L - half, L + half)
-            m = (lag_ms >= L - half) & (lag_ms <= L + half)
+            half = max(10 * S if math.isfinite(S) else 0.0,
+                       5 * float(np.median(np.diff(lag_ms))) if len(lag_ms) > 1 else 1.0, 2.0)
+            ax.xlim(L - half, L + half)
+            m = (lag_ms >= L - half) & (lag_ms <= L + half) & np.isfinite(cost)
             if m.any():
-                lo, hi = float(np.nanmin(cost[m])), float(np.nanmax(cost[m]))
+                lo, hi = float(np.min(cost[m])), float(np.max(cost[m]))
                 pad = 0.05 * (hi - lo or 1.0)
-                ax.set_ylim(lo - pad, hi + pad)
-            ax.set_title("zoom on the minimum")
+                ax.ylim(lo - pad, hi + pad)
+            ax.title("zoom on the minimum")
         else:
-            ax.set_title("latency cost over the search window")
-            ax.legend(loc="best")
-    _layout(fig, 1, 2, top=0.35, bottom=0.55, wgap=0.9)
-    return _png(fig)
+            ax.title("latency cost over the search window")
+            ax.legend("best")
+    return fig.to_svg("latency cost curve and a zoom on its minimum")
 
 
 def fig_drift(an: Analysis) -> str | None:
     lat = an.latency
     if lat is None or len(lat.window_latency_s) == 0:
         return None
-    plt = _mpl()
     tc = np.asarray(lat.window_centers_s, float)
     wl = np.asarray(lat.window_latency_s, float) * 1e3
-    fig, ax = plt.subplots(figsize=(12.4, 3.4))
-    ax.plot(tc, wl, "o", ms=3.5, color="#1f77b4", label="per-window latency")
-    tt = np.linspace(np.nanmin(tc), np.nanmax(tc), 50) if len(tc) else tc
-    ax.plot(tt, lat.latency_at(tt) * 1e3, color="#d62728", lw=1.2,
-            label=f"fit: {lat.latency_s * 1e3:+.3f} ms at mid, drift {lat.drift_ppm:+.2f} ppm")
-    ax.set_xlabel("time since master start (s)")
-    ax.set_ylabel("latency (ms)")
-    ax.set_title("Latency over the log (clock drift)")
-    ax.legend(loc="best")
-    _layout(fig, 1, 1, top=0.35, bottom=0.55)
-    return _png(fig)
+    fig = Figure(1, 1, panel=PANEL_DRIFT)
+    ax = fig.ax(0)
+    ax.points(tc, wl, color="C0", size=4, label="per-window latency")
+    if np.isfinite(tc).any():
+        tt = np.linspace(np.nanmin(tc), np.nanmax(tc), 50)
+        ax.line(tt, lat.latency_at(tt) * 1e3, color="C3", width=1.2,
+                label=f"fit: {lat.latency_s * 1e3:+.3f} ms at mid, drift {lat.drift_ppm:+.2f} ppm")
+    ax.xlabel("time since master start (s)")
+    ax.ylabel("latency (ms)")
+    ax.title("Latency over the log (clock drift)")
+    ax.legend("best")
+    return fig.to_svg("latency per window and the drift fit")
 
 
 def _state_groups(names: Sequence[str]) -> dict[str, list[int]]:
@@ -237,68 +203,68 @@ def _by_name(names_of: dict[str, Sequence[str]]) -> tuple[list[str], dict[str, d
     return names, {r: {n: i for i, n in enumerate(ns)} for r, ns in names_of.items()}
 
 
-def fig_states(an: Analysis) -> list[tuple[str, str]]:
-    """One figure per state group; both runs overlaid with their 3-sigma envelopes."""
+def _grid(n: int, title: str, sharex: bool = False) -> Figure:
+    """A figure of ``n`` panels in rows of three; the cells left over are hidden."""
+    ncol = min(3, n)
+    nrow = int(math.ceil(n / ncol))
+    fig = Figure(nrow, ncol, panel=PANEL_GRID, sharex=sharex, title=title)
+    for ax in fig.axes[n:]:
+        ax.hide()
+    return fig
+
+
+def state_figures(an: Analysis) -> list[tuple[str, Figure]]:
+    """The state-history figures, one per state group: (group, Figure), both runs overlaid with their
+    3-sigma envelopes, each state matched between the runs by name."""
     runs = {r: res for r, res in an.alignment.items() if res is not None and res.history_x.size}
     if not runs:
         return []
-    plt = _mpl()
     # the runs' states by name (the runs may differ: flexure or lever-arm states in one only)
     names, col = _by_name({r: res.history_names for r, res in runs.items()})
     out = []
     for group, idx in _state_groups(names).items():
-        ncol = min(3, len(idx))
-        nrow = int(math.ceil(len(idx) / ncol))
-        fig, axs = plt.subplots(nrow, ncol, figsize=(4.2 * ncol, 2.9 * nrow), squeeze=False)
+        fig = _grid(len(idx), f"Transfer alignment: {group} (estimate and 3-sigma bound)")
         for k, i in enumerate(idx):
-            ax = axs[k // ncol, k % ncol]
+            ax = fig.axes[k]
             for run, res in runs.items():
                 j = col[run].get(names[i])
                 if j is None or j >= res.history_x.shape[1]:
                     continue
-                t, x, s = _decimate(res.history_t_s, res.history_x[:, j], res.history_sigma[:, j])
+                t, x, s = res.history_t_s, res.history_x[:, j], res.history_sigma[:, j]
                 st = RUN_STYLE.get(run, {})
-                ax.plot(t, x, lw=1.1, label=f"{run}", **st)
-                ax.fill_between(t, x - 3 * s, x + 3 * s, color=st.get("color"), alpha=0.12,
-                                label=f"{run} $\\pm3\\sigma$")
-            ax.set_title(names[i])
-            ax.set_xlabel("time (s)")
+                ax.line(t, x, width=1.1, label=f"{run}", **st)
+                ax.band(t, x - 3 * s, x + 3 * s, color=st.get("color", "C7"), opacity=0.12, label=f"{run} ±3σ")
+            ax.title(names[i])
+            ax.xlabel("time (s)")
             if k == 0:
-                ax.legend(loc="best")
-        for k in range(len(idx), nrow * ncol):
-            axs[k // ncol, k % ncol].set_visible(False)
-        fig.suptitle(f"Transfer alignment: {group} (estimate and 3-sigma bound)", fontsize=11)
-        _layout(fig, nrow, ncol, top=0.6, bottom=0.5, hgap=0.75, wgap=0.75)
-        out.append((group, _png(fig)))
+                ax.legend("best")
+        out.append((group, fig))
     return out
+
+
+def fig_states(an: Analysis) -> list[tuple[str, str]]:
+    """One figure (SVG markup) per state group; both runs overlaid with their 3-sigma envelopes."""
+    return [(group, fig.to_svg(f"alignment states: {group}")) for group, fig in state_figures(an)]
 
 
 def fig_residuals(an: Analysis) -> str | None:
     runs = {r: res for r, res in an.alignment.items() if res is not None and res.residuals.size}
     if not runs:
         return None
-    plt = _mpl()
     names, col = _by_name({r: res.residual_names for r, res in runs.items()})
-    ncol = min(3, len(names))
-    nrow = int(math.ceil(len(names) / ncol))
-    fig, axs = plt.subplots(nrow, ncol, figsize=(4.2 * ncol, 2.7 * nrow), squeeze=False, sharex=True)
-    for i, name in enumerate(names):
-        ax = axs[i // ncol, i % ncol]
+    fig = _grid(len(names), "Measurement residuals (innovations) of the alignment filter", sharex=True)
+    for ax, name in zip(fig.axes, names):
         for run, res in runs.items():
             j = col[run].get(name)
             if j is not None and j < res.residuals.shape[1]:
-                t, r = _decimate(res.residual_t_s, res.residuals[:, j])
-                st = RUN_STYLE.get(run, {})
-                rms = float(np.sqrt(np.nanmean(res.residuals[:, j] ** 2)))
-                ax.plot(t, r, lw=0.8, label=f"{run} (rms {rms:.3g})", color=st.get("color"), alpha=0.8)
-        ax.set_title(name)
-        ax.set_xlabel("time (s)")
-        ax.legend(loc="best")
-    for k in range(len(names), nrow * ncol):
-        axs[k // ncol, k % ncol].set_visible(False)
-    fig.suptitle("Measurement residuals (innovations) of the alignment filter", fontsize=11)
-    _layout(fig, nrow, ncol, top=0.6, bottom=0.5, hgap=0.55, wgap=0.75)
-    return _png(fig)
+                r = res.residuals[:, j]
+                rms = float(np.sqrt(np.nanmean(r ** 2))) if np.isfinite(r).any() else float("nan")
+                ax.line(res.residual_t_s, r, width=0.8, label=f"{run} (rms {rms:.3g})",
+                        color=RUN_STYLE.get(run, {}).get("color", "C7"), opacity=0.8)
+        ax.title(name)
+        ax.xlabel("time (s)")
+        ax.legend("best")
+    return fig.to_svg("alignment filter residuals")
 
 
 # ---- headline and latency quality --------------------------------------------------------------
@@ -550,7 +516,7 @@ h2{font-size:17px;margin:4px 0 10px;color:#1d3557;border-bottom:2px solid #e6394
 table{border-collapse:collapse;font-size:13px;margin:6px 0}
 th,td{border:1px solid #dde3ea;padding:4px 10px;text-align:left;vertical-align:top;overflow-wrap:anywhere}
 th{background:#eef2f6;font-weight:600} td.num{text-align:right;font-family:Menlo,Consolas,monospace}
-img{max-width:100%;display:block;margin:8px 0}
+figure{margin:8px 0} figure svg{display:block}
 .ok{color:#2a9d8f;font-weight:600} .warn{color:#e76f51;font-weight:600} .fail{color:#c1121f;font-weight:600}
 .note{color:#5c6b7a;font-size:12px} ul{margin:4px 0 4px 18px;font-size:13px}
 .headline{display:flex;flex-wrap:wrap;gap:10px;margin:4px 0 8px}
@@ -658,11 +624,6 @@ def _imu_to_imu_html(rep: dict) -> str:
 
 def render(rep: dict, an: Analysis) -> str:
     """The report page as a string (pure function of the report dict and the analysis data)."""
-    with _MPL_LOCK:
-        return _render(rep, an)
-
-
-def _render(rep: dict, an: Analysis) -> str:
     R, mount_src = an.mounting()
     sections: list[tuple[str, str, str]] = []  # (id, title, html)
     status = rep.get("status", "ok")
@@ -673,9 +634,8 @@ def _render(rep: dict, an: Analysis) -> str:
     sections.append(("quality", "Latency quality",
                      quality_html(rep.get("latency") or {}, epoch=rep["master"].get("clock") == "epoch")))
 
-    def img(b64: str | None, alt: str, missing: str) -> str:
-        return (f'<img alt="{_esc(alt)}" src="data:image/png;base64,{b64}">' if b64
-                else f"<p class=note>{_esc(missing)}</p>")
+    def img(svg: str | None, alt: str, missing: str) -> str:
+        return f'<figure aria-label="{_esc(alt)}">{svg}</figure>' if svg else f"<p class=note>{_esc(missing)}</p>"
 
     sections.append(("rates", "Angular rates before and after compensation",
                      img(fig_rates(an, R, mount_src), "angular rates",

@@ -1,11 +1,13 @@
-"""report.html: self-contained (no network), the expected sections, and it renders in a real
-headless browser (Debian chromium; skipped with a reason when chromium is not installed)."""
+"""report.html: self-contained (no network), the expected sections, inline SVG figures that parse,
+and it renders in a real headless browser (Debian chromium; skipped with a reason when chromium is
+not installed)."""
 from __future__ import annotations
 
 import re
 import shutil
 import subprocess
 import sys
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +20,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from test_report import fake_report, make_fake_analysis  # noqa: E402
 
 SECTIONS = ("summary", "rates", "latency", "drift", "alignment", "residuals", "warnings", "timings")
+FIGURE = re.compile(r'<figure aria-label="[^"]*">(.*?)</figure>', re.S)
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
 
 
@@ -38,10 +41,13 @@ def test_self_contained_with_all_sections(page):
     # offline: no external resource at all
     assert not re.search(r"""(src|href)\s*=\s*["']?(https?:)?//""", text)
     assert "<script" not in text.lower()
-    imgs = re.findall(r'src="data:image/png;base64,([A-Za-z0-9+/=]+)"', text)
-    assert len(imgs) >= 7  # rates, cost, drift, 3 state groups, residuals
-    import base64
-    assert all(base64.b64decode(b)[:8] == b"\x89PNG\r\n\x1a\n" for b in imgs)
+    svgs = FIGURE.findall(text)
+    assert len(svgs) >= 7  # rates, cost, drift, 3 state groups, residuals
+    for svg in svgs:  # each figure one well-formed <svg> that scales with the page
+        root = ET.fromstring(svg)
+        assert root.tag == "{http://www.w3.org/2000/svg}svg"
+        assert root.get("viewBox") and root.get("width") == "100%"
+    assert "data:image" not in text
     assert "+25.000 ms" in text  # the latency in the summary table
     assert "master warning example" in text
     assert oct(path.stat().st_mode & 0o777) != "0o600"  # a normal, shareable file
@@ -58,7 +64,8 @@ def test_skipped_and_failed_runs_are_stated_not_plotted():
     assert "failed: no overlap between the logs" in text
     assert "skipped: latency failed" in text
     assert "Not available: latency was not estimated." in text
-    assert text.count("data:image/png") == 1  # only the rates (before), nothing invented
+    assert len(FIGURE.findall(text)) == 1  # only the rates (before), nothing invented
+    assert ">after compensation</text>" not in FIGURE.findall(text)[0]  # the before column only
 
 
 def _chromium(args, tmp_path):
@@ -74,9 +81,7 @@ def test_renders_in_headless_chromium(page, tmp_path):
     shot = tmp_path / "out.png"
     _chromium([f"--screenshot={shot}", "--window-size=1280,4000", path.as_uri()], tmp_path)
     assert shot.exists() and shot.stat().st_size > 50_000
-    import matplotlib.image as mpimg
-
-    img = mpimg.imread(str(shot))[..., :3]
+    img = _read_png(shot)
     assert img.shape[0] >= 3000 and img.shape[1] == 1280
     # not blank: many distinct colours, plots drawn across the page height
     assert img.std() > 0.05
@@ -85,11 +90,11 @@ def test_renders_in_headless_chromium(page, tmp_path):
     dom = _chromium(["--dump-dom", path.as_uri()], tmp_path).stdout.decode()
     for s in SECTIONS:
         assert f'id="{s}"' in dom
-    assert dom.count("<img") >= 7
+    assert dom.count("<figure") >= 7 and dom.count("<svg") >= 7
     assert "tapost latency and transfer-alignment report" in dom
 
 
-def test_state_plots_match_the_runs_states_by_name(monkeypatch):
+def test_state_plots_match_the_runs_states_by_name():
     """One run may carry states the other lacks (flexure, lever arm): the plots matched them by index, so
     the compensated run's lever arm went unplotted when the uncompensated one had six flexure states."""
     from dataclasses import replace
@@ -103,12 +108,24 @@ def test_state_plots_match_the_runs_states_by_name(monkeypatch):
     ins = lambda a: np.insert(a, k, 0.5, axis=1)  # noqa: E731
     an.alignment["compensated"] = replace(comp, history_names=names, history_x=ins(comp.history_x),
                                           history_sigma=ins(comp.history_sigma))
-    figs = []
-    monkeypatch.setattr(H, "_png", lambda fig: figs.append(fig) or "")
-    H.fig_states(an)
-    lines = {ax.get_title(): sorted(ln.get_label() for ln in ax.get_lines()) for f in figs for ax in f.axes}
+    figs = H.state_figures(an)
+    axes = [ax for _, f in figs for ax in f.axes if ax.visible]
+    lines = {ax.title_text: sorted(s.label for s in ax.series if s.kind == "line") for ax in axes}
     assert lines["accel_bias_x_mg"] == ["compensated", "uncompensated"]
     assert lines["flex_ang_x_arcmin"] == ["compensated"]
-    x_plotted = next(ln for f in figs for ax in f.axes if ax.get_title() == "accel_bias_x_mg"
-                     for ln in ax.get_lines() if ln.get_label() == "compensated").get_ydata()
+    x_plotted = next(s.y for ax in axes if ax.title_text == "accel_bias_x_mg"
+                     for s in ax.series if s.kind == "line" and s.label == "compensated")
     assert np.allclose(x_plotted[-1], comp.history_x[-1, k])  # its own column, not the inserted one
+    # and so in the markup: the flexure panel draws the compensated run only (line and band)
+    svg = dict(H.fig_states(an))["other states"]
+    panel = next(g for g in ET.fromstring(svg).iter("{http://www.w3.org/2000/svg}g")
+                 if any(t.text == "flex_ang_x_arcmin" for t in g.iter("{http://www.w3.org/2000/svg}text")))
+    labels = {e.get("aria-label") for e in panel.iter() if e.get("aria-label")}
+    assert labels == {"compensated", "compensated ±3σ"}
+
+
+def _read_png(path: Path) -> np.ndarray:
+    """A PNG as RGB floats in [0, 1] (Pillow, not matplotlib: the report no longer needs it)."""
+    Image = pytest.importorskip("PIL.Image")
+    with Image.open(path) as im:
+        return np.asarray(im.convert("RGB"), dtype=float) / 255.0
