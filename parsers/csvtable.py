@@ -81,7 +81,14 @@ def _decimal_kernel():
     if not _DECIMAL_TO_NS:
         from logtools import jit
 
-        _DECIMAL_TO_NS.append(jit.njit(_decimal_to_ns))
+        if jit.compiled():
+            _DECIMAL_TO_NS.append(jit.njit(_decimal_to_ns))
+        else:  # plain Python over numpy scalars: the overflow guard's wrap-around warns there
+            def quiet(chars, scale_pow10):
+                with np.errstate(over="ignore"):
+                    return _decimal_to_ns(chars, scale_pow10)
+
+            _DECIMAL_TO_NS.append(quiet)
     return _DECIMAL_TO_NS[0]
 
 

@@ -430,6 +430,10 @@ def walk_dataflash(buf: np.ndarray, lengths: np.ndarray) -> tuple[np.ndarray, in
     return _walk_df_impl(bytes(buf), [int(x) for x in lengths])
 
 
+if not HAVE_NUMBA:  # the reference walker runs over bytes: one C call per stamp
+    def _tlog_stamp(buf, i):  # noqa: F811
+        return int.from_bytes(buf[i:i + 8], "big")
+
 if HAVE_NUMBA:  # the helpers the compiled walkers call must be compiled too
     _tlog_frame_size = _njit(cache=True)(_tlog_frame_size)
     _tlog_stamp = _njit(cache=True)(_tlog_stamp)

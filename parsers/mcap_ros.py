@@ -123,6 +123,54 @@ def _walk(b, start, end):  # compiled with numba (_walk_kernel); plain Python ot
     return m, cid, t, s, e, k, oop, ooff, onxt, 0, end
 
 
+_REC = struct.Struct("<BQ")
+_MSG = struct.Struct("<H4xQ")  # channel id, (sequence), log time
+
+
+def _walk_py(b, start, end):
+    """``_walk`` for the reference code: the same records and errors, read with struct over bytes (the
+    byte-by-byte numpy version costs ~17 us a record in plain Python)."""
+    nmax = (end - start) // 9 + 1
+    cid, t, s, e = (np.empty(nmax, np.int64) for _ in range(4))
+    oop, ooff, onxt = (np.empty(nmax, np.int64) for _ in range(3))
+    mc, mt, ms, me, oo, of, on = [], [], [], [], [], [], []
+    off = start
+    err, eoff = 0, end
+    while off < end:
+        if off + 9 > end:
+            err, eoff = _E_CUT, off
+            break
+        op, ln = _REC.unpack_from(b, off)
+        past = ln > end - off - 9
+        nxt = off + 9 + ln
+        if op == 5 and off + 31 <= end:
+            if past or ln < 22:
+                err, eoff = _E_PAST_MSG, off
+                break
+            c, tt = _MSG.unpack_from(b, off + 9)
+            mc.append(c)
+            mt.append(tt - (1 << 64) if tt >= 1 << 63 else tt)
+            ms.append(off + 31)
+            me.append(nxt)
+            off = nxt
+            continue
+        if past:
+            err, eoff = _E_PAST, off
+            break
+        if op == 0 or op > 15:
+            err, eoff = _E_OPCODE, off
+            break
+        if op == 3 or op == 4:
+            oo.append(op)
+            of.append(off)
+            on.append(nxt)
+        off = nxt
+    m, k = len(mc), len(oo)
+    for arr, vals in ((cid, mc), (t, mt), (s, ms), (e, me), (oop, oo), (ooff, of), (onxt, on)):
+        arr[:len(vals)] = vals
+    return m, cid, t, s, e, k, oop, ooff, onxt, err, eoff
+
+
 _WALK = []
 
 
@@ -135,7 +183,8 @@ def _walk_kernel():
         if jit.compiled():
             _WALK.append(jit.njit(_walk))
         else:
-            _WALK.append(lambda arr, start, end: _walk(memoryview(arr), start, end))
+            _WALK.append(lambda arr, start, end: _walk_py(arr.tobytes() if isinstance(arr, np.ndarray) else arr,
+                                                          start, end))
     return _WALK[0]
 
 
