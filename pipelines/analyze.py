@@ -31,6 +31,7 @@ from logtools.inslog import InsLog
 from logtools.results import LATENCY_METHODS, AlignmentResult, LatencyResult
 from parsers import load
 from pipelines import report as rp
+from pipelines import parallel
 from pipelines.progress import Progress, null_progress
 
 MATCHES = ("auto",) + ALIGNMENT_MATCHES  # auto: vel+att when the master has both, else what it has
@@ -647,14 +648,23 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
     face = an.slave_face_value()
     runs = {"uncompensated": (face, sub(0.5, 0.7, "alignment (uncompensated)")),
             "compensated": (an.slave_comp, sub(0.7, 0.9, "alignment (compensated)"))}
+    pending = {}
+    if runs["uncompensated"][0] is not None and runs["compensated"][0] is not None and parallel.available():
+        # the two runs share nothing but their inputs: the uncompensated one in a forked child (CLI only)
+        pending["uncompensated"] = parallel.submit(_alignment, master, face, "uncompensated", opts, null_progress,
+                                                   an.latency)
     for run, (slog, p) in runs.items():
         if slog is None:
             why = ("latency failed" if an.latency is None
                    else f"compensation failed: {extra.get('compensation', {}).get('skipped', 'unknown')}")
-            res: AlignmentResult | str = why
-        else:
+            pending[run] = why
+        elif run not in pending:
             p(0.0, "")
-            res = _alignment(master, slog, run, opts, p, an.latency)
+            pending[run] = _alignment(master, slog, run, opts, p, an.latency)
+    for run in runs:
+        res = pending[run]
+        if isinstance(res, parallel.Pending):
+            res = res.result()
         if isinstance(res, AlignmentResult):
             an.alignment[run] = res
             an.align_sections[run] = res

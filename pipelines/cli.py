@@ -80,6 +80,10 @@ def main(argv: list[str] | None = None) -> int:
         early_notice(command, argv)
         if command in LOG_COMMANDS:
             announce_compiling()
+        if command == "analyze":  # one pair in this process: its independent stages may fork
+            from pipelines import parallel
+
+            parallel.enable()
     parser = build_parser(command if command in COMMANDS else None)
     args = parser.parse_args(glue_vector_values(argv))
     if not getattr(args, "_run", None):
