@@ -48,27 +48,37 @@ def clean_stream(name: str, s: Stream, warnings: list[str]) -> Stream:
         warnings.append(f"{name} ({s.source}): {int(bad.sum())} samples with impossible values dropped "
                         f"(corrupt data?)")
         t, v = t[~bad], v[~bad]
-    if len(t) > 1 and np.any(np.diff(t) < 0):
-        n_back = int(np.sum(np.diff(t) < 0))
+    d = np.diff(t) if len(t) > 1 else None  # the stamp steps, reused while no sample is dropped
+    if d is not None and np.any(d < 0):
+        n_back = int(np.sum(d < 0))
         warnings.append(f"{name} ({s.source}): {n_back} backward time steps (clock reset or reordering); sorted")
         order = np.argsort(t, kind="stable")
         t, v = t[order], v[order]
-    if len(t) > 1:
-        dup = np.concatenate([[False], np.diff(t) == 0])
+        del order
+        d = np.diff(t)
+    if d is not None:
+        dup = d == 0
         if dup.any():
+            dup = np.concatenate([[False], dup])
             warnings.append(f"{name} ({s.source}): {int(dup.sum())} duplicate stamps dropped")
             t, v = t[~dup], v[~dup]
-    keep = drop_stray(t, f"{name} ({s.source}): ", warnings)
-    t, v = t[keep], v[keep]
+            d = None
+        del dup
+    keep = drop_stray(t, f"{name} ({s.source}): ", warnings, steps=d)
+    if not keep.all():  # (all kept: the arrays as they are, no copies)
+        t, v = t[keep], v[keep]
+        d = None
+    del keep
     if len(t) > 2:
-        d = np.diff(t)
+        d = np.diff(t) if d is None else d
         med = np.median(d)
         big = d > GAP_FACTOR * med
         if big.any():
             warnings.append(
                 f"{name} ({s.source}): {int(big.sum())} gap(s) in stamps, longest {d.max() * 1e-9:.3f} s")
+        del big
     # the stamps' resolution: the format's (tlog time_boot_ms), or the grid the stamps show they are on
-    return Stream(t, v, s.source, max(s.stamp_resolution_s, stamp_grid_s(t)))
+    return Stream(t, v, s.source, max(s.stamp_resolution_s, stamp_grid_s(t, steps=d if len(t) > 2 else None)))
 
 
 #: physically impossible magnitudes per stream (SI): a sample beyond them is a corrupt value (a flipped
@@ -76,11 +86,20 @@ def clean_stream(name: str, s: Stream, warnings: list[str]) -> Stream:
 LIMITS = {"gyro": 175.0, "accel": 5000.0, "vel": 1.0e4}
 
 
+#: rows of a stream checked at a time (bounds the temporary copies of the checks)
+CHECK_ROWS = 1 << 18
+
+
 def implausible(name: str, values: np.ndarray) -> np.ndarray:
     """True for the rows of ``values`` (N, k) of stream ``name`` that no vehicle can produce: a component
     beyond LIMITS, a quaternion far from unit norm, or for positions a latitude beyond 90 deg, a longitude
-    beyond 360 deg, an altitude beyond 1000 km."""
-    v = np.abs(np.asarray(values, dtype=float))
+    beyond 360 deg, an altitude beyond 1000 km. (Checked CHECK_ROWS rows at a time: the same answer
+    without a full-size copy of the values.)"""
+    values = np.asarray(values, dtype=float)
+    if len(values) > CHECK_ROWS:
+        return np.concatenate([implausible(name, values[i:i + CHECK_ROWS])
+                               for i in range(0, len(values), CHECK_ROWS)])
+    v = np.abs(values)
     if name in LIMITS:
         return np.any(v > LIMITS[name], axis=1)
     if name == "quat" and v.ndim == 2 and v.shape[1] == 4:  # a rotation is a unit quaternion (not zeros)
@@ -91,10 +110,10 @@ def implausible(name: str, values: np.ndarray) -> np.ndarray:
     return np.zeros(len(v), dtype=bool)
 
 
-def drop_stray(t_ns: np.ndarray, label: str, warnings: list[str]) -> np.ndarray:
+def drop_stray(t_ns: np.ndarray, label: str, warnings: list[str], steps: np.ndarray | None = None) -> np.ndarray:
     """The samples to keep of sorted, unique stamps ``t_ns``: all but the stray ones (``not_stray``), which
-    are said in ``warnings`` (prefixed with ``label``)."""
-    keep = not_stray(t_ns)
+    are said in ``warnings`` (prefixed with ``label``). ``steps``: ``np.diff(t_ns)`` when the caller has it."""
+    keep = not_stray(t_ns, steps)
     if not keep.all():
         bad = t_ns[~keep]
         warnings.append(f"{label}{int((~keep).sum())} sample(s) with stray stamps dropped ({bad.min() * 1e-9:.3f} .. "
@@ -102,13 +121,13 @@ def drop_stray(t_ns: np.ndarray, label: str, warnings: list[str]) -> np.ndarray:
     return keep
 
 
-def not_stray(t_ns: np.ndarray) -> np.ndarray:
+def not_stray(t_ns: np.ndarray, steps: np.ndarray | None = None) -> np.ndarray:
     """False for samples in runs of at most STRAY_MAX_SAMPLES cut off from longer runs by steps longer
     than STRAY_GAP_S and STRAY_GAP_PERIODS median periods (``t_ns`` sorted, unique)."""
     keep = np.ones(len(t_ns), dtype=bool)
     if len(t_ns) <= STRAY_MAX_SAMPLES + 1:
         return keep
-    d = np.diff(t_ns)
+    d = np.diff(t_ns) if steps is None else steps
     thr = max(STRAY_GAP_S * 1e9, STRAY_GAP_PERIODS * float(np.median(d)))
     cut = np.flatnonzero(d > thr) + 1
     if not len(cut):
@@ -140,59 +159,155 @@ def build_inslog(
     """Assemble an InsLog. gyro/accel must share stamps if both are given on one stream (IMU
     message); otherwise accel is interpolated onto the gyro stamps (reported). quat is normalised
     and sign-continuous. Raises InputError when nothing usable is left."""
+    streams = dict(gyro=gyro, accel=accel, quat=quat, vel=vel, pos=pos)
+    del gyro, accel, quat, vel, pos
+    return assemble_inslog(streams, path=path, fmt=fmt, selector=selector, clock=clock,
+                           stamp_source=stamp_source, warnings=warnings)
+
+
+def _unit_continuous_into(q: np.ndarray, rows: np.ndarray, at: np.ndarray | None) -> None:
+    """``rows[:, at] = quat_make_continuous(quat_normalize(q)).T`` (``at`` None: every column), CHECK_ROWS
+    quaternions at a time: the same numbers (normalised row by row, the hemisphere flips counted along
+    the whole stream) without two full-size copies of the stream."""
+    from logtools.conventions import quat_normalize
+
+    n = len(q)
+    prev = None  # the previous chunk's last normalised quaternion (before its flip)
+    parity = 0
+    for i in range(0, n, CHECK_ROWS):
+        qn = quat_normalize(q[i:i + CHECK_ROWS])
+        ext = qn if prev is None else np.concatenate([prev, qn])
+        if len(ext) > 1:  # what quat_make_continuous does, the flips counted on from the chunk before
+            dots = np.einsum("ij,ij->i", ext[1:], ext[:-1])
+            flips = (parity + np.cumsum(dots < 0)) % 2
+            parity = int(flips[-1])
+            prev = qn[-1:].copy()
+            if len(flips) == len(qn):  # a later chunk: its first row has a dot with the previous one
+                qn[flips == 1] *= -1
+            else:
+                qn[1:][flips == 1] *= -1
+        else:
+            prev = qn[-1:].copy()
+        if at is None:
+            rows[:, i:i + len(qn)] = qn.T
+        else:
+            rows[:, at[i:i + len(qn)]] = qn.T
+        del qn, ext
+
+
+def _union_sorted(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """np.union1d of two sorted arrays of unique stamps (``a`` itself when ``b`` is in it)."""
+    if b is a or len(b) == 0:
+        return a
+    if len(a) == len(b) and np.array_equal(a, b):
+        return a
+    at = np.searchsorted(a, b)
+    if len(a) and np.all(at < len(a)) and np.array_equal(a[np.minimum(at, len(a) - 1)], b):
+        return a
+    c = np.concatenate([a, b])
+    c.sort(kind="stable")  # two sorted runs: a merge
+    return c[np.concatenate([[True], c[1:] != c[:-1]])]
+
+
+def _frame(block: np.ndarray, t_s: np.ndarray, names: tuple[str, ...] | list[str]) -> pd.DataFrame:
+    """A float64 frame over ``block`` (k, N), one column per row, without a copy: the layout pandas gives
+    a frame built from k columns (one consolidated (k, N) block)."""
+    return pd.DataFrame(block.T, index=pd.Index(t_s, name=T), columns=list(names), copy=False)
+
+
+def assemble_inslog(streams: dict[str, Stream | None], *, path: str, fmt: str, selector: str, clock: str,
+                    stamp_source: str, warnings: list[str] | tuple[str, ...] = ()) -> InsLog:
+    """:func:`build_inslog` of the streams in ``streams`` (keys gyro, accel, quat, vel, pos; None or absent
+    for none), taking them out of the dict as it goes: a stream's arrays go as soon as its columns are in
+    the frame (a caller that keeps no other reference holds each sample about once)."""
     warns = list(warnings)
-    streams = {k: clean_stream(k, s, warns) for k, s in
-               dict(gyro=gyro, accel=accel, quat=quat, vel=vel, pos=pos).items() if s is not None}
-    streams = {k: s for k, s in streams.items() if len(s.t_ns)}
-    if not streams:
+    cleaned: dict[str, Stream] = {}
+    for k in ("gyro", "accel", "quat", "vel", "pos"):
+        s = streams.pop(k, None)
+        if s is None:
+            continue
+        c = clean_stream(k, s, warns)
+        del s
+        if len(c.t_ns):
+            cleaned[k] = c
+        del c
+    streams.clear()
+    if not cleaned:
         raise InputError("no usable samples in the selected streams", path)
-    t0_ns = int(min(int(s.t_ns[0]) for s in streams.values()))
+    t0_ns = int(min(int(s.t_ns[0]) for s in cleaned.values()))
     channels: dict[str, ChannelInfo] = {}
 
     def rel(t_ns):
         return (np.asarray(t_ns, np.int64) - t0_ns) * 1e-9
 
     imu = pd.DataFrame(index=pd.Index(np.zeros(0), name=T))
-    g, a = streams.get("gyro"), streams.get("accel")
+    g, a = cleaned.pop("gyro", None), cleaned.pop("accel", None)
     base = g if g is not None else a
     if base is not None:
-        cols: dict[str, np.ndarray] = {}
         t_imu = rel(base.t_ns)
+        rate_imu = rate_of(t_imu)
+        rows: list[tuple[tuple[str, ...], np.ndarray]] = []
         if g is not None:
-            cols.update(zip(GYRO, g.values.T))
-            channels["gyro"] = ChannelInfo(rate_of(t_imu), len(t_imu), g.source, g.stamp_resolution_s)
+            rows.append((GYRO, g.values))
+            channels["gyro"] = ChannelInfo(rate_imu, len(t_imu), g.source, g.stamp_resolution_s)
         if a is not None:
-            if g is not None and not np.array_equal(a.t_ns, g.t_ns):
+            same = g is None or a.t_ns is g.t_ns or np.array_equal(a.t_ns, g.t_ns)
+            if not same:
                 ta = rel(a.t_ns)
                 if len(ta) > 1:
-                    cols.update(zip(ACCEL, [np.interp(t_imu, ta, c, left=np.nan, right=np.nan)
-                                            for c in a.values.T]))
+                    rows.append((ACCEL, np.stack([np.interp(t_imu, ta, c, left=np.nan, right=np.nan)
+                                                  for c in a.values.T], axis=-1)))
                     warns.append("accel interpolated onto gyro stamps (different stamps)")
+                channels["accel"] = ChannelInfo(rate_of(ta), len(a.t_ns), a.source, a.stamp_resolution_s)
+                del ta
             else:
-                cols.update(zip(ACCEL, a.values.T))
-            channels["accel"] = ChannelInfo(rate_of(rel(a.t_ns)), len(a.t_ns), a.source, a.stamp_resolution_s)
-        imu = pd.DataFrame(cols, index=pd.Index(t_imu, name=T))
-        imu = imu[imu.notna().all(axis=1)] if ACCEL[0] in imu.columns and g is not None else imu
+                rows.append((ACCEL, a.values))
+                channels["accel"] = ChannelInfo(rate_imu, len(a.t_ns), a.source, a.stamp_resolution_s)
+        del g, a, base
+        names = [n for group, _v in rows for n in group]
+        block = np.empty((len(names), len(t_imu)))
+        r = 0
+        while rows:
+            group, vals = rows.pop(0)
+            block[r:r + len(group)] = vals.T
+            r += len(group)
+            del vals
+        if ACCEL[0] in names and GYRO[0] in names:  # rows with a NaN accel (interpolated past its ends) go
+            keep = ~np.isnan(block).any(axis=0)
+            if not keep.all():
+                block, t_imu = block[:, keep], t_imu[keep]
+            del keep
+        imu = _frame(block, t_imu, names)
+        del block, t_imu
 
-    nav_parts = []
-    for key, names in (("quat", QUAT), ("vel", VEL), ("pos", POS)):
-        s = streams.get(key)
-        if s is None:
-            continue
-        vals = s.values
-        if key == "quat":
-            from logtools.conventions import quat_make_continuous, quat_normalize
-            vals = quat_make_continuous(quat_normalize(vals))
-        df = pd.DataFrame(dict(zip(names, vals.T)), index=pd.Index(s.t_ns, name="t_ns"))
-        nav_parts.append(df)
-        channels[{"quat": "att", "vel": "vel", "pos": "pos"}[key]] = ChannelInfo(
-            rate_of(rel(s.t_ns)), len(s.t_ns), s.source, s.stamp_resolution_s)
-    if nav_parts:
-        nav = nav_parts[0]
-        for part in nav_parts[1:]:
-            nav = nav.join(part, how="outer")
-        nav = nav.sort_index()
-        nav.index = pd.Index(rel(nav.index.to_numpy()), name=T)
+    parts = [(key, names, cleaned.pop(key)) for key, names in (("quat", QUAT), ("vel", VEL), ("pos", POS))
+             if key in cleaned]
+    if parts:
+        t_nav = parts[0][2].t_ns
+        for _k, _n, s in parts[1:]:  # the sorted union of the stamps (an outer join of the parts)
+            t_nav = _union_sorted(t_nav, s.t_ns)
+        names = [n for _k, group, _s in parts for n in group]
+        block = np.empty((len(names), len(t_nav)))  # rows written part by part (pages touched as they are)
+        r = 0
+        while parts:
+            key, group, s = parts.pop(0)
+            rows = block[r:r + len(group)]
+            full = len(s.t_ns) == len(t_nav)  # a sorted unique subset as long as the union is the union
+            at = None if full else np.searchsorted(t_nav, s.t_ns)
+            if not full:
+                rows.fill(np.nan)
+            if key == "quat":
+                _unit_continuous_into(s.values, rows, at)
+            elif full:
+                rows[:] = s.values.T
+            else:
+                rows[:, at] = s.values.T
+            r += len(group)
+            channels[{"quat": "att", "vel": "vel", "pos": "pos"}[key]] = ChannelInfo(
+                rate_of(rel(s.t_ns)), len(s.t_ns), s.source, s.stamp_resolution_s)
+            del s, rows, at
+        nav = _frame(block, rel(t_nav), names)
+        del block, t_nav
     else:
         nav = pd.DataFrame(index=pd.Index(np.zeros(0), name=T))
     meta = LogMeta(source_path=path, format=fmt, selector=selector, clock=clock, t0_ns=t0_ns,

@@ -89,18 +89,19 @@ def rate_of(t_s: np.ndarray) -> float:
 STAMP_GRIDS_S = (1e-2, 1e-3, 1e-4)
 
 
-def stamp_grid_s(t_ns: np.ndarray) -> float:
+def stamp_grid_s(t_ns: np.ndarray, steps: np.ndarray | None = None) -> float:
     """The grid (s) the stamps were quantised to, when that shows in the data, else 0.
 
     Stamps quantised to a grid q (whole milliseconds, say) all lie on it (one residue modulo q), and
     their steps differ by multiples of q where the true period is not a multiple of q or the phase
     walks (drift, jitter): steps that are not all multiples of the median step. Stamps that lie on the
     grid at an exact period (a synthetic log, or a quantised clock with an integer period and no drift)
-    show no quantisation: the format's own resolution has to say it there. Exact int ns: no tolerance."""
+    show no quantisation: the format's own resolution has to say it there. Exact int ns: no tolerance.
+    ``steps``: ``np.diff(t_ns)`` when the caller has it."""
     t = np.asarray(t_ns, dtype=np.int64)
     if len(t) < 3:
         return 0.0
-    d = np.diff(t)
+    d = np.diff(t) if steps is None else steps
     d = d[d > 0]
     if len(d) < 2:
         return 0.0
@@ -109,9 +110,33 @@ def stamp_grid_s(t_ns: np.ndarray) -> float:
         q_ns = int(round(q * 1e9))
         if np.any(rel % q_ns):
             continue
+        del rel
         med = int(np.median(d))
         return q if med > 0 and np.any(d % med) else 0.0
     return 0.0
+
+
+_LIBC: list = []
+
+
+def release_free_memory() -> None:
+    """Hand the memory the allocator keeps free back to the system (glibc ``malloc_trim``; elsewhere
+    nothing). A parse frees many mid-sized temporaries that glibc keeps in its heap for reuse: the next
+    stage would otherwise start with them still counted in the process's resident memory."""
+    if not _LIBC:
+        try:
+            import ctypes
+            import ctypes.util
+
+            lib = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+            _LIBC.append(lib.malloc_trim if hasattr(lib, "malloc_trim") else None)
+        except (OSError, AttributeError):
+            _LIBC.append(None)
+    if _LIBC[0] is not None:
+        try:
+            _LIBC[0](0)
+        except Exception:  # noqa: BLE001 - best effort
+            pass
 
 
 def check_readable(path: str) -> None:

@@ -331,18 +331,20 @@ def _tlog_stamp(buf, i):
     return t
 
 
-def _walk_tlog_impl(buf):
-    """Record starts of a tlog ([8-byte BE us stamp][MAVLink frame]...), resyncing byte by byte
-    past damage. Returns (starts, n_skipped_bytes, n_resyncs, n_tail_bytes)."""
+def _walk_tlog_part(buf, i, stop, in_sync, prev_t, found):
+    """The tlog walk from byte ``i`` while ``i < stop`` (a window of a sequential read; ``stop = len(buf)``
+    for the rest of the file), in state ``in_sync``, ``prev_t`` (the last accepted stamp, -1 none),
+    ``found`` (a record was accepted before ``i``). Every bound is the buffer's own end, so walking a
+    buffer window by window (``stop`` at least 1 KiB before the end but for the last window) accepts and
+    skips exactly what one walk of it does. Returns (starts, n_skipped_bytes, n_resyncs, i, in_sync,
+    prev_t): ``i`` past ``stop`` after a record that crosses it, before ``stop`` where a truncated last
+    record ended the walk."""
     n = len(buf)
-    starts = np.empty(n // 16 + 1, dtype=np.int64)
+    starts = np.empty(max(stop - i, 0) // 16 + 1, dtype=np.int64)
     k = 0
-    i = 0
     skipped = 0
     resyncs = 0
-    in_sync = False
-    prev_t = -1
-    while i < n:
+    while i < stop:
         if in_sync and n - i < 16:
             break  # a truncated last record (shorter than the smallest frame)
         size = _tlog_frame_size(buf, i, n)
@@ -365,7 +367,7 @@ def _walk_tlog_impl(buf):
                     if t2 < t - MAX_BACK_US or t2 > t + MAX_FWD_US:
                         ok = False
         if ok:
-            if not in_sync and k > 0:
+            if not in_sync and (k > 0 or found):
                 resyncs += 1
             in_sync = True
             starts[k] = i
@@ -378,7 +380,14 @@ def _walk_tlog_impl(buf):
             in_sync = False
             skipped += 1
             i += 1
-    return starts[:k], skipped, resyncs, n - i
+    return starts[:k], skipped, resyncs, i, in_sync, prev_t
+
+
+def _walk_tlog_impl(buf):
+    """Record starts of a tlog ([8-byte BE us stamp][MAVLink frame]...), resyncing byte by byte
+    past damage. Returns (starts, n_skipped_bytes, n_resyncs, n_tail_bytes)."""
+    starts, skipped, resyncs, i, _in_sync, _prev_t = _walk_tlog_part(buf, 0, len(buf), False, -1, False)
+    return starts, skipped, resyncs, len(buf) - i
 
 
 def _walk_df_impl(buf, lengths):
@@ -424,6 +433,14 @@ def walk_tlog(buf: np.ndarray) -> tuple[np.ndarray, int, int, int]:
     return _walk_tlog_impl(bytes(buf))
 
 
+def walk_tlog_part(buf: np.ndarray, i: int, stop: int, in_sync: bool, prev_t: int, found: bool):
+    """One window of a sequential tlog walk (:func:`_walk_tlog_part`): ``buf`` the whole file (a memory map:
+    the kernel reads only around the window)."""
+    if HAVE_NUMBA:
+        return _walk_tlog_part(buf, int(i), int(stop), bool(in_sync), int(prev_t), bool(found))
+    return _walk_tlog_part(memoryview(buf), int(i), int(stop), bool(in_sync), int(prev_t), bool(found))
+
+
 def walk_dataflash(buf: np.ndarray, lengths: np.ndarray) -> tuple[np.ndarray, int, int, int]:
     if HAVE_NUMBA:
         return _walk_df_impl(buf, lengths.astype(np.int64))
@@ -437,6 +454,7 @@ if not HAVE_NUMBA:  # the reference walker runs over bytes: one C call per stamp
 if HAVE_NUMBA:  # the helpers the compiled walkers call must be compiled too
     _tlog_frame_size = _njit(cache=True)(_tlog_frame_size)
     _tlog_stamp = _njit(cache=True)(_tlog_stamp)
+    _walk_tlog_part = _njit(cache=True)(_walk_tlog_part)
     _walk_tlog_impl = _njit(cache=True)(_walk_tlog_impl)
     _walk_df_impl = _njit(cache=True)(_walk_df_impl)
 

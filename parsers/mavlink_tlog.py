@@ -45,9 +45,9 @@ import numpy as np
 from logtools.conventions import euler_from_quat, quat_from_euler
 from logtools.errors import InputError
 from logtools.inslog import InsLog
-from parsers.assemble import Stream, build_inslog
+from parsers.assemble import Stream, assemble_inslog
 from parsers.atomic import atomic_path
-from parsers.base import Inventory, Selector, StreamInfo, check_readable, rate_of
+from parsers.base import Inventory, Selector, StreamInfo, check_readable, rate_of, release_free_memory
 from parsers.mavlink_common import (dtype_from_struct, gather_rows, index_tlog_frames, records_view,
                                     scatter_rows, walk_tlog, x25_crc_block)
 
@@ -148,24 +148,15 @@ class Frames:
                             np.minimum(self.plen[rows], d.wire_len))
         return records_view(block, d.dtype)
 
+    def take(self, msgid: int, sysid: int, compid: int | None = None, *, pop: bool = False
+             ) -> tuple[np.ndarray, np.ndarray]:
+        """(records, receive us) of ``msgid`` from ``sysid`` (and ``compid``), like :meth:`FrameStore.take`."""
+        rows = self.rows(msgid, sysid, compid)
+        return self.decode(rows, msgdef_by_id(msgid)), self.recv_us[rows]
 
-def read_frames(path: str, buf: np.ndarray | None = None, engine: str = "auto") -> Frames:
-    """Walk, CRC-check and index every frame of a tlog; damage goes into ``warnings``.
-    ``engine``: auto (numba when installed) | numba | numpy (column-wise CRC per message group)."""
-    if buf is None:
-        buf = np.fromfile(path, dtype=np.uint8)
-    if len(buf) == 0:
-        raise InputError("empty file", path)
-    starts, skipped, resyncs, tail = walk_tlog(buf)
+
+def _frame_warnings(skipped: int, resyncs: int, n_bad: int, tail: int, n_unknown: int) -> list[str]:
     warns: list[str] = []
-    if len(starts) == 0:
-        raise InputError("no MAVLink frames found (not a tlog, or damaged beyond use)", path)
-    recv, v2, plen, sysid, compid, msgid, pay, status = index_tlog_frames(
-        buf, starts, _crc_extra_table(), engine)
-    ok = status == 0
-    known = status != 2
-    n_bad = int((known & ~ok).sum())
-    n_unknown = int((~known).sum())
     if skipped:
         warns.append(f"damaged tlog: skipped {skipped} bad bytes ({resyncs + (0 if resyncs else 1)} "
                      f"place(s)) and resynchronised")
@@ -175,10 +166,211 @@ def read_frames(path: str, buf: np.ndarray | None = None, engine: str = "auto") 
         warns.append(f"truncated tlog: last {tail} byte(s) hold an incomplete frame")
     if n_unknown:
         warns.append(f"{n_unknown} frame(s) of message ids unknown to the dialect ignored")
+    return warns
+
+
+def read_frames(path: str, buf: np.ndarray | None = None, engine: str = "auto") -> Frames:
+    """Walk, CRC-check and index every frame of a tlog; damage goes into ``warnings``.
+    ``engine``: auto (numba when installed) | numba | numpy (column-wise CRC per message group)."""
+    if buf is None:
+        buf = np.fromfile(path, dtype=np.uint8)
+    if len(buf) == 0:
+        raise InputError("empty file", path)
+    starts, skipped, resyncs, tail = walk_tlog(buf)
+    if len(starts) == 0:
+        raise InputError("no MAVLink frames found (not a tlog, or damaged beyond use)", path)
+    recv, v2, plen, sysid, compid, msgid, pay, status = index_tlog_frames(
+        buf, starts, _crc_extra_table(), engine)
+    del starts
+    ok = status == 0
+    known = status != 2
+    n_bad = int((known & ~ok).sum())
+    n_unknown = int((~known).sum())
+    warns = _frame_warnings(skipped, resyncs, n_bad, tail, n_unknown)
+    if ok.all():  # no copies of the index columns
+        return Frames(buf=buf, recv_us=recv, v2=v2, plen=plen, sysid=sysid, compid=compid, msgid=msgid, pay=pay,
+                      warnings=tuple(warns), n_corrupt=n_bad + (1 if skipped else 0))
     keep = ok
     return Frames(buf=buf, recv_us=recv[keep], v2=v2[keep], plen=plen[keep], sysid=sysid[keep],
                   compid=compid[keep], msgid=msgid[keep], pay=pay[keep],
                   warnings=tuple(warns), n_corrupt=n_bad + (1 if skipped else 0))
+
+
+# ---- the reader's scan: the file in windows, the frames of the messages it reads gathered -------------
+#: bytes of the file walked, indexed and gathered at a time (and so about the file's share of the memory)
+SCAN_WINDOW = 16 << 20
+#: a window ends at least this far before the end of the file (a record and the header after it fit)
+_WINDOW_SLACK = 4096
+
+
+@dataclass
+class MessageFrames:
+    """The intact frames of one message id, in file order: records (wire dtype, zero-padded like
+    pymavlink), receive stamps (UNIX us), system and component ids."""
+
+    rec: np.ndarray
+    recv_us: np.ndarray
+    sysid: np.ndarray
+    compid: np.ndarray
+
+    def select(self, sysid: int, compid: int | None = None) -> np.ndarray | None:
+        """Row mask of one system (and component); None when every row is it."""
+        m = self.sysid == sysid
+        if compid is not None:
+            m &= self.compid == compid
+        return None if m.all() else m
+
+
+@dataclass
+class FrameStore:
+    """What :func:`scan_frames` keeps of a tlog: the catalog counts of every intact frame, the frames of the
+    message ids it was asked for (:class:`MessageFrames`), the damage warnings."""
+
+    counts: dict[tuple[int, int, str], int]
+    n_valid: int
+    by_id: dict[int, MessageFrames]
+    warnings: tuple[str, ...]
+    n_corrupt: int
+
+    def take(self, msgid: int, sysid: int, compid: int | None = None, *, pop: bool = False
+             ) -> tuple[np.ndarray, np.ndarray]:
+        """(records, receive us) of ``msgid`` from ``sysid`` (and ``compid``); ``pop``: the store lets go of
+        them (a reader that reads each stream once keeps no second copy)."""
+        mf = self.by_id.pop(msgid, None) if pop else self.by_id.get(msgid)
+        d = msgdef_by_id(msgid)
+        if mf is None:
+            return np.zeros(0, dtype=d.dtype), np.zeros(0, np.int64)
+        m = mf.select(sysid, compid)
+        if m is None:
+            return mf.rec, mf.recv_us
+        if pop:  # the other systems' rows stay for later takes
+            self.by_id[msgid] = mf
+        return mf.rec[m], mf.recv_us[m]
+
+
+class _Growing:
+    """Rows appended window by window into one preallocated array, grown when full. The capacity is an
+    estimate from the rows per byte so far; what is never filled is never touched (np.empty pages are not
+    resident), so a generous estimate costs no memory, and the rows need no concatenation at the end."""
+
+    def __init__(self, dtype):
+        self.arr = np.empty(0, dtype=dtype)
+        self.n = 0
+
+    def append(self, rows: np.ndarray, estimate: int) -> None:
+        need = self.n + len(rows)
+        if need > len(self.arr):
+            grown = np.empty(max(need, int(estimate), 2 * len(self.arr)), dtype=self.arr.dtype)
+            grown[:self.n] = self.arr[:self.n]
+            self.arr = grown
+        self.arr[self.n:need] = rows
+        self.n = need
+
+    def result(self) -> np.ndarray:
+        return self.arr[:self.n]
+
+
+def _kind_ids() -> tuple[int, ...]:
+    return tuple(sorted(msgdef(n).id for n in KIND))
+
+
+#: the fields this reader reads of any message (time fields, instance id, IMU axes, attitude, rates,
+#: velocity, position, SYSTEM_TIME's UNIX time): what :func:`scan_frames` keeps with ``project``
+READ_FIELDS = frozenset({
+    "time_usec", "time_boot_ms", "time_unix_usec", "id", "xacc", "yacc", "zacc", "xgyro", "ygyro", "zgyro",
+    "q1", "q2", "q3", "q4", "roll", "pitch", "yaw", "rollspeed", "pitchspeed", "yawspeed",
+    "vx", "vy", "vz", "lat", "lon", "lng", "alt", "altitude"})
+
+
+@lru_cache(maxsize=None)
+def _read_dtype(msgid: int) -> np.dtype:
+    """The packed dtype of the READ_FIELDS of a message (its wire dtype where it has no other field)."""
+    d = msgdef_by_id(msgid)
+    return np.dtype([(n, d.dtype.fields[n][0]) for n in d.dtype.names if n in READ_FIELDS])
+
+
+def _project(rec: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    if rec.dtype == dtype:
+        return rec
+    out = np.empty(len(rec), dtype=dtype)
+    for n in dtype.names:
+        out[n] = rec[n]
+    return out
+
+
+def scan_frames(path: str, want: tuple[int, ...] | None = None, engine: str = "auto",
+                window: int = SCAN_WINDOW, project: bool = False) -> FrameStore:
+    """Walk, CRC-check and index a tlog window by window (memory-mapped, the pages behind let go), keeping
+    only the catalog counts and the frames of the message ids ``want`` (default: every message this reader
+    knows, ``KIND``); ``project``: of their records only the READ_FIELDS. The same frames, counts and
+    warnings as :func:`read_frames`, without the whole file and its index columns in memory."""
+    from parsers.filemap import FileMap
+    from parsers.mavlink_common import walk_tlog_part
+
+    want = _kind_ids() if want is None else tuple(want)
+    tab = _crc_extra_table()
+    key_counts: dict[int, int] = {}
+    grow: dict[int, tuple[_Growing, _Growing, _Growing, _Growing]] = {}
+    skipped = resyncs = n_bad = n_unknown = n_valid = n_found = 0
+    with FileMap(path) as fm:
+        buf = fm.array
+        n = len(buf)
+        if n == 0:
+            raise InputError("empty file", path)
+        i, in_sync, prev_t = 0, False, -1
+        while True:
+            i0 = i
+            stop = n if n - i <= window + _WINDOW_SLACK else i + window
+            starts, sk, rs, i, in_sync, prev_t = walk_tlog_part(buf, i, stop, in_sync, prev_t, n_found > 0)
+            skipped += sk
+            resyncs += rs
+            n_found += len(starts)
+            if len(starts):
+                recv, _v2, plen, sysid, compid, msgid, pay, status = index_tlog_frames(buf, starts, tab, engine)
+                del starts, _v2
+                ok = status == 0
+                known = status != 2
+                n_bad += int((known & ~ok).sum())
+                n_unknown += int((~known).sum())
+                if not ok.all():
+                    recv, plen, sysid, compid, msgid, pay = (a[ok] for a in (recv, plen, sysid, compid, msgid, pay))
+                n_valid += len(msgid)
+                key = (sysid << 32) | (compid << 24) | msgid
+                for k, c in zip(*(a.tolist() for a in np.unique(key, return_counts=True))):
+                    key_counts[k] = key_counts.get(k, 0) + c
+                del key
+                # rows still to come, from this window's rows per byte (+25 %): the arrays' first capacity
+                scale = 1.25 * (n - i0) / max(i - i0, 1)
+                for mid in np.intersect1d(np.unique(msgid), np.asarray(want, np.int64)).tolist():
+                    d = msgdef_by_id(mid)
+                    rows = np.flatnonzero(msgid == mid)
+                    block = gather_rows(buf, pay[rows], d.wire_len, np.minimum(plen[rows], d.wire_len))
+                    rdt = _read_dtype(mid) if project else d.dtype
+                    g = grow.get(mid)
+                    if g is None:
+                        g = grow[mid] = (_Growing(rdt), _Growing(np.int64), _Growing(np.uint8), _Growing(np.uint8))
+                    est = g[0].n + len(rows) * scale + 1024
+                    rec = _project(records_view(block, d.dtype), rdt)
+                    for col, vals in zip(g, (rec, recv[rows], sysid[rows], compid[rows])):
+                        col.append(vals, est)
+                    del block, rows, rec
+                del recv, plen, sysid, compid, msgid, pay, status, ok, known
+            fm.release_before(i - _WINDOW_SLACK)
+            if stop == n:
+                break
+        tail = n - i
+        del buf
+    if n_found == 0:
+        raise InputError("no MAVLink frames found (not a tlog, or damaged beyond use)", path)
+    counts: dict[tuple[int, int, str], int] = {}
+    for k in sorted(key_counts):
+        d = msgdef_by_id(k & 0xFFFFFF)
+        if d is not None and d.name in KIND:
+            counts[(k >> 32, (k >> 24) & 0xFF, d.name)] = key_counts[k]
+    by_id = {mid: MessageFrames(*(col.result() for col in grow.pop(mid))) for mid in sorted(grow)}
+    warns = _frame_warnings(skipped, resyncs, n_bad, tail, n_unknown)
+    return FrameStore(counts=counts, n_valid=n_valid, by_id=by_id, warnings=tuple(warns),
+                      n_corrupt=n_bad + (1 if skipped else 0))
 
 
 # ---- sniff -------------------------------------------------------------------------------------
@@ -235,15 +427,14 @@ def _msg_time(s: RawStream) -> tuple[np.ndarray, np.ndarray]:
     return epoch.astype(np.int8), us.astype(np.int64) * 1000
 
 
-def _system_time_offset_ns(fr: Frames, sysid: int, compid: int) -> int | None:
+def _system_time_offset_ns(fr: "Frames | FrameStore", sysid: int, compid: int) -> int | None:
     """UNIX ns - boot ns from SYSTEM_TIME of this system (same component preferred)."""
     d = msgdef("SYSTEM_TIME")
-    rows = fr.rows(d.id, sysid, compid)
-    if len(rows) == 0:
-        rows = fr.rows(d.id, sysid)
-    if len(rows) == 0:
+    r, _recv = fr.take(d.id, sysid, compid)
+    if len(r) == 0:
+        r, _recv = fr.take(d.id, sysid)
+    if len(r) == 0:
         return None
-    r = fr.decode(rows, d)
     unix = r["time_unix_usec"].astype(np.int64)
     good = unix > EPOCH_US_THRESHOLD
     if not good.any():
@@ -262,7 +453,13 @@ class ClockPlan:
 
 
 def _low(x: np.ndarray) -> int:
-    return int(np.sort(x)[len(x) // 100]) if len(x) else 0  # 1st percentile, in integers
+    """The 1st percentile, in integers (the element a sort would put at len // 100; partitioned in place:
+    ``x`` is the caller's scratch array)."""
+    if not len(x):
+        return 0
+    k = len(x) // 100
+    x.partition(k)
+    return int(x[k])
 
 
 def plan_clock(streams: list[tuple[np.ndarray, np.ndarray, np.ndarray]], sys_off: int | None,
@@ -277,7 +474,15 @@ def plan_clock(streams: list[tuple[np.ndarray, np.ndarray, np.ndarray]], sys_off
     # receive - message time, per kind: how far the ground station's clock is from each clock
     lag = {}
     for kind in (0, 1):
-        d = [r[k == kind] - t[k == kind] for k, t, r in streams if np.any(k == kind)]
+        d, same = [], {}  # a stream given twice (vel and pos of one message): its lags once, counted twice
+        for k, t, r in streams:
+            m = k == kind
+            if m.any():
+                key = (id(k), id(t), id(r))
+                if key not in same:
+                    same[key] = (r - t) if m.all() else (r[m] - t[m])
+                d.append(same[key])
+            del m
         if d:
             lag[kind] = _low(np.concatenate(d))
     warns: list[str] = []
@@ -345,7 +550,9 @@ class Catalog:
         return self.counts.get((sysid, compid, name), 0) > 0
 
 
-def catalog(fr: Frames) -> Catalog:
+def catalog(fr: "Frames | FrameStore") -> Catalog:
+    if isinstance(fr, FrameStore):
+        return Catalog(dict(fr.counts))
     counts: dict[tuple[int, int, str], int] = {}
     if len(fr.msgid) == 0:
         return Catalog(counts)
@@ -469,10 +676,10 @@ def _resolve(path: str, selector: Selector, cat: Catalog) -> tuple[dict[str, str
     return out, notes
 
 
-def _raw(fr: Frames, name: str, sysid: int, compid: int) -> RawStream:
+def _raw(fr: "Frames | FrameStore", name: str, sysid: int, compid: int, *, pop: bool = False) -> RawStream:
     d = msgdef(name)
-    rows = fr.rows(d.id, sysid, compid)
-    return RawStream(name, sysid, compid, fr.decode(rows, d), fr.recv_us[rows] * 1000)
+    rec, recv_us = fr.take(d.id, sysid, compid, pop=pop)
+    return RawStream(name, sysid, compid, rec, recv_us * 1000)
 
 
 def _instance_filter(s: RawStream, inst: int | None, notes: list[str]) -> RawStream:
@@ -495,65 +702,97 @@ def _instance_filter(s: RawStream, inst: int | None, notes: list[str]) -> RawStr
 def _imu_values(s: RawStream) -> tuple[np.ndarray, np.ndarray]:
     g_s, a_s = IMU_SCALE[s.name]
     r = s.rec
-    gyro = np.column_stack([r["xgyro"], r["ygyro"], r["zgyro"]]).astype(float) * g_s
-    acc = np.column_stack([r["xacc"], r["yacc"], r["zacc"]]).astype(float) * a_s
+    gyro = _columns(r, ("xgyro", "ygyro", "zgyro"))
+    gyro *= g_s  # in place: the same products as ``gyro * g_s``, without a second array
+    acc = _columns(r, ("xacc", "yacc", "zacc"))
+    acc *= a_s
     return gyro, acc
+
+
+def _columns(r: np.ndarray, names: tuple[str, ...]) -> np.ndarray:
+    """``np.column_stack([r[n] for n in names]).astype(float)``, filled in place (no intermediate copy)."""
+    out = np.empty((len(r), len(names)))
+    for j, n in enumerate(names):
+        out[:, j] = r[n]
+    return out
 
 
 def _quat_values(s: RawStream) -> np.ndarray:
     r = s.rec
     if s.name == "ATTITUDE_QUATERNION":
-        return np.column_stack([r["q1"], r["q2"], r["q3"], r["q4"]]).astype(float)
-    rpy = np.column_stack([r["roll"], r["pitch"], r["yaw"]]).astype(float)
+        return _columns(r, ("q1", "q2", "q3", "q4"))
+    rpy = _columns(r, ("roll", "pitch", "yaw"))
     return quat_from_euler(rpy)
 
 
 def _vel_values(s: RawStream) -> np.ndarray:
     r = s.rec
-    v = np.column_stack([r["vx"], r["vy"], r["vz"]]).astype(float)
-    return v * 0.01 if s.name == "GLOBAL_POSITION_INT" else v
+    v = _columns(r, ("vx", "vy", "vz"))
+    if s.name == "GLOBAL_POSITION_INT":
+        v *= 0.01
+    return v
 
 
 def _pos_values(s: RawStream) -> tuple[np.ndarray, np.ndarray]:
     r = s.rec
+    vals = np.empty((len(r), 3))  # the products ``r["lat"] * 1e-7`` ... written in place
     if s.name in ("AHRS2", "AHRS3"):
-        lat, lon, alt = r["lat"] * 1e-7, r["lng"] * 1e-7, r["altitude"].astype(float)
+        np.multiply(r["lat"], 1e-7, out=vals[:, 0])
+        np.multiply(r["lng"], 1e-7, out=vals[:, 1])
+        vals[:, 2] = r["altitude"]
     else:
-        lat, lon, alt = r["lat"] * 1e-7, r["lon"] * 1e-7, r["alt"] * 1e-3
-    vals = np.column_stack([lat, lon, alt]).astype(float)
+        np.multiply(r["lat"], 1e-7, out=vals[:, 0])
+        np.multiply(r["lon"], 1e-7, out=vals[:, 1])
+        np.multiply(r["alt"], 1e-3, out=vals[:, 2])
     valid = ~((r["lat"] == 0) & ((r["lng"] if "lng" in r.dtype.names else r["lon"]) == 0))
     return vals, valid
 
 
 def load(path: str, selector: Selector) -> InsLog:
     check_readable(path)
-    fr = read_frames(path)
+    fr = scan_frames(path, project=True)
     cat = catalog(fr)
     sel, notes = _resolve(path, selector, cat)
     sysid, compid, mode = int(sel["sysid"]), int(sel["compid"]), sel["time"]
     warns = list(fr.warnings) + notes
     picked: dict[str, RawStream] = {}
+    raws: dict[str, RawStream] = {}  # one per message (vel and pos both GLOBAL_POSITION_INT: one stream)
     for key in ("imu", "att", "vel", "pos"):
         if key not in sel:
             continue
         m = _INST.match(sel[key])
         name, inst = m.group(1), (int(m.group(2)) if m.group(2) else None)
-        s = _raw(fr, name, sysid, compid)
+        s = raws.get(name) or raws.setdefault(name, _raw(fr, name, sysid, compid))
         if len(s.rec) == 0:
             raise InputError(f"no {name} messages from sysid={sysid} compid={compid}", path)
         try:
             picked[key] = _instance_filter(s, inst, warns)
         except InputError as exc:
             raise InputError(exc.problem, path) from None
-    timing = {k: _msg_time(s) for k, s in picked.items()}
+        del s
+    sys_off = _system_time_offset_ns(fr, sysid, compid)
+    fr.by_id.clear()  # what is left of the frames is in ``picked``: each stream goes once read below
+    raws.clear()
+    release_free_memory()  # the scan's window temporaries
+    by_stream: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # the same stream twice: one timing
+    timing = {k: by_stream.get(id(s)) or by_stream.setdefault(id(s), _msg_time(s)) for k, s in picked.items()}
     plan = plan_clock([(k_, t_, s.recv_ns) for (k_, t_), s in
-                       ((timing[k], picked[k]) for k in picked)],
-                      _system_time_offset_ns(fr, sysid, compid), mode)
+                       ((timing[k], picked[k]) for k in picked)], sys_off, mode)
     warns += list(plan.warnings)
 
+    del by_stream
+
+    made: dict[int, np.ndarray] = {}  # vel and pos of one stream: one stamp array (until both are made)
+
     def stamps(key):
-        k_, t_ = timing[key]
-        return apply_clock(plan, k_, t_, picked[key].recv_ns, mode)
+        k_, t_ = timing.pop(key)
+        shared = sum(1 for kt in timing.values() if kt[1] is t_)
+        t = made.pop(id(t_), None)
+        if t is None:
+            t = apply_clock(plan, k_, t_, picked[key].recv_ns, mode)
+        if shared:
+            made[id(t_)] = t
+        return t
 
     def resolution(key) -> float:  # time_boot_ms stamps are whole milliseconds
         return 1e-3 if mode != "receive" and _time_field(picked[key].name) == "time_boot_ms" else 0.0
@@ -561,33 +800,46 @@ def load(path: str, selector: Selector) -> InsLog:
     kw: dict[str, Stream] = {}
     if "imu" in picked:
         s = picked["imu"]
-        t = stamps("imu")
+        t, res = stamps("imu"), resolution("imu")
         if s.name in RATE_ONLY:
             r = s.rec
-            gyro = np.column_stack([r["rollspeed"], r["pitchspeed"], r["yawspeed"]]).astype(float)
-            kw["gyro"] = Stream(t, gyro, f"{s.name} body rates", resolution("imu"))
+            gyro = _columns(r, ("rollspeed", "pitchspeed", "yawspeed"))
+            kw["gyro"] = Stream(t, gyro, f"{s.name} body rates", res)
             warns.append(f"gyro from {s.name} rollspeed/pitchspeed/yawspeed (estimator output, no accel)")
+            del r
         else:
             gyro, acc = _imu_values(s)
-            kw["gyro"] = Stream(t, gyro, s.name, resolution("imu"))
-            kw["accel"] = Stream(t, acc, s.name, resolution("imu"))
+            kw["gyro"] = Stream(t, gyro, s.name, res)
+            kw["accel"] = Stream(t, acc, s.name, res)
+            del acc
+        del s, t, gyro
+        picked.pop("imu")
     if "att" in picked:
         s = picked["att"]
         kw["quat"] = Stream(stamps("att"), _quat_values(s), s.name, resolution("att"))
+        del s
+        picked.pop("att")
     if "vel" in picked:
         s = picked["vel"]
         kw["vel"] = Stream(stamps("vel"), _vel_values(s), s.name, resolution("vel"))
+        del s
+        picked.pop("vel")
     if "pos" in picked:
         s = picked["pos"]
         vals, valid = _pos_values(s)
         if not valid.all():
             warns.append(f"{s.name}: {int((~valid).sum())} samples without a position fix (0,0) dropped")
         if valid.any():
-            kw["pos"] = Stream(stamps("pos")[valid], vals[valid], s.name, resolution("pos"))
+            t, res = stamps("pos"), resolution("pos")
+            kw["pos"] = (Stream(t, vals, s.name, res) if valid.all() else
+                         Stream(t[valid], vals[valid], s.name, res))
+            del t
+        del s, vals, valid
+        picked.pop("pos")
     eff = ",".join(f"{k}={sel[k]}" for k in ("imu", "att", "vel", "pos") if k in sel)
     eff = f"sysid={sysid},compid={compid},{eff},time={mode}"
-    return build_inslog(path=path, fmt=NAME, selector=eff, clock=plan.clock, stamp_source=plan.source,
-                        warnings=warns, **kw)
+    return assemble_inslog(kw, path=path, fmt=NAME, selector=eff, clock=plan.clock, stamp_source=plan.source,
+                           warnings=warns)
 
 
 def _stream_rate(t_sorted_ns: np.ndarray, receive: bool) -> float:
@@ -602,7 +854,7 @@ def _stream_rate(t_sorted_ns: np.ndarray, receive: bool) -> float:
 
 def inventory(path: str) -> Inventory:
     check_readable(path)
-    fr = read_frames(path)
+    fr = scan_frames(path, project=True)
     cat = catalog(fr)
     streams = []
     systems = {(s, c) for (s, c, _) in cat.counts}
@@ -626,9 +878,9 @@ def inventory(path: str) -> Inventory:
                                   rate_hz=_stream_rate(t_sorted, receive=bool(np.all(kind_arr == 2))),
                                   start_s=float(t_s[0]) if len(t_s) else 0.0,
                                   duration_s=float(t_sorted[-1] - t_sorted[0]) * 1e-9 if len(t_s) else 0.0,
-                                  clock=clock, fields=tuple(s.rec.dtype.names)))
+                                  clock=clock, fields=tuple(msgdef(name).dtype.names)))
     sels = tuple(_sel_text(s) for s in unit_selectors(cat))
-    notes = [f"{len(fr.msgid)} valid frames; default clock time=message (message time fields, "
+    notes = [f"{fr.n_valid} valid frames; default clock time=message (message time fields, "
              f"SYSTEM_TIME maps boot to UNIX time); time=receive uses the tlog receive stamps"]
     return Inventory(path=path, format=NAME, streams=tuple(streams), selectors=sels,
                      warnings=fr.warnings, notes=tuple(notes))

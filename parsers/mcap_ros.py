@@ -15,6 +15,7 @@ converted to ENU/FLU; header stamps = t0_ns + t_s (exact ns); log time = stamp +
 """
 from __future__ import annotations
 
+import os
 import struct
 import zlib
 from collections.abc import Callable
@@ -189,15 +190,24 @@ def _walk_kernel():
 
 
 class _Scan:
-    """State of one MCAP scan: schemas, channels, per-channel raw messages."""
+    """State of one MCAP scan: schemas, channels, per-channel raw messages (``stream``: each kept channel's
+    messages decoded as they come by a ``ros_common.StreamDecoder`` instead of kept as bytes)."""
 
-    def __init__(self, keep: Callable[[str, str], bool]):
+    def __init__(self, keep: Callable[[str, str], bool], stream: bool = False, expect: Callable[[int], int] | None = None):
         self.keep = keep
+        self.stream = stream
+        self.expect = expect or (lambda count: 0)
         self.schemas: dict[int, tuple[str, str, bytes]] = {}
         self.channels: dict[int, tuple[str, int, str]] = {}
-        self.times: dict[int, list[int]] = {}
+        self.times: dict[int, list[np.ndarray]] = {}
+        self.counts: dict[int, int] = {}
         self.data: dict[int, list[bytes] | None] = {}
+        self.kept: dict[int, bool] = {}
+        self.decoders: dict[int, rc.StreamDecoder | None] = {}
         self.warnings: list[str] = []
+
+    def n_messages(self) -> int:
+        return sum(self.counts.values())
 
     def schema(self, buf, off: int, end: int) -> None:
         (sid,) = _U16.unpack_from(buf, off)
@@ -216,15 +226,22 @@ class _Scan:
             return
         self.channels[cid] = (topic, sid, enc)
         self.times[cid] = []
+        self.counts[cid] = 0
         msgtype = self.schemas.get(sid, ("", "", b""))[0]
-        self.data[cid] = [] if self.keep(topic, msgtype) else None
+        kept = self.keep(topic, msgtype)
+        self.kept[cid] = kept
+        self.data[cid] = [] if kept and not self.stream else None
+        self.decoders[cid] = _decoder(topic, msgtype, enc, self.schemas.get(sid)) if kept and self.stream else None
+        if kept and self.stream and self.decoders[cid] is None and _ENCODINGS.get(enc, enc) in ("cdr", "ros1"):
+            raise rc.NotStreamable(f"{topic}: kept, but not a type decoded while reading")
 
     def records(self, buf, start: int, end: int, where: str, *, cut_ok: bool = False) -> None:
         """Walk the records in ``buf[start:end]`` (a chunk's content or the top level): the compiled
         walk finds the message records, schema and channel records are read here in their order; a
         message whose channel is not defined before it, or a broken record, is damage. ``cut_ok``: a
         record cut by the end of ``buf`` (the partial content of a truncated file's last chunk) ends
-        the walk quietly, the complete records before it kept."""
+        the walk quietly, the complete records before it kept. Nothing of the walked messages is kept
+        unless the whole walk is sound (damage raises before any is added)."""
         arr = np.frombuffer(buf, np.uint8)
         m, cid, t, s, e, k, oop, ooff, onxt, err, eoff = _walk_kernel()(arr, start, end)
         defined_at: dict[int, int] = {}
@@ -238,13 +255,16 @@ class _Scan:
                 if new:
                     defined_at[c] = off
         cid, t, s, e = cid[:m], t[:m], s[:m], e[:m]
-        groups = [(c, np.flatnonzero(cid == c)) for c in np.unique(cid).tolist()]
+        present = np.flatnonzero(np.bincount(cid)).tolist() if m else []  # channel ids are 16-bit
+        groups = ([(present[0], None)] if len(present) == 1 else
+                  [(c, np.flatnonzero(cid == c)) for c in present])
         first_bad = end
         for c, sel in groups:
+            ss = s if sel is None else s[sel]
             if c not in self.times:
-                first_bad = min(first_bad, int(s[sel[0]]) - 31)
-            elif c in defined_at and np.any(s[sel] - 31 < defined_at[c]):
-                first_bad = min(first_bad, int(s[sel][s[sel] - 31 < defined_at[c]][0]) - 31)
+                first_bad = min(first_bad, int(ss[0]) - 31)
+            elif c in defined_at and np.any(ss - 31 < defined_at[c]):
+                first_bad = min(first_bad, int(ss[ss - 31 < defined_at[c]][0]) - 31)
         if err and cut_ok and err != _E_OPCODE:
             err = 0
         if err and eoff < first_bad:
@@ -258,10 +278,41 @@ class _Scan:
             c = int(cid[s - 31 == first_bad][0])
             raise _Damage(f"{where}: message for unknown channel {c} at byte {first_bad}")
         for c, sel in groups:
-            self.times[c].extend(t[sel].tolist())
+            tt, ss, ee = (t, s, e) if sel is None else (t[sel], s[sel], e[sel])
+            self.times[c].append(tt.copy() if sel is None else tt)
+            self.counts[c] += len(tt)
             d = self.data[c]
             if d is not None:
-                d.extend([buf[a:b] for a, b in zip(s[sel].tolist(), e[sel].tolist())])
+                d.extend([buf[a:b] for a, b in zip(ss.tolist(), ee.tolist())])
+            dec = self.decoders.get(c)
+            if dec is not None:
+                dec.add(arr, ss, ee, self.expect(self.counts[c]))
+
+
+def _decoder(topic: str, msgtype: str, enc: str, schema: tuple[str, str, bytes] | None) -> rc.StreamDecoder | None:
+    """The streaming decoder of a kept channel (None for a type or encoding ros_common does not decode):
+    layouts made with the channel's own schema, else the built-in definitions (``_rawlog`` checks them
+    against the log's final ones)."""
+    msgtype = rc.normalize_msgtype(msgtype) if msgtype else ""
+    encoding = _ENCODINGS.get(enc, enc)
+    if msgtype not in rc.SUPPORTED or encoding not in ("cdr", "ros1"):
+        return None
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.EMPTY)
+    name, senc, text = schema or ("", "", b"")
+    if text and senc in ("ros2msg", "ros1msg", "ros2idl"):
+        try:
+            rc.register_msgdef(store, msgtype, text.decode("utf-8", "replace"), "idl" if senc == "ros2idl" else "msg")
+        except Exception:  # noqa: BLE001 - _rawlog says so; the built-in definitions then
+            pass
+    if msgtype not in store.fielddefs:
+        base = rc.default_typestore(encoding)
+        try:
+            store.register({k: base.fielddefs[k] for k in _closure(base, {msgtype}) if k not in store.fielddefs})
+        except Exception:  # noqa: BLE001 - no layout then: every message kept for the end
+            pass
+    return rc.StreamDecoder(topic, msgtype, encoding, store)
 
 
 def _partial_chunk(scan: _Scan, buf: bytes, off: int, end: int) -> int:
@@ -285,84 +336,99 @@ def _partial_chunk(scan: _Scan, buf: bytes, off: int, end: int) -> int:
             return 0
     except Exception:  # a header cut too, or data that does not decompress at all: nothing to recover
         return 0
-    before = sum(len(v) for v in scan.times.values())
+    before = scan.n_messages()
     try:
         scan.records(content, 0, len(content), f"partial chunk at byte {off}", cut_ok=True)
     except (_Damage, struct.error, UnicodeDecodeError):
         return 0
-    return sum(len(v) for v in scan.times.values()) - before
+    return scan.n_messages() - before
 
 
 def read_raw(path: str, keep: Callable[[str, str], bool] = rc.keep_supported, fmt: str = NAME) -> rc.RawLog:
     """Scan an MCAP file into a :class:`ros_common.RawLog` (readable part + warnings if damaged)."""
     check_readable(path)
-    with open(path, "rb") as fh:
-        buf = fh.read()
-    if not buf.startswith(MAGIC):
-        raise InputError("not an MCAP file (bad magic)", path)
-    scan = _Scan(keep)
-    off, end = len(MAGIC), len(buf)
-    footer = False
-    n_chunks = 0
-    while off < end:
-        if off + 9 > end:
-            scan.warnings.append(f"file truncated at byte {off} of {end} (no footer): readable part used")
-            break
-        op, ln = _REC.unpack_from(buf, off)
-        nxt = off + 9 + ln
-        if op == 0 or op > 0x0F:
-            scan.warnings.append(f"damaged: invalid record opcode {op} at byte {off}; rest of file ignored")
-            break
-        if nxt > end:
-            got = _partial_chunk(scan, buf, off, end) if op == _OP_CHUNK else 0
-            scan.warnings.append(f"file truncated at byte {end}: record at byte {off} (opcode {op}) incomplete; "
-                                 + (f"{got} messages recovered from its complete part; " if got else "")
-                                 + "readable part used")
-            break
-        try:
-            if op == _OP_CHUNK:
-                n_chunks += 1
-                _t0, _t1, usize, crc = struct.unpack_from("<QQQI", buf, off + 9)
-                comp, o = _string(buf, off + 9 + 28)
-                (clen,) = _U64.unpack_from(buf, o)
-                if o + 8 + clen > nxt:
-                    raise _Damage(f"chunk at byte {off}: records run past the chunk")
-                try:
-                    content = _decompress(comp, buf[o + 8:o + 8 + clen], usize)
-                except _Damage:
-                    raise
-                except Exception as exc:
-                    raise _Damage(f"chunk at byte {off} cannot be decompressed ({type(exc).__name__})") from None
-                if len(content) != usize:
-                    raise _Damage(f"chunk at byte {off}: size {len(content)} != {usize}")
-                if crc and zlib.crc32(content) != crc:
-                    raise _Damage(f"chunk at byte {off}: CRC mismatch")
-                before = {k: len(v) for k, v in scan.times.items()}
-                try:
-                    scan.records(content, 0, len(content), f"chunk at byte {off}")
-                except _Damage:
-                    for k, v in scan.times.items():  # drop the partial chunk
-                        n0 = before.get(k, 0)
-                        del v[n0:]
-                        if scan.data[k] is not None:
-                            del scan.data[k][n0:]
-                    raise
-            elif op == _OP_MESSAGE:
-                scan.records(buf, off, nxt, "data section")
-            elif op == _OP_SCHEMA:
-                scan.schema(buf, off + 9, nxt)
-            elif op == _OP_CHANNEL:
-                scan.channel(buf, off + 9)
-            elif op == _OP_FOOTER:
-                footer = True
+    return _rawlog(path, fmt, _scan_file(path, _Scan(keep)))
+
+
+def read_streamed(path: str, keep: Callable[[str, str], bool] = rc.keep_supported, fmt: str = NAME) -> rc.RawLog:
+    """:func:`read_raw` with every kept topic decoded while the file is read (``RawTopic.decoded``; only
+    the first messages' bytes kept): the log in memory about once, in columns, instead of as per-message
+    bytes. rc.NotStreamable where that cannot give exactly what read_raw + decode give."""
+    check_readable(path)
+    size = max(os.path.getsize(path), 1)
+    scan = _Scan(keep, stream=True)
+    done = [0]  # compressed bytes behind the scan: a topic's messages so far * size / done = its estimate
+    scan.expect = lambda count: int(1.25 * count * size / max(done[0], 1)) + 1024
+    return _rawlog(path, fmt, _scan_file(path, scan, done))
+
+
+def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
+    """The top-level record walk of an MCAP file (memory-mapped, the pages behind the walk let go)."""
+    from parsers.filemap import FileMap
+
+    with FileMap(path) as fm:
+        buf = fm.buf
+        if buf[:len(MAGIC)] != MAGIC:
+            raise InputError("not an MCAP file (bad magic)", path)
+        off, end = len(MAGIC), len(buf)
+        footer = False
+        n_chunks = 0
+        while off < end:
+            if off + 9 > end:
+                scan.warnings.append(f"file truncated at byte {off} of {end} (no footer): readable part used")
                 break
-        except (_Damage, struct.error, UnicodeDecodeError) as exc:
-            msg = str(exc) if isinstance(exc, _Damage) else f"record at byte {off} unreadable ({exc})"
-            scan.warnings.append(f"damaged: {msg}; its messages dropped")
-        off = nxt
-    if not footer and not any("truncated" in w or "rest of file" in w for w in scan.warnings):
-        scan.warnings.append("no MCAP footer (file truncated?): readable part used")
-    return _rawlog(path, fmt, scan)
+            op, ln = _REC.unpack_from(buf, off)
+            nxt = off + 9 + ln
+            if op == 0 or op > 0x0F:
+                scan.warnings.append(f"damaged: invalid record opcode {op} at byte {off}; rest of file ignored")
+                break
+            if nxt > end:
+                got = _partial_chunk(scan, buf, off, end) if op == _OP_CHUNK else 0
+                scan.warnings.append(f"file truncated at byte {end}: record at byte {off} (opcode {op}) incomplete; "
+                                     + (f"{got} messages recovered from its complete part; " if got else "")
+                                     + "readable part used")
+                break
+            if done is not None:
+                done[0] = nxt
+            try:
+                if op == _OP_CHUNK:
+                    n_chunks += 1
+                    _t0, _t1, usize, crc = struct.unpack_from("<QQQI", buf, off + 9)
+                    comp, o = _string(buf, off + 9 + 28)
+                    (clen,) = _U64.unpack_from(buf, o)
+                    if o + 8 + clen > nxt:
+                        raise _Damage(f"chunk at byte {off}: records run past the chunk")
+                    try:
+                        content = _decompress(comp, buf[o + 8:o + 8 + clen], usize)
+                    except _Damage:
+                        raise
+                    except Exception as exc:
+                        raise _Damage(f"chunk at byte {off} cannot be decompressed ({type(exc).__name__})") from None
+                    if len(content) != usize:
+                        raise _Damage(f"chunk at byte {off}: size {len(content)} != {usize}")
+                    if crc and zlib.crc32(content) != crc:
+                        raise _Damage(f"chunk at byte {off}: CRC mismatch")
+                    # (a damaged chunk adds none of its messages: records() raises before it adds any)
+                    scan.records(content, 0, len(content), f"chunk at byte {off}")
+                    del content
+                elif op == _OP_MESSAGE:
+                    scan.records(buf, off, nxt, "data section")
+                elif op == _OP_SCHEMA:
+                    scan.schema(buf, off + 9, nxt)
+                elif op == _OP_CHANNEL:
+                    scan.channel(buf, off + 9)
+                elif op == _OP_FOOTER:
+                    footer = True
+                    break
+            except (_Damage, struct.error, UnicodeDecodeError) as exc:
+                msg = str(exc) if isinstance(exc, _Damage) else f"record at byte {off} unreadable ({exc})"
+                scan.warnings.append(f"damaged: {msg}; its messages dropped")
+            off = nxt
+            fm.release_before(off)
+        if not footer and not any("truncated" in w or "rest of file" in w for w in scan.warnings):
+            scan.warnings.append("no MCAP footer (file truncated?): readable part used")
+        del buf
+    return scan
 
 
 def _rawlog(path: str, fmt: str, scan: _Scan) -> rc.RawLog:
@@ -371,11 +437,12 @@ def _rawlog(path: str, fmt: str, scan: _Scan) -> rc.RawLog:
     typestore = get_typestore(Stores.EMPTY)
     topics: dict[str, rc.RawTopic] = {}
     encodings = set()
+    streamed: dict[str, rc.StreamDecoder] = {}
     for cid, (topic, sid, enc) in scan.channels.items():
         name, senc, text = scan.schemas.get(sid, ("", "", b""))
         msgtype = rc.normalize_msgtype(name) if name else ""
         encoding = _ENCODINGS.get(enc, enc)
-        keep = scan.data[cid] is not None
+        keep = scan.kept[cid]
         if keep and text and senc in ("ros2msg", "ros1msg", "ros2idl"):
             try:
                 rc.register_msgdef(typestore, msgtype, text.decode("utf-8", "replace"),
@@ -389,7 +456,19 @@ def _rawlog(path: str, fmt: str, scan: _Scan) -> rc.RawLog:
             keep = False
             if msgtype in rc.SUPPORTED:
                 scan.warnings.append(f"{topic}: message encoding {enc!r} not supported; topic ignored")
-        raw = rc.RawTopic(topic, msgtype, encoding, scan.times[cid], scan.data[cid] if keep else [])
+        times = scan.times.pop(cid)
+        if scan.stream:
+            if topic in topics:
+                raise rc.NotStreamable(f"{topic}: on several channels")
+            log_ns = np.concatenate(times) if times else np.zeros(0, np.int64)
+            del times
+            dec = scan.decoders.pop(cid)
+            if keep and dec is not None:
+                streamed[topic] = dec
+            topics[topic] = rc.RawTopic(topic, msgtype, encoding, log_ns, [])
+            continue
+        log_ns = np.concatenate(times).tolist() if times else []
+        raw = rc.RawTopic(topic, msgtype, encoding, log_ns, scan.data[cid] if keep else [])
         if topic in topics:  # same topic on several channels: merge
             old = topics[topic]
             old.log_ns.extend(raw.log_ns)
@@ -407,6 +486,8 @@ def _rawlog(path: str, fmt: str, scan: _Scan) -> rc.RawLog:
                 typestore.register({k: base.fielddefs[k] for k in need if k not in typestore.fielddefs})
             except Exception as exc:
                 scan.warnings.append(f"built-in message definitions not usable: {exc}")
+    for topic, dec in streamed.items():  # the rest of each streamed topic, with the final definitions
+        topics[topic].decoded, topics[topic].data = dec.finish(typestore)
     return rc.RawLog(path=path, fmt=fmt, topics=topics, typestore=typestore, warnings=scan.warnings)
 
 
@@ -427,12 +508,21 @@ def _closure(store, names: set[str]) -> set[str]:
     return out
 
 
+def _read_for_decode(path: str) -> rc.RawLog:
+    """The file decoded while read (:func:`read_streamed`), or read the classic way where that cannot be
+    exact (rc.NotStreamable: a zoo of message lengths, a topic on several channels...)."""
+    try:
+        return read_streamed(path)
+    except rc.NotStreamable:
+        return read_raw(path, keep=rc.keep_supported)
+
+
 def load(path: str, selector: Selector) -> InsLog:
-    return rc.to_inslog(read_raw(path), selector)
+    return rc.to_inslog(_read_for_decode(path), selector, release=True)
 
 
 def inventory(path: str) -> Inventory:
-    return rc.to_inventory(read_raw(path, keep=rc.keep_supported))
+    return rc.to_inventory(_read_for_decode(path))
 
 
 # ---- writing ---------------------------------------------------------------------------------

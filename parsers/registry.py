@@ -7,7 +7,7 @@ from types import ModuleType
 
 from logtools.errors import InputError
 from logtools.inslog import InsLog
-from parsers.base import Inventory, Selector, check_readable
+from parsers.base import Inventory, Selector, check_readable, release_free_memory
 
 #: format modules, most specific sniffers first. Each has NAME, sniff, load, inventory (and may
 #: have write). A module that is not present (yet) is simply skipped.
@@ -82,6 +82,8 @@ def load(arg: str) -> InsLog:
         raise
     except Exception as exc:  # a library choking on damaged input: one line, not a traceback
         raise InputError(f"cannot read as {mod.NAME}: {type(exc).__name__}: {exc}", path) from exc
+    finally:
+        release_free_memory()  # the parse's temporaries: not held into the next stage
 
 
 def inspect_log(path: str) -> Inventory:

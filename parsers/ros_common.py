@@ -49,7 +49,7 @@ from logtools.conventions import (
 )
 from logtools.errors import InputError
 from logtools.inslog import InsLog
-from parsers.assemble import Stream, build_inslog
+from parsers.assemble import Stream, assemble_inslog
 from parsers.base import Inventory, Selector, StreamInfo, rate_of
 
 # ---- message types --------------------------------------------------------------------------
@@ -116,6 +116,9 @@ class RawTopic:
     encoding: str  # "cdr" or "ros1"
     log_ns: list[int] = field(default_factory=list)
     data: list[bytes] = field(default_factory=list)
+    #: the topic decoded while it was read (:class:`StreamDecoder`): then ``log_ns`` is an int64 array and
+    #: ``data`` holds only the first HEAD_MESSAGES messages (what the unit selection looks at)
+    decoded: "Predecoded | None" = None
 
     @property
     def count(self) -> int:
@@ -326,6 +329,52 @@ def library_decode(typestore, raw: RawTopic, paths: dict[str, str], index=None) 
     return {k: np.asarray(v, dtype=float) for k, v in cols.items()}
 
 
+#: layouts tried per message length before the rest goes to the library
+LAYOUT_TRIES = 6
+#: more message lengths than this in one topic: not a fixed-layout stream (all to the library)
+MAX_LENGTH_GROUPS = 64
+
+
+def _layout_tries(typestore, msgtype: str, encoding: str, paths: dict[str, str], idx: np.ndarray, blob: bytes,
+                  message, left: np.ndarray, out: dict, n: int, slow_idx: list, first_try: int = 0) -> int:
+    """The fixed-layout tries of one length group (:func:`decode_topic`): ``idx`` the group's message
+    indices, ``blob`` their bytes end to end, ``message(j)`` the bytes of ``idx[j]``, ``left`` (updated)
+    those not decoded yet; decoded values go to ``out[k][idx]``, messages without a layout to ``slow_idx``.
+    Tries ``first_try`` .. LAYOUT_TRIES - 1 (a reader that made the first try itself goes on from 1).
+    Returns how many were decoded."""
+    n_fast = 0
+    for _attempt in range(first_try, LAYOUT_TRIES):
+        first = int(np.argmax(left))
+        layout = build_layout(typestore, msgtype, message(first), encoding)
+        if layout is None:  # this message is odd: the library's turn; try the next one
+            slow_idx.append(idx[first:first + 1])
+            left[first] = False
+            if not left.any():
+                break
+            continue
+        arr = np.frombuffer(blob, dtype=layout.dtype)
+        ok = left.copy()
+        for name, value in layout.checks:
+            ok &= arr[name] == value
+        if not ok.any():
+            break
+        try:
+            if len(idx) == n and ok.all():  # the common case: one layout for the whole topic
+                for k, p in paths.items():
+                    out[k] = _take(arr, p).astype(float)
+            else:
+                sel = idx[ok]
+                for k, p in paths.items():
+                    out[k][sel] = _take(arr, p)[ok]
+        except (KeyError, ValueError, IndexError):
+            break
+        n_fast += int(ok.sum())
+        left &= ~ok
+        if not left.any():
+            break
+    return n_fast
+
+
 def decode_topic(typestore, raw: RawTopic, paths: dict[str, str], *, fast: bool = True) -> Decoded:
     """Columns ``paths`` of every message of ``raw`` (float64), vectorised where possible.
 
@@ -342,7 +391,7 @@ def decode_topic(typestore, raw: RawTopic, paths: dict[str, str], *, fast: bool 
     slow_idx: list[np.ndarray] = []
     n_fast = 0
     groups = np.unique(lens) if fast else []
-    if fast and len(groups) > 64:  # a zoo of lengths: not a fixed-layout stream
+    if fast and len(groups) > MAX_LENGTH_GROUPS:  # a zoo of lengths: not a fixed-layout stream
         groups, slow_idx = [], [np.arange(n)]
     elif not fast:
         slow_idx = [np.arange(n)]
@@ -350,35 +399,8 @@ def decode_topic(typestore, raw: RawTopic, paths: dict[str, str], *, fast: bool 
         idx = np.flatnonzero(lens == length) if len(groups) > 1 else np.arange(n)
         blob = b"".join(raw.data) if len(idx) == n else b"".join([raw.data[i] for i in idx.tolist()])
         left = np.ones(len(idx), bool)
-        for _attempt in range(6):
-            first = int(np.argmax(left))
-            layout = build_layout(typestore, raw.msgtype, raw.data[idx[first]], raw.encoding)
-            if layout is None:  # this message is odd: the library's turn; try the next one
-                slow_idx.append(idx[first:first + 1])
-                left[first] = False
-                if not left.any():
-                    break
-                continue
-            arr = np.frombuffer(blob, dtype=layout.dtype)
-            ok = left.copy()
-            for name, value in layout.checks:
-                ok &= arr[name] == value
-            if not ok.any():
-                break
-            try:
-                if len(idx) == n and ok.all():  # the common case: one layout for the whole topic
-                    for k, p in paths.items():
-                        out[k] = _take(arr, p).astype(float)
-                else:
-                    sel = idx[ok]
-                    for k, p in paths.items():
-                        out[k][sel] = _take(arr, p)[ok]
-            except (KeyError, ValueError, IndexError):
-                break
-            n_fast += int(ok.sum())
-            left &= ~ok
-            if not left.any():
-                break
+        n_fast += _layout_tries(typestore, raw.msgtype, raw.encoding, paths, idx, blob,
+                                lambda j: raw.data[idx[j]], left, out, n, slow_idx)
         if left.any():
             slow_idx.append(idx[left])
     n_slow = 0
@@ -389,6 +411,218 @@ def decode_topic(typestore, raw: RawTopic, paths: dict[str, str], *, fast: bool 
             out[k][idx] = vals[k]
         n_slow = len(idx)
     return Decoded(out, n_fast, n_slow)
+
+
+# ---- decoding while reading: one topic's messages batch by batch ------------------------------------
+#: the columns ``to_inslog`` reads of each type (the others of FIELDS are decoded only by decode_topic)
+USED_FIELDS: dict[str, tuple[str, ...]] = {
+    IMU: tuple(FIELDS[IMU]),
+    ODOM: ("qx", "qy", "qz", "qw", "vx", "vy", "vz", "gx", "gy", "gz"),
+    TWIST: ("vx", "vy", "vz"), TWIST_COV: ("vx", "vy", "vz"), VEC3: ("vx", "vy", "vz"),
+    FIX: ("lat", "lon", "alt", "status"),
+    QUAT_STAMPED: ("qx", "qy", "qz", "qw"), POSE: ("qx", "qy", "qz", "qw"), POSE_COV: ("qx", "qy", "qz", "qw"),
+}
+#: messages whose bytes a streamed topic keeps (the unit selection decodes the first 20 / 200 itself)
+HEAD_MESSAGES = 200
+
+
+class NotStreamable(Exception):
+    """A topic the streaming decode cannot give exactly what :func:`decode_topic` gives (a zoo of message
+    lengths, a layout the final message definitions change): the reader reads the file the classic way."""
+
+
+@dataclass
+class Predecoded:
+    """A topic decoded as it was read (:class:`StreamDecoder`): float64 columns of USED_FIELDS and the
+    header stamps (int64 ns), NaN / 0 at ``slow_idx``, the messages the library decodes (their bytes in
+    ``slow_data``), as ``decode_topic`` would split them."""
+
+    columns: dict[str, np.ndarray]
+    stamp_ns: np.ndarray
+    slow_idx: np.ndarray
+    slow_data: list[bytes]
+    n_fast: int
+
+
+class _Discard:
+    """A column nobody reads: what is written to it goes nowhere."""
+
+    def __setitem__(self, key, value) -> None:
+        pass
+
+
+class _Column:
+    """A float64 or int64 column filled batch by batch, its capacity grown ahead from an estimate (pages
+    never written are never touched, so a generous estimate costs no memory)."""
+
+    def __init__(self, dtype):
+        self.arr = np.empty(0, dtype=dtype)
+
+    def reserve(self, n: int, estimate: int) -> np.ndarray:
+        if n > len(self.arr):
+            grown = np.empty(max(n, int(estimate), 2 * len(self.arr)), dtype=self.arr.dtype)
+            grown[:len(self.arr)] = self.arr
+            self.arr = grown
+        return self.arr
+
+
+@dataclass
+class _Group:
+    """One message length of a streamed topic: its first message and the layout made from it."""
+
+    sample: bytes
+    layout: Layout | None  # made from ``sample`` while reading (checked against the final definitions)
+    tries: int  # tries made while reading: 0 the whole group is left to the end, 1 the first one applied,
+    #             LAYOUT_TRIES: decode_topic would give the group up (every message to the library)
+
+
+class StreamDecoder:
+    """Decodes one topic batch by batch as a reader meets its messages (each batch: the messages' start and
+    end offsets in a byte buffer, in order), into growing columns, keeping only the bytes of the messages
+    the fixed-layout fast path does not take and of the first HEAD_MESSAGES. The same split and the same
+    numbers as :func:`decode_topic` over the whole topic: each message length's first layout (made from its
+    first message) is applied as the messages come; the messages it does not fit get the remaining tries at
+    :meth:`finish`, with the final message definitions, which must give the layouts used (else
+    NotStreamable, as for more than MAX_LENGTH_GROUPS lengths).
+
+    ``typestore``: message definitions to make the layouts while reading (the channel's own schema);
+    ``expect``: a guess of the topic's message count (the columns' first capacity)."""
+
+    def __init__(self, name: str, msgtype: str, encoding: str, typestore):
+        self.name, self.msgtype, self.encoding = name, msgtype, encoding
+        self.typestore = typestore
+        self.all_paths = {**FIELDS[msgtype], **STAMP_FIELDS}
+        self.used = {k: FIELDS[msgtype][k] for k in USED_FIELDS[msgtype]}
+        self.cols = {k: _Column(np.float64) for k in self.used}
+        self.stamp = _Column(np.int64)
+        self.n = 0
+        self.groups: dict[int, _Group] = {}
+        self.residue: dict[int, tuple[list[int], list[bytes]]] = {}  # length -> (indices, bytes)
+        self.head: list[bytes] = []
+        self.n_fast = 0
+
+    def _rest(self, length: int, base: int, buf, s: np.ndarray, e: np.ndarray, sel: np.ndarray) -> None:
+        idx, data = self.residue.setdefault(length, ([], []))
+        for j in sel.tolist():
+            idx.append(base + j)
+            data.append(bytes(buf[int(s[j]):int(e[j])]))
+
+    def add(self, buf: np.ndarray, s: np.ndarray, e: np.ndarray, expect: int = 0) -> None:
+        """The next messages: ``buf[s[i]:e[i]]`` (``buf`` uint8)."""
+        m = len(s)
+        if m == 0:
+            return
+        base = self.n
+        self.n += m
+        if len(self.head) < HEAD_MESSAGES:
+            self.head += [bytes(buf[a:b]) for a, b in zip(s[:HEAD_MESSAGES - len(self.head)].tolist(),
+                                                          e[:HEAD_MESSAGES - len(self.head)].tolist())]
+        est = max(expect, self.n + 1024)
+        out = {k: c.reserve(self.n, est) for k, c in self.cols.items()}
+        stamp = self.stamp.reserve(self.n, est)
+        lens = e - s
+        lo, hi = int(lens.min()), int(lens.max())
+        for length in ([lo] if lo == hi else np.unique(lens).tolist()):
+            sel = np.arange(m) if lo == hi else np.flatnonzero(lens == length)
+            g = self.groups.get(length)
+            if g is None:
+                if len(self.groups) >= MAX_LENGTH_GROUPS:
+                    raise NotStreamable(f"{self.name}: more than {MAX_LENGTH_GROUPS} message lengths")
+                sample = bytes(buf[int(s[sel[0]]):int(s[sel[0]]) + length])
+                layout = build_layout(self.typestore, self.msgtype, sample, self.encoding)
+                tries = 0
+                if layout is not None:
+                    tries = 1
+                    try:  # what decode_topic's first try would raise on (the dtype decides, not the data)
+                        empty = np.zeros(0, dtype=layout.dtype)
+                        for p in self.all_paths.values():
+                            _take(empty, p).astype(float)
+                    except (KeyError, ValueError, IndexError):
+                        tries = LAYOUT_TRIES  # decode_topic gives the whole group up
+                g = self.groups[length] = _Group(sample, layout, tries)
+            if g.tries != 1:
+                self._rest(length, base, buf, s, e, sel)
+                continue
+            rows = np.lib.stride_tricks.sliding_window_view(buf, length)[s[sel]]
+            arr = rows.view(g.layout.dtype).reshape(-1)
+            ok = np.ones(len(sel), bool)
+            for name, value in g.layout.checks:
+                ok &= arr[name] == value
+            if not ok.all():
+                self._rest(length, base, buf, s, e, sel[~ok])
+            at = base + (sel if ok.all() else sel[ok])
+            if lo == hi and ok.all():
+                at = slice(base, base + m)
+            for k, p in self.used.items():
+                out[k][at] = _take(arr, p)[ok] if not ok.all() else _take(arr, p)
+            sec = _take(arr, STAMP_FIELDS["sec"])
+            nsec = _take(arr, STAMP_FIELDS["nsec"])
+            if not ok.all():
+                sec, nsec = sec[ok], nsec[ok]
+            # decode_topic's float64 sec / nanosec as int64 ns (the same: both are 32-bit integers)
+            stamp[at] = sec.astype(np.int64) * 1_000_000_000 + nsec.astype(np.int64)
+            self.n_fast += int(ok.sum())
+            del rows, arr
+
+    def finish(self, typestore) -> tuple[Predecoded, list[bytes]]:
+        """The topic with the final message definitions ``typestore``: the remaining layout tries of the
+        messages left, then (Predecoded, the first messages' bytes). NotStreamable when the layouts used
+        while reading are not the ones these definitions give."""
+        for length, g in self.groups.items():
+            if g.tries and build_layout(typestore, self.msgtype, g.sample, self.encoding) != g.layout:
+                raise NotStreamable(f"{self.name}: the message definitions changed after its first messages")
+        n = self.n
+        cols = {k: c.arr[:n] for k, c in self.cols.items()}
+        stamp = self.stamp.arr[:n]
+        self.cols = self.stamp = None
+        slow: list[np.ndarray] = []
+        slow_data: dict[int, bytes] = {}
+        n_fast = self.n_fast
+        for length in sorted(self.residue):
+            idx_l, data_l = self.residue.pop(length)
+            idx = np.asarray(idx_l, dtype=np.int64)
+            g = self.groups[length]
+            for i, d in zip(idx_l, data_l):
+                slow_data[i] = d
+            if g.tries >= LAYOUT_TRIES:
+                slow.append(idx)
+                continue
+            left = np.ones(len(idx), bool)
+            out = {k: (cols[k] if k in cols else _Discard()) for k in self.all_paths}
+            sec = np.full(n, np.nan) if len(idx) == n else _Stamps(stamp)
+            nsec = np.full(n, np.nan) if len(idx) == n else _Stamps(stamp, nano=True)
+            out["sec"], out["nsec"] = sec, nsec
+            n_fast += _layout_tries(typestore, self.msgtype, self.encoding, self.all_paths, idx, b"".join(data_l),
+                                    lambda j: data_l[j], left, out, n, slow, first_try=g.tries)
+            for k in cols:
+                cols[k] = out[k] if isinstance(out[k], np.ndarray) else cols[k]
+            if isinstance(out["sec"], np.ndarray) and isinstance(out["nsec"], np.ndarray):  # the whole topic
+                ok = ~(np.isnan(out["sec"]) | np.isnan(out["nsec"]))
+                stamp[ok] = out["sec"][ok].astype(np.int64) * 1_000_000_000 + out["nsec"][ok].astype(np.int64)
+            if left.any():
+                slow.append(idx[left])
+        slow_idx = np.sort(np.concatenate(slow)) if slow else np.zeros(0, np.int64)
+        for k in cols:
+            cols[k][slow_idx] = np.nan
+        stamp[slow_idx] = 0
+        head = self.head
+        self.head, self.residue = [], {}
+        return Predecoded(cols, stamp, slow_idx, [slow_data[i] for i in slow_idx.tolist()], n_fast), head
+
+
+class _Stamps:
+    """The header stamp's sec or nanosec column of a later layout try, written into the int64 stamps (a try
+    writes sec before nanosec, so nanosec adds to the seconds already there)."""
+
+    def __init__(self, stamp: np.ndarray, nano: bool = False):
+        self.stamp, self.nano = stamp, nano
+
+    def __setitem__(self, sel, vals) -> None:
+        v = np.asarray(vals).astype(np.int64)
+        if self.nano:
+            self.stamp[sel] += v
+        else:
+            self.stamp[sel] = v * 1_000_000_000
 
 
 def encode_messages(typestore, msgtype: str, template, encoding: str, columns: dict[str, np.ndarray]) -> list[bytes]:
@@ -415,10 +649,11 @@ def encode_messages(typestore, msgtype: str, template, encoding: str, columns: d
 
 
 # ---- stamps and clocks ----------------------------------------------------------------------
-def clock_of(t_ns: np.ndarray) -> str:
+def clock_of(t_ns: np.ndarray, *, scratch: bool = False) -> str:
+    """"epoch" or "boot" by the stamps' median; ``scratch``: ``t_ns`` is the caller's to reorder."""
     if len(t_ns) == 0:
         return "unknown"
-    return "epoch" if float(np.median(t_ns)) * 1e-9 > EPOCH_THRESHOLD_S else "boot"
+    return "epoch" if float(np.median(t_ns, overwrite_input=scratch)) * 1e-9 > EPOCH_THRESHOLD_S else "boot"
 
 
 @dataclass(frozen=True)
@@ -447,6 +682,8 @@ def topic_data(rawlog: RawLog, name: str, time_mode: str, warnings: list[str],
     paths = dict(FIELDS[raw.msgtype])
     if keys is not None:
         paths = {k: v for k, v in paths.items() if k in keys}
+    if raw.decoded is not None:
+        return _streamed_topic_data(rawlog, raw, paths, time_mode, warnings)
     dec = decode_topic(rawlog.typestore, raw, {**paths, **STAMP_FIELDS})
     if dec.n_slow:
         warnings.append(f"{name}: {dec.n_slow} of {raw.count} messages decoded by the library "
@@ -469,6 +706,46 @@ def topic_data(rawlog: RawLog, name: str, time_mode: str, warnings: list[str],
     return TopicData(name, raw.msgtype, t_ns, cols, src, _frame_id(rawlog.typestore, raw) if raw.count else "")
 
 
+def _streamed_topic_data(rawlog: RawLog, raw: RawTopic, paths: dict[str, str], time_mode: str,
+                         warnings: list[str]) -> TopicData:
+    """:func:`topic_data` of a topic decoded while it was read (``raw.decoded``): its columns of ``paths``
+    (those of USED_FIELDS), the messages left to the library decoded now, with ``paths`` as decode_topic
+    would (a message the library cannot read is NaN in every column: dropped as damaged)."""
+    pre, name, n = raw.decoded, raw.name, raw.count
+    cols = {k: pre.columns[k] for k in paths if k in pre.columns}
+    stamp_ns = pre.stamp_ns
+    log_ns = np.asarray(raw.log_ns, dtype=np.int64)
+    bad = None
+    slow = pre.slow_idx
+    if len(slow):
+        warnings.append(f"{name}: {len(slow)} of {n} messages decoded by the library "
+                        "(not the fixed-layout fast path)")
+        sub = RawTopic(raw.name, raw.msgtype, raw.encoding, list(range(len(slow))), pre.slow_data)
+        vals = library_decode(rawlog.typestore, sub, {**paths, **STAMP_FIELDS})
+        cols = {k: v.copy() for k, v in cols.items()}
+        for k in cols:
+            cols[k][slow] = vals[k]
+        lost = np.isnan(vals["sec"]) | np.isnan(vals["nsec"])
+        stamp_ns = stamp_ns.copy()
+        stamp_ns[slow[~lost]] = (vals["sec"][~lost].astype(np.int64) * 1_000_000_000
+                                 + vals["nsec"][~lost].astype(np.int64))
+        if lost.any():
+            bad = np.zeros(n, dtype=bool)
+            bad[slow[lost]] = True
+    if bad is not None:
+        warnings.append(f"{name}: {int(bad.sum())} of {n} messages undecodable (damaged); dropped")
+        cols = {k: v[~bad] for k, v in cols.items()}
+        log_ns, stamp_ns = log_ns[~bad], stamp_ns[~bad]
+    if time_mode == "log":
+        t_ns, src = log_ns, "log time"
+    elif n and not np.any(stamp_ns):
+        warnings.append(f"{name}: header stamps are all zero; log time used instead")
+        t_ns, src = log_ns, "log time"
+    else:
+        t_ns, src = stamp_ns, "header.stamp"
+    return TopicData(name, raw.msgtype, t_ns, cols, src, _frame_id(rawlog.typestore, raw) if n else "")
+
+
 # ---- ROS (ENU/FLU) -> tapost (NED/FRD) --------------------------------------------------------
 #: the axis swaps as rotation quaternions (both 180 deg rotations, each its own inverse):
 #: NED <- ENU about (1, 1, 0)/sqrt(2), FLU <- FRD about x. ``a * q * b`` is the same similarity
@@ -482,14 +759,29 @@ def quat_enu_flu_to_ned_frd_fast(q_wxyz: np.ndarray) -> np.ndarray:
     return quat_mul(quat_mul(_Q_NED_ENU, q_wxyz), _Q_FLU_FRD)
 
 
+#: quaternions converted at a time (row by row arithmetic: the chunks only bound the temporaries)
+QUAT_ROWS = 1 << 19
+
+
 def quat_ros_to_ned_frd(cols: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """ROS (x, y, z, w) FLU->ENU columns -> (quat_wxyz FRD->NED, valid mask)."""
-    q = np.stack([cols["qw"], cols["qx"], cols["qy"], cols["qz"]], axis=-1)
-    norm = np.linalg.norm(q, axis=-1)
-    ok = np.isfinite(norm) & (np.abs(norm - 1.0) < 0.1)
-    out = np.full_like(q, np.nan)
-    if ok.any():
-        out[ok] = quat_enu_flu_to_ned_frd_fast(q[ok] / norm[ok, None])
+    n = len(cols["qw"])
+    out = np.empty((n, 4))
+    ok = np.empty(n, dtype=bool)
+    for i in range(0, n, QUAT_ROWS):
+        j = min(n, i + QUAT_ROWS)
+        q = np.stack([cols["qw"][i:j], cols["qx"][i:j], cols["qy"][i:j], cols["qz"][i:j]], axis=-1)
+        norm = np.linalg.norm(q, axis=-1)
+        good = np.isfinite(norm) & (np.abs(norm - 1.0) < 0.1)
+        ok[i:j] = good
+        part = out[i:j]
+        if good.all():
+            part[:] = quat_enu_flu_to_ned_frd_fast(q / norm[:, None])
+        else:
+            part[:] = np.nan
+            if good.any():
+                part[good] = quat_enu_flu_to_ned_frd_fast(q[good] / norm[good, None])
+        del q, norm, good, part
     return out, ok
 
 
@@ -679,19 +971,68 @@ def unit_selector(plan: Plan) -> str:
     return ",".join(items)
 
 
-def to_inslog(rawlog: RawLog, selector: Selector) -> InsLog:
-    """Decode the selected unit of ``rawlog`` into an InsLog (NED/FRD, header stamps by default)."""
+def _vec_frd(cols: dict[str, np.ndarray], prefix: str) -> np.ndarray:
+    """``flu_to_frd(_vec(cols, prefix))`` without the intermediate array."""
+    x = cols[prefix + "x"]
+    out = np.empty((len(x), 3))
+    out[:, 0] = x
+    np.negative(cols[prefix + "y"], out=out[:, 1])
+    np.negative(cols[prefix + "z"], out=out[:, 2])
+    return out
+
+
+def _vec_enu_to_ned(cols: dict[str, np.ndarray], prefix: str) -> np.ndarray:
+    """``enu_to_ned(_vec(cols, prefix))`` without the intermediate array."""
+    x = cols[prefix + "x"]
+    out = np.empty((len(x), 3))
+    out[:, 0] = cols[prefix + "y"]
+    out[:, 1] = x
+    np.negative(cols[prefix + "z"], out=out[:, 2])
+    return out
+
+
+def to_inslog(rawlog: RawLog, selector: Selector, *, release: bool = False) -> InsLog:
+    """Decode the selected unit of ``rawlog`` into an InsLog (NED/FRD, header stamps by default).
+    ``release``: let each topic's decoded columns go once its streams are made (a reader handing over a
+    streamed RawLog it has no further use for: the log is then held about once, not twice)."""
     plan, notes = plan_unit(rawlog, selector)
     warnings = list(rawlog.warnings)
     warnings += [f"note: {n}" for n in notes]
     cache: dict[str, TopicData] = {}
+    # the columns each role reads, in the order the roles come (with ``release`` a column goes once the
+    # last role reading it is done: the decoded topics are let go while the streams are made)
+    roles = [(plan.imu, ("g_cov0", "a_cov0", "gx", "gy", "gz", "ax", "ay", "az")), (plan.gyro_odom, ("gx", "gy", "gz")),
+             (plan.att, ("qx", "qy", "qz", "qw", "q_cov0")), (plan.vel, ("vx", "vy", "vz", "qx", "qy", "qz", "qw")),
+             (plan.pos, ("status", "lat", "lon", "alt"))]
+    pending = [(name, set(cols)) for name, cols in roles if name]
 
     def get(name: str) -> TopicData:
         if name not in cache:
             cache[name] = topic_data(rawlog, name, plan.time_mode, warnings)
+            if release:  # the TopicData holds what is needed of the topic from now on
+                raw = rawlog.topics[name]
+                raw.decoded, raw.log_ns, raw.data = None, np.zeros(0, np.int64), []
         return cache[name]
 
-    gyro = accel = quat = vel = pos = None
+    def drop(name: str, cols: tuple[str, ...] = ()) -> None:
+        """``cols`` of topic ``name`` are read (and, when no role still to come reads them, let go); with
+        no ``cols``: the role reading ``name`` is done."""
+        if not release or name not in cache:
+            return
+        if not cols:
+            pending.pop(0)
+            if not any(n == name for n, _ in pending):
+                cache.pop(name)
+            return
+        later = set().union(*[c for n, c in pending[1:] if n == name])
+        for k in cols:
+            if k not in later:
+                cache[name].cols.pop(k, None)
+
+    def done(name: str) -> None:
+        drop(name)
+
+    streams: dict[str, Stream] = {}
     sources: list[str] = []
     if plan.imu:
         d = get(plan.imu)
@@ -699,35 +1040,44 @@ def to_inslog(rawlog: RawLog, selector: Selector) -> InsLog:
         if np.all(c["g_cov0"] == -1):
             warnings.append(f"{d.name}: angular_velocity marked absent (covariance[0] = -1)")
         else:
-            gyro = Stream(d.t_ns, flu_to_frd(_vec(c, "g")), d.name)
+            streams["gyro"] = Stream(d.t_ns, _vec_frd(c, "g"), d.name)
+        drop(plan.imu, ("g_cov0", "gx", "gy", "gz"))
         if np.all(c["a_cov0"] == -1):
             warnings.append(f"{d.name}: linear_acceleration marked absent (covariance[0] = -1)")
         else:
-            accel = Stream(d.t_ns, flu_to_frd(_vec(c, "a")), d.name)
+            streams["accel"] = Stream(d.t_ns, _vec_frd(c, "a"), d.name)
+        drop(plan.imu, ("a_cov0", "ax", "ay", "az"))
         sources.append(f"{d.stamp_source} ({d.name})")
+        del d, c
+        done(plan.imu)
     if plan.gyro_odom:
         d = get(plan.gyro_odom)
-        gyro = Stream(d.t_ns, flu_to_frd(_vec(d.cols, "g")), d.name + " twist.angular")
+        streams["gyro"] = Stream(d.t_ns, _vec_frd(d.cols, "g"), d.name + " twist.angular")
         sources.append(f"{d.stamp_source} ({d.name})")
+        del d
+        done(plan.gyro_odom)
     q_t = q_v = None
     if plan.att:
         d = get(plan.att)
         q, ok = quat_ros_to_ned_frd(d.cols)
+        drop(plan.att, ("qx", "qy", "qz", "qw"))
         if d.msgtype == IMU:
             ok &= d.cols["q_cov0"] != -1
         if not ok.all():
             warnings.append(f"{d.name}: {int((~ok).sum())} of {len(ok)} orientations absent or not unit "
                             "quaternions; dropped")
         if ok.any():
-            q_t, q_v = d.t_ns[ok], q[ok]
-            quat = Stream(q_t, q_v, d.name)
+            q_t, q_v = (d.t_ns, q) if ok.all() else (d.t_ns[ok], q[ok])
+            streams["quat"] = Stream(q_t, q_v, d.name)
         if plan.att not in (plan.imu, plan.gyro_odom):
             sources.append(f"{d.stamp_source} ({d.name})")
+        del d, q, ok
+        done(plan.att)
     if plan.vel:
         d = get(plan.vel)
-        v = _vec(d.cols, "v")
         body = d.msgtype == ODOM if plan.vel_frame is None else plan.vel_frame == "body"
         if body:
+            v = _vec(d.cols, "v")
             if d.msgtype == ODOM and plan.vel_frame is None:
                 qv, okq = quat_ros_to_ned_frd(d.cols)
                 qv[~okq] = np.nan
@@ -736,28 +1086,37 @@ def to_inslog(rawlog: RawLog, selector: Selector) -> InsLog:
                     raise InputError(f"vel={d.name} in body frame needs an attitude (att=/topic)", rawlog.path)
                 qv = _quat_at(d.t_ns, q_t, q_v)
             v_ned = body_to_ned(flu_to_frd(v), qv)
+            del v, qv
         else:
-            v_ned = enu_to_ned(v)
-        vel = Stream(d.t_ns, v_ned, d.name + (" (body)" if body else " (ENU)"))
+            v_ned = _vec_enu_to_ned(d.cols, "v")
+        streams["vel"] = Stream(d.t_ns, v_ned, d.name + (" (body)" if body else " (ENU)"))
         if plan.vel not in (plan.imu, plan.gyro_odom, plan.att):
             sources.append(f"{d.stamp_source} ({d.name})")
+        del d, v_ned
+        done(plan.vel)
+    del q_t, q_v
     if plan.pos:
         d = get(plan.pos)
         fix = d.cols["status"] >= 0
         if not fix.all():
             warnings.append(f"{d.name}: {int((~fix).sum())} messages without a fix (status < 0) dropped")
-        pos = Stream(d.t_ns[fix], np.stack([d.cols["lat"], d.cols["lon"], d.cols["alt"]], axis=-1)[fix], d.name)
+        p = np.stack([d.cols["lat"], d.cols["lon"], d.cols["alt"]], axis=-1)
+        streams["pos"] = Stream(d.t_ns, p, d.name) if fix.all() else Stream(d.t_ns[fix], p[fix], d.name)
         sources.append(f"{d.stamp_source} ({d.name})")
+        del d, p, fix
+        done(plan.pos)
     by_src: dict[str, list[str]] = {}
     for item in dict.fromkeys(sources):
         src, _, topic = item.partition(" (")
         by_src.setdefault(src, []).append(topic.rstrip(")"))
     stamp_source = "; ".join(f"{src} ({', '.join(topics)})" for src, topics in by_src.items())
-    all_t = [s.t_ns for s in (gyro, accel, quat, vel, pos) if s is not None and len(s.t_ns)]
-    clock = clock_of(np.concatenate(all_t)) if all_t else "unknown"
+    all_t = [streams[k].t_ns for k in ("gyro", "accel", "quat", "vel", "pos")
+             if k in streams and len(streams[k].t_ns)]
+    clock = clock_of(np.concatenate(all_t), scratch=True) if all_t else "unknown"
+    del all_t
     sel = str(selector) if selector else unit_selector(plan)
-    return build_inslog(path=rawlog.path, fmt=rawlog.fmt, selector=sel, clock=clock, stamp_source=stamp_source,
-                        gyro=gyro, accel=accel, quat=quat, vel=vel, pos=pos, warnings=warnings)
+    return assemble_inslog(streams, path=rawlog.path, fmt=rawlog.fmt, selector=sel, clock=clock,
+                           stamp_source=stamp_source, warnings=warnings)
 
 
 def to_inventory(rawlog: RawLog) -> Inventory:
@@ -770,7 +1129,7 @@ def to_inventory(rawlog: RawLog) -> Inventory:
         raise InputError("no readable messages" + (f"; {damage[0]}" if damage else " (empty log)"), rawlog.path)
     for name in sorted(rawlog.topics):
         raw = rawlog.topics[name]
-        if raw.msgtype in SUPPORTED and len(raw.data) == raw.count and raw.count:
+        if raw.msgtype in SUPPORTED and (raw.decoded is not None or len(raw.data) == raw.count) and raw.count:
             d = topic_data(rawlog, name, "header", warnings, keys=())
             t_ns, src = d.t_ns, d.stamp_source
             fields = tuple(FIELDS[raw.msgtype])

@@ -612,3 +612,111 @@ def test_truncated_compressed_rosbag2_is_one_clear_error(written, tmp_path, caps
     rc_ = cli_main(["inspect", str(bad)])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc_ == 2 and len(err) == 1 and "decompress" in err[0]
+
+
+# ---- decoding while reading (mcap_ros.read_streamed): the same as reading the bytes, then decoding --------
+def _same_inslog(a: InsLog, b: InsLog) -> None:
+    from pandas.testing import assert_frame_equal
+
+    assert_frame_equal(a.imu, b.imu, check_exact=True)
+    assert_frame_equal(a.nav, b.nav, check_exact=True)
+    assert a.meta == b.meta
+
+
+def _streamed_equals_classic(p: str, selector: str = "") -> None:
+    from parsers.base import Selector
+
+    sel = Selector.parse(selector)
+    classic = rc.to_inslog(mcap_ros.read_raw(p), sel)
+    streamed_raw = mcap_ros.read_streamed(p)
+    assert any(t.decoded is not None for t in streamed_raw.topics.values())
+    _same_inslog(rc.to_inslog(streamed_raw, sel, release=True), classic)
+    _same_inslog(parsers.load(f"{p}::{selector}" if selector else p), classic)
+    assert rc.to_inventory(mcap_ros.read_streamed(p)) == rc.to_inventory(mcap_ros.read_raw(p))
+    raw = mcap_ros.read_raw(p)
+    for name, st in mcap_ros.read_streamed(p).topics.items():
+        if st.decoded is None:
+            continue
+        dec = rc.decode_topic(raw.typestore, raw.topics[name], {**rc.FIELDS[st.msgtype], **rc.STAMP_FIELDS})
+        pre = st.decoded
+        assert (pre.n_fast, len(pre.slow_idx)) == (dec.n_fast, dec.n_slow)
+        slow = np.isin(np.arange(st.count), pre.slow_idx)
+        for k, v in pre.columns.items():
+            np.testing.assert_array_equal(v[~slow], dec.columns[k][~slow], err_msg=k)
+        sec, nsec = dec.columns["sec"][~slow], dec.columns["nsec"][~slow]
+        np.testing.assert_array_equal(pre.stamp_ns[~slow], sec.astype(np.int64) * 1_000_000_000 + nsec.astype(np.int64))
+        assert st.data == raw.topics[name].data[:rc.HEAD_MESSAGES]
+        np.testing.assert_array_equal(st.log_ns, raw.topics[name].log_ns)
+
+
+@pytest.mark.parametrize("name", ["x.mcap", "x1.mcap", "xn.mcap"])
+def test_streamed_decode_equals_classic(written, name):
+    _streamed_equals_classic(written[name])
+    _streamed_equals_classic(written[name], "time=log")
+
+
+def test_streamed_decode_of_damaged_files_equals_classic(big_files, tmp_path):
+    src = big_files["mcap"]
+    data = open(src, "rb").read()
+    _streamed_equals_classic(_copy_with(src, str(tmp_path / "cut.mcap"), data[: int(len(data) * 0.6)]))
+    flipped = bytearray(data)
+    flipped[len(data) // 2] ^= 0xFF
+    _streamed_equals_classic(_copy_with(src, str(tmp_path / "flip.mcap"), bytes(flipped)))
+    ref = big_files["log"]
+    short = InsLog(imu=ref.imu.iloc[:1500], nav=ref.nav.iloc[:0], meta=ref.meta)
+    one = str(tmp_path / "one.mcap")
+    mcap_ros.write(one, short)
+    data = open(one, "rb").read()
+    _streamed_equals_classic(_copy_with(one, str(tmp_path / "onecut.mcap"), data[: int(len(data) * 0.5)]))
+
+
+def _odd_imu_messages(n: int = 3000) -> tuple[object, list[bytes], np.ndarray]:
+    """Imu messages with two frame_id lengths, one of the same length but another layout, one the library
+    cannot read: every branch of the streaming decode (first layout, later tries, library, damaged)."""
+    ts = rc.default_typestore("cdr")
+    t_ns = T0_NS + np.arange(n, dtype=np.int64) * 5_000_000
+    cols = {"header.stamp.sec": t_ns // 1_000_000_000, "header.stamp.nanosec": t_ns % 1_000_000_000,
+            "angular_velocity.x": np.linspace(-1, 1, n), "linear_acceleration.z": np.linspace(9, 10, n),
+            "orientation.w": np.ones(n)}
+    a = rc.encode_messages(ts, rc.IMU, rc._template(ts, rc.IMU, "imu", "cdr"), "cdr", cols)
+    b = rc.encode_messages(ts, rc.IMU, rc._template(ts, rc.IMU, "imu_link_long", "cdr"), "cdr", cols)
+    data = [a[i] if i % 3 else b[i] for i in range(n)]
+    odd = bytearray(data[2000])  # "imu\0" as "im\0" + pad: same length, a second layout
+    odd[12:16] = (3).to_bytes(4, "little")
+    odd[18] = 0
+    data[2000] = bytes(odd)
+    data[2500] = b"\x00\x07" + data[2500][2:]  # unknown encapsulation: the library, which cannot read it
+    return ts, data, t_ns
+
+
+def test_streamed_decode_of_odd_messages_equals_classic(tmp_path):
+    ts, data, t_ns = _odd_imu_messages()
+    p = str(tmp_path / "odd.mcap")
+    with open(p, "wb") as fh:
+        mcap_ros.write_topics(fh, [rc.OutTopic("/imu", rc.IMU, t_ns, data)], ts, "cdr")
+    st = mcap_ros.read_streamed(p).topics["/imu"]
+    assert len(st.decoded.slow_idx) == 1 and st.decoded.n_fast == len(data) - 1
+    _streamed_equals_classic(p)
+    back = parsers.load(p)
+    assert any("1 of 3000 messages decoded by the library" in w for w in back.meta.warnings)
+    assert any("undecodable" in w for w in back.meta.warnings) and len(back.imu) == len(data) - 1
+
+
+def test_topic_on_two_channels_is_read_the_classic_way(tmp_path, log):
+    from mcap.writer import Writer
+
+    ts = rc.default_typestore("cdr")
+    topics = rc.ros_topics_from_inslog(log, ts, "cdr")
+    imu = next(t for t in topics if t.name == "/imu")
+    p = str(tmp_path / "two.mcap")
+    with open(p, "wb") as fh:
+        w = Writer(fh)
+        w.start(profile="ros2", library="test")
+        sid = w.register_schema(name=rc.IMU, encoding="ros2msg", data=ts.generate_msgdef(rc.IMU, ros_version=2)[0].encode())
+        chans = [w.register_channel(topic="/imu", message_encoding="cdr", schema_id=sid) for _ in range(2)]
+        for i, (t, d) in enumerate(zip(imu.stamp_ns.tolist(), imu.data)):
+            w.add_message(channel_id=chans[i % 2], log_time=t, data=d, publish_time=t)
+        w.finish()
+    with pytest.raises(rc.NotStreamable):
+        mcap_ros.read_streamed(p)
+    _same_inslog(parsers.load(p), rc.to_inslog(mcap_ros.read_raw(p), parsers.base.Selector()))
