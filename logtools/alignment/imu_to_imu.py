@@ -156,6 +156,10 @@ def _common(t_m: np.ndarray, y_m: np.ndarray, t_s: np.ndarray, y_s: np.ndarray, 
 
 
 # ---- the estimate ----------------------------------------------------------------------------------
+#: frequencies whose power is summed at a time in _long_run_cov (bounds a temporary; row by row the same)
+FFT_ROWS = 1 << 16
+
+
 def _long_run_cov(s: np.ndarray) -> tuple[np.ndarray, float]:
     """Newey-West (Bartlett) long-run covariance of the score series s (n, p) summed over n; and the
     scores' integrated correlation time in samples (1 + 2 sum rho up to its first zero crossing)."""
@@ -166,8 +170,18 @@ def _long_run_cov(s: np.ndarray) -> tuple[np.ndarray, float]:
         return np.zeros((s.shape[1], s.shape[1])), 1.0
     # integrated correlation time of the scores (their summed autocorrelation), by FFT
     nfft = 1 << int(np.ceil(np.log2(2 * n)))
-    f = np.fft.rfft(s, nfft, axis=0)
-    ac = np.fft.irfft(np.sum(f * np.conj(f), axis=1), nfft)[:n] / tot
+    # the scores' spectra column by column, their power summed FFT_ROWS frequencies at a time: the numbers
+    # of rfft(s, axis=0) and sum(f * conj(f), axis=1) without two more full-size complex copies
+    f = np.empty((nfft // 2 + 1, s.shape[1]), dtype=complex)
+    for j in range(s.shape[1]):
+        f[:, j] = np.fft.rfft(s[:, j], nfft)
+    power = np.empty(len(f), dtype=complex)
+    for i in range(0, len(f), FFT_ROWS):
+        blk = f[i:i + FFT_ROWS]
+        power[i:i + FFT_ROWS] = np.sum(blk * np.conj(blk), axis=1)
+    del f, blk
+    ac = np.fft.irfft(power, nfft)[:n] / tot
+    del power
     neg = np.nonzero(ac[1:] <= 0)[0]
     m = int(neg[0]) if len(neg) else n - 1
     tau = max(1.0 + 2.0 * float(np.sum(ac[1:m + 1])), 1.0)
