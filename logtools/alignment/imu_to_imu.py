@@ -133,9 +133,13 @@ def _highpass(y: np.ndarray, n_win: int) -> np.ndarray:
     n = len(y)
     h = max(n_win // 2, 1)
     c = np.concatenate([np.zeros((1, y.shape[1])), np.cumsum(y, axis=0)])
-    i0 = np.clip(np.arange(n) - h, 0, n)
-    i1 = np.clip(np.arange(n) + h + 1, 0, n)
-    return y - (c[i1] - c[i0]) / (i1 - i0)[:, None]
+    out = np.empty(y.shape)
+    for a in range(0, n, HIGHPASS_ROWS):  # row by row arithmetic: blocks only bound the temporaries
+        r = np.arange(a, min(n, a + HIGHPASS_ROWS))
+        i0 = np.clip(r - h, 0, n)
+        i1 = np.clip(r + h + 1, 0, n)
+        out[a:a + len(r)] = y[a:a + len(r)] - (c[i1] - c[i0]) / (i1 - i0)[:, None]
+    return out
 
 
 def _common(t_m: np.ndarray, y_m: np.ndarray, t_s: np.ndarray, y_s: np.ndarray, gap_steps: float
@@ -156,6 +160,8 @@ def _common(t_m: np.ndarray, y_m: np.ndarray, t_s: np.ndarray, y_s: np.ndarray, 
 
 
 # ---- the estimate ----------------------------------------------------------------------------------
+#: rows of a moving mean taken out at a time in _highpass (bounds its temporaries; row by row the same)
+HIGHPASS_ROWS = 1 << 18
 #: frequencies whose power is summed at a time in _long_run_cov (bounds a temporary; row by row the same)
 FFT_ROWS = 1 << 16
 
@@ -302,9 +308,12 @@ def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highp
     # sensors' own filters, vibration aliased into the snapshots, scale factors)
     nlp = max(int(round(cfg.band_split_s / dt)), 2)
     lo = [u - _highpass(u, nlp), v - _highpass(v, nlp), k - _highpass(k.reshape(len(t), -1), nlp).reshape(k.shape)]
-    hi = [u - lo[0], v - lo[1], k - lo[2]]
     # (a band the rotation explains poorly is itself the sign: no minimum there, the sigmas judge)
-    bands = [_triad(b[0][cut], b[1][cut], b[2][cut], dt, cfg, min_explained=0.0) for b in (lo, hi)]
+    band_lo = _triad(lo[0][cut], lo[1][cut], lo[2][cut], dt, cfg, min_explained=0.0)
+    hi = [x - y for x, y in zip((u, v, k), lo)]  # made once the slow band's fit is done: one band in memory
+    del lo, u, v, k
+    bands = [band_lo, _triad(hi[0][cut], hi[1][cut], hi[2][cut], dt, cfg, min_explained=0.0)]
+    del hi
     if all(isinstance(b, TriadRotation) for b in bands):
         zb, _ = _z(bands[0].rpy_deg, bands[0].sigma_deg, bands[1].rpy_deg, bands[1].sigma_deg,
                    cfg.consistency_floor_deg)
