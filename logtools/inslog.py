@@ -51,6 +51,18 @@ class LogMeta:
         return replace(self, warnings=self.warnings + tuple(msgs))
 
 
+def _columns(frame: pd.DataFrame, cols: tuple[str, ...], order: str = "F") -> np.ndarray:
+    """``frame[list(cols)].to_numpy(dtype=float)`` filled column by column (one copy of the values, not
+    a sub-frame and then its array), in that array's memory order (F: each column contiguous) or C."""
+    missing = [c for c in cols if c not in frame.columns]
+    if missing:
+        raise KeyError(f"{missing} not in index")
+    out = np.empty((len(cols), len(frame))).T if order == "F" else np.empty((len(frame), len(cols)))
+    for j, c in enumerate(cols):
+        out[:, j] = frame[c].to_numpy(dtype=float)
+    return out
+
+
 def _empty(columns: tuple[str, ...]) -> pd.DataFrame:
     return pd.DataFrame({c: np.zeros(0) for c in columns}, index=pd.Index(np.zeros(0), name=T))
 
@@ -137,16 +149,19 @@ class InsLog:
         return self.nav.index.to_numpy(dtype=float)
 
     def gyro_rad_s(self) -> np.ndarray:
-        return self.imu[list(GYRO)].to_numpy(dtype=float)
+        return _columns(self.imu, GYRO)
 
     def accel_m_s2(self) -> np.ndarray:
-        return self.imu[list(ACCEL)].to_numpy(dtype=float)
+        return _columns(self.imu, ACCEL)
 
     def nav_rows(self, cols: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
         """(t_s, values) for the nav rows where every column of ``cols`` is present."""
-        sub = self.nav[list(cols)]
-        ok = sub.notna().all(axis=1).to_numpy()
-        return self.nav.index.to_numpy(dtype=float)[ok], sub.to_numpy(dtype=float)[ok]
+        vals = _columns(self.nav, cols, "C")  # (the order of the original's masked copy)
+        ok = ~np.isnan(vals).any(axis=1)
+        t = self.nav.index.to_numpy(dtype=float)
+        if ok.all():  # (no rows to drop: the arrays as they are)
+            return t.copy() if np.shares_memory(t, self.nav.index.to_numpy()) else t, vals
+        return t[ok], vals[ok]
 
     def quat_wxyz(self) -> tuple[np.ndarray, np.ndarray]:
         return self.nav_rows(QUAT)

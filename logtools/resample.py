@@ -76,7 +76,7 @@ def clean_samples(t_s: np.ndarray, values: np.ndarray, *, name: str = "stream") 
     n_bad = int((~ok).sum())
     if n_bad:
         warns.append(f"{name}: {n_bad} of {len(t)} samples with NaN/inf dropped")
-    t, x = t[ok], x[ok]
+        t, x = t[ok], x[ok]
     n_unsorted = int(np.sum(np.diff(t) < 0)) if len(t) > 1 else 0
     if n_unsorted:
         order = np.argsort(t, kind="stable")
@@ -151,9 +151,12 @@ def to_uniform(
                          f"(mostly gaps: corrupt stamps, or logs joined across a long pause?); not resampled")
     tg = np.arange(i0, i1 + 1) * dt
     tg = np.clip(tg, t[0], t[-1])
-    # spline on the samples (not-a-knot cubic); gaps masked below
-    spl = make_interp_spline(t, x, k=3)
-    vg = spl(tg)
+    # spline on the samples (not-a-knot cubic); gaps masked below. One column at a time: the same
+    # numbers (each column is its own solve), a fraction of the temporaries of a many-column solve
+    vg = np.empty((len(tg), x.shape[1]))
+    for j in range(x.shape[1]):
+        vg[:, j] = make_interp_spline(t, x[:, j], k=3)(tg)
+    del cs, x
     valid = np.ones(len(tg), dtype=bool)
     gaps: list[tuple[float, float]] = []
     steps = np.diff(t)
@@ -181,15 +184,15 @@ def to_uniform(
     return UniformSeries(i0, dt, vg, valid, tuple(warns), tuple(gaps))
 
 
-def _fill_invalid(series: UniformSeries) -> np.ndarray:
-    """Values with invalid rows replaced by linear interpolation of the valid ones (for filtering)."""
-    v = series.values.copy()
+def _fill_invalid_column(series: UniformSeries, j: int) -> np.ndarray:
+    """Column ``j`` of the values with invalid rows replaced by linear interpolation of the valid ones
+    (for filtering; the columns are filled independently)."""
+    v = series.values[:, j].copy()
     ok = series.valid
     if ok.all() or not ok.any():
         return v
     idx = np.arange(len(v))
-    for j in range(v.shape[1]):
-        v[~ok, j] = np.interp(idx[~ok], idx[ok], v[ok, j])
+    v[~ok] = np.interp(idx[~ok], idx[ok], v[ok])
     return v
 
 
@@ -210,12 +213,18 @@ def lowpass(series: UniformSeries, cutoff_hz: float, *, order: int = 4) -> Unifo
     if not (0 < cutoff_hz < 0.98 * nyq) or len(series.values) < 8 * order:
         return series
     sos = signal.butter(order, cutoff_hz / nyq, output="sos")
-    v = signal.sosfiltfilt(sos, _fill_invalid(series), axis=0, padtype="even")
+    v = np.empty(series.values.shape)  # column by column: the filter runs along each on its own
+    for j in range(v.shape[1]):
+        v[:, j] = signal.sosfiltfilt(sos, _fill_invalid_column(series, j), axis=0, padtype="even")
     settle = int(np.ceil(1.0 / (cutoff_hz * series.dt_s)))
     valid = ~_dilate(~series.valid, settle)
     valid[:settle] = False  # the filter's start-up and run-out at the data ends
     valid[-settle:] = False
     return UniformSeries(series.i0, series.dt_s, v, valid, series.warnings, series.gaps_s)
+
+
+#: points an Interpolant evaluates at a time (bounds its temporaries; each point is computed on its own)
+EVAL_POINTS = 1 << 18
 
 
 @dataclass(frozen=True)
@@ -282,17 +291,28 @@ class Interpolant:
         t = np.asarray(t_s, dtype=float)
         ok = self.ok(t)
         out = np.full((len(t), self.series.values.shape[1]), np.nan)
-        if ok.any():
-            u, _ = self._pos(t[ok])
-            out[ok] = self._eval(u, nu)
+        if ok.all():  # (every point on its own: evaluated EVAL_POINTS at a time, the same numbers)
+            for i in range(0, len(t), EVAL_POINTS):
+                u, _ = self._pos(t[i:i + EVAL_POINTS])
+                out[i:i + EVAL_POINTS] = self._eval(u, nu)
+        elif ok.any():
+            idx = np.flatnonzero(ok)
+            for i in range(0, len(idx), EVAL_POINTS):
+                at = idx[i:i + EVAL_POINTS]
+                u, _ = self._pos(t[at])
+                out[at] = self._eval(u, nu)
         return out, ok
 
 
 def interpolant(series: UniformSeries) -> Interpolant:
     """Interpolating cubic B-spline of a uniform series (O(n) prefilter); gaps bridged then masked."""
-    v = _fill_invalid(series)
-    if len(v) < 4:
+    n, k = series.values.shape
+    if n < 4:
         raise ValueError("an interpolant needs at least 4 samples")
-    c = ndimage.spline_filter1d(v, order=3, axis=0, mode="mirror")
-    cp = np.concatenate([c[1:2], c, c[-2:-1], c[-3:-2]], axis=0)
+    cp = np.empty((n + 3, k))  # the coefficients padded (1 before, 2 after), filled column by column
+    for j in range(k):
+        c = ndimage.spline_filter1d(_fill_invalid_column(series, j), order=3, axis=0, mode="mirror")
+        cp[1:n + 1, j] = c
+        cp[0, j], cp[n + 1, j], cp[n + 2, j] = c[1], c[-2], c[-3]
+        del c
     return Interpolant(series, cp, _dilate(~series.valid, 1))

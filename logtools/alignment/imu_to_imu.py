@@ -133,9 +133,13 @@ def _highpass(y: np.ndarray, n_win: int) -> np.ndarray:
     n = len(y)
     h = max(n_win // 2, 1)
     c = np.concatenate([np.zeros((1, y.shape[1])), np.cumsum(y, axis=0)])
-    i0 = np.clip(np.arange(n) - h, 0, n)
-    i1 = np.clip(np.arange(n) + h + 1, 0, n)
-    return y - (c[i1] - c[i0]) / (i1 - i0)[:, None]
+    out = np.empty(y.shape)
+    for a in range(0, n, HIGHPASS_ROWS):  # row by row arithmetic: blocks only bound the temporaries
+        r = np.arange(a, min(n, a + HIGHPASS_ROWS))
+        i0 = np.clip(r - h, 0, n)
+        i1 = np.clip(r + h + 1, 0, n)
+        out[a:a + len(r)] = y[a:a + len(r)] - (c[i1] - c[i0]) / (i1 - i0)[:, None]
+    return out
 
 
 def _common(t_m: np.ndarray, y_m: np.ndarray, t_s: np.ndarray, y_s: np.ndarray, gap_steps: float
@@ -156,6 +160,12 @@ def _common(t_m: np.ndarray, y_m: np.ndarray, t_s: np.ndarray, y_s: np.ndarray, 
 
 
 # ---- the estimate ----------------------------------------------------------------------------------
+#: rows of a moving mean taken out at a time in _highpass (bounds its temporaries; row by row the same)
+HIGHPASS_ROWS = 1 << 18
+#: frequencies whose power is summed at a time in _long_run_cov (bounds a temporary; row by row the same)
+FFT_ROWS = 1 << 16
+
+
 def _long_run_cov(s: np.ndarray) -> tuple[np.ndarray, float]:
     """Newey-West (Bartlett) long-run covariance of the score series s (n, p) summed over n; and the
     scores' integrated correlation time in samples (1 + 2 sum rho up to its first zero crossing)."""
@@ -166,8 +176,18 @@ def _long_run_cov(s: np.ndarray) -> tuple[np.ndarray, float]:
         return np.zeros((s.shape[1], s.shape[1])), 1.0
     # integrated correlation time of the scores (their summed autocorrelation), by FFT
     nfft = 1 << int(np.ceil(np.log2(2 * n)))
-    f = np.fft.rfft(s, nfft, axis=0)
-    ac = np.fft.irfft(np.sum(f * np.conj(f), axis=1), nfft)[:n] / tot
+    # the scores' spectra column by column, their power summed FFT_ROWS frequencies at a time: the numbers
+    # of rfft(s, axis=0) and sum(f * conj(f), axis=1) without two more full-size complex copies
+    f = np.empty((nfft // 2 + 1, s.shape[1]), dtype=complex)
+    for j in range(s.shape[1]):
+        f[:, j] = np.fft.rfft(s[:, j], nfft)
+    power = np.empty(len(f), dtype=complex)
+    for i in range(0, len(f), FFT_ROWS):
+        blk = f[i:i + FFT_ROWS]
+        power[i:i + FFT_ROWS] = np.sum(blk * np.conj(blk), axis=1)
+    del f, blk
+    ac = np.fft.irfft(power, nfft)[:n] / tot
+    del power
     neg = np.nonzero(ac[1:] <= 0)[0]
     m = int(neg[0]) if len(neg) else n - 1
     tau = max(1.0 + 2.0 * float(np.sum(ac[1:m + 1])), 1.0)
@@ -307,9 +327,12 @@ def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highp
     # sensors' own filters, vibration aliased into the snapshots, scale factors)
     nlp = max(int(round(cfg.band_split_s / dt)), 2)
     lo = [u - _highpass(u, nlp), v - _highpass(v, nlp), k - _highpass(k.reshape(len(t), -1), nlp).reshape(k.shape)]
-    hi = [u - lo[0], v - lo[1], k - lo[2]]
     # (a band the rotation explains poorly is itself the sign: no minimum there, the sigmas judge)
-    bands = [_triad(b[0][cut], b[1][cut], b[2][cut], dt, cfg, min_explained=0.0) for b in (lo, hi)]
+    band_lo = _triad(lo[0][cut], lo[1][cut], lo[2][cut], dt, cfg, min_explained=0.0)
+    hi = [x - y for x, y in zip((u, v, k), lo)]  # made once the slow band's fit is done: one band in memory
+    del lo, u, v, k
+    bands = [band_lo, _triad(hi[0][cut], hi[1][cut], hi[2][cut], dt, cfg, min_explained=0.0)]
+    del hi
     if all(isinstance(b, TriadRotation) for b in bands):
         zb, _ = _z(bands[0].rpy_deg, bands[0].sigma_deg, bands[1].rpy_deg, bands[1].sigma_deg,
                    cfg.consistency_floor_deg)

@@ -283,12 +283,19 @@ def _slave_imu(slave: InsLog, src: str) -> tuple[np.ndarray, np.ndarray, np.ndar
     g = slave.gyro_rad_s()
     a = slave.accel_m_s2()
     ok = np.isfinite(t) & np.isfinite(g).all(1) & np.isfinite(a).all(1)
-    t, g, a = t[ok], g[ok], a[ok]
+    if not ok.all():
+        t, g, a = t[ok], g[ok], a[ok]
     if len(t) < 10:
         raise AnalysisError(f"{src}: the slave's IMU has fewer than 10 finite samples")
-    order = np.argsort(t, kind="stable")
-    t, g, a = t[order], g[order], a[order]
-    keep = np.concatenate([[True], np.diff(t) > 0])
+    d = np.diff(t)
+    if np.any(d < 0):
+        order = np.argsort(t, kind="stable")
+        t, g, a = t[order], g[order], a[order]
+        d = np.diff(t)
+    keep = np.concatenate([[True], d > 0])
+    if keep.all():  # nothing to drop: one C-ordered copy each (what the masked copies were), not three
+        return t.copy(), np.ascontiguousarray(g) if g.base is not None or not g.flags.c_contiguous else g.copy(), \
+            np.ascontiguousarray(a) if a.base is not None or not a.flags.c_contiguous else a.copy()
     return t[keep], g[keep], a[keep]
 
 
