@@ -185,7 +185,7 @@ def _long_run_cov(s: np.ndarray) -> tuple[np.ndarray, float]:
     for i in range(0, len(f), FFT_ROWS):
         blk = f[i:i + FFT_ROWS]
         power[i:i + FFT_ROWS] = np.sum(blk * np.conj(blk), axis=1)
-    del f, blk
+    del blk
     ac = np.fft.irfft(power, nfft)[:n] / tot
     del power
     neg = np.nonzero(ac[1:] <= 0)[0]
@@ -202,7 +202,11 @@ def _long_run_cov(s: np.ndarray) -> tuple[np.ndarray, float]:
     w[j] = w[nfft - j] = 1.0 - j / (L + 1.0)
     wk = np.fft.rfft(w).real  # real: the window is symmetric
     wk[1:(nfft + 1) // 2] *= 2.0  # the interior bins stand for their conjugate twins too
-    om = ((f * wk[:, None]).T @ np.conj(f)).real / nfft
+    om = np.zeros((s.shape[1], s.shape[1]))
+    for i in range(0, len(f), FFT_ROWS):  # (in blocks of frequencies: no full-size weighted copy)
+        blk = f[i:i + FFT_ROWS]
+        om += ((blk * wk[i:i + FFT_ROWS, None]).T @ np.conj(blk)).real
+    om /= nfft
     return 0.5 * (om + om.T), tau
 
 
