@@ -185,12 +185,13 @@ def warmup_running() -> bool:
     return _lock_is_live(_lock_path())
 
 
-def start_background_warmup() -> bool:
-    """Start ``python -m pipelines.warmup`` detached at low priority, unless one runs or it is not wanted.
+def start_background_warmup(respect_kernels_env: bool = True) -> bool:
+    """Start ``python -m pipelines.warmup`` detached at low priority, unless one runs or it is not wanted
+    (TAPOST_WARMUP=0; a TAPOST_KERNELS choice, unless the caller decided in auto mode already).
     Returns True when one was started."""
     if os.environ.get("TAPOST_WARMUP", "1") == "0" or not _numba_importable():
         return False
-    if os.environ.get("TAPOST_KERNELS", "auto").strip().lower() != "auto":
+    if respect_kernels_env and os.environ.get("TAPOST_KERNELS", "auto").strip().lower() != "auto":
         return False
     if os.path.exists(stamp_path()):
         return False

@@ -12,6 +12,7 @@ numba are imported, so that a run is never silent for long:
 """
 from __future__ import annotations
 
+import atexit
 import os
 import sys
 
@@ -87,6 +88,10 @@ def input_bytes(command: str | None, args: list[str]) -> int | None:
     return total if seen else None
 
 
+def _background_wanted() -> bool:
+    return os.environ.get("TAPOST_WARMUP", "1") != "0"
+
+
 def early_notice(command: str | None, args: list[str] | None = None, stream=None) -> str:
     """For a fresh process: decide the kernels (logtools.jit, from the inputs' size) and say at once what
     that means; start the background compile where the reference code runs. Returns the mode."""
@@ -98,7 +103,14 @@ def early_notice(command: str | None, args: list[str] | None = None, stream=None
     out = stream if stream is not None else sys.stderr
     if command in ("analyze", "batch"):
         if mode == "reference" and jit.why() == "kernels not compiled yet":
-            if jit.start_background_warmup() or jit.warmup_running():
+            if command == "analyze" and not jit.warmup_running() and _background_wanted():
+                # one pair: the compile starts when this run ends, so that it does not share the machine
+                # with it (two vCPUs are often one core's two threads); a batch starts it at once
+                atexit.register(jit.start_background_warmup, respect_kernels_env=False)
+                started = True
+            else:
+                started = jit.start_background_warmup()
+            if started or jit.warmup_running():
                 _write(out, "tapost: first run after installing: the fast numerical kernels compile in the "
                             f"background (once, {COMPILE_ESTIMATE}); this run uses the reference code")
             else:
