@@ -25,7 +25,7 @@ import sys
 import time
 
 __all__ = ["compiled", "njit", "lazy", "hint_input_bytes", "mode", "stamp_path", "kernel_fingerprint",
-           "write_stamp", "start_background_warmup", "warmup_running", "LARGE_INPUT_BYTES"]
+           "write_stamp", "start_background_warmup", "warmup_running", "warmup_wanted", "LARGE_INPUT_BYTES"]
 
 #: inputs (master + slave file bytes) from which the reference code costs more than compiling the kernels:
 #: the reference alignment runs about 6x slower than the compiled loop (0.45 -> 2.9 s on the 2-minute,
@@ -185,11 +185,16 @@ def warmup_running() -> bool:
     return _lock_is_live(_lock_path())
 
 
+def warmup_wanted() -> bool:
+    """A background compile may start (numba is there, TAPOST_WARMUP is not 0)."""
+    return os.environ.get("TAPOST_WARMUP", "1") != "0" and _numba_importable()
+
+
 def start_background_warmup(respect_kernels_env: bool = True) -> bool:
     """Start ``python -m pipelines.warmup`` detached at low priority, unless one runs or it is not wanted
     (TAPOST_WARMUP=0; a TAPOST_KERNELS choice, unless the caller decided in auto mode already).
     Returns True when one was started."""
-    if os.environ.get("TAPOST_WARMUP", "1") == "0" or not _numba_importable():
+    if not warmup_wanted():
         return False
     if respect_kernels_env and os.environ.get("TAPOST_KERNELS", "auto").strip().lower() != "auto":
         return False

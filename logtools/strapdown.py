@@ -35,11 +35,7 @@ from logtools.conventions import quat_normalize
 from logtools import jit
 
 HAVE_NUMBA = jit.compiled()  # compiled kernels in this process (logtools.jit decides: cache, input size)
-
-
-def njit(fn):
-    """numba.njit(cache=True, fastmath=False) when this process runs compiled kernels, else ``fn``."""
-    return jit.njit(fn, fastmath=False)
+njit = jit.njit  # numba.njit(cache=True) in compiled mode (fastmath off, numba's default), else the function
 
 
 # ---- earth model, scalar (numba) copies of logtools.earth (tested equal in tests/test_strapdown.py) ----

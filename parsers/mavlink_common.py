@@ -21,11 +21,7 @@ import numpy as np
 from logtools import jit
 
 HAVE_NUMBA = jit.compiled()  # compiled kernels in this process (logtools.jit decides: cache, input size)
-
-
-def _njit(*args, **kwargs):
-    """numba.njit(cache=True) in compiled mode; the plain function otherwise."""
-    return jit.njit(**kwargs)
+_njit = jit.njit  # numba.njit(cache=True) in compiled mode; the plain function otherwise
 
 
 # ---- X.25 CRC ----------------------------------------------------------------------------------

@@ -88,10 +88,6 @@ def input_bytes(command: str | None, args: list[str]) -> int | None:
     return total if seen else None
 
 
-def _background_wanted() -> bool:
-    return os.environ.get("TAPOST_WARMUP", "1") != "0"
-
-
 def early_notice(command: str | None, args: list[str] | None = None, stream=None) -> str:
     """For a fresh process: decide the kernels (logtools.jit, from the inputs' size) and say at once what
     that means; start the background compile where the reference code runs. Returns the mode."""
@@ -103,7 +99,7 @@ def early_notice(command: str | None, args: list[str] | None = None, stream=None
     out = stream if stream is not None else sys.stderr
     if command in ("analyze", "batch"):
         if mode == "reference" and jit.why() == "kernels not compiled yet":
-            if command == "analyze" and not jit.warmup_running() and _background_wanted():
+            if command == "analyze" and not jit.warmup_running() and jit.warmup_wanted():
                 # one pair: the compile starts when this run ends, so that it does not share the machine
                 # with it (two vCPUs are often one core's two threads); a batch starts it at once
                 atexit.register(jit.start_background_warmup, respect_kernels_env=False)

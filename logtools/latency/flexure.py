@@ -33,11 +33,7 @@ from scipy import optimize
 
 from logtools.latency.config import DEFAULT, LatencyConfig
 
-from logtools import jit
-
-
-def njit(fn):
-    return jit.njit(fn, fastmath=False)
+from logtools.jit import njit
 
 
 __all__ = ["FlexureModel", "block_mean", "fit_model", "whitened_normal"]
