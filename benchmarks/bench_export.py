@@ -1,13 +1,15 @@
 """Speed of the native export (the slave on the master's clock) against parsing the same file.
 
 A 1 h slave at 200 Hz (IMU 200 Hz; attitude, velocity, position 50 Hz) is written in each format by the
-repository's writers (tlog, DataFlash, ULog, canonical CSV). In the same run, for each file:
+repository's writers (tlog, DataFlash, ULog, canonical CSV, MCAP with ROS 2 messages, ROS 1 bag, ROS 2
+bags with sqlite3 and with mcap storage). In the same run, for each file:
 * parse: ``parsers.registry.load`` (file -> InsLog, what ``tapost analyze`` does with a slave);
 * export: the native writer (``pipelines.export.write_native``: every record copied, the time fields
   rewritten with a ClockShift of 37.2 ms and 30 ppm);
 * the ratio export / parse (the target: at most 1);
 * the CSV and Parquet exports from the parsed InsLog.
-Times are the best of ``--repeat`` runs, after one warm-up run of each (numba caches loaded).
+Times are the best of ``--repeat`` runs, after one warm-up run of each (numba caches loaded). Both run
+the compiled kernels (``TAPOST_KERNELS=compiled`` unless set), as every run after the first does.
 
     python benchmarks/bench_export.py            # 1 h logs
     python benchmarks/bench_export.py --quick    # 10 min logs
@@ -20,16 +22,34 @@ import argparse
 import json
 import os
 import platform
+import shutil
 import sys
 import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+os.environ.setdefault("TAPOST_KERNELS", "compiled")  # a warm installation's speed (see logtools.jit)
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from bench_parse_ulog_csv import best_of  # noqa: E402 (one timing helper for the parse and export benchmarks)
 RESULTS = ROOT / "benchmarks" / "results" / "export.json"
-FORMATS = {"tlog": ".tlog", "dataflash": ".bin", "ulog": ".ulg", "csv": ".csv"}
+#: case -> (reader format, file or folder name, writer options)
+FORMATS = {"tlog": ("tlog", "slave.tlog", {}), "dataflash": ("dataflash", "slave.bin", {}),
+           "ulog": ("ulog", "slave.ulg", {}), "csv": ("csv", "slave.csv", {}),
+           "mcap": ("mcap", "slave.mcap", {}), "rosbag1": ("rosbag1", "slave.bag", {}),
+           "rosbag2-sqlite3": ("rosbag2", "slave_bag2_sqlite3", {"storage": "sqlite3"}),
+           "rosbag2-mcap": ("rosbag2", "slave_bag2_mcap", {"storage": "mcap"})}
+
+
+def _size_mb(path: Path) -> float:
+    return (sum(f.stat().st_size for f in path.iterdir()) if path.is_dir() else path.stat().st_size) / 1e6
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir():
+        shutil.rmtree(path)
+    elif path.exists():
+        path.unlink()
 
 
 def main(argv=None) -> int:
@@ -53,27 +73,28 @@ def main(argv=None) -> int:
                  "formats": {}}
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(tmp)
-        for fmt in args.formats.split(","):
-            src = d / f"slave{FORMATS[fmt]}"
-            registry.write(str(src), log, fmt)
-            dst = d / f"slave_on_master_clock{FORMATS[fmt]}"
+        for case in args.formats.split(","):
+            fmt, name, opts = FORMATS[case]
+            src = d / name
+            registry.write(str(src), log, fmt, **opts)
+            dst = d / f"exported_{name}"
             registry.load(str(src))  # warm-up (numba caches)
             t_parse, parsed = best_of(lambda: registry.load(str(src)), args.repeat)
             export.write_native(str(src), str(dst), fmt, shift, parsed.meta.selector)
             t_exp, st = best_of(lambda: export.write_native(str(src), str(dst), fmt, shift, parsed.meta.selector),
                                 args.repeat)
-            row = {"file_mb": src.stat().st_size / 1e6, "records": st.records, "parse_s": t_parse,
+            row = {"format": fmt, "options": opts, "file_mb": _size_mb(src), "records": st.records, "parse_s": t_parse,
                    "export_native_s": t_exp, "ratio_export_over_parse": t_exp / t_parse,
                    "imu_samples": int(len(parsed.imu))}
             if fmt == "tlog":  # CSV/Parquet from the parsed slave, once
                 t_csv, _ = best_of(lambda: export.write_slave(("csv",), str(d), parsed, shift), 1)
                 t_pq, _ = best_of(lambda: export.write_slave(("parquet",), str(d), parsed, shift), 1)
                 out["csv_export_s"], out["parquet_export_s"] = t_csv, t_pq
-            out["formats"][fmt] = row
-            print(f"{fmt:10s} {row['file_mb']:8.1f} MB  parse {t_parse:7.2f} s  export {t_exp:7.2f} s  "
+            out["formats"][case] = row
+            print(f"{case:16s} {row['file_mb']:8.1f} MB  parse {t_parse:7.2f} s  export {t_exp:7.2f} s  "
                   f"ratio {row['ratio_export_over_parse']:.2f}", flush=True)
-            src.unlink()
-            dst.unlink()
+            _remove(src)
+            _remove(dst)
     if not args.quick:
         RESULTS.parent.mkdir(parents=True, exist_ok=True)
         RESULTS.write_text(json.dumps(out, indent=2) + "\n")

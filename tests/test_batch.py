@@ -144,13 +144,20 @@ def test_campaign_processes_and_dask_agree_and_rerun_does_nothing(tmp_path, fake
     assert "1 run now, 5 already done" in capsys.readouterr().out
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_sigint_leaves_no_half_written_report_and_rerun_completes(tmp_path):
     camp = make_campaign(tmp_path, n_good=5, duration_s=30.0)
     out = tmp_path / "out"
     code = ("import sys; sys.path.insert(0, %r); from test_analyze_cli import install_fake_numerics; "
             "install_fake_numerics(); from pipelines.cli import main; sys.exit(main(sys.argv[1:]))" % str(HERE))
     argv = [sys.executable, "-c", code, "batch", str(camp), "-o", str(out), "--jobs", "1"]
-    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=tmp_path)
+    # SIGINT back to its default in the child: a runner started in the background by a non-interactive
+    # shell (nohup, `cmd &`) ignores SIGINT, its children inherit that, and the batch rightly honours it
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=tmp_path,
+                            preexec_fn=_default_sigint)
     deadline = time.time() + 60
     while time.time() < deadline and len(list(out.glob("*/done.json"))) < 2:
         time.sleep(0.05)
@@ -189,11 +196,15 @@ def test_an_interrupt_swallowed_inside_a_pair_still_stops_the_batch(monkeypatch)
         return {"row": {}, "ran": True}
 
     monkeypatch.setattr(batch, "run_pair", pair)
-    with pytest.raises(KeyboardInterrupt):
-        with batch._SigintLatch() as latch:
-            batch._run_local(["a", "b", "c"], 1, lambda j, r: None, latch)
-    assert ran == ["a"]
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a foreground process
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with batch._SigintLatch() as latch:
+                batch._run_local(["a", "b", "c"], 1, lambda j, r: None, latch)
+        assert ran == ["a"]
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+    finally:
+        signal.signal(signal.SIGINT, old)
 
 
 def test_real_campaign(tmp_path):
