@@ -276,6 +276,45 @@ class _Scan1(rosbag1._Scan):
         super().__init__(lambda topic, msgtype: True)
         self.fields: dict[int, dict[str, bytes]] = {}
         self.compression: str | None = None
+        #: the vectorised runs' messages, not copied one by one: (container bytes, conn ids, times,
+        #: payload starts, lengths); the record-by-record path still fills ``times``/``data``
+        self.blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+
+    @property
+    def count(self) -> int:
+        return super().count + sum(len(b[1]) for b in self.blocks)
+
+    def _keep(self, buf, arr, cid, t_ns, d0, lens):
+        if len(cid):
+            self.blocks.append((arr, cid.copy(), t_ns, d0, lens))
+
+    def messages(self, cids: list[int]) -> _Msgs:
+        """Every message, connections numbered by their place in ``cids``, in the order of the input
+        grouped by connection (the stable time sort of the caller then breaks ties by connection)."""
+        ids = np.asarray(cids, np.int64)  # sorted: a connection's number is its place
+        conn, log, seq, bufs, starts, lens = [], [], [], [], [], []
+        base = n = 0
+        for arr, cid, t_ns, d0, ln in self.blocks:
+            conn.append(np.searchsorted(ids, cid))
+            log.append(t_ns)
+            seq.append(np.arange(n, n + len(cid)))
+            bufs.append(arr)
+            starts.append(d0 + base)
+            lens.append(ln)
+            base += len(arr)
+            n += len(cid)
+        rest = [(k, t, d) for k, c in enumerate(cids) for t, d in zip(self.times[c], self.data[c])]
+        if rest:  # records read one by one (a header layout the vectorised path does not know)
+            tail = _pack(np.array([r[0] for r in rest], np.int64), np.array([r[1] for r in rest], np.int64),
+                         [r[2] for r in rest])
+            conn.append(tail.conn), log.append(tail.log_ns), seq.append(np.arange(n, n + len(rest)))
+            bufs.append(tail.buf), starts.append(tail.starts + base), lens.append(tail.lens)
+        if not bufs:
+            return _pack(np.zeros(0, np.int64), np.zeros(0, np.int64), [])
+        conn_a, seq_a = np.concatenate(conn), np.concatenate(seq)
+        group = np.lexsort((seq_a, conn_a))
+        buf = np.concatenate(bufs)  # one writable copy of the containers' bytes
+        return _Msgs(conn_a, np.concatenate(log), buf, np.concatenate(starts), np.concatenate(lens)).take(group)
 
     def connection(self, header, data):
         (cid,) = rosbag1._U32.unpack_from(header["conn"], 0)
@@ -342,11 +381,8 @@ def restamp_rosbag1(src: str, dst: str, shift: ClockShift, *, selector: str | No
         topic, msgtype, msgdef = scan.conns[cid]
         _registered(typestore, msgtype, msgdef, "msg")
         streams.append(_Stream(topic, msgtype, "ros1", _header_kind(typestore, msgtype)))
-    conn = np.concatenate([np.full(len(scan.times[c]), k, np.int64) for k, c in enumerate(cids)] or [np.zeros(0, np.int64)])
-    log = np.concatenate([np.asarray(scan.times[c], np.int64) for c in cids] or [np.zeros(0, np.int64)])
-    data = [d for c in cids for d in scan.data[c]]
-    order = np.argsort(log, kind="stable")  # the bag's time order
-    msgs = _pack(conn, log, data).take(order)
+    msgs = scan.messages(cids)
+    msgs = msgs.take(np.argsort(msgs.log_ns, kind="stable"))  # the bag's time order
     new_log, msgs, notes = _apply(streams, msgs, typestore, shift, selector, src)
     comp = scan.compression or "none"
     # (a bag with the topic only in the connection record's header: kept in the record header)

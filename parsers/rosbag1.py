@@ -17,6 +17,9 @@ import os
 import struct
 from collections.abc import Callable
 
+import numpy as np
+
+from logtools import jit
 from logtools.errors import InputError
 from logtools.inslog import InsLog
 from parsers import ros_common as rc
@@ -58,6 +61,45 @@ def _fields(header: bytes) -> dict[str, bytes]:
     return out
 
 
+def _walk_records(buf, start, end):  # compiled with numba (logtools.jit), one pass over a container
+    """Offsets, header and data lengths of the records in buf[start:end] up to the first that does not fit;
+    returns (offsets, header lengths, data lengths, error: 0 none / 1 record cut / 2 header / 3 data, at)."""
+    cap = (end - start) // 8 + 1
+    offs = np.empty(cap, np.int64)
+    hls = np.empty(cap, np.int64)
+    dls = np.empty(cap, np.int64)
+    n = 0
+    off = start
+    err = 0
+    while off < end:
+        if off + 4 > end:
+            err = 1
+            break
+        hlen = np.int64(buf[off]) | (np.int64(buf[off + 1]) << 8) | (np.int64(buf[off + 2]) << 16) | \
+            (np.int64(buf[off + 3]) << 24)
+        h0 = off + 4
+        if h0 + hlen + 4 > end:
+            err = 2
+            break
+        q = h0 + hlen
+        dlen = np.int64(buf[q]) | (np.int64(buf[q + 1]) << 8) | (np.int64(buf[q + 2]) << 16) | \
+            (np.int64(buf[q + 3]) << 24)
+        if q + 4 + dlen > end:
+            err = 3
+            break
+        offs[n] = off
+        hls[n] = hlen
+        dls[n] = dlen
+        n += 1
+        off = q + 4 + dlen
+    return offs[:n], hls[:n], dls[:n], err, off
+
+
+_walk = jit.lazy(_walk_records)
+_WALK_ERRORS = {1: "record cut at byte {}", 2: "record header at byte {} runs past its container",
+                3: "record data at byte {} runs past its container"}
+
+
 class _Scan:
     def __init__(self, keep: Callable[[str, str], bool]):
         self.keep = keep
@@ -79,6 +121,11 @@ class _Scan:
         self.times[cid] = []
         self.data[cid] = [] if self.keep(topic, msgtype) else None
 
+    @property
+    def count(self) -> int:
+        """Messages read so far."""
+        return sum(map(len, self.times.values()))
+
     def _msg_layout(self, hdr: bytes) -> tuple[int, int, int] | None:
         """Offsets (inside the header) of the op, conn and time values of a MSG_DATA header."""
         pos: dict[str, int] = {}
@@ -93,6 +140,67 @@ class _Scan:
         return pos["op"], pos["conn"], pos["time"]
 
     def records(self, buf: bytes, start: int, end: int, where: str) -> None:
+        """The records of buf[start:end] in order: MSG_DATA records of a known header layout in vectorised
+        runs (compiled mode: the walk is one numba pass), every other record one by one."""
+        if not jit.compiled():
+            return self._records_one_by_one(buf, start, end, where)
+        arr = np.frombuffer(buf, np.uint8)
+        offs, hls, dls, err, at = _walk()(arr, start, end)
+        fast = np.zeros(len(offs), bool)
+        lay = np.full((len(offs), 3), -1, np.int64)
+        for h in np.unique(hls).tolist():
+            rows = np.flatnonzero(hls == h)
+            got = self.layout.get(h, 0)
+            if got == 0:
+                o = int(offs[rows[0]]) + 4
+                try:
+                    got = self._msg_layout(buf[o:o + h])
+                except (ValueError, struct.error):
+                    got = None
+                self.layout[h] = got
+            if got is not None:
+                lay[rows] = got
+                op_at = offs[rows] + 4 + got[0]
+                fast[rows] = (arr[op_at] == _OP_MSG) & (arr[op_at - 3] == ord("o")) & \
+                    (arr[op_at - 2] == ord("p")) & (arr[op_at - 1] == ord("="))
+        slow = np.flatnonzero(~fast).tolist()
+        a = 0
+        for b in slow + [len(offs)]:
+            if b > a:
+                self._messages(buf, arr, offs[a:b], hls[a:b], dls[a:b], lay[a:b], where)
+            if b < len(offs):
+                o = int(offs[b])
+                self._records_one_by_one(buf, o, o + 8 + int(hls[b]) + int(dls[b]), where)
+            a = b + 1
+        if err:
+            raise _Damage(f"{where}: " + _WALK_ERRORS[int(err)].format(int(at)))
+
+    def _messages(self, buf: bytes, arr: np.ndarray, offs, hls, dls, lay, where: str) -> None:
+        """A run of MSG_DATA records with known layouts: times and payloads appended per connection."""
+        h0 = offs + 4
+        c_at = h0 + lay[:, 1]
+        cid = (arr[c_at].astype(np.int64) | (arr[c_at + 1].astype(np.int64) << 8) |
+               (arr[c_at + 2].astype(np.int64) << 16) | (arr[c_at + 3].astype(np.int64) << 24))
+        sn = arr[(h0 + lay[:, 2])[:, None] + np.arange(8)].view("<u4").astype(np.int64)
+        t_ns = sn[:, 0] * 1_000_000_000 + sn[:, 1]
+        d0 = h0 + hls + 4
+        known = np.isin(cid, np.fromiter(self.times, np.int64, len(self.times)))
+        stop = len(cid) if known.all() else int(np.argmin(known))
+        self._keep(buf, arr, cid[:stop], t_ns[:stop], d0[:stop], dls[:stop])
+        if stop < len(cid):
+            raise _Damage(f"{where}: message for unknown connection {int(cid[stop])} at byte {int(offs[stop])}")
+
+    def _keep(self, buf: bytes, arr: np.ndarray, cid, t_ns, d0, lens) -> None:
+        """Messages of known connections, in file order: record times and payload bytes per connection."""
+        d1 = d0 + lens
+        for c in np.unique(cid).tolist():
+            rows = np.flatnonzero(cid == c)
+            self.times[c].extend(t_ns[rows].tolist())
+            d = self.data[c]
+            if d is not None:
+                d.extend([buf[x:y] for x, y in zip(d0[rows].tolist(), d1[rows].tolist())])
+
+    def _records_one_by_one(self, buf: bytes, start: int, end: int, where: str) -> None:
         off = start
         u32 = _U32.unpack_from
         tm = _TIME.unpack_from
@@ -168,11 +276,11 @@ class _Scan:
             raise _Damage(f"chunk at byte {where} cannot be decompressed ({type(exc).__name__})") from None
         if len(content) != size:
             raise _Damage(f"chunk at byte {where}: size {len(content)} != {size}")
-        before = {k: len(v) for k, v in self.times.items()}
+        before = self.count
         try:
             self.records(content, 0, len(content), f"chunk at byte {where}")
         except (_Damage, struct.error, KeyError, ValueError) as exc:  # keep what was read before
-            n_new = sum(len(v) - before.get(k, 0) for k, v in self.times.items())
+            n_new = self.count - before
             text = str(exc) if isinstance(exc, _Damage) else f"chunk at byte {where}: {type(exc).__name__} {exc}"
             raise _Damage(f"{text} (kept the {n_new} messages of that chunk before the damage)") from None
 

@@ -7,9 +7,10 @@ image:
 
     python -m pipelines.warmup          # about 1 min on 2 cores; prints what it compiles
 
-It simulates a 30-second pair, writes it in the formats whose readers have kernels (MCAP, tlog,
-DataFlash, ULog, CSV), reads each back and runs the whole analysis on the MCAP/tlog pair, so every kernel
-compiles with the argument types a real run passes.
+It simulates a 30-second pair, writes it in the formats whose readers or native exports have kernels
+(MCAP, ROS 1 bag, tlog, DataFlash, ULog, CSV), reads each back, exports each on a shifted clock, and runs
+the whole analysis on the MCAP/tlog pair, so every kernel compiles with the argument types a real run
+passes.
 """
 from __future__ import annotations
 
@@ -32,7 +33,8 @@ def warm(quiet: bool = False) -> float:
     t0 = time.perf_counter()
     from logtools import jit, sim
     from parsers import load, registry
-    from pipelines import analyze
+    from parsers.restamp import ClockShift
+    from pipelines import analyze, export
 
     if not jit.compiled():
         raise SystemExit(f"tapost warmup: nothing to compile ({jit.why()})")
@@ -40,7 +42,8 @@ def warm(quiet: bool = False) -> float:
     pair = sim.simulate(cfg)
     with tempfile.TemporaryDirectory(prefix="tapost-warmup-") as d:
         paths = {}
-        for fmt, ext, log in (("mcap", "mcap", pair.master), ("tlog", "tlog", pair.slave),
+        for fmt, ext, log in (("mcap", "mcap", pair.master), ("rosbag1", "bag", pair.master),
+                              ("tlog", "tlog", pair.slave),
                               ("dataflash", "bin", pair.slave), ("ulog", "ulg", pair.slave),
                               ("csv", "csv", pair.slave)):
             path = os.path.join(d, f"{fmt}.{ext}")
@@ -51,8 +54,12 @@ def warm(quiet: bool = False) -> float:
                 continue
             paths[fmt] = path
             t = time.perf_counter()
-            load(path)
+            got = load(path)
             _say(quiet, f"  {fmt} reader: {time.perf_counter() - t:.1f} s")
+            t = time.perf_counter()
+            shift = ClockShift(0.01, 20.0, got.meta.t0_ns)
+            export.write_native(path, os.path.join(d, f"shifted_{fmt}.{ext}"), fmt, shift, got.meta.selector)
+            _say(quiet, f"  {fmt} native export: {time.perf_counter() - t:.1f} s")
         t = time.perf_counter()
         opts = analyze.options_from({k: None for k in analyze.CLI_KEYS})[0]
         analyze.compute(paths["mcap"], paths["tlog"], opts)

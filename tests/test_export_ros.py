@@ -368,7 +368,7 @@ def test_truncated_input_writes_the_readable_part_and_names_the_damage(big, tmp_
     shift = _shift_for(a)
     st = RESTAMP[fmt](cut, dst, shift)
     assert any("truncated" in d for d in st.damage)
-    n_read = rr._scan_mcap(cut).count if fmt == "mcap" else sum(map(len, rr._scan_rosbag1(cut).times.values()))
+    n_read = rr._scan_mcap(cut).count if fmt == "mcap" else rr._scan_rosbag1(cut).count
     assert st.records == n_read and 0.3 * 3 * 6000 < st.records < 3 * 6000
     lib = _library_messages(dst, "mcap" if fmt == "mcap" else "rosbag1")
     assert sum(len(v) for v in lib.values()) == st.records  # the output is complete and indexed
