@@ -362,6 +362,19 @@ def _walk_tlog_part(buf, i, stop, in_sync, prev_t, found):
                     t2 = _tlog_stamp(buf, j)
                     if t2 < t - MAX_BACK_US or t2 > t + MAX_FWD_US:
                         ok = False
+        if ok and in_sync and prev_t >= 0 and t > prev_t + MAX_BACK_US:
+            # a jump forward: a gap in the log, or a damaged stamp (the 8 bytes are outside the frame's
+            # CRC). Damaged when the next record's stamp is back near the previous one: that record is
+            # dropped (its bytes counted as skipped) and the walk goes on from the previous stamp, so one
+            # bad byte cannot make every later stamp look like a step back
+            j = i + size
+            if j + 16 <= n and _tlog_frame_size(buf, j, n) > 0:
+                t2 = _tlog_stamp(buf, j)
+                if prev_t - MAX_BACK_US <= t2 < t - MAX_BACK_US:
+                    skipped += size
+                    resyncs += 1
+                    i += size
+                    continue
         if ok:
             if not in_sync and (k > 0 or found):
                 resyncs += 1

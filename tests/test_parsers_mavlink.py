@@ -437,6 +437,32 @@ def test_tlog_truncated_and_flipped_byte(tmp_path, capsys):
     assert len(two.imu) == n_ref - 1 and any("skipped" in w for w in two.meta.warnings)
 
 
+@pytest.mark.parametrize("jump_us", [2 ** 32, 2 ** 28])
+def test_tlog_one_damaged_receive_stamp_loses_one_record_not_the_rest(tmp_path, jump_us):
+    """The 8-byte receive stamp is outside the frame's CRC: a flipped high byte makes one stamp jump
+    forward (here by about 72 min or 4.5 min). Taken as the reference, it made every later stamp a step back
+    beyond the limit, and the walker skipped the rest of the file byte by byte (one flipped byte lost 97 %
+    of a 40 s tlog). That record alone is dropped now."""
+    log = make_log(duration_s=4.0)
+    good = tmp_path / "good.tlog"
+    T.write(str(good), log)
+    data = good.read_bytes()
+    n_ref = len(T.load(str(good), Selector()).imu)
+    from parsers.mavlink_common import walk_tlog
+
+    starts = walk_tlog(np.frombuffer(data, np.uint8))[0]  # record starts: the 8-byte stamp, then the frame
+    at = int(starts[len(starts) // 3])
+    flipped = bytearray(data)
+    old = int.from_bytes(flipped[at:at + 8], "big")
+    flipped[at:at + 8] = (old + jump_us).to_bytes(8, "big")  # one bit of a high byte set
+    bad = tmp_path / "stamp.tlog"
+    bad.write_bytes(bytes(flipped))
+    one = registry.load(str(bad))
+    assert n_ref - 1 <= len(one.imu) <= n_ref
+    assert one.duration_s == pytest.approx(registry.load(str(good)).duration_s, abs=0.05)
+    assert any("skipped" in w for w in one.meta.warnings)
+
+
 def test_dataflash_damage_reported(tmp_path, capsys):
     log = make_log(duration_s=4.0)
     good = tmp_path / "good.bin"
