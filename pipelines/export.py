@@ -122,13 +122,23 @@ def table_on_master_clock(slave: InsLog, shift: ClockShift) -> pd.DataFrame:
 
 
 def write_csv(path: str, table: pd.DataFrame) -> int:
+    """The canonical CSV: the time column as exact decimal seconds (9 decimals, from int64 ns), every
+    value as the shortest decimal that reads back to the same float64, empty cells for NaN. Written by
+    Arrow's CSV writer (pandas' ``to_csv`` took 44 s for a 1 h 200 Hz slave)."""
+    import pyarrow as pa
+    import pyarrow.csv as pacsv
+
     from parsers.csv_canonical import TIME, ns_to_seconds_text
 
-    out = table.reset_index(drop=True)
-    out.insert(0, TIME, ns_to_seconds_text(table.index.to_numpy(np.int64), 9))
+    cols = {TIME: pa.array(ns_to_seconds_text(table.index.to_numpy(np.int64), 9), pa.string())}
+    for c in table.columns:
+        cols[str(c)] = pa.array(table[c].to_numpy(float), pa.float64(), from_pandas=True)  # NaN -> empty
     with atomic_path(path) as tmp:
-        out.to_csv(tmp, index=False, float_format="%.17g", na_rep="")
-    return len(out)
+        with open(tmp, "wb") as fh:
+            fh.write((",".join(cols) + "\n").encode())
+            pacsv.write_csv(pa.table(cols), fh, write_options=pacsv.WriteOptions(
+                include_header=False, quoting_style="none"))
+    return len(table)
 
 
 def write_parquet(path: str, table: pd.DataFrame, meta: dict[str, str]) -> int:

@@ -353,3 +353,23 @@ def test_batch_passes_write_slave_to_every_pair(slaves, tmp_path, monkeypatch):
     man.write_text(f"master,slave,options,name\n{s},{s},,a\n{s},{s},--write-slave parquet,b\n")
     batch.run_batch(str(man), str(tmp_path / "out"), write_slave="native,csv", log=lambda m: None)
     assert seen == {"a": ("native", "csv"), "b": ("parquet",)}
+
+
+def test_csv_and_parquet_exports_hold_the_table_exactly(pair, tmp_path):
+    """Every value of the CSV export reads back to the same float64 (shortest round-trip decimals), NaN as
+    empty cells; its time column is the int64 ns stamps exactly (9 decimals); the Parquet export too."""
+    from parsers.csv_canonical import seconds_text_to_ns
+
+    sh = shift_of(pair)
+    tab = export.table_on_master_clock(pair.slave, sh)
+    entries = export.write_slave(("csv", "parquet"), str(tmp_path), pair.slave, sh)
+    assert [e.failed for e in entries] == [None, None]
+    csv = pd.read_csv(tmp_path / "slave_on_master_clock.csv", dtype={"time_s": str})
+    assert list(csv.columns) == ["time_s", *map(str, tab.columns)]
+    np.testing.assert_array_equal(seconds_text_to_ns(csv["time_s"]), tab.index.to_numpy(np.int64))
+    pq = pd.read_parquet(tmp_path / "slave_on_master_clock.parquet")
+    np.testing.assert_array_equal(pq["time_ns"].to_numpy(), tab.index.to_numpy(np.int64))
+    for c in tab.columns:
+        want = tab[c].to_numpy(float)
+        np.testing.assert_array_equal(csv[str(c)].to_numpy(float), want)  # NaN where NaN (assert_array_equal)
+        np.testing.assert_array_equal(pq[str(c)].to_numpy(float), want)
