@@ -633,17 +633,11 @@ def _sqlite_rows(path: str, damage: list[str]) -> tuple[dict[int, tuple[str, str
         (max_id,) = con.execute("SELECT max(id) FROM messages").fetchone()
     except sqlite3.DatabaseError as exc:
         raise InputError(f"sqlite3 storage unreadable ({exc})", path) from None
-    rows: list[tuple] = []
-    lost = []
     try:
-        for a in range(0, int(max_id or 0) + 1, rosbag2._BATCH):
-            try:
-                rows += con.execute("SELECT topic_id, timestamp, data FROM messages WHERE id >= ? AND id < ? "
-                                    "ORDER BY id", (a, a + rosbag2._BATCH)).fetchall()
-            except sqlite3.DatabaseError:
-                lost.append(f"{a}-{a + rosbag2._BATCH - 1}")
+        rows, lost_ids = rosbag2.message_rows(con, int(max_id or 0))
     finally:
         con.close()
+    lost = [f"{a}-{b}" for a, b in lost_ids]
     if lost:
         damage.append(f"{os.path.basename(path)}: sqlite3 storage damaged: message rows {', '.join(lost)} "
                       "unreadable; not in the output")

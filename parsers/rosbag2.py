@@ -38,6 +38,38 @@ SQLITE_MAGIC = b"SQLite format 3\x00"
 ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
 YAML_KEY = b"rosbag2_bagfile_information"
 _BATCH = 2_000
+_RETRY_QUERIES = 4_000  # a damaged batch is bisected down to single rows with at most this many queries
+
+
+def message_rows(con, max_id: int) -> tuple[list[tuple], list[tuple[int, int]]]:
+    """(topic_id, timestamp, data) of every readable message row in id order, and the id ranges that could
+    not be read. Rows go in batches of ``_BATCH`` ids; a batch that hits a damaged page is split in halves
+    until the damage is cornered (a zeroed 4 KiB page lost its whole batch of 2000 rows before)."""
+    rows: list[tuple] = []
+    lost: list[tuple[int, int]] = []
+    budget = [_RETRY_QUERIES]
+    query = "SELECT topic_id, timestamp, data FROM messages WHERE id >= ? AND id < ? ORDER BY id"
+
+    def read(a: int, b: int) -> None:
+        try:
+            rows.extend(con.execute(query, (a, b)).fetchall())
+            return
+        except sqlite3.DatabaseError:
+            pass
+        if b - a <= 1 or budget[0] <= 0:
+            if lost and lost[-1][1] == a - 1:
+                lost[-1] = (lost[-1][0], b - 1)
+            else:
+                lost.append((a, b - 1))
+            return
+        budget[0] -= 2
+        mid = (a + b) // 2
+        read(a, mid)
+        read(mid, b)
+
+    for a in range(0, int(max_id or 0) + 1, _BATCH):
+        read(a, a + _BATCH)
+    return rows, lost
 
 
 def sniff(head: bytes, path: str) -> bool:
@@ -135,23 +167,16 @@ def _read_messages(con, path: str, by_id: dict, keep_ids: set, warnings: list[st
     except sqlite3.DatabaseError as exc:
         warnings.append(f"{os.path.basename(path)}: sqlite3 messages table damaged ({exc}); nothing read")
         return
-    lost: list[tuple[int, int]] = []
+    rows, lost = message_rows(con, int(max_id or 0))
     touched = set()
-    for a in range(0, int(max_id or 0) + 1, _BATCH):
-        try:
-            rows = con.execute("SELECT topic_id, timestamp, data FROM messages WHERE id >= ? AND id < ?",
-                               (a, a + _BATCH)).fetchall()
-        except sqlite3.DatabaseError:
-            lost.append((a, a + _BATCH - 1))
+    for tid, ts, data in rows:
+        raw = by_id.get(tid)
+        if raw is None:
             continue
-        for tid, ts, data in rows:
-            raw = by_id.get(tid)
-            if raw is None:
-                continue
-            touched.add(tid)
-            raw.log_ns.append(ts)
-            if tid in keep_ids:
-                raw.data.append(data)
+        touched.add(tid)
+        raw.log_ns.append(ts)
+        if tid in keep_ids:
+            raw.data.append(data)
     if lost:
         warnings.append(f"{os.path.basename(path)}: sqlite3 storage damaged: message rows "
                         + ", ".join(f"{x}-{y}" for x, y in lost) + " unreadable; readable part used")
