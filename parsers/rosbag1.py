@@ -40,7 +40,9 @@ def sniff(head: bytes, path: str) -> bool:
 
 
 class _Damage(Exception):
-    pass
+    def __init__(self, text: str, at: int | None = None):
+        super().__init__(text)
+        self.at = at  # byte offset of the damaged record inside its container, where known
 
 
 def _fields(header: bytes) -> dict[str, bytes]:
@@ -173,7 +175,7 @@ class _Scan:
                 self._records_one_by_one(buf, o, o + 8 + int(hls[b]) + int(dls[b]), where)
             a = b + 1
         if err:
-            raise _Damage(f"{where}: " + _WALK_ERRORS[int(err)].format(int(at)))
+            raise _Damage(f"{where}: " + _WALK_ERRORS[int(err)].format(int(at)), int(at))
 
     def _messages(self, buf: bytes, arr: np.ndarray, offs, hls, dls, lay, where: str) -> None:
         """A run of MSG_DATA records with known layouts: times and payloads appended per connection."""
@@ -188,7 +190,8 @@ class _Scan:
         stop = len(cid) if known.all() else int(np.argmin(known))
         self._keep(buf, arr, cid[:stop], t_ns[:stop], d0[:stop], dls[:stop])
         if stop < len(cid):
-            raise _Damage(f"{where}: message for unknown connection {int(cid[stop])} at byte {int(offs[stop])}")
+            raise _Damage(f"{where}: message for unknown connection {int(cid[stop])} at byte {int(offs[stop])}",
+                          int(offs[stop]))
 
     def _keep(self, buf: bytes, arr: np.ndarray, cid, t_ns, d0, lens) -> None:
         """Messages of known connections, in file order: record times and payload bytes per connection."""
@@ -208,16 +211,16 @@ class _Scan:
         times, data = self.times, self.data
         while off < end:
             if off + 4 > end:
-                raise _Damage(f"{where}: record cut at byte {off}")
+                raise _Damage(f"{where}: record cut at byte {off}", off)
             (hlen,) = u32(buf, off)
             h0 = off + 4
             if h0 + hlen + 4 > end:
-                raise _Damage(f"{where}: record header at byte {off} runs past its container")
+                raise _Damage(f"{where}: record header at byte {off} runs past its container", off)
             (dlen,) = u32(buf, h0 + hlen)
             d0 = h0 + hlen + 4
             nxt = d0 + dlen
             if nxt > end:
-                raise _Damage(f"{where}: record data at byte {off} runs past its container")
+                raise _Damage(f"{where}: record data at byte {off} runs past its container", off)
             lay = layouts.get(hlen, 0)
             if lay == 0:
                 try:
@@ -230,29 +233,35 @@ class _Scan:
                 sec, nsec = tm(buf, h0 + lay[2])
                 lst = times.get(cid)
                 if lst is None:
-                    raise _Damage(f"{where}: message for unknown connection {cid} at byte {off}")
+                    raise _Damage(f"{where}: message for unknown connection {cid} at byte {off}", off)
                 lst.append(sec * 1_000_000_000 + nsec)
                 d = data[cid]
                 if d is not None:
                     d.append(buf[d0:nxt])
                 off = nxt
                 continue
-            header = _fields(buf[h0:h0 + hlen])
+            try:
+                header = _fields(buf[h0:h0 + hlen])
+            except _Damage as exc:
+                raise _Damage(f"{where}: record at byte {off}: {exc}", off) from None
             op = header.get("op", b"\xff")[:1]
             if op == bytes([_OP_CONN]):
                 self.connection(header, buf[d0:nxt])
             elif op == bytes([_OP_MSG]):
-                (cid,) = _U32.unpack_from(header["conn"], 0)
-                sec, nsec = _TIME.unpack_from(header["time"], 0)
+                try:
+                    (cid,) = _U32.unpack_from(header["conn"], 0)
+                    sec, nsec = _TIME.unpack_from(header["time"], 0)
+                except (KeyError, struct.error):
+                    raise _Damage(f"{where}: message record at byte {off} without conn/time", off) from None
                 if cid not in times:
-                    raise _Damage(f"{where}: message for unknown connection {cid} at byte {off}")
+                    raise _Damage(f"{where}: message for unknown connection {cid} at byte {off}", off)
                 times[cid].append(sec * 1_000_000_000 + nsec)
                 if data[cid] is not None:
                     data[cid].append(buf[d0:nxt])
             elif op == bytes([_OP_CHUNK]):
                 self.chunk(header, buf, d0, nxt, off)
             elif op not in (bytes([_OP_BAGHEADER]), bytes([_OP_INDEX]), bytes([_OP_CHUNKINFO])):
-                raise _Damage(f"{where}: unknown record op {op!r} at byte {off}")
+                raise _Damage(f"{where}: unknown record op {op!r} at byte {off}", off)
             off = nxt
 
     def chunk(self, header: dict[str, bytes], buf: bytes, d0: int, d1: int, where: int) -> None:
@@ -277,12 +286,49 @@ class _Scan:
         if len(content) != size:
             raise _Damage(f"chunk at byte {where}: size {len(content)} != {size}")
         before = self.count
-        try:
-            self.records(content, 0, len(content), f"chunk at byte {where}")
-        except (_Damage, struct.error, KeyError, ValueError) as exc:  # keep what was read before
-            n_new = self.count - before
-            text = str(exc) if isinstance(exc, _Damage) else f"chunk at byte {where}: {type(exc).__name__} {exc}"
-            raise _Damage(f"{text} (kept the {n_new} messages of that chunk before the damage)") from None
+        pos, places, skipped = 0, [], 0
+        while True:
+            try:
+                self.records(content, pos, len(content), f"chunk at byte {where}")
+                break
+            except (_Damage, struct.error, KeyError, ValueError) as exc:  # keep what was read before
+                at = exc.at if isinstance(exc, _Damage) else None
+                nxt = None if at is None else self._resync(content, at + 1, len(content))
+                if nxt is None:
+                    n_new = self.count - before
+                    text = str(exc) if isinstance(exc, _Damage) else f"chunk at byte {where}: {type(exc).__name__} {exc}"
+                    if places:
+                        text += f" (after {len(places)} damaged place(s) skipped, {skipped} bytes)"
+                    raise _Damage(f"{text} (kept the {n_new} messages of that chunk before the damage)") from None
+                places.append(at)
+                skipped += nxt - at
+                pos = nxt
+        if places:
+            self.warnings.append(f"damaged: chunk at byte {where}: {len(places)} damaged record(s) (first at byte "
+                                 f"{places[0]} of the chunk), {skipped} bytes skipped to the next readable record")
+
+    def _resync(self, buf: bytes, start: int, end: int) -> int | None:
+        """The first offset >= ``start`` where a MSG_DATA record of a header layout seen before starts, with
+        its conn= and time= fields where that layout has them, a known connection and data inside ``end``;
+        None if there is none."""
+        known = [(h, lay) for h, lay in self.layout.items() if lay is not None]
+        if not known:
+            return None
+        u32 = _U32.unpack_from
+        k = buf.find(b"op=\x02", start)
+        while k >= 0:
+            for hlen, (o_op, o_conn, o_time) in known:
+                h0 = k + 3 - o_op
+                r = h0 - 4
+                if r < start or h0 + hlen + 4 > end or u32(buf, r)[0] != hlen:
+                    continue
+                if buf[h0 + o_conn - 5:h0 + o_conn] != b"conn=" or buf[h0 + o_time - 5:h0 + o_time] != b"time=":
+                    continue
+                if u32(buf, h0 + o_conn)[0] not in self.times or h0 + hlen + 4 + u32(buf, h0 + hlen)[0] > end:
+                    continue
+                return r
+            k = buf.find(b"op=\x02", k + 1)
+        return None
 
 
 def read_raw(path: str, keep: Callable[[str, str], bool] = rc.keep_supported, fmt: str = NAME) -> rc.RawLog:

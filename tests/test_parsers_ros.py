@@ -441,6 +441,28 @@ def test_truncated_file_uses_readable_part(big_files, tmp_path, fmt):
     np.testing.assert_array_equal(back.gyro_rad_s(), ref.gyro_rad_s()[:k])
 
 
+def test_rosbag1_damaged_record_in_a_chunk_loses_that_record_not_the_rest_of_the_chunk(big_files, tmp_path):
+    """A record's data length damaged in the middle of a chunk: the walk resynchronises at the next
+    record of a known layout (before, the rest of the chunk, up to 1 MB of messages, was dropped)."""
+    import struct
+
+    src = big_files["rosbag1"]
+    data = bytearray(open(src, "rb").read())
+    k = data.find(b"op=\x02", len(data) // 2)
+    r = next(r for r in range(k - 64, k - 7)  # the record start: its header holds the op field at k - 4
+             if k + 4 <= r + 4 + struct.unpack_from("<I", data, r)[0] < r + 200
+             and rosbag1._fields(bytes(data[r + 4:r + 4 + struct.unpack_from("<I", data, r)[0]])).get("op") == b"\x02")
+    hlen = struct.unpack_from("<I", data, r)[0]
+    struct.pack_into("<I", data, r + 4 + hlen, 0xFFFFFF00)  # the data length: runs past the chunk
+    p = _copy_with(src, str(tmp_path / "d.bag"), bytes(data))
+    n_all = sum(len(t.log_ns) for t in rosbag1.read_raw(src).topics.values())
+    raw = rosbag1.read_raw(p)
+    assert sum(len(t.log_ns) for t in raw.topics.values()) == n_all - 1
+    assert any("1 damaged record(s)" in w for w in raw.warnings)
+    back = parsers.load(p)
+    assert len(back.imu) >= len(big_files["log"].imu) - 1
+
+
 def test_sqlite3_bag_with_a_zeroed_page_loses_only_that_page(big_files, tmp_path):
     """A zeroed 4 KiB page of the storage file: the rows on it are lost and named; the batch of 2000 rows
     around it is not (the reader bisects a batch that fails)."""
