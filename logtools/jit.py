@@ -131,17 +131,33 @@ def compiled() -> bool:
     return mode() == "compiled"
 
 
-def njit(fn=None, **options):
+def njit(fn=None, *, always: bool = False, **options):
     """``@njit`` / ``@njit(fastmath=False)``: numba.njit(cache=True, ...) in compiled mode, the function itself
-    (valid Python) otherwise."""
+    (valid Python) otherwise. ``always=True``: a kernel whose plain-Python run is far too slow to stand in
+    (one called thousands of times inside an optimiser): in reference mode it is compiled on its first call
+    (numba imported then, the compile announced on stderr), and never runs as Python."""
     options.pop("cache", None)
 
     def wrap(f):
-        if not compiled():
-            return f
-        from numba import njit as _njit
+        if compiled():
+            from numba import njit as _njit
 
-        return _njit(cache=True, **options)(f)
+            return _njit(cache=True, **options)(f)
+        if not always or not _numba_importable():
+            return f
+        box: list = []
+
+        def first_call(*args):
+            if not box:
+                from numba import njit as _njit
+
+                sys.stderr.write(f"tapost: compiling {f.__name__} (once; the reference code would take minutes)\n")
+                sys.stderr.flush()
+                box.append(_njit(cache=True, **options)(f))
+            return box[0](*args)
+
+        first_call.__name__, first_call.__doc__, first_call.py_func = f.__name__, f.__doc__, f
+        return first_call
 
     return wrap(fn) if fn is not None else wrap
 

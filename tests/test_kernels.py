@@ -45,6 +45,27 @@ def test_auto_runs_the_reference_code_until_the_stamp_and_compiles_for_large_inp
     assert _decide_in_child(tmp_path, ask.format(hint=""), TAPOST_KERNELS="reference").startswith("reference")
 
 
+def test_a_kernel_too_slow_as_python_compiles_on_first_use_even_in_reference_mode(tmp_path):
+    """The flexure Kalman filter runs thousands of times inside L-BFGS-B's numerical gradient: as Python
+    one real log took more than 13 min. In reference mode it compiles on its first call (one line on
+    stderr); every other kernel stays the plain function."""
+    pytest.importorskip("numba")
+    (tmp_path / "kmod.py").write_text("def add(a, b):\n    return a + b\n")  # numba caches by source file
+    code = ("import numpy as np; from logtools import jit; from logtools.latency import flexure as fx\n"
+            "from kmod import add\n"
+            "plain, always = jit.njit(add), jit.njit(add, always=True)\n"
+            "assert jit.mode() == 'reference' and plain is add and always is not add and always.py_func is add\n"
+            "assert fx._kf_whiten.py_func.__name__ == '_kf_whiten'\n"
+            "print(always(np.arange(3.0), 1.0).tolist(), type(always.__closure__[0].cell_contents[0]).__name__)")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                       env=_env(tmp_path, TAPOST_KERNELS="reference", NUMBA_CACHE_DIR=str(tmp_path / "nb"),
+                                PYTHONPATH=os.pathsep.join([str(ROOT), str(tmp_path)])),
+                       cwd=str(tmp_path))
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.split() == ["[1.0,", "2.0,", "3.0]", "CPUDispatcher"]
+    assert p.stderr.strip() == "tapost: compiling add (once; the reference code would take minutes)"
+
+
 def test_the_stamp_is_keyed_on_the_kernel_sources(tmp_path, monkeypatch):
     pytest.importorskip("numba")
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))

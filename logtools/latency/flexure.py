@@ -74,7 +74,7 @@ def block_mean(x: np.ndarray, use: np.ndarray, k: int) -> tuple[np.ndarray, np.n
     return xs, ub
 
 
-@njit
+@njit(always=True)  # inside L-BFGS-B's numerical gradient: as Python, one real log took more than 13 min
 def _kf_whiten(y, ws, fs, use, Phi, Qd, P0, noise_var, store):  # pragma: no cover - compiled
     """Innovations of every column of y (n, C, M), whitened by the innovation covariance's Cholesky
     factor, and the sum of log det of that covariance. C = 3 (gyro rows) or 6 (gyro + accelerometer);
