@@ -362,6 +362,31 @@ def read_streamed(path: str, keep: Callable[[str, str], bool] = rc.keep_supporte
     return _rawlog(path, fmt, _scan_file(path, scan, done))
 
 
+def summary_definitions(buf) -> list[tuple[int, int, int]]:
+    """(opcode, offset, next) of the schema and channel records in the summary section, found through the
+    footer: every channel stays known when the chunk that defined it is damaged (a flipped byte in the
+    first chunk left a file's later chunks with messages of undefined channels). [] without a footer."""
+    n = len(buf)
+    at = n - len(MAGIC) - 29  # footer: opcode, length 20, summary start, summary offset start, CRC
+    if at < len(MAGIC) or bytes(buf[n - len(MAGIC):]) != MAGIC:
+        return []
+    op, ln = _REC.unpack_from(buf, at)
+    if op != _OP_FOOTER or ln != 20:
+        return []
+    (start,) = _U64.unpack_from(buf, at + 9)
+    out = []
+    off = int(start)
+    while len(MAGIC) <= off < at and off + 9 <= at:
+        op, ln = _REC.unpack_from(buf, off)
+        nxt = off + 9 + ln
+        if op == 0 or op > 0x0F or nxt > at:
+            break
+        if op in (_OP_SCHEMA, _OP_CHANNEL):
+            out.append((op, off, nxt))
+        off = nxt
+    return out
+
+
 def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
     """The top-level record walk of an MCAP file (memory-mapped, the pages behind the walk let go)."""
     from parsers.filemap import FileMap
@@ -373,6 +398,11 @@ def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
         off, end = len(MAGIC), len(buf)
         footer = False
         n_chunks = 0
+        for op, at, nxt in summary_definitions(buf):
+            try:
+                scan.schema(buf, at + 9, nxt) if op == _OP_SCHEMA else scan.channel(buf, at + 9)
+            except (_Damage, struct.error, UnicodeDecodeError):
+                pass  # a damaged summary: the definitions come from the data section as before
         while off < end:
             if off + 9 > end:
                 scan.warnings.append(f"file truncated at byte {off} of {end} (no footer): readable part used")

@@ -521,6 +521,11 @@ def _scan_mcap(path: str) -> _McapScan:
     sc = _McapScan()
     off, end = len(mcap_ros.MAGIC), len(buf)
     footer = False
+    for op, at, _nxt in mcap_ros.summary_definitions(buf):  # channels known even if their chunk is damaged
+        try:
+            (sc.schema if op == _OP["schema"] else sc.channel)(buf, at + 9)
+        except (mcap_ros._Damage, struct.error, UnicodeDecodeError):
+            pass
     while off < end:
         if off + 9 > end:
             sc.damage.append(f"file truncated at byte {off} of {end} (no footer)")

@@ -23,6 +23,7 @@ from logtools.conventions import (
 from logtools.errors import InputError
 from logtools.inslog import InsLog, LogMeta
 from parsers import mcap_ros, registry, rosbag1, rosbag2
+from parsers.restamp import ClockShift
 from parsers import ros_common as rc
 from pipelines.cli import main as cli_main
 
@@ -439,6 +440,33 @@ def test_truncated_file_uses_readable_part(big_files, tmp_path, fmt):
     ref = big_files["log"]
     k = len(back.imu)
     np.testing.assert_array_equal(back.gyro_rad_s(), ref.gyro_rad_s()[:k])
+
+
+def test_mcap_damaged_first_chunk_keeps_the_channels_it_defined(big_files, tmp_path):
+    """The writer puts schema and channel records in the first chunk (and again in the summary). Damage
+    there dropped the definitions with the chunk, and every later message was of an undefined channel:
+    nothing readable. The summary's definitions (through the footer) keep the later chunks."""
+    import struct
+
+    src = big_files["mcap"]
+    data = bytearray(open(src, "rb").read())
+    off, chunks = 8, []
+    while data[off] != 2:  # the top-level records up to the footer
+        op, ln = struct.unpack_from("<BQ", data, off)
+        if op == 6:
+            chunks.append((off, ln))
+        off += 9 + ln
+    assert len(chunks) > 2
+    first, ln = chunks[0]
+    data[first + 9 + ln // 2] ^= 0xFF  # inside the first chunk's compressed records
+    p = _copy_with(src, str(tmp_path / "first.mcap"), bytes(data))
+    back = parsers.load(p)
+    n_full = len(big_files["log"].imu)
+    assert 0.3 * n_full < len(back.imu) < n_full
+    assert any(f"chunk at byte {first}" in w for w in back.meta.warnings)
+    rr = pytest.importorskip("parsers.restamp_ros")
+    st = rr.restamp_mcap(p, str(tmp_path / "first_out.mcap"), ClockShift(0.001, 0.0, big_files["log"].meta.t0_ns))
+    assert st.records > 0.3 * n_full and any(f"chunk at byte {first}" in d for d in st.damage)
 
 
 def test_rosbag1_damaged_record_in_a_chunk_loses_that_record_not_the_rest_of_the_chunk(big_files, tmp_path):
