@@ -462,7 +462,7 @@ def headline_html(rep: dict) -> str:
                       " ms (1&sigma;)</small>", f"{when}, the middle of the analysed window; method {_esc(lat.get('method'))}"))
         dsig = (lat.get("quality") or {}).get("drift_sigma_ppm")
         cells.append(("clock drift", f"{_fmt(lat.get('drift_ppm'), '+.2f')} ppm"
-                      + (f" <small>&plusmn; {dsig:.2f}</small>" if isinstance(dsig, (int, float)) else ""),
+                      + (f" <small>&plusmn; {dsig:.2f} ppm (1&sigma;)</small>" if isinstance(dsig, (int, float)) else ""),
                       "the slave's clock rate error (&micro;s per s)"))
     align = rep.get("alignment") or {}
     run = next((r for r in ("compensated", "uncompensated")
@@ -554,7 +554,9 @@ def _summary_html(rep: dict) -> str:
     else:
         t.append(f"<tr><th>latency (slave behind master)</th><td class=num>{_fmt(lat['latency_s'] * 1e3, '+.3f', 'ms')}</td>"
                  f"<td class=num>{_fmt(None if lat['sigma_s'] is None else lat['sigma_s'] * 1e3, '.3f', 'ms')}</td></tr>")
-        t.append(f"<tr><th>clock drift</th><td class=num>{_fmt(lat['drift_ppm'], '+.2f', 'ppm')}</td><td></td></tr>")
+        dsig = (lat.get("quality") or {}).get("drift_sigma_ppm")
+        t.append(f"<tr><th>clock drift</th><td class=num>{_fmt(lat['drift_ppm'], '+.2f', 'ppm')}</td>"
+                 f"<td class=num>{_fmt(dsig if isinstance(dsig, (int, float)) else None, '.2f', 'ppm')}</td></tr>")
         w = lat.get("window_s") or [None, None]
         t.append(f"<tr><th>method / window (master stamps)</th><td colspan=2>{_esc(lat['method'])}, "
                  f"[{_fmt(w[0], '.3f')}, {_fmt(w[1], '.3f')}] s</td></tr>")
