@@ -19,6 +19,7 @@ import pytest
 import parsers
 from logtools.errors import InputError
 from parsers import mcap_ros, registry, rosbag1, rosbag2
+from test_parsers_ros import mcap_with_a_flipped_chunk
 from parsers import restamp_ros as rr
 from parsers.restamp import ClockShift
 from tests.test_parsers_ros import CAR_BAG, WRITERS, synthetic_log
@@ -379,18 +380,9 @@ def test_truncated_input_writes_the_readable_part_and_names_the_damage(big, tmp_
 
 def test_damaged_mcap_chunk_is_named(big, tmp_path):
     src = big["mcap"]
-    data = bytearray(open(src, "rb").read())
-    off, chunks = 8, []
-    while data[off] != 2:  # the top-level records up to the footer
-        op, ln = struct.unpack_from("<BQ", data, off)
-        if op == 6:
-            chunks.append((off, ln))
-        off += 9 + ln
-    assert len(chunks) > 2
-    off, ln = chunks[1]
-    data[off + 9 + ln // 2] ^= 0xFF  # inside the second chunk's compressed records
+    data, off = mcap_with_a_flipped_chunk(src, 1)  # inside the second chunk's compressed records
     bad = str(tmp_path / "flip.mcap")
-    open(bad, "wb").write(bytes(data))
+    open(bad, "wb").write(data)
     st = rr.restamp_mcap(bad, str(tmp_path / "flip_out.mcap"), _shift_for(big["log"]))
     assert len(st.damage) == 1 and f"chunk at byte {off}" in st.damage[0]
     assert 0 < st.records < 3 * 6000

@@ -442,14 +442,12 @@ def test_truncated_file_uses_readable_part(big_files, tmp_path, fmt):
     np.testing.assert_array_equal(back.gyro_rad_s(), ref.gyro_rad_s()[:k])
 
 
-def test_mcap_damaged_first_chunk_keeps_the_channels_it_defined(big_files, tmp_path):
-    """The writer puts schema and channel records in the first chunk (and again in the summary). Damage
-    there dropped the definitions with the chunk, and every later message was of an undefined channel:
-    nothing readable. The summary's definitions (through the footer) keep the later chunks."""
+def mcap_with_a_flipped_chunk(path: str, k: int) -> tuple[bytes, int]:
+    """The MCAP file's bytes with one byte inverted in the middle of its k-th chunk's (compressed) records,
+    and that chunk's offset."""
     import struct
 
-    src = big_files["mcap"]
-    data = bytearray(open(src, "rb").read())
+    data = bytearray(open(path, "rb").read())
     off, chunks = 8, []
     while data[off] != 2:  # the top-level records up to the footer
         op, ln = struct.unpack_from("<BQ", data, off)
@@ -457,9 +455,18 @@ def test_mcap_damaged_first_chunk_keeps_the_channels_it_defined(big_files, tmp_p
             chunks.append((off, ln))
         off += 9 + ln
     assert len(chunks) > 2
-    first, ln = chunks[0]
-    data[first + 9 + ln // 2] ^= 0xFF  # inside the first chunk's compressed records
-    p = _copy_with(src, str(tmp_path / "first.mcap"), bytes(data))
+    at, ln = chunks[k]
+    data[at + 9 + ln // 2] ^= 0xFF
+    return bytes(data), at
+
+
+def test_mcap_damaged_first_chunk_keeps_the_channels_it_defined(big_files, tmp_path):
+    """The writer puts schema and channel records in the first chunk (and again in the summary). Damage
+    there dropped the definitions with the chunk, and every later message was of an undefined channel:
+    nothing readable. The summary's definitions (through the footer) keep the later chunks."""
+    src = big_files["mcap"]
+    data, first = mcap_with_a_flipped_chunk(src, 0)
+    p = _copy_with(src, str(tmp_path / "first.mcap"), data)
     back = parsers.load(p)
     n_full = len(big_files["log"].imu)
     assert 0.3 * n_full < len(back.imu) < n_full
