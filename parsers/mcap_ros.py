@@ -384,7 +384,7 @@ def summary_definitions(buf) -> list[tuple[int, int, int]]:
         if op in (_OP_SCHEMA, _OP_CHANNEL):
             out.append((op, off, nxt))
         off = nxt
-    return out
+    return sorted(out, key=lambda r: r[0] != _OP_SCHEMA)  # schemas first: a channel is judged by its schema
 
 
 def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:

@@ -98,6 +98,7 @@ def _walk_records(buf, start, end):  # compiled with numba (logtools.jit), one p
 
 
 _walk = jit.lazy(_walk_records)
+_RUN_BYTES = 4096  # a container shorter than this is walked record by record (no numpy set-up per record)
 _WALK_ERRORS = {1: "record cut at byte {}", 2: "record header at byte {} runs past its container",
                 3: "record data at byte {} runs past its container"}
 
@@ -144,7 +145,7 @@ class _Scan:
     def records(self, buf: bytes, start: int, end: int, where: str) -> None:
         """The records of buf[start:end] in order: MSG_DATA records of a known header layout in vectorised
         runs (compiled mode: the walk is one numba pass), every other record one by one."""
-        if not jit.compiled():
+        if not jit.compiled() or end - start < _RUN_BYTES:  # (a top-level record of an unchunked bag: one)
             return self._records_one_by_one(buf, start, end, where)
         arr = np.frombuffer(buf, np.uint8)
         offs, hls, dls, err, at = _walk()(arr, start, end)
