@@ -39,6 +39,44 @@ def _is_time_field(name: str, base: np.dtype) -> bool:
         or last == "time_utc_usec"
 
 
+#: a ULog sync message: size 8, type 'S', pyulog's SYNC_BYTES (PX4 and this repository's writer log one
+#: every second or so; readers resynchronise there after damage)
+_SYNC_MESSAGE = b"\x08\x00S" + b"\x2f\x73\x13\x20\x25\x0c\xbb\x12"
+
+
+def _walk_resyncing(buf: np.ndarray, damage: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(offsets, sizes, types) of every message the chain of headers reaches, resuming after an
+    implausible header at the next sync message (where pyulog, which reads a damaged ULog, resumes too).
+    Bytes no message covers are copied unchanged; each such place is named in ``damage``."""
+    from parsers import ulog as ul
+
+    walk = ul.kernel("_walk")
+    parts = []
+    start, raw = 16, None
+    while True:
+        offsets, sizes, types, end, status = walk(buf, start, ul._KNOWN_TYPES, ul._MAX_MSG_SIZE)
+        parts.append((offsets, sizes, types))
+        end = int(end)
+        if status == 0:
+            break
+        if status == 1:
+            damage.append(f"damaged ULog: truncated last message at byte {end} of {len(buf)}; the "
+                          f"{len(buf) - end} byte(s) from there copied unchanged")
+            break
+        raw = raw if raw is not None else buf.tobytes()
+        nxt = raw.find(_SYNC_MESSAGE, end + 1)
+        if nxt < 0:
+            damage.append(f"damaged ULog: implausible message header at byte {end} of {len(buf)} and no sync "
+                          f"message after it; the {len(buf) - end} byte(s) from there copied unchanged (their "
+                          "time fields not rewritten)")
+            break
+        damage.append(f"damaged ULog: implausible message header at byte {end}; bytes {end}-{nxt - 1} copied "
+                      "unchanged, rewriting resumed at the next sync message")
+        start = nxt
+    cat = (lambda k, dt: np.concatenate([p[k] for p in parts]) if parts else np.zeros(0, dt))
+    return cat(0, np.int64), cat(1, np.int64), cat(2, np.uint8)
+
+
 def restamp_ulog(src: str, dst: str, shift: ClockShift, *, selector=None) -> RestampStats:
     from pyulog import ULog
 
@@ -48,12 +86,8 @@ def restamp_ulog(src: str, dst: str, shift: ClockShift, *, selector=None) -> Res
     buf = read_bytes(src)
     if len(buf) < 16 or buf[:7].tobytes() != ul.MAGIC:
         raise InputError("not a ULog file (bad magic bytes)", src)
-    offsets, sizes, types, end, status = ul.kernel("_walk")(buf, 16, ul._KNOWN_TYPES, ul._MAX_MSG_SIZE)
     damage: list[str] = []
-    if status != 0:
-        what = "truncated last message" if status == 1 else "implausible message header"
-        damage.append(f"damaged ULog: {what} at byte {int(end)} of {len(buf)}; the {len(buf) - int(end)} "
-                      f"byte(s) from there copied unchanged (their time fields not rewritten)")
+    offsets, sizes, types = _walk_resyncing(buf, damage)
     header = ULog._MessageHeader()
     formats: dict[str, object] = {}
     subs: dict[int, object] = {}

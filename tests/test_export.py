@@ -373,3 +373,34 @@ def test_csv_and_parquet_exports_hold_the_table_exactly(pair, tmp_path):
         want = tab[c].to_numpy(float)
         np.testing.assert_array_equal(csv[str(c)].to_numpy(float), want)  # NaN where NaN (assert_array_equal)
         np.testing.assert_array_equal(pq[str(c)].to_numpy(float), want)
+
+
+def test_ulog_damaged_header_in_the_middle_rewrites_the_rest_after_the_next_sync(slaves, pair, tmp_path):
+    """A message header damaged in the middle of a ULog: the export resumes at the next sync message
+    (where pyulog, which reads such a file, resumes too). Before, everything after the damage was copied
+    with its old stamps: half the exported log on the slave's clock."""
+    from parsers import restamp_ulog
+    from parsers import ulog as ul
+
+    buf = np.fromfile(slaves["ulog"], np.uint8)
+    offsets = ul.kernel("_walk")(buf, 16, ul._KNOWN_TYPES, ul._MAX_MSG_SIZE)[0]
+    bad = buf.copy()
+    bad[offsets[int(np.searchsorted(offsets, len(buf) // 2))] + 2] = 0  # a message type -> 0
+    src, dst = tmp_path / "bad.ulg", tmp_path / "out.ulg"
+    bad.tofile(src)
+    sh = shift_of(pair)
+    st = restamp_ulog.restamp_ulog(str(src), str(dst), sh)
+    assert dst.stat().st_size == src.stat().st_size
+    assert any("resumed at the next sync message" in d for d in st.damage)
+    from pyulog import ULog
+
+    def stamps(path):  # sensor_combined's raw timestamps (boot us), as pyulog reads the damaged file
+        (d,) = [x for x in ULog(str(path), ["sensor_combined"]).data_list]
+        return d.data["timestamp"].astype(np.int64)
+
+    t_a, t_b = stamps(src), stamps(dst)
+    assert len(t_a) == len(t_b) > 0.8 * len(pair.slave.imu)
+    moved = t_a - t_b  # the shift of each sample, us
+    late = np.arange(len(t_a)) > 0.6 * len(t_a)  # samples after the damage
+    assert np.all(np.abs(moved[late] - LAT_S * 1e6) < 1000)  # 37.2 ms, plus the drift over 6 s: < 1 ms
+    assert np.all(np.abs(moved[~late] - LAT_S * 1e6) < 1000)
