@@ -638,8 +638,9 @@ def _sqlite_rows(path: str, damage: list[str]) -> tuple[dict[int, tuple[str, str
         (max_id,) = con.execute("SELECT max(id) FROM messages").fetchone()
     except sqlite3.DatabaseError as exc:
         raise InputError(f"sqlite3 storage unreadable ({exc})", path) from None
-    try:
-        rows, lost_ids = rosbag2.message_rows(con, int(max_id or 0))
+    lost_ids: list[tuple[int, int]] = []
+    try:  # (the export keeps every row: all of them are written)
+        rows = [r for batch in rosbag2.message_rows(con, int(max_id or 0), lost_ids) for r in batch]
     finally:
         con.close()
     lost = [f"{a}-{b}" for a, b in lost_ids]

@@ -73,8 +73,7 @@ def _walk_resyncing(buf: np.ndarray, damage: list[str]) -> tuple[np.ndarray, np.
         damage.append(f"damaged ULog: implausible message header at byte {end}; bytes {end}-{nxt - 1} copied "
                       "unchanged, rewriting resumed at the next sync message")
         start = nxt
-    cat = (lambda k, dt: np.concatenate([p[k] for p in parts]) if parts else np.zeros(0, dt))
-    return cat(0, np.int64), cat(1, np.int64), cat(2, np.uint8)
+    return tuple(np.concatenate([p[k] for p in parts]) for k in range(3))  # (one part per walk, at least one)
 
 
 def restamp_ulog(src: str, dst: str, shift: ClockShift, *, selector=None) -> RestampStats:

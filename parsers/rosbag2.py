@@ -22,7 +22,7 @@ import os
 import shutil
 import sqlite3
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import numpy as np
 
@@ -41,18 +41,17 @@ _BATCH = 2_000
 _RETRY_QUERIES = 4_000  # a damaged batch is bisected down to single rows with at most this many queries
 
 
-def message_rows(con, max_id: int) -> tuple[list[tuple], list[tuple[int, int]]]:
-    """(topic_id, timestamp, data) of every readable message row in id order, and the id ranges that could
-    not be read. Rows go in batches of ``_BATCH`` ids; a batch that hits a damaged page is split in halves
-    until the damage is cornered (a zeroed 4 KiB page lost its whole batch of 2000 rows before)."""
-    rows: list[tuple] = []
-    lost: list[tuple[int, int]] = []
+def message_rows(con, max_id: int, lost: list[tuple[int, int]]) -> Iterator[list[tuple]]:
+    """The readable message rows (topic_id, timestamp, data) in id order, a batch of ``_BATCH`` ids at a
+    time (the caller keeps what it needs: a bag's other topics' payloads are not all held at once); the id
+    ranges that could not be read go to ``lost``. A batch that hits a damaged page is split in halves until
+    the damage is cornered (a zeroed 4 KiB page lost its whole batch of 2000 rows before)."""
     budget = [_RETRY_QUERIES]
     query = "SELECT topic_id, timestamp, data FROM messages WHERE id >= ? AND id < ? ORDER BY id"
 
-    def read(a: int, b: int) -> None:
+    def read(a: int, b: int) -> Iterator[list[tuple]]:
         try:
-            rows.extend(con.execute(query, (a, b)).fetchall())
+            yield con.execute(query, (a, b)).fetchall()
             return
         except sqlite3.DatabaseError:
             pass
@@ -64,12 +63,11 @@ def message_rows(con, max_id: int) -> tuple[list[tuple], list[tuple[int, int]]]:
             return
         budget[0] -= 2
         mid = (a + b) // 2
-        read(a, mid)
-        read(mid, b)
+        yield from read(a, mid)
+        yield from read(mid, b)
 
-    for a in range(0, int(max_id or 0) + 1, _BATCH):
-        read(a, a + _BATCH)
-    return rows, lost
+    for a in range(0, max_id + 1, _BATCH):
+        yield from read(a, a + _BATCH)
 
 
 def sniff(head: bytes, path: str) -> bool:
@@ -167,16 +165,17 @@ def _read_messages(con, path: str, by_id: dict, keep_ids: set, warnings: list[st
     except sqlite3.DatabaseError as exc:
         warnings.append(f"{os.path.basename(path)}: sqlite3 messages table damaged ({exc}); nothing read")
         return
-    rows, lost = message_rows(con, int(max_id or 0))
+    lost: list[tuple[int, int]] = []
     touched = set()
-    for tid, ts, data in rows:
-        raw = by_id.get(tid)
-        if raw is None:
-            continue
-        touched.add(tid)
-        raw.log_ns.append(ts)
-        if tid in keep_ids:
-            raw.data.append(data)
+    for rows in message_rows(con, int(max_id or 0), lost):
+        for tid, ts, data in rows:
+            raw = by_id.get(tid)
+            if raw is None:
+                continue
+            touched.add(tid)
+            raw.log_ns.append(ts)
+            if tid in keep_ids:
+                raw.data.append(data)
     if lost:
         warnings.append(f"{os.path.basename(path)}: sqlite3 storage damaged: message rows "
                         + ", ".join(f"{x}-{y}" for x, y in lost) + " unreadable; readable part used")

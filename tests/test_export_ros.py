@@ -18,10 +18,9 @@ import pytest
 import parsers
 from logtools.errors import InputError
 from parsers import mcap_ros, registry, rosbag1, rosbag2
-from test_parsers_ros import mcap_with_a_flipped_chunk
 from parsers import restamp_ros as rr
 from parsers.restamp import ClockShift
-from tests.test_parsers_ros import CAR_BAG, WRITERS, synthetic_log
+from tests.test_parsers_ros import CAR_BAG, WRITERS, mcap_with_a_flipped_chunk, synthetic_log
 
 RESTAMP = {"mcap": rr.restamp_mcap, "rosbag1": rr.restamp_rosbag1, "rosbag2": rr.restamp_rosbag2}
 LATENCY_S, DRIFT_PPM = 0.0123456789, 87.5

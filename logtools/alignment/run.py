@@ -294,8 +294,7 @@ def _slave_imu(slave: InsLog, src: str) -> tuple[np.ndarray, np.ndarray, np.ndar
         d = np.diff(t)
     keep = np.concatenate([[True], d > 0])
     if keep.all():  # nothing to drop: one C-ordered copy each (what the masked copies were), not three
-        return t.copy(), np.ascontiguousarray(g) if g.base is not None or not g.flags.c_contiguous else g.copy(), \
-            np.ascontiguousarray(a) if a.base is not None or not a.flags.c_contiguous else a.copy()
+        return t.copy(), np.array(g, order="C"), np.array(a, order="C")
     return t[keep], g[keep], a[keep]
 
 
