@@ -154,7 +154,7 @@ def run_one(d: dict) -> dict:
     from logtools.alignment import CONFIG, AlignmentOptions, run_alignment
     from logtools.compensate import compensate
     from logtools.latency import estimate
-    from pipelines.analyze import AnalyzeOptions, _flexure_options, _lever_options, _resolve_match
+    from pipelines.analyze import AnalyzeOptions, _flexure_options, _lever_options, _resolve_match, board_options
 
     cfg = dataclasses.replace(bl.sim_config(d), lever_arm_m=tuple(d["lever_arm_m"]), **d.get("extra", {}))
     pair = sim.simulate(cfg)
@@ -177,8 +177,14 @@ def run_one(d: dict) -> dict:
         for v in VARIANTS:
             row[v] = dict(note=f"{type(exc).__name__}: {exc}"[:200])
         return row
-    opts = AnalyzeOptions()
-    options = {"tapost": AlignmentOptions(**_lever_options(opts, lat), **_flexure_options(opts, lat)),
+    board_mode = d.get("board", "off")
+    opts = AnalyzeOptions(board_errors="on" if board_mode == "oracle" else board_mode)
+    board = board_options(opts)
+    if board_mode == "oracle":  # the board's error states with the simulator's own Markov parameters
+        ex = d.get("extra", {})
+        board.update(master_att_err_deg=max(ex.get("master_att_markov_deg", 0.0), 1e-3),
+                     master_att_err_tau_s=ex.get("master_att_markov_tau_s", 30.0))
+    options = {"tapost": AlignmentOptions(**_lever_options(opts, lat), **_flexure_options(opts, lat), **board),
                "rigid": AlignmentOptions()}
     # rigid: the coarse mounting from the rates alone, as before
     configs = {"tapost": CONFIG, "rigid": dataclasses.replace(CONFIG, coarse_joint=False)}
@@ -245,6 +251,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="add real boards' error sources (see real_errors()) and check alignment.imu_to_imu")
     ap.add_argument("--widen", action="store_true",
                     help="alignment sigmas widened by the innovations' correlation time (AlignmentConfig.innov_corr_min)")
+    ap.add_argument("--board", choices=("off", "on", "oracle"), default="off",
+                    help="tapost's --board-errors (default off, as the CLI); oracle: on, with the simulator's "
+                         "own Markov parameters")
     a = ap.parse_args(argv)
     a.out = a.out or (OUT_REAL if a.real_errors else OUT)
     jobs = ([draw(i, a.seed) for i in range(a.runs)] + [draw_one_axis(a.runs + i, a.seed) for i in range(a.one_axis)]
@@ -253,6 +262,7 @@ def main(argv: list[str] | None = None) -> int:
         jobs = [real_errors(d, k, a.seed) for k, d in enumerate(jobs)]
     if a.widen:
         jobs = [dict(d, widen=True) for d in jobs]
+    jobs = [dict(d, board=a.board) for d in jobs]
     t0 = time.time()
     rows = bl.run_pool(run_one, jobs, a.workers, every=8)
     rows.sort(key=lambda r: r["run"])
@@ -263,6 +273,7 @@ def main(argv: list[str] | None = None) -> int:
                machine=dict(python=platform.python_version(), cpus=os.cpu_count(), workers=a.workers),
                wall_time_s=time.time() - t0, summary=summary, rows=rows)
     out["config"]["widen"] = bool(a.widen)
+    out["config"]["board"] = a.board
     if a.real_errors:
         out["config"]["real_errors"] = True
         out["imu_to_imu"] = summarize_imu_to_imu(rows)

@@ -100,6 +100,10 @@ class AnalyzeOptions:
     #: seed 000's when the alignment's residuals call for them), "on" (that model, else seed 000's
     #: 0.05 deg / 2 1/s), "off"
     flexure: str = "auto"
+    #: a consumer board's errors in the alignment: "on" (the master's attitude error as a first-order
+    #: Markov process and the slave's accelerometer triad misalignment as states, the sigmas widened by the
+    #: residuals' correlation time; for an autopilot's EKF or AHRS as the master), "off"
+    board_errors: str = "off"
     #: also write the slave on the master's clock: any of "csv", "parquet", "native" (pipelines.export)
     write_slave: tuple[str, ...] = ()
     name: str | None = None  #: the pair's name (tapost batch): the recording is "tapost: <name>"
@@ -108,6 +112,8 @@ class AnalyzeOptions:
         parse_lever_arm(self.lever_arm)
         if self.flexure not in FLEXURE_MODES:
             raise InputError(f"--flexure takes {', '.join(FLEXURE_MODES)}, not {self.flexure!r}")
+        if self.board_errors not in BOARD_MODES:
+            raise InputError(f"--board-errors takes {', '.join(BOARD_MODES)}, not {self.board_errors!r}")
         for name, allowed in (("filter", FILTERS), ("match", MATCHES), ("compensation", COMPENSATIONS),
                               ("latency_method", LATENCY_METHODS)):
             if getattr(self, name) not in allowed:
@@ -141,6 +147,7 @@ def parse_max_lag(text) -> float | None:
 
 
 FLEXURE_MODES = ("auto", "on", "off")
+BOARD_MODES = ("off", "on")
 
 
 def parse_lever_arm(text) -> str | tuple[float, float, float]:
@@ -175,12 +182,13 @@ def read_config(path: str) -> dict:
 
 _CONFIG_KEYS = {"max_lag", "filter", "match", "compensation", "smoother", "no_recording", "recording",
                 "no_html", "html",
-                "latency_method", "compare", "out", "recording_max_rows", "lever_arm", "flexure", "write_slave"}
+                "latency_method", "compare", "out", "recording_max_rows", "lever_arm", "flexure", "board_errors",
+                "write_slave"}
 
 
 #: the analysis options add_arguments defines (argparse dests), as options_from takes them
 CLI_KEYS = ("max_lag", "filter", "match", "compensation", "smoother", "no_recording", "no_html", "latency_method",
-            "compare", "lever_arm", "flexure", "write_slave")
+            "compare", "lever_arm", "flexure", "board_errors", "write_slave")
 
 
 def cli_values(ns: argparse.Namespace) -> dict:
@@ -200,7 +208,7 @@ def options_from(cli: dict, config: dict | None = None) -> tuple[AnalyzeOptions,
     if "max_lag" in merged:
         kw["max_lag_s"] = parse_max_lag(merged["max_lag"])
         kw["max_lag_given"] = True
-    for k in ("filter", "match", "compensation", "latency_method", "flexure"):
+    for k in ("filter", "match", "compensation", "latency_method", "flexure", "board_errors"):
         if k in merged:
             kw[k] = str(merged[k])
     for k in ("smoother", "compare"):
@@ -256,6 +264,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--flexure", default=None, choices=FLEXURE_MODES,
                    help="flexure states in the alignment: auto (default: with the latency fit's flexure "
                         "model when it found one, else when the residuals call for them), on, off")
+    p.add_argument("--board-errors", default=None, choices=BOARD_MODES,
+                   help="on: the master is a consumer-grade EKF/AHRS (an autopilot): its attitude error "
+                        "(correlated in time) and the slave's accelerometer triad misalignment become "
+                        "alignment states and the sigmas honest for them; off (default): a navigation-grade master")
     p.add_argument("--write-slave", default=None, metavar="csv|parquet|native[,...]",
                    help="also write the slave on the master's clock next to the report "
                         "(slave_on_master_clock.*: canonical CSV, Parquet, and/or the slave's own format)")
@@ -288,7 +300,13 @@ def _resolve_match(master: InsLog, requested: str) -> tuple[str | None, str | No
 def alignment_options(slave: InsLog, opts: AnalyzeOptions, lat: LatencyResult | None) -> AlignmentOptions:
     """The alignment's options for this pair: the split's residual delay, the lever arm, the flexure model
     (each helper below gives its AlignmentOptions fields)."""
-    return AlignmentOptions(**_filter_options(slave, opts), **_lever_options(opts, lat), **_flexure_options(opts, lat))
+    return AlignmentOptions(**_filter_options(slave, opts), **_lever_options(opts, lat), **_flexure_options(opts, lat),
+                            **board_options(opts))
+
+
+def board_options(opts: AnalyzeOptions) -> dict:
+    """AlignmentOptions' board_errors field from ``--board-errors``."""
+    return {"board_errors": opts.board_errors == "on"}
 
 
 def _filter_options(slave: InsLog, opts: AnalyzeOptions) -> dict:
@@ -379,10 +397,12 @@ def _imu_to_imu_sections(master: InsLog, an: rp.Analysis, align_sections: dict, 
     align_sections["imu_to_imu"] = res.section()
     comp = align_sections.get("compensated")
     mount = sig = None
+    board = False
     if isinstance(comp, AlignmentResult):
         sec = rp.alignment_section(comp)
         mount, sig = sec["mounting_rpy_deg"], sec["mounting_sigma_deg"]
-    cons = consistency(mount, sig, res)
+        board = any(n.startswith("master attitude error states") for n in comp.notes)
+    cons = consistency(mount, sig, res, board_states=board)
     warning = cons.pop("warning")
     align_sections["consistency"] = cons
     if warning:

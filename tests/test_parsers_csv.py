@@ -414,3 +414,26 @@ def test_fixed_decimals_are_the_stamps_resolution(tmp_path, fmt, expect):
     vendor = _write(tmp_path / "vendor.csv", "Time (s),Gyroscope X (deg/s),Gyroscope Y (deg/s),Gyroscope Z (deg/s)\n"
                     + "\n".join(f"{fmt % a},{b:.6f},{c:.6f},{d:.6f}" for a, b, c, d in zip(t, *w.T)) + "\n")
     assert registry.load(str(vendor)).stamp_resolution_s("gyro") == pytest.approx(expect)
+
+
+def test_canonical_csv_rows_without_a_quaternion_are_not_impossible_ones(tmp_path):
+    """A canonical CSV of an IMU at 200 Hz and a navigation solution at 100 Hz leaves the quaternion
+    cells of the IMU-only rows empty: those rows have no attitude, they are not corrupt (the reader said
+    "quat: N rows with impossible values ignored" for every one of them). A zeroed quaternion still is."""
+    from logtools import sim
+
+    pair = sim.simulate(sim.scenario_config("vehicle", duration_s=10.0, seed=1))
+    p = tmp_path / "m.csv"
+    registry.write(str(p), pair.master, "csv")
+    back = registry.load(str(p))
+    assert not any("impossible" in w for w in back.meta.warnings), back.meta.warnings
+    assert len(back.nav) == len(pair.master.nav)
+    lines = p.read_text().splitlines()
+    qcol = lines[0].split(",").index("qw")
+    row = next(i for i, ln in enumerate(lines[1:], 1) if ln.split(",")[qcol])
+    cells = lines[row].split(",")
+    cells[qcol:qcol + 4] = ["0", "0", "0", "0"]
+    lines[row] = ",".join(cells)
+    p.write_text("\n".join(lines) + "\n")
+    w = registry.load(str(p)).meta.warnings
+    assert any("quat: 1 rows with impossible values" in x for x in w), w

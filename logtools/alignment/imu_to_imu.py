@@ -30,7 +30,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from logtools.conventions import dcm_from_rotvec, euler_from_dcm, median_step_s, skew, wahba
+from logtools.conventions import dcm_from_euler, dcm_from_rotvec, euler_from_dcm, median_step_s, skew, wahba
 from logtools.inslog import InsLog
 
 
@@ -53,6 +53,11 @@ class ImuToImuConfig:
     band_split_s: float = 0.4  # the slow and the fast part of the motion split at this period (moving mean)
     band_z: float = 3.0  # the two bands' rotations further apart than this many combined sigmas: not one rotation
     lever_min_rate_rad_s: float = 0.3  # the accelerometers' lever arm is estimated where the rates move this (rms)
+    #: ... or where a lever arm of lever_plausible_m would move the specific force by lever_min_effect of its
+    #: moving part (rms): a ship's sway at 0.1 rad/s, a 1.5 m lever arm, was 2-3 deg off without it
+    #: (benchmarks/bench_alignment_random.py --real-errors)
+    lever_plausible_m: float = 2.0
+    lever_min_effect: float = 0.01
 
 
 DEFAULT = ImuToImuConfig()
@@ -251,25 +256,33 @@ def _linearised(u_m: np.ndarray, v_s: np.ndarray, r_mat: np.ndarray, k_lever: np
 
 
 def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = None, *, dt_s: float = 1.0,
-                 iterations: int = 5) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray, float, float]:
+                 iterations: int = 5, starts: tuple[np.ndarray, ...] = ()
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray, float, float]:
     """R (and nuisance parameters r with regressors ``k_lever`` (n, 3, m): a lever arm, a residual delay)
-    minimising sum |v_s - R (u_m + K r)|^2.
+    minimising sum |v_s - R (u_m + K r)|^2, by Gauss-Newton from the Wahba solution and from each of
+    ``starts`` (rotations), the smallest residual kept.
 
     Returns (R, cov of the slave-side rotation perturbation (rad^2, 3x3), r or None, cov of r or None,
     residual rms, the scores' correlation time in seconds (``dt_s`` per sample))."""
     n = len(u_m)
-    r_mat, _ = wahba(v_s.T @ u_m)
-    lev = np.zeros(k_lever.shape[2]) if k_lever is not None else None
     p = 3 if k_lever is None else 3 + k_lever.shape[2]
     ktk = np.einsum("kil,kim->lm", k_lever, k_lever) if k_lever is not None else None
-    for _ in range(iterations):
-        _, jtj, rhs, _ = _linearised(u_m, v_s, r_mat, k_lever, lev, ktk)
-        x = np.linalg.solve(jtj, rhs)
-        r_mat = dcm_from_rotvec(x[:3]) @ r_mat
-        if lev is not None:
-            lev = lev + x[3:]
-        if np.linalg.norm(x[:3]) < 1e-12:
-            break
+    best = None
+    for r_mat in (wahba(v_s.T @ u_m)[0], *starts):
+        lev = np.zeros(k_lever.shape[2]) if k_lever is not None else None
+        for _ in range(iterations):
+            _, jtj, rhs, _ = _linearised(u_m, v_s, r_mat, k_lever, lev, ktk)
+            x = np.linalg.solve(jtj, rhs)
+            r_mat = dcm_from_rotvec(x[:3]) @ r_mat
+            if lev is not None:
+                lev = lev + x[3:]
+            if np.linalg.norm(x[:3]) < 1e-12:
+                break
+        e = _linearised(u_m, v_s, r_mat, k_lever, lev, ktk)[0]
+        cost = float(np.sum(e * e))
+        if best is None or cost < best[0]:
+            best = (cost, r_mat, lev)
+    _, r_mat, lev = best
     e, jtj, _, scores = _linearised(u_m, v_s, r_mat, k_lever, lev, ktk, scores=True)
     om, tau = _long_run_cov(scores)
     jinv = np.linalg.inv(jtj)
@@ -279,14 +292,14 @@ def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = 
 
 
 def _triad(u: np.ndarray, v: np.ndarray, k: np.ndarray | None, dt: float, cfg: ImuToImuConfig,
-           min_explained: float | None = None) -> TriadRotation | str:
+           min_explained: float | None = None, starts: tuple[np.ndarray, ...] = ()) -> TriadRotation | str:
     if len(u) < cfg.min_samples:
         return f"only {len(u)} common samples (at least {cfg.min_samples} needed)"
     sv = np.linalg.svd(v.T @ u, compute_uv=False)
     if not sv[1] > 1e-6 * sv[0]:
         return "the motion is about one axis only: the rotation is not determined"
     try:
-        r_mat, cov, lev, _, rms, tau_s = fit_rotation(u, v, k, dt_s=dt)
+        r_mat, cov, lev, _, rms, tau_s = fit_rotation(u, v, k, dt_s=dt, starts=starts)
     except np.linalg.LinAlgError:
         return "the fit is singular (too little motion)"
     explained = 1.0 - rms ** 2 / max(float(np.mean(np.sum(v * v, axis=1))), 1e-300)
@@ -304,17 +317,23 @@ def _triad(u: np.ndarray, v: np.ndarray, k: np.ndarray | None, dt: float, cfg: I
 
 
 def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highpass_s: float,
-               cfg: ImuToImuConfig) -> TriadRotation | str:
-    """One triad's rotation on common samples (t, master u, slave v), the slow part out over highpass_s."""
+               cfg: ImuToImuConfig, starts: tuple[np.ndarray, ...] = ()) -> TriadRotation | str:
+    """One triad's rotation on common samples (t, master u, slave v), the slow part out over highpass_s;
+    ``starts``: further starting rotations of the fit (the accelerometers': the gyro triad's)."""
     dt = median_step_s(t)
     nwin = max(int(round(highpass_s / dt)), 3)
     k = None
     if name == "accel" and gm is not None and len(gm[0]) >= 3:
         w, okw = _interp_at(t, *gm, cfg.gap_steps)
-        if okw.all() and float(np.sqrt(np.mean(np.sum(_highpass(w, nwin) ** 2, axis=1)))) > cfg.lever_min_rate_rad_s:
+        if okw.all():
             dw = np.gradient(w, t, axis=0)
             k = skew(dw) + skew(w) @ skew(w)  # f at r = f + dw x r + w x (w x r)
             k = _highpass(k.reshape(len(t), 9), nwin).reshape(len(t), 3, 3)
+            moving = float(np.sqrt(np.mean(np.sum(_highpass(u, nwin) ** 2, axis=1))))
+            effect = cfg.lever_plausible_m * float(np.sqrt(np.mean(np.sum(k * k, axis=(1, 2))) / 3.0))
+            if not (float(np.sqrt(np.mean(np.sum(_highpass(w, nwin) ** 2, axis=1)))) > cfg.lever_min_rate_rad_s
+                    or effect > cfg.lever_min_effect * moving):
+                k = None
     # the slow part out; the ends (shorter means) trimmed
     u, v = _highpass(u, nwin), _highpass(v, nwin)
     # a delay left between the two (the latency's error, the sensors' own sampling instants) as one more
@@ -323,7 +342,7 @@ def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highp
     kd = -np.gradient(u, t, axis=0)[:, :, None]
     k = kd if k is None else np.concatenate([k, kd], axis=2)
     cut = slice(nwin // 2, len(t) - nwin // 2)
-    res = _triad(u[cut], v[cut], k[cut], dt, cfg)
+    res = _triad(u[cut], v[cut], k[cut], dt, cfg, starts=starts)
     if isinstance(res, str):
         return res
     # a rotation is the same at every frequency: fitted on the slow and on the fast part of the motion
@@ -332,10 +351,10 @@ def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highp
     nlp = max(int(round(cfg.band_split_s / dt)), 2)
     lo = [u - _highpass(u, nlp), v - _highpass(v, nlp), k - _highpass(k.reshape(len(t), -1), nlp).reshape(k.shape)]
     # (a band the rotation explains poorly is itself the sign: no minimum there, the sigmas judge)
-    band_lo = _triad(lo[0][cut], lo[1][cut], lo[2][cut], dt, cfg, min_explained=0.0)
+    band_lo = _triad(lo[0][cut], lo[1][cut], lo[2][cut], dt, cfg, min_explained=0.0, starts=starts)
     hi = [x - y for x, y in zip((u, v, k), lo)]  # made once the slow band's fit is done: one band in memory
     del lo, u, v, k
-    bands = [band_lo, _triad(hi[0][cut], hi[1][cut], hi[2][cut], dt, cfg, min_explained=0.0)]
+    bands = [band_lo, _triad(hi[0][cut], hi[1][cut], hi[2][cut], dt, cfg, min_explained=0.0, starts=starts)]
     del hi
     if all(isinstance(b, TriadRotation) for b in bands):
         zb, _ = _z(bands[0].rpy_deg, bands[0].sigma_deg, bands[1].rpy_deg, bands[1].sigma_deg,
@@ -369,8 +388,13 @@ def imu_to_imu(master: InsLog, slave: InsLog, *, config: ImuToImuConfig = DEFAUL
             continue
         t, u, v = com
         res: TriadRotation | str = ""
+        # the accelerometers' fit also starts from the gyro triad's rotation (a board's two triads are
+        # degrees apart at most): a multirotor's lever-arm accelerations can dominate the moving specific
+        # force and put the Wahba start, and Gauss-Newton from it, 180 deg off with the lever arm flipped
+        starts = ((dcm_from_euler(np.radians(out["gyro"].rpy_deg)),)
+                  if name == "accel" and out["gyro"] is not None else ())
         for hp in (config.highpass_s, *config.highpass_retry_s):  # slow motion (a ship's sway, S-turns): a longer window
-            res = _one_triad(name, t, u, v, gm, hp, config)
+            res = _one_triad(name, t, u, v, gm, hp, config, starts=starts)
             if isinstance(res, TriadRotation):
                 break
         if isinstance(res, str):
@@ -393,10 +417,12 @@ def _arr(v) -> np.ndarray:
     return np.array([np.nan if x is None else float(x) for x in v])
 
 
-def consistency(mount_rpy_deg, mount_sigma_deg, imu: ImuToImu, config: ImuToImuConfig = DEFAULT) -> dict:
+def consistency(mount_rpy_deg, mount_sigma_deg, imu: ImuToImu, config: ImuToImuConfig = DEFAULT, *,
+                board_states: bool = False) -> dict:
     """``alignment.consistency``: the compensated nav-referenced mounting against the gyro triad's rotation
     (and the accelerometer triad's), ``{agrees, z, note}`` plus the per-view figures; ``warning`` holds the
-    text of a disagreement (None when they agree)."""
+    text of a disagreement (None when they agree). ``board_states``: the mounting came from a filter that
+    carried the master's attitude error (``--board-errors on``); else the note says that option exists."""
     out: dict = {"agrees": None, "z": None, "note": "", "warning": None}
     mount_ok = (mount_rpy_deg is not None and mount_sigma_deg is not None
                 and bool(np.isfinite(_arr(mount_rpy_deg) + _arr(mount_sigma_deg)).any()))
@@ -430,7 +456,9 @@ def consistency(mount_rpy_deg, mount_sigma_deg, imu: ImuToImu, config: ImuToImuC
     if (zg is not None and zg > config.consistency_z) or (zg is None and za is not None and za > config.consistency_z):
         zz = zg if zg is not None else za
         causes.append(f"the master's navigation frame is not its IMU frame (board trim or its EKF's attitude "
-                      f"error: the nav-referenced mounting differs from the IMU-to-IMU rotation at z {zz:.1f})")
+                      f"error: the nav-referenced mounting differs from the IMU-to-IMU rotation at z {zz:.1f}"
+                      + (")" if board_states else "; for a consumer-grade master, --board-errors on carries its "
+                         "attitude error in the mounting's sigma)"))
     elif za is not None and za > config.consistency_z and not (zt is not None and zt > config.consistency_z):
         causes.append(f"the accelerometer triad's rotation differs from the mounting at z {za:.1f} while the gyro "
                       "triad's agrees: the accelerometers' scale factors, lever arm or vibration")

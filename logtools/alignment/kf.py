@@ -231,6 +231,7 @@ class FilterSettings:
     r_vel_m_s: float
     r_att_rad: float
     flex_beta: float = 0.0
+    master_att_tau_s: float = np.inf  # correlation time of the master's attitude error state (board_errors)
     delay_bounds_s: tuple[float, float] = (-1.0, 1.0)
     hinf_gamma: float = 1.0
     smoother: bool = False
@@ -403,7 +404,7 @@ def _propagate(st: _LoopState, inp: AlignInputs, s: FilterSettings, k: int, rest
     mav[0, 1], mav[1, 0], mav[2, 1] = 1.0 / (r_n + h), -1.0 / (r_m + h), -tl / (r_n + h)
     f_n = c_ns @ (inp.seg_dv_b[j] / dt)
     f_buf = np.zeros((n, n))
-    _fill_dynamics(f_buf, lay.offsets, c_ns, f_n, w_ie, w_en, v, mav, s.flex_beta)
+    _fill_dynamics(f_buf, lay.offsets, c_ns, f_n, w_ie, w_en, v, mav, s.flex_beta, 1.0 / s.master_att_tau_s)
     phi_k = np.empty((n, n))
     qd_k = np.empty((n, n))
     discretise_step(f_buf, st.qc, dt, phi_k, qd_k)
@@ -754,7 +755,8 @@ def _reset_block(P, x, p0, blk):
 
 
 @njit
-def _nb_propagate(q, v, llh, dq, dv_b, dt, restart_k, offs, qc, beta, f_buf, phi_k, qd_k, q_new, v_new, llh_new):
+def _nb_propagate(q, v, llh, dq, dv_b, dt, restart_k, offs, qc, beta, mk_rate, f_buf, phi_k, qd_k, q_new, v_new,
+                  llh_new):
     """:func:`_propagate` compiled: Phi, Qd of one segment (in place) from the error dynamics at its start,
     then the slave mechanised over it (q, v, llh in place)."""
     n = phi_k.shape[0]
@@ -770,7 +772,7 @@ def _nb_propagate(q, v, llh, dq, dv_b, dt, restart_k, offs, qc, beta, f_buf, phi
     mav[0, 1], mav[1, 0], mav[2, 1] = 1.0 / (r_n + h), -1.0 / (r_m + h), -tl / (r_n + h)
     f_n = c_ns @ (dv_b / dt)
     f_buf[:, :] = 0.0
-    _fill_dynamics(f_buf, offs, c_ns, f_n, w_ie, w_en, v, mav, beta)
+    _fill_dynamics(f_buf, offs, c_ns, f_n, w_ie, w_en, v, mav, beta, mk_rate)
     _discretise(f_buf, qc, dt, phi_k, qd_k)
     if restart_k:  # a gap: the error state is not propagated through unknown motion
         for ii in range(n):
@@ -918,7 +920,8 @@ def _nb_finite(x, P):
 
 @njit
 def _kf_loop(t_ep, seg_dq, seg_dv, seg_dt, mt, mq, mv, ma, mw, mvalid, resets, restart, has_q, has_v, has_w,
-             q0, v0, llh0, r0, lever0, tau0, offs, n, m_meas, p0, qc, r_diag, beta, lo_tau, hi_tau, fb_mask,
+             q0, v0, llh0, r0, lever0, tau0, offs, n, m_meas, p0, qc, r_diag, beta, mk_rate, lo_tau, hi_tau,
+             fb_mask,
              att_only_fej, keep, xs, pd, r_hist, pm_hist, tau_hist, lev_hist, innov, nis, q_hist, cnm_hist,
              sm_phi, sm_xpred, sm_ppred, sm_xf, sm_pf, sm_fb, counters):
     """The reference loop of :func:`run_filter` compiled, for the KF kinds, step for step (the ``_nb_*``
@@ -941,8 +944,8 @@ def _kf_loop(t_ep, seg_dq, seg_dv, seg_dt, mt, mq, mv, ma, mw, mvalid, resets, r
     for k in range(ne):
         if k > 0:
             j = k - 1
-            _nb_propagate(q, v, llh, seg_dq[j], seg_dv[j], seg_dt[j], restart[k], offs, qc, beta, f_buf, phi_k,
-                          qd_k, q_new, v_new, llh_new)
+            _nb_propagate(q, v, llh, seg_dq[j], seg_dv[j], seg_dt[j], restart[k], offs, qc, beta, mk_rate, f_buf,
+                          phi_k, qd_k, q_new, v_new, llh_new)
         tm_ = t_ep[k] - tau
         i = _nb_master_at(mt, mq, mv, ma, mw, has_q, has_v, has_w, tm_, c_nm, v_m, a_m, w_m)
         if k > 0:
@@ -1033,7 +1036,8 @@ def run_filter_compiled(inp: AlignInputs, s: FilterSettings) -> FilterRun:
              np.asarray(inp.llh0, float).copy(), np.ascontiguousarray(inp.r0, float),
              np.asarray(inp.lever0_m, float).copy(), float(inp.tau0_s), lay.offsets, n, m_meas,
              np.ascontiguousarray(_initial_cov(s)), np.asarray(s.qc, float), r_diag, float(s.flex_beta),
-             float(s.delay_bounds_s[0]), float(s.delay_bounds_s[1]), fb_mask, bool(s.att_only_fej), keep,
+             1.0 / float(s.master_att_tau_s), float(s.delay_bounds_s[0]), float(s.delay_bounds_s[1]), fb_mask,
+             bool(s.att_only_fej), keep,
              xs, pd, r_hist, pm_hist, tau_hist, lev_hist, innov, nis, q_hist, cnm_hist, *sm, counters)
     if counters[2] >= 0:
         raise AnalysisError(f"alignment filter diverged at t = {inp.t_epoch_s[counters[2]]:.2f} s "

@@ -10,16 +10,20 @@ Definitions (NED navigation frame n, slave body s, master body m; DESIGN.md moun
 * flexure (S000 eq 8): angle lam (s frame) and rate w_f, second-order Markov
   lam' = w_f,  w_f' = -beta^2 lam - 2 beta w_f + eta; the effective mounting is mu + lam
 * lever arm error dl (m frame): l = l_hat + dl, slave velocity v_s = v_m + C_nm (w_nm^m x l)  (S003 eq 3)
+* master attitude error eta (n frame): the master's attitude output C_nm_out = (I + [eta x]) C_nm, a first-order
+  Markov process (its EKF's attitude error, correlated over tau_m): eta' = -eta / tau_m + w
+* slave accelerometer triad misalignment alpha (s frame): the accelerometers measure (I + [alpha x]) f^s in the
+  gyro triad's frame s (two chips, or one chip's axes not orthogonal to the other's): a constant
 * delay dtau (s): the slave's data stamped t describe the physical instant t - tau (tau > 0: slave
   stamps late, DESIGN.md latency); the master is read at t - tau_hat and dtau = tau - tau_hat. The
   measurement is linearised in the delay (S001/S004): dz/dtau = -(rate of the master quantity).
 
 Dynamics (phi-angle model, position errors neglected):
   phi' = -w_in x phi + M_av dv - C_ns eps
-  dv'  = f^n x phi + C_ns nabla - (2 w_ie + w_en) x dv + v x (M_av dv)
+  dv'  = f^n x phi + C_ns nabla - f^n x (C_ns alpha) - (2 w_ie + w_en) x dv + v x (M_av dv)
 Measurements:
   attitude  z_att = rotvec(C_ns_ref C_ns_hat^T),  C_ns_ref = C_nm R_hat^T (master with the mounting
-            estimate); z_att = phi - C_ns (mu + lam) + w_ns^n dtau
+            estimate); z_att = phi - C_ns (mu + lam) + eta + w_ns^n dtau
   velocity  z_vel = v_hat - (v_m + C_nm (w x l_hat)) = dv + C_nm [w x] dl - a_m^n dtau
 """
 from __future__ import annotations
@@ -48,6 +52,8 @@ class StateLayout:
     flex_rate: slice | None
     lever: slice | None
     delay: int | None
+    master_att: slice | None = None  # the master's attitude error (first-order Markov), attitude matching
+    accel_mis: slice | None = None  # the slave's accelerometer triad off its gyro triad, velocity matching
 
     @property
     def n(self) -> int:
@@ -68,19 +74,22 @@ class StateLayout:
     @property
     def offsets(self) -> np.ndarray:
         """Start index of each group (-1 when absent), for the compiled kernels:
-        [att, vel, gyro, accel, mount, flex_ang, flex_rate, lever, delay, uses_vel, uses_att]."""
+        [att, vel, gyro, accel, mount, flex_ang, flex_rate, lever, delay, uses_vel, uses_att, master_att,
+        accel_mis]."""
         def o(s):
             return -1 if s is None else s.start
         return np.array([o(self.att), o(self.vel), o(self.gyro), o(self.accel), o(self.mount),
                          o(self.flex_ang), o(self.flex_rate), o(self.lever),
-                         -1 if self.delay is None else self.delay, int(self.uses_vel), int(self.uses_att)],
-                        dtype=np.int64)
+                         -1 if self.delay is None else self.delay, int(self.uses_vel), int(self.uses_att),
+                         o(self.master_att), o(self.accel_mis)], dtype=np.int64)
 
 
-def make_layout(match: str, *, flexure: bool = False, lever_arm: bool = False, delay: bool = False
-                ) -> StateLayout:
+def make_layout(match: str, *, flexure: bool = False, lever_arm: bool = False, delay: bool = False,
+                board_errors: bool = False) -> StateLayout:
     """State layout per matching mode. Velocity states (and the accel bias, which only acts through
-    them) are carried when velocity is matched; mounting (and flexure) when attitude is matched."""
+    them) are carried when velocity is matched; mounting (and flexure) when attitude is matched.
+    ``board_errors``: the master's attitude error as a Markov state (attitude matched) and the slave's
+    accelerometer triad misalignment (velocity matched), appended after the others."""
     if match not in MATCHES:
         raise ValueError(f"match must be one of {MATCHES}, not {match!r}")
     names: list[str] = []
@@ -107,7 +116,10 @@ def make_layout(match: str, *, flexure: bool = False, lever_arm: bool = False, d
     if delay:
         d = len(names)
         names.append("delay")
-    return StateLayout(match, tuple(names), att, vel, gyro, accel, mount, flex_ang, flex_rate, lever, d)
+    master_att = add("master_att_err", "ned") if (board_errors and use_att) else None
+    accel_mis = add("accel_misalign") if (board_errors and use_vel) else None
+    return StateLayout(match, tuple(names), att, vel, gyro, accel, mount, flex_ang, flex_rate, lever, d,
+                       master_att, accel_mis)
 
 
 def m_av(lat_rad: float, alt_m: float, r_m: float, r_n: float) -> np.ndarray:
@@ -119,12 +131,12 @@ def m_av(lat_rad: float, alt_m: float, r_m: float, r_n: float) -> np.ndarray:
 
 def dynamics_matrix(lay: StateLayout, c_ns: np.ndarray, f_n: np.ndarray, w_ie_n: np.ndarray,
                     w_en_n: np.ndarray, vel_n: np.ndarray, mav: np.ndarray,
-                    flex_beta: float = 0.0) -> np.ndarray:
+                    flex_beta: float = 0.0, master_att_tau_s: float = np.inf) -> np.ndarray:
     """Continuous-time error dynamics F (n x n)."""
     f = np.zeros((lay.n, lay.n))
     _fill_dynamics(f, lay.offsets, np.ascontiguousarray(c_ns, float), np.asarray(f_n, float),
                    np.asarray(w_ie_n, float), np.asarray(w_en_n, float), np.asarray(vel_n, float),
-                   np.ascontiguousarray(mav, float), float(flex_beta))
+                   np.ascontiguousarray(mav, float), float(flex_beta), 1.0 / float(master_att_tau_s))
     return f
 
 
@@ -140,9 +152,10 @@ def _sk(v, out, r0, c0, sign):
 
 
 @njit
-def _fill_dynamics(f, off, c_ns, f_n, w_ie, w_en, vel, mav, beta):
+def _fill_dynamics(f, off, c_ns, f_n, w_ie, w_en, vel, mav, beta, mk_rate):
     a, v, g, acc = off[0], off[1], off[2], off[3]
     fa, fr = off[5], off[6]
+    mk, am = off[11], off[12]
     w_in = w_ie + w_en
     _sk(w_in, f, a, a, -1.0)
     for i in range(3):
@@ -168,6 +181,16 @@ def _fill_dynamics(f, off, c_ns, f_n, w_ie, w_en, vel, mav, beta):
         for i in range(3):
             for j in range(3):
                 f[v + i, v + j] += t[i, j]
+        if am >= 0:  # - [f^n x] C_ns alpha
+            fx = np.zeros((3, 3))
+            _sk(f_n, fx, 0, 0, 1.0)
+            t = fx @ c_ns
+            for i in range(3):
+                for j in range(3):
+                    f[v + i, am + j] = -t[i, j]
+    if mk >= 0:
+        for i in range(3):
+            f[mk + i, mk + i] = -mk_rate
     if fa >= 0:
         for i in range(3):
             f[fa + i, fr + i] = 1.0
@@ -235,7 +258,7 @@ def measurement_matrix(lay: StateLayout, c_ns: np.ndarray, *, c_nm: np.ndarray |
 
 @njit
 def _fill_h(h, off, c_ns, c_nm, w_l, w_ns, a_m):
-    a, v, mo, fa, lev, d = off[0], off[1], off[4], off[5], off[7], off[8]
+    a, v, mo, fa, lev, d, mk = off[0], off[1], off[4], off[5], off[7], off[8], off[11]
     row = 0
     if off[9]:
         for i in range(3):
@@ -260,6 +283,8 @@ def _fill_h(h, off, c_ns, c_nm, w_l, w_ns, a_m):
                     h[row + i, fa + j] = -c_ns[i, j]
             if d >= 0:
                 h[row + i, d] = w_ns[i]
+            if mk >= 0:
+                h[row + i, mk + i] = 1.0
     return h
 
 

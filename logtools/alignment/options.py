@@ -76,6 +76,16 @@ class AlignmentOptions:
     flexure: bool | str = False
     flex_beta: float | None = None  # 1/s (default 0.5; with flexure="auto" config.flex_auto_beta_1_s)
     flex_sigma_deg: float | tuple[float, float, float] | None = None  # one or per axis (default 0.05)
+    #: a consumer board's errors (issue 22): the master's attitude error as a first-order Markov process
+    #: (attitude matching) and the slave's accelerometer triad misalignment from its gyro triad (velocity
+    #: matching) as states, and the sigmas widened by the innovations' correlation time for what the
+    #: states leave (config.board_innov_corr_min). For a consumer-grade master (an autopilot's EKF or
+    #: AHRS); a navigation-grade master's attitude is better than the Markov prior and the sigmas would
+    #: only grow.
+    board_errors: bool = False
+    master_att_err_deg: float | None = None  # the Markov error's sigma per axis (default config.master_att_err_deg)
+    master_att_err_tau_s: float | None = None  # its correlation time (default config.master_att_err_tau_s)
+    accel_misalign_sigma_deg: float | None = None  # prior per axis (default config.accel_misalign_sigma_deg)
     mounting_sigma_deg: float | None = None  # prior; default 1 deg after a good coarse fit, else 5
     gyro_bias_sigma_dph: float | None = None  # priors; default from the grade the noise reveals
     accel_bias_sigma_mg: float | None = None
@@ -100,6 +110,8 @@ class AlignmentOptions:
     def __post_init__(self):
         if not (isinstance(self.flexure, bool) or self.flexure == "auto"):
             raise AnalysisError(f"flexure must be True, False or 'auto', not {self.flexure!r}")
+        if not isinstance(self.board_errors, bool):
+            raise AnalysisError(f"board_errors must be True or False, not {self.board_errors!r}")
 
     @property
     def flexure_auto(self) -> bool:
@@ -175,6 +187,22 @@ class AlignmentConfig:
     #: which that test asserts as its premise; benchmarks/bench_alignment_random.py --real-errors
     #: --widen measures it (issue 22)
     innov_corr_min: float | None = None
+    #: board_errors: the accelerometer triad's misalignment prior (per axis, deg): MEMS boards' triads are
+    #: aligned to each other within about 1-2 deg (the ArduPilot boards of docs/alignment_real_logs.md:
+    #: 0.3-1 deg between the chips' triads)
+    accel_misalign_sigma_deg: float = 1.0
+    #: ... an estimate beyond this many prior sigmas gets a note (the ROS car bag's odometry master: 280 deg)
+    accel_misalign_implausible_sigmas: float = 5.0
+    #: ... the master's attitude error where the options give none: sigma (deg) and correlation time (s) of
+    #: a consumer EKF's attitude error (the middle of benchmarks/bench_alignment_random.py --real-errors'
+    #: 0.05-0.2 deg and 10-100 s; a likelihood fit over a grid was tried and picked 0.03 deg on those
+    #: runs: the 20 Hz innovations penalise a larger random walk more than they reward a slow error)
+    master_att_err_deg: float = 0.1
+    master_att_err_tau_s: float = 30.0
+    #: ... and the reported sigmas widened by sqrt(the innovations' integrated correlation time) beyond this
+    #: many epochs (as innov_corr_min, for what the states leave: 25-50 Hz snapshots with aliased
+    #: vibration; --real-errors: 90 % of 48 runs within 2 sigma with the states alone, 100 % with both)
+    board_innov_corr_min: float = 2.0
 
 
 #: the configuration the benchmarks measured

@@ -225,10 +225,11 @@ def _initial_state(master: InsLog, slave: InsLog, ms: MasterSeries, t0: float, t
     return q0, v0, lever0
 
 
-def _setup(prob: _Problem, flexure: bool) -> tuple[StateLayout, FilterSettings, np.ndarray]:
-    """The state layout, filter settings and prior sigmas of one pass (with or without flexure states)."""
+def _setup(prob: _Problem, flexure: bool, board: bool = False) -> tuple[StateLayout, FilterSettings, np.ndarray]:
+    """The state layout, filter settings and prior sigmas of one pass (with or without flexure states,
+    with or without the board's error states)."""
     ly = make_layout(prob.match, flexure=flexure, lever_arm=bool(prob.opts.estimate_lever_arm),
-                     delay=prob.win.delay_state)
+                     delay=prob.win.delay_state, board_errors=board)
     st, s0 = _settings(prob.kind, ly, prob.master, prob.t_imu, prob.gyro, prob.accel, prob.opts, prob.config,
                        prob.coarse_ok, prob.win.dt_upd_s, prob.win.tau0_s, (prob.win.lo_s, prob.win.hi_s),
                        prob.smoother)
@@ -240,7 +241,7 @@ def _filter_passes(prob: _Problem, inp: AlignInputs, src: str, progress: Callabl
     """The forward pass, and where called for the pass with flexure states (flexure="auto") and the pass
     with the measurement noise re-estimated from the residuals."""
     opts, cfg = prob.opts, prob.config
-    lay, settings, sig0 = _setup(prob, bool(opts.flexure) and not opts.flexure_auto)
+    lay, settings, sig0 = _setup(prob, bool(opts.flexure) and not opts.flexure_auto, opts.board_errors)
     if prob.smoother:
         need_gb = len(inp.t_epoch_s) * lay.n**2 * 8 * 3 / 1e9
         if need_gb > 2.0:
@@ -249,11 +250,12 @@ def _filter_passes(prob: _Problem, inp: AlignInputs, src: str, progress: Callabl
     prog(0.05, "alignment filter")
     sub = (lambda f, s="": prog(0.05 + 0.9 * f, s)) if progress else None
     run = run_filter(inp, settings, progress=sub, compiled=cfg.compiled_kf)
+    board = lay.master_att is not None or lay.accel_mis is not None
     nis_rigid = _mean_nis(run)
     if opts.flexure_auto and lay.flex_ang is None and nis_rigid > cfg.flex_auto_nis * lay.n_meas:
         # residuals far beyond the noise model: is it a flexing slave? The flexure states are kept when
         # they explain most of the excess (mean NIS down by flex_auto_gain at least)
-        lay_f, st_f, sig0_f = _setup(prob, True)
+        lay_f, st_f, sig0_f = _setup(prob, True, board)
         run_f = run_filter(inp, st_f, progress=None, compiled=cfg.compiled_kf)
         if _mean_nis(run_f) < cfg.flex_auto_gain * nis_rigid:
             notes.append(f"flexure states added (mean NIS/dof {nis_rigid / lay.n_meas:.1f} without them, "
@@ -275,6 +277,21 @@ def _filter_passes(prob: _Problem, inp: AlignInputs, src: str, progress: Callabl
         if settings.r_vel_m_s > cfg.implausible_r_vel_m_s or settings.r_att_rad > cfg.implausible_r_att_deg * DEG:
             notes.append("residuals this large are no INS's noise: the filter did not follow the data (a wrong "
                          "start, an uncompensated delay or reset, other units); the mounting is doubtful")
+    if lay.master_att is not None:
+        s_mk = np.degrees(sig0[lay.master_att][0])
+        notes.append(f"master attitude error states: first-order Markov, sigma {s_mk:.3g} deg, correlation time "
+                     f"{settings.master_att_tau_s:.3g} s")
+    if lay.accel_mis is not None:
+        am = np.degrees(run.x[-1, lay.accel_mis])
+        am_s = np.degrees(np.sqrt(run.p_diag[-1, lay.accel_mis]))
+        notes.append("slave accelerometer triad misalignment from its gyro triad (x/y/z): "
+                     + " / ".join(f"{a:+.2f} +- {b:.2f}" for a, b in zip(am, am_s)) + " deg")
+        lim = cfg.accel_misalign_implausible_sigmas * np.degrees(sig0[lay.accel_mis])
+        if np.any(np.abs(am) > lim):
+            notes.append(f"the accelerometer triad misalignment came out beyond "
+                         f"{cfg.accel_misalign_implausible_sigmas:g} sigma, far beyond its prior: no board's triads "
+                         "are that far apart, the velocity matching is not explained by it (the master's velocity, "
+                         "a lever arm, scale factors); the mounting is doubtful")
     return run, lay, settings, sig0
 
 # ---- inputs ---------------------------------------------------------------------------------------
@@ -678,13 +695,20 @@ def _settings(kind: FilterKind, lay: StateLayout, master: InsLog, t_imu, gyro, a
         qc[lay.flex_rate] = 4.0 * beta**3 * s_l**2
     if lay.lever is not None:
         sig[lay.lever] = float(_given(opts.lever_arm_sigma_m, config.lever_arm_sigma_m))
+    mk_tau = float(_given(opts.master_att_err_tau_s, config.master_att_err_tau_s))
+    if lay.master_att is not None:  # first-order Markov: stationary sigma, qc = 2 sigma^2 / tau
+        s_m = float(_given(opts.master_att_err_deg, config.master_att_err_deg)) * DEG
+        sig[lay.master_att] = s_m
+        qc[lay.master_att] = 2.0 * s_m**2 / mk_tau
+    if lay.accel_mis is not None:
+        sig[lay.accel_mis] = float(_given(opts.accel_misalign_sigma_deg, config.accel_misalign_sigma_deg)) * DEG
     if lay.delay is not None:
         if kind.splits_delay:
             sig[lay.delay] = dt_upd / np.sqrt(3.0)
         else:
             sig[lay.delay] = float(_given(opts.delay_sigma_s, 0.1))
     st = FilterSettings(kind=kind, layout=lay, p0_sigma=sig, qc=qc, r_vel_m_s=r_vel, r_att_rad=r_att,
-                        flex_beta=beta, delay_bounds_s=tau_bounds,
+                        flex_beta=beta, master_att_tau_s=mk_tau, delay_bounds_s=tau_bounds,
                         hinf_gamma=float(opts.hinf_gamma), smoother=smoother, att_only_fej=config.att_only_fej)
     return st, sig
 
@@ -749,8 +773,11 @@ def _result(run: FilterRun, lay: StateLayout, st: FilterSettings, sig0: np.ndarr
     sig_scale = float(np.sqrt(max(1.0, nis_m / lay.n_meas))) if np.isfinite(nis_m) else 1.0
     if sig_scale > 1.05:
         notes.append(f"reported sigmas scaled by {sig_scale:.2f} = sqrt(mean NIS / dof)")
-    corr = _innovation_correlation_factor(run) if config.innov_corr_min is not None else 1.0
-    if config.innov_corr_min is not None and corr > config.innov_corr_min:
+    corr_min = config.innov_corr_min
+    if corr_min is None and (lay.master_att is not None or lay.accel_mis is not None):
+        corr_min = config.board_innov_corr_min
+    corr = _innovation_correlation_factor(run) if corr_min is not None else 1.0
+    if corr_min is not None and corr > corr_min:
         # the filter takes the master's errors as white; correlated in time (its EKF's attitude error, a
         # Markov process), they carry fewer independent samples than epochs: sigmas widened by
         # sqrt(integrated correlation time in epochs), as the latency's sigma already is
@@ -983,6 +1010,11 @@ def _histories(run: FilterRun, lay: StateLayout, hist_mount: np.ndarray, sig_e: 
         add(lay.accel, ["accel_bias_x_mg", "accel_bias_y_mg", "accel_bias_z_mg"], 1.0 / MG)
     if lay.flex_ang is not None:
         add(lay.flex_ang, ["flex_ang_x_arcmin", "flex_ang_y_arcmin", "flex_ang_z_arcmin"], 1.0 / ARCMIN)
+    if lay.master_att is not None:
+        add(lay.master_att, ["master_att_err_n_arcmin", "master_att_err_e_arcmin", "master_att_err_d_arcmin"],
+            1.0 / ARCMIN)
+    if lay.accel_mis is not None:
+        add(lay.accel_mis, ["accel_misalign_x_deg", "accel_misalign_y_deg", "accel_misalign_z_deg"], 1.0 / DEG)
     if lay.lever is not None:
         names.extend(["lever_arm_x_m", "lever_arm_y_m", "lever_arm_z_m"])
         cols.append(run.lever_hat)

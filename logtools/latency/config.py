@@ -38,6 +38,10 @@ class PrepareConfig:
     refine_band_factor: float = 5.0  # refinement samples at this x the cutoff (band-limited: all the information) ...
     min_refine_rate_hz: float = 20.0  # ... and at least this rate
     min_overlap_s: float = 5.0  # less overlap than this: an AnalysisError (test_latency short-log tests)
+    #: stamps on a grid at least this coarse get a warning (a 1 ms logger clock: a floor of 0.29 ms); finer (a
+    #: CSV written to the nanosecond, a 1 us clock) only enter the sigma budget: their floor of <= 2.9 us is
+    #: below a tenth of the best sigma real logs give (0.02-0.03 ms, docs/latency.md)
+    resolution_warn_s: float = 1e-5
     min_motion_snr: float = 2.0  # in-band motion/noise RMS below this: "no motion" AnalysisError (test_latency)
     low_motion_snr: float = 10.0  # ... below this: the "too_little_motion" flag (test_latency)
     low_motion_dps: float = 0.5  # ... or a master motion below this RMS (deg/s): the same flag

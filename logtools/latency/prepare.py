@@ -89,7 +89,7 @@ def prepare(master: InsLog, slave: InsLog, max_lag_s: float | None, *, accelerom
     if velocity and cfg.prepare.velocity_aided and master.has_vel and slave_r.has_vel:
         vel_src = (master, slave_r)  # built when needed (velocity_step)
     for role, q in zip(("master", "slave"), res_s):
-        if q > 0:
+        if q >= cfg.prepare.resolution_warn_s:
             warnings.append(f"{role} stamps are whole multiples of {q * 1e3:g} ms: the latency's sigma is "
                             f"at least {q / np.sqrt(12.0) * 1e3:.3g} ms (a fixed sampling phase offsets "
                             f"every stamp alike)")
