@@ -79,7 +79,8 @@ def _chromium(args, tmp_path):
 def test_renders_in_headless_chromium(page, tmp_path):
     path, _ = page
     shot = tmp_path / "out.png"
-    _chromium([f"--screenshot={shot}", "--window-size=1280,4000", path.as_uri()], tmp_path)
+    # one browser start for both: the screenshot to the file, the DOM on stdout
+    run = _chromium([f"--screenshot={shot}", "--window-size=1280,4000", "--dump-dom", path.as_uri()], tmp_path)
     assert shot.exists() and shot.stat().st_size > 50_000
     img = _read_png(shot)
     assert img.shape[0] >= 3000 and img.shape[1] == 1280
@@ -87,7 +88,7 @@ def test_renders_in_headless_chromium(page, tmp_path):
     assert img.std() > 0.05
     rows_with_ink = (img.std(axis=(1, 2)) > 0.02).mean()
     assert rows_with_ink > 0.5
-    dom = _chromium(["--dump-dom", path.as_uri()], tmp_path).stdout.decode()
+    dom = run.stdout.decode()
     for s in SECTIONS:
         assert f'id="{s}"' in dom
     assert dom.count("<figure") >= 7 and dom.count("<svg") >= 7
