@@ -13,7 +13,8 @@ Both in the convention of ``mounting_rpy_deg`` (DESIGN.md: ``v_slave_FRD = R v_m
 Z-Y-X, listed [roll, pitch, yaw] degrees). The slave must already be on the master's clock (the
 compensated slave): a latency left in it turns into a rotation error where the rates change.
 
-Each rotation is refined by Gauss-Newton from the Wahba (SVD) start, the perturbation on the slave's side
+Each rotation is refined by Gauss-Newton from the Wahba (SVD) start (the accelerometers' also from the gyro
+triad's rotation, the smaller residual kept), the perturbation on the slave's side
 (``R = exp([d x]) R_hat``); its sigma is the sandwich ``J^-1 Omega J^-1`` with ``J = sum H^T H`` and
 ``Omega`` the long-run covariance of the scores ``H^T e`` (Newey-West, Bartlett weights, bandwidth from
 the scores' correlation time): residuals correlated in time (vibration, scale-factor errors, flexure)
