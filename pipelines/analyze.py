@@ -401,7 +401,7 @@ def _imu_to_imu_sections(master: InsLog, an: rp.Analysis, align_sections: dict, 
     if isinstance(comp, AlignmentResult):
         sec = rp.alignment_section(comp)
         mount, sig = sec["mounting_rpy_deg"], sec["mounting_sigma_deg"]
-        board = any(n.startswith("master attitude error states") for n in comp.notes)
+        board = "master_att_err_n_arcmin" in comp.history_names  # the filter carried the master's error
     cons = consistency(mount, sig, res, board_states=board)
     warning = cons.pop("warning")
     align_sections["consistency"] = cons

@@ -323,6 +323,8 @@ def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highp
     ``starts``: further starting rotations of the fit (the accelerometers': the gyro triad's)."""
     dt = median_step_s(t)
     nwin = max(int(round(highpass_s / dt)), 3)
+    # the slow part out; the ends (shorter means) trimmed below
+    u, v = _highpass(u, nwin), _highpass(v, nwin)
     k = None
     if name == "accel" and gm is not None and len(gm[0]) >= 3:
         w, okw = _interp_at(t, *gm, cfg.gap_steps)
@@ -330,13 +332,11 @@ def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highp
             dw = np.gradient(w, t, axis=0)
             k = skew(dw) + skew(w) @ skew(w)  # f at r = f + dw x r + w x (w x r)
             k = _highpass(k.reshape(len(t), 9), nwin).reshape(len(t), 3, 3)
-            moving = float(np.sqrt(np.mean(np.sum(_highpass(u, nwin) ** 2, axis=1))))
+            moving = float(np.sqrt(np.mean(np.sum(u ** 2, axis=1))))
             effect = cfg.lever_plausible_m * float(np.sqrt(np.mean(np.sum(k * k, axis=(1, 2))) / 3.0))
             if not (float(np.sqrt(np.mean(np.sum(_highpass(w, nwin) ** 2, axis=1)))) > cfg.lever_min_rate_rad_s
                     or effect > cfg.lever_min_effect * moving):
                 k = None
-    # the slow part out; the ends (shorter means) trimmed
-    u, v = _highpass(u, nwin), _highpass(v, nwin)
     # a delay left between the two (the latency's error, the sensors' own sampling instants) as one more
     # parameter: v(t) = R u(t - d) ~ R (u - d du/dt); a delay of 1.4 ms turned the rotation of IMU2's gyro
     # triad by 0.2 deg on a hand-carried ArduPlane (rates and their derivatives correlate across axes)

@@ -60,6 +60,11 @@ class StateLayout:
         return len(self.names)
 
     @property
+    def has_board_states(self) -> bool:
+        """The board's error states (the master's attitude error, the accelerometer triad misalignment)."""
+        return self.master_att is not None or self.accel_mis is not None
+
+    @property
     def uses_vel(self) -> bool:
         return "vel" in self.match
 

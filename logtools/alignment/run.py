@@ -250,12 +250,11 @@ def _filter_passes(prob: _Problem, inp: AlignInputs, src: str, progress: Callabl
     prog(0.05, "alignment filter")
     sub = (lambda f, s="": prog(0.05 + 0.9 * f, s)) if progress else None
     run = run_filter(inp, settings, progress=sub, compiled=cfg.compiled_kf)
-    board = lay.master_att is not None or lay.accel_mis is not None
     nis_rigid = _mean_nis(run)
     if opts.flexure_auto and lay.flex_ang is None and nis_rigid > cfg.flex_auto_nis * lay.n_meas:
         # residuals far beyond the noise model: is it a flexing slave? The flexure states are kept when
         # they explain most of the excess (mean NIS down by flex_auto_gain at least)
-        lay_f, st_f, sig0_f = _setup(prob, True, board)
+        lay_f, st_f, sig0_f = _setup(prob, True, lay.has_board_states)
         run_f = run_filter(inp, st_f, progress=None, compiled=cfg.compiled_kf)
         if _mean_nis(run_f) < cfg.flex_auto_gain * nis_rigid:
             notes.append(f"flexure states added (mean NIS/dof {nis_rigid / lay.n_meas:.1f} without them, "
@@ -774,7 +773,7 @@ def _result(run: FilterRun, lay: StateLayout, st: FilterSettings, sig0: np.ndarr
     if sig_scale > 1.05:
         notes.append(f"reported sigmas scaled by {sig_scale:.2f} = sqrt(mean NIS / dof)")
     corr_min = config.innov_corr_min
-    if corr_min is None and (lay.master_att is not None or lay.accel_mis is not None):
+    if corr_min is None and lay.has_board_states:
         corr_min = config.board_innov_corr_min
     corr = _innovation_correlation_factor(run) if corr_min is not None else 1.0
     if corr_min is not None and corr > corr_min:
