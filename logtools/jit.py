@@ -38,7 +38,8 @@ LARGE_INPUT_BYTES = 60_000_000
 KERNEL_MODULES = ("logtools/strapdown.py", "logtools/alignment/kf.py", "logtools/alignment/model.py",
                   "logtools/latency/flexure.py", "parsers/mavlink_common.py", "parsers/mcap_ros.py",
                   "parsers/ulog.py", "parsers/csvtable.py", "parsers/rosbag1.py", "parsers/restamp_mavlink.py",
-                  "parsers/restamp_csv.py", "parsers/ros_containers.py")
+                  "parsers/restamp_csv.py", "parsers/ros_containers.py",
+                  "parsers/restamp.py")
 
 _state: dict = {"mode": None, "hint": None, "why": ""}
 

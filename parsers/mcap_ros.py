@@ -18,7 +18,7 @@ from __future__ import annotations
 import os
 import struct
 import zlib
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import numpy as np
 
@@ -387,6 +387,49 @@ def summary_definitions(buf) -> list[tuple[int, int, int]]:
     return sorted(out, key=lambda r: r[0] != _OP_SCHEMA)  # schemas first: a channel is judged by its schema
 
 
+def inflate_chunk(buf, off: int, nxt: int) -> bytes:
+    """The records of the chunk record at ``off`` (ending at ``nxt``): decompressed, size and CRC
+    checked; :class:`_Damage` naming the chunk if not."""
+    _t0, _t1, usize, crc = struct.unpack_from("<QQQI", buf, off + 9)
+    comp, o = _string(buf, off + 9 + 28)
+    (clen,) = _U64.unpack_from(buf, o)
+    if o + 8 + clen > nxt:
+        raise _Damage(f"chunk at byte {off}: records run past the chunk")
+    try:
+        content = _decompress(comp, buf[o + 8:o + 8 + clen], usize)
+    except _Damage:
+        raise
+    except Exception as exc:
+        raise _Damage(f"chunk at byte {off} cannot be decompressed ({type(exc).__name__})") from None
+    if len(content) != usize:
+        raise _Damage(f"chunk at byte {off}: size {len(content)} != {usize}")
+    if crc and zlib.crc32(content) != crc:
+        raise _Damage(f"chunk at byte {off}: CRC mismatch")
+    return content
+
+
+def chunk_records(buf, off: int) -> Iterator[tuple[int, int]]:
+    """(offset, next) of the complete chunk records from ``off`` on, along the top-level records (up to
+    the first invalid or cut record): what a scan will inflate, for :class:`parsers.threads.Prefetch`."""
+    end = len(buf)
+    while off + 9 <= end:
+        op, ln = _REC.unpack_from(buf, off)
+        nxt = off + 9 + ln
+        if op == 0 or op > 0x0F or nxt > end or op == _OP_FOOTER:
+            return
+        if op == _OP_CHUNK:
+            yield off, nxt
+        off = nxt
+
+
+def chunk_prefetch(buf, off: int):
+    """The chunks of ``buf`` from ``off`` on, inflated ahead of the scan in worker threads (for a file
+    read whole into memory; the parser's memory-mapped walk measured no gain from it)."""
+    from parsers import threads
+
+    return threads.Prefetch(lambda r: inflate_chunk(buf, r[0], r[1]), chunk_records(buf, off))
+
+
 def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
     """The top-level record walk of an MCAP file (memory-mapped, the pages behind the walk let go)."""
     from parsers.filemap import FileMap
@@ -423,21 +466,7 @@ def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
             try:
                 if op == _OP_CHUNK:
                     n_chunks += 1
-                    _t0, _t1, usize, crc = struct.unpack_from("<QQQI", buf, off + 9)
-                    comp, o = _string(buf, off + 9 + 28)
-                    (clen,) = _U64.unpack_from(buf, o)
-                    if o + 8 + clen > nxt:
-                        raise _Damage(f"chunk at byte {off}: records run past the chunk")
-                    try:
-                        content = _decompress(comp, buf[o + 8:o + 8 + clen], usize)
-                    except _Damage:
-                        raise
-                    except Exception as exc:
-                        raise _Damage(f"chunk at byte {off} cannot be decompressed ({type(exc).__name__})") from None
-                    if len(content) != usize:
-                        raise _Damage(f"chunk at byte {off}: size {len(content)} != {usize}")
-                    if crc and zlib.crc32(content) != crc:
-                        raise _Damage(f"chunk at byte {off}: CRC mismatch")
+                    content = inflate_chunk(buf, off, nxt)
                     # (a damaged chunk adds none of its messages: records() raises before it adds any)
                     scan.records(content, 0, len(content), f"chunk at byte {off}")
                     del content

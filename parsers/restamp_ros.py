@@ -16,8 +16,10 @@ Containers: ROS 1 bags and MCAP files (also the storage files of mcap-storage RO
 vectorised writers of :mod:`parsers.ros_containers` (a numba kernel lays out the records of a chunk;
 indexes, statistics and summary rebuilt from the new times): the ``rosbags``/``mcap`` per-message
 writers took 4-7 times tapost's parse time.
-Their output is checked against rosbags' AnyReader and the mcap readers in the tests. sqlite3 ROS 2
-bags by ``rosbags.rosbag2.Writer`` (rows in one executemany). Schemas, channels, connection headers,
+Their output is checked against rosbags' AnyReader and the mcap readers in the tests. An MCAP input
+whose messages all sit in whole chunks keeps its chunks (times patched in place, each chunk compressed
+as it lies). sqlite3 ROS 2 bags: restamped at the byte level of the .db3 (:mod:`parsers.restamp_sqlite`),
+else by ``rosbags.rosbag2.Writer`` (rows in one executemany). Schemas, channels, connection headers,
 QoS, metadata, attachments and compression are the input's. The inputs are read by tapost's tolerant
 scanners (what a damaged file still holds is written, the damage is named in
 :attr:`RestampStats.damage`). See docs/export_ros.md.
@@ -38,7 +40,6 @@ import shutil
 import sqlite3
 import struct
 import tempfile
-import zlib
 
 import numpy as np
 
@@ -48,7 +49,7 @@ from parsers import ros_containers as rcw
 from parsers import ros_common as rc
 from parsers.atomic import atomic_path, replace_path
 from parsers.base import Selector, check_readable
-from parsers.restamp import ClockShift, RestampStats
+from parsers.restamp import ClockShift, RestampStats, get_bytes, put_bytes
 
 HEADER = "std_msgs/msg/Header"
 #: a topic whose header stamps are this far from the unit's clock is on another clock
@@ -141,7 +142,7 @@ def _pack(conn: np.ndarray, log_ns: np.ndarray, parts: list) -> _Msgs:
 
 
 def _gather(arr: np.ndarray, pos: np.ndarray, width: int) -> np.ndarray:
-    return arr[pos[:, None] + np.arange(width)]
+    return get_bytes(arr, pos, width)
 
 
 def _unit(streams: list[_Stream], msgs: _Msgs, typestore, selector: str | None, path: str) -> tuple[set[str], str]:
@@ -152,7 +153,7 @@ def _unit(streams: list[_Stream], msgs: _Msgs, typestore, selector: str | None, 
     for k, s in enumerate(streams):
         if s.msgtype in rc.SUPPORTED and s.encoding in ("ros1", "cdr") and s.topic not in topics:
             idx = np.flatnonzero(msgs.conn == k)
-            topics[s.topic] = rc.RawTopic(s.topic, s.msgtype, s.encoding, msgs.log_ns[idx].tolist(),
+            topics[s.topic] = rc.RawTopic(s.topic, s.msgtype, s.encoding, msgs.log_ns[idx],
                                           [msgs.payload(i) for i in idx[:20].tolist()])
     raw = rc.RawLog(path=path, fmt="", topics=topics, typestore=typestore)
     try:
@@ -217,7 +218,7 @@ def _apply(streams: list[_Stream], msgs: _Msgs, typestore, shift: ClockShift, se
         vals = sn.astype("<u4").view(np.uint8).reshape(-1, 8)
         if be.any():
             vals[be] = sn[be].astype(">u4").view(np.uint8).reshape(-1, 8)
-        buf[(msgs.starts[idx] + 4)[:, None] + np.arange(8)] = vals
+        put_bytes(buf, msgs.starts[idx] + 4, vals)
     grown: dict[int, bytes] = {}
     for k, s in enumerate(streams):
         if s.kind == _NESTED and s.encoding in ("ros1", "cdr"):
@@ -424,9 +425,9 @@ class _McapScan:
         self.channels: dict[int, tuple[str, str, int, dict]] = {}  # topic, encoding, schema, metadata
         self.cid: list[np.ndarray] = []
         self.log: list[np.ndarray] = []
-        self.pub: list[np.ndarray] = []
-        self.seq: list[np.ndarray] = []
         self.blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (bytes, payload starts, lengths)
+        self.whole: list[bool] = []  # per block: the records of one whole chunk (else a record or a cut chunk)
+        self.file: np.ndarray | None = None  # the file's bytes (uncompressed chunks' blocks are views of it)
         self.extras: list[tuple[str, tuple]] = []  # ("attachment"|"metadata", args) in file order
         self.damage: list[str] = []
         self.compression: str | None = None
@@ -446,7 +447,7 @@ class _McapScan:
         meta, _ = _map(buf, o)
         self.channels.setdefault(cid, (topic, enc, sid, meta))
 
-    def records(self, buf, start: int, end: int, where: str, cut_ok: bool = False) -> int:
+    def records(self, buf, start: int, end: int, where: str, cut_ok: bool = False, whole_chunk: bool = False) -> int:
         arr = np.frombuffer(buf, np.uint8)
         m, cid, t, s, e, k, oop, ooff, onxt, err, eoff = mcap_ros._walk_kernel()(arr, start, end)
         if err and not (cut_ok and err != mcap_ros._E_OPCODE):
@@ -454,43 +455,32 @@ class _McapScan:
         for op, off in zip(oop[:k].tolist(), ooff[:k].tolist()):
             (self.schema if op == _OP["schema"] else self.channel)(buf, off + 9)
         cid, s, e = cid[:m], s[:m], e[:m]
-        unknown = set(np.unique(cid).tolist()) - set(self.channels)
+        known = np.zeros(1 << 16, bool)
+        known[list(self.channels)] = True
+        unknown = set(np.unique(cid[~known[cid]]).tolist()) if m and not known[cid].all() else set()
         if unknown:
             raise mcap_ros._Damage(f"{where}: messages for undefined channel(s) {sorted(unknown)}")
         self.cid.append(cid.copy())
         self.log.append(t[:m].copy())
-        self.seq.append(_gather(arr, s - 20, 4).copy().view("<u4").ravel().astype(np.int64))
-        self.pub.append(_gather(arr, s - 8, 8).copy().view("<u8").ravel().astype(np.int64))
         self.blocks.append((arr[start:end], s - start, e - s))
+        self.whole.append(whole_chunk)
         return m
 
     @property
     def count(self) -> int:
         return int(sum(len(c) for c in self.cid))
 
-    def chunk(self, buf, off: int, nxt: int) -> None:
-        _t0, _t1, usize, crc = struct.unpack_from("<QQQI", buf, off + 9)
-        comp, o = mcap_ros._string(buf, off + 9 + 28)
-        (clen,) = _U64.unpack_from(buf, o)
-        if o + 8 + clen > nxt:
-            raise mcap_ros._Damage(f"chunk at byte {off}: records run past the chunk")
+    def chunk(self, buf, off: int, nxt: int, chunks=None) -> None:
+        _t0, _t1, usize, _crc = struct.unpack_from("<QQQI", buf, off + 9)
+        comp, _o = mcap_ros._string(buf, off + 9 + 28)
         if self.compression is None:
             self.compression, self.chunk_size = comp, usize
-        try:
-            content = mcap_ros._decompress(comp, bytes(buf[o + 8:o + 8 + clen]), usize)
-        except mcap_ros._Damage:
-            raise
-        except Exception as exc:
-            raise mcap_ros._Damage(f"chunk at byte {off} cannot be decompressed ({type(exc).__name__})") from None
-        if len(content) != usize:
-            raise mcap_ros._Damage(f"chunk at byte {off}: size {len(content)} != {usize}")
-        if crc and zlib.crc32(content) != crc:
-            raise mcap_ros._Damage(f"chunk at byte {off}: CRC mismatch")
+        content = chunks.get((off, nxt)) if chunks is not None else mcap_ros.inflate_chunk(buf, off, nxt)
         n = len(self.cid)
         try:
-            self.records(content, 0, len(content), f"chunk at byte {off}")
+            self.records(content, 0, len(content), f"chunk at byte {off}", whole_chunk=True)
         except (mcap_ros._Damage, struct.error, UnicodeDecodeError):
-            del self.cid[n:], self.log[n:], self.seq[n:], self.pub[n:], self.blocks[n:]
+            del self.cid[n:], self.log[n:], self.blocks[n:], self.whole[n:]
             raise
 
     def partial_chunk(self, buf, off: int, end: int) -> int:
@@ -514,11 +504,12 @@ class _McapScan:
 
 def _scan_mcap(path: str) -> _McapScan:
     check_readable(path)
-    with open(path, "rb") as fh:
-        buf = fh.read()
-    if not buf.startswith(mcap_ros.MAGIC):
+    file = np.fromfile(path, np.uint8)  # a private, writable copy: uncompressed chunks are patched in it
+    buf = memoryview(file)
+    if bytes(buf[:len(mcap_ros.MAGIC)]) != mcap_ros.MAGIC:
         raise InputError("not an MCAP file (bad magic)", path)
     sc = _McapScan()
+    sc.file = file
     off, end = len(mcap_ros.MAGIC), len(buf)
     footer = False
     for op, at, _nxt in mcap_ros.summary_definitions(buf):  # channels known even if their chunk is damaged
@@ -526,50 +517,51 @@ def _scan_mcap(path: str) -> _McapScan:
             (sc.schema if op == _OP["schema"] else sc.channel)(buf, at + 9)
         except (mcap_ros._Damage, struct.error, UnicodeDecodeError):
             pass
-    while off < end:
-        if off + 9 > end:
-            sc.damage.append(f"file truncated at byte {off} of {end} (no footer)")
-            break
-        op, ln = mcap_ros._REC.unpack_from(buf, off)
-        nxt = off + 9 + ln
-        if op == 0 or op > 0x0F:
-            sc.damage.append(f"invalid record opcode {op} at byte {off}; rest of file not read")
-            break
-        if nxt > end:
-            got = sc.partial_chunk(buf, off, end) if op == _OP["chunk"] else 0
-            sc.damage.append(f"file truncated at byte {end}: record at byte {off} (opcode {op}) incomplete"
-                             + (f"; its {got} complete messages kept" if got else ""))
-            break
-        try:
-            p = off + 9
-            if op == _OP["header"]:
-                sc.profile, o = mcap_ros._string(buf, p)
-                sc.library, _ = mcap_ros._string(buf, o)
-            elif op == _OP["chunk"]:
-                sc.chunk(buf, off, nxt)
-            elif op == _OP["message"]:
-                sc.records(buf, off, nxt, "data section")
-            elif op == _OP["schema"]:
-                sc.schema(buf, p)
-            elif op == _OP["channel"]:
-                sc.channel(buf, p)
-            elif op == _OP["attachment"]:
-                log_t, create_t = struct.unpack_from("<QQ", buf, p)
-                name, o = mcap_ros._string(buf, p + 16)
-                media, o = mcap_ros._string(buf, o)
-                (n,) = _U64.unpack_from(buf, o)
-                sc.extras.append(("attachment", (create_t, log_t, name, media, bytes(buf[o + 8:o + 8 + n]))))
-            elif op == _OP["metadata"]:
-                name, o = mcap_ros._string(buf, p)
-                meta, _ = _map(buf, o)
-                sc.extras.append(("metadata", (name, meta)))
-            elif op in (_OP["data_end"], _OP["footer"]):
-                footer = True
-                break  # the summary is rebuilt by the writer
-        except (mcap_ros._Damage, struct.error, UnicodeDecodeError) as exc:
-            msg = str(exc) if isinstance(exc, mcap_ros._Damage) else f"record at byte {off} unreadable ({exc})"
-            sc.damage.append(f"damaged: {msg}; its messages are not in the output")
-        off = nxt
+    with mcap_ros.chunk_prefetch(buf, off) as chunks:  # decompression and CRC ahead, in threads
+        while off < end:
+            if off + 9 > end:
+                sc.damage.append(f"file truncated at byte {off} of {end} (no footer)")
+                break
+            op, ln = mcap_ros._REC.unpack_from(buf, off)
+            nxt = off + 9 + ln
+            if op == 0 or op > 0x0F:
+                sc.damage.append(f"invalid record opcode {op} at byte {off}; rest of file not read")
+                break
+            if nxt > end:
+                got = sc.partial_chunk(buf, off, end) if op == _OP["chunk"] else 0
+                sc.damage.append(f"file truncated at byte {end}: record at byte {off} (opcode {op}) incomplete"
+                                 + (f"; its {got} complete messages kept" if got else ""))
+                break
+            try:
+                p = off + 9
+                if op == _OP["header"]:
+                    sc.profile, o = mcap_ros._string(buf, p)
+                    sc.library, _ = mcap_ros._string(buf, o)
+                elif op == _OP["chunk"]:
+                    sc.chunk(buf, off, nxt, chunks)
+                elif op == _OP["message"]:
+                    sc.records(buf, off, nxt, "data section")
+                elif op == _OP["schema"]:
+                    sc.schema(buf, p)
+                elif op == _OP["channel"]:
+                    sc.channel(buf, p)
+                elif op == _OP["attachment"]:
+                    log_t, create_t = struct.unpack_from("<QQ", buf, p)
+                    name, o = mcap_ros._string(buf, p + 16)
+                    media, o = mcap_ros._string(buf, o)
+                    (n,) = _U64.unpack_from(buf, o)
+                    sc.extras.append(("attachment", (create_t, log_t, name, media, bytes(buf[o + 8:o + 8 + n]))))
+                elif op == _OP["metadata"]:
+                    name, o = mcap_ros._string(buf, p)
+                    meta, _ = _map(buf, o)
+                    sc.extras.append(("metadata", (name, meta)))
+                elif op in (_OP["data_end"], _OP["footer"]):
+                    footer = True
+                    break  # the summary is rebuilt by the writer
+            except (mcap_ros._Damage, struct.error, UnicodeDecodeError) as exc:
+                msg = str(exc) if isinstance(exc, mcap_ros._Damage) else f"record at byte {off} unreadable ({exc})"
+                sc.damage.append(f"damaged: {msg}; its messages are not in the output")
+            off = nxt
     if not footer and not sc.damage:
         sc.damage.append("no MCAP data end / footer (file truncated?)")
     return sc
@@ -588,16 +580,45 @@ def _mcap_streams(sc: _McapScan, typestore) -> tuple[list[int], list[_Stream]]:
     return cids, streams
 
 
-def _mcap_msgs(sc: _McapScan, cids: list[int]) -> tuple[_Msgs, np.ndarray, np.ndarray]:
+def _mcap_msgs(sc: _McapScan, cids: list[int]) -> tuple[_Msgs, np.ndarray, np.ndarray, rcw.ChunkLayout | None]:
+    """All messages (payloads in one writable buffer), their publish times and sequence numbers, and
+    where the input's chunks lie in that buffer (None unless every message came from a whole chunk)."""
     cat = (lambda v: np.concatenate(v) if v else np.zeros(0, np.int64))
     lut = np.zeros(max(cids, default=0) + 1, np.int64)
     lut[cids] = np.arange(len(cids))
     conn = lut[cat(sc.cid)]
-    base = np.cumsum([len(b[0]) for b in sc.blocks]) - [len(b[0]) for b in sc.blocks] if sc.blocks else []
-    buf = np.concatenate([b[0] for b in sc.blocks]) if sc.blocks else np.zeros(0, np.uint8)
+    blens = [len(b[0]) for b in sc.blocks]
+    base = _in_file(sc)
+    if base is not None:  # uncompressed chunks: the blocks are views of the file's bytes, patched there
+        buf = sc.file
+    else:
+        base = (np.cumsum(blens) - blens).tolist() if sc.blocks else []
+        buf = np.concatenate([b[0] for b in sc.blocks]) if sc.blocks else np.zeros(0, np.uint8)
     starts = cat([b[1] + o for b, o in zip(sc.blocks, base)])
     lens = cat([b[2] for b in sc.blocks])
-    return _Msgs(conn, cat(sc.log), buf, starts, lens), cat(sc.pub), cat(sc.seq)
+    layout = None
+    if sc.blocks and all(sc.whole):
+        layout = rcw.ChunkLayout(np.asarray(base, np.int64), np.asarray(blens, np.int64),
+                                 np.asarray([len(c) for c in sc.cid], np.int64))
+    # a message record is opcode, length, channel, sequence (4 bytes), log time, publish time (8 each), data
+    head = get_bytes(buf, starts - 20, 20)  # sequence, log and publish times in one pass over the records
+    seq = head[:, :4].copy().view("<u4").ravel().astype(np.int64)
+    pub = head[:, 12:].copy().view("<u8").ravel().astype(np.int64)
+    return _Msgs(conn, cat(sc.log), buf, starts, lens), pub, seq, layout
+
+
+def _in_file(sc: _McapScan) -> list[int] | None:
+    """The blocks' offsets in the file's bytes when every block is a view of them, else None."""
+    if sc.file is None or not sc.blocks:
+        return None
+    at0 = sc.file.__array_interface__["data"][0]
+    out = []
+    for b, _s, _e in sc.blocks:
+        o = b.__array_interface__["data"][0] - at0
+        if not 0 <= o <= len(sc.file) - len(b):
+            return None
+        out.append(o)
+    return out
 
 
 def _chunk_bytes(sc: _McapScan) -> int:
@@ -613,13 +634,14 @@ def restamp_mcap(src: str, dst: str, shift: ClockShift, *, selector: str | None 
     sc = _scan_mcap(src)
     typestore = get_typestore(Stores.EMPTY)
     cids, streams = _mcap_streams(sc, typestore)
-    msgs, pub, seq = _mcap_msgs(sc, cids)
-    new_log, msgs, notes = _apply(streams, msgs, typestore, shift, selector, src)
+    msgs0, pub, seq, layout = _mcap_msgs(sc, cids)
+    new_log, msgs, notes = _apply(streams, msgs0, typestore, shift, selector, src)
     delta = msgs.log_ns - new_log
     new_pub = np.where(pub != 0, pub - delta, 0)
     comp = sc.compression if sc.compression is not None else "zstd"
     with atomic_path(dst) as tmp, open(tmp, "wb") as fh:
-        rcw.write_mcap(fh, sc, cids, msgs, new_log, new_pub, seq, comp, _chunk_bytes(sc))
+        rcw.write_mcap(fh, sc, cids, msgs, new_log, new_pub, seq, comp, _chunk_bytes(sc),
+                       layout=layout if msgs.buf is msgs0.buf else None)
     return RestampStats(path=dst, format="mcap", how="tapost's vectorised MCAP writer (chunk compression kept, "
                         "CRCs, message indexes and summary rebuilt); Header stamps patched in the payload "
                         "bytes (nested Headers through rosbags (de)serialisation)",
@@ -669,6 +691,7 @@ class _Part:
     local: np.ndarray | None = None  # index into sorted(scan.channels) per message
     pub: np.ndarray | None = None
     seq: np.ndarray | None = None
+    layout: rcw.ChunkLayout | None = None  # where its chunks lie in msgs.buf (mcap, whole chunks only)
 
 
 def _ros2_streams(conns, typestore) -> tuple[list[_Stream], dict[tuple[str, str], int]]:
@@ -695,14 +718,14 @@ def _read_ros2_part(f: str, g: str, storage: str, by_key, damage: list[str]) -> 
         sc = _scan_mcap(g)
         damage += [f"{name}: {d}" for d in sc.damage]
         cids = sorted(sc.channels)
-        m, pub, seq = _mcap_msgs(sc, cids)
+        m, pub, seq, layout = _mcap_msgs(sc, cids)
         keys = [by_key.get((sc.channels[c][0], rc.normalize_msgtype(sc.schemas.get(sc.channels[c][2], ("", "", b""))[0])))
                 for c in cids]
         if any(k is None for k in keys):
             raise InputError("an mcap channel is not among metadata.yaml's topics", f)
         local = m.conn
         m.conn = np.asarray(keys, np.int64)[local] if len(local) else np.zeros(0, np.int64)
-        return _Part(name, m, sc, local, pub, seq)
+        return _Part(name, m, sc, local, pub, seq, layout)
     topics, rows = _sqlite_rows(g, damage)
     tk = {}
     for tid, (tname, ttype, _fmt) in topics.items():
@@ -748,9 +771,19 @@ def restamp_rosbag2(src: str, dst: str, shift: ClockShift, *, selector: str | No
     mode, cfmt = rosbag2._compression(meta)
     if mode in ("file", "message") and cfmt != "zstd":
         raise InputError(f"compression format {cfmt!r} not supported (zstd is)", bagdir)
+    if storage == "sqlite3" and mode == "none" and len(files) == 1:
+        done = _restamp_sqlite_in_place(files[0], bagdir, meta, dst, shift, selector)
+        if done is not None:
+            return done
+    conns = None
+    if storage == "sqlite3" and len(files) == 1 and mode != "file":  # (rosbags' reader counts every row first,
+        from parsers import restamp_sqlite  # which a damaged page stops)
+
+        conns = restamp_sqlite.connections(files[0])
     try:
-        with Reader(bagdir) as rd:
-            conns = list(rd.connections)
+        if not conns:
+            with Reader(bagdir) as rd:
+                conns = list(rd.connections)
     except Exception as exc:
         raise InputError(f"ROS 2 bag unreadable by rosbags ({type(exc).__name__}: {exc})", bagdir) from None
     typestore = get_typestore(Stores.EMPTY)
@@ -768,6 +801,7 @@ def restamp_rosbag2(src: str, dst: str, shift: ClockShift, *, selector: str | No
     declared = int(meta.get("message_count") or 0)
     if declared and len(msgs.log_ns) < declared:
         damage.append(f"read {len(msgs.log_ns)} of the {declared} messages metadata.yaml declares")
+    packed = msgs.buf
     new_log, msgs, notes = _apply(streams, msgs, typestore, shift, selector, bagdir)
     parent = os.path.dirname(os.path.abspath(dst)) or "."
     os.makedirs(parent, exist_ok=True)
@@ -775,7 +809,7 @@ def restamp_rosbag2(src: str, dst: str, shift: ClockShift, *, selector: str | No
     tmp = os.path.join(tmpdir, "bag")
     try:
         if storage == "mcap" and mode != "message" and all(p.scan is not None for p in parts):
-            _write_ros2_mcap(tmp, meta, mode, parts, streams, msgs, new_log)
+            _write_ros2_mcap(tmp, meta, mode, parts, streams, msgs, new_log, in_place=msgs.buf is packed)
             how = ("mcap storage files by tapost's vectorised MCAP writer (schemas, channels, metadata as the "
                    "input's), metadata.yaml times and counts updated")
         else:
@@ -790,6 +824,67 @@ def restamp_rosbag2(src: str, dst: str, shift: ClockShift, *, selector: str | No
                         time_fields=("messages.timestamp" if storage != "mcap" else "log_time", "header.stamp",
                                      "metadata.yaml starting_time/duration"),
                         damage=tuple(damage) + tuple(notes))
+
+
+def _restamp_sqlite_in_place(f: str, bagdir: str, meta: dict, dst: str, shift: ClockShift,
+                             selector: str | None) -> RestampStats | None:
+    """An uncompressed one-file sqlite3 bag restamped at the byte level of its .db3 (parsers.restamp_sqlite);
+    None where that does not apply (reference kernels, a layout the walk does not expect, a message whose
+    re-serialised Headers change its length): the caller then re-inserts the rows."""
+    from logtools import jit
+    from rosbags.typesys import Stores, get_typestore
+
+    from parsers import restamp_sqlite as rsq
+
+    if not jit.compiled():  # the byte walk in plain Python would cost more than re-inserting the rows
+        return None
+    conns = rsq.connections(f)
+    w = rsq.walk(f) if conns else None
+    if w is None:
+        return None
+    typestore = get_typestore(Stores.EMPTY)
+    streams, by_key = _ros2_streams(conns, typestore)
+    lut = {}
+    for c in conns:
+        k = by_key.get((c.topic, c.msgtype))
+        if k is None:
+            return None
+        lut[c.id] = k
+    if not set(np.unique(w.topic).tolist()) <= set(lut):
+        return None  # rows of a topic the topics table does not list: the tolerant path names them
+    ids = np.fromiter(lut, np.int64, len(lut))
+    table = np.zeros(int(ids.max()) + 1 if len(ids) else 1, np.int64)
+    table[ids] = [lut[i] for i in ids.tolist()]
+    msgs = _Msgs(table[w.topic], w.timestamps(), w.buf, w.data_off, w.data_len)
+    declared = int(meta.get("message_count") or 0)
+    if declared and len(msgs.log_ns) < declared:
+        return None  # rows missing: the tolerant path reads and names what is there
+    new_log, out, notes = _apply(streams, msgs, typestore, shift, selector, bagdir)
+    if out.buf is not w.buf:
+        return None
+    name = os.path.basename(f)
+    n = len(new_log)
+    files_meta = [{"path": name, "starting_time": {"nanoseconds_since_epoch": int(new_log.min()) if n else 0},
+                   "duration": {"nanoseconds": int(new_log.max() - new_log.min()) if n else 0}, "message_count": n}]
+    info = _bag_info(meta, files_meta, streams, out, new_log)
+    parent = os.path.dirname(os.path.abspath(dst)) or "."
+    os.makedirs(parent, exist_ok=True)
+    tmpdir = tempfile.mkdtemp(prefix="." + os.path.basename(dst) + ".", dir=parent)
+    tmp = os.path.join(tmpdir, "bag")
+    try:
+        os.makedirs(tmp)
+        rebuilt = rsq.write(w, new_log, os.path.join(tmp, name), info)
+        _write_bag_info(tmp, info)
+        replace_path(tmp, dst, tmpdir + ".old")
+    finally:
+        shutil.rmtree(tmpdir, ignore_errors=True)
+    how = ("the .db3 restamped in place at the byte level of SQLite's file format (rows' timestamps, index "
+           "keys" + (", index rebuilt by SQLite as the shift reordered it" if rebuilt else "") + "; every other "
+           "byte the input's), metadata table and metadata.yaml times and counts updated")
+    return RestampStats(path=dst, format="rosbag2", how=how + "; Header stamps patched in the payload bytes",
+                        records=n, records_by_type=_counts(streams, out.conn),
+                        time_fields=("messages.timestamp", "header.stamp", "metadata.yaml starting_time/duration"),
+                        damage=tuple(notes))
 
 
 def _write_ros2_rosbags(tmp: str, meta: dict, mode: str, storage: str, conns, msgs: _Msgs, new_log: np.ndarray) -> None:
@@ -836,10 +931,8 @@ def _write_ros2_rosbags(tmp: str, meta: dict, mode: str, storage: str, conns, ms
 
 
 def _write_ros2_mcap(tmp: str, meta: dict, mode: str, parts: list[_Part], streams: list[_Stream], msgs: _Msgs,
-                     new_log: np.ndarray) -> None:
+                     new_log: np.ndarray, in_place: bool = False) -> None:
     """mcap storage: each storage file rewritten like a bare MCAP file, metadata.yaml updated."""
-    import yaml
-
     os.makedirs(tmp)
     delta = msgs.log_ns - new_log
     files_meta = []
@@ -855,9 +948,13 @@ def _write_ros2_mcap(tmp: str, meta: dict, mode: str, parts: list[_Part], stream
         pub = np.where(part.pub != 0, part.pub - delta[sl], 0)
         name = part.name[:-5] if part.name.endswith(".zstd") else part.name
         path = os.path.join(tmp, name)
+        layout = None
+        if in_place and part.layout is not None and n:  # its chunks, moved by where _concat put the part
+            o = int(msgs.starts[sl.start] - part.msgs.starts[0])
+            layout = rcw.ChunkLayout(part.layout.base + o, part.layout.size, part.layout.count)
         with open(path, "wb") as fh:
             rcw.write_mcap(fh, sc, cids, sub, t, pub, part.seq, sc.compression if sc.compression is not None else "zstd",
-                           _chunk_bytes(sc))
+                           _chunk_bytes(sc), layout=layout)
         if mode == "file":
             import zstandard
 
@@ -867,6 +964,11 @@ def _write_ros2_mcap(tmp: str, meta: dict, mode: str, parts: list[_Part], stream
             name += ".zstd"
         files_meta.append({"path": name, "starting_time": {"nanoseconds_since_epoch": int(t.min()) if n else 0},
                            "duration": {"nanoseconds": int(t.max() - t.min()) if n else 0}, "message_count": n})
+    _write_bag_info(tmp, _bag_info(meta, files_meta, streams, msgs, new_log))
+
+
+def _bag_info(meta: dict, files_meta: list[dict], streams: list[_Stream], msgs: _Msgs, new_log: np.ndarray) -> dict:
+    """metadata.yaml's bag information with the new start, duration and counts."""
     info = dict(meta)
     n = len(new_log)
     info["starting_time"] = {"nanoseconds_since_epoch": int(new_log.min()) if n else 0}
@@ -882,5 +984,11 @@ def _write_ros2_mcap(tmp: str, meta: dict, mode: str, parts: list[_Part], stream
     info["relative_file_paths"] = [f["path"] for f in files_meta]
     if "files" in meta:
         info["files"] = files_meta
-    with open(os.path.join(tmp, "metadata.yaml"), "w", encoding="utf-8") as fh:
+    return info
+
+
+def _write_bag_info(folder: str, info: dict) -> None:
+    import yaml
+
+    with open(os.path.join(folder, "metadata.yaml"), "w", encoding="utf-8") as fh:
         yaml.safe_dump({"rosbag2_bagfile_information": info}, fh, sort_keys=False)

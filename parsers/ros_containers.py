@@ -10,12 +10,13 @@ readers in tests/test_export_ros.py.
 """
 from __future__ import annotations
 
+import dataclasses
 import struct
 import zlib
 
 import numpy as np
 
-from parsers import mcap_ros, rosbag1
+from parsers import mcap_ros, rosbag1, threads
 
 # ---- vectorised record writing ---------------------------------------------------------------------
 def _lay_out(out, rec_off, prefix, src, starts, lens):  # compiled with numba (_kernel)
@@ -34,7 +35,7 @@ def _kernel():
     if not _KERNEL:
         from logtools import jit  # compiled in compiled mode (cached on disk), plain Python otherwise
 
-        _KERNEL.append(jit.njit(_lay_out))
+        _KERNEL.append(jit.njit(_lay_out, nogil=True))  # (runs in the writer's threads)
     return _KERNEL[0]
 
 
@@ -58,9 +59,29 @@ def _chunks(size: np.ndarray, target: int) -> list[slice]:
     return [slice(a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a]
 
 
-def compress_chunk(kind: str, data: np.ndarray) -> bytes:
+def _by_chunk_and_key(slices: list[slice], key: np.ndarray) -> list[list[tuple[int, np.ndarray]]]:
+    """For each chunk, its (key, message positions within the chunk) groups, keys ascending, positions in
+    message order: one stable sort for the whole file instead of a np.unique per chunk."""
+    if not slices:
+        return []
+    n = slices[-1].stop
+    chunk = np.repeat(np.arange(len(slices)), [sl.stop - sl.start for sl in slices])
+    order = np.lexsort((key, chunk))  # stable: within (chunk, key) the messages stay in order
+    ck, kk = chunk[order], key[order]
+    cut = np.flatnonzero((np.diff(ck) != 0) | (np.diff(kk) != 0)) + 1
+    a_s, b_s = np.r_[0, cut].tolist(), np.r_[cut, n].tolist()
+    out: list[list[tuple[int, np.ndarray]]] = [[] for _ in slices]
+    starts = [sl.start for sl in slices]
+    for a, b in zip(a_s, b_s):
+        c = int(ck[a])
+        out[c].append((int(kk[a]), order[a:b] - starts[c]))
+    return out
+
+
+def compress_chunk(kind: str, data: np.ndarray):
+    """``data`` compressed (bytes), or ``data`` itself (uncompressed)."""
     if kind in ("", "none"):
-        return data.tobytes()
+        return data
     if kind == "zstd":
         import zstandard
 
@@ -118,22 +139,28 @@ def write_bag1(fh, fields: list[dict[str, bytes]], cids: list[int], msgs, log_ns
     conn_recs = {c: _bag1_conn(c, f) for c, f in zip(cids, fields)}
     infos = []
     first = True
-    for sl in _chunks(size, chunk_bytes):
-        lead = b"".join(conn_recs.values()) if first else b""
-        first = False
+    slices = _chunks(size, chunk_bytes)
+    lead_all = b"".join(conn_recs.values())
+
+    def work(sl: slice) -> tuple[int, bytes]:  # in the writer's threads: lay out and compress one chunk
         body = _records(pre[sl], msgs, sl)
-        if lead:
-            body = np.concatenate([np.frombuffer(lead, np.uint8), body])
+        if sl.start == 0 and lead_all:
+            body = np.concatenate([np.frombuffer(lead_all, np.uint8), body])
+        return len(body), compress_chunk(comp, body)
+
+    groups = _by_chunk_and_key(slices, msgs.conn)
+    for ci, (sl, (body_len, data)) in enumerate(zip(slices, threads.ordered(work, slices))):
+        lead = lead_all if first else b""
+        first = False
         pos = fh.tell()
-        fh.write(_bag1_record([(b"op", b"\x05"), (b"compression", comp.encode()),
-                               (b"size", struct.pack("<I", len(body)))], compress_chunk(comp, body)))
-        k = msgs.conn[sl]
+        fh.write(_bag1_header([(b"op", b"\x05"), (b"compression", comp.encode()),
+                               (b"size", struct.pack("<I", body_len))]) + struct.pack("<I", len(data)))
+        fh.write(data)
         t = log_ns[sl]
         off = len(lead) + np.cumsum(size[sl]) - size[sl]
         counts = []
-        for kk in np.unique(k).tolist():
-            m = k == kk
-            ent = np.empty((int(m.sum()), 3), "<u4")
+        for kk, m in groups[ci]:
+            ent = np.empty((len(m), 3), "<u4")
             ent[:, 0], ent[:, 1], ent[:, 2] = t[m] // 1_000_000_000, t[m] % 1_000_000_000, off[m]
             fh.write(_bag1_record([(b"op", b"\x04"), (b"ver", struct.pack("<I", 1)),
                                    (b"conn", struct.pack("<I", cids[kk])), (b"count", struct.pack("<I", len(ent)))],
@@ -156,6 +183,18 @@ def write_bag1(fh, fields: list[dict[str, bytes]], cids: list[int], msgs, log_ns
 
 
 # ---- MCAP writer ----------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class ChunkLayout:
+    """Where the input's chunks lie in ``msgs.buf``: chunk i is ``buf[base[i]:base[i] + size[i]]`` and holds
+    messages ``count[:i].sum()`` to ``count[:i + 1].sum()`` (in order), with whatever else it held
+    (schema and channel records). The writer then patches the time fields of those records in place and
+    compresses the chunks as they are, instead of laying every record out again."""
+
+    base: np.ndarray
+    size: np.ndarray
+    count: np.ndarray
+
+
 def _mrec(op: int, body: bytes) -> bytes:
     return struct.pack("<BQ", op, len(body)) + body
 
@@ -171,28 +210,52 @@ def _mmap(d: dict[str, str]) -> bytes:
 
 
 def write_mcap(fh, sc, cids: list[int], msgs, log_ns: np.ndarray, pub_ns: np.ndarray,
-                seq: np.ndarray, comp: str, chunk_bytes: int) -> None:
+                seq: np.ndarray, comp: str, chunk_bytes: int, layout: ChunkLayout | None = None) -> None:
     """An MCAP file: header, schemas and channels, chunks of message records (each followed by its message
     indexes), metadata and attachments, data end; summary (schemas, channels, statistics, chunk, metadata
-    and attachment indexes), summary offsets, footer. Ids as in the input."""
+    and attachment indexes), summary offsets, footer. Ids as in the input.
+
+    With ``layout`` (the messages are the input's records, in its chunks, in ``msgs.buf``) the chunks are
+    the input's: their records' log and publish times are patched in ``msgs.buf`` and each chunk is
+    compressed as it lies. Without it, the records are laid out anew in chunks of ``chunk_bytes``."""
+    from parsers.restamp import put_bytes
+
     comp = comp if comp in ("", "zstd", "lz4") else "zstd"
     n = len(log_ns)
-    dt = np.dtype([("op", "u1"), ("len", "<u8"), ("ch", "<u2"), ("seq", "<u4"), ("log", "<u8"), ("pub", "<u8")])
-    pre = np.empty(n, dt)
-    pre["op"] = 5
-    pre["len"] = 22 + msgs.lens
-    pre["ch"] = np.asarray(cids, np.int64)[msgs.conn] if n else 0
-    pre["seq"], pre["log"], pre["pub"] = seq, log_ns, pub_ns
-    pre = pre.view(np.uint8).reshape(n, 31)
     size = 31 + msgs.lens
+    if layout is not None:  # record: opcode, length, channel, sequence (4), log time (8), publish time (8), data
+        times = np.empty((n, 2), "<u8")  # log and publish time, side by side as in the record: one pass
+        times[:, 0], times[:, 1] = log_ns, pub_ns
+        put_bytes(msgs.buf, msgs.starts - 16, times.view(np.uint8).reshape(n, 16))
+        ends = np.cumsum(layout.count)
+        slices = [slice(int(e - c), int(e)) for e, c in zip(ends.tolist(), layout.count.tolist())]
+        spans = list(zip(layout.base.tolist(), layout.size.tolist()))
+        rec_off = msgs.starts - 31 - np.repeat(layout.base, layout.count)  # record offsets in their chunk
+    else:
+        dt = np.dtype([("op", "u1"), ("len", "<u8"), ("ch", "<u2"), ("seq", "<u4"), ("log", "<u8"), ("pub", "<u8")])
+        pre = np.empty(n, dt)
+        pre["op"] = 5
+        pre["len"] = 22 + msgs.lens
+        pre["ch"] = np.asarray(cids, np.int64)[msgs.conn] if n else 0
+        pre["seq"], pre["log"], pre["pub"] = seq, log_ns, pub_ns
+        pre = pre.view(np.uint8).reshape(n, 31)
+        slices = _chunks(size, chunk_bytes)
+        spans = [None] * len(slices)
+        rec_off = None
     out = [mcap_ros.MAGIC, _mrec(1, _mstr(sc.profile) + _mstr(sc.library))]
     pos = sum(map(len, out))
 
-    def put(b: bytes) -> int:
+    def put(b) -> int:  # bytes, or a uint8 array / memoryview (a chunk's data: written without a copy)
         nonlocal pos
-        out.append(b)
         at = pos
         pos += len(b)
+        if len(b) >= 1 << 16:
+            if out:
+                fh.write(b"".join(out))
+                out.clear()
+            fh.write(b)
+            return at
+        out.append(b)
         if len(out) > 64:
             fh.write(b"".join(out))
             out.clear()
@@ -205,24 +268,29 @@ def write_mcap(fh, sc, cids: list[int], msgs, log_ns: np.ndarray, pub_ns: np.nda
     for r in schema_recs + chan_recs:
         put(r)
     chunk_index = []
-    for sl in _chunks(size, chunk_bytes):
-        body = _records(pre[sl], msgs, sl)
+
+    def work(job: tuple[slice, tuple[int, int] | None]) -> tuple[int, int, bytes]:  # in the writer's threads
+        sl, span = job
+        body = _records(pre[sl], msgs, sl) if span is None else msgs.buf[span[0]:span[0] + span[1]]
+        return len(body), zlib.crc32(body), compress_chunk(comp, body)
+
+    groups = _by_chunk_and_key(slices, np.asarray(cids, np.int64)[msgs.conn] if n else np.zeros(0, np.int64))
+    jobs = list(zip(slices, spans))
+    for ci, (sl, (body_len, crc, data)) in enumerate(zip(slices, threads.ordered(work, jobs))):
         t = log_ns[sl]
-        t0, t1 = int(t.min()), int(t.max())
-        data = compress_chunk(comp, body)
-        rec = _mrec(6, struct.pack("<QQQI", t0, t1, len(body), zlib.crc32(body)) + _mstr(comp)
-                    + struct.pack("<Q", len(data)) + data)
-        at = put(rec)
-        ch = np.asarray(cids, np.int64)[msgs.conn[sl]]
-        off = np.cumsum(size[sl]) - size[sl]
+        t0, t1 = (int(t.min()), int(t.max())) if len(t) else (0, 0)
+        head = struct.pack("<QQQI", t0, t1, body_len, crc) + _mstr(comp) + struct.pack("<Q", len(data))
+        at = put(struct.pack("<BQ", 6, len(head) + len(data)) + head)
+        put(data)
+        rec_len = 9 + len(head) + len(data)
+        off = np.cumsum(size[sl]) - size[sl] if rec_off is None else rec_off[sl]
         idx_offsets = {}
         idx_start = pos
-        for c in np.unique(ch).tolist():
-            m = ch == c
-            ent = np.empty((int(m.sum()), 2), "<u8")
+        for c, m in groups[ci]:
+            ent = np.empty((len(m), 2), "<u8")
             ent[:, 0], ent[:, 1] = t[m], off[m]
             idx_offsets[c] = put(_mrec(7, struct.pack("<HI", c, ent.nbytes) + ent.tobytes()))
-        chunk_index.append((t0, t1, at, len(rec), idx_offsets, pos - idx_start, comp, len(data), len(body)))
+        chunk_index.append((t0, t1, at, rec_len, idx_offsets, pos - idx_start, comp, len(data), body_len))
     att_index, meta_index = [], []
     for kind, args in sc.extras:
         if kind == "attachment":

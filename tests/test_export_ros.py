@@ -401,8 +401,10 @@ def test_unreadable_or_wrong_input_is_one_clear_error(big, tmp_path):
     assert not any(p.name.startswith(("o", "neg", ".o", ".neg")) for p in tmp_path.iterdir() if p.name != "junk.bag")
 
 
-@pytest.mark.parametrize("fmt", ["mcap", "rosbag1", "rosbag2"])
+@pytest.mark.parametrize("fmt", ["mcap", "rosbag1", "rosbag2", "rosbag2-rows"])
 def test_interrupted_write_leaves_no_partial_output(big, tmp_path, fmt, monkeypatch):
+    rows = fmt == "rosbag2-rows"  # the sqlite3 bag through rosbags' writer (the path for what the byte walk
+    fmt = "rosbag2" if rows else fmt  # does not take), else restamped in place at the byte level
     src = big[fmt]
     before = _digest(src)
     dst = tmp_path / ("never" if fmt == "rosbag2" else f"never.{'mcap' if fmt == 'mcap' else 'bag'}")
@@ -413,12 +415,17 @@ def test_interrupted_write_leaves_no_partial_output(big, tmp_path, fmt, monkeypa
         if calls["n"] > 5000:
             raise KeyboardInterrupt  # the user pressing Ctrl-C half way
 
-    if fmt == "rosbag2":  # the messages are in the database, the writer about to close (metadata.yaml)
+    if rows:  # the messages are in the database, the writer about to close (metadata.yaml)
         from rosbags.rosbag2 import Writer
 
+        monkeypatch.setattr(rr, "_restamp_sqlite_in_place", lambda *a, **k: None)
         real = Writer.close
         calls["n"] = 5000
         monkeypatch.setattr(Writer, "close", lambda self: (boom(), real(self)))
+    elif fmt == "rosbag2":  # the .db3 written, metadata.yaml about to be
+        real_info = rr._write_bag_info
+        calls["n"] = 5000
+        monkeypatch.setattr(rr, "_write_bag_info", lambda *a: (boom(), real_info(*a)))
     else:  # our container writers: interrupted at the third chunk
         calls["n"] = 4998
         from parsers import ros_containers
@@ -462,3 +469,98 @@ def test_big_endian_cdr_stamps(tmp_path, slave):
             tx = mx.header.stamp.sec * 10**9 + mx.header.stamp.nanosec
             ty = my.header.stamp.sec * 10**9 + my.header.stamp.nanosec
             assert tx - ty == x.log_time - y.log_time > 0
+
+
+# ---- sqlite3 bags restamped at the byte level ----------------------------------------------------------
+def _rows(db: str) -> list[tuple]:
+    import sqlite3
+
+    con = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
+    try:
+        assert con.execute("PRAGMA integrity_check").fetchone() == ("ok",)  # pages, cells and the index
+        return con.execute("SELECT id, topic_id, timestamp, data FROM messages ORDER BY id").fetchall()
+    finally:
+        con.close()
+
+
+def test_sqlite_in_place_gives_the_rows_the_rows_path_gives(big, tmp_path, monkeypatch):
+    """The byte-level restamp of a .db3 and rosbags' re-insertion of its rows: the same rows (ids, topics,
+    timestamps, payload bytes); the metadata table's copy of the bag information moved with them."""
+    import sqlite3
+
+    import yaml
+
+    src, shift = big["rosbag2"], _shift_for(big["log"])
+    before = _digest(src)
+    st = rr.restamp_rosbag2(src, str(tmp_path / "fast"), shift)
+    assert "byte level" in st.how and st.damage == ()
+    with monkeypatch.context() as m:
+        m.setattr(rr, "_restamp_sqlite_in_place", lambda *a, **k: None)
+        st2 = rr.restamp_rosbag2(src, str(tmp_path / "rows"), shift)
+    assert "rosbags" in st2.how and st2.records == st.records and st2.records_by_type == st.records_by_type
+    assert _digest(src) == before
+    a, b = _rows(str(tmp_path / "fast" / "bag.db3")), _rows(str(tmp_path / "rows" / "bag.db3"))
+    assert len(a) == st.records and [r[1:] for r in a] == [r[1:] for r in b]
+    assert [r[0] for r in a] == [r[0] for r in _rows(os.path.join(src, "bag.db3"))]  # the input's row ids
+    con = sqlite3.connect(str(tmp_path / "fast" / "bag.db3"))
+    (text,) = con.execute("SELECT metadata FROM metadata").fetchone()
+    con.close()
+    info = yaml.safe_load(text)
+    info = info.get("rosbag2_bagfile_information", info)
+    assert info["starting_time"]["nanoseconds_since_epoch"] == min(r[2] for r in a)
+    assert parsers.load(str(tmp_path / "fast")).imu.equals(parsers.load(str(tmp_path / "rows")).imu)
+
+
+def test_sqlite_in_place_rebuilds_the_index_when_the_shift_reorders(tmp_path, slave):
+    """Record times 1 us apart, header stamps 5 ms apart, 2000 ppm of drift: each message's shift grows by
+    10 us, so the shifted record times run backwards and the index on them is rebuilt (by SQLite)."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    imu = _topics(slave)[0]
+    src = tmp_path / "reorder"
+    ts = _store("cdr")
+    with Writer(src, version=9, storage_plugin=StoragePlugin.SQLITE3) as w:
+        c = w.add_connection("/imu", "sensor_msgs/msg/Imu", typestore=ts)
+        t0 = int(imu.stamp_ns[0])
+        for i in range(100):
+            w.write(c, t0 + 1000 * i, imu.data[i])
+    dst = tmp_path / "reorder_out"
+    shift = ClockShift(0.01, 2000.0, t0)
+    st = rr.restamp_rosbag2(str(src), str(dst), shift)
+    assert "byte level" in st.how and "index rebuilt" in st.how
+    rows = _rows(str(dst / "reorder.db3"))
+    t = np.array([r[2] for r in rows])
+    assert np.all(np.diff(t) < 0)  # the shift did reorder them
+    stamps = np.array([int(s) for s in imu.stamp_ns[:100]])
+    np.testing.assert_array_equal(t, t0 + 1000 * np.arange(100) - shift.shift_ns(stamps))
+    import sqlite3
+
+    con = sqlite3.connect(str(dst / "reorder.db3"))
+    by_index = [r[0] for r in con.execute("SELECT id FROM messages INDEXED BY timestamp_idx ORDER BY timestamp")]
+    con.close()
+    assert by_index == [r[0] for r in sorted(rows, key=lambda r: (r[2], r[0]))]
+
+
+def test_sqlite_walk_declines_what_it_does_not_expect(big, tmp_path):
+    """A zeroed page, or a file that is not a rosbag2 .db3: the walk returns None and the restamp goes the
+    tolerant way (which names the damage)."""
+    import shutil
+
+    from parsers import restamp_sqlite as rsq
+
+    src = Path(big["rosbag2"])
+    assert rsq.walk(str(src / "bag.db3")) is not None
+    bad = tmp_path / "zeroed"
+    shutil.copytree(src, bad)
+    db = bad / "bag.db3"
+    data = bytearray(db.read_bytes())
+    page = 4096
+    mid = (len(data) // page // 2) * page
+    data[mid:mid + page] = bytes(page)  # a page of message rows lost
+    db.write_bytes(bytes(data))
+    assert rsq.walk(str(db)) is None
+    st = rr.restamp_rosbag2(str(bad), str(tmp_path / "zeroed_out"), _shift_for(big["log"]))
+    assert "rosbags" in st.how and any("damaged" in d for d in st.damage)
+    junk = tmp_path / "junk.db3"
+    junk.write_bytes(b"SQLite format 3\x00" + bytes(200))
+    assert rsq.walk(str(junk)) is None

@@ -1,0 +1,387 @@
+"""The sqlite3 storage file of a ROS 2 bag restamped in place, at the byte level of SQLite's file format.
+
+A rosbag2 ``.db3`` holds ``messages(id INTEGER PRIMARY KEY, topic_id, timestamp, data)`` and the index
+``timestamp_idx`` on ``timestamp``. Re-inserting 1.26 M rows through sqlite3 (what ``rosbags``' writer
+does) took four times tapost's parse of the same file; the rows' time fields, though, sit at fixed
+places of the file (https://www.sqlite.org/fileformat2.html):
+
+* the table b-tree of ``messages``: leaf pages (flag 13) hold cells ``payload size, rowid, record``; the
+  record header lists each column's serial type, ``timestamp`` an 8-byte big-endian integer (serial
+  type 6 for nanoseconds since 1970), ``data`` a blob (the serialised message, its header stamp at
+  bytes 4..12);
+* the index b-tree of ``timestamp_idx``: cells (leaf and interior) hold the record ``timestamp, rowid``.
+
+So a copy of the file is walked (two numba kernels), each row's timestamp and header stamp and each
+index entry's timestamp are overwritten (same sizes: no page changes), and the file is written whole.
+If the new keys are no longer in index order (two messages whose order the shift swaps), the index is
+rebuilt by SQLite (``REINDEX``); the ``metadata`` table's copy of metadata.yaml is updated through
+SQLite. Every byte else (free pages, other tables, the schema) is the input's.
+
+Whatever the walk does not expect (another page size than it reads, overflow pages, a timestamp stored
+in fewer than 8 bytes, a damaged page) makes :func:`walk` return None, and the caller falls back to
+re-inserting the rows (the tolerant path that also recovers damaged files).
+"""
+from __future__ import annotations
+
+import dataclasses
+import sqlite3
+
+import numpy as np
+
+from parsers.restamp import kernel_loader
+
+_OK, _E_PAGE, _E_CELL, _E_OVERFLOW, _E_RECORD, _E_FULL = 0, 1, 2, 3, 4, 5
+
+
+# ---- kernels (numba in compiled mode; plain Python otherwise) ---------------------------------------
+def _varint(b, p):
+    """SQLite varint at b[p]: (value, next position)."""
+    v = 0
+    for i in range(8):
+        c = b[p + i]
+        v = (v << 7) | (c & 0x7F)
+        if c < 0x80:
+            return v, p + i + 1
+    return (v << 8) | b[p + 8], p + 9
+
+
+def _be(b, p, n):
+    v = 0
+    for i in range(n):
+        v = (v << 8) | b[p + i]
+    return v
+
+
+def _int(b, p, st):
+    """The (non-negative) integer of serial type ``st`` at b[p] (types 8 and 9 are the constants 0, 1)."""
+    if st == 8:
+        return 0
+    if st == 9:
+        return 1
+    return _be(b, p, st if st < 5 else (6 if st == 5 else 8))
+
+
+def _is_int(st):
+    return 1 <= st <= 6 or st == 8 or st == 9
+
+
+def _sizeof(st):
+    if st <= 4:
+        return st
+    if st == 5:
+        return 6
+    if st == 6 or st == 7:
+        return 8
+    if st < 12:
+        return 0
+    return (st - 12) // 2 if st % 2 == 0 else (st - 13) // 2
+
+
+def _walk_table(b, page_size, usable, root, n_pages, rowid, topic, ts_off, data_off, data_len):
+    """Rows of the table b-tree at page ``root`` in rowid order: (rowid, topic_id, offset of the 8-byte
+    timestamp, offset and length of the data blob). Returns (rows, error code)."""
+    n = 0
+    cap = len(rowid)
+    stack = np.empty(n_pages + 2, np.int64)  # a valid tree pushes each page once
+    stack[0] = root
+    sp = 1
+    visits = 0
+    max_local = usable - 35
+    while sp > 0:
+        sp -= 1
+        pg = stack[sp]
+        visits += 1
+        if pg < 1 or pg > n_pages or visits > n_pages:
+            return n, 1
+        base = (pg - 1) * page_size
+        h = base + (100 if pg == 1 else 0)
+        flag = b[h]
+        ncell = _be(b, h + 3, 2)
+        if flag == 5:  # interior table page: children left to right (pushed in reverse)
+            if sp + ncell + 1 > len(stack):
+                return n, 1
+            stack[sp] = _be(b, h + 8, 4)
+            sp += 1
+            for i in range(ncell - 1, -1, -1):
+                c = base + _be(b, h + 12 + 2 * i, 2)
+                stack[sp] = _be(b, c, 4)
+                sp += 1
+        elif flag == 13:
+            for i in range(ncell):
+                c = base + _be(b, h + 8 + 2 * i, 2)
+                if c >= base + page_size:
+                    return n, 2
+                size, p = _varint(b, c)
+                rid, p = _varint(b, p)
+                if size > max_local or p + size > base + usable:
+                    return n, 3
+                hsize, q = _varint(b, p)
+                val = p + hsize
+                ncol = 0
+                st_topic = 0
+                st_ts = 0
+                st_data = 0
+                v_topic = 0
+                v_ts = 0
+                v_data = 0
+                while q < p + hsize:
+                    st, q = _varint(b, q)
+                    if ncol == 1:
+                        st_topic, v_topic = st, val
+                    elif ncol == 2:
+                        st_ts, v_ts = st, val
+                    elif ncol == 3:
+                        st_data, v_data = st, val
+                    val += _sizeof(st)
+                    ncol += 1
+                if ncol != 4 or val != p + size or st_ts != 6 or st_data < 12 or st_data % 2 == 1 \
+                        or not _is_int(st_topic):
+                    return n, 4
+                if n >= cap:
+                    return n, 5
+                rowid[n] = rid
+                topic[n] = _int(b, v_topic, st_topic)
+                ts_off[n] = v_ts
+                data_off[n] = v_data
+                data_len[n] = (st_data - 12) // 2
+                n += 1
+        else:
+            return n, 1
+    return n, 0
+
+
+def _walk_index(b, page_size, usable, root, n_pages, rowid, ts_off):
+    """Entries of the index b-tree at page ``root`` in key order: (rowid, offset of the 8-byte timestamp).
+    Returns (entries, error code)."""
+    n = 0
+    cap = len(rowid)
+    pages = np.empty(64, np.int64)
+    state = np.empty(64, np.int64)
+    pages[0] = root
+    state[0] = 0
+    sp = 1
+    visits = 0
+    steps = 0
+    max_local = (usable - 12) * 64 // 255 - 23
+    while sp > 0:
+        steps += 1
+        if steps > 3 * cap + 2 * n_pages + 16:  # a cycle of interior pages
+            return n, 1
+        pg = pages[sp - 1]
+        s = state[sp - 1]
+        if pg < 1 or pg > n_pages:
+            return n, 1
+        base = (pg - 1) * page_size
+        h = base + (100 if pg == 1 else 0)
+        flag = b[h]
+        ncell = _be(b, h + 3, 2)
+        if flag == 10 or (flag == 2 and s % 2 == 1):  # a leaf's cells, or an interior cell's own key
+            if flag == 10:
+                visits += 1
+                if visits > n_pages:
+                    return n, 1
+                first, last, skip = 0, ncell, 0
+            else:
+                first, last, skip = (s - 1) // 2, (s - 1) // 2 + 1, 4
+            for i in range(first, last):
+                c = base + _be(b, h + (8 if flag == 10 else 12) + 2 * i, 2) + skip
+                if c >= base + page_size:
+                    return n, 2
+                size, p = _varint(b, c)
+                if size > max_local or p + size > base + usable:
+                    return n, 3
+                hsize, q = _varint(b, p)
+                st_ts, q = _varint(b, q)
+                st_id, q = _varint(b, q)
+                if q != p + hsize or st_ts != 6 or not _is_int(st_id) or p + hsize + 8 + _sizeof(st_id) != p + size:
+                    return n, 4
+                if n >= cap:
+                    return n, 5
+                ts_off[n] = p + hsize
+                rowid[n] = _int(b, p + hsize + 8, st_id)
+                n += 1
+            if flag == 10:
+                sp -= 1
+            else:
+                state[sp - 1] = s + 1
+        elif flag == 2:
+            if s == 2 * ncell:  # the right-most child replaces this page
+                pages[sp - 1] = _be(b, h + 8, 4)
+                state[sp - 1] = 0
+            else:
+                if sp >= len(pages):
+                    return n, 1
+                state[sp - 1] = s + 1
+                pages[sp] = _be(b, base + _be(b, h + 12 + 2 * (s // 2), 2), 4)
+                state[sp] = 0
+                sp += 1
+        else:
+            return n, 1
+    return n, 0
+
+
+def _put_be8(b, offs, values):
+    for i in range(len(offs)):
+        o = offs[i]
+        v = values[i]
+        for j in range(7, -1, -1):
+            b[o + j] = v & 0xFF
+            v >>= 8
+
+
+_loader = kernel_loader(globals())
+_HELPERS = ("_varint", "_be", "_int", "_is_int", "_sizeof")
+
+
+_HELPERS_DONE: list[bool] = []
+
+
+def _kernel(name: str):
+    """A kernel above, compiled (its helpers compiled first, so that the kernel calls them natively)."""
+    if not _HELPERS_DONE:
+        for h in _HELPERS:
+            globals()[h] = _loader(h)
+        _HELPERS_DONE.append(True)
+    return _loader(name)
+
+
+# ---- the file --------------------------------------------------------------------------------------
+@dataclasses.dataclass
+class Walk:
+    """Where the time fields of a .db3 file lie in ``buf`` (a private copy of the file)."""
+
+    buf: np.ndarray  # uint8, writable
+    rowid: np.ndarray
+    topic: np.ndarray
+    ts_off: np.ndarray  # the table rows' timestamp fields (8 bytes, big endian)
+    data_off: np.ndarray
+    data_len: np.ndarray
+    idx_rowid: np.ndarray  # timestamp_idx entries in key order
+    idx_ts_off: np.ndarray
+
+    def timestamps(self) -> np.ndarray:
+        from parsers.restamp import get_bytes
+
+        return get_bytes(self.buf, self.ts_off, 8).view(">i8").ravel().astype(np.int64)
+
+
+def walk(path: str) -> Walk | None:
+    """The table and index of a rosbag2 .db3 walked at the byte level, or None where this does not apply
+    (any layout the kernels do not expect: the caller then re-inserts the rows)."""
+    try:
+        con = sqlite3.connect(f"file:{path}?mode=ro&immutable=1", uri=True)
+        try:
+            roots = dict(con.execute("SELECT name, rootpage FROM sqlite_master WHERE name IN "
+                                     "('messages', 'timestamp_idx')").fetchall())
+            indexes = [r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type='index' AND "
+                                                 "tbl_name='messages' AND sql IS NOT NULL")]
+            (cols,) = con.execute("SELECT group_concat(name) FROM pragma_table_info('messages')").fetchone()
+        finally:
+            con.close()
+    except sqlite3.DatabaseError:
+        return None
+    if cols != "id,topic_id,timestamp,data" or "messages" not in roots or indexes not in ([], ["timestamp_idx"]):
+        return None
+    buf = np.fromfile(path, np.uint8)
+    if len(buf) < 100 or bytes(buf[:16]) != b"SQLite format 3\x00":
+        return None
+    page_size = int(buf[16]) << 8 | int(buf[17])
+    page_size = 65536 if page_size == 1 else page_size
+    usable = page_size - int(buf[20])
+    if page_size < 512 or len(buf) % page_size or buf[18] != 1 or buf[19] != 1:  # (18/19 = 2: WAL mode)
+        return None
+    n_pages = len(buf) // page_size
+    cap = max(1024, len(buf) // 48)
+    while True:
+        out = [np.empty(cap, np.int64) for _ in range(5)]
+        n, err = _kernel("_walk_table")(buf, page_size, usable, int(roots["messages"]), n_pages, *out)
+        if err != _E_FULL:
+            break
+        cap *= 4
+    if err:
+        return None
+    rowid, topic, ts_off, data_off, data_len = (a[:n] for a in out)
+    if n > 1 and not np.all(np.diff(rowid) > 0):
+        return None
+    idx_rowid = idx_ts = np.zeros(0, np.int64)
+    if "timestamp_idx" in indexes:
+        cap_i = n + 16
+        ir, io = np.empty(cap_i, np.int64), np.empty(cap_i, np.int64)
+        m, err = _kernel("_walk_index")(buf, page_size, usable, int(roots["timestamp_idx"]), n_pages, ir, io)
+        if err or m != n:
+            return None
+        idx_rowid, idx_ts = ir[:m], io[:m]
+        if not np.array_equal(np.sort(idx_rowid), rowid):
+            return None
+    return Walk(buf, rowid, topic, ts_off, data_off, data_len, idx_rowid, idx_ts)
+
+
+def write(w: Walk, new_ts: np.ndarray, dst: str, info: dict | None) -> bool:
+    """``w.buf`` with the rows' timestamps ``new_ts`` (row order) and the index's written to ``dst``
+    (the payloads are already patched in ``w.buf``), the metadata table's bag information replaced by
+    ``info`` (in the form it had: with or without the ``rosbag2_bagfile_information`` root). Returns
+    whether the index had to be rebuilt."""
+    import yaml
+
+    new_ts = np.ascontiguousarray(new_ts, np.int64)
+    put = _kernel("_put_be8")
+    put(w.buf, w.ts_off, new_ts)
+    rebuilt = False
+    if len(w.idx_rowid):
+        key = new_ts[np.searchsorted(w.rowid, w.idx_rowid)]
+        put(w.buf, w.idx_ts_off, key)
+        dk, dr = np.diff(key), np.diff(w.idx_rowid)
+        rebuilt = bool(np.any((dk < 0) | ((dk == 0) & (dr < 0))))
+    w.buf.tofile(dst)
+    con = sqlite3.connect(dst)
+    try:
+        con.execute("PRAGMA journal_mode=OFF")  # (the file is a temporary one, renamed into place when whole)
+        con.execute("PRAGMA synchronous=OFF")
+        if rebuilt:
+            con.execute("REINDEX timestamp_idx")
+        has_meta = con.execute("SELECT 1 FROM sqlite_master WHERE type='table' AND name='metadata'").fetchone()
+        if info is not None and has_meta:
+            for rid, text in con.execute("SELECT id, metadata FROM metadata").fetchall():
+                rooted = isinstance(text, str) and text.lstrip().startswith("rosbag2_bagfile_information")
+                new = yaml.safe_dump({"rosbag2_bagfile_information": info} if rooted else info, sort_keys=False)
+                con.execute("UPDATE metadata SET metadata = ? WHERE id = ?", (new, rid))
+        con.commit()
+    finally:
+        con.close()
+    return rebuilt
+
+
+def connections(path: str) -> list | None:
+    """The bag's connections as ``rosbags`` lists them (topic, type, definition, serialisation, QoS) from
+    the topics and message_definitions tables, without the reader's count over every message row (a
+    second of a 1 h bag); None where the tables are not as rosbag2 writes them."""
+    from rosbags.interfaces import Connection, ConnectionExtRosbag2, MessageDefinition, MessageDefinitionFormat
+    from rosbags.rosbag2.metadata import parse_qos
+
+    try:
+        con = sqlite3.connect(f"file:{path}?mode=ro&immutable=1", uri=True)
+        try:
+            cur = con.execute("SELECT * FROM topics ORDER BY id")
+            names = [d[0] for d in cur.description]
+            topics = [dict(zip(names, r)) for r in cur.fetchall()]
+            defs = {}
+            if con.execute("SELECT 1 FROM sqlite_master WHERE type='table' AND name='message_definitions'").fetchone():
+                for name, enc, text in con.execute("SELECT topic_type, encoding, encoded_message_definition "
+                                                   "FROM message_definitions ORDER BY id"):
+                    defs.setdefault(name, (enc, text))
+        finally:
+            con.close()
+    except sqlite3.DatabaseError:
+        return None
+    fmt = {"ros2msg": MessageDefinitionFormat.MSG, "ros2idl": MessageDefinitionFormat.IDL}
+    out = []
+    for t in topics:
+        if not {"id", "name", "type", "serialization_format"} <= set(t):
+            return None
+        enc, text = defs.get(t["type"], ("", ""))
+        msgdef = MessageDefinition(fmt[enc], text) if enc in fmt else \
+            MessageDefinition(MessageDefinitionFormat.NONE, "")
+        qos = parse_qos(t["offered_qos_profiles"]) if t.get("offered_qos_profiles") else []
+        out.append(Connection(t["id"], t["name"], t["type"], msgdef, t.get("type_description_hash") or "", 0,
+                              ConnectionExtRosbag2(t["serialization_format"], qos), None))
+    return out
