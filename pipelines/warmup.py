@@ -8,8 +8,8 @@ image:
     python -m pipelines.warmup          # about 1 min on 2 cores; prints what it compiles
 
 It simulates a 30-second pair, writes it in the formats whose readers or native exports have kernels
-(MCAP, ROS 1 bag, tlog, DataFlash, ULog, CSV), reads each back, exports each on a shifted clock, and runs
-the whole analysis on the MCAP/tlog pair, so every kernel compiles with the argument types a real run
+(MCAP, ROS 1 bag, tlog, DataFlash, ULog, CSV, ROS 2 bag), reads each back, exports each on a shifted
+clock, and runs the whole analysis on the MCAP/tlog pair, so every kernel compiles with the argument types a real run
 passes.
 """
 from __future__ import annotations
@@ -45,8 +45,8 @@ def warm(quiet: bool = False) -> float:
         for fmt, ext, log in (("mcap", "mcap", pair.master), ("rosbag1", "bag", pair.master),
                               ("tlog", "tlog", pair.slave),
                               ("dataflash", "bin", pair.slave), ("ulog", "ulg", pair.slave),
-                              ("csv", "csv", pair.slave)):
-            path = os.path.join(d, f"{fmt}.{ext}")
+                              ("csv", "csv", pair.slave), ("rosbag2", "", pair.master)):
+            path = os.path.join(d, f"{fmt}.{ext}" if ext else fmt)
             try:
                 registry.write(path, log, fmt)
             except Exception as exc:  # noqa: BLE001 - a writer that cannot take this log: skip its reader
@@ -58,7 +58,8 @@ def warm(quiet: bool = False) -> float:
             _say(quiet, f"  {fmt} reader: {time.perf_counter() - t:.1f} s")
             t = time.perf_counter()
             shift = ClockShift(0.01, 20.0, got.meta.t0_ns)
-            export.write_native(path, os.path.join(d, f"shifted_{fmt}.{ext}"), fmt, shift, got.meta.selector)
+            export.write_native(path, os.path.join(d, f"shifted_{fmt}" + (f".{ext}" if ext else "")), fmt, shift,
+                                got.meta.selector)
             _say(quiet, f"  {fmt} native export: {time.perf_counter() - t:.1f} s")
         t = time.perf_counter()
         opts = analyze.options_from({k: None for k in analyze.CLI_KEYS})[0]
