@@ -29,6 +29,16 @@ _POOL: list[cf.ThreadPoolExecutor] = []
 _LOCK = threading.Lock()
 
 
+def _forget_pool_in_child() -> None:  # a forked worker (a batch's process pool) has none of the threads
+    global _LOCK
+    _POOL.clear()
+    _LOCK = threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pool_in_child)
+
+
 def workers() -> int:
     """Worker threads to use: ``TAPOST_IO_THREADS`` if set, else the cores (at most MAX_THREADS)."""
     env = os.environ.get("TAPOST_IO_THREADS", "").strip()

@@ -564,3 +564,23 @@ def test_sqlite_walk_declines_what_it_does_not_expect(big, tmp_path):
     junk = tmp_path / "junk.db3"
     junk.write_bytes(b"SQLite format 3\x00" + bytes(200))
     assert rsq.walk(str(junk)) is None
+
+
+def test_io_threads_survive_a_fork(big, tmp_path):
+    """A batch forks its workers after the parent may have used the chunk threads: the child starts its
+    own (a pool inherited without its threads would never run the work)."""
+    import multiprocessing as mp
+
+    from parsers import threads
+
+    if threads.workers() < 2 or "fork" not in mp.get_all_start_methods():
+        pytest.skip("one core or no fork here")
+    assert list(threads.ordered(lambda x: x * 2, range(5))) == [0, 2, 4, 6, 8]  # the parent's pool exists
+    ctx = mp.get_context("fork")
+    with ctx.Pool(1) as pool:
+        res = pool.apply_async(_export_in_child, (big["mcap"], str(tmp_path / "child.mcap"), _shift_for(big["log"])))
+        assert res.get(timeout=60) > 0
+
+
+def _export_in_child(src: str, dst: str, shift: ClockShift) -> int:
+    return rr.restamp_mcap(src, dst, shift).records
