@@ -172,14 +172,56 @@ HIGHPASS_ROWS = 1 << 18
 FFT_ROWS = 1 << 16
 
 
+#: lags of the scores' autocorrelation taken one by one while looking for its first zero crossing; a
+#: longer correlation goes the FFT way (the scores of IMU samples decorrelate within a few samples)
+DIRECT_LAGS = 256
+
+
+def _bartlett_lags(n: int, tau: float) -> int:
+    nw = 4.0 * (n / 100.0) ** (2.0 / 9.0)
+    return int(min(max(np.ceil(nw), np.ceil(5.0 * tau)), n // 3))
+
+
+def _moving_sum(x: np.ndarray, w: int) -> np.ndarray:
+    """The full convolution of the columns of x (n, p) with a box of w ones (n + w - 1 rows)."""
+    n = len(x)
+    cs = np.concatenate([np.zeros((1, x.shape[1])), np.cumsum(x, axis=0)])
+    t = np.arange(n + w - 1)
+    return cs[np.minimum(t + 1, n)] - cs[np.maximum(t - w + 1, 0)]
+
+
 def _long_run_cov(s: np.ndarray) -> tuple[np.ndarray, float]:
     """Newey-West (Bartlett) long-run covariance of the score series s (n, p) summed over n; and the
-    scores' integrated correlation time in samples (1 + 2 sum rho up to its first zero crossing)."""
+    scores' integrated correlation time in samples (1 + 2 sum rho up to its first zero crossing).
+
+    The autocorrelation is taken lag by lag up to its first zero crossing, and the Bartlett sum
+    sum_{|j| <= L} (1 - |j|/(L+1)) Gamma_j as s^T (T s) / (L+1), T s the scores convolved with the
+    triangle L+1-|j| = two boxes of L+1 samples (moving sums): O(n p) whatever L. A correlation
+    longer than DIRECT_LAGS samples goes through the FFT (:func:`_long_run_cov_fft`, the same sums)."""
     n = len(s)
     s = s - s.mean(axis=0)
     tot = float(np.sum(s * s))
     if tot <= 0:
         return np.zeros((s.shape[1], s.shape[1])), 1.0
+    rho, crossed = [], False
+    for j in range(1, min(DIRECT_LAGS, n - 1) + 1):
+        a = float(np.einsum("ij,ij->", s[:-j], s[j:])) / tot
+        if a <= 0:
+            crossed = True
+            break
+        rho.append(a)
+    if not crossed:
+        return _long_run_cov_fft(s, tot)
+    tau = max(1.0 + 2.0 * float(np.sum(rho)), 1.0)
+    L = _bartlett_lags(n, tau)
+    tri = _moving_sum(_moving_sum(s, L + 1), L + 1)[L:L + n]  # (T s)_k = sum_j (L+1-|j|) s_{k+j}
+    om = s.T @ tri / (L + 1.0)
+    return 0.5 * (om + om.T), tau
+
+
+def _long_run_cov_fft(s: np.ndarray, tot: float) -> tuple[np.ndarray, float]:
+    """:func:`_long_run_cov` of centred scores by FFT, for scores correlated over many samples."""
+    n = len(s)
     # integrated correlation time of the scores (their summed autocorrelation), by FFT
     nfft = 1 << int(np.ceil(np.log2(2 * n)))
     # the scores' spectra column by column, their power summed FFT_ROWS frequencies at a time: the numbers
@@ -197,8 +239,7 @@ def _long_run_cov(s: np.ndarray) -> tuple[np.ndarray, float]:
     neg = np.nonzero(ac[1:] <= 0)[0]
     m = int(neg[0]) if len(neg) else n - 1
     tau = max(1.0 + 2.0 * float(np.sum(ac[1:m + 1])), 1.0)
-    nw = 4.0 * (n / 100.0) ** (2.0 / 9.0)
-    L = int(min(max(np.ceil(nw), np.ceil(5.0 * tau)), n // 3))
+    L = _bartlett_lags(n, tau)
     # sum_{|j| <= L} (1 - |j|/(L+1)) Gamma_j in the frequency domain: the scores' cross-spectra (f, zero
     # padded to nfft >= 2n: no wrap-around) weighted by the Bartlett window's transform (the Fejer
     # kernel), O(n log n) whatever L (a loop over the lags cost O(n L): 12 s at L = 1900 on 1 h of 200 Hz)
