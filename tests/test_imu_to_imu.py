@@ -231,3 +231,29 @@ def test_accel_triad_of_a_swaying_ship_carries_the_lever_arm():
     assert np.all(np.abs(err) <= 2.0 * np.asarray(res.accel.sigma_deg)), (err, res.accel.sigma_deg)
     assert res.accel.lever_arm_m is not None
     assert np.allclose(res.accel.lever_arm_m, cfg.lever_arm_m, atol=0.3)
+
+
+@pytest.mark.parametrize("with_lever", [False, True])
+def test_normal_equations_from_sums_equal_the_per_sample_sums(with_lever):
+    """The Gauss-Newton normal equations of fit_rotation, built from sums taken once, against the same
+    sums over every sample: h = [-[p x] | R K], p = R (u + K r), e = v - p; h^T h and h^T e."""
+    from logtools.alignment.imu_to_imu import _Moments
+    from logtools.conventions import dcm_from_rotvec
+
+    rng = np.random.default_rng(4)
+    n, m = 4000, 4
+    u = rng.normal(size=(n, 3))
+    k = rng.normal(size=(n, 3, m)) if with_lever else None
+    r = dcm_from_rotvec(np.array([0.2, -0.1, 0.4]))
+    lev = rng.normal(size=m) * 0.1 if with_lever else None
+    w = u + (np.einsum("kij,j->ki", k, lev) if with_lever else 0.0)
+    v = w @ dcm_from_rotvec(np.array([0.01, 0.02, -0.01])).T @ r.T + 0.01 * rng.normal(size=(n, 3))
+    p = w @ r.T
+    e = v - p
+    h = -np.stack([skew(x) for x in p])  # d(R w)/d(rotation perturbation) = -[p x]
+    if with_lever:
+        h = np.concatenate([h, np.einsum("ij,kjl->kil", r, k)], axis=2)
+    jtj_ref, rhs_ref = np.einsum("kia,kib->ab", h, h), np.einsum("kia,ki->a", h, e)
+    jtj, rhs = _Moments(u, v, k).normal_equations(r, lev)
+    np.testing.assert_allclose(jtj, jtj_ref, rtol=1e-10, atol=1e-9 * np.abs(jtj_ref).max())
+    np.testing.assert_allclose(rhs, rhs_ref, rtol=1e-8, atol=1e-9 * np.abs(rhs_ref).max())

@@ -269,37 +269,9 @@ def _euler_sigma_deg(r: np.ndarray, cov_rad2: np.ndarray) -> np.ndarray:
     return np.degrees(np.sqrt(np.maximum(np.diag(jac @ cov_rad2 @ jac.T), 0.0)))
 
 
-def _cross_cols(p: np.ndarray, g: np.ndarray) -> np.ndarray:
-    """p_k x g_k[:, l] for every sample k and column l: p (n, 3), g (n, 3, m) -> (n, 3, m)."""
-    p0, p1, p2 = p[:, 0, None], p[:, 1, None], p[:, 2, None]
-    return np.stack([p1 * g[:, 2] - p2 * g[:, 1], p2 * g[:, 0] - p0 * g[:, 2], p0 * g[:, 1] - p1 * g[:, 0]], axis=1)
-
-
-def _linearised(u_m: np.ndarray, v_s: np.ndarray, r_mat: np.ndarray, k_lever: np.ndarray | None,
-                lev: np.ndarray | None, ktk: np.ndarray | None, scores: bool = False):
-    """Residuals e = v_s - R (u_m + K r) and the Gauss-Newton normal equations in the slave-side rotation
-    perturbation (and r), without forming the (n, 3, p) Jacobian h = [-[R(u + K r) x] | R K]:
-    h^T h = [[sum |p|^2 I - p p^T, sum p x (R K)], [., sum K^T K]], h^T e = [sum p x e, sum (R K)^T e]
-    (p = R (u + K r); R orthonormal). Returns (e, jtj, rhs, the per-sample scores h^T e if asked)."""
-    um = u_m if lev is None else u_m + np.einsum("kij,j->ki", k_lever, lev)
-    pred = um @ r_mat.T
-    e = v_s - pred
-    m2 = pred.T @ pred
-    a = np.trace(m2) * np.eye(3) - m2
-    sc_rot = np.cross(pred, e)
-    if lev is None:
-        return e, a, sc_rot.sum(axis=0), (sc_rot if scores else None)
-    g = np.einsum("ij,kjl->kil", r_mat, k_lever)
-    b = _cross_cols(pred, g).sum(axis=0)
-    jtj = np.block([[a, b], [b.T, ktk]])
-    sc_lev = np.einsum("kil,ki->kl", g, e)
-    rhs = np.concatenate([sc_rot.sum(axis=0), sc_lev.sum(axis=0)])
-    return e, jtj, rhs, (np.hstack([sc_rot, sc_lev]) if scores else None)
-
-
 class _Moments:
     """The sums the Gauss-Newton steps of :func:`fit_rotation` need, taken once over the samples: with
-    w = u + K r and p = R w, every sum of :func:`_linearised` (sum p p^T, sum p x e, sum p x (R K),
+    w = u + K r and p = R w, every sum of the normal equations (sum p p^T, sum p x e, sum p x (R K),
     sum (R K)^T e) is R times a combination of sum u u^T, sum u v^T, sum K (x) u, sum K (x) v and
     sum K (x) K (R a x R b = R (a x b)), so an iteration costs O(1) instead of passes over a million
     samples (the same numbers up to the order of the additions)."""
@@ -352,7 +324,6 @@ def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = 
     residual rms, the scores' correlation time in seconds (``dt_s`` per sample))."""
     n = len(u_m)
     p = 3 if k_lever is None else 3 + k_lever.shape[2]
-    ktk = np.einsum("kil,kim->lm", k_lever, k_lever) if k_lever is not None else None
     best = None
     mom = _Moments(u_m, v_s, k_lever)
     for r_mat in (wahba(v_s.T @ u_m)[0], *starts):
@@ -370,7 +341,11 @@ def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = 
         if best is None or cost < best[0]:
             best = (cost, r_mat, lev)
     _, r_mat, lev = best
-    e, jtj, _, scores = _linearised(u_m, v_s, r_mat, k_lever, lev, ktk, scores=True)
+    e = _residual(u_m, v_s, r_mat, k_lever, lev)
+    jtj, _ = mom.normal_equations(r_mat, lev)
+    scores = np.cross(v_s - e, e)  # per sample h^T e: p x e, and (R K)^T e = K^T (R^T e)
+    if lev is not None:
+        scores = np.hstack([scores, np.einsum("kjl,kj->kl", k_lever, e @ r_mat)])
     om, tau = _long_run_cov(scores)
     jinv = np.linalg.inv(jtj)
     cov = jinv @ om @ jinv * (n / max(n - p, 1))
