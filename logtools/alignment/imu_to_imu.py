@@ -138,13 +138,14 @@ def _highpass(y: np.ndarray, n_win: int) -> np.ndarray:
     """y minus its centred moving mean over n_win samples (shorter at the ends), per column."""
     n = len(y)
     h = max(n_win // 2, 1)
-    c = np.concatenate([np.zeros((1, y.shape[1])), np.cumsum(y, axis=0)])
     out = np.empty(y.shape)
-    for a in range(0, n, HIGHPASS_ROWS):  # row by row arithmetic: blocks only bound the temporaries
-        r = np.arange(a, min(n, a + HIGHPASS_ROWS))
-        i0 = np.clip(r - h, 0, n)
-        i1 = np.clip(r + h + 1, 0, n)
-        out[a:a + len(r)] = y[a:a + len(r)] - (c[i1] - c[i0]) / (i1 - i0)[:, None]
+    for j in range(y.shape[1]):  # column by column (one column's running sum at a time: 4 h of the
+        c = np.concatenate([[0.0], np.cumsum(y[:, j])])  # accelerometers' 12 regressors are 280 MB a copy)
+        for a in range(0, n, HIGHPASS_ROWS):  # row by row arithmetic: blocks only bound the temporaries
+            r = np.arange(a, min(n, a + HIGHPASS_ROWS))
+            i0 = np.clip(r - h, 0, n)
+            i1 = np.clip(r + h + 1, 0, n)
+            out[a:a + len(r), j] = y[a:a + len(r), j] - (c[i1] - c[i0]) / (i1 - i0)
     return out
 
 
@@ -183,11 +184,9 @@ def _bartlett_lags(n: int, tau: float) -> int:
 
 
 def _moving_sum(x: np.ndarray, w: int) -> np.ndarray:
-    """The full convolution of the columns of x (n, p) with a box of w ones (n + w - 1 rows)."""
-    n = len(x)
-    cs = np.concatenate([np.zeros((1, x.shape[1])), np.cumsum(x, axis=0)])
-    t = np.arange(n + w - 1)
-    return cs[np.minimum(t + 1, n)] - cs[np.maximum(t - w + 1, 0)]
+    """The full convolution of the series x (n,) with a box of w ones (n + w - 1 values)."""
+    c = np.cumsum(np.concatenate([np.zeros(w), x, np.zeros(w - 1)]))
+    return c[w:] - c[:len(x) + w - 1]
 
 
 def _long_run_cov(s: np.ndarray) -> tuple[np.ndarray, float]:
@@ -204,8 +203,10 @@ def _long_run_cov(s: np.ndarray) -> tuple[np.ndarray, float]:
     if tot <= 0:
         return np.zeros((s.shape[1], s.shape[1])), 1.0
     rho, crossed = [], False
+    flat = np.ascontiguousarray(s).ravel()  # rows back to back: lag j is an offset of j * p
+    p = s.shape[1]
     for j in range(1, min(DIRECT_LAGS, n - 1) + 1):
-        a = float(np.einsum("ij,ij->", s[:-j], s[j:])) / tot
+        a = float(np.dot(flat[:-j * p], flat[j * p:])) / tot
         if a <= 0:
             crossed = True
             break
@@ -214,8 +215,11 @@ def _long_run_cov(s: np.ndarray) -> tuple[np.ndarray, float]:
         return _long_run_cov_fft(s, tot)
     tau = max(1.0 + 2.0 * float(np.sum(rho)), 1.0)
     L = _bartlett_lags(n, tau)
-    tri = _moving_sum(_moving_sum(s, L + 1), L + 1)[L:L + n]  # (T s)_k = sum_j (L+1-|j|) s_{k+j}
-    om = s.T @ tri / (L + 1.0)
+    om = np.empty((p, p))
+    for c in range(p):  # column by column: a few series of n values at a time (4 h of 200 Hz: 23 MB each)
+        tri = _moving_sum(_moving_sum(s[:, c], L + 1), L + 1)[L:L + n]  # (T s)_k = sum_j (L+1-|j|) s_{k+j}
+        om[:, c] = s.T @ tri
+    om /= L + 1.0
     return 0.5 * (om + om.T), tau
 
 
@@ -411,13 +415,17 @@ def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highp
     # apart, two figures beyond band_z sigmas say the triads differ by more than a rotation (the
     # sensors' own filters, vibration aliased into the snapshots, scale factors)
     nlp = max(int(round(cfg.band_split_s / dt)), 2)
-    lo = [u - _highpass(u, nlp), v - _highpass(v, nlp), k - _highpass(k.reshape(len(t), -1), nlp).reshape(k.shape)]
+    lo = []
+    for x in (u, v, k):  # x - highpass(x), written over the highpass's own array
+        hp = _highpass(x.reshape(len(t), -1), nlp).reshape(x.shape)
+        lo.append(np.subtract(x, hp, out=hp))
     # (a band the rotation explains poorly is itself the sign: no minimum there, the sigmas judge)
     band_lo = _triad(lo[0][cut], lo[1][cut], lo[2][cut], dt, cfg, min_explained=0.0, starts=starts)
-    hi = [x - y for x, y in zip((u, v, k), lo)]  # made once the slow band's fit is done: one band in memory
-    del lo, u, v, k
-    bands = [band_lo, _triad(hi[0][cut], hi[1][cut], hi[2][cut], dt, cfg, min_explained=0.0, starts=starts)]
-    del hi
+    for x, y in zip((u, v, k), lo):  # the fast band: x - lo in place, once the slow band's fit is done
+        x -= y
+    del lo
+    bands = [band_lo, _triad(u[cut], v[cut], k[cut], dt, cfg, min_explained=0.0, starts=starts)]
+    del u, v, k
     if all(isinstance(b, TriadRotation) for b in bands):
         zb, _ = _z(bands[0].rpy_deg, bands[0].sigma_deg, bands[1].rpy_deg, bands[1].sigma_deg,
                    cfg.consistency_floor_deg)
