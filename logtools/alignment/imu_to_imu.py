@@ -189,16 +189,20 @@ def _moving_sum(x: np.ndarray, w: int) -> np.ndarray:
     return c[w:] - c[:len(x) + w - 1]
 
 
-def _long_run_cov(s: np.ndarray) -> tuple[np.ndarray, float]:
+def _long_run_cov(s: np.ndarray, overwrite: bool = False) -> tuple[np.ndarray, float]:
     """Newey-West (Bartlett) long-run covariance of the score series s (n, p) summed over n; and the
     scores' integrated correlation time in samples (1 + 2 sum rho up to its first zero crossing).
 
     The autocorrelation is taken lag by lag up to its first zero crossing, and the Bartlett sum
     sum_{|j| <= L} (1 - |j|/(L+1)) Gamma_j as s^T (T s) / (L+1), T s the scores convolved with the
     triangle L+1-|j| = two boxes of L+1 samples (moving sums): O(n p) whatever L. A correlation
-    longer than DIRECT_LAGS samples goes through the FFT (:func:`_long_run_cov_fft`, the same sums)."""
+    longer than DIRECT_LAGS samples goes through the FFT (:func:`_long_run_cov_fft`, the same sums).
+    ``overwrite``: s (C-contiguous) may be centred in place (no copy of a million rows)."""
     n = len(s)
-    s = s - s.mean(axis=0)
+    if overwrite and s.flags.c_contiguous and s.flags.writeable:
+        s -= s.mean(axis=0)
+    else:
+        s = s - s.mean(axis=0)
     tot = float(np.sum(s * s))
     if tot <= 0:
         return np.zeros((s.shape[1], s.shape[1])), 1.0
@@ -347,10 +351,12 @@ def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = 
     _, r_mat, lev = best
     e = _residual(u_m, v_s, r_mat, k_lever, lev)
     jtj, _ = mom.normal_equations(r_mat, lev)
-    scores = np.cross(v_s - e, e)  # per sample h^T e: p x e, and (R K)^T e = K^T (R^T e)
+    scores = np.empty((n, p))  # per sample h^T e: p x e, and (R K)^T e = K^T (R^T e)
+    scores[:, :3] = np.cross(v_s - e, e)
     if lev is not None:
-        scores = np.hstack([scores, np.einsum("kjl,kj->kl", k_lever, e @ r_mat)])
-    om, tau = _long_run_cov(scores)
+        scores[:, 3:] = np.einsum("kjl,kj->kl", k_lever, e @ r_mat)
+    om, tau = _long_run_cov(scores, overwrite=True)
+    del scores
     jinv = np.linalg.inv(jtj)
     cov = jinv @ om @ jinv * (n / max(n - p, 1))
     rms = float(np.sqrt(np.mean(np.sum(e * e, axis=1))))
