@@ -39,3 +39,19 @@ def replace_path(tmp: str, dst: str, aside: str) -> None:
     os.rename(tmp, dst)
     if old:
         shutil.rmtree(old, ignore_errors=True) if os.path.isdir(old) else os.remove(old)
+
+
+@contextlib.contextmanager
+def atomic_folder(path: str, name: str = "bag") -> Iterator[str]:
+    """Yield a not yet existing path ``name`` inside a temporary folder next to ``path`` (a folder output,
+    e.g. a ROS 2 bag, is written there); on success it replaces ``path`` (:func:`replace_path`); the
+    temporary folder is removed in any case."""
+    parent = os.path.dirname(os.path.abspath(path)) or "."
+    os.makedirs(parent, exist_ok=True)
+    tmpdir = tempfile.mkdtemp(prefix="." + os.path.basename(path) + ".", dir=parent)
+    try:
+        tmp = os.path.join(tmpdir, name)
+        yield tmp
+        replace_path(tmp, path, tmpdir + ".old")
+    finally:
+        shutil.rmtree(tmpdir, ignore_errors=True)

@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import shutil
 import sqlite3
 import struct
 import tempfile
@@ -47,7 +46,7 @@ from logtools.errors import InputError
 from parsers import mcap_ros, rosbag1, rosbag2
 from parsers import ros_containers as rcw
 from parsers import ros_common as rc
-from parsers.atomic import atomic_path, replace_path
+from parsers.atomic import atomic_folder, atomic_path
 from parsers.base import Selector, check_readable
 from parsers.restamp import ClockShift, RestampStats, get_bytes, put_bytes
 
@@ -141,10 +140,6 @@ def _pack(conn: np.ndarray, log_ns: np.ndarray, parts: list) -> _Msgs:
     return _Msgs(np.asarray(conn, np.int64), np.asarray(log_ns, np.int64), buf, starts, lens)
 
 
-def _gather(arr: np.ndarray, pos: np.ndarray, width: int) -> np.ndarray:
-    return get_bytes(arr, pos, width)
-
-
 def _unit(streams: list[_Stream], msgs: _Msgs, typestore, selector: str | None, path: str) -> tuple[set[str], str]:
     """The topics tapost reads the slave from (with ``selector``) and the time mode (header/log)."""
     sel = Selector.parse(selector or "")
@@ -186,7 +181,7 @@ def _apply(streams: list[_Stream], msgs: _Msgs, typestore, shift: ClockShift, se
         if not len(idx):
             continue
         pos = msgs.starts[idx]
-        raw = _gather(buf, pos + 4, 8)
+        raw = get_bytes(buf, pos + 4, 8)
         be = (buf[pos + 1] == 0) if s.encoding == "cdr" else np.zeros(len(idx), bool)  # CDR 00 00: big endian
         le_v = raw.view("<u4").astype(np.int64)
         if be.any():
@@ -628,7 +623,6 @@ def _chunk_bytes(sc: _McapScan) -> int:
 
 def restamp_mcap(src: str, dst: str, shift: ClockShift, *, selector: str | None = None) -> RestampStats:
     """An MCAP file with every message kept, header stamps and log/publish times on the master's clock."""
-    from mcap.writer import CompressionType, Writer
     from rosbags.typesys import Stores, get_typestore
 
     sc = _scan_mcap(src)
@@ -803,11 +797,7 @@ def restamp_rosbag2(src: str, dst: str, shift: ClockShift, *, selector: str | No
         damage.append(f"read {len(msgs.log_ns)} of the {declared} messages metadata.yaml declares")
     packed = msgs.buf
     new_log, msgs, notes = _apply(streams, msgs, typestore, shift, selector, bagdir)
-    parent = os.path.dirname(os.path.abspath(dst)) or "."
-    os.makedirs(parent, exist_ok=True)
-    tmpdir = tempfile.mkdtemp(prefix="." + os.path.basename(dst) + ".", dir=parent)
-    tmp = os.path.join(tmpdir, "bag")
-    try:
+    with atomic_folder(dst) as tmp:
         if storage == "mcap" and mode != "message" and all(p.scan is not None for p in parts):
             _write_ros2_mcap(tmp, meta, mode, parts, streams, msgs, new_log, in_place=msgs.buf is packed)
             how = ("mcap storage files by tapost's vectorised MCAP writer (schemas, channels, metadata as the "
@@ -815,9 +805,6 @@ def restamp_rosbag2(src: str, dst: str, shift: ClockShift, *, selector: str | No
         else:
             _write_ros2_rosbags(tmp, meta, mode, storage, conns, msgs, new_log)
             how = f"rosbags.rosbag2.Writer ({storage} storage)"
-        replace_path(tmp, dst, tmpdir + ".old")
-    finally:
-        shutil.rmtree(tmpdir, ignore_errors=True)
     return RestampStats(path=dst, format="rosbag2", how=how + "; Header stamps patched in the payload bytes "
                         "(nested Headers through rosbags (de)serialisation)",
                         records=len(new_log), records_by_type=_counts(streams, msgs.conn),
@@ -867,17 +854,10 @@ def _restamp_sqlite_in_place(f: str, bagdir: str, meta: dict, dst: str, shift: C
     files_meta = [{"path": name, "starting_time": {"nanoseconds_since_epoch": int(new_log.min()) if n else 0},
                    "duration": {"nanoseconds": int(new_log.max() - new_log.min()) if n else 0}, "message_count": n}]
     info = _bag_info(meta, files_meta, streams, out, new_log)
-    parent = os.path.dirname(os.path.abspath(dst)) or "."
-    os.makedirs(parent, exist_ok=True)
-    tmpdir = tempfile.mkdtemp(prefix="." + os.path.basename(dst) + ".", dir=parent)
-    tmp = os.path.join(tmpdir, "bag")
-    try:
+    with atomic_folder(dst) as tmp:
         os.makedirs(tmp)
         rebuilt = rsq.write(w, new_log, os.path.join(tmp, name), info)
         _write_bag_info(tmp, info)
-        replace_path(tmp, dst, tmpdir + ".old")
-    finally:
-        shutil.rmtree(tmpdir, ignore_errors=True)
     how = ("the .db3 restamped in place at the byte level of SQLite's file format (rows' timestamps, index "
            "keys" + (", index rebuilt by SQLite as the shift reordered it" if rebuilt else "") + "; every other "
            "byte the input's), metadata table and metadata.yaml times and counts updated")

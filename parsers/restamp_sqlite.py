@@ -30,6 +30,8 @@ import numpy as np
 
 from parsers.restamp import kernel_loader
 
+#: the walk kernels' error codes: a page out of range or of another kind, a cell outside its page, a
+#: payload on overflow pages, a record not as rosbag2 writes it, the output arrays full (retried larger)
 _OK, _E_PAGE, _E_CELL, _E_OVERFLOW, _E_RECORD, _E_FULL = 0, 1, 2, 3, 4, 5
 
 
@@ -92,14 +94,14 @@ def _walk_table(b, page_size, usable, root, n_pages, rowid, topic, ts_off, data_
         pg = stack[sp]
         visits += 1
         if pg < 1 or pg > n_pages or visits > n_pages:
-            return n, 1
+            return n, _E_PAGE
         base = (pg - 1) * page_size
         h = base + (100 if pg == 1 else 0)
         flag = b[h]
         ncell = _be(b, h + 3, 2)
         if flag == 5:  # interior table page: children left to right (pushed in reverse)
             if sp + ncell + 1 > len(stack):
-                return n, 1
+                return n, _E_PAGE
             stack[sp] = _be(b, h + 8, 4)
             sp += 1
             for i in range(ncell - 1, -1, -1):
@@ -110,11 +112,11 @@ def _walk_table(b, page_size, usable, root, n_pages, rowid, topic, ts_off, data_
             for i in range(ncell):
                 c = base + _be(b, h + 8 + 2 * i, 2)
                 if c >= base + page_size:
-                    return n, 2
+                    return n, _E_CELL
                 size, p = _varint(b, c)
                 rid, p = _varint(b, p)
                 if size > max_local or p + size > base + usable:
-                    return n, 3
+                    return n, _E_OVERFLOW
                 hsize, q = _varint(b, p)
                 val = p + hsize
                 ncol = 0
@@ -136,9 +138,9 @@ def _walk_table(b, page_size, usable, root, n_pages, rowid, topic, ts_off, data_
                     ncol += 1
                 if ncol != 4 or val != p + size or st_ts != 6 or st_data < 12 or st_data % 2 == 1 \
                         or not _is_int(st_topic):
-                    return n, 4
+                    return n, _E_RECORD
                 if n >= cap:
-                    return n, 5
+                    return n, _E_FULL
                 rowid[n] = rid
                 topic[n] = _int(b, v_topic, st_topic)
                 ts_off[n] = v_ts
@@ -146,8 +148,8 @@ def _walk_table(b, page_size, usable, root, n_pages, rowid, topic, ts_off, data_
                 data_len[n] = (st_data - 12) // 2
                 n += 1
         else:
-            return n, 1
-    return n, 0
+            return n, _E_PAGE
+    return n, _OK
 
 
 def _walk_index(b, page_size, usable, root, n_pages, rowid, ts_off):
@@ -166,11 +168,11 @@ def _walk_index(b, page_size, usable, root, n_pages, rowid, ts_off):
     while sp > 0:
         steps += 1
         if steps > 3 * cap + 2 * n_pages + 16:  # a cycle of interior pages
-            return n, 1
+            return n, _E_PAGE
         pg = pages[sp - 1]
         s = state[sp - 1]
         if pg < 1 or pg > n_pages:
-            return n, 1
+            return n, _E_PAGE
         base = (pg - 1) * page_size
         h = base + (100 if pg == 1 else 0)
         flag = b[h]
@@ -179,24 +181,24 @@ def _walk_index(b, page_size, usable, root, n_pages, rowid, ts_off):
             if flag == 10:
                 visits += 1
                 if visits > n_pages:
-                    return n, 1
+                    return n, _E_PAGE
                 first, last, skip = 0, ncell, 0
             else:
                 first, last, skip = (s - 1) // 2, (s - 1) // 2 + 1, 4
             for i in range(first, last):
                 c = base + _be(b, h + (8 if flag == 10 else 12) + 2 * i, 2) + skip
                 if c >= base + page_size:
-                    return n, 2
+                    return n, _E_CELL
                 size, p = _varint(b, c)
                 if size > max_local or p + size > base + usable:
-                    return n, 3
+                    return n, _E_OVERFLOW
                 hsize, q = _varint(b, p)
                 st_ts, q = _varint(b, q)
                 st_id, q = _varint(b, q)
                 if q != p + hsize or st_ts != 6 or not _is_int(st_id) or p + hsize + 8 + _sizeof(st_id) != p + size:
-                    return n, 4
+                    return n, _E_RECORD
                 if n >= cap:
-                    return n, 5
+                    return n, _E_FULL
                 ts_off[n] = p + hsize
                 rowid[n] = _int(b, p + hsize + 8, st_id)
                 n += 1
@@ -210,23 +212,14 @@ def _walk_index(b, page_size, usable, root, n_pages, rowid, ts_off):
                 state[sp - 1] = 0
             else:
                 if sp >= len(pages):
-                    return n, 1
+                    return n, _E_PAGE
                 state[sp - 1] = s + 1
                 pages[sp] = _be(b, base + _be(b, h + 12 + 2 * (s // 2), 2), 4)
                 state[sp] = 0
                 sp += 1
         else:
-            return n, 1
-    return n, 0
-
-
-def _put_be8(b, offs, values):
-    for i in range(len(offs)):
-        o = offs[i]
-        v = values[i]
-        for j in range(7, -1, -1):
-            b[o + j] = v & 0xFF
-            v >>= 8
+            return n, _E_PAGE
+    return n, _OK
 
 
 _loader = kernel_loader(globals())
@@ -316,6 +309,11 @@ def walk(path: str) -> Walk | None:
     return Walk(buf, rowid, topic, ts_off, data_off, data_len, idx_rowid, idx_ts)
 
 
+def _be8(v: np.ndarray) -> np.ndarray:
+    """int64 values as rows of 8 big-endian bytes (SQLite's serial type 6)."""
+    return np.ascontiguousarray(v.astype(">i8")).view(np.uint8).reshape(-1, 8)
+
+
 def write(w: Walk, new_ts: np.ndarray, dst: str, info: dict | None) -> bool:
     """``w.buf`` with the rows' timestamps ``new_ts`` (row order) and the index's written to ``dst``
     (the payloads are already patched in ``w.buf``), the metadata table's bag information replaced by
@@ -323,13 +321,14 @@ def write(w: Walk, new_ts: np.ndarray, dst: str, info: dict | None) -> bool:
     whether the index had to be rebuilt."""
     import yaml
 
+    from parsers.restamp import put_bytes
+
     new_ts = np.ascontiguousarray(new_ts, np.int64)
-    put = _kernel("_put_be8")
-    put(w.buf, w.ts_off, new_ts)
+    put_bytes(w.buf, w.ts_off, _be8(new_ts))
     rebuilt = False
     if len(w.idx_rowid):
         key = new_ts[np.searchsorted(w.rowid, w.idx_rowid)]
-        put(w.buf, w.idx_ts_off, key)
+        put_bytes(w.buf, w.idx_ts_off, _be8(key))
         dk, dr = np.diff(key), np.diff(w.idx_rowid)
         rebuilt = bool(np.any((dk < 0) | ((dk == 0) & (dr < 0))))
     w.buf.tofile(dst)

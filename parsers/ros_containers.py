@@ -138,7 +138,6 @@ def write_bag1(fh, fields: list[dict[str, bytes]], cids: list[int], msgs, log_ns
     fh.write(bytes(4096))  # the bag header, written last
     conn_recs = {c: _bag1_conn(c, f) for c, f in zip(cids, fields)}
     infos = []
-    first = True
     slices = _chunks(size, chunk_bytes)
     lead_all = b"".join(conn_recs.values())
 
@@ -150,8 +149,7 @@ def write_bag1(fh, fields: list[dict[str, bytes]], cids: list[int], msgs, log_ns
 
     groups = _by_chunk_and_key(slices, msgs.conn)
     for ci, (sl, (body_len, data)) in enumerate(zip(slices, threads.ordered(work, slices))):
-        lead = lead_all if first else b""
-        first = False
+        lead = lead_all if sl.start == 0 else b""  # (the connection records open the first chunk)
         pos = fh.tell()
         fh.write(_bag1_header([(b"op", b"\x05"), (b"compression", comp.encode()),
                                (b"size", struct.pack("<I", body_len))]) + struct.pack("<I", len(data)))

@@ -19,7 +19,6 @@ directory next to ``path`` and renamed into place.
 from __future__ import annotations
 
 import os
-import shutil
 import sqlite3
 import tempfile
 from collections.abc import Callable, Iterator
@@ -29,7 +28,7 @@ import numpy as np
 from logtools.errors import InputError
 from logtools.inslog import InsLog
 from parsers import ros_common as rc
-from parsers.atomic import replace_path
+from parsers.atomic import atomic_folder
 from parsers.base import Inventory, Selector, check_readable
 
 NAME = "rosbag2"
@@ -323,11 +322,7 @@ def write(path: str, log: InsLog, *, storage: str = "sqlite3", log_delay_ns: int
         raise InputError(f"rosbag2 compression must be none, file or message, not {compression!r}", path)
     typestore = rc.default_typestore("cdr")
     topics = rc.ros_topics_from_inslog(log, typestore, "cdr")
-    parent = os.path.dirname(os.path.abspath(path)) or "."
-    os.makedirs(parent, exist_ok=True)
-    tmpdir = tempfile.mkdtemp(prefix="." + os.path.basename(path) + ".", dir=parent)
-    tmp = os.path.join(tmpdir, "bag")
-    try:
+    with atomic_folder(path) as tmp:
         w = Writer(tmp, version=9, storage_plugin=plugin)
         if cmode is not None:
             w.set_compression(cmode, CompressionFormat.ZSTD)
@@ -335,6 +330,3 @@ def write(path: str, log: InsLog, *, storage: str = "sqlite3", log_delay_ns: int
             conns = [w.add_connection(tp.name, tp.msgtype, typestore=typestore) for tp in topics]
             for t, k, i in rc.merged_order(topics, log_delay_ns):
                 w.write(conns[k], t, topics[k].data[i])
-        replace_path(tmp, path, tmpdir + ".old")
-    finally:
-        shutil.rmtree(tmpdir, ignore_errors=True)

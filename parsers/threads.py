@@ -92,7 +92,6 @@ class Prefetch:
         self._n = workers()
         self._ahead = ahead or AHEAD_PER_WORKER * self._n
         self._futs: dict = {}
-        self._order: deque = deque()
         self._fill()
 
     def _fill(self) -> None:
@@ -104,7 +103,6 @@ class Prefetch:
             if k is _END:
                 return
             self._futs[k] = pool.submit(self._fn, k)
-            self._order.append(k)
 
     def get(self, key: T) -> R:
         fut = self._futs.pop(key, None)
