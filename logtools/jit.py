@@ -39,7 +39,8 @@ KERNEL_MODULES = ("logtools/strapdown.py", "logtools/alignment/kf.py", "logtools
                   "logtools/latency/flexure.py", "parsers/mavlink_common.py", "parsers/mcap_ros.py",
                   "parsers/ulog.py", "parsers/csvtable.py", "parsers/rosbag1.py", "parsers/restamp_mavlink.py",
                   "parsers/restamp_csv.py", "parsers/ros_containers.py",
-                  "parsers/restamp.py", "parsers/restamp_sqlite.py")
+                  "parsers/restamp.py", "parsers/restamp_sqlite.py", "logtools/dsp.py",
+                  "logtools/latency_seeds.py")
 
 _state: dict = {"mode": None, "hint": None, "why": ""}
 

@@ -49,9 +49,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from logtools.jit import njit  # compiled in compiled mode, plain Python otherwise
-from scipy.signal import correlate
 
 from logtools.conventions import euler_from_quat, quat_make_continuous, quat_slerp
+from logtools.dsp import correlate_valid
 from logtools.errors import AnalysisError
 from logtools.inslog import InsLog
 from logtools.results import MethodEstimate
@@ -203,7 +203,7 @@ def s000_search(master: InsLog, slave: InsLog, *, max_lag_s: float | None = 1.0,
     p = np.arange(n_pos)
     s1 = c1[p + n_rec] - c1[p]  # sum_i Mc[p+1+i]
     s2 = c2[p + n_rec] - c2[p]
-    x = sum(correlate(body[:, i], big_b[:, i], mode="valid", method="fft") for i in range(3))
+    x = correlate_valid(body, big_b)
     x = np.asarray(x)[:n_pos]
     base = mc[p]
     cost = (s2 - 2.0 * np.sum(base * s1, axis=1) + n_rec * np.sum(base * base, axis=1) - 2.0 * x

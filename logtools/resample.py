@@ -19,8 +19,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy import ndimage, signal
+from scipy import ndimage
 from scipy.interpolate import make_interp_spline
+
+from logtools.dsp import butter_lowpass_sos, sosfiltfilt_even
 
 __all__ = ["CleanSamples", "UniformSeries", "Interpolant", "clean_samples", "median_rate_hz",
            "to_uniform", "lowpass", "interpolant", "stamp_noise_s"]
@@ -212,10 +214,10 @@ def lowpass(series: UniformSeries, cutoff_hz: float, *, order: int = 4) -> Unifo
     nyq = 0.5 / series.dt_s
     if not (0 < cutoff_hz < 0.98 * nyq) or len(series.values) < 8 * order:
         return series
-    sos = signal.butter(order, cutoff_hz / nyq, output="sos")
+    sos = butter_lowpass_sos(order, cutoff_hz / nyq)
     v = np.empty(series.values.shape)  # column by column: the filter runs along each on its own
     for j in range(v.shape[1]):
-        v[:, j] = signal.sosfiltfilt(sos, _fill_invalid_column(series, j), axis=0, padtype="even")
+        v[:, j] = sosfiltfilt_even(sos, _fill_invalid_column(series, j))
     settle = int(np.ceil(1.0 / (cutoff_hz * series.dt_s)))
     valid = ~_dilate(~series.valid, settle)
     valid[:settle] = False  # the filter's start-up and run-out at the data ends

@@ -535,11 +535,11 @@ def _rawlog(path: str, fmt: str, scan: _Scan) -> rc.RawLog:
                 old.data.extend(raw.data)
             continue
         topics[topic] = raw
-    for enc in encodings:  # types without a definition in the file: the built-in ones
-        base = rc.default_typestore(enc)
+    for enc in encodings:  # types without a definition in the file: the built-in ones (loaded only then)
         missing = {t.msgtype for t in topics.values() if t.encoding == enc and t.msgtype in rc.SUPPORTED
                    and t.msgtype not in typestore.fielddefs}
         if missing:
+            base = rc.default_typestore(enc)
             need = _closure(base, missing)
             try:
                 typestore.register({k: base.fielddefs[k] for k in need if k not in typestore.fielddefs})

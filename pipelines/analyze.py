@@ -734,7 +734,8 @@ def write_outputs(an: Analysis, out_dir: str, progress=None) -> PairOutcome:
             from pipelines.recording import write_recording
 
             rep = an.build_report({**tim, "recording": 0.0}, paths)
-            an.extra["recording"] = write_recording(paths["recording"], an, rep, max_rows=opts.recording_max_rows)
+            an.extra["recording"] = parallel.call_prepared("recording", write_recording, paths["recording"], an, rep,
+                                                           max_rows=opts.recording_max_rows)
         except (ImportError, OSError, RuntimeError, ValueError) as exc:
             an.skipped_steps["recording"] = f"{type(exc).__name__}: {exc}"
             paths["recording"] = None
@@ -782,11 +783,18 @@ def run(args: argparse.Namespace) -> int:
     config = read_config(args.config) if args.config else None
     opts, out = options_from({**cli_values(args), "out": args.out}, config)
     progress = Progress()
+    if opts.recording:  # the recording's imports in a child, beside the parse (small inputs: pipelines.parallel)
+        from pipelines.firstrun import input_bytes
+
+        size = input_bytes("analyze", [args.master, args.slave])
+        if size is not None and size <= parallel.PREPARED_MAX_INPUT_BYTES:
+            parallel.prepare("recording", ("pipelines.recording", "rerun"))
     try:
         an = compute(args.master, args.slave, opts, progress=progress)
         outcome = write_outputs(an, out or "tapost_out", progress)
     finally:
         progress.done()
+        parallel.release("recording")  # not used (no latency, an error): the child exits
     print("\n".join(outcome.summary))
     sys.stdout.flush()
     if not an.ok:

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The README's test command: install tapost with its test extras, make sure a headless Chromium is there
-# for the report's browser test (Debian package, best effort: needs root and apt-get), run the suite.
+# for the report's browser test (Debian package, best effort: needs root and apt-get), run the suite on
+# every core (pytest-xdist; the tests share no files, each has its own tmp_path).
 # pytest's exit 5 ("no tests collected") is a failure here.
 set -uo pipefail
 cd "$(dirname "$0")/.."
@@ -10,7 +11,7 @@ if ! command -v chromium >/dev/null 2>&1 && [ "$(id -u)" = 0 ] && command -v apt
   { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium; } >/dev/null 2>&1 \
     || echo "test.sh: chromium could not be installed; the browser test will be skipped" >&2
 fi
-python -m pytest -p no:cacheprovider "$@"
+python -m pytest -p no:cacheprovider -n auto "$@"
 rc=$?
 if [ "$rc" -eq 5 ]; then echo "test.sh: pytest collected no tests" >&2; exit 1; fi
 exit "$rc"

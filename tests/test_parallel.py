@@ -86,3 +86,68 @@ def test_the_cli_analyze_with_forked_alignment_equals_the_in_process_answer(tmp_
             list(an.alignment[run].mounting_rpy_deg), rel=1e-12, abs=1e-12)
         assert rep["alignment"][run]["mounting_sigma_deg"] == pytest.approx(
             list(an.alignment[run].mounting_sigma_deg), rel=1e-9)
+
+
+def _import_state():
+    return os.getpid(), "colorsys" in sys.modules
+
+
+@posix_fork
+def test_a_prepared_child_imports_ahead_and_runs_the_call_sent_later(forking):
+    sys.modules.pop("colorsys", None)
+    assert parallel.prepare("t", ("colorsys",))
+    assert not parallel.prepare("t", ("colorsys",))  # one child per name
+    pid, imported = parallel.call_prepared("t", _import_state)
+    assert pid != os.getpid() and imported and "colorsys" not in sys.modules
+    # used once: the next call of the name runs here
+    assert parallel.call_prepared("t", _pid_and_sum, np.ones(2)) == (os.getpid(), 2.0)
+
+
+@posix_fork
+def test_a_prepared_childs_exception_comes_back_and_what_cannot_travel_runs_here(forking):
+    parallel.prepare("boom", ())
+    with pytest.raises(ValueError, match="the child's own error"):
+        parallel.call_prepared("boom", _boom)
+    parallel.prepare("local", ())
+    assert parallel.call_prepared("local", lambda: os.getpid()) == os.getpid()  # a lambda does not pickle
+
+
+@posix_fork
+def test_a_prepared_child_that_died_or_was_released_changes_nothing(forking):
+    parallel.prepare("dead", ())
+    pid = parallel._PREPARED["dead"][0]
+    os.kill(pid, 9)
+    assert parallel.call_prepared("dead", _pid_and_sum, np.ones(4)) == (os.getpid(), 4.0)
+    parallel.prepare("unused", ())
+    pid = parallel._PREPARED["unused"][0]
+    parallel.release("unused")
+    assert "unused" not in parallel._PREPARED
+    _, status = os.waitpid(pid, 0)  # it saw its end of file and left on its own
+    assert os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0
+
+
+def test_without_enable_nothing_is_prepared():
+    parallel.enable(False)
+    assert not parallel.prepare("x", ("colorsys",))
+    assert parallel.call_prepared("x", _pid_and_sum, np.ones(1)) == (os.getpid(), 1.0)
+
+
+@posix_fork
+@pytest.mark.slow
+def test_the_cli_recording_written_by_the_prepared_child_equals_the_in_process_one(tmp_path):
+    """`tapost analyze` writes recording.rrd in the child that imported rerun during the parse: the same
+    entities and rows as write_recording in this process."""
+    from pipelines import api
+    from pipelines.recording import read_entities, write_recording
+
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    out = tmp_path / "out"
+    p = subprocess.run([sys.executable, "-m", "pipelines.cli", "analyze", str(SAMPLE / "master.mcap"),
+                        str(SAMPLE / "slave.tlog"), "-o", str(out), "--no-html"],
+                       capture_output=True, text=True, env=env, timeout=600)
+    assert p.returncode == 0, p.stderr
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["outputs"]["recording"] == "recording.rrd" and not rep["skipped"]
+    an = api.analyze(str(SAMPLE / "master.mcap"), str(SAMPLE / "slave.tlog"))
+    write_recording(str(tmp_path / "here.rrd"), an, an.build_report(an.timings_s, {}))
+    assert read_entities(str(out / "recording.rrd")) == read_entities(str(tmp_path / "here.rrd"))

@@ -127,7 +127,7 @@ def uniform_native(t: np.ndarray, w: np.ndarray, name: str) -> tuple[UniformSeri
 
 def signal_band_hz(nat: UniformSeries, noise_rad_s: float) -> float:
     """Frequency below which 99.5 % of the motion power (PSD above 3x the white-noise floor) lies."""
-    from scipy.signal import welch
+    from logtools.dsp import welch_psd
 
     # the longest run of valid samples: valid samples joined across a gap make a step, whose spectrum
     # (1/f^2) would pass for motion up to the Nyquist frequency
@@ -143,7 +143,7 @@ def signal_band_hz(nat: UniformSeries, noise_rad_s: float) -> float:
     if len(v) < 64:
         return 0.4 * fs
     nper = int(min(len(v), 2 ** int(np.ceil(np.log2(max(64.0, 60.0 * fs))))))
-    f, p = welch(v - v.mean(axis=0), fs=fs, nperseg=nper, axis=0)
+    f, p = welch_psd(v - v.mean(axis=0), fs, nper)
     p = p.sum(axis=1)
     n0 = 3.0 * 3.0 * 2.0 * noise_rad_s ** 2 / fs  # 3x the one-sided white-noise PSD of 3 axes
     ex = np.clip(p - n0, 0.0, None)

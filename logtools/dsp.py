@@ -1,0 +1,150 @@
+"""Signal processing tapost needs, without scipy.signal: a Butterworth low-pass in second-order sections
+with zero-phase filtering, Welch's power spectral density, and FFT cross-correlation.
+
+scipy.signal costs ~0.3-0.5 s to import (it imports scipy.stats and scipy.interpolate with it and rewrites
+hundreds of docstrings on the way), more than every filter of a 2-minute analysis together. These are the
+algorithms of scipy's ``butter(N, Wn, output="sos")`` (analog prototype, pre-warped bilinear transform,
+each conjugate pole pair with two of the zeros at z = -1, the sections closest to the unit circle last, the
+gain in the first section; even orders, the odd ones are scipy's own), ``sosfiltfilt(..., padtype="even")``
+(even extension of 3 x the filter's taps at each end, the sections' step-response initial states, forward
+then backward), ``welch`` (periodic Hann window, half overlap, each segment's mean removed, one-sided
+density) and ``correlate(..., mode="valid", method="fft")``; ``tests/test_dsp.py`` compares each with
+scipy's (bit-equal for the design and the filter, equal to rounding for the others).
+
+The filter's recursion runs as a numba kernel in compiled mode (logtools.jit); in reference mode (the first
+run after installing, before the kernels are compiled) scipy.signal.sosfilt stands in for it (its C loop;
+a Python loop over the samples would cost seconds).
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy import fft as sfft
+
+from logtools import jit
+
+__all__ = ["butter_lowpass_sos", "sosfiltfilt_even", "sosfilt_zi", "welch_psd", "correlate_valid"]
+
+
+def butter_lowpass_sos(order: int, wn: float) -> np.ndarray:
+    """Digital Butterworth low-pass of ``order`` with cutoff ``wn`` (fraction of the Nyquist frequency,
+    0 < wn < 1) as (n_sections, 6) second-order sections [b0 b1 b2 1 a1 a2] (scipy's ``butter(order, wn,
+    output="sos")``)."""
+    order = int(order)
+    if order < 1 or not 0.0 < wn < 1.0:
+        raise ValueError(f"Butterworth low-pass: order {order} >= 1 and 0 < wn {wn} < 1 needed")
+    if order % 2:  # an odd order's lone zero: scipy's pairing rules decide its section (not used by tapost)
+        from scipy.signal import butter
+
+        return np.asarray(butter(order, wn, output="sos"), dtype=float)
+    fs = 2.0
+    warped = 2.0 * fs * np.tan(np.pi * wn / fs)  # pre-warped analog cutoff (rad/s)
+    m = np.arange(-order + 1, order, 2)
+    p = warped * -np.exp(1j * np.pi * m / (2 * order))  # analog prototype poles, scaled to the cutoff
+    k = warped ** order
+    fs2 = 2.0 * fs  # bilinear transform: z = (fs2 + s) / (fs2 - s), every zero at z = -1
+    pz = (fs2 + p) / (fs2 - p)
+    kz = float(np.real(k / np.prod(fs2 - p)))
+    pairs = pz[np.imag(pz) > 0]  # one pole of each conjugate pair (an even order has no real pole)
+    sos = np.zeros((order // 2, 6))
+    # "worst" (closest to the unit circle) last, as scipy's zpk2sos pairs them
+    pairs = pairs[np.argsort(np.abs(1.0 - np.abs(pairs)), kind="stable")[::-1]]
+    for s, pk in enumerate(pairs):  # each conjugate pair with two of the zeros at z = -1
+        sos[s] = [1.0, 2.0, 1.0, 1.0, -float(np.real(pk + np.conj(pk))), float(np.real(pk * np.conj(pk)))]
+    sos[0, :3] *= kz
+    return sos
+
+
+def _lfilter_zi2(b: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """Initial state of one section for a unit step's steady state (scipy's ``lfilter_zi``)."""
+    i_minus_a = np.eye(2) - np.array([[-a[1], -a[2]], [1.0, 0.0]]).T
+    return np.linalg.solve(i_minus_a, b[1:] - a[1:] * b[0])
+
+
+def sosfilt_zi(sos: np.ndarray) -> np.ndarray:
+    """(n_sections, 2) initial states for a unit step (scipy's ``sosfilt_zi``)."""
+    zi = np.empty((len(sos), 2))
+    scale = 1.0
+    for s in range(len(sos)):
+        b, a = sos[s, :3], sos[s, 3:]
+        zi[s] = scale * _lfilter_zi2(b, a)
+        scale *= b.sum() / a.sum()
+    return zi
+
+
+@jit.njit
+def _sosfilt_kernel(sos, x, zi):  # pragma: no cover - compiled (scipy's _sosfilt loop, same order)
+    n_sections = sos.shape[0]
+    out = np.empty(x.shape[0])
+    for n in range(x.shape[0]):
+        x_cur = x[n]
+        for s in range(n_sections):
+            x_new = sos[s, 0] * x_cur + zi[s, 0]
+            zi[s, 0] = sos[s, 1] * x_cur - sos[s, 4] * x_new + zi[s, 1]
+            zi[s, 1] = sos[s, 2] * x_cur - sos[s, 5] * x_new
+            x_cur = x_new
+        out[n] = x_cur
+    return out
+
+
+def _sosfilt(sos: np.ndarray, x: np.ndarray, zi: np.ndarray) -> np.ndarray:
+    if jit.compiled():
+        return _sosfilt_kernel(sos, np.ascontiguousarray(x, dtype=float), zi)
+    from scipy.signal import sosfilt  # reference mode: scipy's C loop
+
+    return sosfilt(sos, x, zi=zi)[0]
+
+
+def sosfiltfilt_even(sos: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Zero-phase filtering of the 1-D ``x`` by ``sos``: forward and backward, the ends extended by their
+    mirror images (scipy's ``sosfiltfilt(sos, x, padtype="even")``)."""
+    x = np.asarray(x, dtype=float)
+    ntaps = 2 * len(sos) + 1 - min(int((sos[:, 2] == 0).sum()), int((sos[:, 5] == 0).sum()))
+    edge = 3 * ntaps
+    if x.ndim != 1 or len(x) <= edge:
+        raise ValueError(f"zero-phase filter: a 1-D series longer than {edge} samples needed")
+    ext = np.concatenate([x[edge:0:-1], x, x[-2:-(edge + 2):-1]])
+    zi = sosfilt_zi(sos)
+    y = _sosfilt(sos, ext, zi * ext[0])
+    y = _sosfilt(sos, y[::-1], zi * y[-1])[::-1]
+    return y[edge:-edge]
+
+
+def welch_psd(x: np.ndarray, fs: float, nperseg: int) -> tuple[np.ndarray, np.ndarray]:
+    """One-sided power spectral density of each column of ``x`` (n, k) by Welch's method: periodic Hann
+    window of ``nperseg`` samples, half overlap, each segment's mean removed, the segments' mean
+    (scipy's ``welch(x, fs, nperseg=nperseg, axis=0)``). Returns (frequencies in Hz, psd (nf, k))."""
+    x = np.asarray(x, dtype=float)
+    x2 = x[:, None] if x.ndim == 1 else x
+    n = len(x2)
+    nperseg = int(min(nperseg, n))
+    if nperseg < 1:
+        raise ValueError("Welch spectrum of an empty series")
+    step = nperseg - nperseg // 2
+    nseg = (n - nperseg) // step + 1
+    win = 0.5 + 0.5 * np.cos(np.linspace(-np.pi, np.pi, nperseg + 1)[:-1])  # periodic Hann
+    segs = np.lib.stride_tricks.sliding_window_view(x2, nperseg, axis=0)[::step][:nseg]  # (nseg, k, nperseg)
+    segs = segs - segs.mean(axis=2, keepdims=True)
+    spec = sfft.rfft(segs * win, axis=2)
+    p = (spec.real ** 2 + spec.imag ** 2).mean(axis=0).T * (1.0 / (fs * float((win * win).sum())))
+    if nperseg % 2:
+        p[1:] *= 2.0
+    else:
+        p[1:-1] *= 2.0
+    f = sfft.rfftfreq(nperseg, 1.0 / fs)
+    return f, (p[:, 0] if x.ndim == 1 else p)
+
+
+def correlate_valid(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross-correlation of the columns of ``a`` (n, k) with those of ``b`` (m, k), summed over the columns,
+    at the lags where ``b`` lies inside ``a`` (n >= m): out[j] = sum_i sum_c a[j + i, c] b[i, c], by FFT
+    (the sum over the columns of scipy's ``correlate(a[:, c], b[:, c], mode="valid", method="fft")``)."""
+    a = np.asarray(a, dtype=float)
+    b = np.asarray(b, dtype=float)
+    a2, b2 = (a[:, None], b[:, None]) if a.ndim == 1 else (a, b)
+    n, m = len(a2), len(b2)
+    if m > n:
+        raise ValueError("correlate_valid: the second series is longer than the first")
+    full = n + m - 1
+    nfft = sfft.next_fast_len(full, real=True)
+    prod = (sfft.rfft(a2, nfft, axis=0) * sfft.rfft(b2[::-1], nfft, axis=0)).sum(axis=1)
+    return sfft.irfft(prod, nfft)[m - 1:n]

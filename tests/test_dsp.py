@@ -1,0 +1,97 @@
+"""logtools.dsp against scipy.signal, whose algorithms it carries: the Butterworth design and the zero-phase
+filter bit-equal (compiled kernel and reference path alike), Welch's spectrum and the FFT correlation equal
+to rounding; the analysis path no longer imports scipy.signal."""
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from scipy import signal
+
+from logtools import dsp, jit
+
+
+@pytest.mark.parametrize("order", [2, 4, 6, 8])
+def test_the_butterworth_design_is_scipys_bit_for_bit(order):
+    rng = np.random.default_rng(order)
+    for wn in np.concatenate([[1e-4, 0.01, 0.5, 0.97, 0.999], rng.uniform(1e-4, 0.999, 200)]):
+        got = dsp.butter_lowpass_sos(order, float(wn))
+        want = signal.butter(order, float(wn), output="sos")
+        assert got.shape == want.shape
+        assert np.array_equal(got, want), (order, wn, np.max(np.abs(got - want)))
+
+
+def test_odd_orders_and_bad_arguments():
+    assert np.array_equal(dsp.butter_lowpass_sos(3, 0.2), signal.butter(3, 0.2, output="sos"))
+    for order, wn in ((0, 0.2), (4, 0.0), (4, 1.0), (4, -0.1)):
+        with pytest.raises(ValueError):
+            dsp.butter_lowpass_sos(order, wn)
+
+
+def test_the_step_initial_states_are_scipys():
+    sos = signal.butter(4, 0.07, output="sos")
+    assert np.allclose(dsp.sosfilt_zi(sos), signal.sosfilt_zi(sos), rtol=1e-13, atol=1e-15)
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_zero_phase_filter_equals_scipys_sosfiltfilt_even(compiled, monkeypatch):
+    monkeypatch.setattr(jit, "compiled", lambda: compiled)  # the reference path: scipy's sosfilt loop
+    rng = np.random.default_rng(7)
+    t = np.arange(5000) / 200.0
+    x = np.sin(2 * np.pi * 0.7 * t) + 0.3 * rng.standard_normal(t.size) + 5.0
+    for order, wn in ((2, 0.3), (4, 0.05), (4, 0.004), (6, 0.2)):
+        sos = signal.butter(order, wn, output="sos")
+        want = signal.sosfiltfilt(sos, x, padtype="even")
+        got = dsp.sosfiltfilt_even(sos, x)
+        assert got.shape == x.shape
+        assert np.max(np.abs(got - want)) <= 1e-12 * np.max(np.abs(want)), (order, wn, compiled)
+    with pytest.raises(ValueError):
+        dsp.sosfiltfilt_even(signal.butter(4, 0.1, output="sos"), x[:15])  # edge: 3 x 5 taps
+
+
+def test_the_compiled_kernel_is_the_python_loop():
+    if not jit.compiled():
+        pytest.skip("kernels run as Python in this session")
+    sos = signal.butter(4, 0.1, output="sos")
+    x = np.random.default_rng(1).standard_normal(3000)
+    zi = dsp.sosfilt_zi(sos) * x[0]
+    a = dsp._sosfilt_kernel(sos, x, zi.copy())
+    b = dsp._sosfilt_kernel.py_func(sos, x, zi.copy())
+    c = signal.sosfilt(sos, x, zi=zi.copy())[0]
+    assert np.array_equal(a, b) and np.max(np.abs(a - c)) <= 1e-13 * np.max(np.abs(c))
+
+
+@pytest.mark.parametrize("n, nperseg", [(4096, 1024), (5000, 1024), (777, 256), (300, 300), (1001, 333)])
+def test_welch_equals_scipys(n, nperseg):
+    x = np.random.default_rng(n).standard_normal((n, 3)) + np.array([1.0, -2.0, 0.5])
+    f, p = dsp.welch_psd(x, 200.0, nperseg)
+    fw, pw = signal.welch(x, fs=200.0, nperseg=nperseg, axis=0)
+    assert np.array_equal(f, fw)
+    assert p.shape == pw.shape
+    assert np.max(np.abs(p - pw)) <= 1e-12 * np.max(pw)
+    f1, p1 = dsp.welch_psd(x[:, 0], 200.0, nperseg)  # 1-D in, 1-D out
+    assert p1.shape == pw[:, 0].shape and np.allclose(p1, pw[:, 0], rtol=1e-12, atol=0)
+
+
+def test_correlate_valid_is_the_sum_of_scipys_per_column_correlations():
+    rng = np.random.default_rng(3)
+    a, b = rng.standard_normal((2000, 3)), rng.standard_normal((500, 3))
+    want = sum(signal.correlate(a[:, i], b[:, i], mode="valid", method="fft") for i in range(3))
+    got = dsp.correlate_valid(a, b)
+    assert got.shape == want.shape == (1501,)
+    assert np.max(np.abs(got - want)) <= 1e-12 * np.max(np.abs(want))
+    assert np.allclose(dsp.correlate_valid(a[:, 0], b[:, 0]),
+                       signal.correlate(a[:, 0], b[:, 0], mode="valid", method="fft"), rtol=0, atol=1e-10)
+    with pytest.raises(ValueError):
+        dsp.correlate_valid(b, a)
+
+
+def test_the_analysis_path_does_not_import_scipy_signal():
+    code = ("import sys; from pipelines import analyze; from logtools import resample, latency_seeds; "
+            "from logtools.latency import inputs; "
+            "print(sorted(m for m in sys.modules if m.startswith(('scipy.signal', 'scipy.stats'))))")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.strip() == "[]"
