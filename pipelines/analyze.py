@@ -378,13 +378,20 @@ def _alignment(master: InsLog, slave: InsLog, run: str, opts: AnalyzeOptions, pr
         return exc.problem
 
 
-def _imu_to_imu_sections(master: InsLog, an: rp.Analysis, align_sections: dict, extra: dict) -> None:
+def _wants_imu_to_imu(master: InsLog, slave: InsLog) -> bool:
+    """The contract: the IMU-to-IMU rotation only where both units log an IMU."""
+    return bool((master.has_gyro or master.has_accel) and (slave.has_gyro or slave.has_accel))
+
+
+def _imu_to_imu_sections(master: InsLog, an: rp.Analysis, align_sections: dict, extra: dict,
+                         fit=None) -> None:
     """``alignment.imu_to_imu`` and ``alignment.consistency`` (DESIGN.md) where both units log an IMU: the
-    slave's triads against the master's, on the compensated slave; a disagreement with the compensated
-    nav-referenced mounting beyond 3 combined sigma is a warning naming the likely cause."""
+    slave's triads against the master's, on the compensated slave (``fit``: already computed, while the
+    forked child ran); a disagreement with the compensated nav-referenced mounting beyond 3 combined sigma is a
+    warning naming the likely cause."""
     slave = an.slave_comp
-    if not ((master.has_gyro or master.has_accel) and (an.slave.has_gyro or an.slave.has_accel)):
-        return  # the contract: only where both units log an IMU
+    if not _wants_imu_to_imu(master, an.slave):
+        return
     from logtools.alignment.imu_to_imu import consistency, imu_to_imu
 
     if slave is None:
@@ -393,7 +400,7 @@ def _imu_to_imu_sections(master: InsLog, an: rp.Analysis, align_sections: dict, 
                                         "reasons": {"gyro": "no compensated slave (latency or compensation "
                                                             "failed)", "accel": "no compensated slave"}}
         return
-    res = imu_to_imu(master, slave)
+    res = fit if fit is not None else imu_to_imu(master, slave)
     align_sections["imu_to_imu"] = res.section()
     comp = align_sections.get("compensated")
     mount = sig = None
@@ -681,6 +688,15 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
         elif run not in pending:
             p(0.0, "")
             pending[run] = _alignment(master, slog, run, opts, p, an.latency)
+    imu_fit = None
+    if (isinstance(pending.get("uncompensated"), parallel.Pending) and an.slave_comp is not None
+            and _wants_imu_to_imu(master, an.slave)
+            and len(master.imu) + len(an.slave.imu) <= parallel.FORK_IMU_TO_IMU_MAX_SAMPLES):
+        # the IMU-to-IMU fit here while the child's (longer, two-pass) uncompensated run goes on, when the
+        # logs are short enough for its arrays to sit beside the child's (parallel.FORK_IMU_TO_IMU_MAX_SAMPLES)
+        from logtools.alignment.imu_to_imu import imu_to_imu
+
+        imu_fit = imu_to_imu(master, an.slave_comp)
     for run in runs:
         res = pending[run]
         if isinstance(res, parallel.Pending):
@@ -691,7 +707,7 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
         else:
             an.alignment[run] = None
             an.align_sections[run] = rp.alignment_skipped(res, opts.filter, opts.match)
-    _imu_to_imu_sections(master, an, an.align_sections, extra)
+    _imu_to_imu_sections(master, an, an.align_sections, extra, imu_fit)
     tim["alignment"] = time.perf_counter() - t
     tim["total"] = time.perf_counter() - t_all
     an.timings_s = tim

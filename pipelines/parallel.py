@@ -30,6 +30,13 @@ _PREPARED: dict[str, tuple[int, int, int]] = {}  # name -> (pid, request write f
 #: memory of the long logs, whose peak is the constraint
 PREPARED_MAX_INPUT_BYTES = 60_000_000
 
+#: master + slave IMU samples up to which ``analyze`` computes the IMU-to-IMU fit while the forked child
+#: runs the uncompensated alignment (rather than after it: 1.8 s less of the 1 h pair's alignment stage,
+#: whose uncompensated run takes two passes, 3.6 s, against 1.8 s for the compensated one): the fit's arrays
+#: (about 0.4 GB per hour of 200 Hz data for both units) then sit beside the child's. Up to about 1 h of
+#: 200 Hz logs; beyond, where the long logs' peak memory is the constraint, the fit waits for the child
+FORK_IMU_TO_IMU_MAX_SAMPLES = 1_500_000
+
 
 def enable(on: bool = True) -> None:
     """Allow forking in this process (the CLI's ``analyze``)."""
