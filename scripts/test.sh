@@ -11,6 +11,8 @@ if ! command -v chromium >/dev/null 2>&1 && [ "$(id -u)" = 0 ] && command -v apt
   { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium; } >/dev/null 2>&1 \
     || echo "test.sh: chromium could not be installed; the browser test will be skipped" >&2
 fi
+# the numba kernels compiled once, here, rather than by every test worker on its own (about 50 s each)
+python -m pipelines.warmup --quiet || echo "test.sh: the kernels could not be compiled ahead; the tests compile them" >&2
 python -m pytest -p no:cacheprovider -n auto "$@"
 rc=$?
 if [ "$rc" -eq 5 ]; then echo "test.sh: pytest collected no tests" >&2; exit 1; fi
