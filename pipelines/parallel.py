@@ -73,12 +73,7 @@ class Pending:
             try:
                 os.close(rfd)
                 _close_prepared()  # a prepared child must see its end of file when the parent closes it
-                try:
-                    payload = pickle.dumps((True, self._fn(*self._args, **self._kwargs)), protocol=5)
-                except BaseException as exc:  # noqa: BLE001 - the parent re-raises it
-                    payload = pickle.dumps((False, exc), protocol=5)
-                with os.fdopen(wfd, "wb") as fh:
-                    fh.write(payload)
+                _answer(self._fn, self._args, self._kwargs, wfd)
             except BaseException:  # noqa: BLE001
                 code = 1
             finally:
@@ -92,11 +87,8 @@ class Pending:
         ok, value = None, None
         if self._pid is not None:
             try:
-                with os.fdopen(self._rfd, "rb") as fh:
-                    data = fh.read()
+                ok, value = _read_answer(self._rfd)
                 os.waitpid(self._pid, 0)
-                if data:
-                    ok, value = pickle.loads(data)
             except (OSError, EOFError, pickle.UnpicklingError):
                 ok = None
         if ok is None:  # no fork, or the child died: the same call here
@@ -112,13 +104,34 @@ def submit(fn: Callable, *args, **kwargs) -> Pending:
     return Pending(fn, args, kwargs)
 
 
+def _answer(fn: Callable, args: tuple, kwargs: dict, wfd: int) -> None:
+    """In a child: run the call and write (True, its value) or (False, its exception), pickled, to ``wfd``."""
+    try:
+        payload = pickle.dumps((True, fn(*args, **kwargs)), protocol=5)
+    except BaseException as exc:  # noqa: BLE001 - the parent re-raises it
+        payload = pickle.dumps((False, exc), protocol=5)
+    with os.fdopen(wfd, "wb") as fh:
+        fh.write(payload)
+
+
+def _read_answer(rfd: int, closefd: bool = True) -> tuple[bool | None, Any]:
+    """In the parent: what :func:`_answer` wrote, or (None, None) when nothing came."""
+    with os.fdopen(rfd, "rb", closefd=closefd) as fh:
+        data = fh.read()
+    return pickle.loads(data) if data else (None, None)
+
+
+def _close(*fds: int) -> None:
+    for fd in fds:
+        try:
+            os.close(fd)
+        except OSError:
+            pass
+
+
 def _close_prepared() -> None:
     for _pid, w, r in _PREPARED.values():
-        for fd in (w, r):
-            try:
-                os.close(fd)
-            except OSError:
-                pass
+        _close(w, r)
     _PREPARED.clear()
 
 
@@ -137,8 +150,7 @@ def prepare(name: str, modules: tuple[str, ...]) -> bool:
     try:
         pid = os.fork()
     except OSError:
-        for fd in (req_r, req_w, res_r, res_w):
-            os.close(fd)
+        _close(req_r, req_w, res_r, res_w)
         return False
     if pid == 0:  # the child: import, wait for the call (or the end of file), answer, leave
         code = 0
@@ -151,13 +163,7 @@ def prepare(name: str, modules: tuple[str, ...]) -> bool:
             with os.fdopen(req_r, "rb") as fh:
                 data = fh.read()
             if data:
-                fn, args, kwargs = pickle.loads(data)
-                try:
-                    payload = pickle.dumps((True, fn(*args, **kwargs)), protocol=5)
-                except BaseException as exc:  # noqa: BLE001 - the parent re-raises it
-                    payload = pickle.dumps((False, exc), protocol=5)
-                with os.fdopen(res_w, "wb") as fh:
-                    fh.write(payload)
+                _answer(*pickle.loads(data), res_w)
         except BaseException:  # noqa: BLE001 - an interrupt, a broken pipe: the parent runs the call itself
             code = 1
         finally:
@@ -183,17 +189,11 @@ def call_prepared(name: str, fn: Callable, *args, **kwargs) -> Any:
                 fh.write(payload)
         finally:
             os.close(req_w)
-        with os.fdopen(res_r, "rb", closefd=False) as fh:
-            data = fh.read()
-        if data:
-            ok, value = pickle.loads(data)
+        ok, value = _read_answer(res_r, closefd=False)
     except (OSError, EOFError, TypeError, AttributeError, pickle.PickleError):
         ok = None  # not picklable, or the child died: the same call here
     finally:
-        try:
-            os.close(res_r)
-        except OSError:
-            pass
+        _close(res_r)
         try:
             os.waitpid(pid, 0)
         except OSError:
@@ -211,11 +211,7 @@ def release(name: str) -> None:
     if entry is None:
         return
     pid, req_w, res_r = entry
-    for fd in (req_w, res_r):
-        try:
-            os.close(fd)
-        except OSError:
-            pass
+    _close(req_w, res_r)
     try:
         os.waitpid(pid, os.WNOHANG)
     except OSError:
