@@ -236,6 +236,7 @@ class FilterSettings:
     hinf_gamma: float = 1.0
     smoother: bool = False
     att_only_fej: bool = False  # AlignmentConfig.att_only_fej
+    dynamics_fej: bool = False  # AlignmentConfig.dynamics_fej
 
 
 @dataclass
@@ -310,6 +311,7 @@ def run_filter(inp: AlignInputs, s: FilterSettings, *, progress: Callable | None
         phi_k, qd_k = _propagate(st, inp, s, k, bool(restart[k])) if k > 0 else (_NO_PHI, _NO_PHI)
         tk = float(inp.t_epoch_s[k])
         ms_k = master.sample(tk - st.tau)
+        st.c_nm_prev = ms_k[0]
         _restarts(st, inp, lay, k, bool(restart[k]), ms_k)
         if not master.usable(tk - st.tau):
             # no usable master sample: prediction only
@@ -366,6 +368,7 @@ class _LoopState:
     n_reinit: int = 0
     n_restart: int = 0
     n_skipped: int = 0
+    c_nm_prev: np.ndarray | None = None  # the master's attitude sampled at the previous epoch
 
     @classmethod
     def start(cls, inp: AlignInputs, s: FilterSettings) -> "_LoopState":
@@ -382,6 +385,12 @@ class _LoopState:
         self.P[:, sl] = 0.0
         self.P[sl, sl] = np.diag(self.p0_var[sl])
         self.x[sl] = 0.0
+
+
+def _dynamics_fej(s: FilterSettings) -> bool:
+    """Whether F is taken at the first estimate C_nm R0^T of the slave's attitude (where H takes the
+    mounting's): AlignmentConfig.dynamics_fej, with the board's error states."""
+    return bool(s.dynamics_fej and s.layout.has_board_states and (s.layout.uses_vel or s.att_only_fej))
 
 
 def _propagate(st: _LoopState, inp: AlignInputs, s: FilterSettings, k: int, restart: bool
@@ -402,9 +411,12 @@ def _propagate(st: _LoopState, inp: AlignInputs, s: FilterSettings, k: int, rest
     w_ie[0], w_ie[2] = earth.OMEGA_IE_RAD_S * cl, -earth.OMEGA_IE_RAD_S * sl_
     w_en[0], w_en[1], w_en[2] = v[1] / (r_n + h), -v[0] / (r_m + h), -v[1] * tl / (r_n + h)
     mav[0, 1], mav[1, 0], mav[2, 1] = 1.0 / (r_n + h), -1.0 / (r_m + h), -tl / (r_n + h)
+    if st.c_nm_prev is not None and _dynamics_fej(s):  # AlignmentConfig.dynamics_fej
+        c_ns = st.c_nm_prev @ st.r_fej.T
     f_n = c_ns @ (inp.seg_dv_b[j] / dt)
     f_buf = np.zeros((n, n))
-    _fill_dynamics(f_buf, lay.offsets, c_ns, f_n, w_ie, w_en, v, mav, s.flex_beta, 1.0 / s.master_att_tau_s)
+    _fill_dynamics(f_buf, lay.offsets, c_ns, f_n, w_ie, w_en, v, mav, s.flex_beta, 1.0 / s.master_att_tau_s,
+                   c_ns)
     phi_k = np.empty((n, n))
     qd_k = np.empty((n, n))
     discretise_step(f_buf, st.qc, dt, phi_k, qd_k)
@@ -756,11 +768,12 @@ def _reset_block(P, x, p0, blk):
 
 @njit
 def _nb_propagate(q, v, llh, dq, dv_b, dt, restart_k, offs, qc, beta, mk_rate, f_buf, phi_k, qd_k, q_new, v_new,
-                  llh_new):
+                  llh_new, c_fej, use_fej):
     """:func:`_propagate` compiled: Phi, Qd of one segment (in place) from the error dynamics at its start,
-    then the slave mechanised over it (q, v, llh in place)."""
+    then the slave mechanised over it (q, v, llh in place). ``use_fej``: the dynamics at the slave
+    attitude ``c_fej`` (the first estimate)."""
     n = phi_k.shape[0]
-    c_ns = _dcm(q)
+    c_ns = c_fej.copy() if use_fej else _dcm(q)
     lat, h = llh[0], llh[2]
     r_m, r_n = _radii(lat)
     cl, sl, tl = np.cos(lat), np.sin(lat), np.tan(lat)
@@ -772,7 +785,7 @@ def _nb_propagate(q, v, llh, dq, dv_b, dt, restart_k, offs, qc, beta, mk_rate, f
     mav[0, 1], mav[1, 0], mav[2, 1] = 1.0 / (r_n + h), -1.0 / (r_m + h), -tl / (r_n + h)
     f_n = c_ns @ (dv_b / dt)
     f_buf[:, :] = 0.0
-    _fill_dynamics(f_buf, offs, c_ns, f_n, w_ie, w_en, v, mav, beta, mk_rate)
+    _fill_dynamics(f_buf, offs, c_ns, f_n, w_ie, w_en, v, mav, beta, mk_rate, c_ns)
     _discretise(f_buf, qc, dt, phi_k, qd_k)
     if restart_k:  # a gap: the error state is not propagated through unknown motion
         for ii in range(n):
@@ -922,7 +935,7 @@ def _nb_finite(x, P):
 def _kf_loop(t_ep, seg_dq, seg_dv, seg_dt, mt, mq, mv, ma, mw, mvalid, resets, restart, has_q, has_v, has_w,
              q0, v0, llh0, r0, lever0, tau0, offs, n, m_meas, p0, qc, r_diag, beta, mk_rate, lo_tau, hi_tau,
              fb_mask,
-             att_only_fej, keep, xs, pd, r_hist, pm_hist, tau_hist, lev_hist, innov, nis, q_hist, cnm_hist,
+             att_only_fej, dyn_fej, keep, xs, pd, r_hist, pm_hist, tau_hist, lev_hist, innov, nis, q_hist, cnm_hist,
              sm_phi, sm_xpred, sm_ppred, sm_xf, sm_pf, sm_fb, counters):
     """The reference loop of :func:`run_filter` compiled, for the KF kinds, step for step (the ``_nb_*``
     functions). Histories filled in place; counters = [skipped, attitude restarts at resets, the epoch
@@ -945,7 +958,7 @@ def _kf_loop(t_ep, seg_dq, seg_dv, seg_dt, mt, mq, mv, ma, mw, mvalid, resets, r
         if k > 0:
             j = k - 1
             _nb_propagate(q, v, llh, seg_dq[j], seg_dv[j], seg_dt[j], restart[k], offs, qc, beta, mk_rate, f_buf,
-                          phi_k, qd_k, q_new, v_new, llh_new)
+                          phi_k, qd_k, q_new, v_new, llh_new, c_nm @ r_fej.T, dyn_fej)
         tm_ = t_ep[k] - tau
         i = _nb_master_at(mt, mq, mv, ma, mw, has_q, has_v, has_w, tm_, c_nm, v_m, a_m, w_m)
         if k > 0:
@@ -1037,7 +1050,7 @@ def run_filter_compiled(inp: AlignInputs, s: FilterSettings) -> FilterRun:
              np.asarray(inp.lever0_m, float).copy(), float(inp.tau0_s), lay.offsets, n, m_meas,
              np.ascontiguousarray(_initial_cov(s)), np.asarray(s.qc, float), r_diag, float(s.flex_beta),
              1.0 / float(s.master_att_tau_s), float(s.delay_bounds_s[0]), float(s.delay_bounds_s[1]), fb_mask,
-             bool(s.att_only_fej), keep,
+             bool(s.att_only_fej), bool(_dynamics_fej(s) and ms.quat is not None), keep,
              xs, pd, r_hist, pm_hist, tau_hist, lev_hist, innov, nis, q_hist, cnm_hist, *sm, counters)
     if counters[2] >= 0:
         raise AnalysisError(f"alignment filter diverged at t = {inp.t_epoch_s[counters[2]]:.2f} s "

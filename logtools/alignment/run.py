@@ -708,7 +708,8 @@ def _settings(kind: FilterKind, lay: StateLayout, master: InsLog, t_imu, gyro, a
             sig[lay.delay] = float(_given(opts.delay_sigma_s, 0.1))
     st = FilterSettings(kind=kind, layout=lay, p0_sigma=sig, qc=qc, r_vel_m_s=r_vel, r_att_rad=r_att,
                         flex_beta=beta, master_att_tau_s=mk_tau, delay_bounds_s=tau_bounds,
-                        hinf_gamma=float(opts.hinf_gamma), smoother=smoother, att_only_fej=config.att_only_fej)
+                        hinf_gamma=float(opts.hinf_gamma), smoother=smoother, att_only_fej=config.att_only_fej,
+                        dynamics_fej=config.dynamics_fej)
     return st, sig
 
 
