@@ -415,8 +415,7 @@ def _propagate(st: _LoopState, inp: AlignInputs, s: FilterSettings, k: int, rest
         c_ns = st.c_nm_prev @ st.r_fej.T
     f_n = c_ns @ (inp.seg_dv_b[j] / dt)
     f_buf = np.zeros((n, n))
-    _fill_dynamics(f_buf, lay.offsets, c_ns, f_n, w_ie, w_en, v, mav, s.flex_beta, 1.0 / s.master_att_tau_s,
-                   c_ns)
+    _fill_dynamics(f_buf, lay.offsets, c_ns, f_n, w_ie, w_en, v, mav, s.flex_beta, 1.0 / s.master_att_tau_s)
     phi_k = np.empty((n, n))
     qd_k = np.empty((n, n))
     discretise_step(f_buf, st.qc, dt, phi_k, qd_k)
@@ -785,7 +784,7 @@ def _nb_propagate(q, v, llh, dq, dv_b, dt, restart_k, offs, qc, beta, mk_rate, f
     mav[0, 1], mav[1, 0], mav[2, 1] = 1.0 / (r_n + h), -1.0 / (r_m + h), -tl / (r_n + h)
     f_n = c_ns @ (dv_b / dt)
     f_buf[:, :] = 0.0
-    _fill_dynamics(f_buf, offs, c_ns, f_n, w_ie, w_en, v, mav, beta, mk_rate, c_ns)
+    _fill_dynamics(f_buf, offs, c_ns, f_n, w_ie, w_en, v, mav, beta, mk_rate)
     _discretise(f_buf, qc, dt, phi_k, qd_k)
     if restart_k:  # a gap: the error state is not propagated through unknown motion
         for ii in range(n):

@@ -136,16 +136,12 @@ def m_av(lat_rad: float, alt_m: float, r_m: float, r_n: float) -> np.ndarray:
 
 def dynamics_matrix(lay: StateLayout, c_ns: np.ndarray, f_n: np.ndarray, w_ie_n: np.ndarray,
                     w_en_n: np.ndarray, vel_n: np.ndarray, mav: np.ndarray,
-                    flex_beta: float = 0.0, master_att_tau_s: float = np.inf,
-                    c_ns_misalign: np.ndarray | None = None) -> np.ndarray:
-    """Continuous-time error dynamics F (n x n). ``c_ns_misalign``: the attitude at which the accelerometer
-    misalignment's column is taken (default ``c_ns``; the filter's first estimate, AlignmentConfig.dynamics_fej)."""
+                    flex_beta: float = 0.0, master_att_tau_s: float = np.inf) -> np.ndarray:
+    """Continuous-time error dynamics F (n x n)."""
     f = np.zeros((lay.n, lay.n))
-    c = np.ascontiguousarray(c_ns, float)
-    _fill_dynamics(f, lay.offsets, c, np.asarray(f_n, float),
+    _fill_dynamics(f, lay.offsets, np.ascontiguousarray(c_ns, float), np.asarray(f_n, float),
                    np.asarray(w_ie_n, float), np.asarray(w_en_n, float), np.asarray(vel_n, float),
-                   np.ascontiguousarray(mav, float), float(flex_beta), 1.0 / float(master_att_tau_s),
-                   c if c_ns_misalign is None else np.ascontiguousarray(c_ns_misalign, float))
+                   np.ascontiguousarray(mav, float), float(flex_beta), 1.0 / float(master_att_tau_s))
     return f
 
 
@@ -161,7 +157,7 @@ def _sk(v, out, r0, c0, sign):
 
 
 @njit
-def _fill_dynamics(f, off, c_ns, f_n, w_ie, w_en, vel, mav, beta, mk_rate, c_am):
+def _fill_dynamics(f, off, c_ns, f_n, w_ie, w_en, vel, mav, beta, mk_rate):
     a, v, g, acc = off[0], off[1], off[2], off[3]
     fa, fr = off[5], off[6]
     mk, am = off[11], off[12]
@@ -190,10 +186,10 @@ def _fill_dynamics(f, off, c_ns, f_n, w_ie, w_en, vel, mav, beta, mk_rate, c_am)
         for i in range(3):
             for j in range(3):
                 f[v + i, v + j] += t[i, j]
-        if am >= 0:  # - [f^n x] C_ns alpha = - C [f^s x] alpha, C = c_am (f^s = C_ns^T f^n)
+        if am >= 0:  # - [f^n x] C_ns alpha
             fx = np.zeros((3, 3))
-            _sk(c_ns.T @ f_n, fx, 0, 0, 1.0)
-            t = c_am @ fx
+            _sk(f_n, fx, 0, 0, 1.0)
+            t = fx @ c_ns
             for i in range(3):
                 for j in range(3):
                     f[v + i, am + j] = -t[i, j]
