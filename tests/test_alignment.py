@@ -638,7 +638,7 @@ def test_board_error_states_on_a_ship_that_barely_rolls_keep_their_sigma_honest(
     """A ship that turns about its vertical only, IMU-only slave, --board-errors on, no board error in the
     data: the accelerometer misalignment about the turn axis is the heading error there. With the error
     dynamics at the running slave attitude, feedback along that undetermined direction rotated F against H
-    and the mounting came out 37' off at an 10' sigma; at the first estimate (AlignmentConfig.dynamics_fej,
+    and the mounting came out 37' off at a 10' sigma; at the first estimate (AlignmentConfig.dynamics_fej,
     as H) the truth is within 2 sigma."""
     p = sim.simulate(sim.scenario_config(
         "ship", seed=1546029218, duration_s=300.0, sway_amp_deg=(0.2, 0.2, 3.0), turn_amp_deg=17.7,

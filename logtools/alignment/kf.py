@@ -767,12 +767,12 @@ def _reset_block(P, x, p0, blk):
 
 @njit
 def _nb_propagate(q, v, llh, dq, dv_b, dt, restart_k, offs, qc, beta, mk_rate, f_buf, phi_k, qd_k, q_new, v_new,
-                  llh_new, c_fej, use_fej):
+                  llh_new, c_nm, r_fej, use_fej):
     """:func:`_propagate` compiled: Phi, Qd of one segment (in place) from the error dynamics at its start,
     then the slave mechanised over it (q, v, llh in place). ``use_fej``: the dynamics at the slave
-    attitude ``c_fej`` (the first estimate)."""
+    attitude's first estimate ``c_nm r_fej^T``."""
     n = phi_k.shape[0]
-    c_ns = c_fej.copy() if use_fej else _dcm(q)
+    c_ns = c_nm @ r_fej.T if use_fej else _dcm(q)
     lat, h = llh[0], llh[2]
     r_m, r_n = _radii(lat)
     cl, sl, tl = np.cos(lat), np.sin(lat), np.tan(lat)
@@ -957,7 +957,7 @@ def _kf_loop(t_ep, seg_dq, seg_dv, seg_dt, mt, mq, mv, ma, mw, mvalid, resets, r
         if k > 0:
             j = k - 1
             _nb_propagate(q, v, llh, seg_dq[j], seg_dv[j], seg_dt[j], restart[k], offs, qc, beta, mk_rate, f_buf,
-                          phi_k, qd_k, q_new, v_new, llh_new, c_nm @ r_fej.T, dyn_fej)
+                          phi_k, qd_k, q_new, v_new, llh_new, c_nm, r_fej, dyn_fej)
         tm_ = t_ep[k] - tau
         i = _nb_master_at(mt, mq, mv, ma, mw, has_q, has_v, has_w, tm_, c_nm, v_m, a_m, w_m)
         if k > 0:
