@@ -237,6 +237,10 @@ class FilterSettings:
     smoother: bool = False
     att_only_fej: bool = False  # AlignmentConfig.att_only_fej
     dynamics_fej: bool = False  # AlignmentConfig.dynamics_fej
+    #: (n, n) initial covariance where the prior correlates states (the board's states: the slave's initial
+    #: attitude, the mounting and the accelerometer misalignment share the coarse start's error); its
+    #: diagonal is p0_sigma^2. None: diag(p0_sigma^2)
+    p0_cov: np.ndarray | None = None
 
 
 @dataclass
@@ -263,6 +267,8 @@ class FilterRun:
 
 
 def _initial_cov(s: FilterSettings) -> np.ndarray:
+    if s.p0_cov is not None:
+        return np.array(s.p0_cov, float)
     return np.diag(np.asarray(s.p0_sigma, float) ** 2)
 
 

@@ -162,6 +162,18 @@ class AlignmentConfig:
     #: ... shorter where the motion would be attenuated beyond this (a multirotor's 1-2 Hz rates: 2.5 arcmin
     #: off with +- 0.05 s; tests/test_alignment.py, the rate-from-attitude test)
     lever_rate_attenuation: float = 1e-4
+    #: the mounting's prior sigma (deg, per axis; also the slave's initial attitude's, which starts from the
+    #: master through the coarse mounting) after a good coarse start, and after a weak one or none
+    mounting_prior_deg: float = 1.0
+    mounting_prior_weak_deg: float = 5.0
+    #: ... widened per axis to the coarse fit's own covariance (its residuals and their correlation time; with
+    #: board_errors also the accelerometer triad's misalignment prior, which a direction taken from the
+    #: specific forces carries), up to mounting_prior_max_deg (the widest start the small-angle filter was
+    #: tested from, the weak prior). A one-axis ship's coarse yaw from noisy 25 Hz specific forces was 2.8 deg
+    #: off under a fixed 1 deg prior, held by the filter (the motion did not determine it) at z 4.1
+    #: (benchmarks/bench_alignment_random.py --real-errors --board on)
+    mounting_prior_from_fit: bool = True
+    mounting_prior_max_deg: float = 5.0
     #: the master's attitude and velocity stamps are taken as one set when they share at least this fraction
     #: of the sparser stream's stamps (one EKF output); else each is a stream of its own (ATT 10 Hz, GPS 5 Hz:
     #: tests/test_alignment.py, every selector inspect offers for the real logs)

@@ -57,17 +57,19 @@ def run_alignment(master: InsLog, slave: InsLog, *, filter: str | FilterKind = "
     win = _delay_window(kind, opts, config, master, ms, t_imu, gyro, notes)
     t_imu, gyro, accel, span_s = _overlap(master, ms, t_imu, gyro, accel, win, src)
     if opts.mounting_guess_rpy_deg is not None:
-        r0, coarse_ok = dcm_from_euler(np.radians(np.asarray(opts.mounting_guess_rpy_deg, float))), True
+        coarse = CoarseMounting(dcm_from_euler(np.radians(np.asarray(opts.mounting_guess_rpy_deg, float))), True)
     else:
-        r0, coarse_ok, why = _coarse_mounting(master, slave, ms, t_imu, gyro, win.tau0_s, accel, config)
-        if why:
-            notes.append(why)
+        coarse = _coarse_mounting(master, slave, ms, t_imu, gyro, win.tau0_s, accel, config)
+        if coarse.note:
+            notes.append(coarse.note)
+    r0 = coarse.r0
     ep = _epochs(t_imu, gyro, accel, win.dt_upd_s, span_s, config, src, notes)
     q0, v0, lever0 = _initial_state(master, slave, ms, ep.t_s[0], win.tau0_s, r0, opts, src, notes)
     llh0 = _initial_position(master, slave, ep.t_s[0], opts, notes)
     inp = AlignInputs(ep.t_s, ep.seg_dq, ep.seg_dv_b, ep.seg_dt_s, ms, q0, v0, llh0, r0, lever0, win.tau0_s,
                       ep.restart)
-    prob = _Problem(kind, match, smoother, opts, config, master, t_imu, gyro, accel, coarse_ok, win, span_s)
+    prior = _mounting_prior(coarse, dcm_from_quat(q0), opts, config, notes)
+    prob = _Problem(kind, match, smoother, opts, config, master, t_imu, gyro, accel, prior, win, span_s)
     run, lay, settings, sig0 = _filter_passes(prob, inp, src, progress, prog, notes)
     res = _result(run, lay, settings, sig0, kind, match, opts, config, notes)
     prog(1.0, "alignment done")
@@ -100,6 +102,46 @@ class Epochs:
 
 
 @dataclass(frozen=True)
+class CoarseMounting:
+    """The filter's start: the coarse mounting R0 (C_sm), whether it is a good start (else a wide prior), the
+    note that says how it was found ("" for the rate fit), and the covariance (rad^2) of its error mu (s
+    frame, model.py) from the fit's residuals; None where no fit gave one (the slave's own attitude, a
+    given mounting, the identity)."""
+
+    r0: np.ndarray
+    ok: bool
+    note: str = ""
+    cov: np.ndarray | None = None
+    #: d mu / d alpha: how the accelerometer triad's misalignment alpha (s frame) moves the start (zero
+    #: where the specific forces took no part)
+    d_force: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class MountingPrior:
+    """The prior of the coarse start's error: the mounting error mu (s frame, covariance rad^2), its
+    covariance with the accelerometer triad's misalignment alpha (board_errors; a start that took a
+    direction from the specific forces carries alpha), and the slave's initial attitude C_ns0. The slave
+    starts from the master through R0, so its attitude error phi0 = C_ns0 mu0 - eta0 (eta the master's
+    attitude error): the per-axis sigmas follow (:meth:`sigmas`), and with the board's states the filter
+    takes the whole correlated prior (run._settings)."""
+
+    mount_cov: np.ndarray
+    mount_alpha_cov: np.ndarray
+    c_ns0: np.ndarray
+    #: the filter may take the correlations: a good start's (within a few degrees, where phi0 = C_ns0 mu0
+    #: holds to first order). After a weak start (5 deg) the second-order terms exceed the master's attitude
+    #: error that the correlation leaves, and a one-axis ship's filter diverged (NIS 1e17); there phi and
+    #: mu start independent, as without the board's states
+    correlated: bool = False
+
+    def sigmas(self) -> tuple[np.ndarray, np.ndarray]:
+        """(mu's sigmas, s frame; phi's sigmas, n frame), rad."""
+        att = self.c_ns0 @ self.mount_cov @ self.c_ns0.T
+        return (np.sqrt(np.maximum(np.diag(self.mount_cov), 0.0)), np.sqrt(np.maximum(np.diag(att), 0.0)))
+
+
+@dataclass(frozen=True)
 class _Problem:
     """What the filter passes are set up from (everything but the prepared time series)."""
 
@@ -112,7 +154,7 @@ class _Problem:
     t_imu: np.ndarray
     gyro: np.ndarray
     accel: np.ndarray
-    coarse_ok: bool
+    prior: MountingPrior
     win: DelayWindow
     overlap_s: float
 
@@ -231,7 +273,7 @@ def _setup(prob: _Problem, flexure: bool, board: bool = False) -> tuple[StateLay
     ly = make_layout(prob.match, flexure=flexure, lever_arm=bool(prob.opts.estimate_lever_arm),
                      delay=prob.win.delay_state, board_errors=board)
     st, s0 = _settings(prob.kind, ly, prob.master, prob.t_imu, prob.gyro, prob.accel, prob.opts, prob.config,
-                       prob.coarse_ok, prob.win.dt_upd_s, prob.win.tau0_s, (prob.win.lo_s, prob.win.hi_s),
+                       prob.prior, prob.win.dt_upd_s, prob.win.tau0_s, (prob.win.lo_s, prob.win.hi_s),
                        prob.smoother)
     return ly, st, s0
 
@@ -498,11 +540,12 @@ def _check_motion(gyro: np.ndarray, accel: np.ndarray, src: str) -> None:
 
 def _coarse_mounting(master: InsLog, slave: InsLog, ms: MasterSeries, t_imu: np.ndarray, gyro: np.ndarray,
                      tau0: float, accel: np.ndarray | None = None, config: AlignmentConfig = CONFIG
-                     ) -> tuple[np.ndarray, bool, str]:
-    """(R0, ok, note). Wahba/Kabsch on angular rates: min sum |w_s - R w_m|^2 by SVD of sum w_s w_m^T. Where
-    the rates turn about one axis only, the specific forces' motion joins them (``accel``: the slave's, at
-    t_imu); then the slave's own attitude; then that joint fit however weakly it is determined (not ok: a
-    wider prior); else the identity (not ok)."""
+                     ) -> CoarseMounting:
+    """Wahba/Kabsch on angular rates: min sum |w_s - R w_m|^2 by SVD of sum w_s w_m^T. Where the rates turn
+    about one axis only, the specific forces' motion joins them (``accel``: the slave's, at t_imu); then the
+    slave's own attitude; then that joint fit however weakly it is determined (not ok: a wider prior); else
+    the identity (not ok). A fit comes with its error covariance and its sensitivity to the accelerometer
+    triad's misalignment (:func:`_wahba_covariance`)."""
     grid = np.arange(t_imu[0], t_imu[-1], 0.02)
     if master.has_gyro:
         tm = master.t_imu_s()
@@ -524,7 +567,8 @@ def _coarse_mounting(master: InsLog, slave: InsLog, ms: MasterSeries, t_imu: np.
         sv = np.linalg.svd(b, compute_uv=False)
         motion = np.sqrt(sv / max(len(grid), 1))  # rms rate on the principal axes
         if sv[0] > 0 and motion[1] > 2e-3 and sv[1] / sv[0] > 1e-3:
-            return wahba(b)[0], True, ""
+            r = wahba(b)[0]
+            return CoarseMounting(r, True, "", *_wahba_covariance(r, [(1.0, w_m, w_s, False)]))
         why = "coarse mounting: too little rotation about two axes for the rate fit"
         # a car turning on a level road rotates about one axis: its accelerations (speed changes along the
         # track, centripetal across it) give another direction, and two fix a rotation. Rates and specific
@@ -543,9 +587,12 @@ def _coarse_mounting(master: InsLog, slave: InsLog, ms: MasterSeries, t_imu: np.
             if real and pw > 0 and pf > 0:
                 B = b / pw + bf / pf
                 svj = np.linalg.svd(B, compute_uv=False)
+                r = wahba(B)[0]
+                cov, d_f = _wahba_covariance(r, [(1.0 / pw, w_m, w_s, False), (1.0 / pf, f_m, f_s, True)])
                 if svj[1] / svj[0] >= config.coarse_joint_ratio:
-                    return wahba(B)[0], True, why + "; rates and specific forces together instead"
-                weak = wahba(B)[0]
+                    return CoarseMounting(r, True, why + "; rates and specific forces together instead", cov, d_f)
+                weak = CoarseMounting(r, False, why + "; rates and specific forces together, weakly determined "
+                                      "(wider prior)", cov, d_f)
     else:
         why = "coarse mounting: the master has no angular rate or attitude"
     if slave.has_quat and ms.quat is not None:
@@ -554,10 +601,100 @@ def _coarse_mounting(master: InsLog, slave: InsLog, ms: MasterSeries, t_imu: np.
         inside = (ts - tau0 >= ms.t_s[0]) & (ts - tau0 <= ms.t_s[-1])
         if inside.sum() >= 1:
             m = np.einsum("kji,kjl->il", dcm_from_quat(qs[inside]), dcm_from_quat(qm[inside]))  # sum C_sn C_nm
-            return wahba(m)[0], True, why + "; used the slave's own attitude instead"
+            return CoarseMounting(wahba(m)[0], True, why + "; used the slave's own attitude instead")
     if weak is not None:
-        return weak, False, why + "; rates and specific forces together, weakly determined (wider prior)"
-    return np.eye(3), False, why + "; started from a zero mounting"
+        return weak
+    return CoarseMounting(np.eye(3), False, why + "; started from a zero mounting")
+
+
+def _wahba_covariance(r: np.ndarray, parts: list[tuple[float, np.ndarray, np.ndarray, bool]]
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """(covariance, d mu / d alpha) of the error mu (s frame; R = (I - [mu x]) R_hat) of the weighted Wahba
+    fit R_hat = argmin sum_j a_j sum_k |y_jk - R x_jk|^2, from its residuals. ``parts``: (a_j, x_j master,
+    y_j slave, is_specific_force), each (n, 3); rad^2.
+
+    Linearised, y - R_hat x = [u x] mu + noise with u = R_hat x: mu = H^-1 sum_j a_j sum_k [u x]^T r_k,
+    H = sum_j a_j sum_k K(u_k), K(u) = |u|^2 I - u u^T. With residuals of variance s_j^2 per axis,
+    correlated over tau_j samples (:func:`_correlation_time`: a smooth motion's residuals carry fewer
+    independent samples than grid points), Cov = H^-1 S H^-1, S = sum_j a_j^2 s_j^2 tau_j sum_k K(u_k).
+    A misaligned accelerometer triad, f_s = (I + [alpha x]) R f_m, is no noise: it moves mu by
+    H^-1 A_f alpha (A_f the specific forces' part of H), the second value."""
+    h = np.zeros((3, 3))
+    s = np.zeros((3, 3))
+    a_f = np.zeros((3, 3))
+    for a, x, y, force in parts:
+        u = x @ r.T
+        k = np.sum(u * u) * np.eye(3) - u.T @ u
+        res = y - u
+        h += a * k
+        s += a * a * float(np.mean(res * res)) * _correlation_time(res) * k
+        if force:
+            a_f += a * k
+    try:
+        h_inv = np.linalg.inv(h)
+    except np.linalg.LinAlgError:
+        return np.diag(np.full(3, np.inf)), np.zeros((3, 3))
+    return h_inv @ s @ h_inv, h_inv @ a_f
+
+
+def _mounting_prior(coarse: CoarseMounting, c_ns0: np.ndarray, opts: AlignmentOptions, config: AlignmentConfig,
+                    notes: list[str]) -> MountingPrior:
+    """The prior of the coarse start's error (:class:`MountingPrior`). The option where given; else
+    config.mounting_prior_deg per axis after a good start (config.mounting_prior_weak_deg after a weak one),
+    widened to what the coarse fit's own covariance says (at most config.mounting_prior_max_deg per axis):
+    a start that took an axis from noisy specific forces can be degrees off, and an axis the motion then
+    leaves undetermined keeps its prior. With board_errors the fit's sensitivity to the accelerometer
+    triad's misalignment joins it, as a covariance with that state."""
+    z = np.zeros((3, 3))
+    if opts.mounting_sigma_deg is not None:
+        return MountingPrior(np.eye(3) * (float(opts.mounting_sigma_deg) * DEG) ** 2, z, c_ns0)
+    base = (config.mounting_prior_deg if coarse.ok else config.mounting_prior_weak_deg) * DEG
+    cov = coarse.cov
+    if not (config.mounting_prior_from_fit and cov is not None and np.all(np.isfinite(cov))):
+        return MountingPrior(np.eye(3) * base**2, z, c_ns0)
+    s_a = _given(opts.accel_misalign_sigma_deg, config.accel_misalign_sigma_deg) * DEG if opts.board_errors else 0.0
+    # a weak start's sensitivity is no linearisation to trust (its H nearly singular: mu and alpha would be
+    # correlated to one, an ill-conditioned start the filter diverged from); its prior is the wide one
+    d = coarse.d_force if (coarse.ok and coarse.d_force is not None) else z
+    cov = 0.5 * (cov + cov.T) + s_a**2 * (d @ d.T)
+    # the floor as independent uncertainty added per axis; the cap scales an axis (and its covariances)
+    cov = cov + np.diag(np.maximum(base**2 - np.diag(cov), 0.0))
+    sig = np.sqrt(np.diag(cov))
+    hi = max(config.mounting_prior_max_deg * DEG, base)
+    sc = np.minimum(1.0, hi / sig)
+    cov = sc[:, None] * cov * sc[None, :]
+    cross = s_a**2 * (sc[:, None] * d)  # Cov(mu, alpha) = d Cov(alpha)
+    sig = sig * sc
+    if np.any(sig > base * 1.001):
+        notes.append(f"mounting prior widened to {_fmt3(np.degrees(sig))} deg (slave x/y/z) by the coarse "
+                     f"fit's own covariance (from {base / DEG:g} deg)")
+    return MountingPrior(cov, cross, c_ns0, correlated=coarse.ok)
+
+
+def _board_prior_cov(lay: StateLayout, sig: np.ndarray, prior: MountingPrior) -> np.ndarray:
+    """The initial covariance with the board's states: diag(sig^2) with the coarse start's correlations:
+    phi0 = C_ns0 mu0 - eta0 (the slave starts from the master's attitude output through R0), mu0 and the
+    accelerometer misalignment alpha through the start's sensitivity to it (:class:`MountingPrior`)."""
+    p = np.diag(sig**2)
+    c = prior.c_ns0
+    pm, pma = prior.mount_cov, prior.mount_alpha_cov
+    p[lay.att, lay.att] = c @ pm @ c.T
+    if lay.mount is not None:
+        p[lay.mount, lay.mount] = pm
+        p[lay.att, lay.mount] = c @ pm
+        p[lay.mount, lay.att] = (c @ pm).T
+    if lay.accel_mis is not None:
+        p[lay.att, lay.accel_mis] = c @ pma
+        p[lay.accel_mis, lay.att] = (c @ pma).T
+        if lay.mount is not None:
+            p[lay.mount, lay.accel_mis] = pma
+            p[lay.accel_mis, lay.mount] = pma.T
+    if lay.master_att is not None:  # phi0 carries -eta0
+        pe = p[lay.master_att, lay.master_att]
+        p[lay.att, lay.att] += pe
+        p[lay.att, lay.master_att] = -pe
+        p[lay.master_att, lay.att] = -pe
+    return p
 
 
 def _master_specific_force(master: InsLog, ms: MasterSeries, t: np.ndarray) -> np.ndarray | None:
@@ -632,7 +769,7 @@ def _hf_sigma(y: np.ndarray) -> float:
 
 
 def _settings(kind: FilterKind, lay: StateLayout, master: InsLog, t_imu, gyro, accel, opts: AlignmentOptions,
-              config: AlignmentConfig, coarse_ok: bool, dt_upd: float, tau0: float, tau_bounds: tuple[float, float],
+              config: AlignmentConfig, prior: MountingPrior, dt_upd: float, tau0: float, tau_bounds: tuple[float, float],
               smoother: bool) -> tuple[FilterSettings, np.ndarray]:
     """The filter settings and prior sigmas: noise densities, priors and measurement noise from the
     options, else from the data (with floors)."""
@@ -653,7 +790,6 @@ def _settings(kind: FilterKind, lay: StateLayout, master: InsLog, t_imu, gyro, a
     sg_gyro = float(_given(opts.gyro_bias_sigma_dph, np.clip(300.0 * arw_dpsh, 2.0, 2000.0))) * DEG_PER_H
     sg_acc = float(_given(opts.accel_bias_sigma_mg,
                           np.clip(0.01 * vrw_ug * max(1.0, vrw_ug / 50.0), 0.1, 50.0))) * MG
-    sg_mount = float(_given(opts.mounting_sigma_deg, 1.0 if coarse_ok else 5.0)) * DEG
     # measurement noise from the master's data, with floors
     tq, q = master.quat_wxyz() if master.has_quat else (None, None)
     if opts.r_att_arcsec is not None:
@@ -672,7 +808,8 @@ def _settings(kind: FilterKind, lay: StateLayout, master: InsLog, t_imu, gyro, a
     n = lay.n
     sig = np.zeros(n)
     qc = np.zeros(n)
-    sig[lay.att] = sg_mount
+    s_mount, s_att = prior.sigmas()
+    sig[lay.att] = s_att
     qc[lay.att] = arw**2
     sig[lay.gyro] = sg_gyro
     qc[lay.gyro] = (0.01 * sg_gyro) ** 2 / 3600.0
@@ -682,7 +819,7 @@ def _settings(kind: FilterKind, lay: StateLayout, master: InsLog, t_imu, gyro, a
         sig[lay.accel] = sg_acc
         qc[lay.accel] = (0.01 * sg_acc) ** 2 / 3600.0
     if lay.mount is not None:
-        sig[lay.mount] = sg_mount
+        sig[lay.mount] = s_mount
     # flexure="auto" starts from config.flex_auto_* (seed 000's model) where the options give none
     auto = opts.flexure_auto
     beta = float(_given(opts.flex_beta, config.flex_auto_beta_1_s if auto else 0.5))
@@ -706,7 +843,11 @@ def _settings(kind: FilterKind, lay: StateLayout, master: InsLog, t_imu, gyro, a
             sig[lay.delay] = dt_upd / np.sqrt(3.0)
         else:
             sig[lay.delay] = float(_given(opts.delay_sigma_s, 0.1))
-    st = FilterSettings(kind=kind, layout=lay, p0_sigma=sig, qc=qc, r_vel_m_s=r_vel, r_att_rad=r_att,
+    p0_cov = None
+    if lay.has_board_states and prior.correlated:
+        p0_cov = _board_prior_cov(lay, sig, prior)
+        sig = np.sqrt(np.diag(p0_cov))
+    st = FilterSettings(kind=kind, layout=lay, p0_sigma=sig, p0_cov=p0_cov, qc=qc, r_vel_m_s=r_vel, r_att_rad=r_att,
                         flex_beta=beta, master_att_tau_s=mk_tau, delay_bounds_s=tau_bounds,
                         hinf_gamma=float(opts.hinf_gamma), smoother=smoother, att_only_fej=config.att_only_fej,
                         dynamics_fej=config.dynamics_fej)
@@ -847,11 +988,16 @@ def _innovation_correlation_factor(run: FilterRun) -> float:
     when too few). The median, not the largest: a channel that carries little of the mounting (the
     attitude's on an agile multirotor) would widen every sigma by its own correlation."""
     inn = run.innov
-    if inn is None or inn.ndim != 2 or inn.shape[0] < 20:
+    if inn is None or inn.ndim != 2:
         return 1.0
-    rows = np.isfinite(inn).all(axis=1)
-    x = inn[rows]
-    if len(x) < 20:
+    return _correlation_time(inn[np.isfinite(inn).all(axis=1)])
+
+
+def _correlation_time(x: np.ndarray) -> float:
+    """The median over the columns of ``x`` (n, k) of their integrated correlation time (samples, 1 + 2 sum
+    of the autocorrelation up to its first zero crossing), at most n / 10; 1.0 for fewer than 20 rows or
+    no varying column."""
+    if x.ndim != 2 or x.shape[0] < 20:
         return 1.0
     x = x - x.mean(axis=0)
     var = np.sum(x * x, axis=0)
@@ -914,9 +1060,11 @@ def _observability(run: FilterRun, lay: StateLayout, sig0: np.ndarray, k_rep: in
     shrink = config.observable_shrink
     p_fin = np.sqrt(run.p_diag[k_rep])
     if sig_e is not None:
-        s0m = np.degrees(sig0[lay.mount] if lay.mount is not None else sig0[lay.att])
+        # the prior's smallest axis: a prior widened about one axis (its own frame, not the Euler angles')
+        # never makes an axis look determined that only fell to the others' prior
+        s0m = np.degrees(np.min(sig0[lay.mount] if lay.mount is not None else sig0[lay.att]))
         for i, ax in enumerate(("roll", "pitch", "yaw")):
-            obs[f"mounting_{ax}"] = bool(np.degrees(sig_e[k_rep, i]) < shrink * s0m[i])
+            obs[f"mounting_{ax}"] = bool(np.degrees(sig_e[k_rep, i]) < shrink * s0m)
     for name, sl in (("gyro_bias", lay.gyro), ("accel_bias", lay.accel), ("lever_arm", lay.lever)):
         if sl is None:
             continue
