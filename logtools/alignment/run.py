@@ -121,24 +121,20 @@ class CoarseMounting:
 class MountingPrior:
     """The prior of the coarse start's error: the mounting error mu (s frame, covariance rad^2), its
     covariance with the accelerometer triad's misalignment alpha (board_errors; a start that took a
-    direction from the specific forces carries alpha), and the slave's initial attitude C_ns0. The slave
-    starts from the master through R0, so its attitude error phi0 = C_ns0 mu0 - eta0 (eta the master's
-    attitude error): the per-axis sigmas follow (:meth:`sigmas`), and with the board's states the filter
-    takes the whole correlated prior (run._settings)."""
+    direction from the specific forces carries alpha) and the slave's initial attitude C_ns0 (the slave
+    starts from the master through R0: its attitude error's prior is mu's, in the n frame)."""
 
     mount_cov: np.ndarray
     mount_alpha_cov: np.ndarray
     c_ns0: np.ndarray
-    #: the filter may take the correlations: a good start's (within a few degrees, where phi0 = C_ns0 mu0
-    #: holds to first order). After a weak start (5 deg) the second-order terms exceed the master's attitude
-    #: error that the correlation leaves, and a one-axis ship's filter diverged (NIS 1e17); there phi and
-    #: mu start independent, as without the board's states
-    correlated: bool = False
 
     def sigmas(self) -> tuple[np.ndarray, np.ndarray]:
         """(mu's sigmas, s frame; phi's sigmas, n frame), rad."""
+        s_m = np.sqrt(np.maximum(np.diag(self.mount_cov), 0.0))
+        if np.array_equal(self.mount_cov, np.eye(3) * self.mount_cov[0, 0]):  # isotropic: the same in any frame
+            return s_m, s_m.copy()
         att = self.c_ns0 @ self.mount_cov @ self.c_ns0.T
-        return (np.sqrt(np.maximum(np.diag(self.mount_cov), 0.0)), np.sqrt(np.maximum(np.diag(att), 0.0)))
+        return s_m, np.sqrt(np.maximum(np.diag(att), 0.0))
 
 
 @dataclass(frozen=True)
@@ -653,12 +649,14 @@ def _mounting_prior(coarse: CoarseMounting, c_ns0: np.ndarray, opts: AlignmentOp
     if not (config.mounting_prior_from_fit and cov is not None and np.all(np.isfinite(cov))):
         return MountingPrior(np.eye(3) * base**2, z, c_ns0)
     s_a = _given(opts.accel_misalign_sigma_deg, config.accel_misalign_sigma_deg) * DEG if opts.board_errors else 0.0
-    # a weak start's sensitivity is no linearisation to trust (its H nearly singular: mu and alpha would be
-    # correlated to one, an ill-conditioned start the filter diverged from); its prior is the wide one
+    # a weak start's sensitivity is no linearisation to trust (its H is nearly singular); its wide prior
+    # stands alone
     d = coarse.d_force if (coarse.ok and coarse.d_force is not None) else z
     cov = 0.5 * (cov + cov.T) + s_a**2 * (d @ d.T)
-    # the floor as independent uncertainty added per axis; the cap scales an axis (and its covariances)
-    cov = cov + np.diag(np.maximum(base**2 - np.diag(cov), 0.0))
+    # the floor in every direction (eigenvalues raised to it: where none exceeds it, exactly the isotropic
+    # prior of a fit without a covariance); the cap scales an axis (and its covariances)
+    lam, vec = np.linalg.eigh(cov)
+    cov = np.eye(3) * base**2 if lam.max() <= base**2 else (vec * np.maximum(lam, base**2)) @ vec.T
     sig = np.sqrt(np.diag(cov))
     hi = max(config.mounting_prior_max_deg * DEG, base)
     sc = np.minimum(1.0, hi / sig)
@@ -668,32 +666,31 @@ def _mounting_prior(coarse: CoarseMounting, c_ns0: np.ndarray, opts: AlignmentOp
     if np.any(sig > base * 1.001):
         notes.append(f"mounting prior widened to {_fmt3(np.degrees(sig))} deg (slave x/y/z) by the coarse "
                      f"fit's own covariance (from {base / DEG:g} deg)")
-    return MountingPrior(cov, cross, c_ns0, correlated=coarse.ok)
+    return MountingPrior(cov, cross, c_ns0)
 
 
 def _board_prior_cov(lay: StateLayout, sig: np.ndarray, prior: MountingPrior) -> np.ndarray:
-    """The initial covariance with the board's states: diag(sig^2) with the coarse start's correlations:
-    phi0 = C_ns0 mu0 - eta0 (the slave starts from the master's attitude output through R0), mu0 and the
-    accelerometer misalignment alpha through the start's sensitivity to it (:class:`MountingPrior`)."""
+    """The initial covariance with the board's states: diag(sig^2) with the covariance between the coarse
+    start's error and the accelerometer triad's misalignment alpha (:class:`MountingPrior`): on the mounting
+    state where the filter carries one, else on the slave's initial attitude (velocity matching: the
+    mounting is the attitude's, phi0 = C_ns0 mu0).
+
+    The slave's initial attitude stays independent of the mounting state, though it starts from the master
+    through R0 (phi0 = C_ns0 mu0 - eta0 to first order). Tied so, the filter trusts the start to the master's
+    attitude error (0.1 deg): on the ArduPlane box_pilot EKF3 pair, whose navigation frame is 6 deg from its
+    IMU's (the rate fit's start), the first pass diverged (NIS 1e8); independent, it does not."""
     p = np.diag(sig**2)
     c = prior.c_ns0
     pm, pma = prior.mount_cov, prior.mount_alpha_cov
-    p[lay.att, lay.att] = c @ pm @ c.T
     if lay.mount is not None:
         p[lay.mount, lay.mount] = pm
-        p[lay.att, lay.mount] = c @ pm
-        p[lay.mount, lay.att] = (c @ pm).T
-    if lay.accel_mis is not None:
-        p[lay.att, lay.accel_mis] = c @ pma
-        p[lay.accel_mis, lay.att] = (c @ pma).T
-        if lay.mount is not None:
+        if lay.accel_mis is not None:
             p[lay.mount, lay.accel_mis] = pma
             p[lay.accel_mis, lay.mount] = pma.T
-    if lay.master_att is not None:  # phi0 carries -eta0
-        pe = p[lay.master_att, lay.master_att]
-        p[lay.att, lay.att] += pe
-        p[lay.att, lay.master_att] = -pe
-        p[lay.master_att, lay.att] = -pe
+    elif lay.accel_mis is not None:
+        p[lay.att, lay.att] = c @ pm @ c.T
+        p[lay.att, lay.accel_mis] = c @ pma
+        p[lay.accel_mis, lay.att] = (c @ pma).T
     return p
 
 
@@ -844,7 +841,7 @@ def _settings(kind: FilterKind, lay: StateLayout, master: InsLog, t_imu, gyro, a
         else:
             sig[lay.delay] = float(_given(opts.delay_sigma_s, 0.1))
     p0_cov = None
-    if lay.has_board_states and prior.correlated:
+    if lay.has_board_states:
         p0_cov = _board_prior_cov(lay, sig, prior)
         sig = np.sqrt(np.diag(p0_cov))
     st = FilterSettings(kind=kind, layout=lay, p0_sigma=sig, p0_cov=p0_cov, qc=qc, r_vel_m_s=r_vel, r_att_rad=r_att,
