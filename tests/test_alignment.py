@@ -698,3 +698,19 @@ def test_coarse_fit_covariance_matches_the_scatter_and_the_accel_triad_shift():
     mu_a, r_a, (wm, ws, fm, fs, pw, pf) = fit(alpha, noise=False)
     _, d_force = _wahba_covariance(r_a, [(1.0 / pw, wm, ws, False), (1.0 / pf, fm, fs, True)])
     assert np.allclose(mu_a, d_force @ alpha, atol=0.03 * np.linalg.norm(alpha)), (mu_a, d_force @ alpha)
+
+
+def test_board_errors_leave_an_undetermined_mounting_axis_at_its_prior():
+    """A ship that does not move: the yaw mounting is not determined. With the board's states the slave's
+    initial attitude carries the master's output frame off its IMU's (config.board_start_att_deg), so the
+    attitude matching (phi - C_ns mu) no longer lends the mounting half the initial attitude's information:
+    its yaw sigma stays near its 1 deg prior. Without that term (the premise) it fell to about 1/sqrt(2)."""
+    import dataclasses
+
+    m, s, _ = _pair(sway_amp_deg=(0.0, 0.0, 0.0), heave_amp_m=0.0, speed_var_m_s=0.0, duration_s=60.0)
+    opts = AlignmentOptions(board_errors=True)
+    res = run_alignment(m, s, options=opts)
+    assert res.observability["mounting_yaw"] is False
+    assert res.mounting_sigma_deg[2] > 0.85, res.mounting_sigma_deg
+    tied = run_alignment(m, s, options=opts, config=dataclasses.replace(CONFIG, board_start_att_deg=0.0))
+    assert tied.mounting_sigma_deg[2] < 0.75, tied.mounting_sigma_deg

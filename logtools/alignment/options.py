@@ -220,6 +220,14 @@ class AlignmentConfig:
     #: runs: the 20 Hz innovations penalise a larger random walk more than they reward a slow error)
     master_att_err_deg: float = 0.1
     master_att_err_tau_s: float = 30.0
+    #: ... the slave's initial attitude error prior (deg per axis) beyond the mounting's: the slave starts from
+    #: the master's attitude output through the coarse mounting, fitted on the IMUs, and a consumer board's
+    #: output frame is off its IMU's by its trim and its EKF's attitude error (the ArduPlane box_pilot EKF3
+    #: pair: 6 deg in yaw). Without it, attitude matching took an axis the motion leaves undetermined to
+    #: 1/sqrt(2) of its prior (phi and mu shared it): --real-errors --board on, a nav-only master's vehicle
+    #: 95' off at a 42' sigma; with it 52'. Tying phi0 to the start instead diverged on that EKF3 pair
+    #: (docs/alignment.md, "The start's prior")
+    board_start_att_deg: float = 2.0
     #: ... and the reported sigmas widened by sqrt(the innovations' integrated correlation time) beyond this
     #: many epochs (as innov_corr_min, for what the states leave: 25-50 Hz snapshots with aliased
     #: vibration; --real-errors: 90 % of 48 runs within 2 sigma with the states alone, 100 % with both)

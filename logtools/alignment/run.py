@@ -669,7 +669,7 @@ def _mounting_prior(coarse: CoarseMounting, c_ns0: np.ndarray, opts: AlignmentOp
     return MountingPrior(cov, cross, c_ns0)
 
 
-def _board_prior_cov(lay: StateLayout, sig: np.ndarray, prior: MountingPrior) -> np.ndarray:
+def _board_prior_cov(lay: StateLayout, sig: np.ndarray, prior: MountingPrior, start_att_rad: float) -> np.ndarray:
     """The initial covariance with the board's states: diag(sig^2) with the covariance between the coarse
     start's error and the accelerometer triad's misalignment alpha (:class:`MountingPrior`): on the mounting
     state where the filter carries one, else on the slave's initial attitude (velocity matching: the
@@ -678,11 +678,15 @@ def _board_prior_cov(lay: StateLayout, sig: np.ndarray, prior: MountingPrior) ->
     The slave's initial attitude stays independent of the mounting state, though it starts from the master
     through R0 (phi0 = C_ns0 mu0 - eta0 to first order). Tied so, the filter trusts the start to the master's
     attitude error (0.1 deg): on the ArduPlane box_pilot EKF3 pair, whose navigation frame is 6 deg from its
-    IMU's (the rate fit's start), the first pass diverged (NIS 1e8); independent, it does not."""
+    IMU's (the rate fit's start), the first pass diverged (NIS 1e8); independent, it does not. Where the
+    filter carries the mounting, that attitude's prior also takes ``start_att_rad`` per axis (the master's
+    output frame off its IMU's: AlignmentConfig.board_start_att_deg), so that the attitude matching does
+    not lend the mounting information the motion does not hold."""
     p = np.diag(sig**2)
     c = prior.c_ns0
     pm, pma = prior.mount_cov, prior.mount_alpha_cov
     if lay.mount is not None:
+        p[lay.att, lay.att] += np.eye(3) * start_att_rad**2
         p[lay.mount, lay.mount] = pm
         if lay.accel_mis is not None:
             p[lay.mount, lay.accel_mis] = pma
@@ -842,7 +846,7 @@ def _settings(kind: FilterKind, lay: StateLayout, master: InsLog, t_imu, gyro, a
             sig[lay.delay] = float(_given(opts.delay_sigma_s, 0.1))
     p0_cov = None
     if lay.has_board_states:
-        p0_cov = _board_prior_cov(lay, sig, prior)
+        p0_cov = _board_prior_cov(lay, sig, prior, config.board_start_att_deg * DEG)
         sig = np.sqrt(np.diag(p0_cov))
     st = FilterSettings(kind=kind, layout=lay, p0_sigma=sig, p0_cov=p0_cov, qc=qc, r_vel_m_s=r_vel, r_att_rad=r_att,
                         flex_beta=beta, master_att_tau_s=mk_tau, delay_bounds_s=tau_bounds,
