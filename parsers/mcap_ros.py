@@ -408,6 +408,38 @@ def inflate_chunk(buf, off: int, nxt: int) -> bytes:
     return content
 
 
+def inflate_chunk_into(buf, off: int, nxt: int, out: np.ndarray) -> np.ndarray:
+    """:func:`inflate_chunk` of a zstd chunk, decompressed straight into ``out`` (uint8, the chunk's
+    uncompressed size; a slice of one buffer for the whole file): no bytes object of its own, so a file's
+    chunks are not held twice (the export patches them in that one buffer). :class:`_Damage` as there."""
+    _t0, _t1, usize, crc = struct.unpack_from("<QQQI", buf, off + 9)
+    comp, o = _string(buf, off + 9 + 28)
+    (clen,) = _U64.unpack_from(buf, o)
+    if o + 8 + clen > nxt:
+        raise _Damage(f"chunk at byte {off}: records run past the chunk")
+    if comp != "zstd" or len(out) != usize:
+        raise _Damage(f"chunk at byte {off}: not the zstd chunk of {len(out)} bytes planned")
+    import zstandard
+
+    try:
+        reader = zstandard.ZstdDecompressor().stream_reader(buf[o + 8:o + 8 + clen], read_size=max(clen, 1))
+        view = memoryview(out)
+        n = 0
+        while n < usize:
+            k = reader.readinto(view[n:])
+            if not k:
+                break
+            n += k
+        extra = reader.read(1)
+    except Exception as exc:
+        raise _Damage(f"chunk at byte {off} cannot be decompressed ({type(exc).__name__})") from None
+    if n != usize or extra:
+        raise _Damage(f"chunk at byte {off}: size {n + len(extra)}{'+' if extra else ''} != {usize}")
+    if crc and zlib.crc32(out) != crc:
+        raise _Damage(f"chunk at byte {off}: CRC mismatch")
+    return out
+
+
 def chunk_records(buf, off: int) -> Iterator[tuple[int, int]]:
     """(offset, next) of the complete chunk records from ``off`` on, along the top-level records (up to
     the first invalid or cut record): what a scan will inflate, for :class:`parsers.threads.Prefetch`."""
@@ -422,12 +454,44 @@ def chunk_records(buf, off: int) -> Iterator[tuple[int, int]]:
         off = nxt
 
 
-def chunk_prefetch(buf, off: int):
+def chunk_prefetch(buf, off: int, arena: tuple[np.ndarray, dict] | None = None):
     """The chunks of ``buf`` from ``off`` on, inflated ahead of the scan in worker threads (for a file
-    read whole into memory; the parser's memory-mapped walk measured no gain from it)."""
+    read whole into memory; the parser's memory-mapped walk measured no gain from it). With ``arena``
+    (one buffer and {(offset, next): (start, size)} in it, :func:`chunk_arena`) each chunk is
+    decompressed into its place there (:func:`inflate_chunk_into`) and handed back as that view."""
     from parsers import threads
 
-    return threads.Prefetch(lambda r: inflate_chunk(buf, r[0], r[1]), chunk_records(buf, off))
+    if arena is None:
+        return threads.Prefetch(lambda r: inflate_chunk(buf, r[0], r[1]), chunk_records(buf, off))
+    out, where = arena
+
+    def inflate(r):
+        at = where.get(r)
+        if at is None:
+            return inflate_chunk(buf, r[0], r[1])
+        return inflate_chunk_into(buf, r[0], r[1], out[at[0]:at[0] + at[1]])
+
+    return threads.Prefetch(inflate, chunk_records(buf, off))
+
+
+def chunk_arena(buf, off: int, limit_bytes: int) -> tuple[np.ndarray, dict] | None:
+    """One buffer for every zstd chunk of ``buf`` from ``off`` on and where each goes in it, when every
+    chunk is zstd and their stated sizes add up to at most ``limit_bytes`` (a damaged size field must not
+    allocate the machine's memory); None otherwise (the chunks are inflated one by one)."""
+    where, total = {}, 0
+    for r in chunk_records(buf, off):
+        try:
+            usize = struct.unpack_from("<Q", buf, r[0] + 9 + 16)[0]
+            comp, _ = _string(buf, r[0] + 9 + 28)
+        except (_Damage, struct.error, UnicodeDecodeError):
+            return None
+        if comp != "zstd":
+            return None
+        where[r] = (total, usize)
+        total += usize
+        if total > limit_bytes:
+            return None
+    return (np.empty(total, np.uint8), where) if where else None
 
 
 def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:

@@ -423,6 +423,8 @@ class _McapScan:
         self.blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (bytes, payload starts, lengths)
         self.whole: list[bool] = []  # per block: the records of one whole chunk (else a record or a cut chunk)
         self.file: np.ndarray | None = None  # the file's bytes (uncompressed chunks' blocks are views of it)
+        #: (buffer, placement) the zstd chunks were decompressed into (their blocks are views of it), or None
+        self.arena: tuple[np.ndarray, dict] | None = None
         self.extras: list[tuple[str, tuple]] = []  # ("attachment"|"metadata", args) in file order
         self.damage: list[str] = []
         self.compression: str | None = None
@@ -512,7 +514,9 @@ def _scan_mcap(path: str) -> _McapScan:
             (sc.schema if op == _OP["schema"] else sc.channel)(buf, at + 9)
         except (mcap_ros._Damage, struct.error, UnicodeDecodeError):
             pass
-    with mcap_ros.chunk_prefetch(buf, off) as chunks:  # decompression and CRC ahead, in threads
+    # zstd chunks decompressed into one buffer (the messages' buffer of the export: not held twice)
+    sc.arena = mcap_ros.chunk_arena(buf, off, limit_bytes=64 * len(buf) + (1 << 26))
+    with mcap_ros.chunk_prefetch(buf, off, sc.arena) as chunks:  # decompression and CRC ahead, in threads
         while off < end:
             if off + 9 > end:
                 sc.damage.append(f"file truncated at byte {off} of {end} (no footer)")
@@ -583,10 +587,10 @@ def _mcap_msgs(sc: _McapScan, cids: list[int]) -> tuple[_Msgs, np.ndarray, np.nd
     lut[cids] = np.arange(len(cids))
     conn = lut[cat(sc.cid)]
     blens = [len(b[0]) for b in sc.blocks]
-    base = _in_file(sc)
-    if base is not None:  # uncompressed chunks: the blocks are views of the file's bytes, patched there
-        buf = sc.file
-    else:
+    base, buf = _in_file(sc), sc.file
+    if base is None and sc.arena is not None:  # zstd chunks: views of the buffer they were inflated into
+        base, buf = _views_of(sc.arena[0], sc.blocks), sc.arena[0]
+    if base is None:
         base = (np.cumsum(blens) - blens).tolist() if sc.blocks else []
         buf = np.concatenate([b[0] for b in sc.blocks]) if sc.blocks else np.zeros(0, np.uint8)
     starts = cat([b[1] + o for b, o in zip(sc.blocks, base)])
@@ -604,13 +608,18 @@ def _mcap_msgs(sc: _McapScan, cids: list[int]) -> tuple[_Msgs, np.ndarray, np.nd
 
 def _in_file(sc: _McapScan) -> list[int] | None:
     """The blocks' offsets in the file's bytes when every block is a view of them, else None."""
-    if sc.file is None or not sc.blocks:
+    return _views_of(sc.file, sc.blocks) if sc.file is not None else None
+
+
+def _views_of(base: np.ndarray, blocks: list) -> list[int] | None:
+    """The blocks' offsets in ``base`` when every block is a view inside it, else None."""
+    if not blocks:
         return None
-    at0 = sc.file.__array_interface__["data"][0]
+    at0 = base.__array_interface__["data"][0]
     out = []
-    for b, _s, _e in sc.blocks:
+    for b, _s, _e in blocks:
         o = b.__array_interface__["data"][0] - at0
-        if not 0 <= o <= len(sc.file) - len(b):
+        if not 0 <= o <= len(base) - len(b):
             return None
         out.append(o)
     return out

@@ -387,6 +387,30 @@ def test_damaged_mcap_chunk_is_named(big, tmp_path):
     assert sum(map(len, _library_messages(str(tmp_path / "flip_out.mcap"), "mcap").values())) == st.records
 
 
+def test_zstd_chunks_are_inflated_into_the_messages_buffer(big, tmp_path, monkeypatch):
+    """A zstd MCAP's chunks are decompressed straight into one buffer, which is the messages' buffer the
+    export patches (no second copy of the decompressed file); the output is byte for byte the one of the
+    chunk-by-chunk path, and a damaged chunk is still named (its slice of the buffer left unused)."""
+    src = big["mcap"]
+    sc = rr._scan_mcap(src)
+    assert sc.arena is not None and sc.compression == "zstd"
+    msgs = rr._mcap_msgs(sc, sorted(sc.channels))[0]
+    assert msgs.buf is sc.arena[0]
+    shift = _shift_for(big["log"])
+    rr.restamp_mcap(src, str(tmp_path / "arena.mcap"), shift)
+    monkeypatch.setattr(rr.mcap_ros, "chunk_arena", lambda *a, **k: None)
+    assert rr._scan_mcap(src).arena is None
+    rr.restamp_mcap(src, str(tmp_path / "chunks.mcap"), shift)
+    assert _digest(str(tmp_path / "arena.mcap")) == _digest(str(tmp_path / "chunks.mcap"))
+    monkeypatch.undo()
+    data, off = mcap_with_a_flipped_chunk(src, 1)
+    bad = str(tmp_path / "flip.mcap")
+    open(bad, "wb").write(data)
+    assert rr._scan_mcap(bad).arena is not None
+    st = rr.restamp_mcap(bad, str(tmp_path / "flip_out.mcap"), shift)
+    assert len(st.damage) == 1 and f"chunk at byte {off}" in st.damage[0]
+
+
 def test_unreadable_or_wrong_input_is_one_clear_error(big, tmp_path):
     junk = tmp_path / "junk.bag"
     junk.write_bytes(b"not a bag at all")
