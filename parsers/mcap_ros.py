@@ -474,10 +474,18 @@ def chunk_prefetch(buf, off: int, arena: tuple[np.ndarray, dict] | None = None):
     return threads.Prefetch(inflate, chunk_records(buf, off))
 
 
-def chunk_arena(buf, off: int, limit_bytes: int) -> tuple[np.ndarray, dict] | None:
+#: the largest decompressed size the export's one buffer is made for, as a multiple of the file (plus 64 MiB):
+#: zstd chunks of IMU and navigation messages decompress 3-5 fold; a damaged size field must not allocate
+#: the machine's memory (beyond it the chunks are inflated one by one, their sizes checked as they come)
+ARENA_MAX_RATIO = 64
+
+
+def chunk_arena(buf, off: int, limit_bytes: int | None = None) -> tuple[np.ndarray, dict] | None:
     """One buffer for every zstd chunk of ``buf`` from ``off`` on and where each goes in it, when every
-    chunk is zstd and their stated sizes add up to at most ``limit_bytes`` (a damaged size field must not
-    allocate the machine's memory); None otherwise (the chunks are inflated one by one)."""
+    chunk is zstd and their stated sizes add up to at most ``limit_bytes`` (default ARENA_MAX_RATIO times the
+    file, plus 64 MiB); None otherwise (the chunks are inflated one by one)."""
+    if limit_bytes is None:
+        limit_bytes = ARENA_MAX_RATIO * len(buf) + (1 << 26)
     where, total = {}, 0
     for r in chunk_records(buf, off):
         try:

@@ -515,7 +515,7 @@ def _scan_mcap(path: str) -> _McapScan:
         except (mcap_ros._Damage, struct.error, UnicodeDecodeError):
             pass
     # zstd chunks decompressed into one buffer (the messages' buffer of the export: not held twice)
-    sc.arena = mcap_ros.chunk_arena(buf, off, limit_bytes=64 * len(buf) + (1 << 26))
+    sc.arena = mcap_ros.chunk_arena(buf, off)
     with mcap_ros.chunk_prefetch(buf, off, sc.arena) as chunks:  # decompression and CRC ahead, in threads
         while off < end:
             if off + 9 > end:
@@ -587,9 +587,13 @@ def _mcap_msgs(sc: _McapScan, cids: list[int]) -> tuple[_Msgs, np.ndarray, np.nd
     lut[cids] = np.arange(len(cids))
     conn = lut[cat(sc.cid)]
     blens = [len(b[0]) for b in sc.blocks]
-    base, buf = _in_file(sc), sc.file
-    if base is None and sc.arena is not None:  # zstd chunks: views of the buffer they were inflated into
-        base, buf = _views_of(sc.arena[0], sc.blocks), sc.arena[0]
+    base = buf = None
+    # blocks that all view one buffer are patched there: the file's bytes (uncompressed chunks) or the buffer
+    # the zstd chunks were inflated into
+    for cand in (sc.file, sc.arena[0] if sc.arena is not None else None):
+        if cand is not None and (base := _views_of(cand, sc.blocks)) is not None:
+            buf = cand
+            break
     if base is None:
         base = (np.cumsum(blens) - blens).tolist() if sc.blocks else []
         buf = np.concatenate([b[0] for b in sc.blocks]) if sc.blocks else np.zeros(0, np.uint8)
@@ -604,11 +608,6 @@ def _mcap_msgs(sc: _McapScan, cids: list[int]) -> tuple[_Msgs, np.ndarray, np.nd
     seq = head[:, :4].copy().view("<u4").ravel().astype(np.int64)
     pub = head[:, 12:].copy().view("<u8").ravel().astype(np.int64)
     return _Msgs(conn, cat(sc.log), buf, starts, lens), pub, seq, layout
-
-
-def _in_file(sc: _McapScan) -> list[int] | None:
-    """The blocks' offsets in the file's bytes when every block is a view of them, else None."""
-    return _views_of(sc.file, sc.blocks) if sc.file is not None else None
 
 
 def _views_of(base: np.ndarray, blocks: list) -> list[int] | None:

@@ -237,9 +237,9 @@ class FilterSettings:
     smoother: bool = False
     att_only_fej: bool = False  # AlignmentConfig.att_only_fej
     dynamics_fej: bool = False  # AlignmentConfig.dynamics_fej
-    #: (n, n) initial covariance where the prior correlates states (the board's states: the slave's initial
-    #: attitude, the mounting and the accelerometer misalignment share the coarse start's error); its
-    #: diagonal is p0_sigma^2. None: diag(p0_sigma^2)
+    #: (n, n) initial covariance where the prior correlates states (the board's states: the coarse start's
+    #: error and the accelerometer misalignment, run._board_prior_cov); its diagonal is p0_sigma^2.
+    #: None: diag(p0_sigma^2)
     p0_cov: np.ndarray | None = None
 
 

@@ -648,7 +648,7 @@ def _mounting_prior(coarse: CoarseMounting, c_ns0: np.ndarray, opts: AlignmentOp
     cov = coarse.cov
     if not (config.mounting_prior_from_fit and cov is not None and np.all(np.isfinite(cov))):
         return MountingPrior(np.eye(3) * base**2, z, c_ns0)
-    s_a = _given(opts.accel_misalign_sigma_deg, config.accel_misalign_sigma_deg) * DEG if opts.board_errors else 0.0
+    s_a = _accel_misalign_sigma_rad(opts, config) if opts.board_errors else 0.0
     # a weak start's sensitivity is no linearisation to trust (its H is nearly singular); its wide prior
     # stands alone
     d = coarse.d_force if (coarse.ok and coarse.d_force is not None) else z
@@ -838,7 +838,7 @@ def _settings(kind: FilterKind, lay: StateLayout, master: InsLog, t_imu, gyro, a
         sig[lay.master_att] = s_m
         qc[lay.master_att] = 2.0 * s_m**2 / mk_tau
     if lay.accel_mis is not None:
-        sig[lay.accel_mis] = float(_given(opts.accel_misalign_sigma_deg, config.accel_misalign_sigma_deg)) * DEG
+        sig[lay.accel_mis] = _accel_misalign_sigma_rad(opts, config)
     if lay.delay is not None:
         if kind.splits_delay:
             sig[lay.delay] = dt_upd / np.sqrt(3.0)
@@ -858,6 +858,12 @@ def _settings(kind: FilterKind, lay: StateLayout, master: InsLog, t_imu, gyro, a
 def _given(value, default):
     """An option's value where given (not None), else its default."""
     return default if value is None else value
+
+
+def _accel_misalign_sigma_rad(opts: AlignmentOptions, config: AlignmentConfig) -> float:
+    """The accelerometer triad misalignment's prior sigma per axis (rad): the option, else the configuration's
+    (the state's prior and the coarse start's sensitivity to it share it)."""
+    return float(_given(opts.accel_misalign_sigma_deg, config.accel_misalign_sigma_deg)) * DEG
 
 
 def _mean_nis(run: FilterRun) -> float:
