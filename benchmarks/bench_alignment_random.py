@@ -19,11 +19,17 @@ flexure): where the coarse mounting needs the specific forces too (set ``one-axi
 
 Per set (lever arm / flexure / both / neither / one-axis) and variant: mounting error (the rotation between estimate
 and truth, arcmin) RMS and worst, z = error / sqrt(sum of the three sigmas^2), the fraction with z <= 2 and
-z > 3, the lever arm's error where estimated.
+z > 3, the lever arm's error where estimated. The same z over only the axes the result reports
+(``reported axes``: report.json's ``mounting_rpy_deg`` is null, with the reason, on an axis the data does
+not determine): the whole-rotation z scores those too, at the prior the filter kept there.
 
     python benchmarks/bench_alignment_random.py [--runs 48] [--workers 2]
 
-Writes ``benchmarks/results/alignment_random.json``; prints markdown tables.
+    python benchmarks/bench_alignment_random.py --real-errors [--board auto|on|off|oracle]
+
+Writes ``benchmarks/results/alignment_random.json`` (``alignment_random_real_errors.json`` with
+``--real-errors``; another ``--board`` than the CLI's default auto in the name, see ``default_out``); prints
+markdown tables.
 """
 from __future__ import annotations
 
@@ -149,6 +155,24 @@ def _rotation_arcmin(rpy_a, rpy_b) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(d) - 1.0) / 2.0, -1.0, 1.0))) * 60.0)
 
 
+def _reported_axes_z(res, truth_rpy_deg) -> dict:
+    """The same z over only the axes the result reports (report.json's mounting_rpy_deg, where an axis the
+    data does not determine is null with its reason): the estimate with each null angle set to the truth's,
+    its rotation from the truth over the root-sum-square of the reported axes' sigmas (equal to z when every
+    axis is reported). What a user is told; the whole-rotation z also scores the null axes, at the prior
+    the filter kept there."""
+    from pipelines.report import alignment_section
+
+    sec = alignment_section(res)
+    shown = [k for k, x in enumerate(sec["mounting_rpy_deg"] or []) if x is not None]
+    if not shown:
+        return dict(reported_axes=[], z_reported=None)
+    est = np.asarray(truth_rpy_deg, float).copy()
+    est[shown] = np.asarray(res.mounting_rpy_deg, float)[shown]
+    sig = float(np.linalg.norm(np.asarray(res.mounting_sigma_deg, float)[shown])) * 60.0
+    return dict(reported_axes=shown, z_reported=_rotation_arcmin(est, truth_rpy_deg) / sig if sig > 0 else None)
+
+
 def run_one(d: dict) -> dict:
     from logtools import sim
     from logtools.alignment import CONFIG, AlignmentOptions, run_alignment
@@ -201,11 +225,23 @@ def run_one(d: dict) -> dict:
             flex = ("latency model" if options[v].flexure is True
                     else "added" if any(n.startswith("flexure states added") for n in res.notes) else "none")
             row[v] = dict(error_arcmin=err, sigma_arcmin=sig, z=err / sig if sig > 0 else float("inf"),
-                          lever_error_m=lev_err, flexure_states=flex, note="")
+                          lever_error_m=lev_err, flexure_states=flex, note="",
+                          board_states="master_att_err_n_arcmin" in res.history_names
+                          or "accel_misalign_x_deg" in res.history_names,
+                          **_reported_axes_z(res, cfg.mount_rpy_deg))
         except Exception as exc:  # noqa: BLE001
             row[v] = dict(note=f"{type(exc).__name__}: {exc}"[:200])
         row[f"runtime_{v}_s"] = time.perf_counter() - t0
     return row
+
+
+def _reported_summary(ok: list[dict]) -> dict:
+    """Coverage over the reported axes only (runs with at least one reported axis), and how many runs
+    report some axis as not determined."""
+    zr = np.array([x["z_reported"] for x in ok if x.get("z_reported") is not None])
+    return dict(reported_within_2_sigma=float(np.mean(zr <= 2.0)) if len(zr) else None,
+                reported_worst_z=float(zr.max()) if len(zr) else None,
+                runs_with_null_axes=sum(1 for x in ok if len(x.get("reported_axes", (0, 1, 2))) < 3))
 
 
 def summarize(rows: list[dict]) -> dict:
@@ -221,21 +257,36 @@ def summarize(rows: list[dict]) -> dict:
                       within_2_sigma=float(np.mean(z <= 2.0)) if len(z) else None,
                       beyond_3_sigma=int(np.sum(z > 3.0)), worst_z=float(z.max()) if len(z) else None,
                       lever_error_rms_m=float(np.sqrt(np.mean(lev ** 2))) if len(lev) else None,
+                      **_reported_summary(ok),
+                      board_states=sum(1 for x in ok if x.get("board_states")),
                       flexure_states={k: sum(1 for x in ok if x["flexure_states"] == k)
                                       for k in ("latency model", "added", "none")})
     return out
 
 
 def md_table(summary: dict, title: str) -> str:
-    lines = [f"| {title} | n | mounting err RMS / worst (') | z <= 2 | z > 3 (worst z) | lever arm err RMS (m) |",
-             "|---|---:|---:|---:|---:|---:|"]
+    lines = [f"| {title} | n | mounting err RMS / worst (') | z <= 2 | z > 3 (worst z) | reported axes: z <= 2 "
+             "(runs with a null axis) | lever arm err RMS (m) |",
+             "|---|---:|---:|---:|---:|---:|---:|"]
     for v, s in summary.items():
         if not s["n"]:
             continue
         lev = "n/a" if s["lever_error_rms_m"] is None else f"{s['lever_error_rms_m']:.3f}"
+        rep = ("n/a" if s.get("reported_within_2_sigma") is None
+               else f"{100 * s['reported_within_2_sigma']:.0f} % ({s['runs_with_null_axes']})")
         lines.append(f"| {v} | {s['n']} | {s['rms_arcmin']:.3f} / {s['worst_arcmin']:.3f} | "
-                     f"{100 * s['within_2_sigma']:.0f} % | {s['beyond_3_sigma']} ({s['worst_z']:.1f}) | {lev} |")
+                     f"{100 * s['within_2_sigma']:.0f} % | {s['beyond_3_sigma']} ({s['worst_z']:.1f}) | {rep} | {lev} |")
     return "\n".join(lines)
+
+
+def default_out(real: bool, board: str) -> str:
+    """The results file: alignment_random[_real_errors].json with the CLI's default (board auto); else the
+    board mode in the name (the white model, board off, on the real-error pairs: _real_white)."""
+    if board == "auto":
+        return OUT_REAL if real else OUT
+    if real and board == "off":
+        return os.path.join(bl.RESULTS_DIR, "alignment_random_real_white.json")
+    return os.path.join(bl.RESULTS_DIR, f"alignment_random{'_real' if real else ''}_board_{board}.json")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -246,16 +297,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--nav-master", type=int, default=24,
                     help="further pairs whose master logs only its navigation solution (half of them one-axis)")
     ap.add_argument("--seed", type=int, default=2027)
-    ap.add_argument("--out", default=None, help=f"default {OUT} ({OUT_REAL} with --real-errors)")
+    ap.add_argument("--out", default=None, help=f"default {OUT} ({OUT_REAL} with --real-errors); with --board "
+                                                 "on|off|oracle the file name says so")
     ap.add_argument("--real-errors", action="store_true",
                     help="add real boards' error sources (see real_errors()) and check alignment.imu_to_imu")
     ap.add_argument("--widen", action="store_true",
                     help="alignment sigmas widened by the innovations' correlation time (AlignmentConfig.innov_corr_min)")
-    ap.add_argument("--board", choices=("off", "on", "oracle"), default="off",
-                    help="tapost's --board-errors (default off, as the CLI); oracle: on, with the simulator's "
+    ap.add_argument("--board", choices=("auto", "off", "on", "oracle"), default="auto",
+                    help="tapost's --board-errors (default auto, as the CLI); oracle: on, with the simulator's "
                          "own Markov parameters")
     a = ap.parse_args(argv)
-    a.out = a.out or (OUT_REAL if a.real_errors else OUT)
+    a.out = a.out or default_out(a.real_errors, a.board)
     jobs = ([draw(i, a.seed) for i in range(a.runs)] + [draw_one_axis(a.runs + i, a.seed) for i in range(a.one_axis)]
             + [draw_nav_master(a.runs + a.one_axis + i, a.seed) for i in range(a.nav_master)])
     if a.real_errors:

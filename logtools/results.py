@@ -78,6 +78,10 @@ class AlignmentResult:
     lever_arm_sigma_m: tuple[float, float, float] | None = None
     observability: dict[str, bool] = field(default_factory=dict)  # state group -> observable?
     notes: tuple[str, ...] = ()
+    #: each innovation channel's integrated correlation time (epochs): about 1 when the filter's noise model
+    #: holds, larger when the data carry errors correlated in time that it does not model (a consumer
+    #: board's EKF attitude error); None where not computed
+    innovation_corr_epochs: tuple[float, ...] | None = None
     # time histories for plots: t_s (master relative), states (N, k) with names, sigmas (N, k)
     history_t_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
     history_names: tuple[str, ...] = ()

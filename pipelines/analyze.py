@@ -18,7 +18,7 @@ import sys
 import time
 import tomllib
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
@@ -102,8 +102,9 @@ class AnalyzeOptions:
     flexure: str = "auto"
     #: a consumer board's errors in the alignment: "on" (the master's attitude error as a first-order
     #: Markov process and the slave's accelerometer triad misalignment as states, the sigmas widened by the
-    #: residuals' correlation time; for an autopilot's EKF or AHRS as the master), "off"
-    board_errors: str = "off"
+    #: residuals' correlation time; for an autopilot's EKF or AHRS as the master), "off" (a
+    #: navigation-grade master), "auto" (off unless that run's innovations are correlated in time; then on)
+    board_errors: str = "auto"
     #: also write the slave on the master's clock: any of "csv", "parquet", "native" (pipelines.export)
     write_slave: tuple[str, ...] = ()
     name: str | None = None  #: the pair's name (tapost batch): the recording is "tapost: <name>"
@@ -147,7 +148,7 @@ def parse_max_lag(text) -> float | None:
 
 
 FLEXURE_MODES = ("auto", "on", "off")
-BOARD_MODES = ("off", "on")
+BOARD_MODES = ("auto", "on", "off")
 
 
 def parse_lever_arm(text) -> str | tuple[float, float, float]:
@@ -267,7 +268,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--board-errors", default=None, choices=BOARD_MODES,
                    help="on: the master is a consumer-grade EKF/AHRS (an autopilot): its attitude error "
                         "(correlated in time) and the slave's accelerometer triad misalignment become "
-                        "alignment states and the sigmas honest for them; off (default): a navigation-grade master")
+                        "alignment states and the sigmas honest for them; off: a navigation-grade master; "
+                        "auto (default): off, then on where that run's innovations are correlated in time")
     p.add_argument("--write-slave", default=None, metavar="csv|parquet|native[,...]",
                    help="also write the slave on the master's clock next to the report "
                         "(slave_on_master_clock.*: canonical CSV, Parquet, and/or the slave's own format)")
@@ -306,7 +308,7 @@ def alignment_options(slave: InsLog, opts: AnalyzeOptions, lat: LatencyResult | 
 
 def board_options(opts: AnalyzeOptions) -> dict:
     """AlignmentOptions' board_errors field from ``--board-errors``."""
-    return {"board_errors": opts.board_errors == "on"}
+    return {"board_errors": {"on": True, "off": False}.get(opts.board_errors, "auto")}
 
 
 def _filter_options(slave: InsLog, opts: AnalyzeOptions) -> dict:
@@ -378,6 +380,19 @@ def _alignment(master: InsLog, slave: InsLog, run: str, opts: AnalyzeOptions, pr
         return exc.problem
 
 
+def _uncompensated_options(opts: AnalyzeOptions, compensated: bool) -> AnalyzeOptions:
+    """The uncompensated run's options. With ``--board-errors auto`` the compensated run decides: the delay
+    left in the uncompensated slave correlates its innovations by itself, which says nothing of the master's
+    board (rerun with the board's states when the compensated run took them, see compute)."""
+    if opts.board_errors == "auto" and compensated:
+        return replace(opts, board_errors="off")
+    return opts
+
+
+def _has_board_states(res) -> bool:
+    return isinstance(res, AlignmentResult) and "master_att_err_n_arcmin" in res.history_names
+
+
 def _wants_imu_to_imu(master: InsLog, slave: InsLog) -> bool:
     """The contract: the IMU-to-IMU rotation only where both units log an IMU."""
     return bool((master.has_gyro or master.has_accel) and (slave.has_gyro or slave.has_accel))
@@ -408,7 +423,7 @@ def _imu_to_imu_sections(master: InsLog, an: rp.Analysis, align_sections: dict, 
     if isinstance(comp, AlignmentResult):
         sec = rp.alignment_section(comp)
         mount, sig = sec["mounting_rpy_deg"], sec["mounting_sigma_deg"]
-        board = "master_att_err_n_arcmin" in comp.history_names  # the filter carried the master's error
+        board = _has_board_states(comp)  # the filter carried the master's error
     cons = consistency(mount, sig, res, board_states=board)
     warning = cons.pop("warning")
     align_sections["consistency"] = cons
@@ -474,6 +489,9 @@ def summary_lines(rep: dict, paths: dict[str, str | None]) -> list[str]:
         if a.get("mounting_not_determined"):
             out.append(f"        not determined (n/a): {', '.join(a['mounting_not_determined'])}: not observable "
                        "with this motion (the value would be its prior)")
+        if any(n.startswith("board error states added") for n in a.get("notes", [])):
+            out.append("        with the board's error states (the master's attitude error, the slave's accelerometer "
+                       "triad): --board-errors auto found the innovations correlated without them")
         la, ls = a.get("lever_arm_m"), a.get("lever_arm_sigma_m")
         if la is not None and None not in la:
             tail = (" +/- " + " ".join(f"{x:.3f}" for x in ls) + " m (1 sigma)") if ls and None not in ls else " m (given)"
@@ -675,11 +693,12 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
     face = an.slave_face_value()
     runs = {"uncompensated": (face, sub(0.5, 0.7, "alignment (uncompensated)")),
             "compensated": (an.slave_comp, sub(0.7, 0.9, "alignment (compensated)"))}
+    run_opts = {"uncompensated": _uncompensated_options(opts, an.slave_comp is not None), "compensated": opts}
     pending = {}
     if runs["uncompensated"][0] is not None and runs["compensated"][0] is not None and parallel.available():
         # the two runs share nothing but their inputs: the uncompensated one in a forked child (CLI only)
-        pending["uncompensated"] = parallel.submit(_alignment, master, face, "uncompensated", opts, null_progress,
-                                                   an.latency)
+        pending["uncompensated"] = parallel.submit(_alignment, master, face, "uncompensated",
+                                                   run_opts["uncompensated"], null_progress, an.latency)
     for run, (slog, p) in runs.items():
         if slog is None:
             why = ("latency failed" if an.latency is None
@@ -687,7 +706,7 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
             pending[run] = why
         elif run not in pending:
             p(0.0, "")
-            pending[run] = _alignment(master, slog, run, opts, p, an.latency)
+            pending[run] = _alignment(master, slog, run, run_opts[run], p, an.latency)
     imu_fit = None
     if (isinstance(pending.get("uncompensated"), parallel.Pending) and an.slave_comp is not None
             and _wants_imu_to_imu(master, an.slave)
@@ -701,6 +720,11 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
         res = pending[run]
         if isinstance(res, parallel.Pending):
             res = res.result()
+        if (run == "uncompensated" and run_opts[run] is not opts and isinstance(res, AlignmentResult)
+                and _has_board_states(pending.get("compensated"))):
+            # --board-errors auto added the board's states to the compensated run: the uncompensated one
+            # with the same model, so that the two differ by the compensation alone
+            res = _alignment(master, face, run, replace(opts, board_errors="on"), null_progress, an.latency)
         if isinstance(res, AlignmentResult):
             an.alignment[run] = res
             an.align_sections[run] = res

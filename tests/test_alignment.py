@@ -616,7 +616,29 @@ def test_board_errors_on_a_navigation_grade_pair_cost_precision_not_coverage():
     assert np.linalg.norm(on.mounting_sigma_deg) > 10 * np.linalg.norm(off.mounting_sigma_deg)
     assert _rotation_arcmin(on.mounting_rpy_deg, truth.mounting_rpy_deg) < 2.0 * np.linalg.norm(on.mounting_sigma_deg) * 60
     with pytest.raises(AnalysisError, match="board_errors"):
-        AlignmentOptions(board_errors="auto")
+        AlignmentOptions(board_errors="maybe")
+    # auto: the innovations of this navigation-grade pair are white, so the states stay out and the answer
+    # is the off run's, to the bit
+    auto = run_alignment(m, s, filter="kf", match="vel+att", options=AlignmentOptions(board_errors="auto"))
+    assert auto.mounting_rpy_deg == off.mounting_rpy_deg and auto.mounting_sigma_deg == off.mounting_sigma_deg
+    assert any(n.startswith("board error states not needed") for n in auto.notes)
+    assert max(off.innovation_corr_epochs) < CONFIG.board_auto_corr_min
+
+
+def test_board_errors_auto_adds_the_states_where_the_innovations_are_correlated():
+    """board_errors="auto" on the pair of the test above (a 0.12 deg Markov master error over 50 s, a
+    misaligned accelerometer triad): the run without the states has innovations correlated over many
+    epochs, so the states are added, the result is the on run's, and a note says why."""
+    p = sim.simulate(sim.scenario_config(
+        "vehicle", duration_s=120.0, seed=3, mount_rpy_deg=(2.0, -3.0, 40.0), latency_s=0.0,
+        slave_accel_misalign_rpy_deg=(0.9, -0.7, 0.4), master_att_markov_deg=0.12, master_att_markov_tau_s=50.0))
+    m, s = p.master, p.slave.rebased(p.master.meta.t0_ns)
+    off = run_alignment(m, s, filter="kf", match="vel+att", options=AlignmentOptions(board_errors=False))
+    on = run_alignment(m, s, filter="kf", match="vel+att", options=AlignmentOptions(board_errors=True))
+    auto = run_alignment(m, s, filter="kf", match="vel+att", options=AlignmentOptions(board_errors="auto"))
+    assert max(off.innovation_corr_epochs) > CONFIG.board_auto_corr_min
+    assert auto.mounting_rpy_deg == on.mounting_rpy_deg and auto.mounting_sigma_deg == on.mounting_sigma_deg
+    assert auto.notes[0].startswith("board error states added") and auto.notes[1:] == on.notes
 
 
 def test_board_error_states_compiled_loop_equals_reference_loop_and_other_filters_run():

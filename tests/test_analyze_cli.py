@@ -367,7 +367,9 @@ def test_real_cli_flexure_found_by_the_latency_fit_goes_into_the_alignment(tmp_p
     """A ship whose slave flexes (seed 000's model, 0.05 deg, beta 2/s): without flexure states
     (``--flexure off``, what the CLI did before) the mounting came out 2.8 arcmin off at a sigma of 0.57
     (z 4.8); by default the flexure model the latency's rate fit found is carried into the alignment
-    filter as states, the mounting is within its sigma and a note says so."""
+    filter as states, the mounting is within its sigma and a note says so. Without flexure states the
+    white model (``--board-errors off``) is overconfident; the default ``--board-errors auto`` sees the
+    flexure's correlated innovations and takes the board's states, whose sigma then covers the error."""
     sim = _real()
     cfg = sim.scenario_config("ship", seed=61008, duration_s=120.0, latency_s=-0.8582, drift_ppm=15.1,
                               mount_rpy_deg=(-120.79, -127.59, -59.50), lever_arm_m=(-0.77, -0.48, -1.57),
@@ -380,9 +382,9 @@ def test_real_cli_flexure_found_by_the_latency_fit_goes_into_the_alignment(tmp_p
     registry.write(s, pair.slave, "csv")
     from logtools.conventions import dcm_from_euler
 
-    def run(flexure):
-        out = tmp_path / flexure
-        assert main(["analyze", m, s, "-o", str(out), "--no-recording", "--flexure", flexure]) == 0
+    def run(flexure, *extra):
+        out = tmp_path / (flexure + "".join(extra))
+        assert main(["analyze", m, s, "-o", str(out), "--no-recording", "--flexure", flexure, *extra]) == 0
         rep = json.loads((out / "report.json").read_text())
         c = rep["alignment"]["compensated"]
         Re, Rt = dcm_from_euler(np.radians(c["mounting_rpy_deg"])), dcm_from_euler(np.radians(cfg.mount_rpy_deg))
@@ -393,9 +395,11 @@ def test_real_cli_flexure_found_by_the_latency_fit_goes_into_the_alignment(tmp_p
     assert rep["latency"]["quality"]["flexure_model"] is not None
     assert any(n.startswith("flexure states") for n in auto["notes"]) and "flex_ang_x_arcmin" in auto["states"]
     assert z_auto < 2.0
-    _, off, z_off = run("off")
+    _, off, z_off = run("off", "--board-errors", "off")
     assert not any(n.startswith("flexure states") for n in off["notes"])
     assert z_off > 3.0  # the overconfident result the default no longer gives
+    _, off_auto, z_off_auto = run("off")
+    assert off_auto["notes"][0].startswith("board error states added") and z_off_auto < 2.0
 
 
 def test_flexure_options_take_only_a_structural_flexure_model():
@@ -433,8 +437,9 @@ def test_lever_arm_values_with_a_leading_minus(tmp_path, fake_numerics):
 def test_real_cli_board_errors(tmp_path, capsys):
     """``--board-errors on``: a vehicle whose master attitude carries a 0.12 deg Markov error (50 s) and whose
     slave accelerometer triad is 1.2 deg off its gyro triad, through the CLI on CSV files: the states in the
-    compensated run (notes, their histories in ``states``) and the mounting within 2 sigma; by default (off)
-    the white-noise model's overconfident answer; a bad value is one line and exit 2."""
+    compensated run (notes, their histories in ``states``) and the mounting within 2 sigma; with ``off`` the
+    white-noise model's overconfident answer; by default (auto) the states are added, in both runs, because
+    the white model's innovations are correlated; a bad value is one line and exit 2."""
     sim = _real()
     cfg = sim.scenario_config("vehicle", duration_s=120.0, seed=3, mount_rpy_deg=(2.0, -3.0, 40.0),
                               latency_s=0.03, slave_accel_misalign_rpy_deg=(0.9, -0.7, 0.4),
@@ -457,8 +462,13 @@ def test_real_cli_board_errors(tmp_path, capsys):
     assert any(n.startswith("master attitude error states") for n in on["notes"])
     assert "master_att_err_n_arcmin" in on["states"] and "accel_misalign_z_deg" in on["states"]
     assert z_on <= 2.0
-    off, z_off = run()
+    off, z_off = run("--board-errors", "off")
     assert not any(n.startswith("master attitude error states") for n in off["notes"]) and z_off > 5.0
+    auto, z_auto = run()
+    assert auto["notes"][0].startswith("board error states added") and z_auto <= 2.0
+    assert auto["mounting_rpy_deg"] == on["mounting_rpy_deg"]
+    unc = json.loads((tmp_path / "default" / "report.json").read_text())["alignment"]["uncompensated"]
+    assert "master_att_err_n_arcmin" in unc["states"]
     with pytest.raises(SystemExit) as bad:
         main(["analyze", m, s, "-o", str(tmp_path / "bad"), "--board-errors", "maybe"])
     assert bad.value.code == 2 and "--board-errors" in capsys.readouterr().err

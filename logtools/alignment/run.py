@@ -7,6 +7,8 @@ slave's IMU stamps (``update_hz``, default 20 Hz) with the slave IMU's body incr
 -> slave initialised from the master at the first epoch -> filter passes (kf.py; flexure "auto" and the
 noise recalibration may run it again) -> AlignmentResult with totals (coarse mounting combined with the
 filter's residual), sigmas, convergence time, residual RMS, observability flags and decimated histories.
+With ``board_errors="auto"`` all of that runs without the board's states, and again with them when an
+innovation channel of the first run is correlated in time (:func:`_align_board_auto`).
 
 What the caller knows goes in :class:`~logtools.alignment.options.AlignmentOptions`, the tuning in
 :class:`~logtools.alignment.options.AlignmentConfig` (both documented field by field there).
@@ -42,6 +44,49 @@ def run_alignment(master: InsLog, slave: InsLog, *, filter: str | FilterKind = "
     kind = FilterKind.parse(filter)
     if match not in MATCHES:
         raise AnalysisError(f"match must be one of {', '.join(MATCHES)}, not {match!r}")
+    if opts.board_auto:
+        return _align_board_auto(master, slave, kind, match, smoother, progress, opts, config)
+    return _align(master, slave, kind, match, smoother, progress, opts, config)
+
+
+def _align_board_auto(master: InsLog, slave: InsLog, kind: FilterKind, match: str, smoother: bool,
+                      progress: Callable | None, opts: AlignmentOptions, config: AlignmentConfig) -> AlignmentResult:
+    """board_errors="auto": without the board's states first; when an innovation channel of that run is
+    correlated in time (errors the white model leaves out), again with them (docs/alignment.md)."""
+    prog = progress or (lambda f, s="": None)
+    first = _align(master, slave, kind, match, smoother, lambda f, s="": prog(0.5 * f, s),
+                   replace(opts, board_errors=False), config)
+    corr = max(first.innovation_corr_epochs or (1.0,))
+    if not corr > config.board_auto_corr_min:
+        return replace(first, notes=first.notes + (
+            f"board error states not needed: no innovation channel is correlated over more than {corr:.1f} "
+            f"epochs (at most {config.board_auto_corr_min:g}; --board-errors auto)",))
+    res = _align(master, slave, kind, match, smoother, lambda f, s="": prog(0.5 + 0.5 * f, s),
+                 replace(opts, board_errors=True), config)
+    if _did_not_follow(res) and not _did_not_follow(first):
+        # the states cannot explain what correlates the innovations (an unmodelled lever arm of metres:
+        # tests/test_analyze_cli.py) and the larger filter lost the data: the run without them stands
+        return replace(first, notes=first.notes + (
+            f"board error states tried (an innovation channel correlated over {corr:.1f} epochs without them; "
+            "--board-errors auto) but that filter did not follow the data; the run without them is reported",))
+    return replace(res, notes=(
+        f"board error states added (--board-errors auto): without them an innovation channel was correlated over "
+        f"{corr:.1f} epochs (beyond {config.board_auto_corr_min:g}), errors in time the white model leaves out "
+        f"(a consumer board's EKF attitude error, aliased vibration); that run gave the mounting "
+        + " / ".join(f"{x:+.3f}" for x in first.mounting_rpy_deg) + " deg",) + res.notes)
+
+
+#: the note of a run whose re-estimated measurement noise is beyond any INS's (the filter lost the data)
+DID_NOT_FOLLOW = "residuals this large are no INS's noise"
+
+
+def _did_not_follow(res: AlignmentResult) -> bool:
+    return any(n.startswith(DID_NOT_FOLLOW) for n in res.notes)
+
+
+def _align(master: InsLog, slave: InsLog, kind: FilterKind, match: str, smoother: bool, progress: Callable | None,
+           opts: AlignmentOptions, config: AlignmentConfig) -> AlignmentResult:
+    """One alignment with the board's states as ``opts.board_errors`` (a bool) says."""
     src = slave.meta.source_path or "slave"
     # one time base: relative times of logs with different t0 are not comparable (a no-op when the slave
     # is already rebased, as compensate() leaves it)
@@ -312,7 +357,7 @@ def _filter_passes(prob: _Problem, inp: AlignInputs, src: str, progress: Callabl
                      f"{nis0 / lay.n_meas:.1f}): velocity {settings.r_vel_m_s:.3g} m/s, attitude "
                      f"{settings.r_att_rad / DEG:.3g} deg")
         if settings.r_vel_m_s > cfg.implausible_r_vel_m_s or settings.r_att_rad > cfg.implausible_r_att_deg * DEG:
-            notes.append("residuals this large are no INS's noise: the filter did not follow the data (a wrong "
+            notes.append(DID_NOT_FOLLOW + ": the filter did not follow the data (a wrong "
                          "start, an uncompensated delay or reset, other units); the mounting is doubtful")
     if lay.master_att is not None:
         s_mk = np.degrees(sig0[lay.master_att][0])
@@ -970,7 +1015,7 @@ def _result(run: FilterRun, lay: StateLayout, st: FilterSettings, sig0: np.ndarr
         converged_s=mnt.converged_s, residual_rms=rms,
         gyro_bias_sigma_dph=tuple(float(x) for x in gbs), accel_bias_sigma_mg=tuple(float(x) for x in abs_),
         delay_s=delay_s, delay_sigma_s=delay_sig, lever_arm_m=lever_m, lever_arm_sigma_m=lever_sig,
-        observability=obs, notes=tuple(notes),
+        observability=obs, notes=tuple(notes), innovation_corr_epochs=_innovation_correlation_times(run),
         history_t_s=run.t_s[rows].copy(), history_names=tuple(names), history_x=cols[rows],
         history_sigma=sigs[rows], residual_t_s=run.t_s[rows].copy(), residual_names=tuple(rn),
         residuals=resid[rows],
@@ -1000,17 +1045,33 @@ def _innovation_correlation_factor(run: FilterRun) -> float:
     return _correlation_time(inn[np.isfinite(inn).all(axis=1)])
 
 
+def _innovation_correlation_times(run: FilterRun) -> tuple[float, ...] | None:
+    """Each varying innovation channel's integrated correlation time (epochs), at most a tenth of the epochs."""
+    inn = run.innov
+    if inn is None or inn.ndim != 2:
+        return None
+    x = inn[np.isfinite(inn).all(axis=1)]
+    return tuple(float(min(t, len(x) / 10.0)) for t in _correlation_times(x))
+
+
 def _correlation_time(x: np.ndarray) -> float:
     """The median over the columns of ``x`` (n, k) of their integrated correlation time (samples, 1 + 2 sum
     of the autocorrelation up to its first zero crossing), at most n / 10; 1.0 for fewer than 20 rows or
     no varying column."""
+    taus = _correlation_times(x)
+    return float(min(np.median(taus), len(x) / 10.0)) if len(taus) else 1.0
+
+
+def _correlation_times(x: np.ndarray) -> np.ndarray:
+    """Each varying column's integrated correlation time (see _correlation_time; not bounded); empty for
+    fewer than 20 rows or no varying column."""
     if x.ndim != 2 or x.shape[0] < 20:
-        return 1.0
+        return np.zeros(0)
     x = x - x.mean(axis=0)
     var = np.sum(x * x, axis=0)
     x = x[:, var > 0]
     if x.shape[1] == 0:
-        return 1.0
+        return np.zeros(0)
     n = len(x)
     nfft = 1 << int(np.ceil(np.log2(2 * n)))
     f = np.fft.rfft(x, nfft, axis=0)
@@ -1020,7 +1081,7 @@ def _correlation_time(x: np.ndarray) -> float:
         neg = np.nonzero(ac[1:, c] <= 0)[0]
         m = int(neg[0]) if len(neg) else n - 1
         taus.append(1.0 + 2.0 * float(np.sum(ac[1:m + 1, c])))
-    return float(min(np.median(taus), n / 10.0))
+    return np.asarray(taus)
 
 
 def _mounting(run: FilterRun, lay: StateLayout, k_rep: int, sig_scale: float, config: AlignmentConfig,
