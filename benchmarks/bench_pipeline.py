@@ -15,7 +15,8 @@ written by ``parsers.registry.write``. For each pair, every step a fresh process
   (``benchmarks/results/pipeline_profile_<N>s.txt``; the sample pair's, or every length's with
   ``--profile-all``).
 
-First run after installing (the sample pair): a fresh numba cache and tapost kernel stamp
+tapost's modules are byte-compiled first (``compileall``), as ``pip install`` leaves an installed package and
+as the baseline's pymavlink is. First run after installing (the sample pair): a fresh numba cache and tapost kernel stamp
 (``NUMBA_CACHE_DIR``, ``XDG_CACHE_HOME`` = empty temp dirs), ``TAPOST_KERNELS`` unset, as a new user has
 it: the first ``tapost analyze``, then the background compile it started is waited for and the next
 analyze timed (warm). Targets (issue 20): sample pair <= 1.0 x the pymavlink loop over its slave, 1 h
@@ -50,6 +51,17 @@ RESULTS_DIR = os.path.join(ROOT, "benchmarks", "results")
 RESULTS = os.path.join(RESULTS_DIR, "bench_pipeline.json")
 RATE_HZ = 200.0
 TAG = "BENCH_JSON "
+
+
+def byte_compile() -> str:
+    """tapost's modules byte-compiled, as ``pip install`` leaves an installed package and as pymavlink's
+    modules (the baseline) are: with PYTHONDONTWRITEBYTECODE set (some containers set it) an editable
+    checkout would otherwise recompile its sources in every process (about 0.3 s of each short analyze)."""
+    import compileall
+
+    ok = all(compileall.compile_dir(os.path.join(ROOT, d), quiet=1) for d in ("logtools", "parsers", "pipelines"))
+    return ("tapost's modules byte-compiled before timing, as an installed package is"
+            + ("" if ok else " (some failed)") + f"; PYTHONDONTWRITEBYTECODE={os.environ.get('PYTHONDONTWRITEBYTECODE', '')!r}")
 
 
 def _loadavg() -> list[float]:
@@ -338,6 +350,7 @@ def main() -> int:
                           "master_fix_rate_hz": args.fix_rate, "repeat": args.repeat,
                           "command": "python -m pipelines.cli analyze MASTER SLAVE -o OUT"},
                "runs": []}
+    results["bytecode"] = byte_compile()
     try:
         sample_m, sample_s = os.path.join(ROOT, "sample_logs", "master.mcap"), os.path.join(ROOT, "sample_logs", "slave.tlog")
         if not args.no_first_run:
