@@ -226,8 +226,7 @@ def run_one(d: dict) -> dict:
                     else "added" if any(n.startswith("flexure states added") for n in res.notes) else "none")
             row[v] = dict(error_arcmin=err, sigma_arcmin=sig, z=err / sig if sig > 0 else float("inf"),
                           lever_error_m=lev_err, flexure_states=flex, note="",
-                          board_states="master_att_err_n_arcmin" in res.history_names
-                          or "accel_misalign_x_deg" in res.history_names,
+                          board_states=res.has_board_states,
                           **_reported_axes_z(res, cfg.mount_rpy_deg))
         except Exception as exc:  # noqa: BLE001
             row[v] = dict(note=f"{type(exc).__name__}: {exc}"[:200])

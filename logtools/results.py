@@ -56,6 +56,10 @@ class LatencyResult:
         return self.latency_s + self.drift_ppm * 1e-6 * (np.asarray(t_master_rel_s) - self.t_mid_rel_s)
 
 
+#: the history names of the board's error states (logtools/alignment/run.py, _histories)
+BOARD_STATE_PREFIXES = ("master_att_err_", "accel_misalign_")
+
+
 @dataclass(frozen=True)
 class AlignmentResult:
     """One transfer-alignment run (uncompensated or compensated)."""
@@ -90,3 +94,9 @@ class AlignmentResult:
     residual_t_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
     residual_names: tuple[str, ...] = ()
     residuals: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+
+    @property
+    def has_board_states(self) -> bool:
+        """The filter carried a consumer board's error states (the master's attitude error where attitude
+        was matched, the accelerometer triad's misalignment where velocity was)."""
+        return any(n.startswith(BOARD_STATE_PREFIXES) for n in self.history_names)

@@ -390,7 +390,7 @@ def _uncompensated_options(opts: AnalyzeOptions, compensated: bool) -> AnalyzeOp
 
 
 def _has_board_states(res) -> bool:
-    return isinstance(res, AlignmentResult) and "master_att_err_n_arcmin" in res.history_names
+    return isinstance(res, AlignmentResult) and res.has_board_states
 
 
 def _wants_imu_to_imu(master: InsLog, slave: InsLog) -> bool:

@@ -650,6 +650,12 @@ def test_board_error_states_compiled_loop_equals_reference_loop_and_other_filter
     b = run_alignment(m, s, match="vel+att", options=opts, config=replace(CONFIG, compiled_kf=False))
     assert np.allclose(a.mounting_rpy_deg, b.mounting_rpy_deg, atol=1e-9)
     assert np.allclose(a.mounting_sigma_deg, b.mounting_sigma_deg, rtol=1e-6)
+    # the board's states as a result says: both with vel+att; the triad's misalignment alone with velocity
+    # matching (no attitude matched, no master attitude error state), none without the option
+    assert a.has_board_states and "master_att_err_n_arcmin" in a.history_names
+    v = run_alignment(m, s, match="vel", options=opts)
+    assert v.has_board_states and "master_att_err_n_arcmin" not in v.history_names
+    assert not run_alignment(m, s, match="vel").has_board_states
     for kw in (dict(filter="hinf"), dict(filter="kf", smoother=True), dict(filter="kf-delay")):
         r = run_alignment(m, s, match="vel+att", options=opts, **kw)
         assert _rotation_arcmin(r.mounting_rpy_deg, p.truth.mounting_rpy_deg) < 3.0 * np.linalg.norm(
