@@ -387,16 +387,23 @@ def summary_definitions(buf) -> list[tuple[int, int, int]]:
     return sorted(out, key=lambda r: r[0] != _OP_SCHEMA)  # schemas first: a channel is judged by its schema
 
 
-def inflate_chunk(buf, off: int, nxt: int) -> bytes:
-    """The records of the chunk record at ``off`` (ending at ``nxt``): decompressed, size and CRC
-    checked; :class:`_Damage` naming the chunk if not."""
+def _chunk_header(buf, off: int, nxt: int) -> tuple[str, int, int, int, int]:
+    """(compression, uncompressed size, CRC, start, length of the compressed records) of the chunk record at
+    ``off`` (ending at ``nxt``); :class:`_Damage` when the records run past it."""
     _t0, _t1, usize, crc = struct.unpack_from("<QQQI", buf, off + 9)
     comp, o = _string(buf, off + 9 + 28)
     (clen,) = _U64.unpack_from(buf, o)
     if o + 8 + clen > nxt:
         raise _Damage(f"chunk at byte {off}: records run past the chunk")
+    return comp, usize, crc, o + 8, clen
+
+
+def inflate_chunk(buf, off: int, nxt: int) -> bytes:
+    """The records of the chunk record at ``off`` (ending at ``nxt``): decompressed, size and CRC
+    checked; :class:`_Damage` naming the chunk if not."""
+    comp, usize, crc, o, clen = _chunk_header(buf, off, nxt)
     try:
-        content = _decompress(comp, buf[o + 8:o + 8 + clen], usize)
+        content = _decompress(comp, buf[o:o + clen], usize)
     except _Damage:
         raise
     except Exception as exc:
@@ -412,17 +419,13 @@ def inflate_chunk_into(buf, off: int, nxt: int, out: np.ndarray) -> np.ndarray:
     """:func:`inflate_chunk` of a zstd chunk, decompressed straight into ``out`` (uint8, the chunk's
     uncompressed size; a slice of one buffer for the whole file): no bytes object of its own, so a file's
     chunks are not held twice (the export patches them in that one buffer). :class:`_Damage` as there."""
-    _t0, _t1, usize, crc = struct.unpack_from("<QQQI", buf, off + 9)
-    comp, o = _string(buf, off + 9 + 28)
-    (clen,) = _U64.unpack_from(buf, o)
-    if o + 8 + clen > nxt:
-        raise _Damage(f"chunk at byte {off}: records run past the chunk")
+    comp, usize, crc, o, clen = _chunk_header(buf, off, nxt)
     if comp != "zstd" or len(out) != usize:
         raise _Damage(f"chunk at byte {off}: not the zstd chunk of {len(out)} bytes planned")
     import zstandard
 
     try:
-        reader = zstandard.ZstdDecompressor().stream_reader(buf[o + 8:o + 8 + clen], read_size=max(clen, 1))
+        reader = zstandard.ZstdDecompressor().stream_reader(buf[o:o + clen], read_size=max(clen, 1))
         view = memoryview(out)
         n = 0
         while n < usize:
@@ -489,8 +492,7 @@ def chunk_arena(buf, off: int, limit_bytes: int | None = None) -> tuple[np.ndarr
     where, total = {}, 0
     for r in chunk_records(buf, off):
         try:
-            usize = struct.unpack_from("<Q", buf, r[0] + 9 + 16)[0]
-            comp, _ = _string(buf, r[0] + 9 + 28)
+            comp, usize, _crc, _o, _clen = _chunk_header(buf, r[0], r[1])
         except (_Damage, struct.error, UnicodeDecodeError):
             return None
         if comp != "zstd":
