@@ -209,7 +209,7 @@ def scatter_rows(out: np.ndarray, rows: np.ndarray, pos: np.ndarray, lens: np.nd
         out[pos[m] + j] = rows[m, j]
 
 
-@_njit(cache=True)
+@_njit(cache=True, nogil=True)  # (the native export runs it on parts of a file in threads)
 def _index_tlog_nb(buf, starts, extra_tab, table):  # pragma: no cover - compiled
     n = len(starts)
     recv = np.empty(n, dtype=np.int64)
@@ -287,14 +287,24 @@ def index_tlog_frames_np(buf: np.ndarray, starts: np.ndarray, extra_tab: np.ndar
     return recv, v2, plen, sysid, compid, msgid, f + hdr, status
 
 
-def index_tlog_frames(buf: np.ndarray, starts: np.ndarray, extra_tab: np.ndarray, engine: str = "auto"):
+def index_tlog_frames(buf: np.ndarray, starts: np.ndarray, extra_tab: np.ndarray, engine: str = "auto",
+                      parts: int = 1):
     """Per walked tlog record: (recv_us, v2, plen, sysid, compid, msgid, payload offset, status),
     status 0 = CRC good, 1 = bad CRC, 2 = message id unknown to the dialect (CRC not checkable).
-    ``extra_tab[msgid]`` is the CRC_EXTRA (-1 unknown). ``engine``: auto | numba | numpy."""
+    ``extra_tab[msgid]`` is the CRC_EXTRA (-1 unknown). ``engine``: auto | numba | numpy. ``parts`` > 1:
+    the compiled index of that many runs of records in the I/O threads (the kernel releases the GIL)."""
     starts = np.asarray(starts, dtype=np.int64)
     if engine == "numpy" or (engine == "auto" and not HAVE_NUMBA):
         return index_tlog_frames_np(buf, starts, extra_tab)
-    return _index_tlog_nb(buf, starts, extra_tab.astype(np.int16), CRC_TABLE)
+    tab = extra_tab.astype(np.int16)
+    cuts = np.linspace(0, len(starts), max(1, min(parts, len(starts) // 4096 + 1)) + 1).astype(np.int64)
+    if len(cuts) <= 2:
+        return _index_tlog_nb(buf, starts, tab, CRC_TABLE)
+    from parsers import threads
+
+    done = list(threads.ordered(lambda ab: _index_tlog_nb(buf, starts[ab[0]:ab[1]], tab, CRC_TABLE),
+                                list(zip(cuts[:-1].tolist(), cuts[1:].tolist()))))
+    return tuple(np.concatenate(cols) for cols in zip(*done))
 
 
 # ---- record walkers ----------------------------------------------------------------------------

@@ -186,7 +186,7 @@ def kernel_loader(namespace: dict):
         if fn is None:
             from logtools import jit
 
-            fn = compiled[name] = jit.njit(namespace[name])
+            fn = compiled[name] = jit.njit(namespace[name], nogil=True)  # (some run on parts in threads)
         return fn
 
     return kernel

@@ -21,6 +21,8 @@ from __future__ import annotations
 import numpy as np
 
 from logtools.errors import InputError
+from parsers import threads
+from parsers.atomic import atomic_path
 from parsers.base import Selector
 from parsers.restamp import ClockShift, RestampStats, get_le, kernel_loader, put_le, read_bytes, write_bytes_atomic
 
@@ -144,7 +146,7 @@ def _frames(path: str, buf: np.ndarray):
     starts, skipped, resyncs, tail = walk_tlog(buf)
     if len(starts) == 0:
         raise InputError("no MAVLink frames found (not a tlog, or damaged beyond use)", path)
-    idx = index_tlog_frames(buf, starts, tl._crc_extra_table())
+    idx = index_tlog_frames(buf, starts, tl._crc_extra_table(), parts=_parts(len(starts)))
     recv, v2, plen, sysid, compid, msgid, pay, status = idx
     ok = status == 0
     warns = []
@@ -294,6 +296,17 @@ def _tlog_kernel(buf, starts, pay, plen, status, msgid, v2, o_usec, o_boot, o_un
 _kernel = kernel_loader(globals())  # the numba kernels above, compiled (and cached) on first use
 
 
+def _parts(n_records: int) -> int:
+    """Runs of records the compiled tlog passes are split into (done in the I/O threads, each run's bytes
+    written while the next runs): a few per worker, none under 64 k records."""
+    from logtools import jit
+    from parsers import threads
+
+    if not jit.compiled() or threads.workers() <= 1 or n_records < 65_536:
+        return 1
+    return 4 * threads.workers()
+
+
 def _field_tables(n_ids: int):
     """Per message id: byte offsets of time_usec, time_boot_ms, time_unix_usec in the payload (-1: none)."""
     from parsers import mavlink_tlog as tl
@@ -315,7 +328,8 @@ def restamp_tlog(src: str, dst: str, shift: ClockShift, *, selector=None) -> Res
     of each changed frame is recomputed. SYSTEM_TIME's two fields move by the same whole millisecond (its
     boot -> UNIX offset is kept). MAVLink 2 signatures cannot be recomputed without the key: they are kept
     as they are and the signed frames that changed are counted in ``damage`` (they no longer verify).
-    One compiled pass over the records (numba), after the reader's walk and index."""
+    One compiled pass over the records (numba), after the reader's walk and index; on a large file both the
+    index and that pass run on runs of records in the I/O threads, each run written as soon as it is done."""
     from parsers import mavlink_common as mc
     from parsers import mavlink_tlog as tl
 
@@ -324,21 +338,41 @@ def restamp_tlog(src: str, dst: str, shift: ClockShift, *, selector=None) -> Res
     fr, starts, idx = _frames(src, orig)
     sysid, compid, mode, plan, lag = _tlog_plan(src, sel, fr)
     recv, v2, plen, sys_a, comp_a, msgid, pay, status = idx
-    buf = orig.copy()
+    buf = orig  # (a private copy of the file: the input is never written)
     extra = tl._crc_extra_table().astype(np.int64)
     tabs = _field_tables(len(extra))
     ids = np.asarray(msgid, np.int64)
     stat = np.where(ids < len(extra), np.asarray(status), 2).astype(np.int64)
     ids = np.where(ids < len(extra), ids, 0)
-    changed, signed_changed, negative, bits = _kernel("_tlog_kernel")(
-        buf, np.asarray(starts, np.int64), np.asarray(pay, np.int64), np.asarray(plen, np.int64), stat, ids,
-        np.asarray(v2, np.bool_), tabs["time_usec"], tabs["time_boot_ms"], tabs["time_unix_usec"], extra,
-        int(tl.msgdef("SYSTEM_TIME").id), int(0 if mode == "receive" else lag), int(plan.add_ns[0]),
-        int(plan.add_ns[1]), mode == "receive", float(shift.latency_s), float(shift.drift_ppm * 1e-6),
-        int(shift.t_ref_ns), int(tl.EPOCH_US_THRESHOLD), mc.CRC_TABLE)
-    if negative >= 0:
-        raise InputError(f"native export: a shifted stamp of record {negative} would be negative (the master's "
-                         "clock starts later than the field's clock can express; export csv/parquet instead)", src)
+    starts, pay, plen, v2 = (np.asarray(a, t) for a, t in ((starts, np.int64), (pay, np.int64), (plen, np.int64),
+                                                            (v2, np.bool_)))
+    kernel = _kernel("_tlog_kernel")
+    consts = (tabs["time_usec"], tabs["time_boot_ms"], tabs["time_unix_usec"], extra,
+              int(tl.msgdef("SYSTEM_TIME").id), int(0 if mode == "receive" else lag), int(plan.add_ns[0]),
+              int(plan.add_ns[1]), mode == "receive", float(shift.latency_s), float(shift.drift_ppm * 1e-6),
+              int(shift.t_ref_ns), int(tl.EPOCH_US_THRESHOLD), mc.CRC_TABLE)
+
+    def run(ab: tuple[int, int]):  # one run of records: its frames are its own bytes (in a worker thread)
+        a, b = ab
+        return kernel(buf, starts[a:b], pay[a:b], plen[a:b], stat[a:b], ids[a:b], v2[a:b], *consts)
+
+    cuts = np.linspace(0, len(starts), _parts(len(starts)) + 1).astype(np.int64).tolist()
+    runs = list(zip(cuts[:-1], cuts[1:]))
+    # a run's bytes: from its first record to the next run's (the file's first and last bytes with the
+    # first and last run: what precedes the first record and follows the last is copied as it is)
+    edges = [0] + [int(starts[a]) for a, _ in runs[1:]] + [len(buf)]
+    changed = signed_changed = bits = 0
+    negative = -1
+    with atomic_path(dst) as tmp, open(tmp, "wb") as fh:
+        for k, (c, sc, neg, bt) in enumerate(threads.ordered(run, runs)):
+            changed, signed_changed, bits = changed + c, signed_changed + sc, bits | bt
+            if neg >= 0 and negative < 0:
+                negative = runs[k][0] + neg
+            if negative < 0:
+                fh.write(memoryview(buf[edges[k]:edges[k + 1]]))  # (written while the next runs are worked)
+        if negative >= 0:
+            raise InputError(f"native export: a shifted stamp of record {negative} would be negative (the master's "
+                             "clock starts later than the field's clock can express; export csv/parquet instead)", src)
     u, c = np.unique(ids[stat == 0], return_counts=True)
     by_type = {tl.msgdef_by_id(int(m)).name: int(k) for m, k in zip(u, c)}
     fields_done = ["receive stamp"] + [name for bit, name in ((1, "time_usec"), (2, "time_boot_ms"),
@@ -352,7 +386,6 @@ def restamp_tlog(src: str, dst: str, shift: ClockShift, *, selector=None) -> Res
     if signed_changed:
         damage.append(f"{signed_changed} signed MAVLink 2 frame(s) changed: signatures kept as they were "
                       "and no longer verify (the key is needed to re-sign)")
-    write_bytes_atomic(dst, buf)
     return RestampStats(path=dst, format="tlog", how=HOW + "; CRC recomputed for changed frames",
                         records=int(len(starts)), records_by_type=by_type,
                         time_fields=tuple(fields_done), damage=tuple(damage))

@@ -290,14 +290,19 @@ class _Scan1(rosbag1._Scan):
         ids = np.asarray(cids, np.int64)  # sorted: a connection's number is its place
         conn, log, seq, bufs, starts, lens = [], [], [], [], [], []
         base = n = 0
+        placed: dict[tuple[int, int], int] = {}  # a container's bytes (the file's, a decompressed chunk's): once
         for arr, cid, t_ns, d0, ln in self.blocks:
+            key = (arr.__array_interface__["data"][0], len(arr))
+            at = placed.get(key)
+            if at is None:
+                at = placed[key] = base
+                bufs.append(arr)
+                base += len(arr)
             conn.append(np.searchsorted(ids, cid))
             log.append(t_ns)
             seq.append(np.arange(n, n + len(cid)))
-            bufs.append(arr)
-            starts.append(d0 + base)
+            starts.append(d0 + at)
             lens.append(ln)
-            base += len(arr)
             n += len(cid)
         rest = [(k, t, d) for k, c in enumerate(cids) for t, d in zip(self.times[c], self.data[c])]
         if rest:  # records read one by one (a header layout the vectorised path does not know)
@@ -309,10 +314,12 @@ class _Scan1(rosbag1._Scan):
             return _pack(np.zeros(0, np.int64), np.zeros(0, np.int64), [])
         conn_a, seq_a = np.concatenate(conn), np.concatenate(seq)
         group = np.lexsort((seq_a, conn_a))
-        buf = np.concatenate(bufs)  # one writable copy of the containers' bytes
+        # the containers' bytes in one writable buffer: the file's own (uncompressed chunks) or a copy
+        buf = bufs[0] if len(bufs) == 1 and bufs[0].flags.writeable else np.concatenate(bufs)
         return _Msgs(conn_a, np.concatenate(log), buf, np.concatenate(starts), np.concatenate(lens)).take(group)
 
     def connection(self, header, data):
+        data = bytes(data)
         (cid,) = rosbag1._U32.unpack_from(header["conn"], 0)
         if cid not in self.conns:
             self.fields[cid] = rosbag1._fields(data)
@@ -327,9 +334,10 @@ class _Scan1(rosbag1._Scan):
 def _scan_rosbag1(path: str) -> _Scan1:
     """The top-level record walk of :func:`parsers.rosbag1.read_raw` (same damage rules) with our scan."""
     check_readable(path)
+    file = np.empty(os.path.getsize(path), np.uint8)
     with open(path, "rb") as fh:
-        buf = fh.read()
-    if not buf.startswith(rosbag1.MAGIC):
+        buf = memoryview(file)[:fh.readinto(file)]  # (the scan's slices of it are views, not copies)
+    if bytes(buf[:len(rosbag1.MAGIC)]) != rosbag1.MAGIC:
         raise InputError("not a ROS 1 bag (magic '#ROSBAG V2.0' missing)", path)
     scan = _Scan1()
     u32 = rosbag1._U32.unpack_from
@@ -345,7 +353,7 @@ def _scan_rosbag1(path: str) -> _Scan1:
             nxt = off + 8 + hlen + dlen
             if nxt > end:
                 raise rosbag1._Damage(f"file truncated at byte {end}: record at byte {off} incomplete")
-            header = rosbag1._fields(buf[off + 4:off + 4 + hlen])
+            header = rosbag1._fields(bytes(buf[off + 4:off + 4 + hlen]))
             op = header.get("op", b"\xff")[:1]
         except (rosbag1._Damage, struct.error) as exc:
             scan.warnings.append(f"{exc}; the rest is not in the output" if "truncated" in str(exc)

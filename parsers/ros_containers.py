@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import struct
+import threading
 import zlib
 
 import numpy as np
@@ -66,7 +67,13 @@ def _by_chunk_and_key(slices: list[slice], key: np.ndarray) -> list[list[tuple[i
         return []
     n = slices[-1].stop
     chunk = np.repeat(np.arange(len(slices)), [sl.stop - sl.start for sl in slices])
-    order = np.lexsort((key, chunk))  # stable: within (chunk, key) the messages stay in order
+    present = np.flatnonzero(np.bincount(key)) if n else np.zeros(0, np.int64)  # (keys: ids, a few)
+    rank = np.zeros(int(present[-1]) + 1 if len(present) else 1, np.int64)
+    rank[present] = np.arange(len(present))
+    keys, kidx = present, rank[key]
+    pair = chunk * len(keys) + kidx
+    # stable: within (chunk, key) the messages stay in order (a radix sort where the pairs fit 16 bits)
+    order = np.argsort(pair.astype(np.uint16) if len(slices) * len(keys) <= 1 << 16 else pair, kind="stable")
     ck, kk = chunk[order], key[order]
     cut = np.flatnonzero((np.diff(ck) != 0) | (np.diff(kk) != 0)) + 1
     a_s, b_s = np.r_[0, cut].tolist(), np.r_[cut, n].tolist()
@@ -78,14 +85,25 @@ def _by_chunk_and_key(slices: list[slice], key: np.ndarray) -> list[list[tuple[i
     return out
 
 
+_LOCAL = threading.local()
+
+
+def _zstd_compressor():
+    """This thread's zstd compressor (level 1), made once: a new context per 1 MiB chunk cost 10 % more."""
+    c = getattr(_LOCAL, "zstd", None)
+    if c is None:
+        import zstandard
+
+        c = _LOCAL.zstd = zstandard.ZstdCompressor(level=1)
+    return c
+
+
 def compress_chunk(kind: str, data: np.ndarray):
     """``data`` compressed (bytes), or ``data`` itself (uncompressed)."""
     if kind in ("", "none"):
         return data
     if kind == "zstd":
-        import zstandard
-
-        return zstandard.ZstdCompressor(level=1).compress(data)
+        return _zstd_compressor().compress(data)
     if kind == "lz4":
         import lz4.frame
 
@@ -133,9 +151,16 @@ def write_bag1(fh, fields: list[dict[str, bytes]], cids: list[int], msgs, log_ns
     pre[:, 34:42] = tt.view(np.uint8).reshape(n, 8)
     pre[:, 42:46] = msgs.lens.astype("<u4").view(np.uint8).reshape(n, 4)
     size = 46 + msgs.lens
-    fh.write(rosbag1.MAGIC)
-    head_at = fh.tell()
-    fh.write(bytes(4096))  # the bag header, written last
+    pos = 0
+
+    def put(b) -> None:  # (the position counted here: BufferedWriter.tell() flushes, 40 ms on a 1 h bag)
+        nonlocal pos
+        fh.write(b)
+        pos += len(b)
+
+    put(rosbag1.MAGIC)
+    head_at = pos
+    put(bytes(4096))  # the bag header, written last
     conn_recs = {c: _bag1_conn(c, f) for c, f in zip(cids, fields)}
     infos = []
     slices = _chunks(size, chunk_bytes)
@@ -150,29 +175,29 @@ def write_bag1(fh, fields: list[dict[str, bytes]], cids: list[int], msgs, log_ns
     groups = _by_chunk_and_key(slices, msgs.conn)
     for ci, (sl, (body_len, data)) in enumerate(zip(slices, threads.ordered(work, slices))):
         lead = lead_all if sl.start == 0 else b""  # (the connection records open the first chunk)
-        pos = fh.tell()
-        fh.write(_bag1_header([(b"op", b"\x05"), (b"compression", comp.encode()),
-                               (b"size", struct.pack("<I", body_len))]) + struct.pack("<I", len(data)))
-        fh.write(data)
+        at = pos
+        put(_bag1_header([(b"op", b"\x05"), (b"compression", comp.encode()),
+                          (b"size", struct.pack("<I", body_len))]) + struct.pack("<I", len(data)))
+        put(data)
         t = log_ns[sl]
         off = len(lead) + np.cumsum(size[sl]) - size[sl]
         counts = []
         for kk, m in groups[ci]:
             ent = np.empty((len(m), 3), "<u4")
             ent[:, 0], ent[:, 1], ent[:, 2] = t[m] // 1_000_000_000, t[m] % 1_000_000_000, off[m]
-            fh.write(_bag1_record([(b"op", b"\x04"), (b"ver", struct.pack("<I", 1)),
-                                   (b"conn", struct.pack("<I", cids[kk])), (b"count", struct.pack("<I", len(ent)))],
-                                  ent.tobytes()))
+            put(_bag1_record([(b"op", b"\x04"), (b"ver", struct.pack("<I", 1)),
+                              (b"conn", struct.pack("<I", cids[kk])), (b"count", struct.pack("<I", len(ent)))],
+                             ent.tobytes()))
             counts.append((cids[kk], len(ent)))
-        infos.append((pos, int(t.min()), int(t.max()), counts))
-    index_pos = fh.tell()
+        infos.append((at, int(t.min()), int(t.max()), counts))
+    index_pos = pos
     for rec in conn_recs.values():
-        fh.write(rec)
-    for pos, t0, t1, counts in infos:
-        fh.write(_bag1_record([(b"op", b"\x06"), (b"ver", struct.pack("<I", 1)), (b"chunk_pos", struct.pack("<Q", pos)),
-                               (b"start_time", _bag1_time(t0)), (b"end_time", _bag1_time(t1)),
-                               (b"count", struct.pack("<I", len(counts)))],
-                              b"".join(struct.pack("<II", c, m) for c, m in counts)))
+        put(rec)
+    for at, t0, t1, counts in infos:
+        put(_bag1_record([(b"op", b"\x06"), (b"ver", struct.pack("<I", 1)), (b"chunk_pos", struct.pack("<Q", at)),
+                          (b"start_time", _bag1_time(t0)), (b"end_time", _bag1_time(t1)),
+                          (b"count", struct.pack("<I", len(counts)))],
+                         b"".join(struct.pack("<II", c, m) for c, m in counts)))
     hdr = _bag1_header([(b"op", b"\x03"), (b"index_pos", struct.pack("<Q", index_pos)),
                         (b"conn_count", struct.pack("<I", len(cids))), (b"chunk_count", struct.pack("<I", len(infos)))])
     pad = 4096 - len(hdr) - 4

@@ -46,6 +46,7 @@ class _Damage(Exception):
 
 
 def _fields(header: bytes) -> dict[str, bytes]:
+    header = bytes(header)  # (a memoryview slice from the export's scan; bytes stay as they are)
     out: dict[str, bytes] = {}
     off, n = 0, len(header)
     while off < n:
@@ -133,6 +134,7 @@ class _Scan:
         """Offsets (inside the header) of the op, conn and time values of a MSG_DATA header."""
         pos: dict[str, int] = {}
         off = 0
+        hdr = bytes(hdr)
         while off < len(hdr):
             (ln,) = _U32.unpack_from(hdr, off)
             eq = hdr.index(b"=", off + 4, off + 4 + ln)
@@ -268,40 +270,42 @@ class _Scan:
     def chunk(self, header: dict[str, bytes], buf: bytes, d0: int, d1: int, where: int) -> None:
         comp = header.get("compression", b"none").decode("ascii", "replace")
         size = _U32.unpack_from(header.get("size", b"\0\0\0\0"), 0)[0]
-        raw = buf[d0:d1]
+        c0, c1 = d0, d1  # an uncompressed chunk's records are walked where they lie (not copied out)
         try:
             if comp == "none":
-                content = raw
+                content = buf
             elif comp == "bz2":
-                content = bz2.decompress(raw)
+                content = bz2.decompress(buf[d0:d1])
             elif comp == "lz4":
                 import lz4.frame
 
-                content = lz4.frame.decompress(raw)
+                content = lz4.frame.decompress(buf[d0:d1])
             else:
                 raise _Damage(f"chunk at byte {where}: unsupported compression {comp!r}")
         except _Damage:
             raise
         except Exception as exc:
             raise _Damage(f"chunk at byte {where} cannot be decompressed ({type(exc).__name__})") from None
-        if len(content) != size:
-            raise _Damage(f"chunk at byte {where}: size {len(content)} != {size}")
+        if comp != "none":
+            c0, c1 = 0, len(content)
+        if c1 - c0 != size:
+            raise _Damage(f"chunk at byte {where}: size {c1 - c0} != {size}")
         before = self.count
-        pos, places, skipped = 0, [], 0
+        pos, places, skipped = c0, [], 0
         while True:
             try:
-                self.records(content, pos, len(content), f"chunk at byte {where}")
+                self.records(content, pos, c1, f"chunk at byte {where}")
                 break
             except (_Damage, struct.error, KeyError, ValueError) as exc:  # keep what was read before
                 at = exc.at if isinstance(exc, _Damage) else None
-                nxt = None if at is None else self._resync(content, at + 1, len(content))
+                nxt = None if at is None else self._resync(content, at + 1, c1)
                 if nxt is None:
                     n_new = self.count - before
                     text = str(exc) if isinstance(exc, _Damage) else f"chunk at byte {where}: {type(exc).__name__} {exc}"
                     if places:
                         text += f" (after {len(places)} damaged place(s) skipped, {skipped} bytes)"
                     raise _Damage(f"{text} (kept the {n_new} messages of that chunk before the damage)") from None
-                places.append(at)
+                places.append(at - c0)
                 skipped += nxt - at
                 pos = nxt
         if places:
@@ -316,6 +320,11 @@ class _Scan:
         if not known:
             return None
         u32 = _U32.unpack_from
+        if not isinstance(buf, bytes):  # (the export's memoryview of the file: its find() is that of bytes)
+            base = start
+            buf = bytes(buf[base:end])
+            r = self._resync(buf, 0, end - base)
+            return None if r is None else r + base
         k = buf.find(b"op=\x02", start)
         while k >= 0:
             for hlen, (o_op, o_conn, o_time) in known:

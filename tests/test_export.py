@@ -4,6 +4,7 @@ formats' own readers), damaged input, unchanged inputs, atomic outputs, the CLI.
 (analysis -> export -> analysis) are in test_export_roundtrip.py."""
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -271,6 +272,36 @@ def test_damaged_input_written_whole_and_named(slaves, pair, tmp_path, fmt):
     # the readable part reads back, compensated
     log = registry.load(str(dst))
     assert len(log.imu) > 0.9 * len(pair.slave.imu)
+
+
+@pytest.mark.parametrize("damaged", [False, True])
+def test_tlog_runs_in_threads_write_the_same_bytes(slaves, pair, tmp_path, monkeypatch, damaged):
+    """The tlog export splits the records into runs done in threads (large files): any split gives the
+    file one run gives, damaged bytes between the runs included, and a negative stamp still fails."""
+    from parsers import restamp_mavlink, threads
+
+    raw = bytearray(slaves["tlog"].read_bytes())
+    if damaged:
+        mid = len(raw) // 3
+        raw[mid:mid + 5] = b"\x00\x01\x02\x03\x04"
+        raw = raw[:-7]
+    src = tmp_path / "in.tlog"
+    src.write_bytes(bytes(raw))
+    outs = {}
+    for parts in (1, 7):
+        monkeypatch.setattr(restamp_mavlink, "_parts", lambda n, k=parts: k)
+        monkeypatch.setattr(threads, "workers", lambda: 2)
+        dst = tmp_path / f"out{parts}.tlog"
+        st = restamp_mavlink.restamp_tlog(str(src), str(dst), shift_of(pair))
+        outs[parts] = (dst.read_bytes(), st)
+    assert outs[1][0] == outs[7][0]
+    assert outs[1][1] == dataclasses.replace(outs[7][1], path=outs[1][1].path)
+    assert bool(outs[1][1].damage) == damaged
+    # a shift larger than the stamps: no output, one clear error
+    t = pair.truth
+    with pytest.raises(InputError, match="negative"):
+        restamp_mavlink.restamp_tlog(str(src), str(tmp_path / "neg.tlog"), ClockShift(4e9, 0.0, int(t.t_mid_ns)))
+    assert not (tmp_path / "neg.tlog").exists()
 
 
 def test_interrupted_write_leaves_nothing(slaves, pair, tmp_path, monkeypatch):
