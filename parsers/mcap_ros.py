@@ -34,6 +34,7 @@ MAGIC = b"\x89MCAP0\r\n"
 
 _OP_HEADER, _OP_FOOTER, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK = 1, 2, 3, 4, 5, 6
 _OP_DATA_END = 15
+_OP_CHUNK_INDEX = 8
 _REC = struct.Struct("<BQ")
 _U16 = struct.Struct("<H")
 _U32 = struct.Struct("<I")
@@ -47,6 +48,11 @@ def sniff(head: bytes, path: str) -> bool:
 
 class _Damage(Exception):
     pass
+
+
+class _Undecodable(_Damage):
+    """A chunk whose compressed records stop decompressing part way (a flipped or zeroed byte): what
+    decompresses before the damage can still be walked (:func:`inflate_prefix`)."""
 
 
 def _string(buf, off: int) -> tuple[str, int]:
@@ -315,25 +321,39 @@ def _decoder(topic: str, msgtype: str, enc: str, schema: tuple[str, str, bytes] 
     return rc.StreamDecoder(topic, msgtype, encoding, store)
 
 
+def inflate_prefix(comp: str, data) -> bytes:
+    """What of a chunk's compressed records decompresses, up to the end of ``data`` (a cut chunk) or the
+    first damaged block (fed in 16 KiB steps: the blocks before it come out); b"" for another compression.
+    Not CRC-checked: the records walk of it is the check on its structure."""
+    if comp == "":
+        return bytes(data)
+    if comp == "zstd":
+        import zstandard
+
+        dec = zstandard.ZstdDecompressor().decompressobj()
+    elif comp == "lz4":
+        import lz4.frame
+
+        dec = lz4.frame.LZ4FrameDecompressor()
+    else:
+        return b""
+    out = []
+    for i in range(0, len(data), 1 << 14):
+        try:
+            out.append(dec.decompress(bytes(data[i:i + (1 << 14)])))
+        except Exception:  # the damaged block: what came before it is kept
+            break
+    return b"".join(out)
+
+
 def _partial_chunk(scan: _Scan, buf: bytes, off: int, end: int) -> int:
     """The complete messages of a chunk cut by the end of the file (a recording killed while writing
-    its last chunk): what of its compressed data is there, decompressed as far as it goes, walked up to
-    the first cut record (what ``mcap recover`` does). Returns how many messages were added."""
+    its last chunk) or damaged part way: what of its compressed data is there, decompressed as far as it
+    goes, walked up to the first cut record (what ``mcap recover`` does). Returns how many messages were
+    added."""
     try:
         comp, o = _string(buf, off + 9 + 28)
-        data = bytes(buf[o + 8:end])
-        if comp == "":
-            content = data
-        elif comp == "zstd":
-            import zstandard
-
-            content = zstandard.ZstdDecompressor().decompressobj().decompress(data)
-        elif comp == "lz4":
-            import lz4.frame
-
-            content = lz4.frame.LZ4FrameDecompressor().decompress(data)
-        else:
-            return 0
+        content = inflate_prefix(comp, buf[o + 8:end])
     except Exception:  # a header cut too, or data that does not decompress at all: nothing to recover
         return 0
     before = scan.n_messages()
@@ -387,6 +407,47 @@ def summary_definitions(buf) -> list[tuple[int, int, int]]:
     return sorted(out, key=lambda r: r[0] != _OP_SCHEMA)  # schemas first: a channel is judged by its schema
 
 
+def summary_chunk_starts(buf) -> list[int]:
+    """The chunk offsets the summary's chunk index records give (ascending), found through the footer: where
+    a damaged data section can be picked up again (a zeroed run of bytes otherwise ended the walk, and the
+    file's later chunks were lost). [] without a footer or chunk indexes."""
+    n = len(buf)
+    at = n - len(MAGIC) - 29
+    if at < len(MAGIC) or bytes(buf[n - len(MAGIC):]) != MAGIC:
+        return []
+    op, ln = _REC.unpack_from(buf, at)
+    if op != _OP_FOOTER or ln != 20:
+        return []
+    (start,) = _U64.unpack_from(buf, at + 9)
+    out = []
+    off = int(start)
+    while len(MAGIC) <= off < at and off + 9 <= at:
+        op, ln = _REC.unpack_from(buf, off)
+        nxt = off + 9 + ln
+        if op == 0 or op > 0x0F or nxt > at:
+            break
+        if op == _OP_CHUNK_INDEX and ln >= 32:
+            (c0,) = _U64.unpack_from(buf, off + 9 + 16)  # message start and end time, then the chunk's offset
+            if len(MAGIC) <= c0 < start:
+                out.append(int(c0))
+        off = nxt
+    return sorted(set(out))
+
+
+def resume_at(buf, starts: list[int], off: int) -> int | None:
+    """The first chunk start of ``starts`` (:func:`summary_chunk_starts`) after ``off`` whose bytes still
+    open a chunk record inside the file, or None."""
+    import bisect
+
+    end = len(buf)
+    for c in starts[bisect.bisect_right(starts, off):]:
+        if c + 9 <= end:
+            op, ln = _REC.unpack_from(buf, c)
+            if op == _OP_CHUNK and c + 9 + ln <= end:
+                return c
+    return None
+
+
 def _chunk_header(buf, off: int, nxt: int) -> tuple[str, int, int, int, int]:
     """(compression, uncompressed size, CRC, start, length of the compressed records) of the chunk record at
     ``off`` (ending at ``nxt``); :class:`_Damage` when the records run past it."""
@@ -407,7 +468,7 @@ def inflate_chunk(buf, off: int, nxt: int) -> bytes:
     except _Damage:
         raise
     except Exception as exc:
-        raise _Damage(f"chunk at byte {off} cannot be decompressed ({type(exc).__name__})") from None
+        raise _Undecodable(f"chunk at byte {off} cannot be decompressed ({type(exc).__name__})") from None
     if len(content) != usize:
         raise _Damage(f"chunk at byte {off}: size {len(content)} != {usize}")
     if crc and zlib.crc32(content) != crc:
@@ -435,7 +496,7 @@ def inflate_chunk_into(buf, off: int, nxt: int, out: np.ndarray) -> np.ndarray:
             n += k
         extra = reader.read(1)
     except Exception as exc:
-        raise _Damage(f"chunk at byte {off} cannot be decompressed ({type(exc).__name__})") from None
+        raise _Undecodable(f"chunk at byte {off} cannot be decompressed ({type(exc).__name__})") from None
     if n != usize or extra:
         raise _Damage(f"chunk at byte {off}: size {n + len(extra)}{'+' if extra else ''} != {usize}")
     if crc and zlib.crc32(out) != crc:
@@ -443,21 +504,27 @@ def inflate_chunk_into(buf, off: int, nxt: int, out: np.ndarray) -> np.ndarray:
     return out
 
 
-def chunk_records(buf, off: int) -> Iterator[tuple[int, int]]:
+def chunk_records(buf, off: int, starts: list[int] | None = None) -> Iterator[tuple[int, int]]:
     """(offset, next) of the complete chunk records from ``off`` on, along the top-level records (up to
-    the first invalid or cut record): what a scan will inflate, for :class:`parsers.threads.Prefetch`."""
+    the first invalid or cut record, then on from the next of the summary's chunk ``starts`` after it, as the
+    scans do): what a scan will inflate, for :class:`parsers.threads.Prefetch`."""
     end = len(buf)
     while off + 9 <= end:
         op, ln = _REC.unpack_from(buf, off)
         nxt = off + 9 + ln
-        if op == 0 or op > 0x0F or nxt > end or op == _OP_FOOTER:
+        if op == _OP_FOOTER:
             return
+        if op == 0 or op > 0x0F or nxt > end:
+            off = resume_at(buf, starts or [], off)
+            if off is None:
+                return
+            continue
         if op == _OP_CHUNK:
             yield off, nxt
         off = nxt
 
 
-def chunk_prefetch(buf, off: int, arena: tuple[np.ndarray, dict] | None = None):
+def chunk_prefetch(buf, off: int, arena: tuple[np.ndarray, dict] | None = None, starts: list[int] | None = None):
     """The chunks of ``buf`` from ``off`` on, inflated ahead of the scan in worker threads (for a file
     read whole into memory; the parser's memory-mapped walk measured no gain from it). With ``arena``
     (one buffer and {(offset, next): (start, size)} in it, :func:`chunk_arena`) each chunk is
@@ -465,7 +532,7 @@ def chunk_prefetch(buf, off: int, arena: tuple[np.ndarray, dict] | None = None):
     from parsers import threads
 
     if arena is None:
-        return threads.Prefetch(lambda r: inflate_chunk(buf, r[0], r[1]), chunk_records(buf, off))
+        return threads.Prefetch(lambda r: inflate_chunk(buf, r[0], r[1]), chunk_records(buf, off, starts))
     out, where = arena
 
     def inflate(r):
@@ -474,7 +541,7 @@ def chunk_prefetch(buf, off: int, arena: tuple[np.ndarray, dict] | None = None):
             return inflate_chunk(buf, r[0], r[1])
         return inflate_chunk_into(buf, r[0], r[1], out[at[0]:at[0] + at[1]])
 
-    return threads.Prefetch(inflate, chunk_records(buf, off))
+    return threads.Prefetch(inflate, chunk_records(buf, off, starts))
 
 
 #: the largest decompressed size the export's one buffer is made for, as a multiple of the file (plus 64 MiB):
@@ -483,14 +550,15 @@ def chunk_prefetch(buf, off: int, arena: tuple[np.ndarray, dict] | None = None):
 ARENA_MAX_RATIO = 64
 
 
-def chunk_arena(buf, off: int, limit_bytes: int | None = None) -> tuple[np.ndarray, dict] | None:
+def chunk_arena(buf, off: int, limit_bytes: int | None = None,
+                starts: list[int] | None = None) -> tuple[np.ndarray, dict] | None:
     """One buffer for every zstd chunk of ``buf`` from ``off`` on and where each goes in it, when every
     chunk is zstd and their stated sizes add up to at most ``limit_bytes`` (default ARENA_MAX_RATIO times the
     file, plus 64 MiB); None otherwise (the chunks are inflated one by one)."""
     if limit_bytes is None:
         limit_bytes = ARENA_MAX_RATIO * len(buf) + (1 << 26)
     where, total = {}, 0
-    for r in chunk_records(buf, off):
+    for r in chunk_records(buf, off, starts):
         try:
             comp, usize, _crc, _o, _clen = _chunk_header(buf, r[0], r[1])
         except (_Damage, struct.error, UnicodeDecodeError):
@@ -520,15 +588,26 @@ def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
                 scan.schema(buf, at + 9, nxt) if op == _OP_SCHEMA else scan.channel(buf, at + 9)
             except (_Damage, struct.error, UnicodeDecodeError):
                 pass  # a damaged summary: the definitions come from the data section as before
+        starts = summary_chunk_starts(buf)  # where the walk picks up again after a damaged stretch
+        last = off
         while off < end:
             if off + 9 > end:
                 scan.warnings.append(f"file truncated at byte {off} of {end} (no footer): readable part used")
                 break
             op, ln = _REC.unpack_from(buf, off)
             nxt = off + 9 + ln
-            if op == 0 or op > 0x0F:
-                scan.warnings.append(f"damaged: invalid record opcode {op} at byte {off}; rest of file ignored")
-                break
+            bad_op = op == 0 or op > 0x0F
+            if bad_op or (nxt > end and starts):  # (a file with a footer is damaged here, not truncated)
+                # on after the last record that started well (its length may be what was damaged)
+                at = resume_at(buf, starts, last)
+                what = f"invalid record opcode {op}" if bad_op else f"a record (opcode {op}) running past the file"
+                if at is None:
+                    scan.warnings.append(f"damaged: {what} at byte {off}; rest of file ignored")
+                    break
+                scan.warnings.append(f"damaged: {what} at byte {off}; went on at the next chunk the summary lists "
+                                     f"(byte {at})")
+                last = off = at
+                continue
             if nxt > end:
                 got = _partial_chunk(scan, buf, off, end) if op == _OP_CHUNK else 0
                 scan.warnings.append(f"file truncated at byte {end}: record at byte {off} (opcode {op}) incomplete; "
@@ -540,7 +619,14 @@ def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
             try:
                 if op == _OP_CHUNK:
                     n_chunks += 1
-                    content = inflate_chunk(buf, off, nxt)
+                    try:
+                        content = inflate_chunk(buf, off, nxt)
+                    except _Undecodable as exc:  # the complete messages before the damaged block are kept
+                        got = _partial_chunk(scan, buf, off, nxt)
+                        if not got:
+                            raise
+                        scan.warnings.append(f"damaged: {exc}; the {got} complete messages before the damage kept")
+                        content = b""
                     # (a damaged chunk adds none of its messages: records() raises before it adds any)
                     scan.records(content, 0, len(content), f"chunk at byte {off}")
                     del content
@@ -556,8 +642,9 @@ def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
             except (_Damage, struct.error, UnicodeDecodeError) as exc:
                 msg = str(exc) if isinstance(exc, _Damage) else f"record at byte {off} unreadable ({exc})"
                 scan.warnings.append(f"damaged: {msg}; its messages dropped")
+            last = off
             off = nxt
-            fm.release_before(off)
+            fm.release_before(min(off, last))
         if not footer and not any("truncated" in w or "rest of file" in w for w in scan.warnings):
             scan.warnings.append("no MCAP footer (file truncated?): readable part used")
         del buf

@@ -480,7 +480,15 @@ class _McapScan:
         comp, _o = mcap_ros._string(buf, off + 9 + 28)
         if self.compression is None:
             self.compression, self.chunk_size = comp, usize
-        content = chunks.get((off, nxt)) if chunks is not None else mcap_ros.inflate_chunk(buf, off, nxt)
+        try:
+            content = chunks.get((off, nxt)) if chunks is not None else mcap_ros.inflate_chunk(buf, off, nxt)
+        except mcap_ros._Undecodable as exc:  # the complete messages before the damaged block are kept
+            got = self.partial_chunk(buf, off, nxt)
+            if not got:
+                raise
+            self.damage.append(f"damaged: {exc}; the {got} complete messages before the damage kept, the rest "
+                               "of the chunk not in the output")
+            return
         n = len(self.cid)
         try:
             self.records(content, 0, len(content), f"chunk at byte {off}", whole_chunk=True)
@@ -489,21 +497,14 @@ class _McapScan:
             raise
 
     def partial_chunk(self, buf, off: int, end: int) -> int:
+        """The complete messages of a cut or part-way damaged chunk (:func:`mcap_ros.inflate_prefix`)."""
+        n = len(self.cid)
         try:
             comp, o = mcap_ros._string(buf, off + 9 + 28)
-            data = bytes(buf[o + 8:end])
-            if comp == "zstd":
-                import zstandard
-
-                content = zstandard.ZstdDecompressor().decompressobj().decompress(data)
-            elif comp == "lz4":
-                import lz4.frame
-
-                content = lz4.frame.LZ4FrameDecompressor().decompress(data)
-            else:
-                content = data
+            content = mcap_ros.inflate_prefix(comp, buf[o + 8:end])
             return self.records(content, 0, len(content), f"partial chunk at byte {off}", cut_ok=True)
         except Exception:
+            del self.cid[n:], self.log[n:], self.blocks[n:], self.whole[n:]
             return 0
 
 
@@ -523,17 +524,27 @@ def _scan_mcap(path: str) -> _McapScan:
         except (mcap_ros._Damage, struct.error, UnicodeDecodeError):
             pass
     # zstd chunks decompressed into one buffer (the messages' buffer of the export: not held twice)
-    sc.arena = mcap_ros.chunk_arena(buf, off)
-    with mcap_ros.chunk_prefetch(buf, off, sc.arena) as chunks:  # decompression and CRC ahead, in threads
+    starts = mcap_ros.summary_chunk_starts(buf)  # where the walk picks up again after a damaged stretch
+    sc.arena = mcap_ros.chunk_arena(buf, off, starts=starts)
+    last = off
+    with mcap_ros.chunk_prefetch(buf, off, sc.arena, starts) as chunks:  # decompression and CRC ahead, in threads
         while off < end:
             if off + 9 > end:
                 sc.damage.append(f"file truncated at byte {off} of {end} (no footer)")
                 break
             op, ln = mcap_ros._REC.unpack_from(buf, off)
             nxt = off + 9 + ln
-            if op == 0 or op > 0x0F:
-                sc.damage.append(f"invalid record opcode {op} at byte {off}; rest of file not read")
-                break
+            bad_op = op == 0 or op > 0x0F
+            if bad_op or (nxt > end and starts):  # (the same rules as the parser's walk)
+                at = mcap_ros.resume_at(buf, starts, last)
+                what = f"invalid record opcode {op}" if bad_op else f"a record (opcode {op}) running past the file"
+                if at is None:
+                    sc.damage.append(f"{what} at byte {off}; rest of file not read")
+                    break
+                sc.damage.append(f"{what} at byte {off}; went on at the next chunk the summary lists (byte {at}), "
+                                 "the bytes between not in the output")
+                last = off = at
+                continue
             if nxt > end:
                 got = sc.partial_chunk(buf, off, end) if op == _OP["chunk"] else 0
                 sc.damage.append(f"file truncated at byte {end}: record at byte {off} (opcode {op}) incomplete"
@@ -568,6 +579,7 @@ def _scan_mcap(path: str) -> _McapScan:
             except (mcap_ros._Damage, struct.error, UnicodeDecodeError) as exc:
                 msg = str(exc) if isinstance(exc, mcap_ros._Damage) else f"record at byte {off} unreadable ({exc})"
                 sc.damage.append(f"damaged: {msg}; its messages are not in the output")
+            last = off
             off = nxt
     if not footer and not sc.damage:
         sc.damage.append("no MCAP data end / footer (file truncated?)")
@@ -742,6 +754,14 @@ def _read_ros2_part(f: str, g: str, storage: str, by_key, damage: list[str]) -> 
         tk[tid] = by_key.get((tname, rc.normalize_msgtype(ttype)))
         if tk[tid] is None:
             raise InputError(f"topic {tname} of the storage file is not among the bag's connections", f)
+    # a damaged page can hand back rows whose topic id, time or data are of another type (or NULL): not
+    # messages that can be written; dropped and named, as the parser drops them
+    good = [r for r in rows if isinstance(r[0], int) and r[0] in tk and isinstance(r[1], int) and r[1] >= 0
+            and isinstance(r[2], (bytes, bytearray, memoryview))]
+    if len(good) < len(rows):
+        damage.append(f"{name}: {len(rows) - len(good)} message row(s) with a damaged topic id, timestamp or "
+                      "data; not in the output")
+        rows = good
     conn = np.fromiter((tk[r[0]] for r in rows), np.int64, len(rows))
     log = np.fromiter((r[1] for r in rows), np.int64, len(rows))
     return _Part(name, _pack(conn, log, [r[2] for r in rows]))

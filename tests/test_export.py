@@ -304,6 +304,31 @@ def test_tlog_runs_in_threads_write_the_same_bytes(slaves, pair, tmp_path, monke
     assert not (tmp_path / "neg.tlog").exists()
 
 
+def test_dataflash_damaged_time_value_is_copied_and_named(slaves, pair, tmp_path):
+    """A flipped byte that makes one record's TimeUS absurd (here: negative once shifted) does not stop the
+    export: that record keeps its bytes and is named; a shift the clock cannot express is still an error."""
+    from parsers import dataflash as df
+    from parsers import restamp_mavlink
+
+    log = df.read_log(str(slaves["dataflash"]))
+    typ = next(t for t, f in log.formats.items() if f.name == "IMU")
+    f = log.formats[typ]
+    at = int(log.offsets[typ][len(log.offsets[typ]) // 2]) + 3 + f.dtype.fields["TimeUS"][1]
+    raw = bytearray(slaves["dataflash"].read_bytes())
+    raw[at + 7] ^= 0xFF  # the most significant byte: beyond int64, read back as a large negative number
+    src = tmp_path / "glitch.bin"
+    src.write_bytes(bytes(raw))
+    dst = tmp_path / "out.bin"
+    st = restamp_mavlink.restamp_dataflash(str(src), str(dst), shift_of(pair))
+    assert any("IMU.TimeUS: 1 record(s) with a damaged time value" in d for d in st.damage), st.damage
+    out = dst.read_bytes()
+    assert out[at:at + 8] == bytes(raw[at:at + 8])  # copied unchanged
+    assert len(out) == len(raw)
+    with pytest.raises(InputError, match="negative"):
+        restamp_mavlink.restamp_dataflash(str(slaves["dataflash"]), str(tmp_path / "neg.bin"),
+                                          ClockShift(1e6, 0.0, int(pair.truth.t_mid_ns)))
+
+
 def test_interrupted_write_leaves_nothing(slaves, pair, tmp_path, monkeypatch):
     import parsers.atomic as atomic
 

@@ -535,6 +535,26 @@ def test_sqlite_in_place_gives_the_rows_the_rows_path_gives(big, tmp_path, monke
     assert parsers.load(str(tmp_path / "fast")).imu.equals(parsers.load(str(tmp_path / "rows")).imu)
 
 
+def test_sqlite_rows_with_damaged_fields_are_dropped_and_named(big, tmp_path):
+    """Rows a damaged page hands back with a NULL or unknown topic id or a non-integer timestamp are
+    not written (the parser skips them too) and are named; every other row is exported."""
+    import shutil
+    import sqlite3
+
+    src = str(tmp_path / "bag")
+    shutil.copytree(big["rosbag2"], src)
+    con = sqlite3.connect(os.path.join(src, "bag.db3"))
+    n0 = con.execute("SELECT count(*) FROM messages").fetchone()[0]
+    con.executemany("INSERT INTO messages (topic_id, timestamp, data) VALUES (?, ?, ?)",
+                    [(999, 1_700_000_000_000_000_000, b"x"), (1, "garbage", b"x")])  # (NULLs: NOT NULL)
+    con.commit()
+    con.close()
+    st = rr.restamp_rosbag2(src, str(tmp_path / "out"), _shift_for(big["log"]))
+    assert st.records == n0
+    assert any("2 message row(s) with a damaged topic id, timestamp or data" in d for d in st.damage), st.damage
+    assert len(_rows(str(tmp_path / "out" / "bag.db3"))) == n0
+
+
 def test_sqlite_in_place_rebuilds_the_index_when_the_shift_reorders(tmp_path, slave):
     """Record times 1 us apart, header stamps 5 ms apart, 2000 ppm of drift: each message's shift grows by
     10 us, so the shifted record times run backwards and the index on them is rebuilt (by SQLite)."""

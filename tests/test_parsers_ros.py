@@ -476,6 +476,73 @@ def test_mcap_damaged_first_chunk_keeps_the_channels_it_defined(big_files, tmp_p
     assert st.records > 0.3 * n_full and any(f"chunk at byte {first}" in d for d in st.damage)
 
 
+def _mcap_chunks(data: bytes) -> list[tuple[int, int]]:
+    """(offset, length) of the chunk records along the top-level records up to the footer."""
+    import struct
+
+    off, out = 8, []
+    while data[off] != 2:
+        op, ln = struct.unpack_from("<BQ", data, off)
+        if op == 6:
+            out.append((off, ln))
+        off += 9 + ln
+    return out
+
+
+def test_mcap_zeroed_stretch_goes_on_at_the_next_chunk_the_summary_lists(big_files, tmp_path):
+    """4 KiB zeroed across the end of a chunk and the records after it: the walk met opcode 0 and ignored the
+    rest of the file. It now goes on at the next chunk the summary's chunk index lists (parse and export)."""
+    src = big_files["mcap"]
+    data = bytearray(open(src, "rb").read())
+    chunks = _mcap_chunks(bytes(data))
+    at, ln = chunks[1]
+    end = at + 9 + ln
+    data[end - 100:end + 3996] = bytes(4096)
+    p = _copy_with(src, str(tmp_path / "zero.mcap"), bytes(data))
+    back = parsers.load(p)
+    n_full = len(big_files["log"].imu)
+    assert len(back.imu) > (1 - 2 / len(chunks)) * n_full  # the damaged chunk (and at most one more) lost
+    nxt = next(c for c, _ in chunks if c > end)
+    assert any(f"went on at the next chunk the summary lists (byte {nxt})" in w for w in back.meta.warnings)
+    rr = pytest.importorskip("parsers.restamp_ros")
+    st = rr.restamp_mcap(p, str(tmp_path / "zero_out.mcap"), ClockShift(0.001, 0.0, big_files["log"].meta.t0_ns))
+    assert any(f"(byte {nxt})" in d for d in st.damage)
+    assert len(parsers.load(str(tmp_path / "zero_out.mcap")).imu) == len(back.imu)
+
+
+def test_mcap_chunk_damaged_late_keeps_the_messages_before_the_damage(big_files, tmp_path):
+    """Bytes inverted late in a zstd chunk's compressed records: the blocks before them still decompress and
+    their complete messages are kept (parse and export), the rest of that chunk is named as lost."""
+    src = big_files["mcap"]
+    clean = bytes(open(src, "rb").read())
+    at, ln = _mcap_chunks(clean)[1]
+    for frac in np.linspace(0.9, 0.5, 21):  # 16 bytes inverted: where zstd itself finds the damage
+        data = bytearray(clean)
+        k = at + 9 + int(ln * frac)
+        data[k:k + 16] = bytes(b ^ 0xFF for b in data[k:k + 16])
+        try:
+            mcap_ros.inflate_chunk(memoryview(bytes(data)), at, at + 9 + ln)
+        except mcap_ros._Undecodable:
+            break
+        except mcap_ros._Damage:  # (decompressed to other bytes: the CRC check's case, not this test's)
+            continue
+    else:
+        pytest.fail("no damage zstd detects")
+    p = _copy_with(src, str(tmp_path / "late.mcap"), bytes(data))
+    full = mcap_ros.read_raw(src)
+    raw = mcap_ros.read_raw(p)
+    n_full = sum(t.count for t in full.topics.values())
+    n = sum(t.count for t in raw.topics.values())
+    w = [x for x in raw.warnings if f"chunk at byte {at}" in x]
+    assert len(w) == 1 and "complete messages before the damage kept" in w[0], raw.warnings
+    kept = int(w[0].split("; the ")[-1].split(" complete")[0])
+    per_chunk = n_full / len(_mcap_chunks(bytes(data)))
+    assert 0.5 * per_chunk < kept < per_chunk and n_full - per_chunk < n < n_full  # the chunk's first part kept
+    rr = pytest.importorskip("parsers.restamp_ros")
+    st = rr.restamp_mcap(p, str(tmp_path / "late_out.mcap"), ClockShift(0.001, 0.0, big_files["log"].meta.t0_ns))
+    assert st.records == n and any(f"the {kept} complete messages before the damage kept" in d for d in st.damage)
+
+
 def test_rosbag1_damaged_record_in_a_chunk_loses_that_record_not_the_rest_of_the_chunk(big_files, tmp_path):
     """A record's data length damaged in the middle of a chunk: the walk resynchronises at the next
     record of a known layout (before, the rest of the chunk, up to 1 MB of messages, was dropped)."""
