@@ -664,9 +664,14 @@ def render(rep: dict, an: Analysis) -> str:
     sections.append(("warnings", "Warnings and notes", "<ul>" + "".join(warn) + "</ul>" if warn
                      else "<p class=note>None.</p>"))
     tim = rep.get("timings_s", {})
+    # this page is written before the report's and the recording's stages end: their times are report.json's
+    later = {k for k in ("report", "recording") if k in tim and not tim[k]}
     sections.append(("timings", "Timings", "<table><tr>" + "".join(f"<th>{_esc(k)}</th>" for k in tim)
-                     + "</tr><tr>" + "".join(f"<td class=num>{_fmt(v, '.2f', 's')}</td>" for v in tim.values())
-                     + "</tr></table>"))
+                     + "</tr><tr>" + "".join("<td class=note>in report.json</td>" if k in later
+                                             else f"<td class=num>{_fmt(v, '.2f', 's')}</td>" for k, v in tim.items())
+                     + "</tr></table>"
+                     + ("<p class=note>The report and the recording are written after this page; their times and "
+                        "the total are in report.json.</p>" if later else "")))
     nav = " &middot; ".join(f'<a href="#{i}" style="color:#fff">{_esc(t)}</a>' for i, t, _ in sections)
     parts = [
         "<!DOCTYPE html><html lang=en><head><meta charset=utf-8>",

@@ -130,3 +130,15 @@ def _read_png(path: Path) -> np.ndarray:
     Image = pytest.importorskip("PIL.Image")
     with Image.open(path) as im:
         return np.asarray(im.convert("RGB"), dtype=float) / 255.0
+
+
+def test_timings_of_stages_written_after_the_page_point_to_report_json():
+    """report.html is written before the report's and the recording's stages end: their cells say where
+    the times are instead of showing 0.00 s."""
+    an = make_fake_analysis(duration_s=20)
+    rep = fake_report(an)
+    rep["timings_s"] = {**rep.get("timings_s", {}), "parse": 0.5, "report": 0.0, "recording": 0.0}
+    text = render(rep, an)
+    sec = text[text.index('<section id="timings">'):]
+    sec = sec[:sec.index("</section>")]
+    assert sec.count("<td class=note>in report.json</td>") == 2 and "0.00 s" not in sec and "0.50 s" in sec
