@@ -139,6 +139,17 @@ def sniff(head: bytes, path: str) -> bool:
     return b"\xa3\x95\x80" in head[:4096]
 
 
+def sniff_damaged(head: bytes, path: str) -> bool:
+    """A DataFlash log whose first bytes are damaged: an FMT record (89 bytes) followed by another record in
+    the first 4 KiB (the walk skips the bytes before it, and says so)."""
+    i = head.find(b"\xa3\x95\x80", 0, 4096)
+    while i >= 0:
+        if head[i + 89:i + 91] == bytes([HEAD1, HEAD2]):
+            return True
+        i = head.find(b"\xa3\x95\x80", i + 1, 4096)
+    return False
+
+
 @dataclass
 class DfLog:
     """A walked DataFlash file: record offsets grouped by type, formats, damage."""

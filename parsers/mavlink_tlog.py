@@ -394,6 +394,13 @@ def sniff(head: bytes, path: str) -> bool:
     return good >= 4 or (good >= 1 and i >= n)
 
 
+def sniff_damaged(head: bytes, path: str) -> bool:
+    """A tlog whose first bytes are damaged: records chain (as :func:`sniff` wants them) from an offset in
+    the first 4 KiB (the walk skips the bytes before, and says so)."""
+    return any(sniff(head[i:], path) for i in range(1, max(1, min(len(head) - 64, 4096)))
+               if head[i + 8] in (0xFE, 0xFD))
+
+
 # ---- streams and clocks ------------------------------------------------------------------------
 @dataclass(frozen=True)
 class RawStream:

@@ -46,6 +46,26 @@ def sniff(head: bytes, path: str) -> bool:
     return head.startswith(MAGIC)
 
 
+def sniff_damaged(head: bytes, path: str) -> bool:
+    """An MCAP file whose first bytes are damaged: its footer and closing magic are there (the walk reads on
+    from byte 8, at the summary's chunks where it must)."""
+    return _tail_is_mcap(path)
+
+
+def _tail_is_mcap(path: str) -> bool:
+    try:
+        with open(path, "rb") as fh:
+            fh.seek(0, 2)
+            n = fh.tell()
+            if n < 2 * len(MAGIC) + 29:
+                return False
+            fh.seek(n - len(MAGIC) - 29)
+            tail = fh.read()
+    except OSError:
+        return False
+    return tail.endswith(MAGIC) and tail[0] == _OP_FOOTER and _U64.unpack_from(tail, 1)[0] == 20
+
+
 class _Damage(Exception):
     pass
 
@@ -578,9 +598,12 @@ def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
 
     with FileMap(path) as fm:
         buf = fm.buf
-        if buf[:len(MAGIC)] != MAGIC:
-            raise InputError("not an MCAP file (bad magic)", path)
         off, end = len(MAGIC), len(buf)
+        if buf[:len(MAGIC)] != MAGIC:
+            if not _tail_is_mcap(path):
+                raise InputError("not an MCAP file (bad magic)", path)
+            scan.warnings.append("damaged: the file's first 8 bytes are not MCAP's magic (its footer is); read on "
+                                 "from byte 8")
         footer = False
         n_chunks = 0
         for op, at, nxt in summary_definitions(buf):

@@ -65,6 +65,13 @@ def detect(path: str) -> ModuleType:
                 return mod
         except OSError:
             continue
+    for mod in formats():  # a file whose first bytes are damaged: the formats that can read on past them
+        sniff_damaged = getattr(mod, "sniff_damaged", None)
+        try:
+            if sniff_damaged is not None and not os.path.isdir(path) and sniff_damaged(head, path):
+                return mod
+        except OSError:
+            continue
     if os.path.isdir(path):
         raise InputError("directory holds no recognised log (no metadata.yaml, no sensors.csv)", path)
     raise InputError("unrecognised format (not MCAP, ROS bag, ULog, DataFlash, tlog or CSV)", path)

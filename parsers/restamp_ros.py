@@ -512,9 +512,12 @@ def _scan_mcap(path: str) -> _McapScan:
     check_readable(path)
     file = np.fromfile(path, np.uint8)  # a private, writable copy: uncompressed chunks are patched in it
     buf = memoryview(file)
-    if bytes(buf[:len(mcap_ros.MAGIC)]) != mcap_ros.MAGIC:
-        raise InputError("not an MCAP file (bad magic)", path)
     sc = _McapScan()
+    if bytes(buf[:len(mcap_ros.MAGIC)]) != mcap_ros.MAGIC:
+        if not mcap_ros._tail_is_mcap(path):
+            raise InputError("not an MCAP file (bad magic)", path)
+        sc.damage.append("the file's first 8 bytes are not MCAP's magic (its footer is); read on from byte 8, "
+                         "the output starts with a valid magic")
     sc.file = file
     off, end = len(mcap_ros.MAGIC), len(buf)
     footer = False
