@@ -103,8 +103,9 @@ def implausible(name: str, values: np.ndarray) -> np.ndarray:
     if name in LIMITS:
         return np.any(v > LIMITS[name], axis=1)
     if name == "quat" and v.ndim == 2 and v.shape[1] == 4:  # a rotation is a unit quaternion (not zeros)
-        n = np.linalg.norm(v, axis=1)
-        return np.isfinite(n) & ~((n > 0.5) & (n < 2.0))  # a missing (NaN) row is not an impossible one
+        with np.errstate(over="ignore", invalid="ignore"):  # (a damaged component: 1e300 -> norm inf)
+            n = np.linalg.norm(v, axis=1)
+        return ~np.isnan(n) & ~((n > 0.5) & (n < 2.0))  # a missing (NaN) row is not an impossible one
     if name == "pos" and v.ndim == 2 and v.shape[1] >= 3:
         return (v[:, 0] > 90.0) | (v[:, 1] > 360.0) | (v[:, 2] > 1.0e6)
     return np.zeros(len(v), dtype=bool)

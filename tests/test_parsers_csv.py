@@ -366,11 +366,12 @@ def test_implausible_values_are_dropped_where_every_format_meets():
     v[70, 2] = -1e300
     q = np.tile([1.0, 0.0, 0.0, 0.0], (200, 1))
     q[90] = 0.0  # a record zeroed by damage
+    q[95] = [1e300, 1e300, 0.0, 0.0]  # a damaged record whose norm overflows (it passed as "missing")
     log = build_inslog(path="x", fmt="test", selector="", clock="epoch", stamp_source="test",
                        gyro=Stream(t, g, "IMU"), vel=Stream(t, v, "NAV"), quat=Stream(t, q, "ATT"))
     assert len(log.imu) == 199 and log.nav["vel_d_m_s"].abs().max() < 1.0
-    assert log.nav[["quat_w", "quat_x", "quat_y", "quat_z"]].dropna().shape[0] == 199
-    assert np.isfinite(log.nav[["quat_w", "quat_x", "quat_y", "quat_z"]].to_numpy()).sum() == 4 * 199
+    assert log.nav[["quat_w", "quat_x", "quat_y", "quat_z"]].dropna().shape[0] == 198
+    assert np.isfinite(log.nav[["quat_w", "quat_x", "quat_y", "quat_z"]].to_numpy()).sum() == 4 * 198
     assert sum("impossible values dropped" in w for w in log.meta.warnings) == 3
 
 
