@@ -67,7 +67,9 @@ def _tail_is_mcap(path: str) -> bool:
 
 
 class _Damage(Exception):
-    pass
+    def __init__(self, text: str = "", at: int | None = None):
+        super().__init__(text)
+        self.at = at  # where in its container the damage starts (records walk), if known
 
 
 class _Undecodable(_Damage):
@@ -299,10 +301,10 @@ class _Scan:
                 _E_PAST_MSG: f"{where}: message record at byte {eoff} runs past its container",
                 _E_OPCODE: f"{where}: invalid record opcode {int(arr[eoff])} at byte {eoff}",
                 _E_PAST: f"{where}: record (opcode {int(arr[eoff])}) at byte {eoff} runs past its container",
-            }[err])
+            }[err], eoff)
         if first_bad < end:
             c = int(cid[s - 31 == first_bad][0])
-            raise _Damage(f"{where}: message for unknown channel {c} at byte {first_bad}")
+            raise _Damage(f"{where}: message for unknown channel {c} at byte {first_bad}", first_bad)
         for c, sel in groups:
             tt, ss, ee = (t, s, e) if sel is None else (t[sel], s[sel], e[sel])
             self.times[c].append(tt.copy() if sel is None else tt)
@@ -339,6 +341,84 @@ def _decoder(topic: str, msgtype: str, enc: str, schema: tuple[str, str, bytes] 
         except Exception:  # noqa: BLE001 - no layout then: every message kept for the end
             pass
     return rc.StreamDecoder(topic, msgtype, encoding, store)
+
+
+def resync_record(buf, start: int, end: int, channels, t_range: tuple[int, int] | None = None,
+                  chain: int = 3) -> int | None:
+    """The first offset >= ``start`` in ``buf[:end]`` (a chunk's records) where ``chain`` message records in a
+    row (or fewer up to the end) look right: opcode 5, a length inside the chunk, a known channel, a log time
+    inside ``t_range`` (the chunk's message start and end times). Where a walk broken by damage goes on;
+    None if there is no such place (a byte 5 inside a payload rarely starts three such records)."""
+    b = bytes(buf[:end]) if not isinstance(buf, bytes) else buf
+
+    def message_at(k: int) -> int:  # the next offset after a plausible message record at k, or -1
+        if k + 31 > end or b[k] != _OP_MESSAGE:
+            return -1
+        (ln,) = _U64.unpack_from(b, k + 1)
+        nxt = k + 9 + ln
+        if ln < 22 or nxt > end or _U16.unpack_from(b, k + 9)[0] not in channels:
+            return -1
+        if t_range is not None:
+            (t,) = _U64.unpack_from(b, k + 15)
+            if not t_range[0] <= t <= t_range[1]:
+                return -1
+        return nxt
+
+    k = b.find(b"\x05", start, end)
+    while 0 <= k:
+        at, ok = k, True
+        for _ in range(chain):
+            at = message_at(at)
+            if at < 0:
+                ok = False
+                break
+            if at == end:
+                break
+        if ok:
+            return k
+        k = b.find(b"\x05", k + 1, end)
+    return None
+
+
+def _last_record_start(buf, pos: int, at: int) -> int:
+    """The start of the last record that begins in ``buf[pos:at]`` and ends at ``at`` (the records chain from
+    ``pos``), else ``at``."""
+    last = at
+    k = pos
+    while k + 9 <= at:
+        (ln,) = _U64.unpack_from(buf, k + 1)
+        if k + 9 + ln > at:
+            break
+        last, k = k, k + 9 + ln
+    return last if k == at else at
+
+
+def walk_resyncing(records, buf, end: int, where: str, channels,
+                   t_range: tuple[int, int] | None = None) -> tuple[int, int, int]:
+    """``records(buf, a, b, where)`` over a chunk's records ``buf[:end]``, going on past damage: the
+    complete records before a broken one are walked, then the walk resumes at the next record that looks
+    right (:func:`resync_record`). Returns (damaged places, bytes skipped, first place); raises the first
+    damage when nothing after it can be read and nothing before it was."""
+    pos, places, skipped, first = 0, 0, 0, -1
+    while True:
+        try:
+            records(buf, pos, end, where)
+            return places, skipped, first
+        except _Damage as exc:
+            if exc.at is None or exc.at < pos:
+                raise
+            cut = _last_record_start(buf, pos, exc.at)  # (the record just before may hold damaged bytes too)
+            if cut > pos:
+                records(buf, pos, cut, where)  # the sound records before the damage
+            nxt = resync_record(buf, exc.at + 1, end, channels, t_range)
+            if nxt is None:
+                if places == 0 and exc.at == 0:
+                    raise
+                return places + 1, skipped + end - exc.at, exc.at if first < 0 else first
+            places += 1
+            skipped += nxt - exc.at
+            first = exc.at if first < 0 else first
+            pos = nxt
 
 
 def inflate_prefix(comp: str, data) -> bytes:
@@ -650,8 +730,14 @@ def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
                             raise
                         scan.warnings.append(f"damaged: {exc}; the {got} complete messages before the damage kept")
                         content = b""
-                    # (a damaged chunk adds none of its messages: records() raises before it adds any)
-                    scan.records(content, 0, len(content), f"chunk at byte {off}")
+                    # a damaged record: the sound records around it kept (records() adds none of a broken walk)
+                    places, skipped, first = walk_resyncing(scan.records, content, len(content),
+                                                            f"chunk at byte {off}", scan.channels,
+                                                            struct.unpack_from("<QQ", buf, off + 9))
+                    if places:
+                        scan.warnings.append(f"damaged: chunk at byte {off}: {places} damaged place(s) (first at "
+                                             f"byte {first} of its records), {skipped} bytes skipped to the next "
+                                             "readable record")
                     del content
                 elif op == _OP_MESSAGE:
                     scan.records(buf, off, nxt, "data section")

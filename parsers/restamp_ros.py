@@ -456,7 +456,7 @@ class _McapScan:
         arr = np.frombuffer(buf, np.uint8)
         m, cid, t, s, e, k, oop, ooff, onxt, err, eoff = mcap_ros._walk_kernel()(arr, start, end)
         if err and not (cut_ok and err != mcap_ros._E_OPCODE):
-            raise mcap_ros._Damage(f"{where}: broken record at byte {eoff}")
+            raise mcap_ros._Damage(f"{where}: broken record at byte {eoff}", eoff)
         for op, off in zip(oop[:k].tolist(), ooff[:k].tolist()):
             (self.schema if op == _OP["schema"] else self.channel)(buf, off + 9)
         cid, s, e = cid[:m], s[:m], e[:m]
@@ -490,11 +490,18 @@ class _McapScan:
                                "of the chunk not in the output")
             return
         n = len(self.cid)
-        try:
-            self.records(content, 0, len(content), f"chunk at byte {off}", whole_chunk=True)
+        try:  # a damaged record: the sound records around it kept, as the parser keeps them
+            places, skipped, first = mcap_ros.walk_resyncing(
+                lambda b, a, e, w: self.records(b, a, e, w, whole_chunk=True), content, len(content),
+                f"chunk at byte {off}", self.channels, (int(_t0), int(_t1)))
         except (mcap_ros._Damage, struct.error, UnicodeDecodeError):
             del self.cid[n:], self.log[n:], self.blocks[n:], self.whole[n:]
             raise
+        if places:
+            self.whole[n:] = [False] * (len(self.whole) - n)  # (its records are laid out anew)
+            self.damage.append(f"damaged: chunk at byte {off}: {places} damaged place(s) (first at byte {first} "
+                               f"of its records), {skipped} bytes skipped to the next readable record; those "
+                               "bytes not in the output")
 
     def partial_chunk(self, buf, off: int, end: int) -> int:
         """The complete messages of a cut or part-way damaged chunk (:func:`mcap_ros.inflate_prefix`)."""

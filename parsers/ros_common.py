@@ -771,7 +771,8 @@ def quat_ros_to_ned_frd(cols: dict[str, np.ndarray]) -> tuple[np.ndarray, np.nda
     for i in range(0, n, QUAT_ROWS):
         j = min(n, i + QUAT_ROWS)
         q = np.stack([cols["qw"][i:j], cols["qx"][i:j], cols["qy"][i:j], cols["qz"][i:j]], axis=-1)
-        norm = np.linalg.norm(q, axis=-1)
+        with np.errstate(over="ignore", invalid="ignore"):  # (a damaged component: the norm inf, not valid)
+            norm = np.linalg.norm(q, axis=-1)
         good = np.isfinite(norm) & (np.abs(norm - 1.0) < 0.1)
         ok[i:j] = good
         part = out[i:j]

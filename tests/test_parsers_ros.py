@@ -861,3 +861,28 @@ def test_topic_on_two_channels_is_read_the_classic_way(tmp_path, log):
     with pytest.raises(rc.NotStreamable):
         mcap_ros.read_streamed(p)
     _same_inslog(parsers.load(p), rc.to_inslog(mcap_ros.read_raw(p), parsers.base.Selector()))
+
+
+def test_mcap_damaged_records_inside_an_unchecked_chunk_lose_that_stretch_only(tmp_path):
+    """An uncompressed chunk without a CRC (rosbags' mcap storage writes none) with 4 KiB zeroed among its
+    records: the records before the damage and from the next readable record on are kept (the chunk was
+    dropped whole, a quarter of the file), in the parse and in the export."""
+    from parsers import restamp_ros as rr
+
+    log = synthetic_log(3000, rate_hz=200.0)
+    bag = str(tmp_path / "bag")
+    registry.write(bag, log, "rosbag2", storage="mcap")
+    f = os.path.join(bag, next(x for x in os.listdir(bag) if x.endswith(".mcap")))
+    data = bytearray(open(f, "rb").read())
+    (at, ln), *rest = _mcap_chunks(bytes(data))
+    assert rest and mcap_ros._chunk_header(memoryview(bytes(data)), at, at + 9 + ln)[2] == 0  # no CRC
+    k = at + 9 + ln // 2
+    data[k:k + 4096] = bytes(4096)
+    open(f, "wb").write(bytes(data))
+    back = parsers.load(bag)
+    lost = len(log.imu) - len(back.imu)
+    assert 0 < lost < 0.05 * len(log.imu), lost
+    assert any("damaged place(s)" in w for w in back.meta.warnings), back.meta.warnings
+    st = rr.restamp_rosbag2(bag, str(tmp_path / "out"), ClockShift(0.001, 0.0, log.meta.t0_ns))
+    assert any("damaged place(s)" in d for d in st.damage), st.damage
+    assert len(parsers.load(str(tmp_path / "out")).imu) == len(back.imu)
