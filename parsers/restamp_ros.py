@@ -248,6 +248,18 @@ def _apply(streams: list[_Stream], msgs: _Msgs, typestore, shift: ClockShift, se
     return new_log, msgs, notes
 
 
+#: a record time this far outside the central 98 % of a file's record times is a damaged value
+_FAR_NS = 86_400_000_000_000
+
+
+def _far_times(t_ns: np.ndarray) -> np.ndarray:
+    """The record times a damaged byte put far from the others (more than a day outside their central 98 %)."""
+    if len(t_ns) < 10:
+        return np.zeros(len(t_ns), bool)
+    lo, hi = np.percentile(t_ns, [1.0, 99.0])
+    return (t_ns < lo - _FAR_NS) | (t_ns > hi + _FAR_NS)
+
+
 def _counts(streams: list[_Stream], conn: np.ndarray) -> dict[str, int]:
     out: dict[str, int] = {}
     for k, c in zip(*np.unique(conn, return_counts=True)):
@@ -337,11 +349,16 @@ def _scan_rosbag1(path: str) -> _Scan1:
     file = np.empty(os.path.getsize(path), np.uint8)
     with open(path, "rb") as fh:
         buf = memoryview(file)[:fh.readinto(file)]  # (the scan's slices of it are views, not copies)
-    if bytes(buf[:len(rosbag1.MAGIC)]) != rosbag1.MAGIC:
-        raise InputError("not a ROS 1 bag (magic '#ROSBAG V2.0' missing)", path)
     scan = _Scan1()
     u32 = rosbag1._U32.unpack_from
     off, end = len(rosbag1.MAGIC), len(buf)
+    if bytes(buf[:len(rosbag1.MAGIC)]) != rosbag1.MAGIC:  # (the parser's rules: the first chunk or connection)
+        off = rosbag1.resync_top(buf, 0, end)
+        if off is None:
+            raise InputError("not a ROS 1 bag (magic '#ROSBAG V2.0' missing)", path)
+        scan.warnings.append(f"the file does not start as a ROS 1 bag; read from the first chunk or connection "
+                             f"record (byte {off}), the bytes before not in the output")
+    good, floor = off, -1
     while off < end:
         try:
             if off + 4 > end:
@@ -355,10 +372,20 @@ def _scan_rosbag1(path: str) -> _Scan1:
                 raise rosbag1._Damage(f"file truncated at byte {end}: record at byte {off} incomplete")
             header = rosbag1._fields(bytes(buf[off + 4:off + 4 + hlen]))
             op = header.get("op", b"\xff")[:1]
+            if "op" not in header:  # (zeroed bytes read as empty records: framing lost, not a record)
+                raise rosbag1._Damage(f"record at byte {off} has no op field")
         except (rosbag1._Damage, struct.error) as exc:
-            scan.warnings.append(f"{exc}; the rest is not in the output" if "truncated" in str(exc)
-                                 else f"damaged at byte {off} ({exc}); the rest of the file is not in the output")
-            break
+            at = rosbag1.resync_top(buf, max(good, floor + 1), end)  # (as the parser's walk goes on)
+            if at == off:
+                at = rosbag1.resync_top(buf, off + 1, end)
+            if at is None:
+                scan.warnings.append(f"{exc}; the rest is not in the output" if "truncated" in str(exc)
+                                     else f"damaged at byte {off} ({exc}); the rest of the file is not in the output")
+                break
+            scan.warnings.append(f"damaged at byte {off} ({exc}); went on at the next chunk or connection record "
+                                 f"(byte {at}), the bytes between not in the output")
+            floor = off = at
+            continue
         try:
             if op == bytes([rosbag1._OP_CHUNK]):
                 scan.chunk(header, buf, off + 8 + hlen, nxt, off)
@@ -369,7 +396,7 @@ def _scan_rosbag1(path: str) -> _Scan1:
                 raise rosbag1._Damage(f"unknown record op {op!r} at byte {off}")
         except (rosbag1._Damage, struct.error, KeyError, ValueError) as exc:
             scan.warnings.append(f"damaged: {exc}; its other messages are not in the output")
-        off = nxt
+        good = off = nxt  # (its framing read: a later resynchronisation starts after it)
     return scan
 
 
@@ -386,8 +413,14 @@ def restamp_rosbag1(src: str, dst: str, shift: ClockShift, *, selector: str | No
         _registered(typestore, msgtype, msgdef, "msg")
         streams.append(_Stream(topic, msgtype, "ros1", _header_kind(typestore, msgtype)))
     msgs = scan.messages(cids)
+    far = _far_times(msgs.log_ns)  # a record the resynchronised walk read from damaged bytes
+    if far.any():
+        msgs = msgs.take(~far)
     msgs = msgs.take(np.argsort(msgs.log_ns, kind="stable"))  # the bag's time order
     new_log, msgs, notes = _apply(streams, msgs, typestore, shift, selector, src)
+    if far.any():
+        notes.append(f"{int(far.sum())} message(s) with a damaged record time (more than a day from the others') "
+                     "not in the output")
     comp = scan.compression or "none"
     # (a bag with the topic only in the connection record's header: kept in the record header)
     fields = [{"topic": scan.conns[c][0].encode(), **scan.fields[c]} for c in cids]

@@ -39,6 +39,40 @@ def sniff(head: bytes, path: str) -> bool:
     return head.startswith(MAGIC)
 
 
+def sniff_damaged(head: bytes, path: str) -> bool:
+    """A bag whose first bytes (magic, bag header) are damaged: a chunk or connection record further on in
+    the first 8 KiB (the walk starts there, and says so)."""
+    return resync_top(head, 0, len(head), partial_ok=True) is not None
+
+
+def resync_top(buf, start: int, end: int, partial_ok: bool = False) -> int | None:
+    """The first offset >= ``start`` where a top-level chunk or connection record starts whose header reads
+    and whose data fits in ``buf[:end]`` (``partial_ok``: may run past ``end``, for a file's first bytes):
+    where a walk of the top-level records goes on after damage. None if there is none."""
+    b = bytes(buf[start:end]) if not isinstance(buf, bytes) else buf[start:end]
+    hits = sorted(i for tag in (b"op=\x05", b"op=\x07") for i in _find_all(b, tag))
+    for k in hits:
+        for r in range(max(0, k - 128), k - 7):
+            (hlen,) = _U32.unpack_from(b, r)
+            if not (k + 4 <= r + 4 + hlen <= len(b) - 4 and hlen < 1 << 16):
+                continue
+            try:
+                op = _fields(b[r + 4:r + 4 + hlen]).get("op", b"")[:1]
+            except (_Damage, struct.error):
+                continue
+            (dlen,) = _U32.unpack_from(b, r + 4 + hlen)
+            if op in (bytes([_OP_CHUNK]), bytes([_OP_CONN])) and (partial_ok or r + 8 + hlen + dlen <= len(b)):
+                return start + r
+    return None
+
+
+def _find_all(b: bytes, tag: bytes):
+    k = b.find(tag)
+    while k >= 0:
+        yield k
+        k = b.find(tag, k + 1)
+
+
 class _Damage(Exception):
     def __init__(self, text: str, at: int | None = None):
         super().__init__(text)
@@ -345,11 +379,17 @@ def read_raw(path: str, keep: Callable[[str, str], bool] = rc.keep_supported, fm
     check_readable(path)
     with open(path, "rb") as fh:
         buf = fh.read()
-    if not buf.startswith(MAGIC):
-        raise InputError("not a ROS 1 bag (magic '#ROSBAG V2.0' missing)", path)
     scan = _Scan(keep)
     off, end = len(MAGIC), len(buf)
+    if not buf.startswith(MAGIC):
+        off = resync_top(buf, 0, end)
+        if off is None:
+            raise InputError("not a ROS 1 bag (magic '#ROSBAG V2.0' missing)", path)
+        scan.warnings.append(f"damaged: the file does not start as a ROS 1 bag; read from the first chunk or "
+                             f"connection record (byte {off})")
     index_pos = None
+    good = off  # the end of the last record read well: a walk derailed by damage goes on after it
+    floor = -1
     while off < end:
         try:
             if off + 4 > end:
@@ -363,10 +403,20 @@ def read_raw(path: str, keep: Callable[[str, str], bool] = rc.keep_supported, fm
                 raise _Damage(f"file truncated at byte {end}: record at byte {off} incomplete")
             header = _fields(buf[off + 4:off + 4 + hlen])
             op = header.get("op", b"\xff")[:1]
+            if "op" not in header:  # (zeroed bytes read as empty records: framing lost, not a record)
+                raise _Damage(f"record at byte {off} has no op field")
         except (_Damage, struct.error) as exc:
-            scan.warnings.append(f"{exc}; readable part used" if "truncated" in str(exc)
-                                 else f"damaged at byte {off} ({exc}); rest of file ignored")
-            break
+            at = resync_top(buf, max(good, floor + 1), end)  # (past every place it went on at before)
+            if at == off:
+                at = resync_top(buf, off + 1, end)
+            if at is None:
+                scan.warnings.append(f"{exc}; readable part used" if "truncated" in str(exc)
+                                     else f"damaged at byte {off} ({exc}); rest of file ignored")
+                break
+            scan.warnings.append(f"damaged at byte {off} ({exc}); went on at the next chunk or connection "
+                                 f"record (byte {at})")
+            floor = off = at
+            continue
         try:
             if op == bytes([_OP_BAGHEADER]):
                 (index_pos,) = struct.unpack_from("<Q", header.get("index_pos", b"\0" * 8), 0)
@@ -379,7 +429,7 @@ def read_raw(path: str, keep: Callable[[str, str], bool] = rc.keep_supported, fm
         except (_Damage, struct.error, KeyError, ValueError) as exc:
             scan.warnings.append(f"damaged: {exc}; its messages dropped" if not isinstance(exc, _Damage)
                                  else f"damaged: {exc}")
-        off = nxt
+        good = off = nxt  # (its framing read: a later resynchronisation starts after it)
     if index_pos == 0:
         scan.warnings.append("bag has no index (recording interrupted?): messages read by a linear scan")
     return _rawlog(path, fmt, scan)

@@ -886,3 +886,36 @@ def test_mcap_damaged_records_inside_an_unchecked_chunk_lose_that_stretch_only(t
     st = rr.restamp_rosbag2(bag, str(tmp_path / "out"), ClockShift(0.001, 0.0, log.meta.t0_ns))
     assert any("damaged place(s)" in d for d in st.damage), st.damage
     assert len(parsers.load(str(tmp_path / "out")).imu) == len(back.imu)
+
+
+def test_rosbag1_damaged_top_level_record_goes_on_at_the_next_chunk(big_files, tmp_path):
+    """4 KiB zeroed across the end of a chunk and the index records after it: the top-level walk ignored the
+    rest of the bag; it now goes on at the next chunk record (parse and export)."""
+    import struct
+
+    from parsers import restamp_ros as rr
+
+    src = big_files["rosbag1"]
+    data = bytearray(open(src, "rb").read())
+    chunks, off = [], len(rosbag1.MAGIC)
+    while off + 8 <= len(data):
+        (hlen,) = struct.unpack_from("<I", data, off)
+        (dlen,) = struct.unpack_from("<I", data, off + 4 + hlen)
+        if rosbag1._fields(bytes(data[off + 4:off + 4 + hlen])).get("op") == b"\x05":
+            chunks.append((off, off + 8 + hlen + dlen))
+        off += 8 + hlen + dlen
+    assert len(chunks) > 3
+    a, b = chunks[1]
+    data[b - 100:b + 3996] = bytes(4096)
+    p = _copy_with(src, str(tmp_path / "z.bag"), bytes(data))
+    back = parsers.load(p)
+    n_full = len(big_files["log"].imu)
+    raw = rosbag1.read_raw(p)
+    n_msgs = sum(t.count for t in raw.topics.values())
+    assert 3 * n_full - 100 < n_msgs <= 3 * n_full  # the messages under the zeros only, none read twice
+    assert n_full - 50 < len(back.imu) <= n_full
+    assert any(f"went on at the next chunk or connection record (byte {chunks[2][0]})" in w
+               for w in back.meta.warnings), back.meta.warnings
+    st = rr.restamp_rosbag1(p, str(tmp_path / "z_out.bag"), ClockShift(0.001, 0.0, big_files["log"].meta.t0_ns))
+    assert any("went on at the next chunk" in d for d in st.damage)
+    assert len(parsers.load(str(tmp_path / "z_out.bag")).imu) == len(back.imu)

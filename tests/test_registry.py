@@ -253,10 +253,11 @@ def test_rosbag2_directory_without_metadata(samples, tmp_path, capsys):
         _one_line_error(rc, err, d)
 
 
-@pytest.mark.parametrize("fmt,ext", [("tlog", ".tlog"), ("dataflash", ".bin"), ("mcap", ".mcap")])
+@pytest.mark.parametrize("fmt,ext", [("tlog", ".tlog"), ("dataflash", ".bin"), ("mcap", ".mcap"), ("rosbag1", ".bag")])
 def test_a_damaged_file_start_is_read_past(tmp_path, fmt, ext):
     """The first 64 bytes zeroed: the strict sniffs fail, the formats that can read on past a damaged start
-    recognise the file (tlog: records chain further on; DataFlash: an FMT record further on; MCAP: its footer)
+    recognise the file (tlog: records chain further on; DataFlash: an FMT record further on; MCAP: its footer;
+    ROS 1 bag: a chunk or connection record further on)
     and read what follows, saying so; a file of no format is still one clear error."""
     from logtools import sim
 
