@@ -69,6 +69,15 @@ def clean_stream(name: str, s: Stream, warnings: list[str]) -> Stream:
         t, v = t[keep], v[keep]
         d = None
     del keep
+    if name in SPIKE_FLOOR and len(t) >= 5:
+        spike = impulsive(name, v)
+        if spike.any():
+            warnings.append(f"{name} ({s.source}): {int(spike.sum())} isolated spike(s) dropped (one sample "
+                            f"beyond {SPIKE_FLOOR[name]:g} {SPIKE_UNIT[name]} from its neighbours and back: "
+                            "corrupt data?)")
+            t, v = t[~spike], v[~spike]
+            d = None
+        del spike
     if len(t) > 2:
         d = np.diff(t) if d is None else d
         med = np.median(d)
@@ -88,6 +97,40 @@ LIMITS = {"gyro": 175.0, "accel": 5000.0, "vel": 1.0e4}
 
 #: rows of a stream checked at a time (bounds the temporary copies of the checks)
 CHECK_ROWS = 1 << 18
+
+#: a single sample this far (SI) from the median of its two neighbours each side, beyond SPIKE_SIGMAS of the
+#: stream's own sample-to-sample scatter, with its neighbours on either side agreeing (SPIKE_BACK: the signal
+#: goes on as if it were not there), is a corrupt value, not motion: a flipped exponent bit gave a -97 rad/s
+#: gyro sample inside LIMITS, and the latency fit chose a 25 s lag to avoid it. 10 rad/s (573 deg/s) in one
+#: sample and back is no rigid vehicle's rotation. Specific force is left alone up to 1000 m/s^2 (100 g): a
+#: crash is one sample of 12-14 g at 25 Hz in both IMUs of ArduCopter log0036, a real event.
+SPIKE_FLOOR = {"gyro": 10.0, "accel": 1000.0}
+SPIKE_BACK = 0.25
+SPIKE_UNIT = {"gyro": "rad/s", "accel": "m/s^2"}
+SPIKE_SIGMAS = 20.0
+
+
+def impulsive(name: str, values: np.ndarray) -> np.ndarray:
+    """True for the samples of a time-ordered stream ``values`` (N, 3) that stand alone far from their
+    neighbours (:data:`SPIKE_FLOOR`, :data:`SPIKE_SIGMAS`); the first and last two samples are never."""
+    v = np.asarray(values, dtype=float)
+    n = len(v)
+    out = np.zeros(n, dtype=bool)
+    if n < 5:
+        return out
+    res = np.empty((n - 4, v.shape[1]))
+    for i in range(0, n - 4, CHECK_ROWS):  # (blocks: the temporaries stay small on long logs)
+        j = min(n - 4, i + CHECK_ROWS)
+        nb = np.sort(np.stack([v[i:j], v[i + 1:j + 1], v[i + 3:j + 3], v[i + 4:j + 4]]), axis=0)
+        res[i:j] = np.abs(v[i + 2:j + 2] - 0.5 * (nb[1] + nb[2]))
+        del nb
+    scale = 1.4826 * np.median(res, axis=0)
+    cand = np.flatnonzero(np.any((res > SPIKE_FLOOR[name]) & (res > SPIKE_SIGMAS * scale), axis=1)) + 2
+    if len(cand):  # ... and the signal goes on past it: the neighbours on either side agree
+        lo = np.minimum(np.abs(v[cand] - v[cand - 1]), np.abs(v[cand] - v[cand + 1]))  # away from both
+        back = (lo > SPIKE_FLOOR[name]) & (np.abs(v[cand + 1] - v[cand - 1]) <= SPIKE_BACK * lo)
+        out[cand[np.any(back, axis=1)]] = True
+    return out
 
 
 def implausible(name: str, values: np.ndarray) -> np.ndarray:

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from logtools.errors import InputError
 from parsers.atomic import atomic_path
 
 
@@ -173,6 +174,28 @@ def get_le(buf: np.ndarray, offsets: np.ndarray, nbytes: int, signed: bool = Fal
         return np.zeros(0, dtype=np.int64)
     block = get_bytes(buf, offs, nbytes)
     return block.view((_LE_SIGNED if signed else _LE)[nbytes]).reshape(-1).astype(np.int64)
+
+
+def nonneg_or_glitch(old: np.ndarray, new: np.ndarray, unit_ns: int, what: str, path: str, damage: list[str],
+                     clock: str = "this field's clock") -> np.ndarray:
+    """``new`` (a time field of one message type, in file order, shifted) where every value is >= 0. A
+    negative one at a record whose field is a glitch (more than 1 s from the median of its 3 neighbours each
+    side: a damaged byte) keeps its ``old`` value and is counted in ``damage``; any other negative value is
+    the clock's limit (the master's clock starting later than ``clock`` can express): one clear error."""
+    neg = new < 0
+    if not len(new) or not neg.any():
+        return new
+    k = 3
+    pad = np.pad(old, k, mode="edge")
+    win = np.lib.stride_tricks.sliding_window_view(pad, 2 * k + 1)
+    nb = np.median(np.delete(win, k, axis=1), axis=1)
+    glitch = neg & (np.abs(old - nb) > 1_000_000_000 // unit_ns)
+    if (neg & ~glitch).any():
+        raise InputError(f"native export: shifted {what} would be negative (the master's clock starts later "
+                         f"than {clock} can express; export csv/parquet instead)", path)
+    damage.append(f"{what}: {int(glitch.sum())} record(s) with a damaged time value (far from their neighbours'); "
+                  "copied unchanged")
+    return np.where(glitch, old, new)
 
 
 def kernel_loader(namespace: dict):

@@ -24,7 +24,8 @@ from logtools.errors import InputError
 from parsers import threads
 from parsers.atomic import atomic_path
 from parsers.base import Selector
-from parsers.restamp import ClockShift, RestampStats, get_le, kernel_loader, put_le, read_bytes, write_bytes_atomic
+from parsers.restamp import (ClockShift, RestampStats, get_le, kernel_loader, nonneg_or_glitch, put_le, read_bytes,
+                             write_bytes_atomic)
 
 HOW = "byte-level rewrite of the time fields (every other byte copied)"
 MS_NS, US_NS = 1_000_000, 1_000
@@ -38,36 +39,6 @@ def _selector(selector) -> Selector:
     if isinstance(selector, Selector):
         return selector
     return Selector.parse(str(selector))
-
-
-def _check_nonneg(values: np.ndarray, what: str, path: str) -> None:
-    if len(values) and int(values.min()) < 0:
-        raise InputError(f"native export: shifted {what} would be negative (the master's clock starts later "
-                         f"than this field's clock can express; export csv/parquet instead)", path)
-
-
-#: a record's time field this far (in the field's units: 1 s) from the median of its neighbours of the same
-#: message type is a damaged value (a flipped byte), not a time the clock can be short of
-_GLITCH = {US_NS: 1_000_000, MS_NS: 1_000}
-
-
-def _nonneg_or_glitch(old: np.ndarray, new: np.ndarray, unit_ns: int, what: str, path: str,
-                      damage: list[str]) -> np.ndarray:
-    """``new`` where every shifted value is >= 0; a negative one at a record whose field is a glitch (far from
-    its neighbours': a damaged byte) keeps its ``old`` value and is counted in ``damage``; any other negative
-    value is the clock's limit: one clear error (:func:`_check_nonneg`)."""
-    neg = new < 0
-    if not len(new) or not neg.any():
-        return new
-    k = 3  # neighbours each side
-    pad = np.pad(old, k, mode="edge")
-    win = np.lib.stride_tricks.sliding_window_view(pad, 2 * k + 1)
-    nb = np.median(np.delete(win, k, axis=1), axis=1)
-    glitch = neg & (np.abs(old - nb) > _GLITCH[unit_ns])
-    _check_nonneg(new[~glitch], what, path)
-    damage.append(f"{what}: {int(glitch.sum())} record(s) with a damaged time value (far from their neighbours'); "
-                  "copied unchanged")
-    return np.where(glitch, old, new)
 
 
 def _shift_gps_week_ms(buf: np.ndarray, o_wk: np.ndarray, o_ms: np.ndarray, valid: np.ndarray,
@@ -126,12 +97,12 @@ def restamp_dataflash(src: str, dst: str, shift: ClockShift, *, selector=None) -
             k_ms = shift.shift_units(t_a, MS_NS)
             if "TimeUS" in cols:
                 old = get_le(buf, at("TimeUS"), 8)
-                new = _nonneg_or_glitch(old, old - k_ms * 1000, US_NS, f"{f.name}.TimeUS", src, glitches)
+                new = nonneg_or_glitch(old, old - k_ms * 1000, US_NS, f"{f.name}.TimeUS", src, glitches)
                 put_le(buf, at("TimeUS"), new, 8)
                 fields_done.add(f"{f.name}.TimeUS")
             if "T" in cols and "TimeUS" not in cols:
                 old = get_le(buf, at("T"), 4)
-                new = _nonneg_or_glitch(old, old - k_ms, MS_NS, f"{f.name}.T", src, glitches)
+                new = nonneg_or_glitch(old, old - k_ms, MS_NS, f"{f.name}.T", src, glitches)
                 put_le(buf, at("T"), new, 4)
                 fields_done.add(f"{f.name}.T")
             for wk_col, ms_col in (("GWk", "GMS"), ("Week", "TimeMS")):
@@ -142,13 +113,13 @@ def restamp_dataflash(src: str, dst: str, shift: ClockShift, *, selector=None) -
             continue
         if "TimeUS" in cols:
             old = get_le(buf, at("TimeUS"), 8)
-            new = _nonneg_or_glitch(old, old - shift.shift_units(t_a, US_NS), US_NS, f"{f.name}.TimeUS", src,
+            new = nonneg_or_glitch(old, old - shift.shift_units(t_a, US_NS), US_NS, f"{f.name}.TimeUS", src,
                                     glitches)
             put_le(buf, at("TimeUS"), new, 8)
             fields_done.add("TimeUS")
         elif "TimeMS" in cols:
             old = get_le(buf, at("TimeMS"), 4)
-            new = _nonneg_or_glitch(old, old - shift.shift_units(t_a, MS_NS), MS_NS, f"{f.name}.TimeMS", src,
+            new = nonneg_or_glitch(old, old - shift.shift_units(t_a, MS_NS), MS_NS, f"{f.name}.TimeMS", src,
                                     glitches)
             put_le(buf, at("TimeMS"), new, 4)
             fields_done.add("TimeMS")

@@ -22,7 +22,7 @@ import numpy as np
 
 from logtools.errors import InputError
 from parsers.base import Selector
-from parsers.restamp import ClockShift, RestampStats, get_le, put_le, read_bytes, write_bytes_atomic
+from parsers.restamp import ClockShift, RestampStats, get_le, nonneg_or_glitch, put_le, read_bytes, write_bytes_atomic
 
 HOW = "byte-level rewrite of the time fields (header, definitions and every other byte copied)"
 US_NS = 1000
@@ -152,10 +152,8 @@ def restamp_ulog(src: str, dst: str, shift: ClockShift, *, selector=None) -> Res
             at = base[fit] + o
             v = t_us[fit] if o == ts_o else get_le(buf, at, 8)
             live = v > 0
-            new = v[live] - k_us[fit][live]
-            if len(new) and int(new.min()) < 0:
-                raise InputError(f"native export: shifted {key}.{n} would be negative (the master's clock "
-                                 "starts later than boot time can express; export csv/parquet instead)", src)
+            new = nonneg_or_glitch(v[live], v[live] - k_us[fit][live], US_NS, f"{key}.{n}", src, damage,
+                                   clock="boot time")
             put_le(buf, at[live], new, 8)
             fields_done.add(n.rsplit(".", 1)[-1].split("[", 1)[0])
     if unknown:

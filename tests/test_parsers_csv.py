@@ -438,3 +438,30 @@ def test_canonical_csv_rows_without_a_quaternion_are_not_impossible_ones(tmp_pat
     p.write_text("\n".join(lines) + "\n")
     w = registry.load(str(p)).meta.warnings
     assert any("quat: 1 rows with impossible values" in x for x in w), w
+
+
+def test_an_isolated_gyro_spike_is_dropped_a_real_shock_is_kept():
+    """One gyro sample of -97 rad/s (a flipped exponent bit, inside LIMITS) among 0.09 rad/s neighbours made
+    the latency fit choose a 25 s lag; it is dropped and named. A crash's single 14 g sample (both IMUs of
+    ArduCopter log0036), a burst of several samples and fast but continuous motion are kept."""
+    from parsers.assemble import Stream, build_inslog, impulsive
+    from logtools import sim
+
+    t = 1_700_000_000_000_000_000 + np.arange(400, dtype=np.int64) * 5_000_000
+    g = np.tile([0.004, -0.007, 0.095], (400, 1))
+    g[200, 2] = -97.2
+    a = np.tile([-1.35, 1.79, -9.66], (400, 1))
+    a[300] = [139.9, 123.1, 16.7]  # the crash: the samples after it are not back where they were
+    a[301:] = [10.2, 7.6, 6.2]
+    log = build_inslog(path="x", fmt="test", selector="", clock="epoch", stamp_source="test",
+                       gyro=Stream(t, g, "IMU"), accel=Stream(t, a, "IMU"))
+    assert len(log.imu) == 399 and float(np.abs(log.gyro_rad_s()).max()) < 1.0
+    assert float(np.abs(log.accel_m_s2()).max()) > 130.0
+    assert sum("isolated spike(s) dropped" in w for w in log.meta.warnings) == 1
+    burst = g.copy()
+    burst[200:203, 2] = -30.0  # three samples: not one value standing alone
+    assert not impulsive("gyro", burst).any()
+    for scen in ("multirotor", "aircraft", "vehicle", "ship"):  # fast, noisy, but continuous motion
+        pair = sim.simulate(sim.scenario_config(scen, duration_s=60.0, seed=5))
+        for u in (pair.master, pair.slave):
+            assert not impulsive("gyro", u.gyro_rad_s()).any() and not impulsive("accel", u.accel_m_s2()).any()
