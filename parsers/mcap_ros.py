@@ -72,6 +72,16 @@ class _Damage(Exception):
         self.at = at  # where in its container the damage starts (records walk), if known
 
 
+class _BadCrc(_Damage):
+    """A chunk that decompresses to the stated size but not to its CRC: a damaged byte somewhere in it. Its
+    records (``content``) are still walked, and their messages kept as unverified, the way the formats
+    without a checksum are read (the value limits and the spike check drop the impossible ones)."""
+
+    def __init__(self, text: str, content):
+        super().__init__(text)
+        self.content = content
+
+
 class _Undecodable(_Damage):
     """A chunk whose compressed records stop decompressing part way (a flipped or zeroed byte): what
     decompresses before the damage can still be walked (:func:`inflate_prefix`)."""
@@ -572,7 +582,7 @@ def inflate_chunk(buf, off: int, nxt: int) -> bytes:
     if len(content) != usize:
         raise _Damage(f"chunk at byte {off}: size {len(content)} != {usize}")
     if crc and zlib.crc32(content) != crc:
-        raise _Damage(f"chunk at byte {off}: CRC mismatch")
+        raise _BadCrc(f"chunk at byte {off}: CRC mismatch", content)
     return content
 
 
@@ -600,7 +610,7 @@ def inflate_chunk_into(buf, off: int, nxt: int, out: np.ndarray) -> np.ndarray:
     if n != usize or extra:
         raise _Damage(f"chunk at byte {off}: size {n + len(extra)}{'+' if extra else ''} != {usize}")
     if crc and zlib.crc32(out) != crc:
-        raise _Damage(f"chunk at byte {off}: CRC mismatch")
+        raise _BadCrc(f"chunk at byte {off}: CRC mismatch", out)
     return out
 
 
@@ -730,6 +740,10 @@ def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
                             raise
                         scan.warnings.append(f"damaged: {exc}; the {got} complete messages before the damage kept")
                         content = b""
+                    except _BadCrc as exc:  # a damaged byte somewhere in it: read, its messages unverified
+                        content = exc.content
+                        scan.warnings.append(f"damaged: {exc}; its messages kept, unverified (impossible values "
+                                             "and isolated spikes are dropped)")
                     # a damaged record: the sound records around it kept (records() adds none of a broken walk)
                     places, skipped, first = walk_resyncing(scan.records, content, len(content),
                                                             f"chunk at byte {off}", scan.channels,

@@ -376,14 +376,22 @@ def test_truncated_input_writes_the_readable_part_and_names_the_damage(big, tmp_
     np.testing.assert_array_equal(_t_ns(b, b.imu), shift.to_master_ns(_t_ns(a, a.imu)))
 
 
-def test_damaged_mcap_chunk_is_named(big, tmp_path):
+@pytest.mark.parametrize("undecodable", [False, True])
+def test_damaged_mcap_chunk_is_named(big, tmp_path, undecodable):
+    """A chunk that fails its CRC is written as it decompressed (named, unverified), as the parser reads it;
+    a chunk that does not decompress at all is left out (named). Either way the output holds what the
+    parser reads and is a complete, indexed file."""
     src = big["mcap"]
-    data, off = mcap_with_a_flipped_chunk(src, 1)  # inside the second chunk's compressed records
+    data, off = mcap_with_a_flipped_chunk(src, 1, undecodable)  # the second chunk's compressed records
     bad = str(tmp_path / "flip.mcap")
     open(bad, "wb").write(data)
     st = rr.restamp_mcap(bad, str(tmp_path / "flip_out.mcap"), _shift_for(big["log"]))
     assert len(st.damage) == 1 and f"chunk at byte {off}" in st.damage[0]
-    assert 0 < st.records < 3 * 6000
+    assert ("CRC mismatch" in st.damage[0] and "unverified" in st.damage[0]) if not undecodable else \
+        "cannot be decompressed" in st.damage[0]
+    parsed = parsers.load(bad)
+    assert (0 < st.records < 3 * 6000) if undecodable else st.records <= 3 * 6000
+    assert len(parsers.load(str(tmp_path / "flip_out.mcap")).imu) == len(parsed.imu)
     assert sum(map(len, _library_messages(str(tmp_path / "flip_out.mcap"), "mcap").values())) == st.records
 
 

@@ -442,9 +442,10 @@ def test_truncated_file_uses_readable_part(big_files, tmp_path, fmt):
     np.testing.assert_array_equal(back.gyro_rad_s(), ref.gyro_rad_s()[:k])
 
 
-def mcap_with_a_flipped_chunk(path: str, k: int) -> tuple[bytes, int]:
+def mcap_with_a_flipped_chunk(path: str, k: int, undecodable: bool = False) -> tuple[bytes, int]:
     """The MCAP file's bytes with one byte inverted in the middle of its k-th chunk's (compressed) records,
-    and that chunk's offset."""
+    and that chunk's offset; ``undecodable``: the first 32 bytes of its compressed records zeroed instead
+    (the zstd frame header gone: nothing of the chunk decompresses)."""
     import struct
 
     data = bytearray(open(path, "rb").read())
@@ -456,7 +457,12 @@ def mcap_with_a_flipped_chunk(path: str, k: int) -> tuple[bytes, int]:
         off += 9 + ln
     assert len(chunks) > 2
     at, ln = chunks[k]
-    data[at + 9 + ln // 2] ^= 0xFF
+    if undecodable:
+        comp_len = struct.unpack_from("<I", data, at + 9 + 28)[0]
+        c0 = at + 9 + 28 + 4 + comp_len + 8  # the compressed records: after the compression name and their size
+        data[c0:c0 + 32] = bytes(32)
+    else:
+        data[at + 9 + ln // 2] ^= 0xFF
     return bytes(data), at
 
 
@@ -465,7 +471,7 @@ def test_mcap_damaged_first_chunk_keeps_the_channels_it_defined(big_files, tmp_p
     there dropped the definitions with the chunk, and every later message was of an undefined channel:
     nothing readable. The summary's definitions (through the footer) keep the later chunks."""
     src = big_files["mcap"]
-    data, first = mcap_with_a_flipped_chunk(src, 0)
+    data, first = mcap_with_a_flipped_chunk(src, 0, undecodable=True)
     p = _copy_with(src, str(tmp_path / "first.mcap"), data)
     back = parsers.load(p)
     n_full = len(big_files["log"].imu)
