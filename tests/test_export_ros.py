@@ -376,21 +376,26 @@ def test_truncated_input_writes_the_readable_part_and_names_the_damage(big, tmp_
     np.testing.assert_array_equal(_t_ns(b, b.imu), shift.to_master_ns(_t_ns(a, a.imu)))
 
 
-@pytest.mark.parametrize("undecodable", [False, True])
-def test_damaged_mcap_chunk_is_named(big, tmp_path, undecodable):
-    """A chunk that fails its CRC is written as it decompressed (named, unverified), as the parser reads it;
-    a chunk that does not decompress at all is left out (named). Either way the output holds what the
-    parser reads and is a complete, indexed file."""
+@pytest.mark.parametrize("case", ["zstd-crc", "zstd-undecodable", "uncompressed-crc"])
+def test_damaged_mcap_chunk_is_named(big, tmp_path, case):
+    """A zstd chunk that decompresses to other bytes (its CRC fails) or not at all is left out, named; an
+    uncompressed chunk that fails its CRC is written as it is (its damage is local), named as unverified.
+    Either way the output holds what the parser reads and is a complete, indexed file."""
     src = big["mcap"]
-    data, off = mcap_with_a_flipped_chunk(src, 1, undecodable)  # the second chunk's compressed records
+    if case == "uncompressed-crc":
+        src = str(tmp_path / "plain.mcap")
+        mcap_ros.write(src, big["log"], compression="none")
+    data, off = mcap_with_a_flipped_chunk(src, 1, case == "zstd-undecodable")  # the second chunk's records
     bad = str(tmp_path / "flip.mcap")
     open(bad, "wb").write(data)
     st = rr.restamp_mcap(bad, str(tmp_path / "flip_out.mcap"), _shift_for(big["log"]))
     assert len(st.damage) == 1 and f"chunk at byte {off}" in st.damage[0]
-    assert ("CRC mismatch" in st.damage[0] and "unverified" in st.damage[0]) if not undecodable else \
-        "cannot be decompressed" in st.damage[0]
     parsed = parsers.load(bad)
-    assert (0 < st.records < 3 * 6000) if undecodable else st.records <= 3 * 6000
+    if case == "uncompressed-crc":
+        assert "CRC mismatch" in st.damage[0] and "unverified" in st.damage[0] and st.records == 3 * 6000
+    else:
+        assert ("CRC mismatch" if case == "zstd-crc" else "cannot be decompressed") in st.damage[0]
+        assert 0 < st.records < 3 * 6000
     assert len(parsers.load(str(tmp_path / "flip_out.mcap")).imu) == len(parsed.imu)
     assert sum(map(len, _library_messages(str(tmp_path / "flip_out.mcap"), "mcap").values())) == st.records
 
