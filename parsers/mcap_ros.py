@@ -245,6 +245,10 @@ class _Scan:
         self.kept: dict[int, bool] = {}
         self.decoders: dict[int, rc.StreamDecoder | None] = {}
         self.warnings: list[str] = []
+        #: schema and channel ids defined by the summary section (read first): a definition in the data
+        #: section (inside a CRC-checked chunk) replaces one of these that differs, while none of its
+        #: messages was read (a damaged summary gave a channel the encoding 'cd\ufffd')
+        self.provisional: set[tuple[str, int]] = set()
 
     def n_messages(self) -> int:
         return sum(self.counts.values())
@@ -256,14 +260,32 @@ class _Scan:
         (n,) = _U32.unpack_from(buf, o)
         if o + 4 + n > end:
             raise _Damage("schema data runs past its record")
-        self.schemas.setdefault(sid, (name, enc, bytes(buf[o + 4:o + 4 + n])))
+        new = (name, enc, bytes(buf[o + 4:o + 4 + n]))
+        if ("schema", sid) in self.provisional and self.schemas.get(sid) != new and not any(
+                c_sid == sid and self.counts.get(c, 0) for c, (_t, c_sid, _e) in self.channels.items()):
+            self.provisional.discard(("schema", sid))
+            self.schemas[sid] = new
+            for c, (t, c_sid, e) in list(self.channels.items()):  # its channels set up again with it
+                if c_sid == sid:
+                    del self.channels[c]
+                    self._define(c, t, sid, e)
+            return
+        self.schemas.setdefault(sid, new)
 
     def channel(self, buf, off: int) -> None:
         cid, sid = struct.unpack_from("<HH", buf, off)
         topic, o = _string(buf, off + 4)
         enc, o = _string(buf, o)
         if cid in self.channels:
+            if (("channel", cid) in self.provisional and self.channels[cid] != (topic, sid, enc)
+                    and not self.counts.get(cid, 0)):
+                self.provisional.discard(("channel", cid))
+                del self.channels[cid]
+                self._define(cid, topic, sid, enc)
             return
+        self._define(cid, topic, sid, enc)
+
+    def _define(self, cid: int, topic: str, sid: int, enc: str) -> None:
         self.channels[cid] = (topic, sid, enc)
         self.times[cid] = []
         self.counts[cid] = 0
@@ -705,6 +727,7 @@ def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
                 scan.schema(buf, at + 9, nxt) if op == _OP_SCHEMA else scan.channel(buf, at + 9)
             except (_Damage, struct.error, UnicodeDecodeError):
                 pass  # a damaged summary: the definitions come from the data section as before
+        scan.provisional = {("schema", k) for k in scan.schemas} | {("channel", k) for k in scan.channels}
         starts = summary_chunk_starts(buf)  # where the walk picks up again after a damaged stretch
         last = off
         while off < end:
@@ -803,6 +826,8 @@ def _rawlog(path: str, fmt: str, scan: _Scan) -> rc.RawLog:
             keep = False
             if msgtype in rc.SUPPORTED:
                 scan.warnings.append(f"{topic}: message encoding {enc!r} not supported; topic ignored")
+                scan.times.pop(cid)  # (not offered as a topic it has no readable content for)
+                continue
         times = scan.times.pop(cid)
         if scan.stream:
             if topic in topics:

@@ -925,3 +925,28 @@ def test_rosbag1_damaged_top_level_record_goes_on_at_the_next_chunk(big_files, t
     st = rr.restamp_rosbag1(p, str(tmp_path / "z_out.bag"), ClockShift(0.001, 0.0, big_files["log"].meta.t0_ns))
     assert any("went on at the next chunk" in d for d in st.damage)
     assert len(parsers.load(str(tmp_path / "z_out.bag")).imu) == len(back.imu)
+
+
+def test_mcap_damaged_summary_definition_yields_to_the_data_sections(big_files, tmp_path):
+    """A flipped byte in a channel record of the summary (read first, so that a lost first chunk does not
+    orphan the later messages) gave /fix the encoding 'cd\\ufffd': its messages were counted, not kept, and
+    the unit's position made the load fail ('message content was not read'). The data section's own
+    definition now replaces a differing summary one; with the defining chunk lost too, the topic is left
+    out (named) and the rest is read."""
+    import struct
+
+    src = big_files["mcap"]
+    data = bytearray(open(src, "rb").read())
+    ch = [(op, at, nxt) for op, at, nxt in mcap_ros.summary_definitions(memoryview(bytes(data))) if op == 4]
+    at = next(a for op, a, nxt in ch if b"/fix" in data[a:nxt])
+    enc_at = at + 9 + 4 + 4 + struct.unpack_from("<I", data, at + 9 + 4)[0]  # id, schema id, topic
+    data[enc_at + 4 + 2] ^= 0xFF  # 'cdr' -> 'cd?'
+    p = _copy_with(src, str(tmp_path / "summary.mcap"), bytes(data))
+    full, back = parsers.load(src), parsers.load(p)
+    assert back.nav["lat_deg"].notna().sum() == full.nav["lat_deg"].notna().sum()  # the data section's /fix
+    data2, first = mcap_with_a_flipped_chunk(p, 0, undecodable=True)  # ... and the chunk defining it lost
+    p2 = _copy_with(src, str(tmp_path / "summary2.mcap"), data2)
+    back2 = parsers.load(p2)
+    assert any("/fix: message encoding" in w and "topic ignored" in w for w in back2.meta.warnings)
+    assert 0.5 * len(full.imu) < len(back2.imu) < len(full.imu)
+    assert "lat_deg" not in back2.nav or back2.nav["lat_deg"].isna().all()
