@@ -176,20 +176,44 @@ def get_le(buf: np.ndarray, offsets: np.ndarray, nbytes: int, signed: bool = Fal
     return block.view((_LE_SIGNED if signed else _LE)[nbytes]).reshape(-1).astype(np.int64)
 
 
+def glitches(old: np.ndarray, unit_ns: int) -> tuple[np.ndarray, np.ndarray]:
+    """(mask, repaired) of a time field of one message type in file order: a value more than 1 s from both
+    its neighbours and from the median of its 3 neighbours each side is a damaged value (a flipped byte);
+    ``repaired`` has that median in its place (for the shift of the message's other time fields). Costs
+    two vectorised passes when there is none."""
+    old = np.asarray(old, dtype=np.int64)
+    n = len(old)
+    mask = np.zeros(n, dtype=bool)
+    lim = 1_000_000_000 // unit_ns
+    if n < 3:
+        return mask, old
+    d = np.abs(np.diff(old))
+    cand = np.flatnonzero((d[:-1] > lim) & (d[1:] > lim)) + 1  # away from both neighbours
+    if n > 1:  # (the first and last values have one neighbour)
+        cand = np.concatenate([cand, np.flatnonzero([d[0] > lim, d[-1] > lim]) * (n - 1)])
+    if not len(cand):
+        return mask, old
+    k = 3
+    pad = np.pad(old, k, mode="edge")
+    win = np.stack([pad[cand + j] for j in range(2 * k + 1) if j != k], axis=1)
+    nb = np.median(win, axis=1).astype(np.int64)
+    bad = np.abs(old[cand] - nb) > lim
+    mask[cand[bad]] = True
+    repaired = old.copy()
+    repaired[cand[bad]] = nb[bad]
+    return mask, repaired
+
+
 def nonneg_or_glitch(old: np.ndarray, new: np.ndarray, unit_ns: int, what: str, path: str, damage: list[str],
                      clock: str = "this field's clock") -> np.ndarray:
     """``new`` (a time field of one message type, in file order, shifted) where every value is >= 0. A
-    negative one at a record whose field is a glitch (more than 1 s from the median of its 3 neighbours each
-    side: a damaged byte) keeps its ``old`` value and is counted in ``damage``; any other negative value is
-    the clock's limit (the master's clock starting later than ``clock`` can express): one clear error."""
+    negative one at a record whose field is a glitch (:func:`glitches`) keeps its ``old`` value and is
+    counted in ``damage``; any other negative value is the clock's limit (the master's clock starting later
+    than ``clock`` can express): one clear error."""
     neg = new < 0
     if not len(new) or not neg.any():
         return new
-    k = 3
-    pad = np.pad(old, k, mode="edge")
-    win = np.lib.stride_tricks.sliding_window_view(pad, 2 * k + 1)
-    nb = np.median(np.delete(win, k, axis=1), axis=1)
-    glitch = neg & (np.abs(old - nb) > 1_000_000_000 // unit_ns)
+    glitch = neg & glitches(old, unit_ns)[0]
     if (neg & ~glitch).any():
         raise InputError(f"native export: shifted {what} would be negative (the master's clock starts later "
                          f"than {clock} can express; export csv/parquet instead)", path)

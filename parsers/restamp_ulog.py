@@ -22,7 +22,8 @@ import numpy as np
 
 from logtools.errors import InputError
 from parsers.base import Selector
-from parsers.restamp import ClockShift, RestampStats, get_le, nonneg_or_glitch, put_le, read_bytes, write_bytes_atomic
+from parsers.restamp import (ClockShift, RestampStats, get_le, glitches, nonneg_or_glitch, put_le, read_bytes,
+                             write_bytes_atomic)
 
 HOW = "byte-level rewrite of the time fields (header, definitions and every other byte copied)"
 US_NS = 1000
@@ -146,7 +147,9 @@ def restamp_ulog(src: str, dst: str, shift: ClockShift, *, selector=None) -> Res
             damage.append(f"{key}: {int((~ok).sum())} message(s) shorter than their format: copied unchanged")
         base, room = base[ok], room[ok]
         t_us = get_le(buf, base + ts_o, 8)
-        k_us = shift.shift_units(t_us * US_NS + off_ns, US_NS)
+        # the shift at each message's time; a damaged timestamp takes its neighbours' (its other fields shift
+        # with them, the damaged value itself is kept below)
+        k_us = shift.shift_units(glitches(t_us, US_NS)[1] * US_NS + off_ns, US_NS)
         for n, o in tf:
             fit = room >= o + 8
             at = base[fit] + o

@@ -329,6 +329,29 @@ def test_dataflash_damaged_time_value_is_copied_and_named(slaves, pair, tmp_path
                                           ClockShift(1e6, 0.0, int(pair.truth.t_mid_ns)))
 
 
+def test_ulog_damaged_timestamp_keeps_its_bytes_and_shifts_nothing_else_wrong(slaves, pair, tmp_path):
+    """A flipped byte in one data message's ``timestamp``: the shift of that message's time fields is taken at
+    its neighbours' time (at a timestamp near 2^62 us the drift made it absurd, the other fields went
+    negative and the whole export failed), so every field moves by about the latency."""
+    from parsers import restamp_ulog
+    from parsers import ulog as ul
+
+    raw = bytearray(slaves["ulog"].read_bytes())
+    buf = np.frombuffer(bytes(raw), np.uint8)
+    offsets, sizes, types = restamp_ulog._walk_resyncing(buf, [])
+    data = offsets[types == ul._T_DATA]
+    at = int(data[len(data) // 2]) + 5  # a data message's first field: its timestamp (after the msg_id)
+    raw[at + 7] ^= 0x40  # near 2^62 us
+    src = tmp_path / "glitch.ulg"
+    src.write_bytes(bytes(raw))
+    st = restamp_ulog.restamp_ulog(str(src), str(tmp_path / "out.ulg"), shift_of(pair))
+    out = (tmp_path / "out.ulg").read_bytes()
+    moved_us = int.from_bytes(bytes(raw[at:at + 8]), "little") - int.from_bytes(out[at:at + 8], "little")
+    assert abs(moved_us - LAT_S * 1e6) < 1000 and len(out) == len(raw) and st.records > 0
+    back = registry.load(str(tmp_path / "out.ulg"))
+    assert len(back.imu) >= len(pair.slave.imu) - 1
+
+
 def test_interrupted_write_leaves_nothing(slaves, pair, tmp_path, monkeypatch):
     import parsers.atomic as atomic
 
