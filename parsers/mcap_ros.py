@@ -516,17 +516,16 @@ def read_streamed(path: str, keep: Callable[[str, str], bool] = rc.keep_supporte
     return _rawlog(path, fmt, _scan_file(path, scan, done))
 
 
-def summary_definitions(buf) -> list[tuple[int, int, int]]:
-    """(opcode, offset, next) of the schema and channel records in the summary section, found through the
-    footer: every channel stays known when the chunk that defined it is damaged (a flipped byte in the
-    first chunk left a file's later chunks with messages of undefined channels). [] without a footer."""
+def _summary_records(buf) -> tuple[int, list[tuple[int, int, int]]]:
+    """(summary start, [(opcode, offset, next)] of the summary section's records), found through the footer
+    (up to the first record that does not read); (0, []) without a footer."""
     n = len(buf)
     at = n - len(MAGIC) - 29  # footer: opcode, length 20, summary start, summary offset start, CRC
     if at < len(MAGIC) or bytes(buf[n - len(MAGIC):]) != MAGIC:
-        return []
+        return 0, []
     op, ln = _REC.unpack_from(buf, at)
     if op != _OP_FOOTER or ln != 20:
-        return []
+        return 0, []
     (start,) = _U64.unpack_from(buf, at + 9)
     out = []
     off = int(start)
@@ -535,9 +534,16 @@ def summary_definitions(buf) -> list[tuple[int, int, int]]:
         nxt = off + 9 + ln
         if op == 0 or op > 0x0F or nxt > at:
             break
-        if op in (_OP_SCHEMA, _OP_CHANNEL):
-            out.append((op, off, nxt))
+        out.append((op, off, nxt))
         off = nxt
+    return int(start), out
+
+
+def summary_definitions(buf) -> list[tuple[int, int, int]]:
+    """(opcode, offset, next) of the schema and channel records in the summary section, found through the
+    footer: every channel stays known when the chunk that defined it is damaged (a flipped byte in the
+    first chunk left a file's later chunks with messages of undefined channels). [] without a footer."""
+    out = [r for r in _summary_records(buf)[1] if r[0] in (_OP_SCHEMA, _OP_CHANNEL)]
     return sorted(out, key=lambda r: r[0] != _OP_SCHEMA)  # schemas first: a channel is judged by its schema
 
 
@@ -545,26 +551,13 @@ def summary_chunk_starts(buf) -> list[int]:
     """The chunk offsets the summary's chunk index records give (ascending), found through the footer: where
     a damaged data section can be picked up again (a zeroed run of bytes otherwise ended the walk, and the
     file's later chunks were lost). [] without a footer or chunk indexes."""
-    n = len(buf)
-    at = n - len(MAGIC) - 29
-    if at < len(MAGIC) or bytes(buf[n - len(MAGIC):]) != MAGIC:
-        return []
-    op, ln = _REC.unpack_from(buf, at)
-    if op != _OP_FOOTER or ln != 20:
-        return []
-    (start,) = _U64.unpack_from(buf, at + 9)
+    start, recs = _summary_records(buf)
     out = []
-    off = int(start)
-    while len(MAGIC) <= off < at and off + 9 <= at:
-        op, ln = _REC.unpack_from(buf, off)
-        nxt = off + 9 + ln
-        if op == 0 or op > 0x0F or nxt > at:
-            break
-        if op == _OP_CHUNK_INDEX and ln >= 32:
+    for op, off, nxt in recs:
+        if op == _OP_CHUNK_INDEX and nxt - off - 9 >= 32:
             (c0,) = _U64.unpack_from(buf, off + 9 + 16)  # message start and end time, then the chunk's offset
             if len(MAGIC) <= c0 < start:
                 out.append(int(c0))
-        off = nxt
     return sorted(set(out))
 
 

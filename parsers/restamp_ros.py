@@ -375,9 +375,7 @@ def _scan_rosbag1(path: str) -> _Scan1:
             if "op" not in header:  # (zeroed bytes read as empty records: framing lost, not a record)
                 raise rosbag1._Damage(f"record at byte {off} has no op field")
         except (rosbag1._Damage, struct.error) as exc:
-            at = rosbag1.resync_top(buf, max(good, floor + 1), end)  # (as the parser's walk goes on)
-            if at == off:
-                at = rosbag1.resync_top(buf, off + 1, end)
+            at = rosbag1.resume_top(buf, off, good, floor, end)  # (as the parser's walk goes on)
             if at is None:
                 scan.warnings.append(f"{exc}; the rest is not in the output" if "truncated" in str(exc)
                                      else f"damaged at byte {off} ({exc}); the rest of the file is not in the output")

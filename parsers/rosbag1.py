@@ -66,6 +66,14 @@ def resync_top(buf, start: int, end: int, partial_ok: bool = False) -> int | Non
     return None
 
 
+def resume_top(buf, off: int, good: int, floor: int, end: int) -> int | None:
+    """Where a top-level walk that failed to read the record at ``off`` goes on: the next chunk or connection
+    record (:func:`resync_top`) after ``good`` (the end of the last record whose framing read) and past
+    ``floor`` (where it went on before: every resynchronisation moves forward), not ``off`` itself."""
+    at = resync_top(buf, max(good, floor + 1), end)
+    return resync_top(buf, off + 1, end) if at == off else at
+
+
 def _find_all(b: bytes, tag: bytes):
     k = b.find(tag)
     while k >= 0:
@@ -406,9 +414,7 @@ def read_raw(path: str, keep: Callable[[str, str], bool] = rc.keep_supported, fm
             if "op" not in header:  # (zeroed bytes read as empty records: framing lost, not a record)
                 raise _Damage(f"record at byte {off} has no op field")
         except (_Damage, struct.error) as exc:
-            at = resync_top(buf, max(good, floor + 1), end)  # (past every place it went on at before)
-            if at == off:
-                at = resync_top(buf, off + 1, end)
+            at = resume_top(buf, off, good, floor, end)
             if at is None:
                 scan.warnings.append(f"{exc}; readable part used" if "truncated" in str(exc)
                                      else f"damaged at byte {off} ({exc}); rest of file ignored")
