@@ -53,17 +53,43 @@ def sniff_damaged(head: bytes, path: str) -> bool:
 
 
 def _tail_is_mcap(path: str) -> bool:
+    """The file at ``path`` ends in an MCAP footer and magic (:func:`footer_start` of its last bytes)."""
+    size = 2 * len(MAGIC) + 29
     try:
         with open(path, "rb") as fh:
             fh.seek(0, 2)
-            n = fh.tell()
-            if n < 2 * len(MAGIC) + 29:
+            if fh.tell() < size:
                 return False
-            fh.seek(n - len(MAGIC) - 29)
+            fh.seek(-size, 2)
             tail = fh.read()
     except OSError:
         return False
-    return tail.endswith(MAGIC) and tail[0] == _OP_FOOTER and _U64.unpack_from(tail, 1)[0] == 20
+    return footer_start(tail) is not None
+
+
+def footer_start(buf) -> int | None:
+    """The summary start the footer of ``buf`` (a whole MCAP file) gives, or None when the file does not end
+    in a footer record and the closing magic."""
+    n = len(buf)
+    at = n - len(MAGIC) - 29  # footer: opcode, length 20, summary start, summary offset start, CRC
+    if at < len(MAGIC) or bytes(buf[n - len(MAGIC):]) != MAGIC:
+        return None
+    op, ln = _REC.unpack_from(buf, at)
+    if op != _OP_FOOTER or ln != 20:
+        return None
+    return int(_U64.unpack_from(buf, at + 9)[0])
+
+
+def derailed(buf, op: int, nxt: int, starts: list[int], last: int) -> tuple[str, int | None] | None:
+    """The top-level walk's rule for a record it cannot follow, shared by the parser and the export: None
+    when the record (opcode ``op``, ending at ``nxt``) reads, or is cut by the end of a file without a footer
+    (truncation); else (what is wrong, the next chunk the summary lists after ``last``, the last record
+    that started well (its length may be what was damaged), or None)."""
+    bad_op = op == 0 or op > 0x0F
+    if not (bad_op or (nxt > len(buf) and starts)):  # (a file with a footer is damaged there, not truncated)
+        return None
+    what = f"invalid record opcode {op}" if bad_op else f"a record (opcode {op}) running past the file"
+    return what, resume_at(buf, starts, last)
 
 
 class _Damage(Exception):
@@ -519,14 +545,10 @@ def read_streamed(path: str, keep: Callable[[str, str], bool] = rc.keep_supporte
 def _summary_records(buf) -> tuple[int, list[tuple[int, int, int]]]:
     """(summary start, [(opcode, offset, next)] of the summary section's records), found through the footer
     (up to the first record that does not read); (0, []) without a footer."""
-    n = len(buf)
-    at = n - len(MAGIC) - 29  # footer: opcode, length 20, summary start, summary offset start, CRC
-    if at < len(MAGIC) or bytes(buf[n - len(MAGIC):]) != MAGIC:
+    start = footer_start(buf)
+    if start is None:
         return 0, []
-    op, ln = _REC.unpack_from(buf, at)
-    if op != _OP_FOOTER or ln != 20:
-        return 0, []
-    (start,) = _U64.unpack_from(buf, at + 9)
+    at = len(buf) - len(MAGIC) - 29
     out = []
     off = int(start)
     while len(MAGIC) <= off < at and off + 9 <= at:
@@ -536,7 +558,7 @@ def _summary_records(buf) -> tuple[int, list[tuple[int, int, int]]]:
             break
         out.append((op, off, nxt))
         off = nxt
-    return int(start), out
+    return start, out
 
 
 def summary_definitions(buf) -> list[tuple[int, int, int]]:
@@ -709,7 +731,7 @@ def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
         buf = fm.buf
         off, end = len(MAGIC), len(buf)
         if buf[:len(MAGIC)] != MAGIC:
-            if not _tail_is_mcap(path):
+            if footer_start(buf) is None:
                 raise InputError("not an MCAP file (bad magic)", path)
             scan.warnings.append("damaged: the file's first 8 bytes are not MCAP's magic (its footer is); read on "
                                  "from byte 8")
@@ -729,11 +751,9 @@ def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
                 break
             op, ln = _REC.unpack_from(buf, off)
             nxt = off + 9 + ln
-            bad_op = op == 0 or op > 0x0F
-            if bad_op or (nxt > end and starts):  # (a file with a footer is damaged here, not truncated)
-                # on after the last record that started well (its length may be what was damaged)
-                at = resume_at(buf, starts, last)
-                what = f"invalid record opcode {op}" if bad_op else f"a record (opcode {op}) running past the file"
+            broken = derailed(buf, op, nxt, starts, last)
+            if broken is not None:
+                what, at = broken
                 if at is None:
                     scan.warnings.append(f"damaged: {what} at byte {off}; rest of file ignored")
                     break

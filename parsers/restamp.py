@@ -189,8 +189,8 @@ def glitches(old: np.ndarray, unit_ns: int) -> tuple[np.ndarray, np.ndarray]:
         return mask, old
     d = np.abs(np.diff(old))
     cand = np.flatnonzero((d[:-1] > lim) & (d[1:] > lim)) + 1  # away from both neighbours
-    if n > 1:  # (the first and last values have one neighbour)
-        cand = np.concatenate([cand, np.flatnonzero([d[0] > lim, d[-1] > lim]) * (n - 1)])
+    ends = [i for i, far in ((0, d[0] > lim), (n - 1, d[-1] > lim)) if far]  # (one neighbour each)
+    cand = np.concatenate([cand, np.asarray(ends, np.int64)])
     if not len(cand):
         return mask, old
     k = 3

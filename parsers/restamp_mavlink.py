@@ -67,7 +67,7 @@ def restamp_dataflash(src: str, dst: str, shift: ClockShift, *, selector=None) -
     off_ns = np.int64(off or 0)
     by_type: dict[str, int] = {}
     fields_done: set[str] = set()
-    glitches: list[str] = []
+    glitch_notes: list[str] = []
     total = 0
     for typ, offs in log.offsets.items():
         f = log.formats.get(typ)
@@ -97,12 +97,12 @@ def restamp_dataflash(src: str, dst: str, shift: ClockShift, *, selector=None) -
             k_ms = shift.shift_units(t_a, MS_NS)
             if "TimeUS" in cols:
                 old = get_le(buf, at("TimeUS"), 8)
-                new = nonneg_or_glitch(old, old - k_ms * 1000, US_NS, f"{f.name}.TimeUS", src, glitches)
+                new = nonneg_or_glitch(old, old - k_ms * 1000, US_NS, f"{f.name}.TimeUS", src, glitch_notes)
                 put_le(buf, at("TimeUS"), new, 8)
                 fields_done.add(f"{f.name}.TimeUS")
             if "T" in cols and "TimeUS" not in cols:
                 old = get_le(buf, at("T"), 4)
-                new = nonneg_or_glitch(old, old - k_ms, MS_NS, f"{f.name}.T", src, glitches)
+                new = nonneg_or_glitch(old, old - k_ms, MS_NS, f"{f.name}.T", src, glitch_notes)
                 put_le(buf, at("T"), new, 4)
                 fields_done.add(f"{f.name}.T")
             for wk_col, ms_col in (("GWk", "GMS"), ("Week", "TimeMS")):
@@ -114,19 +114,20 @@ def restamp_dataflash(src: str, dst: str, shift: ClockShift, *, selector=None) -
         if "TimeUS" in cols:
             old = get_le(buf, at("TimeUS"), 8)
             new = nonneg_or_glitch(old, old - shift.shift_units(t_a, US_NS), US_NS, f"{f.name}.TimeUS", src,
-                                    glitches)
+                                    glitch_notes)
             put_le(buf, at("TimeUS"), new, 8)
             fields_done.add("TimeUS")
         elif "TimeMS" in cols:
             old = get_le(buf, at("TimeMS"), 4)
             new = nonneg_or_glitch(old, old - shift.shift_units(t_a, MS_NS), MS_NS, f"{f.name}.TimeMS", src,
-                                    glitches)
+                                    glitch_notes)
             put_le(buf, at("TimeMS"), new, 4)
             fields_done.add("TimeMS")
     write_bytes_atomic(dst, buf)
     return RestampStats(path=dst, format="dataflash", how=HOW, records=total, records_by_type=by_type,
                         time_fields=tuple(sorted(fields_done)),
-                        damage=tuple(w + " (those bytes copied unchanged)" for w in log.warnings) + tuple(glitches))
+                        damage=tuple(w + " (those bytes copied unchanged)" for w in log.warnings)
+                        + tuple(glitch_notes))
 
 
 # ==== tlog =============================================================================================

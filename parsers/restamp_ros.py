@@ -556,7 +556,7 @@ def _scan_mcap(path: str) -> _McapScan:
     buf = memoryview(file)
     sc = _McapScan()
     if bytes(buf[:len(mcap_ros.MAGIC)]) != mcap_ros.MAGIC:
-        if not mcap_ros._tail_is_mcap(path):
+        if mcap_ros.footer_start(buf) is None:
             raise InputError("not an MCAP file (bad magic)", path)
         sc.damage.append("the file's first 8 bytes are not MCAP's magic (its footer is); read on from byte 8, "
                          "the output starts with a valid magic")
@@ -579,10 +579,9 @@ def _scan_mcap(path: str) -> _McapScan:
                 break
             op, ln = mcap_ros._REC.unpack_from(buf, off)
             nxt = off + 9 + ln
-            bad_op = op == 0 or op > 0x0F
-            if bad_op or (nxt > end and starts):  # (the same rules as the parser's walk)
-                at = mcap_ros.resume_at(buf, starts, last)
-                what = f"invalid record opcode {op}" if bad_op else f"a record (opcode {op}) running past the file"
+            broken = mcap_ros.derailed(buf, op, nxt, starts, last)  # (the parser's rule)
+            if broken is not None:
+                what, at = broken
                 if at is None:
                     sc.damage.append(f"{what} at byte {off}; rest of file not read")
                     break

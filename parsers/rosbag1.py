@@ -50,8 +50,7 @@ def resync_top(buf, start: int, end: int, partial_ok: bool = False) -> int | Non
     and whose data fits in ``buf[:end]`` (``partial_ok``: may run past ``end``, for a file's first bytes):
     where a walk of the top-level records goes on after damage. None if there is none."""
     b = bytes(buf[start:end]) if not isinstance(buf, bytes) else buf[start:end]
-    hits = sorted(i for tag in (b"op=\x05", b"op=\x07") for i in _find_all(b, tag))
-    for k in hits:
+    for k in _find_first(b, (b"op=\x05", b"op=\x07")):
         for r in range(max(0, k - 128), k - 7):
             (hlen,) = _U32.unpack_from(b, r)
             if not (k + 4 <= r + 4 + hlen <= len(b) - 4 and hlen < 1 << 16):
@@ -74,11 +73,16 @@ def resume_top(buf, off: int, good: int, floor: int, end: int) -> int | None:
     return resync_top(buf, off + 1, end) if at == off else at
 
 
-def _find_all(b: bytes, tag: bytes):
-    k = b.find(tag)
-    while k >= 0:
+def _find_first(b: bytes, tags: tuple[bytes, ...]):
+    """The places of any of ``tags`` in ``b``, ascending, found as they are needed (not all of a file)."""
+    nxt = {t: b.find(t) for t in tags}
+    while True:
+        live = [(k, t) for t, k in nxt.items() if k >= 0]
+        if not live:
+            return
+        k, t = min(live)
         yield k
-        k = b.find(tag, k + 1)
+        nxt[t] = b.find(t, k + 1)
 
 
 class _Damage(Exception):
