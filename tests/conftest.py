@@ -5,3 +5,7 @@ import os
 
 os.environ.setdefault("TAPOST_KERNELS", "compiled")
 os.environ.setdefault("TAPOST_WARMUP", "0")
+# one BLAS thread per test worker, as the CLI runs (pipelines.cli.BLAS_THREADS): with a worker per core
+# (-n auto), BLAS threads only wait on each other (scripts/test.sh sets it before pytest imports numpy)
+for _name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_name, "1")
