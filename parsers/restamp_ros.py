@@ -720,21 +720,26 @@ def restamp_mcap(src: str, dst: str, shift: ClockShift, *, selector: str | None 
 def _sqlite_rows(path: str, damage: list[str]) -> tuple[dict[int, tuple[str, str, str]], list[tuple]]:
     check_readable(path)
     try:
-        con = sqlite3.connect(f"file:{path}?mode=ro&immutable=1", uri=True)
+        con = rosbag2.connect_ro(path)
         topics = {r[0]: (r[1], r[2], r[3]) for r in con.execute(
             "SELECT id, name, type, serialization_format FROM topics")}
-        (max_id,) = con.execute("SELECT max(id) FROM messages").fetchone()
     except sqlite3.DatabaseError as exc:
         raise InputError(f"sqlite3 storage unreadable ({exc})", path) from None
-    lost_ids: list[tuple[int, int]] = []
+    max_id, why = rosbag2.max_message_id(con)
+    lost_ids: list[tuple[int, int]] | None = None if max_id is None else []
+    rows: list[tuple] = []
     try:  # (the export keeps every row: all of them are written)
-        rows = [r for batch in rosbag2.message_rows(con, int(max_id or 0), lost_ids) for r in batch]
+        if max_id is not None:
+            rows = [r for batch in rosbag2.message_rows(con, max_id, lost_ids) for r in batch]
     finally:
         con.close()
-    lost = [f"{a}-{b}" for a, b in lost_ids]
-    if lost:
-        damage.append(f"{os.path.basename(path)}: sqlite3 storage damaged: message rows {', '.join(lost)} "
-                      "unreadable; not in the output")
+    if lost_ids is None or lost_ids:  # what SQLite cannot reach, looked for page by page
+        found, note = rosbag2.recovered_rows(path, lost_ids, why or "pages unreadable")
+        if found and rows:  # back among the rows read in id order (rosbag2 inserts in time order)
+            rows = sorted(rows + found, key=lambda r: r[1] if isinstance(r[1], int) else -1)
+        else:
+            rows += found
+        damage.append(note + "; the rest is not in the output")
     return topics, rows
 
 

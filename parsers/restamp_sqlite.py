@@ -24,6 +24,7 @@ re-inserting the rows (the tolerant path that also recovers damaged files).
 from __future__ import annotations
 
 import dataclasses
+import os
 import sqlite3
 
 import numpy as np
@@ -40,17 +41,17 @@ def _varint(b, p):
     """SQLite varint at b[p]: (value, next position)."""
     v = 0
     for i in range(8):
-        c = b[p + i]
+        c = int(b[p + i])  # (int: plain Python on a uint8 array would shift within 8 bits)
         v = (v << 7) | (c & 0x7F)
         if c < 0x80:
             return v, p + i + 1
-    return (v << 8) | b[p + 8], p + 9
+    return (v << 8) | int(b[p + 8]), p + 9
 
 
 def _be(b, p, n):
     v = 0
     for i in range(n):
-        v = (v << 8) | b[p + i]
+        v = (v << 8) | int(b[p + i])
     return v
 
 
@@ -222,6 +223,76 @@ def _walk_index(b, page_size, usable, root, n_pages, rowid, ts_off):
     return n, _OK
 
 
+def _scan_leaves(b, page_size, usable, n_pages, rowid, topic, ts, data_off, data_len):
+    """Every table-leaf cell of the file shaped like a ``messages`` row (record: NULL, integer, integer,
+    blob), page by page, whatever points to it: the rows of a file whose b-tree's interior pages are lost
+    (a truncated copy) or damaged. A page or cell that does not parse is passed over. Returns (rows,
+    cells passed over, error code: _E_FULL when the outputs are full)."""
+    n = 0
+    bad = 0
+    cap = len(rowid)
+    max_local = usable - 35
+    for pg in range(1, n_pages + 1):
+        base = (pg - 1) * page_size
+        h = base + (100 if pg == 1 else 0)
+        if b[h] != 13:
+            continue
+        ncell = _be(b, h + 3, 2)
+        if h + 8 + 2 * ncell > base + usable:
+            bad += 1
+            continue
+        for i in range(ncell):
+            c = base + _be(b, h + 8 + 2 * i, 2)
+            if c < h + 8 + 2 * ncell or c >= base + usable:
+                bad += 1
+                continue
+            size, p = _varint(b, c)
+            rid, p = _varint(b, p)
+            if size > max_local or size < 4 or p + size > base + usable:
+                bad += 1  # (a payload on overflow pages is not followed: INS messages are far smaller)
+                continue
+            hsize, q = _varint(b, p)
+            if hsize < 1 or hsize > size:
+                bad += 1
+                continue
+            val = p + hsize
+            ncol = 0
+            st0 = -1
+            st_topic = 0
+            st_ts = 0
+            st_data = 0
+            v_topic = 0
+            v_ts = 0
+            v_data = 0
+            while q < p + hsize and ncol < 64:
+                st, q = _varint(b, q)
+                if ncol == 0:
+                    st0 = st
+                elif ncol == 1:
+                    st_topic, v_topic = st, val
+                elif ncol == 2:
+                    st_ts, v_ts = st, val
+                elif ncol == 3:
+                    st_data, v_data = st, val
+                val += _sizeof(st)
+                ncol += 1
+            if q != p + hsize or val != p + size:
+                bad += 1
+                continue
+            if ncol != 4 or st0 != 0 or not _is_int(st_topic) or not _is_int(st_ts) or st_data < 12 \
+                    or st_data % 2 == 1:
+                continue  # a row of another table (topics, metadata, the schema)
+            if n >= cap:
+                return n, bad, _E_FULL
+            rowid[n] = rid
+            topic[n] = _int(b, v_topic, st_topic)
+            ts[n] = _int(b, v_ts, st_ts)
+            data_off[n] = v_data
+            data_len[n] = (st_data - 12) // 2
+            n += 1
+    return n, bad, _OK
+
+
 _loader = kernel_loader(globals())
 _HELPERS = ("_varint", "_be", "_int", "_is_int", "_sizeof")
 
@@ -309,6 +380,54 @@ def walk(path: str) -> Walk | None:
     return Walk(buf, rowid, topic, ts_off, data_off, data_len, idx_rowid, idx_ts)
 
 
+@dataclasses.dataclass
+class Recovered:
+    """``messages`` rows found by a page scan of a damaged .db3 (:func:`recover`), in rowid order."""
+
+    rowid: np.ndarray
+    topic: np.ndarray
+    timestamp: np.ndarray  # int64 ns
+    data: list  # bytes per row
+    cells_passed_over: int  # leaf cells that did not parse (damaged)
+    pages_declared: int  # the page count the file's header gives (0: not stated)
+    pages_present: int  # whole pages in the file
+
+    @property
+    def truncated(self) -> bool:
+        return self.pages_present < self.pages_declared
+
+
+def recover(path: str) -> Recovered | None:
+    """The ``messages`` rows of a rosbag2 .db3 that SQLite cannot read whole (a truncated copy: its b-tree's
+    interior pages, written late, are among the pages lost), found page by page (``_scan_leaves``); a row
+    held twice (a freed page's stale copy) is kept once. None when the file is no SQLite database."""
+    size = os.path.getsize(path)
+    buf = np.zeros(size + 32, np.uint8)  # zeros past the end: a damaged cell's varints never read beyond it
+    with open(path, "rb") as fh:
+        fh.readinto(memoryview(buf)[:size])
+    if size < 100 or bytes(buf[:16]) != b"SQLite format 3\x00":
+        return None
+    page_size = int(buf[16]) << 8 | int(buf[17])
+    page_size = 65536 if page_size == 1 else page_size
+    if page_size < 512 or page_size & (page_size - 1):
+        return None
+    usable = page_size - int(buf[20])
+    n_pages = size // page_size  # (a partial last page: its cells, written from the page's end, are lost)
+    declared = int.from_bytes(bytes(buf[28:32]), "big")
+    cap = max(1024, size // 48)
+    while True:
+        out = [np.empty(cap, np.int64) for _ in range(5)]
+        n, bad, err = _kernel("_scan_leaves")(buf, page_size, usable, n_pages, *out)
+        if err != _E_FULL:
+            break
+        cap *= 4
+    rowid, topic, ts, off, ln = (a[:n] for a in out)
+    rowid, first = np.unique(rowid, return_index=True)
+    topic, ts, off, ln = topic[first], ts[first], off[first], ln[first]
+    data = [buf[o:o + k].tobytes() for o, k in zip(off.tolist(), ln.tolist())]
+    return Recovered(rowid, topic, ts, data, int(bad), declared, n_pages)
+
+
 def _be8(v: np.ndarray) -> np.ndarray:
     """int64 values as rows of 8 big-endian bytes (SQLite's serial type 6)."""
     return np.ascontiguousarray(v.astype(">i8")).view(np.uint8).reshape(-1, 8)
@@ -357,8 +476,10 @@ def connections(path: str) -> list | None:
     from rosbags.interfaces import Connection, ConnectionExtRosbag2, MessageDefinition, MessageDefinitionFormat
     from rosbags.rosbag2.metadata import parse_qos
 
+    from parsers.rosbag2 import connect_ro
+
     try:
-        con = sqlite3.connect(f"file:{path}?mode=ro&immutable=1", uri=True)
+        con = connect_ro(path)
         try:
             cur = con.execute("SELECT * FROM topics ORDER BY id")
             names = [d[0] for d in cur.description]

@@ -124,7 +124,7 @@ def _read_sqlite(path: str, keep: Callable[[str, str], bool], typestore, warning
         if not fh.read(16).startswith(SQLITE_MAGIC):
             raise InputError("storage file is not an SQLite database", path)
     try:
-        con = sqlite3.connect(f"file:{path}?mode=ro&immutable=1", uri=True)
+        con = connect_ro(path)
     except sqlite3.Error as exc:
         raise InputError(f"cannot open sqlite3 storage: {exc}", path) from None
     try:
@@ -157,16 +157,64 @@ def _read_sqlite(path: str, keep: Callable[[str, str], bool], typestore, warning
         con.close()
 
 
-def _read_messages(con, path: str, by_id: dict, keep_ids: set, warnings: list[str]) -> None:
-    """Messages in rowid batches, so that a damaged page loses only its batch (reported)."""
+def connect_ro(path: str) -> sqlite3.Connection:
+    """A read-only connection to a .db3 that never writes (``immutable``) and opens a truncated file too:
+    ``writable_schema`` lets SQLite read a file shorter than its header's page count (without it, every
+    query of a copy cut short fails, "database disk image is malformed", even where its pages are whole)."""
+    con = sqlite3.connect(f"file:{path}?mode=ro&immutable=1", uri=True)
+    con.execute("PRAGMA writable_schema=ON")
+    return con
+
+
+def max_message_id(con) -> tuple[int | None, str]:
+    """The largest message id, or (None, why) when the table's b-tree cannot be followed to its end."""
     try:
         (max_id,) = con.execute("SELECT max(id) FROM messages").fetchone()
     except sqlite3.DatabaseError as exc:
-        warnings.append(f"{os.path.basename(path)}: sqlite3 messages table damaged ({exc}); nothing read")
-        return
-    lost: list[tuple[int, int]] = []
+        return None, str(exc)
+    return int(max_id or 0), ""
+
+
+def recovered_rows(path: str, lost: list[tuple[int, int]] | None, why: str) -> tuple[list[tuple], str]:
+    """The rows (topic_id, timestamp, data) of the id ranges ``lost`` (inclusive; None: every row) that a
+    page scan of the file finds (``restamp_sqlite.recover``: the leaf pages, whatever the b-tree's interior
+    pages say), and one sentence on what was read and what is still missing."""
+    from parsers import restamp_sqlite
+
+    name = os.path.basename(path)
+    rec = restamp_sqlite.recover(path)
+    if rec is None or not len(rec.rowid):
+        where = ", ".join(f"{a}-{b}" for a, b in lost) if lost else "all"
+        return [], f"{name}: sqlite3 storage damaged ({why}): message rows {where} unreadable, none found by a page scan"
+    take = np.ones(len(rec.rowid), bool)
+    if lost is not None:
+        lo = np.array([a for a, _ in lost], np.int64)
+        hi = np.array([b for _, b in lost], np.int64)
+        j = np.searchsorted(lo, rec.rowid, side="right") - 1
+        take = (j >= 0) & (rec.rowid <= hi[np.clip(j, 0, None)])
+    idx = np.flatnonzero(take).tolist()
+    rows = [(int(rec.topic[i]), int(rec.timestamp[i]), rec.data[i]) for i in idx]
+    ids = rec.rowid[take]
+    want = int(sum(b - a + 1 for a, b in lost)) if lost is not None else None
+    note = f"{name}: sqlite3 storage damaged ({why}); {len(rows)} message rows"
+    note += f" of the {want} unreadable ones" if want is not None else ""
+    note += " read from its intact pages by a page scan"
+    if rec.truncated:
+        note += (f"; the file ends at page {rec.pages_present} of the {rec.pages_declared} its header declares "
+                 f"(truncated: the rows after id {int(ids.max()) if len(ids) else 0} are lost)")
+    if rec.cells_passed_over:
+        note += f"; {rec.cells_passed_over} damaged cells passed over"
+    return rows, note
+
+
+def _read_messages(con, path: str, by_id: dict, keep_ids: set, warnings: list[str]) -> None:
+    """Messages in rowid batches, so that a damaged page loses only its batch; what SQLite cannot reach
+    (a b-tree page lost: a truncated copy) is looked for page by page (``recovered_rows``); reported."""
+    max_id, why = max_message_id(con)
+    lost: list[tuple[int, int]] | None = None if max_id is None else []
     touched = set()
-    for rows in message_rows(con, int(max_id or 0), lost):
+
+    def take(rows: list[tuple]) -> None:
         for tid, ts, data in rows:
             raw = by_id.get(tid)
             if raw is None:
@@ -175,9 +223,14 @@ def _read_messages(con, path: str, by_id: dict, keep_ids: set, warnings: list[st
             raw.log_ns.append(ts)
             if tid in keep_ids:
                 raw.data.append(data)
-    if lost:
-        warnings.append(f"{os.path.basename(path)}: sqlite3 storage damaged: message rows "
-                        + ", ".join(f"{x}-{y}" for x, y in lost) + " unreadable; readable part used")
+
+    if max_id is not None:
+        for rows in message_rows(con, max_id, lost):
+            take(rows)
+    if lost is None or lost:
+        rows, note = recovered_rows(path, lost, why or "pages unreadable")
+        take(rows)
+        warnings.append(note + ("; readable part used" if rows or max_id else ""))
     for tid in touched:  # rowid order is insertion order; make it log-time order
         raw = by_id[tid]
         t = np.asarray(raw.log_ns, np.int64)

@@ -61,6 +61,12 @@ def warm(quiet: bool = False) -> float:
             export.write_native(path, os.path.join(d, f"shifted_{fmt}" + (f".{ext}" if ext else "")), fmt, shift,
                                 got.meta.selector)
             _say(quiet, f"  {fmt} native export: {time.perf_counter() - t:.1f} s")
+        if "rosbag2" in paths:  # the page scan that reads a damaged .db3 (parsers.restamp_sqlite.recover)
+            from parsers import restamp_sqlite
+
+            for f in sorted(os.listdir(paths["rosbag2"])):
+                if f.endswith(".db3"):
+                    restamp_sqlite.recover(os.path.join(paths["rosbag2"], f))
         t = time.perf_counter()
         opts = analyze.options_from({k: None for k in analyze.CLI_KEYS})[0]
         analyze.compute(paths["mcap"], paths["tlog"], opts)

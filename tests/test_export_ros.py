@@ -568,6 +568,27 @@ def test_sqlite_rows_with_damaged_fields_are_dropped_and_named(big, tmp_path):
     assert len(_rows(str(tmp_path / "out" / "bag.db3"))) == n0
 
 
+def test_truncated_sqlite_bag_exports_what_its_whole_pages_hold(big, tmp_path):
+    """A bag whose .db3 was cut short: the export writes every row the page scan finds (no shorter file
+    without a word: the damage names the truncation), and the output opens in rosbags with those rows."""
+    import shutil
+
+    from rosbags.highlevel import AnyReader
+
+    src = str(tmp_path / "bag")
+    shutil.copytree(big["rosbag2"], src)
+    db = os.path.join(src, "bag.db3")
+    data = open(db, "rb").read()
+    with open(db, "wb") as fh:
+        fh.write(data[: len(data) // 2])
+    st = rr.restamp_rosbag2(src, str(tmp_path / "out"), _shift_for(big["log"]))
+    n_all = len(_rows(os.path.join(big["rosbag2"], "bag.db3")))
+    assert 0.35 * n_all < st.records < n_all
+    assert any("page scan" in d and "truncated" in d for d in st.damage), st.damage
+    with AnyReader([tmp_path / "out"]) as rd:
+        assert sum(1 for _ in rd.messages()) == st.records
+
+
 def test_sqlite_in_place_rebuilds_the_index_when_the_shift_reorders(tmp_path, slave):
     """Record times 1 us apart, header stamps 5 ms apart, 2000 ppm of drift: each message's shift grows by
     10 us, so the shifted record times run backwards and the index on them is rebuilt (by SQLite)."""
