@@ -63,6 +63,32 @@ def test_the_compiled_kernel_is_the_python_loop():
     assert np.array_equal(a, b) and np.max(np.abs(a - c)) <= 1e-13 * np.max(np.abs(c))
 
 
+@pytest.mark.parametrize("spacing", ["jittered", "uneven", "few"])
+def test_the_spline_kernel_is_scipys_cubic_spline_bit_for_bit(spacing):
+    """logtools.dsp.cubic_spline_at against scipy's CubicSpline(x, y)(xs): the same numbers to the bit, on
+    jittered stamps with a grid inside them (to_uniform's case), on intervals spread over three decades
+    (rows swapped in the tridiagonal solve, its other branch), at the knots and at both ends; the Python
+    function (reference kernels) gives them too."""
+    from scipy.interpolate import CubicSpline
+
+    rng = np.random.default_rng(3)
+    n = {"jittered": 20000, "uneven": 3000, "few": 4}[spacing]
+    if spacing == "jittered":
+        x = 1.7e3 + np.arange(n) * 0.005 + rng.normal(0.0, 4e-4, n)
+    else:
+        x = np.cumsum(10.0 ** rng.uniform(-3, 0, n))
+    y = np.sin(0.9 * x) + 0.1 * rng.standard_normal(n)
+    xs = np.sort(np.concatenate([rng.uniform(x[0], x[-1], 5 * n), x, [x[0], x[-1]]]))
+    want = CubicSpline(x, y)(xs)
+    python = getattr(dsp._not_a_knot_at_kernel, "py_func", dsp._not_a_knot_at_kernel)  # (as Python)
+    assert np.array_equal(python(x, y, xs, np.empty(len(xs))), want)
+    if spacing == "uneven":  # the solve's row interchanges happen on this input
+        d = 2 * (np.diff(x)[:-1] + np.diff(x)[1:])
+        assert np.any(np.abs(d[:-1]) < np.diff(x)[2:])
+    got = dsp.cubic_spline_at(x, y, xs)
+    assert np.array_equal(got, want), float(np.max(np.abs(got - want)))
+
+
 @pytest.mark.parametrize("n, nperseg", [(4096, 1024), (5000, 1024), (777, 256), (300, 300), (1001, 333)])
 def test_welch_equals_scipys(n, nperseg):
     x = np.random.default_rng(n).standard_normal((n, 3)) + np.array([1.0, -2.0, 0.5])
