@@ -397,26 +397,53 @@ def _slave_imu(slave: InsLog, src: str) -> tuple[np.ndarray, np.ndarray, np.ndar
     return t[keep], g[keep], a[keep]
 
 
-_LAST_MASTER: list = []  # [(weak ref to the master, config key, its series)]: the one most recently prepared
+_LAST_MASTER: list = []  # [(weak ref to the master, {key: value})]: what was prepared for the last master
+
+
+def _for_master(master: InsLog, key: tuple, make: Callable[[], object]):
+    """``make()``, kept under ``key`` for the same master object (analyze runs the alignment two or three
+    times against one master; InsLog is immutable); held weakly: it goes when the master does (a batch does
+    not keep the last pair's master)."""
+    if not (_LAST_MASTER and _LAST_MASTER[0][0]() is master):
+        ref = weakref.ref(master)
+        _LAST_MASTER[:] = [(ref, {})]
+        weakref.finalize(master, _forget_master, ref)
+    memo = _LAST_MASTER[0][1]
+    if key not in memo:
+        memo[key] = make()
+    return memo[key]
 
 
 def _master_series_cached(master: InsLog, config: AlignmentConfig = CONFIG) -> MasterSeries:
-    """:func:`_master_series`, prepared once for the same master object and rate settings (analyze runs
-    the alignment before and after compensation against one master; InsLog is immutable)."""
-    key = (config.lever_rate_max_half_span_s, config.lever_rate_attenuation, config.nav_shared_stamps,
-           config.nav_gap_steps)
-    if _LAST_MASTER and _LAST_MASTER[0][0]() is master and _LAST_MASTER[0][1] == key:
-        return _LAST_MASTER[0][2]
-    ms = _master_series(master, config)
-    for f in fields(ms):  # shared between runs: read-only
-        v = getattr(ms, f.name)
-        if isinstance(v, np.ndarray):
-            v.flags.writeable = False
-    # held weakly: the series goes when the master does (a batch does not keep the last pair's master)
-    ref = weakref.ref(master)
-    _LAST_MASTER[:] = [(ref, key, ms)]
-    weakref.finalize(master, _forget_master, ref)
-    return ms
+    """:func:`_master_series`, prepared once for the same master object and rate settings."""
+    def make() -> MasterSeries:
+        ms = _master_series(master, config)
+        for f in fields(ms):  # shared between runs: read-only
+            v = getattr(ms, f.name)
+            if isinstance(v, np.ndarray):
+                v.flags.writeable = False
+        return ms
+
+    return _for_master(master, ("series", config.lever_rate_max_half_span_s, config.lever_rate_attenuation,
+                                config.nav_shared_stamps, config.nav_gap_steps), make)
+
+
+def _master_attitude_noise(master: InsLog) -> float | None:
+    """The white noise of the master's attitude (rad, :func:`_hf_sigma` of its rotation from the first
+    attitude), None with fewer than 9 attitudes; once per master."""
+    def make() -> float | None:
+        _tq, q = master.quat_wxyz()
+        if len(q) <= 8:
+            return None
+        return _hf_sigma(rotvec_from_quat(quat_mul(quat_conj(q[:1]), quat_make_continuous(q))))
+
+    return _for_master(master, ("attitude noise",), make) if master.has_quat else None
+
+
+def _master_velocity_noise(master: InsLog) -> float | None:
+    """The white noise of the master's velocity (m/s, :func:`_hf_sigma`), None without one; once per master."""
+    return (_for_master(master, ("velocity noise",), lambda: _hf_sigma(master.vel_ned_m_s()[1]))
+            if master.has_vel else None)
 
 
 def _forget_master(ref) -> None:
@@ -837,18 +864,16 @@ def _settings(kind: FilterKind, lay: StateLayout, master: InsLog, t_imu, gyro, a
     sg_acc = float(_given(opts.accel_bias_sigma_mg,
                           np.clip(0.01 * vrw_ug * max(1.0, vrw_ug / 50.0), 0.1, 50.0))) * MG
     # measurement noise from the master's data, with floors
-    tq, q = master.quat_wxyz() if master.has_quat else (None, None)
     if opts.r_att_arcsec is not None:
         r_att = float(opts.r_att_arcsec) * ARCSEC
-    elif q is not None and len(q) > 8:
-        rv = rotvec_from_quat(quat_mul(quat_conj(q[:1]), quat_make_continuous(q)))
-        r_att = max(_hf_sigma(rv), 1.0 * ARCSEC)
+    elif (att_noise := _master_attitude_noise(master)) is not None:
+        r_att = max(att_noise, 1.0 * ARCSEC)
     else:
         r_att = 10.0 * ARCSEC
     if opts.r_vel_m_s is not None:
         r_vel = float(opts.r_vel_m_s)
-    elif master.has_vel:
-        r_vel = max(_hf_sigma(master.vel_ned_m_s()[1]), 5e-4)
+    elif (vel_noise := _master_velocity_noise(master)) is not None:
+        r_vel = max(vel_noise, 5e-4)
     else:
         r_vel = 0.01
     n = lay.n
