@@ -36,6 +36,7 @@ LARGE_INPUT_BYTES = 60_000_000
 #: the modules that hold numba kernels (their sources' size and mtime invalidate numba's cache, and so
 #: the stamp)
 KERNEL_MODULES = ("logtools/strapdown.py", "logtools/alignment/kf.py", "logtools/alignment/model.py",
+                  "logtools/alignment/imu_to_imu.py",
                   "logtools/latency/flexure.py", "parsers/mavlink_common.py", "parsers/mcap_ros.py",
                   "parsers/ulog.py", "parsers/csvtable.py", "parsers/rosbag1.py", "parsers/restamp_mavlink.py",
                   "parsers/restamp_csv.py", "parsers/ros_containers.py",

@@ -257,3 +257,21 @@ def test_normal_equations_from_sums_equal_the_per_sample_sums(with_lever):
     jtj, rhs = _Moments(u, v, k).normal_equations(r, lev)
     np.testing.assert_allclose(jtj, jtj_ref, rtol=1e-10, atol=1e-9 * np.abs(jtj_ref).max())
     np.testing.assert_allclose(rhs, rhs_ref, rtol=1e-8, atol=1e-9 * np.abs(rhs_ref).max())
+
+
+def test_the_highpass_kernel_gives_the_numpy_arithmetic_bit_for_bit(monkeypatch):
+    """_highpass compiled (one pass a column) and as numpy (running sum, blocks of rows): the same numbers,
+    on columns of a (n, k) array (strided) and at window lengths from 3 samples to more than the series."""
+    from logtools import jit
+    from logtools.alignment import imu_to_imu as i2i
+
+    if not jit.compiled():
+        pytest.skip("kernels run as Python in this session")
+    rng = np.random.default_rng(5)
+    y = np.cumsum(rng.standard_normal((5000, 4)), axis=0) + 1e3
+    for n_win in (3, 4, 101, 7000):
+        got = i2i._highpass(y, n_win)
+        monkeypatch.setattr(jit, "compiled", lambda: False)
+        want = i2i._highpass(y, n_win)
+        monkeypatch.undo()
+        assert np.array_equal(got, want), n_win

@@ -31,6 +31,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from logtools import jit
 from logtools.conventions import dcm_from_euler, dcm_from_rotvec, euler_from_dcm, median_step_s, skew, wahba
 from logtools.inslog import InsLog
 
@@ -139,6 +140,10 @@ def _highpass(y: np.ndarray, n_win: int) -> np.ndarray:
     n = len(y)
     h = max(n_win // 2, 1)
     out = np.empty(y.shape)
+    if jit.compiled():  # one pass a column, the same arithmetic (tests/test_imu_to_imu.py)
+        for j in range(y.shape[1]):
+            _highpass_kernel(y[:, j], h, out[:, j])
+        return out
     for j in range(y.shape[1]):  # column by column (one column's running sum at a time: 4 h of the
         c = np.concatenate([[0.0], np.cumsum(y[:, j])])  # accelerometers' 12 regressors are 280 MB a copy)
         for a in range(0, n, HIGHPASS_ROWS):  # row by row arithmetic: blocks only bound the temporaries
@@ -147,6 +152,21 @@ def _highpass(y: np.ndarray, n_win: int) -> np.ndarray:
             i1 = np.clip(r + h + 1, 0, n)
             out[a:a + len(r), j] = y[a:a + len(r), j] - (c[i1] - c[i0]) / (i1 - i0)
     return out
+
+
+@jit.njit
+def _highpass_kernel(y, h, out):  # pragma: no cover - compiled (_highpass's numpy arithmetic, same order)
+    n = y.shape[0]
+    c = np.empty(n + 1)
+    c[0] = 0.0
+    acc = 0.0
+    for i in range(n):  # np.cumsum: a running sum, element after element
+        acc += y[i]
+        c[i + 1] = acc
+    for r in range(n):
+        i0 = min(max(r - h, 0), n)
+        i1 = min(max(r + h + 1, 0), n)
+        out[r] = y[r] - (c[i1] - c[i0]) / (i1 - i0)
 
 
 def _common(t_m: np.ndarray, y_m: np.ndarray, t_s: np.ndarray, y_s: np.ndarray, gap_steps: float
