@@ -23,7 +23,7 @@ from scipy import fft as sfft
 from logtools import jit
 
 __all__ = ["butter_lowpass_sos", "sosfiltfilt_even", "sosfilt_zi", "welch_psd", "correlate_valid",
-           "cubic_spline_at"]
+           "cubic_spline_at", "weighted_rows"]
 
 
 def butter_lowpass_sos(order: int, wn: float) -> np.ndarray:
@@ -210,6 +210,29 @@ def cubic_spline_at(x: np.ndarray, y: np.ndarray, xs: np.ndarray) -> np.ndarray:
     from scipy.interpolate import CubicSpline
 
     return CubicSpline(x, y)(xs)
+
+
+@jit.njit
+def _weighted_rows_kernel(c, j, w0, w1, w2, w3, scale, out):  # pragma: no cover - compiled
+    """out[m, :] = scale * (w0[m] c[j[m]] + w1[m] c[j[m]+1] + w2[m] c[j[m]+2] + w3[m] c[j[m]+3]), summed in
+    that order (numpy's broadcast expression, element by element)."""
+    for m in range(j.shape[0]):
+        i = j[m]
+        for q in range(c.shape[1]):
+            out[m, q] = scale * (w0[m] * c[i, q] + w1[m] * c[i + 1, q] + w2[m] * c[i + 2, q] + w3[m] * c[i + 3, q])
+    return out
+
+
+def weighted_rows(c: np.ndarray, j: np.ndarray, w: tuple, scale: float) -> np.ndarray:
+    """``scale * (w0 * c[j] + w1 * c[j + 1] + w2 * c[j + 2] + w3 * c[j + 3])`` for weights (m, 1) and rows
+    ``c`` (n, k): a cubic B-spline's four coefficients weighed (logtools.resample.Interpolant). A numba
+    kernel in compiled mode (no gathered copies of c: a fifth of the time), the same numbers."""
+    if jit.compiled():
+        w0, w1, w2, w3 = (np.ascontiguousarray(x.reshape(-1), dtype=float) for x in w)
+        return _weighted_rows_kernel(np.ascontiguousarray(c, dtype=float), np.ascontiguousarray(j, np.int64),
+                                     w0, w1, w2, w3, float(scale), np.empty((len(j), c.shape[1])))
+    w0, w1, w2, w3 = w
+    return scale * (w0 * c[j] + w1 * c[j + 1] + w2 * c[j + 2] + w3 * c[j + 3])
 
 
 def welch_psd(x: np.ndarray, fs: float, nperseg: int) -> tuple[np.ndarray, np.ndarray]:

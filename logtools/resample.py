@@ -21,7 +21,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy import ndimage
 
-from logtools.dsp import butter_lowpass_sos, cubic_spline_at, sosfiltfilt_even
+from logtools.dsp import butter_lowpass_sos, cubic_spline_at, sosfiltfilt_even, weighted_rows
 
 __all__ = ["CleanSamples", "UniformSeries", "Interpolant", "clean_samples", "median_rate_hz",
            "to_uniform", "lowpass", "interpolant", "stamp_noise_s"]
@@ -284,7 +284,7 @@ class Interpolant:
         else:
             raise ValueError("nu must be 0 or 1")
         # padded index: sample j sits at j + 1
-        return scale * (w0 * c[j] + w1 * c[j + 1] + w2 * c[j + 2] + w3 * c[j + 3])
+        return weighted_rows(c, j, (w0, w1, w2, w3), scale)
 
     def transformed(self, M: np.ndarray) -> "Interpolant":
         """The interpolant of the values mapped by the matrix M (k, k): ``v -> M v`` (a spline is linear

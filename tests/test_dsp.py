@@ -121,3 +121,18 @@ def test_the_analysis_path_does_not_import_scipy_signal():
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert p.returncode == 0, p.stderr
     assert p.stdout.strip() == "[]"
+
+
+@pytest.mark.parametrize("k", [1, 3, 9])
+def test_weighted_rows_is_numpys_broadcast_expression_bit_for_bit(k):
+    """The B-spline evaluation's weighted sum of four coefficient rows (logtools.resample.Interpolant):
+    the kernel gives numpy's ``scale * (w0 * c[j] + ... + w3 * c[j + 3])`` to the bit."""
+    rng = np.random.default_rng(k)
+    c = rng.standard_normal((1000, k)) * 1e3
+    j = rng.integers(0, 997, 5000)
+    f = rng.uniform(0.0, 1.0, (5000, 1))
+    w = ((1 - f) ** 3 / 6.0, (3 * f ** 3 - 6 * f ** 2 + 4) / 6.0, (-3 * f ** 3 + 3 * f ** 2 + 3 * f + 1) / 6.0,
+         f ** 3 / 6.0)
+    for scale in (1.0, 1.0 / 0.005):
+        want = scale * (w[0] * c[j] + w[1] * c[j + 1] + w[2] * c[j + 2] + w[3] * c[j + 3])
+        assert np.array_equal(dsp.weighted_rows(c, j, w, scale), want)
