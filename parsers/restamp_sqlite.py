@@ -80,6 +80,34 @@ def _sizeof(st):
     return (st - 12) // 2 if st % 2 == 0 else (st - 13) // 2
 
 
+def _columns(b, p, q, hsize, max_cols):
+    """The header of the record at b[p] (``hsize`` bytes, its serial types from b[q]): (columns, where the
+    header's reading ended, where the values end, serial type of column 0, serial type and value offset of
+    columns 1, 2 and 3: a messages row's topic_id, timestamp and data)."""
+    val = p + hsize
+    ncol = 0
+    st0 = -1
+    st1 = 0
+    st2 = 0
+    st3 = 0
+    v1 = 0
+    v2 = 0
+    v3 = 0
+    while q < p + hsize and ncol < max_cols:
+        st, q = _varint(b, q)
+        if ncol == 0:
+            st0 = st
+        elif ncol == 1:
+            st1, v1 = st, val
+        elif ncol == 2:
+            st2, v2 = st, val
+        elif ncol == 3:
+            st3, v3 = st, val
+        val += _sizeof(st)
+        ncol += 1
+    return ncol, q, val, st0, st1, v1, st2, v2, st3, v3
+
+
 def _walk_table(b, page_size, usable, root, n_pages, rowid, topic, ts_off, data_off, data_len):
     """Rows of the table b-tree at page ``root`` in rowid order: (rowid, topic_id, offset of the 8-byte
     timestamp, offset and length of the data blob). Returns (rows, error code)."""
@@ -119,24 +147,8 @@ def _walk_table(b, page_size, usable, root, n_pages, rowid, topic, ts_off, data_
                 if size > max_local or p + size > base + usable:
                     return n, _E_OVERFLOW
                 hsize, q = _varint(b, p)
-                val = p + hsize
-                ncol = 0
-                st_topic = 0
-                st_ts = 0
-                st_data = 0
-                v_topic = 0
-                v_ts = 0
-                v_data = 0
-                while q < p + hsize:
-                    st, q = _varint(b, q)
-                    if ncol == 1:
-                        st_topic, v_topic = st, val
-                    elif ncol == 2:
-                        st_ts, v_ts = st, val
-                    elif ncol == 3:
-                        st_data, v_data = st, val
-                    val += _sizeof(st)
-                    ncol += 1
+                ncol, q, val, _st0, st_topic, v_topic, st_ts, v_ts, st_data, v_data = \
+                    _columns(b, p, q, hsize, 1 << 30)
                 if ncol != 4 or val != p + size or st_ts != 6 or st_data < 12 or st_data % 2 == 1 \
                         or not _is_int(st_topic):
                     return n, _E_RECORD
@@ -255,27 +267,7 @@ def _scan_leaves(b, page_size, usable, n_pages, rowid, topic, ts, data_off, data
             if hsize < 1 or hsize > size:
                 bad += 1
                 continue
-            val = p + hsize
-            ncol = 0
-            st0 = -1
-            st_topic = 0
-            st_ts = 0
-            st_data = 0
-            v_topic = 0
-            v_ts = 0
-            v_data = 0
-            while q < p + hsize and ncol < 64:
-                st, q = _varint(b, q)
-                if ncol == 0:
-                    st0 = st
-                elif ncol == 1:
-                    st_topic, v_topic = st, val
-                elif ncol == 2:
-                    st_ts, v_ts = st, val
-                elif ncol == 3:
-                    st_data, v_data = st, val
-                val += _sizeof(st)
-                ncol += 1
+            ncol, q, val, st0, st_topic, v_topic, st_ts, v_ts, st_data, v_data = _columns(b, p, q, hsize, 64)
             if q != p + hsize or val != p + size:
                 bad += 1
                 continue
@@ -294,7 +286,7 @@ def _scan_leaves(b, page_size, usable, n_pages, rowid, topic, ts, data_off, data
 
 
 _loader = kernel_loader(globals())
-_HELPERS = ("_varint", "_be", "_int", "_is_int", "_sizeof")
+_HELPERS = ("_varint", "_be", "_int", "_is_int", "_sizeof", "_columns")
 
 
 _HELPERS_DONE: list[bool] = []
