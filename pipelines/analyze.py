@@ -32,6 +32,7 @@ from logtools.results import LATENCY_METHODS, AlignmentResult, LatencyResult
 from parsers import load
 from pipelines import report as rp
 from pipelines import parallel
+from pipelines.firstrun import input_bytes
 from pipelines.progress import Progress, null_progress
 
 MATCHES = ("auto",) + ALIGNMENT_MATCHES  # auto: vel+att when the master has both, else what it has
@@ -614,6 +615,26 @@ def same_stream(master: InsLog, slave: InsLog) -> bool:
     return same_file and master.meta.selector == slave.meta.selector
 
 
+def parse_pair(master_arg: str | InsLog, slave_arg: str | InsLog, prog=null_progress) -> tuple[InsLog, InsLog]:
+    """Both logs loaded (an InsLog given is taken as it is). Where forking is allowed (the CLI's analyze) and
+    the files are large (``parallel.FORK_PARSE_MIN_INPUT_BYTES``), the master is parsed in a forked child
+    while this process parses the slave. A bad master is reported before a bad slave either way."""
+    prog(0.0, "parse master")
+    if (isinstance(master_arg, str) and isinstance(slave_arg, str) and parallel.available()
+            and (input_bytes("analyze", [master_arg, slave_arg]) or 0) > parallel.FORK_PARSE_MIN_INPUT_BYTES):
+        pending = parallel.submit(load, master_arg)
+        prog(0.08, "parse slave")
+        try:
+            slave = load(slave_arg)
+        except Exception:
+            pending.result()  # (raises the master's error, if it has one)
+            raise
+        return pending.result(), slave
+    master = master_arg if isinstance(master_arg, InsLog) else load(master_arg)
+    prog(0.08, "parse slave")
+    return master, slave_arg if isinstance(slave_arg, InsLog) else load(slave_arg)
+
+
 def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOptions | None = None,
             progress=None) -> Analysis:
     """Parse (or take) both logs -> latency -> compensation -> both alignment runs, in memory.
@@ -629,10 +650,7 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
 
     # -- parse
     t = time.perf_counter()
-    prog(0.0, "parse master")
-    master = master_arg if isinstance(master_arg, InsLog) else load(master_arg)
-    prog(0.08, "parse slave")
-    slave = slave_arg if isinstance(slave_arg, InsLog) else load(slave_arg)
+    master, slave = parse_pair(master_arg, slave_arg, prog)
     tim["parse"] = time.perf_counter() - t
     if same_stream(master, slave):
         raise InputError("master and slave are the same stream of the same file (nothing to compare); "
@@ -824,8 +842,6 @@ def run(args: argparse.Namespace) -> int:
     opts, out = options_from({**cli_values(args), "out": args.out}, config)
     progress = Progress()
     if opts.recording:  # the recording's imports in a child, beside the parse (small inputs: pipelines.parallel)
-        from pipelines.firstrun import input_bytes
-
         size = input_bytes("analyze", [args.master, args.slave])
         if size is not None and size <= parallel.PREPARED_MAX_INPUT_BYTES:
             parallel.prepare("recording", ("pipelines.recording", "rerun"))

@@ -30,6 +30,12 @@ _PREPARED: dict[str, tuple[int, int, int]] = {}  # name -> (pid, request write f
 #: memory of the long logs, whose peak is the constraint
 PREPARED_MAX_INPUT_BYTES = 60_000_000
 
+#: master + slave file bytes above which ``analyze`` parses the master in a forked child while it parses the
+#: slave: on the 1 h pair 1.9-2.2 s against 3.1-3.4 s in turn (the master's InsLog comes back pickled, about
+#: 0.15 s a 100 MB). Below, a prepared child imports the recording's libraries during the parse already, and
+#: a parse of a fraction of a second would not pay for a second numba set-up (0.5-0.7 s of CPU)
+FORK_PARSE_MIN_INPUT_BYTES = PREPARED_MAX_INPUT_BYTES
+
 #: master + slave IMU samples up to which ``analyze`` computes the IMU-to-IMU fit while the forked child
 #: runs the uncompensated alignment (rather than after it: 1.8 s less of the 1 h pair's alignment stage,
 #: whose uncompensated run takes two passes, 3.6 s, against 1.8 s for the compensated one): the fit's arrays

@@ -177,3 +177,29 @@ def test_the_cli_runs_one_blas_thread_unless_the_user_chose(tmp_path):
                        env={**env, "OPENBLAS_NUM_THREADS": "3"}, timeout=60)
     assert p.returncode == 0, p.stderr
     assert p.stdout.split()[-2:] == ["3", cli.BLAS_THREADS]
+
+
+@posix_fork
+def test_large_inputs_parse_the_master_in_a_child_with_the_same_log(forking, monkeypatch, tmp_path):
+    """Above FORK_PARSE_MIN_INPUT_BYTES the master is parsed in a forked child while the slave is parsed
+    here: the same InsLog as parsed in turn; and with both files bad, the master's error is the one raised
+    (as in turn), whichever parse ends first."""
+    from logtools.errors import InputError
+    from parsers.registry import load
+    from pipelines import analyze
+
+    m, s = str(SAMPLE / "master.mcap"), str(SAMPLE / "slave.tlog")
+    monkeypatch.setattr(parallel, "FORK_PARSE_MIN_INPUT_BYTES", 0)
+    calls = []
+    monkeypatch.setattr(parallel, "submit", lambda *a, **k: calls.append(a) or parallel.Pending(a[0], a[1:], k))
+    master, slave = analyze.parse_pair(m, s)
+    assert calls and calls[0][1] == m  # forked
+    ref_m, ref_s = load(m), load(s)
+    for got, ref in ((master, ref_m), (slave, ref_s)):
+        assert got.imu.equals(ref.imu) and got.nav.equals(ref.nav) and got.meta == ref.meta
+    bad_m, bad_s = tmp_path / "m.mcap", tmp_path / "s.tlog"
+    bad_m.write_bytes(b"\x00" * 4096)
+    bad_s.write_bytes(b"\x00" * 100)
+    with pytest.raises(InputError) as err:
+        analyze.parse_pair(str(bad_m), str(bad_s))
+    assert str(bad_m) in str(err.value)
