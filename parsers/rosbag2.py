@@ -196,7 +196,7 @@ def recovered_rows(path: str, lost: list[tuple[int, int]] | None, why: str) -> t
     rows = [(int(rec.topic[i]), int(rec.timestamp[i]), rec.data[i]) for i in idx]
     ids = rec.rowid[take]
     want = int(sum(b - a + 1 for a, b in lost)) if lost is not None else None
-    note = f"{name}: sqlite3 storage damaged ({why}); {len(rows)} message rows"
+    note = f"{name}: sqlite3 storage damaged ({why}); {len(rows)} message row{'' if len(rows) == 1 else 's'}"
     note += f" of the {want} unreadable ones" if want is not None else ""
     note += " read from its intact pages by a page scan"
     if rec.truncated:
