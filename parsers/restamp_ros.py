@@ -350,7 +350,6 @@ def _scan_rosbag1(path: str) -> _Scan1:
     with open(path, "rb") as fh:
         buf = memoryview(file)[:fh.readinto(file)]  # (the scan's slices of it are views, not copies)
     scan = _Scan1()
-    u32 = rosbag1._U32.unpack_from
     off, end = len(rosbag1.MAGIC), len(buf)
     if bytes(buf[:len(rosbag1.MAGIC)]) != rosbag1.MAGIC:  # (the parser's rules: the first chunk or connection)
         off = rosbag1.resync_top(buf, 0, end)
@@ -361,19 +360,7 @@ def _scan_rosbag1(path: str) -> _Scan1:
     good, floor = off, -1
     while off < end:
         try:
-            if off + 4 > end:
-                raise rosbag1._Damage(f"file truncated at byte {end}: record at byte {off} incomplete")
-            (hlen,) = u32(buf, off)
-            if off + 8 + hlen > end:
-                raise rosbag1._Damage(f"file truncated at byte {end}: record at byte {off} incomplete")
-            (dlen,) = u32(buf, off + 4 + hlen)
-            nxt = off + 8 + hlen + dlen
-            if nxt > end:
-                raise rosbag1._Damage(f"file truncated at byte {end}: record at byte {off} incomplete")
-            header = rosbag1._fields(bytes(buf[off + 4:off + 4 + hlen]))
-            op = header.get("op", b"\xff")[:1]
-            if "op" not in header:  # (zeroed bytes read as empty records: framing lost, not a record)
-                raise rosbag1._Damage(f"record at byte {off} has no op field")
+            header, op, hlen, nxt = rosbag1.top_record(buf, off, end)  # (as the parser reads its records)
         except (rosbag1._Damage, struct.error) as exc:
             at = rosbag1.resume_top(buf, off, good, floor, end)  # (as the parser's walk goes on)
             if at is None:

@@ -321,6 +321,18 @@ class Walk:
         return get_bytes(self.buf, self.ts_off, 8).view(">i8").ravel().astype(np.int64)
 
 
+def _pages(buf: np.ndarray, size: int) -> tuple[int, int] | None:
+    """(page size, usable bytes of a page) from the header of a .db3 of ``size`` bytes in ``buf``; None when
+    it is no SQLite database or its page size is below SQLite's least (512)."""
+    if size < 100 or bytes(buf[:16]) != b"SQLite format 3\x00":
+        return None
+    page_size = int(buf[16]) << 8 | int(buf[17])
+    page_size = 65536 if page_size == 1 else page_size
+    if page_size < 512:
+        return None
+    return page_size, page_size - int(buf[20])
+
+
 def walk(path: str) -> Walk | None:
     """The table and index of a rosbag2 .db3 walked at the byte level, or None where this does not apply
     (any layout the kernels do not expect: the caller then re-inserts the rows)."""
@@ -339,13 +351,10 @@ def walk(path: str) -> Walk | None:
     if cols != "id,topic_id,timestamp,data" or "messages" not in roots or indexes not in ([], ["timestamp_idx"]):
         return None
     buf = np.fromfile(path, np.uint8)
-    if len(buf) < 100 or bytes(buf[:16]) != b"SQLite format 3\x00":
+    geometry = _pages(buf, len(buf))
+    if geometry is None or len(buf) % geometry[0] or buf[18] != 1 or buf[19] != 1:  # (18/19 = 2: WAL mode)
         return None
-    page_size = int(buf[16]) << 8 | int(buf[17])
-    page_size = 65536 if page_size == 1 else page_size
-    usable = page_size - int(buf[20])
-    if page_size < 512 or len(buf) % page_size or buf[18] != 1 or buf[19] != 1:  # (18/19 = 2: WAL mode)
-        return None
+    page_size, usable = geometry
     n_pages = len(buf) // page_size
     cap = max(1024, len(buf) // 48)
     while True:
@@ -397,13 +406,10 @@ def recover(path: str) -> Recovered | None:
     buf = np.zeros(size + 32, np.uint8)  # zeros past the end: a damaged cell's varints never read beyond it
     with open(path, "rb") as fh:
         fh.readinto(memoryview(buf)[:size])
-    if size < 100 or bytes(buf[:16]) != b"SQLite format 3\x00":
+    geometry = _pages(buf, size)
+    if geometry is None or geometry[0] & (geometry[0] - 1):
         return None
-    page_size = int(buf[16]) << 8 | int(buf[17])
-    page_size = 65536 if page_size == 1 else page_size
-    if page_size < 512 or page_size & (page_size - 1):
-        return None
-    usable = page_size - int(buf[20])
+    page_size, usable = geometry
     n_pages = size // page_size  # (a partial last page: its cells, written from the page's end, are lost)
     declared = int.from_bytes(bytes(buf[28:32]), "big")
     cap = max(1024, size // 48)

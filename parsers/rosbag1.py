@@ -65,6 +65,25 @@ def resync_top(buf, start: int, end: int, partial_ok: bool = False) -> int | Non
     return None
 
 
+def top_record(buf, off: int, end: int) -> tuple[dict[str, bytes], bytes, int, int]:
+    """The top-level record at ``off``: (header fields, op byte, header length, where the next record starts);
+    _Damage for a record the file's end cuts or one without an op field (zeroed bytes read as empty records:
+    framing lost, not a record). The parser's and the export's walks read their records with it."""
+    if off + 4 > end:
+        raise _Damage(f"file truncated at byte {end}: record at byte {off} incomplete")
+    (hlen,) = _U32.unpack_from(buf, off)
+    if off + 8 + hlen > end:
+        raise _Damage(f"file truncated at byte {end}: record at byte {off} incomplete")
+    (dlen,) = _U32.unpack_from(buf, off + 4 + hlen)
+    nxt = off + 8 + hlen + dlen
+    if nxt > end:
+        raise _Damage(f"file truncated at byte {end}: record at byte {off} incomplete")
+    header = _fields(bytes(buf[off + 4:off + 4 + hlen]))
+    if "op" not in header:
+        raise _Damage(f"record at byte {off} has no op field")
+    return header, header["op"][:1], hlen, nxt
+
+
 def resume_top(buf, off: int, good: int, floor: int, end: int) -> int | None:
     """Where a top-level walk that failed to read the record at ``off`` goes on: the next chunk or connection
     record (:func:`resync_top`) after ``good`` (the end of the last record whose framing read) and past
@@ -404,19 +423,7 @@ def read_raw(path: str, keep: Callable[[str, str], bool] = rc.keep_supported, fm
     floor = -1
     while off < end:
         try:
-            if off + 4 > end:
-                raise _Damage(f"file truncated at byte {end}: record at byte {off} incomplete")
-            (hlen,) = _U32.unpack_from(buf, off)
-            if off + 8 + hlen > end:
-                raise _Damage(f"file truncated at byte {end}: record at byte {off} incomplete")
-            (dlen,) = _U32.unpack_from(buf, off + 4 + hlen)
-            nxt = off + 8 + hlen + dlen
-            if nxt > end:
-                raise _Damage(f"file truncated at byte {end}: record at byte {off} incomplete")
-            header = _fields(buf[off + 4:off + 4 + hlen])
-            op = header.get("op", b"\xff")[:1]
-            if "op" not in header:  # (zeroed bytes read as empty records: framing lost, not a record)
-                raise _Damage(f"record at byte {off} has no op field")
+            header, op, hlen, nxt = top_record(buf, off, end)
         except (_Damage, struct.error) as exc:
             at = resume_top(buf, off, good, floor, end)
             if at is None:
