@@ -5,7 +5,8 @@ import os
 
 os.environ.setdefault("TAPOST_KERNELS", "compiled")
 os.environ.setdefault("TAPOST_WARMUP", "0")
-# one BLAS thread per test worker, as the CLI runs (pipelines.cli.BLAS_THREADS): with a worker per core
-# (-n auto), BLAS threads only wait on each other (scripts/test.sh sets it before pytest imports numpy)
-for _name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_name, "1")
+# one BLAS thread per test worker, as the CLI runs: with a worker per core (-n auto), BLAS threads only
+# wait on each other (scripts/test.sh sets it before pytest imports numpy; pipelines.cli imports no numpy)
+from pipelines.cli import limit_blas_threads  # noqa: E402
+
+limit_blas_threads()
