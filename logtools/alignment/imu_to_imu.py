@@ -135,11 +135,12 @@ def _interp_at(t: np.ndarray, tp: np.ndarray, yp: np.ndarray, gap_steps: float) 
     return y, inside
 
 
-def _highpass(y: np.ndarray, n_win: int) -> np.ndarray:
-    """y minus its centred moving mean over n_win samples (shorter at the ends), per column."""
+def _highpass(y: np.ndarray, n_win: int, out: np.ndarray | None = None) -> np.ndarray:
+    """y minus its centred moving mean over n_win samples (shorter at the ends), per column; into ``out``
+    when given (``y`` itself allowed: a column's running sum is taken before any of it is written)."""
     n = len(y)
     h = max(n_win // 2, 1)
-    out = np.empty(y.shape)
+    out = np.empty(y.shape) if out is None else out
     if jit.compiled():  # one pass a column, the same arithmetic (tests/test_imu_to_imu.py)
         for j in range(y.shape[1]):
             _highpass_kernel(y[:, j], h, out[:, j])
@@ -337,8 +338,14 @@ class _Moments:
 
 def _residual(u_m: np.ndarray, v_s: np.ndarray, r_mat: np.ndarray, k_lever: np.ndarray | None,
               lev: np.ndarray | None) -> np.ndarray:
-    um = u_m if lev is None else u_m + np.einsum("kij,j->ki", k_lever, lev)
-    return v_s - um @ r_mat.T
+    if lev is None:
+        e = u_m @ r_mat.T
+    else:  # (u + K r) R^T, the sum written over the einsum's own array
+        um = np.einsum("kij,j->ki", k_lever, lev)
+        np.add(u_m, um, out=um)
+        e = um @ r_mat.T
+        del um
+    return np.subtract(v_s, e, out=e)
 
 
 def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = None, *, dt_s: float = 1.0,
@@ -366,20 +373,24 @@ def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = 
                 break
         e = _residual(u_m, v_s, r_mat, k_lever, lev)
         cost = float(np.sum(e * e))
+        del e
         if best is None or cost < best[0]:
             best = (cost, r_mat, lev)
     _, r_mat, lev = best
     e = _residual(u_m, v_s, r_mat, k_lever, lev)
     jtj, _ = mom.normal_equations(r_mat, lev)
     scores = np.empty((n, p))  # per sample h^T e: p x e, and (R K)^T e = K^T (R^T e)
-    scores[:, :3] = np.cross(v_s - e, e)
-    if lev is not None:
-        scores[:, 3:] = np.einsum("kjl,kj->kl", k_lever, e @ r_mat)
+    for a in range(0, n, HIGHPASS_ROWS):  # row by row arithmetic: the blocks bound the temporaries
+        b = slice(a, a + HIGHPASS_ROWS)
+        scores[b, :3] = np.cross(v_s[b] - e[b], e[b])
+        if lev is not None:
+            scores[b, 3:] = np.einsum("kjl,kj->kl", k_lever[b], e[b] @ r_mat)
+    rms = float(np.sqrt(np.mean(np.sum(e * e, axis=1))))
+    del e
     om, tau = _long_run_cov(scores, overwrite=True)
     del scores
     jinv = np.linalg.inv(jtj)
     cov = jinv @ om @ jinv * (n / max(n - p, 1))
-    rms = float(np.sqrt(np.mean(np.sum(e * e, axis=1))))
     return r_mat, cov[:3, :3], lev, (cov[3:, 3:] if lev is not None else None), rms, tau * dt_s
 
 
@@ -416,23 +427,38 @@ def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highp
     nwin = max(int(round(highpass_s / dt)), 3)
     # the slow part out; the ends (shorter means) trimmed below
     u, v = _highpass(u, nwin), _highpass(v, nwin)
+    n = len(t)
     k = None
     if name == "accel" and gm is not None and len(gm[0]) >= 3:
         w, okw = _interp_at(t, *gm, cfg.gap_steps)
         if okw.all():
             dw = np.gradient(w, t, axis=0)
-            k = skew(dw) + skew(w) @ skew(w)  # f at r = f + dw x r + w x (w x r)
-            k = _highpass(k.reshape(len(t), 9), nwin).reshape(len(t), 3, 3)
+            # the lever arm's regressors and the delay's (below) in one array, filled in place: 4 h of
+            # 200 Hz is 207 MB for each (n, 3, 3) a whole-array expression would make
+            k = np.empty((n, 3, 4))
+            for a in range(0, n, HIGHPASS_ROWS):  # row by row arithmetic: the blocks bound the temporaries
+                b = slice(a, a + HIGHPASS_ROWS)
+                k[b, :, :3] = skew(dw[b]) + skew(w[b]) @ skew(w[b])  # f at r = f + dw x r + w x (w x r)
+            del dw
+            kf = k.reshape(n, 12)
+            for j in range(12):
+                if j % 4 != 3:
+                    _highpass(kf[:, j:j + 1], nwin, out=kf[:, j:j + 1])
             moving = float(np.sqrt(np.mean(np.sum(u ** 2, axis=1))))
-            effect = cfg.lever_plausible_m * float(np.sqrt(np.mean(np.sum(k * k, axis=(1, 2))) / 3.0))
+            kl = k[:, :, :3] * k[:, :, :3]
+            effect = cfg.lever_plausible_m * float(np.sqrt(np.mean(np.sum(kl, axis=(1, 2))) / 3.0))
+            del kl
             if not (float(np.sqrt(np.mean(np.sum(_highpass(w, nwin) ** 2, axis=1)))) > cfg.lever_min_rate_rad_s
                     or effect > cfg.lever_min_effect * moving):
                 k = None
+            del w
     # a delay left between the two (the latency's error, the sensors' own sampling instants) as one more
     # parameter: v(t) = R u(t - d) ~ R (u - d du/dt); a delay of 1.4 ms turned the rotation of IMU2's gyro
     # triad by 0.2 deg on a hand-carried ArduPlane (rates and their derivatives correlate across axes)
-    kd = -np.gradient(u, t, axis=0)[:, :, None]
-    k = kd if k is None else np.concatenate([k, kd], axis=2)
+    if k is None:
+        k = -np.gradient(u, t, axis=0)[:, :, None]
+    else:
+        k[:, :, 3] = -np.gradient(u, t, axis=0)
     cut = slice(nwin // 2, len(t) - nwin // 2)
     res = _triad(u[cut], v[cut], k[cut], dt, cfg, starts=starts)
     if isinstance(res, str):
@@ -479,6 +505,7 @@ def imu_to_imu(master: InsLog, slave: InsLog, *, config: ImuToImuConfig = DEFAUL
         tm, ym = _clean(master.t_imu_s(), getattr(master, get)())
         ts, ys = _clean(slave.t_imu_s(), getattr(slave, get)())
         com = _common(tm, ym, ts, ys, config.gap_steps)
+        del tm, ym, ts, ys  # (each unit's cleaned copy: the common samples are all the fit needs)
         if com is None or len(com[0]) < config.min_samples:
             reasons[name] = "too few common IMU samples of the two units"
             continue

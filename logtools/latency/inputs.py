@@ -109,7 +109,7 @@ def series_on_grid(itp: Interpolant, dt_s: float) -> UniformSeries:
     t = np.arange(i0, i1 + 1) * dt_s
     v, ok = itp(t)
     v = np.where(ok[:, None], v, 0.0)
-    return UniformSeries(i0, dt_s, v, ok, itp.series.warnings, itp.series.gaps_s)
+    return UniformSeries(i0, dt_s, v, ok, itp.warnings, itp.gaps_s)
 
 
 def uniform_native(t: np.ndarray, w: np.ndarray, name: str) -> tuple[UniformSeries, float]:
