@@ -749,6 +749,8 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
         else:
             an.alignment[run] = None
             an.align_sections[run] = rp.alignment_skipped(res, opts.filter, opts.match)
+    if "logtools.alignment.run" in sys.modules:  # the runs are done: their master series go
+        sys.modules["logtools.alignment.run"].forget_master(master)
     _imu_to_imu_sections(master, an, an.align_sections, extra, imu_fit)
     tim["alignment"] = time.perf_counter() - t
     tim["total"] = time.perf_counter() - t_all

@@ -11,7 +11,7 @@ from logtools.inslog import InsLog
 from logtools.latency.config import DEFAULT, LatencyConfig
 from logtools.latency.inputs import Unit, make_unit, series_on_grid, signal_band_hz, uniform_native, unit_rate
 from logtools.latency.system import Accel
-from logtools.resample import Interpolant, interpolant, lowpass, median_rate_hz, stamp_noise_s, to_uniform
+from logtools.resample import Interpolant, interpolant, lowpass, median_rate_hz, smooth_interpolant, stamp_noise_s
 
 
 @dataclass(frozen=True)
@@ -129,8 +129,7 @@ def accel_pair(master: InsLog, slave: InsLog, cutoff_hz: float, master_rate: Int
         if ok.sum() < 256:
             return None
         try:
-            nat = to_uniform(t[ok], f[ok], name=f"{role} accelerometer")
-            itps.append(interpolant(lowpass(nat, cutoff_hz)))
+            itps.append(smooth_interpolant(t[ok], f[ok], cutoff_hz, name=f"{role} accelerometer"))
         except ValueError:
             return None
     return Accel(itps[0], itps[1], master_rate)

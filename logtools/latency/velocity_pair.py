@@ -10,7 +10,7 @@ import numpy as np
 from logtools.conventions import dcm_from_quat, skew, wahba
 from logtools.inslog import InsLog
 from logtools.latency.config import DEFAULT, LatencyConfig
-from logtools.resample import Interpolant, interpolant, lowpass, median_rate_hz, stamp_noise_s, to_uniform
+from logtools.resample import Interpolant, median_rate_hz, smooth_interpolant, stamp_noise_s
 
 
 @dataclass(frozen=True)
@@ -71,10 +71,13 @@ def velocity_pair(master: InsLog, slave: InsLog, cutoff_hz: float, master_rate: 
     f_min = min(median_rate_hz(tm), median_rate_hz(ts))
     cut = float(min(cutoff_hz, cfg.velocity.max_cutoff_hz, cfg.velocity.cutoff_fraction * f_min))
     try:
-        itps = [interpolant(lowpass(to_uniform(t, v, name=f"{role} velocity"), cut))
+        itps = [smooth_interpolant(t, v, cut, name=f"{role} velocity")
                 for t, v, role in ((tm, vm, "master"), (ts, vs, "slave"))]
     except ValueError:
         return None
+    steps = tuple((velocity_quantum_m_s(v, cfg), np.sum(np.abs(np.diff(v, axis=0)), axis=0)) for v in (vm, vs))
+    jitter = tuple((stamp_noise_s(t), median_rate_hz(t)) for t in (tm, ts))
+    del tm, vm, ts, vs  # (each unit's finite copy: what follows needs only the interpolants)
     lever = None
     if master.has_quat:
         tq, q = _finite(*master.quat_wxyz())
@@ -90,23 +93,18 @@ def velocity_pair(master: InsLog, slave: InsLog, cutoff_hz: float, master_rate: 
             rows = _lever_rows(q[okw], w[okw])
             t_rows = tq[okw]
             del q, w, tq, o
-            try:  # (each stage's input let go once its output is made: 4 h of 9 columns is 200 MB a copy)
-                u = to_uniform(t_rows, rows, name="master lever-arm rows")
-                del rows, t_rows
-                u = lowpass(u, cut)
-                lev_itp = interpolant(u)
-                del u
+            try:  # (column by column: 4 h of 9 columns is 207 MB a copy)
+                lev_itp = smooth_interpolant(t_rows, rows, cut, name="master lever-arm rows")
             except ValueError:
                 lev_itp = None
+            del rows, t_rows
             if lev_itp is not None:
                 def lever(t: np.ndarray) -> np.ndarray:
                     """C_nb(t) [w(t) x] (n, 3, 3), low-passed: d(v_s)/d(l)."""
                     v, ok = lev_itp(t)
                     return np.where(ok[:, None, None], v.reshape(-1, 3, 3), 0.0)
     dt = 1.0 / min(max(5.0 * cut, cfg.velocity.min_grid_hz), f_min)
-    steps = tuple((velocity_quantum_m_s(v, cfg), np.sum(np.abs(np.diff(v, axis=0)), axis=0)) for v in (vm, vs))
     stamps = (master.stamp_resolution_s("vel"), slave.stamp_resolution_s("vel"))
-    jitter = tuple((stamp_noise_s(t), median_rate_hz(t)) for t in (tm, ts))
     return VelocityPair(itps[0], itps[1], lever, cut, dt, steps, stamps, jitter)
 
 
@@ -127,8 +125,11 @@ def velocity_quantum_m_s(v: np.ndarray, cfg: LatencyConfig = DEFAULT) -> float:
     """The step the velocity was logged with (MAVLink GLOBAL_POSITION_INT: 0.01 m/s), 0 when it is not on
     a grid: the largest of cfg.velocity.quanta_m_s that every sample is a whole multiple of."""
     for q in cfg.velocity.quanta_m_s:
-        x = v / q
-        if np.all(np.abs(x - np.round(x)) < 1e-3):
+        for a in range(0, len(v), ROWS_AT_A_TIME):  # (in blocks: the first row off the grid ends the test)
+            x = v[a:a + ROWS_AT_A_TIME] / q
+            if not np.all(np.abs(x - np.round(x)) < 1e-3):
+                break
+        else:
             return q
     return 0.0
 
