@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from logtools.conventions import DEG, quat_conj, quat_mul, rotvec_from_quat
+from logtools.rows import by_rows
 
 JUMP_MIN_RAD = 2.0 * DEG
 JUMP_MEDIAN_FACTOR = 10.0
@@ -36,7 +37,8 @@ def output_validity(t: np.ndarray, quat: np.ndarray | None, vel: np.ndarray | No
     valid &= ~run3
     resets = np.zeros(0)
     if quat is not None and n > 3:
-        dq = np.linalg.norm(rotvec_from_quat(quat_mul(quat_conj(quat[:-1]), quat[1:])), axis=1)
+        dq = by_rows(lambda q0, q1: np.linalg.norm(rotvec_from_quat(quat_mul(quat_conj(q0), q1)), axis=1),
+                     quat[:-1], quat[1:])
         if rate_at_mid is not None:
             d = np.abs(dq - rate_at_mid * np.diff(t))
         else:

@@ -31,6 +31,7 @@ import numpy as np
 
 from logtools import earth
 from logtools.conventions import quat_normalize
+from logtools.rows import by_rows
 
 from logtools import jit
 
@@ -208,14 +209,19 @@ def body_increments(t_s: np.ndarray, gyro_rad_s: np.ndarray, accel_m_s2: np.ndar
     t = np.asarray(t_s, float)
     w = np.asarray(gyro_rad_s, float)
     f = np.asarray(accel_m_s2, float)
-    h = np.diff(t)[:, None]
-    a = w[:-1] * h
-    da = (w[1:] - w[:-1]) * h
-    b = w[1:] * h
-    fa = f[:-1] * h
-    dfa = (f[1:] - f[:-1]) * h
+    return by_rows(_increments, t[:-1], t[1:], w[:-1], w[1:], f[:-1], f[1:])
+
+
+def _increments(t0, t1, w0, w1, f0, f1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`body_increments` of the intervals (sample 0, sample 1), row by row."""
+    h = (t1 - t0)[:, None]
+    a = w0 * h
+    da = (w1 - w0) * h
+    b = w1 * h
+    fa = f0 * h
+    dfa = (f1 - f0) * h
     rotvec = 0.5 * (a + b) + _cross(a, b) / 12.0
-    fm = 0.5 * (fa + f[1:] * h)
+    fm = 0.5 * (fa + f1 * h)
     # int theta x f = a x fa/2 + a x dfa/3 + da x fa/6 + da x dfa/8, grouped
     dv = fm + _cross(a, 0.5 * fa + dfa / 3.0) + _cross(da, fa / 6.0 + dfa / 8.0)
     wm = 0.5 * (a + b)

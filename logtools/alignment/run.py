@@ -28,6 +28,7 @@ from logtools import earth
 from logtools.errors import AnalysisError
 from logtools.inslog import InsLog
 from logtools.navcheck import output_validity
+from logtools.rows import by_rows
 from logtools.results import AlignmentResult
 from logtools.strapdown import body_increments, compose_segments
 
@@ -435,7 +436,8 @@ def _master_attitude_noise(master: InsLog) -> float | None:
         _tq, q = master.quat_wxyz()
         if len(q) <= 8:
             return None
-        return _hf_sigma(rotvec_from_quat(quat_mul(quat_conj(q[:1]), quat_make_continuous(q))))
+        q0 = quat_conj(q[:1])
+        return _hf_sigma(by_rows(lambda qb: rotvec_from_quat(quat_mul(q0, qb)), quat_make_continuous(q)))
 
     return _for_master(master, ("attitude noise",), make) if master.has_quat else None
 
@@ -503,8 +505,8 @@ def _master_series(master: InsLog, config: AlignmentConfig = CONFIG) -> MasterSe
             if okg.sum() >= 2:
                 w_ib = _interp_cols(t, tg[okg], g[okg])
                 lat = np.radians(master.lat_lon_alt()[1][0, 0]) if master.has_pos else np.radians(45.0)
-                w_ie_m = np.einsum("kji,j->ki", dcm_from_quat(quat), earth.earth_rate_ned(lat))
-                w = w_ib - w_ie_m
+                w_ie_n = earth.earth_rate_ned(lat)
+                w = by_rows(lambda qb, wb: wb - np.einsum("kji,j->ki", dcm_from_quat(qb), w_ie_n), quat, w_ib)
         if w is None:
             w = _rate_from_attitude(t, quat, config)
     if master.has_vel:
@@ -605,7 +607,7 @@ def _derivative(t: np.ndarray, y: np.ndarray, span_s: float) -> np.ndarray:
     n = len(t)
     i0 = np.clip(np.arange(n) - k, 0, n - 1)
     i1 = np.clip(np.arange(n) + k, 0, n - 1)
-    return (y[i1] - y[i0]) / np.maximum(t[i1] - t[i0], 1e-9)[:, None]
+    return by_rows(lambda j0, j1: (y[j1] - y[j0]) / np.maximum(t[j1] - t[j0], 1e-9)[:, None], i0, i1)
 
 
 def _check_motion(gyro: np.ndarray, accel: np.ndarray, src: str) -> None:
