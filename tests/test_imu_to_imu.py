@@ -275,3 +275,23 @@ def test_the_highpass_kernel_gives_the_numpy_arithmetic_bit_for_bit(monkeypatch)
         want = i2i._highpass(y, n_win)
         monkeypatch.undo()
         assert np.array_equal(got, want), n_win
+
+
+def test_a_retry_with_a_longer_window_works_on_fresh_samples_and_leaves_the_logs_untouched():
+    """The fit high-passes its common samples in place; a retry (a longer window) must start from fresh ones:
+    a first window that leaves no motion, then 4 s, gives exactly what 4 s gives at once, and the logs'
+    own arrays are unchanged."""
+    from dataclasses import replace
+
+    from logtools.alignment.imu_to_imu import DEFAULT
+
+    master, slave = _pair(5, [1.0, -0.5, 30.0], [0.2, 0.7, 29.0])
+    before = [a.copy() for lg in (master, slave) for a in (lg.gyro_rad_s(), lg.accel_m_s2(), lg.t_imu_s())]
+    short = replace(DEFAULT, highpass_s=0.02, highpass_retry_s=())
+    assert isinstance(imu_to_imu(master, slave, config=short).reasons.get("gyro"), str)  # nothing left to fit
+    retried = imu_to_imu(master, slave, config=replace(DEFAULT, highpass_s=0.02, highpass_retry_s=(4.0,)))
+    direct = imu_to_imu(master, slave, config=replace(DEFAULT, highpass_s=4.0, highpass_retry_s=()))
+    assert retried.gyro is not None and retried.accel is not None
+    assert retried.gyro == direct.gyro and retried.accel == direct.accel
+    after = [a for lg in (master, slave) for a in (lg.gyro_rad_s(), lg.accel_m_s2(), lg.t_imu_s())]
+    assert all(np.array_equal(x, y) for x, y in zip(before, after))

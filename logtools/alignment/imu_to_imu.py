@@ -421,12 +421,14 @@ def _triad(u: np.ndarray, v: np.ndarray, k: np.ndarray | None, dt: float, cfg: I
 
 def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highpass_s: float,
                cfg: ImuToImuConfig, starts: tuple[np.ndarray, ...] = ()) -> TriadRotation | str:
-    """One triad's rotation on common samples (t, master u, slave v), the slow part out over highpass_s;
-    ``starts``: further starting rotations of the fit (the accelerometers': the gyro triad's)."""
+    """One triad's rotation on common samples (t, master u, slave v: high-passed in place), the slow part
+    out over highpass_s; ``starts``: further starting rotations of the fit (the accelerometers': the gyro
+    triad's)."""
     dt = median_step_s(t)
     nwin = max(int(round(highpass_s / dt)), 3)
-    # the slow part out; the ends (shorter means) trimmed below
-    u, v = _highpass(u, nwin), _highpass(v, nwin)
+    # the slow part out, in place (the caller's arrays: it makes them anew for another try); the ends
+    # (shorter means) trimmed below
+    u, v = _highpass(u, nwin, out=u), _highpass(v, nwin, out=v)
     n = len(t)
     k = None
     if name == "accel" and gm is not None and len(gm[0]) >= 3:
@@ -502,24 +504,28 @@ def imu_to_imu(master: InsLog, slave: InsLog, *, config: ImuToImuConfig = DEFAUL
             who = " and ".join(r for r, lg in (("master", master), ("slave", slave)) if not getattr(lg, has))
             reasons[name] = f"the {who} logs no {'angular rate' if name == 'gyro' else 'specific force'}"
             continue
-        tm, ym = _clean(master.t_imu_s(), getattr(master, get)())
-        ts, ys = _clean(slave.t_imu_s(), getattr(slave, get)())
-        com = _common(tm, ym, ts, ys, config.gap_steps)
-        del tm, ym, ts, ys  # (each unit's cleaned copy: the common samples are all the fit needs)
+        def common() -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+            tm, ym = _clean(master.t_imu_s(), getattr(master, get)())
+            ts, ys = _clean(slave.t_imu_s(), getattr(slave, get)())
+            return _common(tm, ym, ts, ys, config.gap_steps)
+
+        com = common()
         if com is None or len(com[0]) < config.min_samples:
             reasons[name] = "too few common IMU samples of the two units"
             continue
-        t, u, v = com
         res: TriadRotation | str = ""
         # the accelerometers' fit also starts from the gyro triad's rotation (a board's two triads are
         # degrees apart at most): a multirotor's lever-arm accelerations can dominate the moving specific
         # force and put the Wahba start, and Gauss-Newton from it, 180 deg off with the lever arm flipped
         starts = ((dcm_from_euler(np.radians(out["gyro"].rpy_deg)),)
                   if name == "accel" and out["gyro"] is not None else ())
-        for hp in (config.highpass_s, *config.highpass_retry_s):  # slow motion (a ship's sway, S-turns): a longer window
-            res = _one_triad(name, t, u, v, gm, hp, config, starts=starts)
+        for i, hp in enumerate((config.highpass_s, *config.highpass_retry_s)):  # slow motion (a ship's sway,
+            if i:  # S-turns): a longer window, on the common samples made anew (the last try high-passed them)
+                com = common()
+            res = _one_triad(name, *com, gm, hp, config, starts=starts)
             if isinstance(res, TriadRotation):
                 break
+        del com
         if isinstance(res, str):
             reasons[name] = res
             continue
