@@ -651,6 +651,8 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
     # -- parse
     t = time.perf_counter()
     master, slave = parse_pair(master_arg, slave_arg, prog)
+    parallel.large_arrays_mmapped(len(master.imu) + len(master.nav) + len(slave.imu) + len(slave.nav))
+    parallel.release_freed_memory()  # (each stage's freed temporaries: not carried into the next stage)
     tim["parse"] = time.perf_counter() - t
     if same_stream(master, slave):
         raise InputError("master and slave are the same stream of the same file (nothing to compare); "
@@ -691,6 +693,7 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
                 failure += (f" (clocks look unrelated: master {master.meta.clock}, slave {slave.meta.clock}, "
                             "no overlap at face value; try --max-lag auto)")
     an.failure = failure
+    parallel.release_freed_memory()
     tim["latency"] = time.perf_counter() - t
 
     # -- compensation and alignment
@@ -751,7 +754,9 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
             an.align_sections[run] = rp.alignment_skipped(res, opts.filter, opts.match)
     if "logtools.alignment.run" in sys.modules:  # the runs are done: their master series go
         sys.modules["logtools.alignment.run"].forget_master(master)
+    parallel.release_freed_memory()
     _imu_to_imu_sections(master, an, an.align_sections, extra, imu_fit)
+    parallel.release_freed_memory()
     tim["alignment"] = time.perf_counter() - t
     tim["total"] = time.perf_counter() - t_all
     an.timings_s = tim

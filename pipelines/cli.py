@@ -39,26 +39,6 @@ def limit_blas_threads() -> None:
         os.environ.setdefault(name, BLAS_THREADS)
 
 
-#: glibc's malloc returns a freed block to the system only if it was mmapped, and after the first large
-#: free it raises its mmap threshold (up to 32 MB): a 4 h log's columns (23 MB at 200 Hz) then come from
-#: the heap, where freed temporaries stay resident among live arrays. A fixed threshold keeps large arrays
-#: mmapped: the 4 h pair's peak RSS 170 MB lower, the 1 h pair's time unchanged (benchmarks/README.md)
-MMAP_THRESHOLD_BYTES = 1 << 20
-M_MMAP_THRESHOLD = -3  # mallopt's parameter number (malloc.h)
-
-
-def return_freed_memory() -> None:
-    """MMAP_THRESHOLD_BYTES as glibc malloc's fixed mmap threshold, unless the user set one (Linux only)."""
-    if not sys.platform.startswith("linux") or "MALLOC_MMAP_THRESHOLD_" in os.environ:
-        return
-    try:
-        import ctypes
-
-        ctypes.CDLL(None).mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)
-    except (OSError, AttributeError):  # not glibc: its own policy
-        pass
-
-
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str):  # one line, exit 2 (argparse's own code for usage errors)
         self.exit(2, f"tapost: {message} (see '{self.prog} --help')\n")
@@ -111,7 +91,6 @@ def main(argv: list[str] | None = None) -> int:
     command = command_of(argv)
     if fresh:  # BLAS threads before numpy loads; decide the kernels from the inputs' size, say at once what
         limit_blas_threads()  # that means, and on any compile
-        return_freed_memory()
         from pipelines.firstrun import LOG_COMMANDS, announce_compiling, early_notice
 
         early_notice(command, argv)

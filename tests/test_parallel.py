@@ -203,3 +203,27 @@ def test_large_inputs_parse_the_master_in_a_child_with_the_same_log(forking, mon
     with pytest.raises(InputError) as err:
         analyze.parse_pair(str(bad_m), str(bad_s))
     assert str(bad_m) in str(err.value)
+
+
+def test_large_pairs_fix_the_mmap_threshold_and_the_user_setting_wins(monkeypatch):
+    """From LARGE_PAIR_ROWS rows on, glibc's mmap threshold is fixed at MMAP_THRESHOLD_BYTES; below, or where
+    the user exported MALLOC_MMAP_THRESHOLD_, malloc's policy is left alone; malloc_trim between stages."""
+    calls = []
+
+    class FakeLibc:
+        def mallopt(self, param, value):
+            calls.append(("mallopt", param, value))
+
+        def malloc_trim(self, pad):
+            calls.append(("malloc_trim", pad))
+
+    monkeypatch.setattr(parallel, "_libc", lambda: FakeLibc())
+    monkeypatch.delenv("MALLOC_MMAP_THRESHOLD_", raising=False)
+    parallel.large_arrays_mmapped(parallel.LARGE_PAIR_ROWS - 1)
+    assert calls == []
+    parallel.large_arrays_mmapped(parallel.LARGE_PAIR_ROWS)
+    assert calls == [("mallopt", parallel.M_MMAP_THRESHOLD, parallel.MMAP_THRESHOLD_BYTES)]
+    monkeypatch.setenv("MALLOC_MMAP_THRESHOLD_", "131072")
+    parallel.large_arrays_mmapped(10 * parallel.LARGE_PAIR_ROWS)
+    parallel.release_freed_memory()
+    assert calls[1:] == [("malloc_trim", 0)]
