@@ -22,6 +22,7 @@ import numpy as np
 from scipy import ndimage
 
 from logtools.dsp import butter_lowpass_sos, cubic_spline_at, sosfiltfilt_even, weighted_rows
+from logtools.rows import BLOCK_ROWS
 
 __all__ = ["CleanSamples", "UniformSeries", "Interpolant", "clean_samples", "median_rate_hz",
            "to_uniform", "lowpass", "interpolant", "stamp_noise_s"]
@@ -287,8 +288,6 @@ def smooth_interpolant(t_s: np.ndarray, values: np.ndarray, cutoff_hz: float, *,
     return Interpolant(g.i0, g.dt_s, valid, g.warnings, g.gaps_s, cp, _dilate(~valid, 1))
 
 
-#: points an Interpolant evaluates at a time (bounds its temporaries; each point is computed on its own)
-EVAL_POINTS = 1 << 18
 
 
 @dataclass(frozen=True)
@@ -366,14 +365,14 @@ class Interpolant:
         t = np.asarray(t_s, dtype=float)
         ok = self.ok(t)
         out = np.full((len(t), self._coef.shape[1]), np.nan)
-        if ok.all():  # (every point on its own: evaluated EVAL_POINTS at a time, the same numbers)
-            for i in range(0, len(t), EVAL_POINTS):
-                u, _ = self._pos(t[i:i + EVAL_POINTS])
-                out[i:i + EVAL_POINTS] = self._eval(u, nu)
+        if ok.all():  # (every point on its own: evaluated BLOCK_ROWS at a time, the same numbers)
+            for i in range(0, len(t), BLOCK_ROWS):
+                u, _ = self._pos(t[i:i + BLOCK_ROWS])
+                out[i:i + BLOCK_ROWS] = self._eval(u, nu)
         elif ok.any():
             idx = np.flatnonzero(ok)
-            for i in range(0, len(idx), EVAL_POINTS):
-                at = idx[i:i + EVAL_POINTS]
+            for i in range(0, len(idx), BLOCK_ROWS):
+                at = idx[i:i + BLOCK_ROWS]
                 u, _ = self._pos(t[at])
                 out[at] = self._eval(u, nu)
         return out, ok

@@ -9,7 +9,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-#: rows computed at a time (6 MB per (rows, 3) temporary)
+#: rows computed at a time by every block-wise loop of row-by-row arithmetic (6 MB per (rows, 3) float
+#: temporary); the numbers do not depend on it
 BLOCK_ROWS = 1 << 18
 
 

@@ -34,6 +34,7 @@ import numpy as np
 from logtools import jit
 from logtools.conventions import dcm_from_euler, dcm_from_rotvec, euler_from_dcm, median_step_s, skew, wahba
 from logtools.inslog import InsLog
+from logtools.rows import BLOCK_ROWS
 
 
 
@@ -147,8 +148,8 @@ def _highpass(y: np.ndarray, n_win: int, out: np.ndarray | None = None) -> np.nd
         return out
     for j in range(y.shape[1]):  # column by column (one column's running sum at a time: 4 h of the
         c = np.concatenate([[0.0], np.cumsum(y[:, j])])  # accelerometers' 12 regressors are 280 MB a copy)
-        for a in range(0, n, HIGHPASS_ROWS):  # row by row arithmetic: blocks only bound the temporaries
-            r = np.arange(a, min(n, a + HIGHPASS_ROWS))
+        for a in range(0, n, BLOCK_ROWS):  # row by row arithmetic: blocks only bound the temporaries
+            r = np.arange(a, min(n, a + BLOCK_ROWS))
             i0 = np.clip(r - h, 0, n)
             i1 = np.clip(r + h + 1, 0, n)
             out[a:a + len(r), j] = y[a:a + len(r), j] - (c[i1] - c[i0]) / (i1 - i0)
@@ -188,8 +189,6 @@ def _common(t_m: np.ndarray, y_m: np.ndarray, t_s: np.ndarray, y_s: np.ndarray, 
 
 
 # ---- the estimate ----------------------------------------------------------------------------------
-#: rows of a moving mean taken out at a time in _highpass (bounds its temporaries; row by row the same)
-HIGHPASS_ROWS = 1 << 18
 #: frequencies whose power is summed at a time in _long_run_cov (bounds a temporary; row by row the same)
 FFT_ROWS = 1 << 16
 
@@ -380,8 +379,8 @@ def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = 
     e = _residual(u_m, v_s, r_mat, k_lever, lev)
     jtj, _ = mom.normal_equations(r_mat, lev)
     scores = np.empty((n, p))  # per sample h^T e: p x e, and (R K)^T e = K^T (R^T e)
-    for a in range(0, n, HIGHPASS_ROWS):  # row by row arithmetic: the blocks bound the temporaries
-        b = slice(a, a + HIGHPASS_ROWS)
+    for a in range(0, n, BLOCK_ROWS):  # row by row arithmetic: the blocks bound the temporaries
+        b = slice(a, a + BLOCK_ROWS)
         scores[b, :3] = np.cross(v_s[b] - e[b], e[b])
         if lev is not None:
             scores[b, 3:] = np.einsum("kjl,kj->kl", k_lever[b], e[b] @ r_mat)
@@ -438,8 +437,8 @@ def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highp
             # the lever arm's regressors and the delay's (below) in one array, filled in place: 4 h of
             # 200 Hz is 207 MB for each (n, 3, 3) a whole-array expression would make
             k = np.empty((n, 3, 4))
-            for a in range(0, n, HIGHPASS_ROWS):  # row by row arithmetic: the blocks bound the temporaries
-                b = slice(a, a + HIGHPASS_ROWS)
+            for a in range(0, n, BLOCK_ROWS):  # row by row arithmetic: the blocks bound the temporaries
+                b = slice(a, a + BLOCK_ROWS)
                 k[b, :, :3] = skew(dw[b]) + skew(w[b]) @ skew(w[b])  # f at r = f + dw x r + w x (w x r)
             del dw
             kf = k.reshape(n, 12)

@@ -11,6 +11,7 @@ from logtools.conventions import dcm_from_quat, skew, wahba
 from logtools.inslog import InsLog
 from logtools.latency.config import DEFAULT, LatencyConfig
 from logtools.resample import Interpolant, median_rate_hz, smooth_interpolant, stamp_noise_s
+from logtools.rows import BLOCK_ROWS, by_rows
 
 
 @dataclass(frozen=True)
@@ -108,25 +109,17 @@ def velocity_pair(master: InsLog, slave: InsLog, cutoff_hz: float, master_rate: 
     return VelocityPair(itps[0], itps[1], lever, cut, dt, steps, stamps, jitter)
 
 
-#: attitudes turned into lever-arm rows at a time (row by row arithmetic: the chunks bound the temporaries)
-ROWS_AT_A_TIME = 1 << 18
-
-
 def _lever_rows(q: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """``(dcm_from_quat(q) @ skew(w)).reshape(-1, 9)``, ROWS_AT_A_TIME rows at a time."""
-    out = np.empty((len(q), 9))
-    for i in range(0, len(q), ROWS_AT_A_TIME):
-        out[i:i + ROWS_AT_A_TIME] = (dcm_from_quat(q[i:i + ROWS_AT_A_TIME]) @ skew(w[i:i + ROWS_AT_A_TIME])
-                                     ).reshape(-1, 9)
-    return out
+    """``(dcm_from_quat(q) @ skew(w)).reshape(-1, 9)``, a block of rows at a time."""
+    return by_rows(lambda qb, wb: (dcm_from_quat(qb) @ skew(wb)).reshape(-1, 9), q, w)
 
 
 def velocity_quantum_m_s(v: np.ndarray, cfg: LatencyConfig = DEFAULT) -> float:
     """The step the velocity was logged with (MAVLink GLOBAL_POSITION_INT: 0.01 m/s), 0 when it is not on
     a grid: the largest of cfg.velocity.quanta_m_s that every sample is a whole multiple of."""
     for q in cfg.velocity.quanta_m_s:
-        for a in range(0, len(v), ROWS_AT_A_TIME):  # (in blocks: the first row off the grid ends the test)
-            x = v[a:a + ROWS_AT_A_TIME] / q
+        for a in range(0, len(v), BLOCK_ROWS):  # (in blocks: the first row off the grid ends the test)
+            x = v[a:a + BLOCK_ROWS] / q
             if not np.all(np.abs(x - np.round(x)) < 1e-3):
                 break
         else:
