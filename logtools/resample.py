@@ -16,6 +16,7 @@ Times are float64 seconds relative to a stated origin (see DESIGN.md, "Time").
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -25,7 +26,7 @@ from logtools.dsp import butter_lowpass_sos, cubic_spline_at, sosfiltfilt_even, 
 from logtools.rows import BLOCK_ROWS
 
 __all__ = ["CleanSamples", "UniformSeries", "Interpolant", "clean_samples", "median_rate_hz",
-           "to_uniform", "lowpass", "interpolant", "stamp_noise_s"]
+           "to_uniform", "lowpass", "interpolant", "smooth_interpolant", "stamp_noise_s"]
 
 
 @dataclass(frozen=True)
@@ -122,6 +123,11 @@ def stamp_noise_s(t: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(st - np.median(st))) / np.sqrt(2.0))
 
 
+#: to_uniform: an interval between two samples with more than this many samples missing is a gap (masked)
+MAX_GAP_SAMPLES = 3.0
+#: lowpass: the Butterworth filter's order (applied forward and backward)
+LOWPASS_ORDER = 4
+
 #: a uniform grid longer than both of these (per sample, in all) is refused: a stream whose stamps span
 #: far more time than its samples cover (a corrupt stamp days away) would otherwise take gigabytes
 MAX_GRID_PER_SAMPLE = 20.0
@@ -189,7 +195,7 @@ def to_uniform(
     values: np.ndarray,
     *,
     dt_s: float | None = None,
-    max_gap_samples: float = 3.0,
+    max_gap_samples: float = MAX_GAP_SAMPLES,
     name: str = "stream",
 ) -> UniformSeries:
     """Resample a stream on the uniform grid ``k * dt_s`` (default: its own median interval).
@@ -236,7 +242,7 @@ def _dilate(mask_bad: np.ndarray, n: int) -> np.ndarray:
     return np.convolve(mask_bad.astype(float), k, mode="same") > 0
 
 
-def lowpass(series: UniformSeries, cutoff_hz: float, *, order: int = 4) -> UniformSeries:
+def lowpass(series: UniformSeries, cutoff_hz: float, *, order: int = LOWPASS_ORDER) -> UniformSeries:
     """Zero-phase (forward-backward) Butterworth low-pass: no delay is introduced.
 
     Invalid rows are bridged linearly for the filter, then masked again, widened by the filter's
@@ -267,27 +273,6 @@ def _lowpassed_valid(valid: np.ndarray, dt_s: float, cutoff_hz: float) -> np.nda
     out[:settle] = False  # the filter's start-up and run-out at the data ends
     out[-settle:] = False
     return out
-
-
-def smooth_interpolant(t_s: np.ndarray, values: np.ndarray, cutoff_hz: float, *, name: str = "stream"
-                       ) -> "Interpolant":
-    """``interpolant(lowpass(to_uniform(t_s, values, name=name), cutoff_hz))``, one column at a time: the
-    same numbers without the two whole series between (4 h of 9 columns at 200 Hz: 207 MB each)."""
-    g = _grid(t_s, values, None, 3.0, name)
-    n, k = len(g.t_grid_s), g.values.shape[1]
-    if n < 4:
-        raise ValueError("an interpolant needs at least 4 samples")
-    sos = _lowpass_sos(n, g.dt_s, cutoff_hz, 4)
-    valid = g.valid if sos is None else _lowpassed_valid(g.valid, g.dt_s, cutoff_hz)
-    cp = np.empty((n + 3, k))
-    for j in range(k):
-        v = _spline_column(g, j)
-        if sos is not None:
-            v = sosfiltfilt_even(sos, _filled(v, g.valid))
-        _coefficients(cp, j, _filled(v, valid))
-    return Interpolant(g.i0, g.dt_s, valid, g.warnings, g.gaps_s, cp, _dilate(~valid, 1))
-
-
 
 
 @dataclass(frozen=True)
@@ -380,14 +365,39 @@ class Interpolant:
 
 def interpolant(series: UniformSeries) -> Interpolant:
     """Interpolating cubic B-spline of a uniform series (O(n) prefilter); gaps bridged then masked."""
-    n, k = series.values.shape
+    return _interpolant(series.i0, series.dt_s, series.valid, series.warnings, series.gaps_s, series.values.shape[1],
+                        lambda j: _fill_invalid_column(series, j))
+
+
+def smooth_interpolant(t_s: np.ndarray, values: np.ndarray, cutoff_hz: float, *, name: str = "stream"
+                       ) -> Interpolant:
+    """``interpolant(lowpass(to_uniform(t_s, values, name=name), cutoff_hz))``, one column at a time: the
+    same numbers without the two whole series between (4 h of 9 columns at 200 Hz: 207 MB each)."""
+    g = _grid(t_s, values, None, MAX_GAP_SAMPLES, name)
+    sos = _lowpass_sos(len(g.t_grid_s), g.dt_s, cutoff_hz, LOWPASS_ORDER)
+    valid = g.valid if sos is None else _lowpassed_valid(g.valid, g.dt_s, cutoff_hz)
+
+    def column(j: int) -> np.ndarray:  # to_uniform's column, lowpass's, then filled as interpolant fills it
+        v = _spline_column(g, j)
+        if sos is not None:
+            v = sosfiltfilt_even(sos, _filled(v, g.valid))
+        return _filled(v, valid)
+
+    return _interpolant(g.i0, g.dt_s, valid, g.warnings, g.gaps_s, g.values.shape[1], column)
+
+
+def _interpolant(i0: int, dt_s: float, valid: np.ndarray, warnings: tuple[str, ...],
+                 gaps_s: tuple[tuple[float, float], ...], k: int, column: Callable[[int], np.ndarray]
+                 ) -> Interpolant:
+    """The Interpolant of a series on grid (i0, dt_s) with ``valid`` samples, from its k columns
+    ``column(j)`` (invalid rows filled), made one at a time."""
+    n = len(valid)
     if n < 4:
         raise ValueError("an interpolant needs at least 4 samples")
     cp = np.empty((n + 3, k))  # the coefficients padded (1 before, 2 after), filled column by column
     for j in range(k):
-        _coefficients(cp, j, _fill_invalid_column(series, j))
-    return Interpolant(series.i0, series.dt_s, series.valid, series.warnings, series.gaps_s, cp,
-                       _dilate(~series.valid, 1))
+        _coefficients(cp, j, column(j))
+    return Interpolant(i0, dt_s, valid, warnings, gaps_s, cp, _dilate(~valid, 1))
 
 
 def _coefficients(cp: np.ndarray, j: int, v: np.ndarray) -> None:

@@ -15,6 +15,7 @@ threads of its own may not fork safely): ``analyze`` turns it on for its own pro
 """
 from __future__ import annotations
 
+import functools
 import importlib
 import os
 import pickle
@@ -59,7 +60,9 @@ MMAP_THRESHOLD_BYTES = 16 << 20
 M_MMAP_THRESHOLD = -3  # mallopt's parameter (malloc.h)
 
 
+@functools.cache
 def _libc():
+    """glibc, for its malloc controls; None elsewhere (musl, macOS, Windows: their own policy)."""
     if not sys.platform.startswith("linux"):
         return None
     try:
