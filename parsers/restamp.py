@@ -68,7 +68,22 @@ class ClockShift:
             t_ref = int(round(0.5 * (float(lat["window_s"][0]) + float(lat["window_s"][1])) * 1e9))
         else:
             raise ValueError("the report states neither latency.t_mid_rel_s nor latency.window_s")
-        return cls(float(lat["latency_s"]), drift, t_ref)
+        latency = float(lat["latency_s"])
+        # a damaged or hand-edited report: stamps moved by more than a day, or a clock running at another
+        # rate altogether, are no latency estimate (and would overflow or divide by zero below)
+        if not (np.isfinite(latency) and abs(latency) <= MAX_REPORT_LATENCY_S):
+            raise ValueError(f"the report's latency_s {latency!r} is not a usable latency "
+                             f"(finite, within +-{MAX_REPORT_LATENCY_S:g} s)")
+        if not (np.isfinite(drift) and abs(drift) <= MAX_REPORT_DRIFT_PPM):
+            raise ValueError(f"the report's drift_ppm {drift!r} is not a usable drift "
+                             f"(finite, within +-{MAX_REPORT_DRIFT_PPM:g} ppm)")
+        return cls(latency, drift, t_ref)
+
+
+#: the largest latency and drift a report may hand to ``tapost restamp``: a day, and 1 % (clocks that
+#: disagree by more are unrelated or the report is damaged)
+MAX_REPORT_LATENCY_S = 86_400.0
+MAX_REPORT_DRIFT_PPM = 10_000.0
 
 
 @dataclass(frozen=True)

@@ -187,18 +187,37 @@ def native_path(out_dir: str, fmt: str, src_path: str, kinds: tuple[str, ...]) -
     return os.path.join(out_dir, BASENAME + suffix)
 
 
-def write_native(src_path: str, dst: str, fmt: str, shift: ClockShift, selector: str | None) -> RestampStats:
+def _is_input(dst: str, inputs: tuple[str, ...]) -> str | None:
+    """The input ``dst`` would replace (same path, or the same file through a link), else None."""
+    for src in inputs:
+        if not src:
+            continue
+        src = src.split("::", 1)[0]
+        if os.path.realpath(src) == os.path.realpath(dst):
+            return src
+        try:
+            if os.path.exists(dst) and os.path.samefile(src, dst):
+                return src
+        except OSError:
+            pass
+    return None
+
+
+def write_native(src_path: str, dst: str, fmt: str, shift: ClockShift, selector: str | None,
+                 inputs: tuple[str, ...] = ()) -> RestampStats:
     fn, _ = native_writer(fmt)
-    if os.path.abspath(src_path) == os.path.abspath(dst):
-        raise InputError("native export would overwrite its input", src_path)
+    hit = _is_input(dst, (src_path,) + tuple(inputs))
+    if hit is not None:
+        raise InputError(f"native export would overwrite an input ({dst})", hit)
     return fn(src_path, dst, shift, selector=selector or None)
 
 
 # ---- orchestration -------------------------------------------------------------------------------
 def write_slave(kinds: tuple[str, ...], out_dir: str, slave: InsLog, shift: ClockShift,
-                *, out_path: str | None = None) -> list[ExportEntry]:
+                *, out_path: str | None = None, inputs: tuple[str, ...] = ()) -> list[ExportEntry]:
     """Write each requested export of ``slave`` (its InsLog as parsed, on its own clock) in ``out_dir``.
-    ``out_path`` (one kind only) names the file instead. Failures become entries with ``failed``."""
+    ``out_path`` (one kind only) names the file instead. Failures become entries with ``failed``. No
+    output replaces the slave's file or any of ``inputs`` (the master's): that export fails instead."""
     entries: list[ExportEntry] = []
     table = None
     meta = slave.meta
@@ -209,6 +228,9 @@ def write_slave(kinds: tuple[str, ...], out_dir: str, slave: InsLog, shift: Cloc
                 if table is None:
                     table = table_on_master_clock(slave, shift)
                 path = out_path or os.path.join(out_dir, f"{BASENAME}.{kind}")
+                hit = _is_input(path, (meta.source_path,) + tuple(inputs))
+                if hit is not None:
+                    raise InputError(f"{kind} export would overwrite an input ({path})", hit)
                 n = (write_csv(path, table) if kind == "csv" else
                      write_parquet(path, table, {"slave": meta.source_path, "selector": meta.selector,
                                                  "latency_s": shift.latency_s, "drift_ppm": shift.drift_ppm,
@@ -219,7 +241,7 @@ def write_slave(kinds: tuple[str, ...], out_dir: str, slave: InsLog, shift: Cloc
                                            seconds=time.perf_counter() - t))
             else:
                 path = out_path or native_path(out_dir, meta.format, meta.source_path, kinds)
-                st = write_native(meta.source_path, path, meta.format, shift, meta.selector)
+                st = write_native(meta.source_path, path, meta.format, shift, meta.selector, inputs)
                 entries.append(ExportEntry(kind, st.path, st.format, st.how, st.records, st.records_by_type,
                                            st.time_fields, st.damage, time.perf_counter() - t))
         except InputError as exc:
@@ -263,7 +285,7 @@ def attach_to_analysis(kinds: tuple[str, ...], out_dir: str, slave: InsLog, mast
     """``tapost analyze --write-slave``: write the exports, list them in ``paths`` (report.json
     ``outputs``), the section ``slave_on_master_clock`` and any damage or failure as warnings."""
     shift = ClockShift.from_latency(latency, master.meta.t0_ns)
-    entries = write_slave(tuple(kinds), out_dir, slave, shift)
+    entries = write_slave(tuple(kinds), out_dir, slave, shift, inputs=(master.meta.source_path,))
     paths.update(output_keys(entries))
     extra["slave_on_master_clock"] = report_section(entries, shift)
     warns = warnings_of(entries)

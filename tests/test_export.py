@@ -79,6 +79,34 @@ def test_clock_shift_from_report_uses_master_t0_and_t_mid():
         ClockShift.from_report({"latency": {"failed": "no motion", "latency_s": None}})
 
 
+@pytest.mark.parametrize("lat,drift", [(float("nan"), 0.0), (1e300, 0.0), (0.01, -1e6), (0.01, float("inf"))])
+def test_clock_shift_from_report_refuses_unusable_numbers(lat, drift):
+    """A damaged or hand-edited report (NaN, 1e300 s, a clock at -100 %) is refused, not written out."""
+    rep = {"master": {"t0_ns": 5_000_000_000}, "latency": {"latency_s": lat, "drift_ppm": drift, "t_mid_rel_s": 1.5}}
+    with pytest.raises(ValueError, match="not a usable"):
+        ClockShift.from_report(rep)
+
+
+@pytest.mark.parametrize("kind", ["csv", "parquet", "native"])
+def test_export_never_replaces_an_input(slaves, pair, tmp_path, kind):
+    """An export whose output path is the slave's or the master's file fails (one line in the report)
+    and leaves that file's bytes as they were."""
+    src = tmp_path / f"{export.BASENAME}.{'csv' if kind != 'parquet' else 'parquet'}"
+    registry.write(str(tmp_path / "slave.csv"), pair.slave, "csv")
+    os.replace(tmp_path / "slave.csv", src)
+    if kind == "parquet":  # the slave is elsewhere; the master's file sits where the parquet would go
+        slave = registry.load(str(slaves["csv"]))
+        before = sha(src)
+        (e,) = export.write_slave(("parquet",), str(tmp_path), slave, shift_of(pair), inputs=(str(src),))
+    else:
+        slave = registry.load(str(src))
+        before = sha(src)
+        out = str(src) if kind == "native" else None
+        (e,) = export.write_slave((kind,), str(tmp_path), slave, shift_of(pair), out_path=out)
+    assert e.failed and "overwrite an input" in e.failed, e
+    assert sha(src) == before
+
+
 def test_parse_kinds():
     assert export.parse_kinds("csv, native,csv") == ("csv", "native")
     assert export.parse_kinds(None) == ()
