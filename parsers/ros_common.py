@@ -923,7 +923,8 @@ def plan_unit(rawlog: RawLog, selector: Selector) -> tuple[Plan, list[str]]:
         elif imu and _imu_has_orientation(rawlog, imu):
             att = imu
         elif not explicit:
-            cands = _topics_of(rawlog, QUAT_STAMPED, POSE, POSE_COV)
+            # an Odometry's pose orientation last (an Imu may say "no orientation": covariance[0] = -1)
+            cands = _topics_of(rawlog, QUAT_STAMPED, POSE, POSE_COV) or _topics_of(rawlog, ODOM)
             if cands:
                 att = cands[0]
         if att and not explicit:

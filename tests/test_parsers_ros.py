@@ -271,6 +271,34 @@ def test_enu_flu_hand_built_messages(tmp_path):
     assert not od.has_accel
 
 
+def test_attitude_from_odometry_when_the_imu_has_none(tmp_path):
+    """An Imu that says "no orientation" (orientation_covariance[0] = -1, the ROS convention) beside an
+    Odometry: with no selector, the attitude comes from the Odometry's pose (heading north: yaw 0)."""
+    T = _ros_types()
+    c45 = np.sqrt(0.5)
+    msgs = []
+    for k in range(20):
+        t = T0_NS + k * 10_000_000
+        imu = _imu_msg(T, t, (0.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.1), (0.0, 0.0, 9.81))
+        imu.orientation_covariance[0] = -1.0
+        msgs.append(("/imu", "sensor_msgs/msg/Imu", imu, t))
+        hdr = T["Header"](stamp=T["Time"](sec=t // 10**9, nanosec=t % 10**9), frame_id="odom")
+        msgs.append(("/odom", "nav_msgs/msg/Odometry", T["Odometry"](
+            header=hdr, child_frame_id="base_link",
+            pose=T["PoseWithCovariance"](pose=T["Pose"](position=T["Point"](0.0, 0.0, 0.0),
+                                                       orientation=T["Quaternion"](0.0, 0.0, c45, c45)),
+                                         covariance=np.zeros(36)),
+            twist=T["TwistWithCovariance"](twist=T["Twist"](linear=T["Vector3"](3.0, 0.0, 0.0),
+                                                            angular=T["Vector3"](0.0, 0.0, 0.1)),
+                                           covariance=np.zeros(36))), t))
+    p = str(tmp_path / "odom_att.mcap")
+    _hand_mcap(p, msgs)
+    log = parsers.load(p)
+    assert log.has_quat, log.meta.warnings
+    np.testing.assert_allclose(euler_from_quat(log.quat_wxyz()[1]), np.zeros((20, 3)), atol=1e-12)
+    np.testing.assert_allclose(log.gyro_rad_s(), np.tile([0.0, 0.0, -0.1], (20, 1)), atol=1e-15)
+
+
 # ---- the fast path against the libraries --------------------------------------------------------
 def _fields_equal(a: dict, b: dict) -> None:
     assert a.keys() == b.keys()
