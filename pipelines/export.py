@@ -188,27 +188,20 @@ def native_path(out_dir: str, fmt: str, src_path: str, kinds: tuple[str, ...]) -
 
 
 def _is_input(dst: str, inputs: tuple[str, ...]) -> str | None:
-    """The input ``dst`` would replace (same path, or the same file through a link), else None."""
+    """The input ``dst`` would replace (the same file, also through a link or another spelling), else None."""
     for src in inputs:
-        if not src:
-            continue
-        src = src.split("::", 1)[0]
-        if os.path.realpath(src) == os.path.realpath(dst):
-            return src
         try:
-            if os.path.exists(dst) and os.path.samefile(src, dst):
+            if src and os.path.exists(dst) and os.path.samefile(src, dst):
                 return src
-        except OSError:
+        except OSError:  # an input gone since it was read: nothing to protect
             pass
     return None
 
 
-def write_native(src_path: str, dst: str, fmt: str, shift: ClockShift, selector: str | None,
-                 inputs: tuple[str, ...] = ()) -> RestampStats:
+def write_native(src_path: str, dst: str, fmt: str, shift: ClockShift, selector: str | None) -> RestampStats:
     fn, _ = native_writer(fmt)
-    hit = _is_input(dst, (src_path,) + tuple(inputs))
-    if hit is not None:
-        raise InputError(f"native export would overwrite an input ({dst})", hit)
+    if _is_input(dst, (src_path,)) is not None:
+        raise InputError(f"native export would overwrite an input ({dst})", src_path)
     return fn(src_path, dst, shift, selector=selector or None)
 
 
@@ -224,13 +217,15 @@ def write_slave(kinds: tuple[str, ...], out_dir: str, slave: InsLog, shift: Cloc
     for kind in kinds:
         t = time.perf_counter()
         try:
-            if kind in ("csv", "parquet"):
+            tabular = kind in ("csv", "parquet")
+            path = out_path or (os.path.join(out_dir, f"{BASENAME}.{kind}") if tabular else
+                                native_path(out_dir, meta.format, meta.source_path, kinds))
+            hit = _is_input(path, (meta.source_path,) + tuple(inputs))
+            if hit is not None:
+                raise InputError(f"{kind} export would overwrite an input ({path})", hit)
+            if tabular:
                 if table is None:
                     table = table_on_master_clock(slave, shift)
-                path = out_path or os.path.join(out_dir, f"{BASENAME}.{kind}")
-                hit = _is_input(path, (meta.source_path,) + tuple(inputs))
-                if hit is not None:
-                    raise InputError(f"{kind} export would overwrite an input ({path})", hit)
                 n = (write_csv(path, table) if kind == "csv" else
                      write_parquet(path, table, {"slave": meta.source_path, "selector": meta.selector,
                                                  "latency_s": shift.latency_s, "drift_ppm": shift.drift_ppm,
@@ -240,8 +235,7 @@ def write_slave(kinds: tuple[str, ...], out_dir: str, slave: InsLog, shift: Cloc
                                            time_fields=("time_s",) + (("time_ns",) if kind == "parquet" else ()),
                                            seconds=time.perf_counter() - t))
             else:
-                path = out_path or native_path(out_dir, meta.format, meta.source_path, kinds)
-                st = write_native(meta.source_path, path, meta.format, shift, meta.selector, inputs)
+                st = write_native(meta.source_path, path, meta.format, shift, meta.selector)
                 entries.append(ExportEntry(kind, st.path, st.format, st.how, st.records, st.records_by_type,
                                            st.time_fields, st.damage, time.perf_counter() - t))
         except InputError as exc:

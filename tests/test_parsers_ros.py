@@ -224,6 +224,20 @@ def _imu_msg(T, t_ns: int, q_xyzw, gyro, accel, frame="imu_link"):
                     linear_acceleration=T["Vector3"](*accel), linear_acceleration_covariance=np.zeros(9))
 
 
+def _odom_north_msg(T, t_ns: int):
+    """An Odometry heading north (ENU orientation +90 deg about up), forward 3 m/s, turning left 0.1 rad/s."""
+    c45 = np.sqrt(0.5)
+    hdr = T["Header"](stamp=T["Time"](sec=t_ns // 10**9, nanosec=t_ns % 10**9), frame_id="odom")
+    return T["Odometry"](
+        header=hdr, child_frame_id="base_link",
+        pose=T["PoseWithCovariance"](pose=T["Pose"](position=T["Point"](0.0, 0.0, 0.0),
+                                                   orientation=T["Quaternion"](0.0, 0.0, c45, c45)),
+                                     covariance=np.zeros(36)),
+        twist=T["TwistWithCovariance"](twist=T["Twist"](linear=T["Vector3"](3.0, 0.0, 0.0),
+                                                        angular=T["Vector3"](0.0, 0.0, 0.1)),
+                                       covariance=np.zeros(36)))
+
+
 def test_enu_flu_hand_built_messages(tmp_path):
     """Heading north, turning left (FLU yaw rate +0.1), at rest (FLU accel z +9.81); ENU identity
     quaternion = heading east; Odometry forward 3 m/s heading north; TwistStamped ENU east 5 m/s."""
@@ -238,15 +252,7 @@ def test_enu_flu_hand_built_messages(tmp_path):
         msgs.append(("/imu_east", "sensor_msgs/msg/Imu",
                      _imu_msg(T, t, (0.0, 0.0, 0.0, 1.0), (0.0, 0.0, 0.0), (0.0, 0.0, 9.81)), t))
         hdr = T["Header"](stamp=T["Time"](sec=t // 10**9, nanosec=t % 10**9), frame_id="odom")
-        odom = T["Odometry"](
-            header=hdr, child_frame_id="base_link",
-            pose=T["PoseWithCovariance"](pose=T["Pose"](position=T["Point"](0.0, 0.0, 0.0),
-                                                       orientation=T["Quaternion"](0.0, 0.0, c45, c45)),
-                                         covariance=np.zeros(36)),
-            twist=T["TwistWithCovariance"](twist=T["Twist"](linear=T["Vector3"](3.0, 0.0, 0.0),
-                                                            angular=T["Vector3"](0.0, 0.0, 0.1)),
-                                           covariance=np.zeros(36)))
-        msgs.append(("/odom", "nav_msgs/msg/Odometry", odom, t))
+        msgs.append(("/odom", "nav_msgs/msg/Odometry", _odom_north_msg(T, t), t))
         tw = T["TwistStamped"](header=hdr, twist=T["Twist"](linear=T["Vector3"](5.0, 0.0, 1.0),
                                                             angular=T["Vector3"](0.0, 0.0, 0.0)))
         msgs.append(("/vel", "geometry_msgs/msg/TwistStamped", tw, t))
@@ -275,22 +281,13 @@ def test_attitude_from_odometry_when_the_imu_has_none(tmp_path):
     """An Imu that says "no orientation" (orientation_covariance[0] = -1, the ROS convention) beside an
     Odometry: with no selector, the attitude comes from the Odometry's pose (heading north: yaw 0)."""
     T = _ros_types()
-    c45 = np.sqrt(0.5)
     msgs = []
     for k in range(20):
         t = T0_NS + k * 10_000_000
         imu = _imu_msg(T, t, (0.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.1), (0.0, 0.0, 9.81))
         imu.orientation_covariance[0] = -1.0
         msgs.append(("/imu", "sensor_msgs/msg/Imu", imu, t))
-        hdr = T["Header"](stamp=T["Time"](sec=t // 10**9, nanosec=t % 10**9), frame_id="odom")
-        msgs.append(("/odom", "nav_msgs/msg/Odometry", T["Odometry"](
-            header=hdr, child_frame_id="base_link",
-            pose=T["PoseWithCovariance"](pose=T["Pose"](position=T["Point"](0.0, 0.0, 0.0),
-                                                       orientation=T["Quaternion"](0.0, 0.0, c45, c45)),
-                                         covariance=np.zeros(36)),
-            twist=T["TwistWithCovariance"](twist=T["Twist"](linear=T["Vector3"](3.0, 0.0, 0.0),
-                                                            angular=T["Vector3"](0.0, 0.0, 0.1)),
-                                           covariance=np.zeros(36))), t))
+        msgs.append(("/odom", "nav_msgs/msg/Odometry", _odom_north_msg(T, t), t))
     p = str(tmp_path / "odom_att.mcap")
     _hand_mcap(p, msgs)
     log = parsers.load(p)
