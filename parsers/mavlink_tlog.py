@@ -499,13 +499,17 @@ def plan_clock(streams: list[tuple[np.ndarray, np.ndarray, np.ndarray]], sys_off
     elif kinds <= {1, 2} and 1 in kinds:
         clock, add = "epoch", {0: 0, 1: 0}
         src = "MAVLink message time fields (time_usec, UNIX time)"
+    elif 0 in kinds and 1 in kinds:
+        # no SYSTEM_TIME, but the unit stamps some streams in UNIX time (HIGHRES_IMU.time_usec on a GPS-synced
+        # autopilot): keep UNIX time, the clock a master is most likely on, and map the boot streams onto it
+        # through the receive stamps (t_unix = t_boot + lag_boot - lag_unix)
+        clock, add = "epoch", {0: lag[0] - lag[1], 1: 0}
+        src = "MAVLink message time fields; boot time mapped to UNIX time through the tlog receive stamps"
+        warns.append("streams mix UNIX and boot time and there is no SYSTEM_TIME: boot stamps mapped to "
+                     "UNIX time through the receive stamps (offset uncertain by the link delay's spread)")
     elif 0 in kinds:
         clock, add = "boot", {0: 0, 1: 0}
         src = "MAVLink message time fields (time since boot)"
-        if 1 in kinds:
-            add[1] = lag[1] - lag[0]
-            warns.append("streams mix UNIX and boot time and there is no SYSTEM_TIME: UNIX stamps "
-                         "mapped to boot time through the receive stamps (link delay jitter)")
     else:
         return ClockPlan("epoch", "tlog receive time (selected messages have no time field)", (),
                          (0, 0, 0))
