@@ -12,7 +12,7 @@ import pandas as pd
 
 from logtools.errors import InputError
 from logtools.inslog import ACCEL, GYRO, POS, QUAT, T, VEL, ChannelInfo, InsLog, LogMeta
-from parsers.base import rate_of, stamp_grid_s
+from parsers.base import EPOCH_MAX_NS, EPOCH_MIN_NS, STAMP_LIMIT_NS, rate_of, stamp_grid_s
 
 #: a stamp step larger than this many median periods is reported as a gap
 GAP_FACTOR = 5.0
@@ -34,11 +34,30 @@ class Stream:
     stamp_resolution_s: float = 0.0  # the format's stamp step when coarse (tlog time_boot_ms, DataFlash TimeMS: 1e-3)
 
 
+@dataclass(frozen=True)
+class ClockOffset:
+    """A shift of every stream onto another clock (a boot -> UTC offset from the log's GPS time), added by
+    :func:`assemble_inslog` after the stamps are cleaned (stray and impossible stamps gone), checked: where
+    it would put a stamp outside [EPOCH_MIN_NS, EPOCH_MAX_NS] the log stays on the clock it was given with
+    a warning."""
+
+    ns: int  # added to every stamp
+    source: str  # the stamp source when applied ("... + boot->UTC offset from ...")
+    selector: str  # the selector text when applied (else the one given: the boot clock's)
+    clock: str = "epoch"
+
+
 def clean_stream(name: str, s: Stream, warnings: list[str]) -> Stream:
     """Sort by time, drop non-finite and duplicate stamps; report what was done."""
     t = np.asarray(s.t_ns, dtype=np.int64)
     v = np.asarray(s.values, dtype=float)
     v = v.reshape(len(t), -1) if len(t) else v.reshape(0, v.shape[-1] if v.ndim > 1 else 0)
+    wild = (t >= STAMP_LIMIT_NS) | (t <= -STAMP_LIMIT_NS)
+    if wild.any():  # (parsers.base.counts_to_ns puts a count it cannot hold there)
+        warnings.append(f"{name} ({s.source}): {int(wild.sum())} samples with impossible stamps dropped "
+                        f"(beyond +-{STAMP_LIMIT_NS * 1e-9 / 31_557_600:.0f} years: a corrupt time field?)")
+        t, v = t[~wild], v[~wild]
+    del wild
     finite = np.isfinite(v).all(axis=1)
     if not finite.all():
         warnings.append(f"{name} ({s.source}): {int((~finite).sum())} samples with NaN/inf dropped")
@@ -201,14 +220,16 @@ def build_inslog(
     vel: Stream | None = None,
     pos: Stream | None = None,
     warnings: list[str] | tuple[str, ...] = (),
+    offset: ClockOffset | None = None,
 ) -> InsLog:
     """Assemble an InsLog. gyro/accel must share stamps if both are given on one stream (IMU
     message); otherwise accel is interpolated onto the gyro stamps (reported). quat is normalised
-    and sign-continuous. Raises InputError when nothing usable is left."""
+    and sign-continuous. ``offset``: a clock shift added once the stamps are cleaned (``ClockOffset``).
+    Raises InputError when nothing usable is left."""
     streams = dict(gyro=gyro, accel=accel, quat=quat, vel=vel, pos=pos)
     del gyro, accel, quat, vel, pos
     return assemble_inslog(streams, path=path, fmt=fmt, selector=selector, clock=clock,
-                           stamp_source=stamp_source, warnings=warnings)
+                           stamp_source=stamp_source, warnings=warnings, offset=offset)
 
 
 def _unit_continuous_into(q: np.ndarray, rows: np.ndarray, at: np.ndarray | None) -> None:
@@ -261,8 +282,25 @@ def _frame(block: np.ndarray, t_s: np.ndarray, names: tuple[str, ...] | list[str
     return pd.DataFrame(block.T, index=pd.Index(t_s, name=T), columns=list(names), copy=False)
 
 
+def _shifted(cleaned: dict[str, Stream], offset: ClockOffset, clock: str, stamp_source: str, selector: str,
+             warns: list[str]) -> tuple[dict[str, Stream], str, str, str]:
+    """The cleaned streams with ``offset`` added (and the clock, stamp source, selector it gives), or as they
+    are with a warning when it would put a stamp outside [EPOCH_MIN_NS, EPOCH_MAX_NS]. Checked in Python
+    integers: the addition can never wrap (the stamps are inside +-STAMP_LIMIT_NS)."""
+    lo = min(int(s.t_ns[0]) for s in cleaned.values()) + int(offset.ns)
+    hi = max(int(s.t_ns[-1]) for s in cleaned.values()) + int(offset.ns)
+    if not (EPOCH_MIN_NS <= lo and hi <= EPOCH_MAX_NS):
+        warns.append(f"the offset onto the {offset.clock} clock ({int(offset.ns) * 1e-9:.3f} s) would put the "
+                     f"stamps at {lo * 1e-9:.3f} .. {hi * 1e-9:.3f} s, outside UNIX time 1980..2100 (a corrupt "
+                     f"time field?): kept on the {clock} clock")
+        return cleaned, clock, stamp_source, selector
+    out = {k: Stream(s.t_ns + int(offset.ns), s.values, s.source, s.stamp_resolution_s) for k, s in cleaned.items()}
+    return out, offset.clock, offset.source, offset.selector
+
+
 def assemble_inslog(streams: dict[str, Stream | None], *, path: str, fmt: str, selector: str, clock: str,
-                    stamp_source: str, warnings: list[str] | tuple[str, ...] = ()) -> InsLog:
+                    stamp_source: str, warnings: list[str] | tuple[str, ...] = (),
+                    offset: ClockOffset | None = None) -> InsLog:
     """:func:`build_inslog` of the streams in ``streams`` (keys gyro, accel, quat, vel, pos; None or absent
     for none), taking them out of the dict as it goes: a stream's arrays go as soon as its columns are in
     the frame (a caller that keeps no other reference holds each sample about once)."""
@@ -280,6 +318,8 @@ def assemble_inslog(streams: dict[str, Stream | None], *, path: str, fmt: str, s
     streams.clear()
     if not cleaned:
         raise InputError("no usable samples in the selected streams", path)
+    if offset is not None:
+        cleaned, clock, stamp_source, selector = _shifted(cleaned, offset, clock, stamp_source, selector, warns)
     t0_ns = int(min(int(s.t_ns[0]) for s in cleaned.values()))
     channels: dict[str, ChannelInfo] = {}
 

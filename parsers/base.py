@@ -85,6 +85,64 @@ def rate_of(t_s: np.ndarray) -> float:
     return float(1.0 / np.median(d)) if len(d) else 0.0
 
 
+#: stamps (int64 ns, any clock) beyond +-this are no clock's reading: 2**62 ns is 146 years, past any boot
+#: clock and UNIX time up to 2116. It is also the int64 headroom: two stamps inside it differ by less than
+#: 2**63 (their step cannot wrap), and adding a boot -> UTC offset (under EPOCH_MAX_NS) cannot wrap either.
+#: A corrupt time field (a flipped high byte of a uint64 microsecond count) lies beyond it.
+STAMP_LIMIT_NS = 1 << 62
+#: what :func:`counts_to_ns` makes of a count beyond STAMP_LIMIT_NS: past the limit (assemble drops it as an
+#: impossible stamp) and 73 years short of int64's end, so that a format's sub-stamp terms (PX4's relative
+#: accelerometer stamp, half an IMU interval) added to it cannot wrap
+STAMP_OUT_OF_RANGE_NS = 3 << 61
+#: the UNIX time (ns) a GPS/UTC time field may give: GPS time's start (1980-01-06) to 2100-01-01. A fix
+#: outside is a corrupt field; a boot -> UTC offset putting a log's stamps outside is not applied.
+EPOCH_MIN_NS = 315_964_800 * 1_000_000_000
+EPOCH_MAX_NS = 4_102_444_800 * 1_000_000_000
+
+
+def counts_to_ns(counts: np.ndarray, ns_per_count: int) -> np.ndarray:
+    """Integer clock counts (any integer dtype; a corrupt uint64 stamp may use every bit) -> int64 ns,
+    checked: a count whose ns would lie beyond +-STAMP_LIMIT_NS (or wrap int64) becomes
+    STAMP_OUT_OF_RANGE_NS, which :func:`parsers.assemble.clean_stream` drops with a warning. Counts in
+    range give exactly ``counts.astype(np.int64) * ns_per_count``."""
+    c = np.asarray(counts)
+    lim = STAMP_LIMIT_NS // int(ns_per_count)
+    if c.dtype.kind == "u":
+        bad = c >= lim
+    elif c.dtype.kind == "i":
+        bad = (c >= lim) | (c <= -lim)
+    else:  # (a float count: truncated as astype does; NaN/inf are impossible stamps too)
+        with np.errstate(invalid="ignore"):
+            bad = ~(np.abs(c) < lim)
+    with np.errstate(invalid="ignore"):
+        out = c.astype(np.int64) * int(ns_per_count)
+    if bad.any():
+        out[bad] = STAMP_OUT_OF_RANGE_NS
+    return out
+
+
+#: GPS/UTC fixes whose (UTC - boot) offset lies farther than this from the fixes' median are inconsistent with
+#: the others (a corrupt field): a boot clock drifting 100 ppm moves the offset 3.6 s over a 10 h log, and real
+#: GPS messages' logging latency scatters it by milliseconds
+UTC_AGREE_S = 5.0
+
+
+def consensus_offset(diff: np.ndarray, counts_per_s: int) -> tuple[np.ndarray, str]:
+    """The fixes that agree, of ``diff`` (one (UTC - boot) offset reading per fix, int64 counts of
+    ``1 / counts_per_s`` s, every fix already inside the plausible ranges): those within UTC_AGREE_S of the
+    median of all, when they are more than half of them. Returns (mask of the agreeing fixes, problem): the
+    mask is all False, and the problem says why, when no majority agrees (no offset to trust)."""
+    d = np.asarray(diff, dtype=np.int64)
+    if not len(d):
+        return np.zeros(0, dtype=bool), "no valid fix"
+    med = int(np.median(d))
+    ok = np.abs(d - med) <= int(UTC_AGREE_S * counts_per_s)
+    if 2 * int(ok.sum()) <= len(d):
+        return np.zeros(len(d), dtype=bool), (f"the {len(d)} valid fixes disagree (only {int(ok.sum())} within "
+                                             f"{UTC_AGREE_S:g} s of their median offset)")
+    return ok, ""
+
+
 #: stamp grids tested for (s), coarsest first: stamps on one of these are quantised to it
 STAMP_GRIDS_S = (1e-2, 1e-3, 1e-4)
 

@@ -19,8 +19,10 @@ Streams (FRD / NED already; units converted here):
 
 Clock: ``TimeUS`` (``TimeMS`` in old logs) is time since boot. When GPS messages carry GPS time
 (``GWk``/``GMS``, or ``Week``/``TimeMS`` in old logs) with a fix, the log is put on UNIX time (the
-median offset GPS time - boot time over the fixed GPS messages; the GPS message's own logging latency
-is not removed). ``meta.stamp_source`` says which. Selector ``time=boot`` keeps boot time.
+median offset GPS time - boot time over the fixed GPS messages whose GPS time is plausible and that agree
+with the majority; the GPS message's own logging latency is not removed). Stray stamps are dropped on the
+boot clock before the offset is added; GPS time that gives no trustworthy offset leaves the log on the boot
+clock with a warning. ``meta.stamp_source`` says which. Selector ``time=boot`` keeps boot time.
 
 Selectors: ``imu=IMU2``, ``imu=IMU[1]`` (instance), ``att=AHR2``, ``nav=NKF6`` (att+vel(+pos) of that
 EKF core), ``nav=XKF1[1]`` (EKF3 core 1), ``vel=GPS``, ``pos=GPS``, ``time=boot|gps``.
@@ -39,14 +41,18 @@ import numpy as np
 from logtools.conventions import DEG, quat_from_euler
 from logtools.errors import InputError
 from logtools.inslog import InsLog
-from parsers.assemble import Stream, build_inslog, implausible
-from parsers.base import Inventory, Selector, StreamInfo, check_readable, rate_of
-from parsers.mavlink_common import gather_rows, gps_to_unix_ns, scatter_rows, walk_dataflash
+from parsers.assemble import ClockOffset, Stream, build_inslog, implausible
+from parsers.base import (EPOCH_MAX_NS, STAMP_LIMIT_NS, Inventory, Selector, StreamInfo, check_readable,
+                          consensus_offset, counts_to_ns, rate_of)
+from parsers.mavlink_common import GPS_EPOCH_UNIX_S, gather_rows, gps_to_unix_ns, scatter_rows, walk_dataflash
 
 NAME = "dataflash"
 EXTENSIONS = (".bin", ".BIN")
 
 HEAD1, HEAD2, FMT_TYPE, FMT_LEN = 0xA3, 0x95, 0x80, 89
+#: the last GPS week a fix may name (its UNIX time before EPOCH_MAX_NS, 2100; a later one is a corrupt field)
+_MAX_GPS_WEEK = (EPOCH_MAX_NS // 1_000_000_000 - GPS_EPOCH_UNIX_S) // 604_800
+_WEEK_MS = 604_800_000
 
 #: DataFlash format char -> (numpy dtype, multiplier) as pymavlink.DFReader.FORMAT_TO_STRUCT
 DF_TYPES: dict[str, tuple[object, float | None]] = {
@@ -190,14 +196,15 @@ class DfLog:
         return name in self.by_name
 
     def time_ns(self, name: str, rec: np.ndarray) -> np.ndarray:
-        """Boot-time stamps (ns) of records (TimeUS, or TimeMS in old logs; old GPS: T)."""
+        """Boot-time stamps (ns) of records (TimeUS, or TimeMS in old logs; old GPS: T), converted checked
+        (``counts_to_ns``: a corrupt count becomes a stamp the assembly drops, never a wrapped one)."""
         cols = rec.dtype.names
         if name.startswith("GPS") and "TimeUS" not in cols and "T" in cols:
-            return rec["T"].astype(np.int64) * 1_000_000
+            return counts_to_ns(rec["T"], 1_000_000)
         if "TimeUS" in cols:
-            return rec["TimeUS"].astype(np.int64) * 1000
+            return counts_to_ns(rec["TimeUS"], 1000)
         if "TimeMS" in cols:
-            return rec["TimeMS"].astype(np.int64) * 1_000_000
+            return counts_to_ns(rec["TimeMS"], 1_000_000)
         raise KeyError(f"{name} has no TimeUS/TimeMS")
 
     def time_resolution_s(self, name: str) -> float:
@@ -381,8 +388,11 @@ def _pos(log: DfLog, src: Src) -> tuple[np.ndarray, np.ndarray]:
     raise InputError(f"{src} carries no position (Lat/Lng/Alt, or PN/PE/PD with an ORGN origin)", log.path)
 
 
-def _gps_epoch_offset_ns(log: DfLog) -> tuple[int | None, str]:
-    """UNIX ns - boot ns from GPS week/ms of fixed GPS messages (median), or None."""
+def _gps_epoch_offset(log: DfLog) -> tuple[int | None, str, list[str], str]:
+    """UNIX ns - boot ns from GPS week/ms of fixed GPS messages (upper median over the fixes whose GPS time
+    lies in 1980..2100 with a boot stamp that is a possible one, kept to those agreeing with the majority:
+    ``consensus_offset``), the message, warnings, and the problem ("" when the log has no fixed GPS time)."""
+    problems = []
     for name in ("GPS", "GPS2"):
         if not log.has(name):
             continue
@@ -397,11 +407,33 @@ def _gps_epoch_offset_ns(log: DfLog) -> tuple[int | None, str]:
         ok = (wk > 0) & _gps_fix(rec)
         if not ok.any():
             continue
-        unix = gps_to_unix_ns(wk[ok], ms[ok])
-        boot = log.time_ns(name, rec)[ok]
-        off = np.sort(unix - boot)
-        return int(off[len(off) // 2]), name
-    return None, ""
+        boot = log.time_ns(name, rec)
+        good = ok & (wk <= _MAX_GPS_WEEK) & (ms >= 0) & (ms < _WEEK_MS) & (np.abs(boot) < STAMP_LIMIT_NS)
+        n_bad = int(ok.sum() - good.sum())
+        if not good.any():
+            problems.append(f"{name}: all {n_bad} fixed GPS messages hold an impossible GPS time or boot stamp")
+            continue
+        diff = gps_to_unix_ns(wk[good], ms[good]) - boot[good]  # (both in range: no wrap)
+        agree, why = consensus_offset(diff, 1_000_000_000)
+        if why:
+            problems.append(f"{name}: {why}")
+            continue
+        warns = []
+        if not agree.all():
+            diff = diff[agree]
+            n_bad += int((~agree).sum())
+        if n_bad:
+            warns.append(f"{name}: {n_bad} of {int(ok.sum())} fixed GPS messages ignored for the boot->UNIX offset "
+                         "(an impossible GPS time or boot stamp, or inconsistent with the others: corrupt?)")
+        off = np.sort(diff)
+        return int(off[len(off) // 2]), name, warns, ""
+    return None, "", [], "; ".join(problems)
+
+
+def _gps_epoch_offset_ns(log: DfLog) -> tuple[int | None, str]:
+    """UNIX ns - boot ns from GPS week/ms of fixed GPS messages (``_gps_epoch_offset``), or None."""
+    off, name, _w, _p = _gps_epoch_offset(log)
+    return off, name
 
 
 def _ekf_type(log: DfLog) -> int | None:
@@ -529,20 +561,23 @@ def load(path: str, selector: Selector) -> InsLog:
             warns.append(f"{srcs['pos']}: no valid positions (no fix); position left out")
     if not kw:
         raise InputError("selector picks no streams", path)
-    off, gps_name = (None, "") if mode == "boot" else _gps_epoch_offset_ns(log)
-    if off is not None:
-        kw = {k: Stream(s.t_ns + off, s.values, s.source, s.stamp_resolution_s) for k, s in kw.items()}
-        clock = "epoch"
-        src = (f"DataFlash TimeUS (boot) mapped to UNIX time by {gps_name} week/ms (median offset over "
-               f"fixed GPS messages; GPS logging latency not removed)")
-    else:
-        clock = "boot"
-        src = "DataFlash TimeUS (time since boot)" + ("" if mode == "boot" else "; no GPS time in log")
-    sel_txt = ",".join(f"{k}={v}" for k, v in srcs.items()) + f",time={'gps' if off is not None else 'boot'}"
-    if att_desc:
-        src += f"; attitude from {att_desc}"
-    return build_inslog(path=path, fmt=NAME, selector=sel_txt, clock=clock, stamp_source=src,
-                        warnings=warns, **kw)
+    off, gps_name, problem = None, "", ""
+    if mode != "boot":
+        off, gps_name, w, problem = _gps_epoch_offset(log)
+        warns.extend(w)
+        if problem:
+            warns.append(f"GPS time gives no trustworthy boot->UNIX offset ({problem}): kept on the boot clock")
+    att_txt = f"; attitude from {att_desc}" if att_desc else ""
+    sel_txt = ",".join(f"{k}={v}" for k, v in srcs.items())
+    src = "DataFlash TimeUS (time since boot)" + ("" if mode == "boot" else
+                                                  "; GPS time untrustworthy" if problem else "; no GPS time in log")
+    offset = None
+    if off is not None:  # added by build_inslog once the stamps are cleaned on the boot clock, checked
+        offset = ClockOffset(off, f"DataFlash TimeUS (boot) mapped to UNIX time by {gps_name} week/ms (median "
+                                  f"offset over fixed GPS messages; GPS logging latency not removed){att_txt}",
+                             sel_txt + ",time=gps")
+    return build_inslog(path=path, fmt=NAME, selector=sel_txt + ",time=boot", clock="boot",
+                        stamp_source=src + att_txt, warnings=warns, offset=offset, **kw)
 
 
 KIND_OF = {**{n: "imu" for n in IMU_NAMES}, "ATT": "att", "AHR2": "att", "NKF1": "odom", "NKF6": "odom",
@@ -568,11 +603,12 @@ def inventory(path: str) -> Inventory:
                 rate_hz=rate_of(t_s - t_s[:1].sum()), start_s=float(t_s[0]) if len(t_s) else 0.0,
                 duration_s=float(t_s[-1] - t_s[0]) if len(t_s) else 0.0, clock="boot (TimeUS)",
                 fields=f.columns))
-    off, gps_name = _gps_epoch_offset_ns(log)
+    off, gps_name, _w, problem = _gps_epoch_offset(log)
     notes = [f"{sum(len(v) for v in log.offsets.values())} records, {len(log.by_name)} message types; "
              + (f"stamps are boot time (TimeUS); loaded on the epoch clock (UNIX time from {gps_name} week/ms, "
                 "time=gps) by default, as analyze reports it; time=boot keeps boot time" if off is not None
-                else "no GPS time: loaded on the boot clock (TimeUS)")]
+                else f"GPS time gives no trustworthy offset ({problem}): loaded on the boot clock (TimeUS)"
+                if problem else "no GPS time: loaded on the boot clock (TimeUS)")]
     return Inventory(path=path, format=NAME, streams=tuple(streams), selectors=tuple(unit_selectors(log)),
                      warnings=tuple(log.warnings), notes=tuple(notes))
 

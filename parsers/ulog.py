@@ -5,7 +5,10 @@ its reference), vehicle_global_position (position).
 Conventions: PX4 is FRD body / NED earth already and its quaternions are Hamilton ``q(w, x, y, z)``
 rotating FRD -> NED (PX4 msg docs, VehicleAttitude), so no axis conversion is needed here. Stamps are
 ``timestamp`` (microseconds since boot): clock ``boot``. ``clock=epoch`` adds the boot -> UTC offset
-found from GPS (``vehicle_gps_position`` / ``sensor_gps``: ``time_utc_usec - timestamp``, median).
+found from GPS (``vehicle_gps_position`` / ``sensor_gps``: ``time_utc_usec - timestamp``, median over the
+fixes whose UTC time is plausible and that agree with the majority; stray stamps are dropped on the boot
+clock before it is added, and a log whose GPS time gives no trustworthy offset stays on the boot clock
+with a warning).
 
 Reading: pyulog is the reference implementation (tolerant of damage: skips bad messages, resyncs).
 Clean files take a fast path: one compiled walk over the 3-byte message headers, then each wanted
@@ -34,9 +37,10 @@ import numpy as np
 
 from logtools.errors import InputError
 from logtools.inslog import InsLog
-from parsers.assemble import Stream, build_inslog
+from parsers.assemble import ClockOffset, Stream, build_inslog
 from parsers.atomic import atomic_path
-from parsers.base import Inventory, Selector, StreamInfo, check_readable
+from parsers.base import (EPOCH_MAX_NS, STAMP_LIMIT_NS, Inventory, Selector, StreamInfo, check_readable,
+                          consensus_offset, counts_to_ns)
 
 NAME = "ulog"
 EXTENSIONS = (".ulg",)
@@ -69,8 +73,11 @@ KIND = {"sensor_combined": "imu", "vehicle_imu": "imu", "sensor_gyro": "gyro", "
         **{t: "pos" for t in POS_TOPICS}, **{t: "pos" for t in GPS_TOPICS}}
 #: PX4's marker for an invalid relative timestamp (sensor_combined.accelerometer_timestamp_relative)
 RELATIVE_TIMESTAMP_INVALID = 0x7FFFFFFF
-#: a GPS UTC time later than 2001 (microseconds) counts as valid
+#: a GPS UTC time later than 2001 (microseconds) counts as valid (earlier, 0 included: no fix yet) ...
 _MIN_UTC_US = 1_000_000_000_000_000
+#: ... up to 2100 (later: a corrupt field); a fix's boot stamp must be a possible one too
+_MAX_UTC_US = EPOCH_MAX_NS // 1000
+_MAX_STAMP_US = STAMP_LIMIT_NS // 1000
 
 
 def sniff(head: bytes, path: str) -> bool:
@@ -328,9 +335,10 @@ def _vec(d: dict[str, np.ndarray], fields: list[str]) -> np.ndarray:
 
 
 def _stamps_ns(d: dict[str, np.ndarray], use_sample: bool) -> tuple[np.ndarray, str]:
+    """Checked us -> ns (a corrupt uint64 stamp becomes one assemble drops, never a wrapped one)."""
     if use_sample and "timestamp_sample" in d:
-        return d["timestamp_sample"].astype(np.int64) * 1000, "timestamp_sample"
-    return d["timestamp"].astype(np.int64) * 1000, "timestamp"
+        return counts_to_ns(d["timestamp_sample"], 1000), "timestamp_sample"
+    return counts_to_ns(d["timestamp"], 1000), "timestamp"
 
 
 def _first_present(d: dict, *names: str) -> str | None:
@@ -362,8 +370,7 @@ def _imu_streams(topics, key: TopicKey, use_sample: bool, path: str, warns: list
         dt_a = np.asarray(d["delta_angle_dt"], float) * 1e-6
         dt_v = np.asarray(d["delta_velocity_dt"], float) * 1e-6
         ok_a, ok_v = dt_a > 0, dt_v > 0
-        t_end = d["timestamp_sample"].astype(np.int64) * 1000 if "timestamp_sample" in d else \
-            d["timestamp"].astype(np.int64) * 1000
+        t_end = counts_to_ns(d["timestamp_sample"] if "timestamp_sample" in d else d["timestamp"], 1000)
         # an average over [t_end - dt, t_end] belongs to the middle of the interval
         t_a = t_end - np.round(dt_a * 0.5e9).astype(np.int64)
         t_v = t_end - np.round(dt_v * 0.5e9).astype(np.int64)
@@ -449,23 +456,55 @@ def _pos_stream(d, key: TopicKey, use_sample: bool, warns: list[str]) -> Stream 
     return Stream(t_ns[ok], llh, f"{_fmt_key(key)}.ref+x/y/z")
 
 
-def _utc_offset_ns(topics, path: str) -> tuple[int, str, list[str]]:
-    """(UTC - boot) offset in ns from GPS messages, its source, and warnings."""
+def _utc_offset(topics) -> tuple[int | None, str, list[str], str]:
+    """(UTC - boot) offset in ns from GPS messages, its source, warnings, and the problem ("" when the log has
+    no GPS UTC time at all). The offset is the median over the fixes whose UTC time lies in 2001..2100 and
+    whose boot stamp is a possible one, kept to those agreeing with the majority (``consensus_offset``); a
+    topic whose fixes have no majority gives none (None, and the problem says why)."""
+    problems = []
     for name in GPS_TOPICS:
         for (n, inst), d in sorted(topics.items()):
             if n != name or "time_utc_usec" not in d:
                 continue
-            utc = d["time_utc_usec"].astype(np.int64)
-            ok = utc > _MIN_UTC_US
-            if not ok.any():
+            utc, ts = np.asarray(d["time_utc_usec"]), np.asarray(d["timestamp"])  # (uint64: compared as it is)
+            fix = utc > _MIN_UTC_US  # earlier: no fix yet (0), not a corrupt one
+            if not fix.any():
                 continue
-            diff = utc[ok] - d["timestamp"].astype(np.int64)[ok]
+            ok = fix & (utc <= _MAX_UTC_US) & (ts < _MAX_STAMP_US) & (ts >= 0)
+            label = f"{_fmt_key((n, inst))}.time_utc_usec"
+            n_bad = int(fix.sum() - ok.sum())
+            if not ok.any():
+                problems.append(f"{label}: all {n_bad} fixes hold an impossible UTC time or boot stamp")
+                continue
+            diff = utc[ok].astype(np.int64) - ts[ok].astype(np.int64)  # (both in range: no wrap)
+            agree, why = consensus_offset(diff, 1_000_000)
+            if why:
+                problems.append(f"{label}: {why}")
+                continue
+            if not agree.all():
+                diff = diff[agree]
+            n_bad += int((~agree).sum())
             off = int(np.median(diff))
             spread_ms = float(np.median(np.abs(diff - off))) * 1e-3
             warns = [f"GPS UTC offset spread {spread_ms:.1f} ms (median abs deviation)"] if spread_ms > 10 else []
-            return off * 1000, f"{_fmt_key((n, inst))}.time_utc_usec (median of {int(ok.sum())})", warns
-    raise InputError("clock=epoch needs GPS time (vehicle_gps_position/sensor_gps time_utc_usec); "
-                     "the log has none", path)
+            if n_bad:
+                warns.append(f"{label}: {n_bad} of {int(fix.sum())} GPS fixes ignored for the boot->UTC offset "
+                             "(an impossible UTC time or boot stamp, or inconsistent with the others: corrupt?)")
+            return off * 1000, f"{label} (median of {len(diff)})", warns, ""
+    return None, "", [], "; ".join(problems)
+
+
+def _utc_offset_ns(topics, path: str) -> tuple[int, str, list[str]]:
+    """(UTC - boot) offset in ns from GPS messages, its source, and warnings; InputError when the log gives
+    none (no GPS UTC time, or none to trust)."""
+    off, src, warns, problem = _utc_offset(topics)
+    if off is None:
+        if problem:
+            raise InputError(f"clock=epoch: the GPS UTC time gives no trustworthy boot->UTC offset ({problem})",
+                             path)
+        raise InputError("clock=epoch needs GPS time (vehicle_gps_position/sensor_gps time_utc_usec); "
+                         "the log has none", path)
+    return off, src, warns
 
 
 def _pick(topics, wanted: str | None, candidates: tuple[str, ...], path: str, what: str) -> TopicKey | None:
@@ -539,28 +578,24 @@ def load(path: str, selector: Selector, *, engine: str = "auto") -> InsLog:
         have = ", ".join(_fmt_key(k) for k in sorted(topics)) or "none of the known topics"
         raise InputError(f"no IMU, attitude, velocity or position topic in ULog (found: {have})", path)
     stamp = f"PX4 {imu_src if k_imu else ('timestamp_sample' if use_sample else 'timestamp')} (us since boot)"
-    utc = None
+    offset = None
     if clock in ("epoch", "auto"):
-        try:
-            utc = _utc_offset_ns(topics, path)
-        except InputError:
-            if clock == "epoch":
-                raise
-        clock = "epoch" if utc is not None else "boot"  # auto: UNIX time where the log's GPS gives it
-    if utc is not None:
-        off_ns, src, w = utc
-        warns.extend(w)
-
-        def shift(s):
-            return None if s is None else Stream(s.t_ns + off_ns, s.values, s.source)
-        gyro, acc, quat, vel, pos = map(shift, (gyro, acc, quat, vel, pos))
-        stamp += f" + boot->UTC offset from {src}"
+        if clock == "epoch":
+            off_ns, src, w = _utc_offset_ns(topics, path)
+        else:  # auto: UNIX time where the log's GPS gives it
+            off_ns, src, w, problem = _utc_offset(topics)
+            if problem:
+                warns.append(f"GPS UTC time gives no trustworthy boot->UTC offset ({problem}): kept on the boot "
+                             "clock")
+        if off_ns is not None:
+            warns.extend(w)
+            # added by build_inslog once the stamps are cleaned on the boot clock (stray stamps gone), checked
+            offset = ClockOffset(off_ns, f"{stamp} + boot->UTC offset from {src}", ",".join(chosen + ["clock=epoch"]))
     if not selector:
         warns.append(f"no selector given: picked {','.join(chosen)}")
-    sel_text = ",".join(chosen + ([f"clock={clock}"] if clock != "boot" else []))
-    return build_inslog(path=path, fmt=NAME, selector=sel_text,
-                        clock=clock, stamp_source=stamp, gyro=gyro, accel=acc, quat=quat, vel=vel, pos=pos,
-                        warnings=warns)
+    return build_inslog(path=path, fmt=NAME, selector=",".join(chosen),
+                        clock="boot", stamp_source=stamp, gyro=gyro, accel=acc, quat=quat, vel=vel, pos=pos,
+                        warnings=warns, offset=offset)
 
 
 def inventory(path: str) -> Inventory:
@@ -656,9 +691,19 @@ def _info_msg(key: str, value: str) -> bytes:
 
 def write(path: str, log: InsLog, *, boot_start_s: float = 10.0, global_position: bool = True,
           gps_rate_hz: float = 5.0) -> None:
-    """Write ``log`` as a minimal valid ULog: sensor_combined (IMU), vehicle_attitude (quaternion),
-    vehicle_local_position (velocity, and x/y/z with its global reference when the log has a
-    position), vehicle_global_position (when ``global_position``). Stamps are microseconds since boot;
+    """Write ``log`` as a minimal valid ULog (the topics of :func:`topics_of`)."""
+    topics = topics_of(log, boot_start_s=boot_start_s, global_position=global_position, gps_rate_hz=gps_rate_hz,
+                       path=path)
+    with atomic_path(path) as tmp:
+        encode(topics).tofile(tmp)
+
+
+def topics_of(log: InsLog, *, boot_start_s: float = 10.0, global_position: bool = True, gps_rate_hz: float = 5.0,
+              path: str = "") -> list["TopicRows"]:
+    """The topics :func:`write` writes for ``log`` (``encode`` makes the file's bytes): sensor_combined
+    (IMU), vehicle_attitude (quaternion), vehicle_local_position (velocity, and x/y/z with its global
+    reference when the log has a position), vehicle_global_position (when ``global_position``). Stamps are
+    microseconds since boot;
     a log on the epoch clock is written with boot time starting at ``boot_start_s`` and a
     vehicle_gps_position topic (``gps_rate_hz``) whose ``time_utc_usec`` restores the epoch clock
     (``clock=epoch``). Precision: float32 for IMU/attitude/velocity, float64 lat/lon, 1 us stamps."""
@@ -739,9 +784,7 @@ def write(path: str, log: InsLog, *, boot_start_s: float = 10.0, global_position
         raise InputError("nothing to write (no IMU, attitude, velocity or position)", path)
     if not all(np.all(np.diff(t.rows["timestamp"].astype(np.int64)) >= 0) for t in topics):
         raise InputError("stamps go backwards: cannot write a ULog", path)
-
-    with atomic_path(path) as tmp:
-        encode(topics).tofile(tmp)
+    return topics
 
 
 @dataclass(frozen=True)

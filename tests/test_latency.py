@@ -739,6 +739,38 @@ def test_a_latency_beyond_max_lag_is_not_a_confident_wrong_number(scenario, late
     assert "search_widened" not in estimate(ok.master, ok.slave, compare=False).quality
 
 
+def test_a_physically_impossible_latency_is_an_analysis_error():
+    """The final plausibility bound: a latency no two clocks can differ by (a damaged ULog's stamps wrapped
+    int64 and --max-lag auto reported -2**64 ns = -1.8e10 s with exit 0), a NaN, or one outside the lags at
+    which the two logs overlap at all is an AnalysisError (one line), not a result."""
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    from logtools.latency.estimator import check_plausible
+
+    def unit(t0, t1):
+        return SimpleNamespace(itp=SimpleNamespace(t_first_s=t0, t_last_s=t1))
+
+    ctx = SimpleNamespace(cfg=LatencyConfig(), master=unit(0.0, 100.0), slave=unit(-1.5, 101.5))
+    check_plausible(0.06, ctx)
+    check_plausible(-101.0, ctx)  # the slave's last second meets the master's first
+    for bad, why in ((-2.0**64 * 1e-9, "physically impossible"), (float("nan"), "physically impossible"),
+                     (102.0, "outside the lags"), (-102.0, "outside the lags")):
+        with pytest.raises(AnalysisError, match=why) as exc:
+            check_plausible(bad, ctx)
+        assert "\n" not in str(exc.value)
+    # in estimate(): a whole-overlap search between clocks 1000 s apart, with the bound (a config field) at 500 s
+    rng = np.random.default_rng(11)
+    master, slave = make_pair(rng, latency_s=0.0421, dur_s=40.0, slave_t0_ns=T0_NS + 1000 * 10**9)
+    slave = slave.rebased(slave.meta.t0_ns)
+    slave = InsLog(slave.imu.set_axis(slave.imu.index - 1000.0, axis=0), slave.nav, slave.meta)
+    cfg = LatencyConfig()
+    assert abs(estimate(master, slave, max_lag_s=None, compare=False, config=cfg).latency_s - (0.0421 - 1000.0)) < 1e-3
+    low = replace(cfg, search=replace(cfg.search, max_latency_s=500.0))
+    with pytest.raises(AnalysisError, match="physically impossible"):
+        estimate(master, slave, max_lag_s=None, compare=False, config=low)
+
+
 def test_short_log_gets_its_drift_fitted_and_checked():
     """A 30 s pair drifting 90 ppm: with one or two drift windows no drift was fitted and the latency quoted
     at the middle was that of the motion's centroid (48 short runs: RMS 1.6 ms, worst 9.1 ms). Logs of

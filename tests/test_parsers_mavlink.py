@@ -595,6 +595,75 @@ def test_simulated_slave_round_trip(tmp_path, fmt):
     assert quat_err(q, q_ref) < 1e-7
 
 
+# ---- DataFlash: corrupt time fields (a damaged log) keep the stamps sane, the clock honest -------------
+def _patch_df(path: Path, name: str, field: str, values: dict[int, int]) -> None:
+    """Overwrite ``field`` of the ``name`` records numbered in ``values`` (record index -> raw value)."""
+    dl = D.read_log(str(path))
+    f = dl.by_name[name]
+    ftype, at = f.dtype.fields[field][:2]
+    offs = dl.offsets[f.type]
+    data = bytearray(path.read_bytes())
+    for i, v in values.items():
+        p = int(offs[i]) + 3 + at
+        data[p:p + ftype.itemsize] = np.array(v).astype(ftype).tobytes()  # (wraps as a flipped byte would)
+    path.write_bytes(bytes(data))
+
+
+@pytest.fixture(scope="module")
+def sim_pair():
+    sim = pytest.importorskip("logtools.sim")
+    return sim.simulate(sim.scenario_config("aircraft", duration_s=30.0))
+
+
+def test_dataflash_corrupt_stamps_and_gps_times_keep_the_log_on_its_true_span(tmp_path, sim_pair):
+    """A damaged DataFlash log: IMU/NKQ1 TimeUS with corrupt high bytes (9e15 us fits int64 ns but
+    overflowed once the GPS boot->UNIX offset was added before the stray stamps were dropped: a master at
+    -1.7e10 s in the fuzzer's case 0228), GPS fixes with an impossible week, ms of week or boot stamp, or a
+    week inconsistent with the others. The bad samples and fixes go, the log stays on UNIX time within its
+    true span, and the latency comes out right."""
+    from logtools.latency import estimate
+
+    slave = sim_pair.slave
+    path = tmp_path / "damaged.bin"
+    D.write(str(path), slave)
+    ref = D.load(str(path), Selector())  # undamaged (the writer's GPS ms put it 0.26 ms off the simulation)
+    n = len(slave.imu)
+    _patch_df(path, "IMU", "TimeUS", {n // 3: 9_000_000_000_000_000, n // 2: 2**64 - 5000})
+    _patch_df(path, "NKQ1", "TimeUS", {700: 9_100_000_000_000_000})
+    _patch_df(path, "GPS", "GWk", {5: 65535, 12: 2400})
+    _patch_df(path, "GPS", "GMS", {9: 4_000_000_000})
+    _patch_df(path, "GPS", "TimeUS", {15: 2**64 - 1})
+    back = D.load(str(path), Selector())
+    assert back.meta.clock == "epoch" and back.meta.selector.endswith("time=gps")
+    assert back.meta.t0_ns == ref.meta.t0_ns  # the undamaged log's first sample and clock
+    assert back.span_s() == ref.span_s()
+    assert len(back.imu) == n - 2
+    warns = " ".join(back.meta.warnings)
+    assert "impossible stamps dropped" in warns and "GPS: 4 of" in warns
+    res = estimate(sim_pair.master, back, compare=False)
+    assert res.latency_s == pytest.approx(sim_pair.truth.latency_s, abs=0.5e-3)
+
+
+@pytest.mark.parametrize("how", ["week_65535", "disagree"])
+def test_dataflash_gps_time_without_a_trustworthy_offset_stays_on_the_boot_clock(tmp_path, how):
+    """GPS week/ms that give no offset to trust (every week 65535: int64 overflow in the GPS -> UNIX
+    conversion; or no majority agreeing): boot clock with a warning naming the problem, not garbage."""
+    log = make_log(duration_s=4.0)
+    path = tmp_path / f"{how}.bin"
+    D.write(str(path), log)
+    n_gps = len(D.read_log(str(path)).records("GPS"))
+    rng = np.random.default_rng(3)
+    weeks = np.full(n_gps, 65535) if how == "week_65535" else rng.integers(1, 6000, n_gps)
+    _patch_df(path, "GPS", "GWk", dict(enumerate(weeks.tolist())))
+    back = D.load(str(path), Selector())
+    assert back.meta.clock == "boot" and back.meta.selector.endswith("time=boot")
+    assert any("no trustworthy boot->UNIX offset" in w and "kept on the boot clock" in w for w in back.meta.warnings)
+    assert back.duration_s == pytest.approx(log.duration_s, abs=0.01)
+    assert 9.0 < back.meta.t0_ns * 1e-9 < 11.0  # boot time: the writer's boot 0 is 10 s before the log
+    inv = D.inventory(str(path))
+    assert any("no trustworthy offset" in x for x in inv.notes)
+
+
 # ---- the reader's windowed scan: the same frames as one walk of the whole file -------------------------
 @pytest.mark.parametrize("window", [997, 4096, 1 << 20])
 @pytest.mark.parametrize("engine", ["auto", "numpy"])

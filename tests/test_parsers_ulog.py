@@ -328,3 +328,75 @@ def test_gyro_only_log_round_trips_without_accel(tmp_path):
     back = ulog.load(str(p), Selector())
     assert back.has_gyro and not back.has_accel
     assert any("invalid relative stamp" in w for w in back.meta.warnings)
+
+
+# ---- corrupt time fields (a damaged log): stamps stay sane, the clock honest --------------------------
+@pytest.fixture(scope="module")
+def sim_pair():
+    sim = pytest.importorskip("logtools.sim")
+    return sim.simulate(sim.scenario_config("aircraft", duration_s=30.0))
+
+
+def _topics(log: InsLog) -> dict:
+    return {t.name: t for t in ulog.topics_of(log)}
+
+
+def test_corrupt_stamps_and_gps_times_keep_the_log_on_its_true_span(tmp_path, sim_pair):
+    """A damaged ULog (the fuzzer's 100 flipped bytes): IMU and attitude stamps with corrupt high bytes, GPS
+    fixes with an impossible or inconsistent UTC time or boot stamp. One IMU stamp of 9e15 us fits int64 ns
+    but overflowed once the boot->UTC offset was added before the stray stamps were dropped (slave t0
+    -8.1e18 ns, and --max-lag auto reported a latency of -2**64 ns); one of 2**64 - 5000 us read as 5 ms
+    before boot, 10 s before the log. The bad samples and fixes go, the log stays on UNIX time within its
+    true span, and the latency comes out right."""
+    from logtools.latency import estimate
+
+    slave = sim_pair.slave
+    top = _topics(slave)
+    sc = top["sensor_combined"].rows
+    n = len(sc)
+    sc["timestamp"][n // 3] = 9_000_000_000_000_000
+    sc["timestamp"][n // 2] = 2**64 - 5000
+    sc["timestamp"][2 * n // 3] |= np.uint64(1 << 63)
+    att = top["vehicle_attitude"].rows
+    att["timestamp"][len(att) // 2] = 9_100_000_000_000_000
+    gps = top["vehicle_gps_position"].rows
+    gps["time_utc_usec"][5] = 1 << 62  # year 146 000
+    gps["time_utc_usec"][9] = 1_900_000_000_000_000  # 2030: plausible alone, not with the others
+    gps["timestamp"][12] = 2**64 - 1
+    p = tmp_path / "damaged.ulg"
+    ulog.encode(list(top.values())).tofile(p)
+    back = ulog.load(str(p), Selector())
+    assert back.meta.clock == "epoch" and "time_utc_usec" in back.meta.stamp_source
+    assert abs(back.meta.t0_ns - slave.meta.t0_ns) <= 1000  # its first sample, to the microsecond
+    a, b = back.span_s()
+    assert a == 0.0 and b == pytest.approx(slave.span_s()[1], abs=1e-5)
+    assert len(back.imu) == n - 3
+    warns = " ".join(back.meta.warnings)
+    assert "impossible stamps dropped" in warns and "3 of" in warns and "GPS fixes ignored" in warns
+    res = estimate(sim_pair.master, back, compare=False)
+    assert res.latency_s == pytest.approx(sim_pair.truth.latency_s, abs=0.5e-3)
+
+
+@pytest.mark.parametrize("how", ["beyond_2100", "disagree"])
+def test_gps_time_without_a_trustworthy_offset_stays_on_the_boot_clock(tmp_path, how):
+    """GPS UTC times that give no offset to trust (all past 2100, or no majority agreeing): the log stays on
+    its boot clock with a warning naming the problem, not on a garbage (or int64-wrapped) epoch clock;
+    clock=epoch asked for is a one-line InputError."""
+    log = make_log(duration_s=5.0)
+    top = _topics(log)
+    gps = top["vehicle_gps_position"].rows
+    if how == "beyond_2100":
+        gps["time_utc_usec"] = np.uint64(8_000_000_000_000_000_000) + gps["time_utc_usec"]
+    else:
+        rng = np.random.default_rng(5)
+        gps["time_utc_usec"] = rng.integers(1_000_000_000_000_001, 4_000_000_000_000_000, len(gps))
+    p = tmp_path / f"{how}.ulg"
+    ulog.encode(list(top.values())).tofile(p)
+    back = ulog.load(str(p), Selector())
+    assert back.meta.clock == "boot" and back.meta.t0_ns == 10_000_000_000  # written with boot time from 10 s
+    assert "clock=epoch" not in back.meta.selector and "UTC" not in back.meta.stamp_source
+    assert any("no trustworthy boot->UTC offset" in w and "kept on the boot clock" in w for w in back.meta.warnings)
+    _compare(log, back)
+    with pytest.raises(InputError, match="no trustworthy") as exc:
+        ulog.load(str(p), Selector.parse("clock=epoch"))
+    assert "\n" not in str(exc.value) and str(p) in str(exc.value)

@@ -74,6 +74,10 @@ class SearchConfig:
     #: the best lag leaves more than this fraction of the variance unexplained: no match (real pairs 1e-4 to 0.065,
     #: logs of different vehicles 0.91) -- test_latency
     no_match_cost: float = 0.5
+    #: a latency (slave stamp - master stamp of one instant) beyond this magnitude is no clock offset at all: a log's
+    #: clock reads UNIX time up to 2100 (4.1e9 s) or time since boot, so no two differ by more. Beyond it a time
+    #: field was corrupt (int64 ns stamps wrapped: -2**64 ns = -1.8e10 s came out of --max-lag auto) -- test_latency
+    max_latency_s: float = 4.2e9
 
 
 @dataclass(frozen=True)

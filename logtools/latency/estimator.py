@@ -226,6 +226,21 @@ def widened(res: LatencyResult, ctx: Ctx) -> LatencyResult:
     return replace(res, quality=q)
 
 
+def check_plausible(latency_s: float, ctx: Ctx) -> None:
+    """AnalysisError (one line) for a latency no pair of logs can have: not finite, beyond
+    ``search.max_latency_s`` (no two clocks differ by more), or outside the lags at which the two logs overlap
+    at all (the slave's span shifted back by it misses the master's: the estimate rests on no common data)."""
+    lim = ctx.cfg.search.max_latency_s
+    if not np.isfinite(latency_s) or abs(latency_s) > lim:
+        raise AnalysisError(f"estimated latency {latency_s:+.6g} s is physically impossible (beyond +-{lim:g} s, "
+                            "more than any two clocks differ): a corrupt time field in either log?")
+    m, s = ctx.master.itp, ctx.slave.itp
+    lo, hi = s.t_first_s - m.t_last_s, s.t_last_s - m.t_first_s  # the slave at t + L meets the master for L in these
+    if not lo < latency_s < hi:
+        raise AnalysisError(f"estimated latency {latency_s:+.6g} s lies outside the lags at which the two logs "
+                            f"overlap at all ({lo:+.6g} .. {hi:+.6g} s): no common data supports it")
+
+
 def estimate(master: InsLog, slave: InsLog, *, method: str = "tapost", max_lag_s: float | None = 2.0,
              compare: bool = True, progress: Progress = None, accelerometers: bool = True,
              velocity: bool = True, config: LatencyConfig = DEFAULT) -> LatencyResult:
@@ -294,5 +309,6 @@ def estimate(master: InsLog, slave: InsLog, *, method: str = "tapost", max_lag_s
                              window_s=(ctx.t0_abs_s + float(g.t_s[0]), ctx.t0_abs_s + float(g.t_s[-1])),
                              quality={"note": me.note, "warnings": list(ctx.warnings)},
                              t_mid_rel_s=float(0.5 * (g.t_s[0] + g.t_s[-1])))
+    check_plausible(head.latency_s, ctx)
     prog(1.0, "done")
     return replace(head, methods={k: methods[k] for k in METHODS if k in methods})
