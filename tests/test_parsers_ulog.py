@@ -245,6 +245,22 @@ def test_truncated_file_uses_readable_part_and_warns(tmp_path, written):
     np.testing.assert_allclose(back.gyro_rad_s(), log.gyro_rad_s()[:n], rtol=1e-6, atol=1e-7)
 
 
+def test_zero_filled_tail_is_read_fast_and_named(tmp_path, written):
+    """A preallocated log (or one cut by a power loss) ends in zero bytes: every message before them is read
+    by the fast path, the same as the file without them, and the tail is named; no byte-wise resync."""
+    log, path = written
+    data = path.read_bytes()
+    padded = tmp_path / "zero_tail.ulg"
+    padded.write_bytes(data + bytes(1 << 20))
+    fast = ulog.read_topics(str(padded), None)
+    assert fast.engine == "fast"
+    assert any("zero-filled tail" in w and str(1 << 20) in w for w in fast.warnings)
+    _same_topics(fast, ulog.read_topics(str(path), None))
+    back = registry.load(str(padded))
+    assert any("zero-filled tail" in w for w in back.meta.warnings)
+    _compare(log, back)
+
+
 def test_flipped_header_byte_is_reported_and_rest_read(tmp_path, written):
     log, path = written
     buf = np.fromfile(path, np.uint8)
