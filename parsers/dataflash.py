@@ -110,13 +110,29 @@ def _cstr(b: bytes) -> str:
     return b.split(b"\0", 1)[0].decode("ascii", "replace").strip()
 
 
+#: bytes searched at a time for a record header: bounds the search's temporaries (a whole-file expression made
+#: five file-sized arrays: 2.5 GB for a 500 MB log)
+_SEARCH_BLOCK = 1 << 24
+
+
+def _find_header(buf: np.ndarray, typ: int) -> np.ndarray:
+    """Offsets of every ``HEAD1 HEAD2 typ`` byte triple in ``buf``, block by block (one pass of a compare over
+    each block, the other two bytes checked at its hits only)."""
+    n = len(buf)
+    out = [np.zeros(0, np.int64)]
+    for a in range(0, max(n - 2, 0), _SEARCH_BLOCK):
+        hit = np.flatnonzero(buf[a:min(a + _SEARCH_BLOCK, n - 2)] == HEAD1) + a
+        out.append(hit[(buf[hit + 1] == HEAD2) & (buf[hit + 2] == typ)])
+    return np.concatenate(out)
+
+
 def find_formats(buf: np.ndarray) -> tuple[dict[int, DfFormat], int]:
     """Every valid FMT record anywhere in the file (newer logs write FMTs lazily, mid-log).
     Returns (formats by type, number of rejected FMT-looking candidates)."""
     n = len(buf)
     if n < FMT_LEN:
         return {}, 0
-    cand = np.flatnonzero((buf[:-2] == HEAD1) & (buf[1:-1] == HEAD2) & (buf[2:] == FMT_TYPE))
+    cand = _find_header(buf, FMT_TYPE)
     cand = cand[cand + FMT_LEN <= n]
     fmts: dict[int, DfFormat] = {}
     rejected = 0

@@ -716,3 +716,15 @@ def test_windowed_walk_python_equals_compiled(tmp_path):
             break
     np.testing.assert_array_equal(np.asarray(starts, np.int64), whole[0])
     assert (skipped, resyncs, len(buf) - i) == tuple(whole[1:])
+
+
+@pytest.mark.parametrize("block", [1, 3, 7, 4096])
+def test_fmt_search_by_blocks_finds_every_header_a_whole_file_search_finds(tmp_path, monkeypatch, block):
+    log = make_log(duration_s=2.0)
+    path = tmp_path / "unit.bin"
+    registry.write(str(path), log, "dataflash")
+    buf = np.frombuffer(path.read_bytes() + b"\xa3\x95\x80", np.uint8)  # one more header, at the very end
+    whole = np.flatnonzero((buf[:-2] == D.HEAD1) & (buf[1:-1] == D.HEAD2) & (buf[2:] == D.FMT_TYPE))
+    monkeypatch.setattr(D, "_SEARCH_BLOCK", block)
+    np.testing.assert_array_equal(D._find_header(buf, D.FMT_TYPE), whole)
+    assert len(whole) > 5 and whole[-1] == len(buf) - 3
