@@ -7,6 +7,7 @@ seconds or seconds since boot, written and read with full nanosecond precision (
 from __future__ import annotations
 
 import io
+import os
 
 import numpy as np
 import pandas as pd
@@ -16,7 +17,7 @@ from logtools.inslog import ACCEL, GYRO, POS, QUAT, VEL, ChannelInfo, InsLog, Lo
 from parsers.assemble import drop_stray, implausible
 from parsers.atomic import atomic_path
 from parsers.base import Inventory, Selector, StreamInfo, rate_of, stamp_grid_s
-from parsers.csvtable import decimal_text_to_int, read_table
+from parsers.csvtable import decimal_text_to_int, non_numeric_text, numeric_block, read_table
 
 NAME = "csv"
 EXTENSIONS = (".csv",)
@@ -114,14 +115,19 @@ def load(path: str, selector: Selector) -> InsLog:
 
     def block(g: str) -> np.ndarray:
         """Group ``g``'s columns as floats; a row with impossible values (corrupt) has the group missing."""
-        x = df[list(present[g])].apply(pd.to_numeric, errors="coerce").to_numpy(dtype=float, copy=True)
+        x, _, text = numeric_block(df, present[g])
+        non_numeric.update(text)
         bad = implausible(g, x)
         if bad.any():
             warnings.append(f"{g}: {int(bad.sum())} rows with impossible values ignored (corrupt data?)")
             x[bad] = np.nan
         return x
 
+    non_numeric: dict[str, int] = {}
     blocks = {g: block(g) for g in present}
+    if non_numeric:
+        warnings.append(f"{os.path.basename(path)}: {non_numeric_text(non_numeric)} read as missing values "
+                        "(damaged file?)")
 
     def resolution(mask: np.ndarray) -> float:
         """The stamps' step: the fixed number of decimals they are written with, or the grid they show."""

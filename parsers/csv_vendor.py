@@ -51,7 +51,8 @@ from logtools.inslog import InsLog
 from parsers import csv_canonical
 from parsers.assemble import Stream, build_inslog
 from parsers.base import Inventory, Selector, StreamInfo
-from parsers.csvtable import decimal_text_to_int, delimiter as _delimiter, read_table as _read_table
+from parsers.csvtable import decimal_text_to_int, delimiter as _delimiter, non_numeric_text, numeric_block, printable
+from parsers.csvtable import read_table as _read_table
 
 NAME = "csv-vendor"
 EXTENSIONS = (".csv", ".txt")
@@ -361,7 +362,7 @@ def column_map_for(src: _Source, selector: Selector) -> ColumnMap:
         missing = [c for c in cmap.columns if c not in columns]
         if missing:
             raise InputError(f"column map names column(s) not in the CSV: {', '.join(missing[:4])} "
-                             f"(CSV has: {', '.join(columns[:12])})", src.table)
+                             f"(CSV has: {', '.join(printable(c) for c in columns[:12])})", src.table)
         return cmap
     ng = _ngimu_map(columns)
     if ng is not None:
@@ -369,13 +370,16 @@ def column_map_for(src: _Source, selector: Selector) -> ColumnMap:
     try:
         return map_from_header(columns)
     except MapError as why:
-        shown = ", ".join(repr(c) for c in columns[:10]) + (", ..." if len(columns) > 10 else "")
+        shown = ", ".join(repr(printable(c)) for c in columns[:10]) + (", ..." if len(columns) > 10 else "")
         raise InputError(
-            f"cannot map CSV columns unambiguously ({why}); columns found: {shown}; write a column map "
+            f"cannot map CSV columns unambiguously ({printable(why, 200)}); columns found: {shown}; write a column map "
             f"JSON {{column: [canonical_name, unit]}} (names: time, gyro_x.., accel_x.., quat_w.., vel_n.., "
             f"lat, lon, alt) and pass PATH::map=FILE.json or save it as "
             f"{os.path.basename(src.table)}.map.json", src.table) from None
 
+
+#: a value beyond this magnitude in a data column is no reading (damaged digits: ``1e300``, ``inf``)
+_ABSURD = 1e300
 
 _SCALE_POW10 = {"s": 9, "sec": 9, "ms": 6, "us": 3, "ns": 0}
 
@@ -437,6 +441,7 @@ def _streams_from_table(path: str, cmap: ColumnMap, groups_wanted: tuple[str, ..
     groups: dict[str, np.ndarray] = {}
     masks: dict[str, np.ndarray] = {}
     damaged = ~ok_t
+    non_numeric: dict[str, int] = {}
     for g in groups_wanted:
         cols = [cmap.column_for(n) for n in GROUPS[g]]
         if any(c is None for c in cols):
@@ -444,12 +449,13 @@ def _streams_from_table(path: str, cmap: ColumnMap, groups_wanted: tuple[str, ..
         missing = [c for c in cols if c not in df.columns]
         if missing:
             raise InputError(f"no column(s) {', '.join(missing)} in CSV", path)
-        parts = []
-        for c in cols:
-            num = pd.to_numeric(df[c], errors="coerce")
-            damaged |= (df[c].notna() & num.isna()).to_numpy()  # text where a number belongs
-            parts.append(num.to_numpy(float) * UNITS[cmap.columns[c][1]][1])
-        vals = np.stack(parts, axis=1)
+        vals, text_rows, text = numeric_block(df, cols)
+        # inf and absurd magnitudes (damaged digits) are missing values like text: not scaled into overflows
+        # nor rotated into inf - inf in the frame conversion (their rows are dropped below in any case)
+        vals[~(np.abs(vals) <= _ABSURD)] = np.nan
+        vals *= np.array([UNITS[cmap.columns[c][1]][1] for c in cols])
+        damaged |= text_rows  # text where a number belongs
+        non_numeric.update(text)
         fin = np.isfinite(vals)
         damaged |= fin.any(axis=1) & ~fin.all(axis=1)  # a group cut short
         groups[g] = vals
@@ -459,7 +465,7 @@ def _streams_from_table(path: str, cmap: ColumnMap, groups_wanted: tuple[str, ..
     n_bad = int(damaged.sum())
     if n_bad:
         warns.append(f"{os.path.basename(path)}: {n_bad} row(s) with unparseable or missing values dropped "
-                     f"(damaged or truncated file?)")
+                     f"(damaged or truncated file?)" + (f"; {non_numeric_text(non_numeric)}" if non_numeric else ""))
     groups = _convert_frames(cmap, groups)
     # stamps written with a fixed number of decimals are that coarse (the grid the data shows is found
     # later, parsers.assemble)
@@ -491,8 +497,8 @@ def load(path: str, selector: Selector) -> InsLog:
         try:
             qmap = map_from_header(qcols, quat_file=True)
         except MapError as why:
-            raise InputError(f"quaternion file not understood ({why}); columns: {', '.join(qcols[:6])}",
-                             src.quat_table) from None
+            raise InputError(f"quaternion file not understood ({printable(why, 200)}); columns: "
+                             f"{', '.join(printable(c) for c in qcols[:6])}", src.quat_table) from None
         qmap = ColumnMap(qmap.columns, cmap.body_frame, cmap.nav_frame, cmap.quat, cmap.origin, cmap.frame_stated)
         streams.update(_streams_from_table(src.quat_table, qmap, ("quat",), warns))
         stamp += f"; attitude: {_time_note(qmap, src.quat_table)}"

@@ -4,6 +4,7 @@ numba imported lazily and cached on disk)."""
 from __future__ import annotations
 
 import os
+import unicodedata
 import warnings as _warnings
 
 import numpy as np
@@ -122,6 +123,35 @@ def _fixed_decimals(raw: np.ndarray) -> int | None:
     pos = np.where(dot.any(axis=1), np.argmax(dot, axis=1), last)
     dec = last - pos
     return int(dec[0]) if np.all(dec == dec[0]) else None
+
+
+def numeric_block(df: pd.DataFrame, cols) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
+    """Columns ``cols`` of ``df`` as float64 (n, len(cols)), a cell holding text that is not a number
+    (damaged bytes) read as NaN; also the rows holding such a cell and how many such cells each column has
+    (only the columns that have any, for :func:`non_numeric_text`)."""
+    parts, rows, counts = [], np.zeros(len(df), bool), {}
+    for c in cols:
+        num = pd.to_numeric(df[c], errors="coerce")
+        text = (df[c].notna() & num.isna()).to_numpy()
+        if text.any():
+            counts[str(c)] = int(text.sum())
+            rows |= text
+        parts.append(num.to_numpy(float))
+    return (np.stack(parts, axis=1) if parts else np.zeros((len(df), 0))), rows, counts
+
+
+def non_numeric_text(counts: dict[str, int]) -> str:
+    """``numeric_block``'s per-column counts in words: ``3 non-numeric cell(s) (accel_x_m_s2 2, qw 1)``."""
+    return (f"{sum(counts.values())} non-numeric cell(s) ("
+            + ", ".join(f"{printable(c)} {n}" for c, n in counts.items()) + ")")
+
+
+def printable(text: str, limit: int = 40) -> str:
+    """``text`` (a column name from a damaged file, say) on one line of printable characters: anything else
+    shown as ``?``, long text cut with ``...``."""
+    s = "".join(ch if ch.isprintable() and (ch.isascii() or not unicodedata.combining(ch)) else "?"
+                for ch in str(text).replace("\ufffd", "?"))
+    return s if len(s) <= limit else s[:limit] + "..."
 
 
 def delimiter(header: str) -> str:

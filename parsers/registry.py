@@ -47,9 +47,16 @@ def parse_log_arg(arg: str) -> tuple[str, Selector]:
     """``PATH[::SELECTOR]`` -> (path, Selector)."""
     path, sep, sel = arg.partition("::")
     try:
-        return path, Selector.parse(sel) if sep else Selector()
+        selector = Selector.parse(sel) if sep else Selector()
     except ValueError as exc:
         raise InputError(f"bad selector: {exc}", path) from None
+    seen: dict[str, str] = {}
+    for k, v in selector.items:  # (a later one would be ignored or win, depending on the reader: neither is said)
+        if k in seen:
+            raise InputError(f"bad selector: key {k!r} given twice ({k}={seen[k]} and {k}={v}); give each key once",
+                             path)
+        seen[k] = v
+    return path, selector
 
 
 def detect(path: str) -> ModuleType:

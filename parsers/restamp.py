@@ -37,7 +37,13 @@ class ClockShift:
         t = np.asarray(t_ns, dtype=np.int64)
         d = self.drift_ppm * 1e-6
         dt_s = (t - np.int64(self.t_ref_ns)).astype(np.float64) * 1e-9  # exact difference first
-        return np.rint((self.latency_s + d * dt_s) / (1.0 + d) * 1e9).astype(np.int64)
+        s = (self.latency_s + d * dt_s) / (1.0 + d) * 1e9
+        if not np.all(np.abs(s) < _INT64_NS):  # (NaN fails too) no clock offset: stamps cannot hold it
+            a = np.atleast_1d(s)
+            worst = float(a[~(np.abs(a) < _INT64_NS)][0]) * 1e-9
+            raise ValueError(f"a shift of {worst:.6g} s (latency {self.latency_s:.6g} s, drift {self.drift_ppm:.6g} "
+                             "ppm) is beyond what int64 nanosecond stamps hold: not a usable clock offset")
+        return np.rint(s).astype(np.int64)
 
     def to_master_ns(self, t_ns: np.ndarray) -> np.ndarray:
         t = np.asarray(t_ns, dtype=np.int64)
@@ -79,6 +85,9 @@ class ClockShift:
                              f"(finite, within +-{MAX_REPORT_DRIFT_PPM:g} ppm)")
         return cls(latency, drift, t_ref)
 
+
+#: shifts (ns) at or beyond this do not fit int64 stamps (2**63 rounded down to a float that is exact)
+_INT64_NS = 9.2e18
 
 #: the largest latency and drift a report may hand to ``tapost restamp``: a day, and 1 % (clocks that
 #: disagree by more are unrelated or the report is damaged)

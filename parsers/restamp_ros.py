@@ -189,6 +189,7 @@ def _apply(streams: list[_Stream], msgs: _Msgs, typestore, shift: ClockShift, se
         stamp[idx] = le_v[:, 0] * 1_000_000_000 + le_v[:, 1]
         first[k] = (idx, be)
     log = msgs.log_ns
+    wild = np.zeros(n, bool)  # a header stamp far from its record's time: a damaged stamp, written unchanged
     if mode == "log":
         t_an = log.copy()
     else:
@@ -199,16 +200,31 @@ def _apply(streams: list[_Stream], msgs: _Msgs, typestore, shift: ClockShift, se
         for idx, _be in first.values():
             h = idx[stamp[idx] != 0]
             if len(h) and abs(int(np.median(stamp[h] - log[h])) - ref) < _SAME_CLOCK_NS:
+                # (as the reader's stray-stamp policy, parsers.assemble: a stamp a day away from where its
+                # record puts it is a damaged field, not an instant: the record's time gives its shift)
+                far = np.abs(stamp[h].astype(float) - log[h].astype(float) - ref) > _FAR_NS
+                if far.any():
+                    wild[h[far]] = True
+                    h = h[~far]
                 t_an[h] = stamp[h]
     delta = shift.shift_ns(t_an)
     new_log = log - delta
     if n and int(new_log.min()) < 0:
-        raise InputError("the shift would make record times negative (latency larger than the stamps)", path)
+        i = int(np.argmin(new_log))
+        raise InputError(f"{streams[int(msgs.conn[i])].topic}: message {i} (record time {int(log[i]) * 1e-9:.3f} s) "
+                         f"would get a negative record time from a {int(delta[i]) * 1e-9:.6g} s shift "
+                         "(a damaged record time, or a latency larger than the stamps)", path)
+    if wild.any():
+        notes.append(f"{int(wild.sum())} header stamp(s) more than a day from their record times (damaged?): "
+                     "written unchanged, their records shifted by their record times")
     for k, (idx, be) in first.items():
         st = stamp[idx]
-        new = np.where(st != 0, st - delta[idx], 0)
+        new = np.where((st == 0) | wild[idx], st, st - delta[idx])
         if int(new.min()) < 0:
-            raise InputError(f"{streams[k].topic}: the shift would make header stamps negative", path)
+            j = int(np.argmin(new))
+            raise InputError(f"{streams[k].topic}: the shift would make header stamps negative (message "
+                             f"{int(idx[j])}: header stamp {int(st[j]) * 1e-9:.3f} s, shift "
+                             f"{int(delta[idx[j]]) * 1e-9:.6g} s)", path)
         sn = np.stack([new // 1_000_000_000, new % 1_000_000_000], axis=1)
         vals = sn.astype("<u4").view(np.uint8).reshape(-1, 8)
         if be.any():
@@ -284,6 +300,8 @@ class _Scan1(rosbag1._Scan):
         super().__init__(lambda topic, msgtype: True)
         self.fields: dict[int, dict[str, bytes]] = {}
         self.compression: str | None = None
+        self.index_pos: int | None = None  # the bag header's (a cut bag's lies past ``size``)
+        self.size = 0
         #: the vectorised runs' messages, not copied one by one: (container bytes, conn ids, times,
         #: payload starts, lengths); the record-by-record path still fills ``times``/``data``
         self.blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
@@ -372,16 +390,18 @@ def _scan_rosbag1(path: str) -> _Scan1:
             floor = off = at
             continue
         try:
-            if op == bytes([rosbag1._OP_CHUNK]):
+            if op == bytes([rosbag1._OP_BAGHEADER]):
+                (scan.index_pos,) = struct.unpack_from("<Q", header.get("index_pos", b"\0" * 8), 0)
+            elif op == bytes([rosbag1._OP_CHUNK]):
                 scan.chunk(header, buf, off + 8 + hlen, nxt, off)
             elif op in (bytes([rosbag1._OP_CONN]), bytes([rosbag1._OP_MSG])):
                 scan.records(buf, off, nxt, "top level")
-            elif op not in (bytes([rosbag1._OP_BAGHEADER]), bytes([rosbag1._OP_INDEX]),
-                            bytes([rosbag1._OP_CHUNKINFO])):
+            elif op not in (bytes([rosbag1._OP_INDEX]), bytes([rosbag1._OP_CHUNKINFO])):
                 raise rosbag1._Damage(f"unknown record op {op!r} at byte {off}")
         except (rosbag1._Damage, struct.error, KeyError, ValueError) as exc:
             scan.warnings.append(f"damaged: {exc}; its other messages are not in the output")
         good = off = nxt  # (its framing read: a later resynchronisation starts after it)
+    scan.size = end
     return scan
 
 
@@ -402,10 +422,15 @@ def restamp_rosbag1(src: str, dst: str, shift: ClockShift, *, selector: str | No
     if far.any():
         msgs = msgs.take(~far)
     msgs = msgs.take(np.argsort(msgs.log_ns, kind="stable"))  # the bag's time order
+    span = float(msgs.log_ns[-1] - msgs.log_ns[0]) * 1e-9 if len(msgs.log_ns) else None
     new_log, msgs, notes = _apply(streams, msgs, typestore, shift, selector, src)
     if far.any():
         notes.append(f"{int(far.sum())} message(s) with a damaged record time (more than a day from the others') "
                      "not in the output")
+    if not any("truncated" in w for w in scan.warnings):
+        cut = rosbag1.index_past_end(scan.index_pos, scan.size, span)
+        if cut:
+            notes.append(cut + "; the output holds the part up to the cut")
     comp = scan.compression or "none"
     # (a bag with the topic only in the connection record's header: kept in the record header)
     fields = [{"topic": scan.conns[c][0].encode(), **scan.fields[c]} for c in cids]
@@ -842,6 +867,7 @@ def restamp_rosbag2(src: str, dst: str, shift: ClockShift, *, selector: str | No
         if done is not None:
             return done
     conns = None
+    opened = None  # why rosbags' reader could not open the bag, where tapost's scan listed its connections
     if storage == "sqlite3" and len(files) == 1 and mode != "file":  # (rosbags' reader counts every row first,
         from parsers import restamp_sqlite  # which a damaged page stops)
 
@@ -851,10 +877,18 @@ def restamp_rosbag2(src: str, dst: str, shift: ClockShift, *, selector: str | No
             with Reader(bagdir) as rd:
                 conns = list(rd.connections)
     except Exception as exc:
-        raise InputError(f"ROS 2 bag unreadable by rosbags ({type(exc).__name__}: {exc})", bagdir) from None
+        why = f"{type(exc).__name__}: {exc}".strip().rstrip(":")
+        why = " ".join(why.split())[:200]  # (one line)
+        if storage != "mcap" or mode == "file":
+            raise InputError(f"damaged: {storage} storage unreadable by rosbags ({why})", bagdir) from None
+        conns = _mcap_connections(files, bagdir, why)  # (our own scan reads past the damage)
+        opened = why
     typestore = get_typestore(Stores.EMPTY)
     streams, by_key = _ros2_streams(conns, typestore)
     damage: list[str] = []
+    if opened is not None:
+        damage.append(f"damaged: rosbags' reader cannot open the bag ({opened}); its connections taken from "
+                      "tapost's scan of the mcap storage")
     parts: list[_Part] = []
     with tempfile.TemporaryDirectory(prefix="tapost-restamp-") as tmpd:
         for f in files:
@@ -867,8 +901,16 @@ def restamp_rosbag2(src: str, dst: str, shift: ClockShift, *, selector: str | No
     declared = int(meta.get("message_count") or 0)
     if declared and len(msgs.log_ns) < declared:
         damage.append(f"read {len(msgs.log_ns)} of the {declared} messages metadata.yaml declares")
+    far = None
+    if not (storage == "mcap" and mode != "message"):  # (the mcap writer keeps its parts' records aligned)
+        far = _far_times(msgs.log_ns)  # a row timestamp a damaged byte moved by more than a day
+        if far.any():
+            msgs = msgs.take(~far)
     packed = msgs.buf
     new_log, msgs, notes = _apply(streams, msgs, typestore, shift, selector, bagdir)
+    if far is not None and far.any():
+        notes.append(f"{int(far.sum())} message(s) with a damaged record time (more than a day from the others') "
+                     "not in the output")
     with atomic_folder(dst) as tmp:
         if storage == "mcap" and mode != "message" and all(p.scan is not None for p in parts):
             _write_ros2_mcap(tmp, meta, mode, parts, streams, msgs, new_log, in_place=msgs.buf is packed)
@@ -883,6 +925,36 @@ def restamp_rosbag2(src: str, dst: str, shift: ClockShift, *, selector: str | No
                         time_fields=("messages.timestamp" if storage != "mcap" else "log_time", "header.stamp",
                                      "metadata.yaml starting_time/duration"),
                         damage=tuple(damage) + tuple(notes))
+
+
+def _mcap_connections(files: list[str], bagdir: str, why: str) -> list:
+    """The connections of a ROS 2 bag's mcap storage files from tapost's own scan of them (their channels
+    and schemas, as rosbags would list them), for a bag whose damage stops rosbags' reader (``why``)."""
+    from rosbags.interfaces import Connection, ConnectionExtRosbag2, MessageDefinition, MessageDefinitionFormat
+    from rosbags.rosbag2.metadata import parse_qos
+
+    fmt = {"ros2msg": MessageDefinitionFormat.MSG, "ros2idl": MessageDefinitionFormat.IDL}
+    out, seen = [], set()
+    for f in files:
+        sc = _scan_mcap(f)
+        for cid in sorted(sc.channels):
+            topic, enc, sid, meta = sc.channels[cid]
+            name, senc, text = sc.schemas.get(sid, ("", "", b""))
+            key = (topic, rc.normalize_msgtype(name))
+            if not name or key in seen:
+                continue
+            seen.add(key)
+            msgdef = MessageDefinition(fmt[senc], text.decode("utf-8", "replace")) if senc in fmt else \
+                MessageDefinition(MessageDefinitionFormat.NONE, "")
+            try:
+                qos = parse_qos(meta.get("offered_qos_profiles", "")) if meta.get("offered_qos_profiles") else []
+            except Exception:
+                qos = []
+            out.append(Connection(len(out) + 1, topic, key[1], msgdef, "", 0, ConnectionExtRosbag2(enc, qos), None))
+    if not out:
+        raise InputError(f"damaged: mcap storage unreadable by rosbags ({why}) and no channel readable by tapost's "
+                         "scan either", bagdir)
+    return out
 
 
 def _restamp_sqlite_in_place(f: str, bagdir: str, meta: dict, dst: str, shift: ClockShift,
@@ -918,6 +990,8 @@ def _restamp_sqlite_in_place(f: str, bagdir: str, meta: dict, dst: str, shift: C
     declared = int(meta.get("message_count") or 0)
     if declared and len(msgs.log_ns) < declared:
         return None  # rows missing: the tolerant path reads and names what is there
+    if np.any(msgs.log_ns < 0) or _far_times(msgs.log_ns).any():
+        return None  # a damaged row timestamp: the tolerant path leaves that row out, named
     new_log, out, notes = _apply(streams, msgs, typestore, shift, selector, bagdir)
     if out.buf is not w.buf:
         return None

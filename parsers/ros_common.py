@@ -1063,11 +1063,17 @@ def to_inslog(rawlog: RawLog, selector: Selector, *, release: bool = False) -> I
         d = get(plan.att)
         q, ok = quat_ros_to_ned_frd(d.cols)
         drop(plan.att, ("qx", "qy", "qz", "qw"))
-        if d.msgtype == IMU:
-            ok &= d.cols["q_cov0"] != -1
-        if not ok.all():
-            warnings.append(f"{d.name}: {int((~ok).sum())} of {len(ok)} orientations absent or not unit "
-                            "quaternions; dropped")
+        if d.msgtype == IMU:  # orientation_covariance[0] = -1: no orientation (REP-145), said as a note
+            absent = d.cols["q_cov0"] == -1
+            if absent.any():
+                warnings.append(f"note: {d.name}: {int(absent.sum())} of {len(ok)} orientations marked absent "
+                                "(orientation_covariance[0] = -1, REP-145); not used")
+            bad = ~ok & ~absent
+            ok &= ~absent
+        else:
+            bad = ~ok
+        if bad.any():
+            warnings.append(f"{d.name}: {int(bad.sum())} of {len(ok)} orientations not unit quaternions; dropped")
         if ok.any():
             q_t, q_v = (d.t_ns, q) if ok.all() else (d.t_ns[ok], q[ok])
             streams["quat"] = Stream(q_t, q_v, d.name)

@@ -449,7 +449,22 @@ def read_raw(path: str, keep: Callable[[str, str], bool] = rc.keep_supported, fm
         good = off = nxt  # (its framing read: a later resynchronisation starts after it)
     if index_pos == 0:
         scan.warnings.append("bag has no index (recording interrupted?): messages read by a linear scan")
+    elif index_pos is not None and index_pos >= end and not any("truncated" in w for w in scan.warnings):
+        firsts = [min(t) for t in scan.times.values() if t]
+        span = (max(max(t) for t in scan.times.values() if t) - min(firsts)) * 1e-9 if firsts else None
+        scan.warnings.append(index_past_end(index_pos, end, span) + " up to the cut")
     return _rawlog(path, fmt, scan)
+
+
+def index_past_end(index_pos: int | None, size: int, span_s: float | None) -> str | None:
+    """The warning for a bag cut exactly between two records (every record reads whole, so the walk sees no
+    damage): the index the bag header points to, written last at the end of the bag, lies at or past the
+    end of the file. None for a bag whose index is inside it (or that has none). ``span_s``: the record
+    time the readable part covers (None: no messages)."""
+    if not index_pos or index_pos < size:
+        return None
+    return (f"truncated: the bag header puts the index at byte {index_pos}, beyond the end of the file "
+            f"({size} bytes); " + (f"{span_s:.1f} s of record time read" if span_s is not None else "no messages read"))
 
 
 def _rawlog(path: str, fmt: str, scan: _Scan) -> rc.RawLog:

@@ -662,3 +662,119 @@ def test_io_threads_survive_a_fork(big, tmp_path):
 
 def _export_in_child(src: str, dst: str, shift: ClockShift) -> int:
     return rr.restamp_mcap(src, dst, shift).records
+
+
+# ---- damaged stamps and bags rosbags cannot open -------------------------------------------------------
+def _sqlite_copy(big, tmp_path, name: str) -> tuple[str, str]:
+    import shutil
+
+    src = str(tmp_path / name)
+    shutil.copytree(big["rosbag2"], src)
+    return src, os.path.join(src, "bag.db3")
+
+
+def test_sqlite_row_with_a_damaged_record_time_is_left_out_and_named(big, tmp_path):
+    """One row's timestamp flipped far below zero (a damaged byte): the export leaves that row out and says
+    so, as the reader does, where before the 12 ms shift was refused as making record times negative."""
+    import sqlite3
+
+    src, db = _sqlite_copy(big, tmp_path, "bag_t")
+    con = sqlite3.connect(db)
+    n0 = con.execute("SELECT count(*) FROM messages").fetchone()[0]
+    con.execute("UPDATE messages SET timestamp = ? WHERE id = ?", (-2_407_282_849_098_627_489, n0 // 2))
+    con.commit()
+    con.close()
+    st = rr.restamp_rosbag2(src, str(tmp_path / "out"), _shift_for(big["log"]))
+    assert st.records == n0 - 1
+    assert any("1 message row(s) with a damaged topic id, timestamp" in d for d in st.damage), st.damage
+    assert len(_rows(str(tmp_path / "out" / "bag.db3"))) == n0 - 1
+
+
+def test_damaged_header_stamp_does_not_stop_the_export(big, tmp_path):
+    """An /imu message whose header stamp a damaged byte set to 0.000001 s: written unchanged and named (its
+    record shifted by its record time, as the reader drops a stray stamp), not "the shift would make header
+    stamps negative"; every other stamp shifted as usual."""
+    import sqlite3
+
+    src, db = _sqlite_copy(big, tmp_path, "bag_h")
+    con = sqlite3.connect(db)
+    (tid,) = con.execute("SELECT id FROM topics WHERE name = '/imu'").fetchone()
+    rid, data = con.execute("SELECT id, data FROM messages WHERE topic_id = ? ORDER BY id LIMIT 1 OFFSET 100",
+                            (tid,)).fetchone()
+    data = bytearray(data)
+    data[4:12] = np.array([0, 1000], "<u4").tobytes()  # sec 0, nanosec 1000
+    con.execute("UPDATE messages SET data = ? WHERE id = ?", (bytes(data), rid))
+    con.commit()
+    con.close()
+    shift = _shift_for(big["log"])
+    st = rr.restamp_rosbag2(src, str(tmp_path / "out"), shift)
+    assert any("1 header stamp(s) more than a day from their record times (damaged?): written unchanged" in d
+               for d in st.damage), st.damage
+    out = dict((r[0], r[3]) for r in _rows(str(tmp_path / "out" / "bag.db3")))
+    assert _stamp(out[rid]) == 1000
+    a, b = parsers.load(src), parsers.load(str(tmp_path / "out"))
+    np.testing.assert_array_equal(_t_ns(b, b.imu), shift.to_master_ns(_t_ns(a, a.imu)))
+
+
+@pytest.mark.parametrize("damage", ["insert", "dup", "trunc"])
+def test_mcap_storage_bag_rosbags_cannot_open_is_exported_from_tapost_scan(slaves, tmp_path, damage):
+    """A ROS 2 bag with mcap storage whose damage stops rosbags' reader (MemoryError with no message,
+    OverflowError, "File end magic is invalid"): the connections come from tapost's own scan of the
+    storage file and the export writes what tapost reads, the damage named; before, the one-line error
+    was rosbags' bare exception text."""
+    import shutil
+
+    from rosbags.rosbag2 import Reader
+
+    src = str(tmp_path / "bag")
+    shutil.copytree(slaves["bag_mcap"], src)
+    f = os.path.join(src, [x for x in os.listdir(src) if x.endswith(".mcap")][0])
+    data = open(f, "rb").read()
+    n = len(data)
+    new = {"insert": data[:n // 3] + bytes(range(90)) + data[n // 3:],
+           "dup": data[:n * 2 // 3] + data[n // 2:n // 2 + n // 8] + data[n * 2 // 3:],
+           "trunc": data[:-142]}[damage]
+    with open(f, "wb") as fh:
+        fh.write(new)
+    with pytest.raises(Exception):
+        with Reader(src) as rd:
+            list(rd.connections)
+    a = parsers.load(src)
+    shift = _shift_for(a)
+    st = rr.restamp_rosbag2(src, str(tmp_path / "out"), shift)
+    b = parsers.load(str(tmp_path / "out"))
+    assert len(a.imu) > 100 and abs(len(b.imu) - len(a.imu)) <= 2  # (a record the scans resynchronise on)
+    assert st.records > 0.3 * sum(t.count for t in parsers.inspect_log(slaves["bag_mcap"]).streams)
+    assert st.damage[0].startswith("damaged: rosbags' reader cannot open the bag ("), st.damage
+    assert "\n" not in st.damage[0]
+
+
+def test_damaged_mcap_storage_without_readable_channels_is_one_line(slaves, tmp_path):
+    """rosbags cannot open it and tapost's scan finds no channel: one line naming the bag and the problem."""
+    import shutil
+
+    src = str(tmp_path / "bag")
+    shutil.copytree(slaves["bag_mcap"], src)
+    f = os.path.join(src, [x for x in os.listdir(src) if x.endswith(".mcap")][0])
+    data = open(f, "rb").read()
+    with open(f, "wb") as fh:
+        fh.write(data[:8] + bytes(len(data) - 8))
+    with pytest.raises(InputError) as ei:
+        rr.restamp_rosbag2(src, str(tmp_path / "out"), ClockShift(0.01, 0.0, 0))
+    text = str(ei.value)
+    assert "\n" not in text and text.startswith(src) and "damaged: mcap storage unreadable by rosbags (" in text
+
+
+def test_clock_shift_beyond_int64_is_a_clear_error_not_a_runtime_warning():
+    """A latency no int64 nanosecond stamp can hold (an analysis of damaged stamps): a ValueError the
+    export names, not numpy's "invalid value encountered in cast" on stderr and wrapped stamps."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ValueError, match="beyond what int64 nanosecond stamps hold"):
+            ClockShift(-18446744073.65, 0.0, 0).shift_ns(np.arange(3, dtype=np.int64))
+        with pytest.raises(ValueError):
+            ClockShift(float("nan"), 0.0, 0).shift_ns(np.int64(5))
+        np.testing.assert_array_equal(ClockShift(1.5, 0.0, 0).shift_ns(np.arange(3, dtype=np.int64)),
+                                      [1_500_000_000] * 3)

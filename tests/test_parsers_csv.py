@@ -356,6 +356,95 @@ def test_canonical_damaged_cells_drop_their_rows_not_the_file(tmp_path):
         registry.load(str(bad))
 
 
+def test_canonical_non_numeric_cells_are_counted_per_column_and_warned(tmp_path):
+    """Damaged bytes in data cells (``1.0\\x83``): read as missing values as before, but no longer silently:
+    one warning counting them per column (the wording shared with the vendor reader); a clean file has none
+    and reads bit-identically."""
+    log = _canon_log()
+    p = tmp_path / "c.csv"
+    registry.write(str(p), log, "csv")
+    clean = registry.load(str(p))
+    assert not any("non-numeric" in w for w in clean.meta.warnings)
+    lines = p.read_text().splitlines(True)
+    header = lines[0].strip().split(",")
+    ax, qw = header.index("accel_x_m_s2"), header.index("qw")
+    for i in range(1, len(lines), 10):
+        c = lines[i].rstrip("\n").split(",")
+        c[ax] = "1.0\x8300x"
+        if i % 20 == 1 and c[qw]:
+            c[qw] = "zz"
+        lines[i] = ",".join(c) + "\n"
+    bad = tmp_path / "garbage.csv"
+    bad.write_text("".join(lines), encoding="latin-1")
+    back = registry.load(str(bad))
+    n_ax = len(range(1, len(lines), 10))
+    n_qw = sum(1 for i in range(1, len(lines), 20) if p.read_text().splitlines()[i].split(",")[qw])
+    hit = [w for w in back.meta.warnings if "non-numeric" in w]
+    assert hit == [f"garbage.csv: {n_ax + n_qw} non-numeric cell(s) (accel_x_m_s2 {n_ax}, qw {n_qw}) read as "
+                   "missing values (damaged file?)"], back.meta.warnings
+    assert np.isnan(back.accel_m_s2()).any(axis=1).sum() == n_ax
+    inv = registry.inspect_log(str(bad))
+    assert any("non-numeric" in w for w in inv.warnings)
+    rows = np.isfinite(back.accel_m_s2()).all(axis=1)
+    np.testing.assert_array_equal(back.gyro_rad_s(), clean.gyro_rad_s())
+    np.testing.assert_array_equal(back.accel_m_s2()[rows], clean.accel_m_s2()[rows])
+
+
+def test_vendor_non_numeric_cells_counted_per_column_and_inf_without_runtime_warning(tmp_path):
+    """A vendor CSV with text and ``inf`` in data cells: the rows are dropped as before, the warning now
+    counts the text cells per column (the canonical reader's wording), and an ``inf`` in a quaternion
+    converted between frames no longer prints numpy's "invalid value encountered" on stderr."""
+    import warnings
+
+    header = ["Time (s)", "Gyro X (deg/s)", "Gyro Y (deg/s)", "Gyro Z (deg/s)"]
+    text = _table(header, [T, *(W_RAD_S / DEG).T]).splitlines(True)
+    for i in (5, 9):
+        c = text[i].split(",")
+        c[2] = "1.\x00x"
+        text[i] = ",".join(c)
+    p = _write(tmp_path / "v.csv", "".join(text))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        log = registry.load(str(p))
+    assert len(log.imu) == len(T) - 2
+    assert any(w == "v.csv: 2 row(s) with unparseable or missing values dropped (damaged or truncated file?); "
+               "2 non-numeric cell(s) (Gyro Y (deg/s) 2)" for w in log.meta.warnings), log.meta.warnings
+    # a quaternion file in NWU/ZUP axes (the NGIMU profile's conversion) with one inf component
+    d = tmp_path / "ng"
+    d.mkdir()
+    hdr = ("Time (s),Gyroscope X (deg/s),Gyroscope Y (deg/s),Gyroscope Z (deg/s),Accelerometer X (g),"
+           "Accelerometer Y (g),Accelerometer Z (g)")
+    rows = "".join(f"{t:.3f},0.1,0.2,0.3,0,0,1\n" for t in T)
+    (d / "sensors.csv").write_text(hdr + "\n" + rows)
+    q = "".join(f"{t:.3f},1,0,0,0\n" if k != 7 else f"{t:.3f},inf,0,0,0\n" for k, t in enumerate(T))
+    (d / "quaternion.csv").write_text("Time (s),W,X,Y,Z\n" + q)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ng = registry.load(str(d))
+    assert len(ng.quat_wxyz()[0]) == len(T) - 1
+
+
+def test_binary_junk_column_names_give_one_printable_line(tmp_path, capsys):
+    """An NGIMU session whose quaternion.csv is random bytes: the error named the "columns" it found with
+    their raw bytes (newlines, control characters: several lines of junk on stderr); now one printable
+    line."""
+    from pipelines.cli import main
+
+    d = tmp_path / "ng"
+    d.mkdir()
+    hdr = ("Time (s),Gyroscope X (deg/s),Gyroscope Y (deg/s),Gyroscope Z (deg/s),Accelerometer X (g),"
+           "Accelerometer Y (g),Accelerometer Z (g)")
+    (d / "sensors.csv").write_text(hdr + "\n" + "".join(f"{t:.3f},0.1,0.2,0.3,0,0,1\n" for t in T))
+    rng = np.random.default_rng(7)
+    junk = bytes(rng.integers(0, 256, 4000, dtype=np.uint8))
+    junk = junk.replace(b"\n", b"\r")[:300] + b",\x0b\x1c\x85\x0c,\t" + junk[300:]
+    (d / "quaternion.csv").write_bytes(junk)
+    assert main(["inspect", str(d)]) == 2
+    err = capsys.readouterr().err
+    assert err.endswith("\n") and len(err.rstrip("\n").splitlines()) == 1, repr(err)
+    assert err.rstrip("\n").isprintable() and "quaternion.csv" in err and "Traceback" not in err
+
+
 def test_implausible_values_are_dropped_where_every_format_meets():
     from parsers.assemble import Stream, build_inslog
 

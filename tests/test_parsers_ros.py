@@ -1009,3 +1009,75 @@ def test_mcap_damaged_summary_definition_yields_to_the_data_sections(big_files, 
     assert any("/fix: message encoding" in w and "topic ignored" in w for w in back2.meta.warnings)
     assert 0.5 * len(full.imu) < len(back2.imu) < len(full.imu)
     assert "lat_deg" not in back2.nav or back2.nav["lat_deg"].isna().all()
+
+
+def _rosbag1_top_records(data: bytes) -> list[tuple[int, int, bytes]]:
+    """(start, end, op) of the top-level records of a ROS 1 bag."""
+    import struct
+
+    out, off = [], len(rosbag1.MAGIC)
+    while off + 8 <= len(data):
+        (hlen,) = struct.unpack_from("<I", data, off)
+        (dlen,) = struct.unpack_from("<I", data, off + 4 + hlen)
+        out.append((off, off + 8 + hlen + dlen, rosbag1._fields(bytes(data[off + 4:off + 4 + hlen])).get("op")))
+        off += 8 + hlen + dlen
+    return out
+
+
+def test_rosbag1_cut_exactly_at_a_record_boundary_is_reported(big_files, tmp_path):
+    """A bag cut between two chunks reads without a broken record, but the index its bag header points to
+    lies past the end of the file: a truncation warning (inspect, the InsLog's warnings, the export's
+    damage), where before the shorter log came without a word."""
+    from parsers import restamp_ros as rr
+
+    src = big_files["rosbag1"]
+    data = open(src, "rb").read()
+    chunks = [(a, b) for a, b, op in _rosbag1_top_records(data) if op == b"\x05"]
+    assert len(chunks) > 3
+    cut = chunks[len(chunks) // 2][1]
+    p = _copy_with(src, str(tmp_path / "cut.bag"), data[:cut])
+    full = parsers.load(src)
+    assert not any("truncated" in w for w in full.meta.warnings)
+    back = parsers.load(p)
+    n_full = len(big_files["log"].imu)
+    assert 0.2 * n_full < len(back.imu) < 0.8 * n_full
+    hit = [w for w in back.meta.warnings if w.startswith("truncated: the bag header puts the index at byte")]
+    assert len(hit) == 1 and f"beyond the end of the file ({cut} bytes)" in hit[0], back.meta.warnings
+    import re
+
+    m = re.search(r"; (\d+\.\d) s of record time read up to the cut$", hit[0])
+    assert m and abs(float(m.group(1)) - float(back.t_imu_s()[-1] - back.t_imu_s()[0])) < 0.2, hit
+    inv = parsers.inspect_log(p)
+    assert any(w.startswith("truncated: the bag header") for w in inv.warnings)
+    st = rr.restamp_rosbag1(p, str(tmp_path / "cut_out.bag"), ClockShift(0.001, 0.0, big_files["log"].meta.t0_ns))
+    assert any(d.startswith("truncated: the bag header") and "up to the cut" in d for d in st.damage), st.damage
+    st_full = rr.restamp_rosbag1(src, str(tmp_path / "full_out.bag"), ClockShift(0.001, 0.0, big_files["log"].meta.t0_ns))
+    assert not any("truncated" in d for d in st_full.damage)
+
+
+def test_imu_orientation_marked_absent_is_a_note_not_a_warning(tmp_path):
+    """orientation_covariance[0] = -1 is ROS's documented "no orientation" (REP-145): the orientations so
+    marked are left out with a note (meta line "note: ...", a report note), not a warning; a quaternion
+    that is no rotation is still a warning."""
+    from pipelines.report import _is_parse_note
+
+    T = _ros_types()
+    msgs = []
+    for k in range(40):
+        t = T0_NS + k * 10_000_000
+        q = (0.0, 0.0, 0.0, 1.0) if k % 10 else (0.0, 0.0, 0.0, 0.0)  # 4 with no rotation
+        imu = _imu_msg(T, t, q, (0.0, 0.0, 0.1), (0.0, 0.0, 9.81))
+        if 10 <= k < 15:
+            imu.orientation_covariance[0] = -1.0  # 5 marked absent
+        msgs.append(("/imu", "sensor_msgs/msg/Imu", imu, t))
+    p = str(tmp_path / "absent.mcap")
+    _hand_mcap(p, msgs)
+    log = parsers.load(p + "::imu=/imu,att=/imu")
+    w = log.meta.warnings
+    absent = [x for x in w if "marked absent" in x]
+    assert len(absent) == 1 and absent[0].startswith("note: /imu: 5 of 40 orientations marked absent"), w
+    assert _is_parse_note(absent[0])
+    bad = [x for x in w if "not unit quaternions" in x]
+    assert len(bad) == 1 and bad[0] == "/imu: 3 of 40 orientations not unit quaternions; dropped", w
+    assert not _is_parse_note(bad[0])
+    assert len(log.quat_wxyz()[0]) == 40 - 5 - 3

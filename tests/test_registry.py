@@ -161,6 +161,20 @@ def test_bad_selector_through_cli(samples, capsys):
     assert "bad selector" in err
 
 
+def test_duplicate_selector_key_is_one_line(samples, capsys):
+    """``imu=/x,imu=/y`` (or ``IMU=``, keys are case-blind): one reader took the first, another the last,
+    without a word; now a one-line error naming the key, exit 2."""
+    with pytest.raises(InputError, match=r"bad selector: key 'imu' given twice \(imu=IMU and imu=IMU2\)"):
+        registry.parse_log_arg("x.bin::imu=IMU,nav=NKF1,IMU=IMU2")
+    with pytest.raises(InputError, match="key 'map' given twice"):
+        registry.parse_log_arg("x.csv::map=a.json,map=a.json")
+    p = samples["rosbag1"]
+    rc, _, err = _inspect(capsys, f"{p}::imu=/imu,imu=/imu2")
+    _one_line_error(rc, err, p)
+    assert "given twice" in err
+    assert registry.parse_log_arg("x.bin::imu=IMU,nav=NKF1")[1].get("nav") == "NKF1"
+
+
 @pytest.mark.parametrize("name", [n for n in FORMATS if n != "csv"])
 def test_missing_selector_target_is_one_line(samples, name, capsys):
     p = samples[name]
