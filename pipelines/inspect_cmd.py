@@ -99,7 +99,8 @@ def format_selection(sel: dict) -> list[str]:
     for k, c in sel["channels"].items():
         rate = f"{c['rate_hz']:.2f}" if c["rate_hz"] is not None else "-"
         out.append(f"    {k:<6} {c['count']:>8d} samples {rate:>8} Hz  from {c['source']}")
-    out += [f"    warning: {w}" for w in sel["warnings"]]
+    # (a note rides in a log's warnings with a "note:" prefix; report.json files it under notes)
+    out += [f"    {w}" if w.startswith("note:") else f"    warning: {w}" for w in sel["warnings"]]
     return out
 
 

@@ -290,3 +290,11 @@ def test_a_damaged_file_start_is_read_past(tmp_path, fmt, ext):
     junk.write_bytes(bytes(64) + b"no log here" * 100)
     with pytest.raises(InputError, match="unrecognised format"):
         registry.detect(str(junk))
+
+
+def test_inspect_selection_prints_a_note_as_a_note():
+    from pipelines.inspect_cmd import format_selection
+    lines = format_selection({"selector": "imu=/imu", "clock": "epoch", "duration_s": 1.0, "stamp_source": "header",
+                              "channels": {}, "warnings": ["note: /imu: 5 of 40 orientations marked absent",
+                                                           "gap of 2.0 s"]})
+    assert lines[1:] == ["    note: /imu: 5 of 40 orientations marked absent", "    warning: gap of 2.0 s"]
