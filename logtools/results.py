@@ -80,6 +80,9 @@ class AlignmentResult:
     #: (sigma None); None when velocity was not matched or no lever arm was modelled
     lever_arm_m: tuple[float, float, float] | None = None
     lever_arm_sigma_m: tuple[float, float, float] | None = None
+    #: the mounting R (v_slave = R v_master) as conventions.quat_from_dcm (w >= 0), exact: mounting_rpy_deg is
+    #: the canonical triple at the gimbal lock (pitch +-90 deg); None when the mounting is not determined
+    mounting_quat_wxyz: tuple[float, float, float, float] | None = None
     observability: dict[str, bool] = field(default_factory=dict)  # state group -> observable?
     notes: tuple[str, ...] = ()
     #: each innovation channel's integrated correlation time (epochs): about 1 when the filter's noise model

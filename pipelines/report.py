@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from logtools import __version__
-from logtools.conventions import dcm_from_euler
+from logtools.conventions import dcm_from_euler, dcm_from_quat
 from logtools.inslog import InsLog
 from logtools.results import AlignmentResult, LatencyResult
 from parsers.atomic import atomic_path
@@ -52,7 +52,11 @@ class Analysis:
         for run in ("compensated", "uncompensated"):
             res = self.alignment.get(run)
             if res is not None and all(np.isfinite(res.mounting_rpy_deg)):
-                return dcm_from_euler(np.radians(res.mounting_rpy_deg)), f"alignment ({run})"
+                mat = dcm_from_euler(np.radians(res.mounting_rpy_deg))
+                q = res.mounting_quat_wxyz  # the exact rotation, where the triple is the gimbal lock's canonical one
+                if q is not None and np.abs(dcm_from_quat(np.asarray(q, float)) - mat).max() > 1e-9:
+                    mat = dcm_from_quat(np.asarray(q, float))
+                return mat, f"alignment ({run})"
         if self.latency is not None and self.latency.mounting_rpy_deg is not None:
             rpy = np.asarray(self.latency.mounting_rpy_deg, float)
             if np.all(np.isfinite(rpy)):
@@ -162,6 +166,9 @@ def alignment_section(res: AlignmentResult) -> dict:
         "match": res.match,
         "mounting_rpy_deg": mount,
         "mounting_sigma_deg": _vec(res.mounting_sigma_deg),
+        # the exact rotation (mounting_rpy_deg is the canonical triple at the gimbal lock); null where an
+        # axis is not determined (it would hold the prior there)
+        "mounting_quat_wxyz": None if undetermined else _vec(res.mounting_quat_wxyz),
         "gyro_bias_dph": _vec(res.gyro_bias_dph),
         "accel_bias_mg": _vec(res.accel_bias_mg),
         "gyro_bias_sigma_dph": _vec(res.gyro_bias_sigma_dph),

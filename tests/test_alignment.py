@@ -742,3 +742,29 @@ def test_board_errors_leave_an_undetermined_mounting_axis_at_its_prior():
     assert res.mounting_sigma_deg[2] > 0.85, res.mounting_sigma_deg
     tied = run_alignment(m, s, options=opts, config=dataclasses.replace(CONFIG, board_start_att_deg=0.0))
     assert tied.mounting_sigma_deg[2] < 0.75, tied.mounting_sigma_deg
+
+
+@pytest.mark.parametrize("mount", [(20.0, 90.0, -35.0), (30.0, -90.0, 10.0)])
+def test_a_mounting_at_the_gimbal_lock_is_determined_on_all_three_axes(mount):
+    """A slave pitched +-90 deg (the roll and yaw axes coincide): the Euler roll and yaw sigmas are singular
+    there (roll and yaw were nulled as "not observable with this motion" while the mounting was right);
+    observability is judged on the rotation, the mounting reported as the canonical triple (roll 0, yaw the
+    two's sum, as scipy's as_euler) with finite, small sigmas, the exact rotation as its quaternion."""
+    from logtools.conventions import dcm_from_euler, dcm_from_quat
+    from pipelines.report import alignment_section
+
+    m, s, truth = _pair(mount_rpy_deg=mount, slave_nav=False, duration_s=60.0)
+    res = run_alignment(m, s)
+    sig = np.asarray(res.mounting_sigma_deg)
+    assert np.all(np.isfinite(sig)) and sig.max() < 0.05, sig
+    assert all(res.observability[f"mounting_{ax}"] for ax in ("roll", "pitch", "yaw")), res.observability
+    assert not any("not observable" in n for n in res.notes), res.notes
+    assert res.mounting_rpy_deg[0] == 0.0 and res.mounting_rpy_deg[1] == np.sign(mount[1]) * 90.0
+    assert any("gimbal lock" in n for n in res.notes)
+    tol = max(3.0 * sig.max() * 60.0, 0.5)  # arcmin
+    assert _rotation_arcmin(res.mounting_rpy_deg, truth.mounting_rpy_deg) < tol
+    q_err = dcm_from_quat(np.asarray(res.mounting_quat_wxyz)).T @ dcm_from_euler(np.radians(truth.mounting_rpy_deg))
+    assert np.degrees(np.arccos(np.clip((np.trace(q_err) - 1.0) / 2.0, -1.0, 1.0))) * 60.0 < tol
+    sec = alignment_section(res)
+    assert None not in sec["mounting_rpy_deg"] and "mounting_not_determined" not in sec
+    assert len(sec["mounting_quat_wxyz"]) == 4

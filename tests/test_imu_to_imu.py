@@ -295,3 +295,79 @@ def test_a_retry_with_a_longer_window_works_on_fresh_samples_and_leaves_the_logs
     assert retried.gyro == direct.gyro and retried.accel == direct.accel
     after = [a for lg in (master, slave) for a in (lg.gyro_rad_s(), lg.accel_m_s2(), lg.t_imu_s())]
     assert all(np.array_equal(x, y) for x, y in zip(before, after))
+
+
+# ---- the gimbal lock (pitch +-90 deg: the roll and yaw axes coincide) ---------------------------------
+def _angle_deg(mat_a, mat_b) -> float:
+    d = mat_a.T @ mat_b
+    return float(np.degrees(np.arccos(np.clip((np.trace(d) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+@pytest.mark.parametrize("rpy", [(20.0, 90.0, -35.0), (30.0, -90.0, 10.0)])
+def test_a_gyro_triad_at_the_gimbal_lock_is_accepted_with_the_canonical_triple(rpy):
+    """A triad pitched +-90 deg: the Euler roll and yaw apart are not determined (their Jacobian is
+    singular: the fit was refused as "sigma 46 deg" while the rotation was right), the rotation is. It is
+    judged on the rotation and reported as the canonical triple (roll 0, yaw the two's sum, as scipy's
+    as_euler) with finite, small sigmas; the quaternion is the rotation itself."""
+    from scipy.spatial.transform import Rotation
+
+    from logtools.conventions import dcm_from_quat
+
+    master, slave = _pair(11, rpy, rpy)
+    res = imu_to_imu(master, slave)
+    assert res.gyro is not None, res.reasons
+    tr = res.gyro
+    truth = dcm_from_euler(np.radians(rpy))
+    sig = np.asarray(tr.sigma_deg)
+    assert np.all(np.isfinite(sig)) and sig.max() < 0.3, sig  # (about 0.05 deg per axis away from the lock)
+    assert tr.gimbal and tr.rpy_deg[0] == 0.0 and tr.rpy_deg[1] == np.sign(rpy[1]) * 90.0, tr.rpy_deg
+    assert _angle_deg(dcm_from_quat(np.asarray(tr.quat_wxyz)), truth) < 3.0 * sig.max()
+    assert _angle_deg(dcm_from_euler(np.radians(tr.rpy_deg)), truth) < 3.0 * sig.max()
+    with pytest.warns(UserWarning, match="Gimbal lock"):  # scipy's triple at the lock: the third angle 0
+        yaw, pitch, roll = Rotation.from_matrix(truth).as_euler("ZYX", degrees=True)
+    assert abs((tr.rpy_deg[2] - yaw + 180.0) % 360.0 - 180.0) < 3.0 * sig[2] and roll == pytest.approx(0.0)
+    sec = res.section()
+    assert sec["gyro_rpy_deg"] is not None and sec["gyro_gimbal_lock"] is True and len(sec["gyro_quat_wxyz"]) == 4
+
+
+def test_euler_with_sigma_is_the_jacobians_away_from_the_lock_and_canonical_at_it():
+    """Away from the lock the Euler angles and sigmas are exactly what they were (euler_from_dcm and the
+    Jacobian's); at it (and within the snap band) the canonical triple, with the rotation's sigmas, batched
+    the same as one by one."""
+    from logtools.alignment import imu_to_imu as i2i
+    from logtools.conventions import euler_from_dcm
+
+    rng = np.random.default_rng(3)
+    cov = np.diag([1e-6, 4e-6, 9e-6])
+    for rpy in ([10.0, 20.0, 30.0], [-170.0, 85.0, 100.0], [5.0, -60.0, -120.0]):
+        r = dcm_from_euler(np.radians(rpy))
+        e, s, s_axes, snapped = i2i.euler_with_sigma(r, cov, 3.0, 1e-9)
+        assert not snapped
+        assert np.array_equal(e, np.degrees(euler_from_dcm(r)))
+        assert np.array_equal(s, i2i._euler_sigma_deg(r, cov))
+        assert np.all(np.isfinite(s_axes)) and np.all(s_axes > 0)
+    for rpy in ([17.0, 90.0, -40.0], [30.0, -90.0, 10.0], [0.0, 89.9995, 0.0]):
+        r = dcm_from_euler(np.radians(rpy)) @ dcm_from_euler(rng.normal(0.0, 1e-7, 3))
+        e, s, s_axes, snapped = i2i.euler_with_sigma(r, cov, 3.0, 1e-9)
+        assert snapped and e[0] == 0.0 and abs(e[1]) == 90.0
+        assert _angle_deg(dcm_from_euler(np.radians(e)), r) < s[1]  # moved by less than the pitch's sigma
+        assert np.all(np.isfinite(s)) and s.max() < 0.5
+        assert s[0] == s[2] == np.degrees(np.sqrt(cov[2, 2]))  # roll and yaw: the rotation's about the shared axis
+    rs = np.stack([dcm_from_euler(np.radians(x)) for x in ([17.0, 90.0, -40.0], [10.0, 20.0, 30.0])])
+    snap, e, s, _ = i2i.gimbal_canonical(rs, np.stack([cov, cov]), 3.0, 1e-9)
+    assert snap.tolist() == [True, False]
+    one = i2i.gimbal_canonical(rs[0], cov, 3.0, 1e-9)
+    assert np.array_equal(e[0], one[1]) and np.array_equal(s[0], one[2])
+
+
+def test_consistency_writes_a_raw_triple_near_the_lock_the_canonical_way():
+    """The mounting snapped to the canonical triple at the lock (roll 0), the gyro triad's rotation (less
+    noisy, not snapped) 0.05 deg off it in Euler angles that put 30 deg in roll: the same rotation, so they
+    agree; a pitch 10 deg off still disagrees."""
+    from logtools.alignment.imu_to_imu import ImuToImu, TriadRotation
+
+    gyro = TriadRotation((30.0, -89.95, 10.0), (2.0, 0.004, 2.0), 5000, 0.01, 0.02)
+    cons = consistency((0.0, -90.0, 40.0), (0.05, 0.06, 0.05), ImuToImu(gyro, None))
+    assert cons["agrees"] is True, cons
+    far = TriadRotation((5.0, -80.0, 45.0), (0.1, 0.004, 0.1), 5000, 0.01, 0.02)
+    assert consistency((0.0, -90.0, 40.0), (0.05, 0.06, 0.05), ImuToImu(far, None))["agrees"] is False

@@ -32,7 +32,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from logtools import jit
-from logtools.conventions import dcm_from_euler, dcm_from_rotvec, euler_from_dcm, median_step_s, skew, wahba
+from logtools.conventions import (dcm_from_euler, dcm_from_quat, dcm_from_rotvec, euler_from_dcm, median_step_s,
+                                  quat_from_dcm, skew, wahba)
 from logtools.inslog import InsLog
 from logtools.rows import BLOCK_ROWS
 
@@ -61,6 +62,21 @@ class ImuToImuConfig:
     #: (benchmarks/bench_alignment_random.py --real-errors)
     lever_plausible_m: float = 2.0
     lever_min_effect: float = 0.01
+    #: the gimbal lock (pitch +-90 deg, where the roll and yaw axes coincide): a rotation whose pitch is within
+    #: this many of its sigmas of +-90 deg (or within gimbal_snap_min_deg, rounding) is reported as the
+    #: canonical triple (roll 0, yaw the two's sum, scipy's as_euler) with the rotation's sigmas (see
+    #: :func:`euler_with_sigma`): there the data cannot tell on which side of the lock, nor how far, the
+    #: rotation is, and the Euler roll and yaw apart are not determined (a 0/90/0 gyro triad: sigma 46 deg,
+    #: refused, while the rotation was right to 0.0003 deg). 3: the snap moves the triple by at most 3 sigma
+    #: (added to the pitch's sigma), and outside the band roll and yaw apart keep Euler sigmas below 1/3 rad
+    gimbal_snap_sigmas: float = 3.0
+    gimbal_snap_min_deg: float = 1e-7  # euler_from_dcm's roll and yaw there are atan2 of rounding errors
+    #: ... two triples compared (the consistency, the two bands) where one is that canonical triple and the
+    #: other, less noisy, was not snapped: within this of the same lock the other's roll and yaw are written
+    #: the canonical way too (_one_convention), else their Euler roll and yaw (each anything, only their sum
+    #: determined) would differ by tens of degrees from the same rotation. 10 deg: beyond it a pitch
+    #: difference that large is itself a disagreement (the pitch is compared as it is)
+    gimbal_compare_deg: float = 10.0
 
 
 DEFAULT = ImuToImuConfig()
@@ -84,6 +100,10 @@ class TriadRotation:
     sigma_data_deg: tuple[float, float, float] | None = None  # the sigma from the residuals alone, where the
     # bands disagreed and half their spread was added to ``sigma_deg``
     rigid: bool | None = None  # one rotation at every frequency (band_z within the config's limit); None: not checked
+    #: the rotation itself (body master -> slave, v_slave = R v_master, as conventions.quat_from_dcm): exact
+    #: where ``rpy_deg`` is the canonical triple at the gimbal lock (``gimbal``)
+    quat_wxyz: tuple[float, float, float, float] | None = None
+    gimbal: bool = False  # rpy_deg is the canonical triple at the gimbal lock (roll 0, yaw the two's sum)
 
 
 @dataclass(frozen=True)
@@ -99,6 +119,10 @@ class ImuToImu:
             out[f"{name}_rpy_deg"] = list(tr.rpy_deg) if tr else None
             out[f"{name}_sigma_deg"] = list(tr.sigma_deg) if tr else None
             if tr:
+                if tr.quat_wxyz is not None:
+                    out[f"{name}_quat_wxyz"] = list(tr.quat_wxyz)
+                if tr.gimbal:
+                    out[f"{name}_gimbal_lock"] = True
                 out[f"{name}_residual_rms"] = tr.residual_rms
                 out[f"{name}_corr_time_s"] = tr.corr_time_s
                 out[f"{name}_samples"] = tr.n
@@ -297,6 +321,66 @@ def _euler_sigma_deg(r: np.ndarray, cov_rad2: np.ndarray) -> np.ndarray:
     return np.degrees(np.sqrt(np.maximum(np.diag(jac @ cov_rad2 @ jac.T), 0.0)))
 
 
+# ---- Euler angles of a rotation and their sigmas, the gimbal lock included -------------------------------
+def euler_axes(rpy_rad: np.ndarray) -> np.ndarray:
+    """The unit axes (columns roll, pitch, yaw; batched) each Euler angle of R = Rz(yaw) Ry(pitch) Rx(roll)
+    turns R about, in the frame of the left perturbation R = exp([d x]) R_hat (the slave's: the fits' and
+    the filter's covariances are of that d): dR = [w_i x] R d(angle_i). Defined everywhere; at pitch +-90
+    deg the roll and the yaw axis coincide (the gimbal lock)."""
+    rpy = np.asarray(rpy_rad, dtype=float)
+    _, p, y = np.moveaxis(rpy, -1, 0)
+    w = np.zeros(rpy.shape[:-1] + (3, 3))
+    w[..., 0, 0], w[..., 1, 0], w[..., 2, 0] = np.cos(p) * np.cos(y), np.cos(p) * np.sin(y), -np.sin(p)
+    w[..., 0, 1], w[..., 1, 1] = -np.sin(y), np.cos(y)
+    w[..., 2, 2] = 1.0
+    return w
+
+
+def axis_sigmas(rpy_rad: np.ndarray, cov_rad2: np.ndarray) -> np.ndarray:
+    """The rotation's 1-sigma (rad) about each Euler angle's own axis (:func:`euler_axes`), from the 3x3
+    covariance of the perturbation d (batched: cov (..., 3, 3)): what the data determine of each angle's
+    turn, well defined at the gimbal lock too (where the Euler angles' own sigmas are not)."""
+    w = euler_axes(rpy_rad)
+    return np.sqrt(np.maximum(np.einsum("...ji,...jk,...ki->...i", w, np.asarray(cov_rad2, float), w), 0.0))
+
+
+def gimbal_canonical(r: np.ndarray, cov_rad2: np.ndarray, snap_sigmas: float, snap_min_rad: float
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The rotation(s) r (..., 3, 3) at the gimbal lock: (snap, rpy, sigma, delta), batched.
+
+    ``delta`` (rad) is 90 deg - |pitch|; ``snap`` where it is within ``snap_sigmas`` of the rotation's sigma
+    off the lock (or within ``snap_min_rad``). There R's first column (the master's x axis) is near the
+    slave's z axis; a perturbation about the slave's x or y axis moves it off by |d| whichever way, one about
+    z turns roll and yaw together. ``rpy`` is the canonical triple there (scipy's ``as_euler("ZYX")`` at the
+    lock: roll 0, pitch +-90 deg, yaw = atan2(-R01, R11), their sum or difference); ``sigma`` its sigmas:
+    roll and yaw the rotation's about the shared axis (z; each with the other at its value), pitch the
+    rms of the two off-lock axes' with ``delta`` (how far the snap moved the triple) added."""
+    r = np.asarray(r, dtype=float)
+    cov = np.asarray(cov_rad2, dtype=float)
+    m20 = r[..., 2, 0]
+    delta = np.arctan2(np.hypot(r[..., 0, 0], r[..., 1, 0]), np.abs(m20))  # cos(pitch) over |sin(pitch)|
+    s_off2 = np.maximum(cov[..., 0, 0] + cov[..., 1, 1], 0.0)
+    snap = delta <= np.maximum(snap_sigmas * np.sqrt(s_off2), snap_min_rad)
+    yaw = np.arctan2(-r[..., 0, 1], r[..., 1, 1])
+    rpy = np.stack([np.zeros_like(yaw), np.where(m20 < 0, 0.5 * np.pi, -0.5 * np.pi), yaw], axis=-1)
+    s_z = np.sqrt(np.maximum(cov[..., 2, 2], 0.0))
+    sig = np.stack([s_z, np.sqrt(s_off2 + delta ** 2), s_z], axis=-1)
+    return snap, rpy, sig, delta
+
+
+def euler_with_sigma(r: np.ndarray, cov_rad2: np.ndarray, snap_sigmas: float, snap_min_rad: float
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
+    """One rotation's reported Euler angles, their sigmas, the rotation's sigma about each angle's axis
+    (:func:`axis_sigmas`: what judges whether it is determined), all in degrees, and whether the triple is
+    the canonical one at the gimbal lock (:func:`gimbal_canonical`). Away from the lock the angles are
+    ``euler_from_dcm`` and the sigmas the Euler angles' own (the Jacobian's), as they always were."""
+    snap, rpy_c, sig_c, _ = gimbal_canonical(r, cov_rad2, snap_sigmas, snap_min_rad)
+    if bool(snap):
+        return np.degrees(rpy_c), np.degrees(sig_c), np.degrees(axis_sigmas(rpy_c, cov_rad2)), True
+    rpy = euler_from_dcm(r)
+    return np.degrees(rpy), _euler_sigma_deg(r, cov_rad2), np.degrees(axis_sigmas(rpy, cov_rad2)), False
+
+
 class _Moments:
     """The sums the Gauss-Newton steps of :func:`fit_rotation` need, taken once over the samples: with
     w = u + K r and p = R w, every sum of the normal equations (sum p p^T, sum p x e, sum p x (R K),
@@ -409,13 +493,16 @@ def _triad(u: np.ndarray, v: np.ndarray, k: np.ndarray | None, dt: float, cfg: I
     if explained < min_explained:
         return (f"too little motion: the rotation explains {100 * max(explained, 0):.0f} % of the slave's "
                 f"signal (at least {100 * cfg.min_explained:.0f} % needed)")
-    sig = _euler_sigma_deg(r_mat, cov)
-    if not np.all(np.isfinite(sig)) or sig.max() > cfg.max_sigma_deg:
-        return f"too little motion: sigma {' '.join(f'{x:.3g}' for x in sig)} deg"
-    rpy = np.degrees(euler_from_dcm(r_mat))
+    # judged on the rotation (its sigma about each angle's axis), not on the Euler angles' sigmas: those
+    # are singular at the gimbal lock (pitch +-90 deg), where the rotation is as determined as anywhere
+    rpy, sig, sig_axes, gimbal = euler_with_sigma(r_mat, cov, cfg.gimbal_snap_sigmas,
+                                                  np.radians(cfg.gimbal_snap_min_deg))
+    if not np.all(np.isfinite(sig_axes)) or sig_axes.max() > cfg.max_sigma_deg:
+        return f"too little motion: sigma {' '.join(f'{x:.3g}' for x in sig_axes)} deg"
     lever = tuple(float(x) for x in lev[:3]) if lev is not None and len(lev) == 4 else None
-    return TriadRotation(tuple(float(x) for x in rpy), tuple(float(x) for x in sig), len(u), rms, float(tau_s),
-                         lever, float(lev[-1]) if lev is not None else None)
+    return TriadRotation(tuple(float(x) for x in rpy), tuple(float(x) for x in sig), len(u),
+                         rms, float(tau_s), lever, float(lev[-1]) if lev is not None else None,
+                         quat_wxyz=tuple(float(x) for x in quat_from_dcm(r_mat)), gimbal=gimbal)
 
 
 def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highpass_s: float,
@@ -480,11 +567,10 @@ def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highp
     bands = [band_lo, _triad(u[cut], v[cut], k[cut], dt, cfg, min_explained=0.0, starts=starts)]
     del u, v, k
     if all(isinstance(b, TriadRotation) for b in bands):
-        zb, _ = _z(bands[0].rpy_deg, bands[0].sigma_deg, bands[1].rpy_deg, bands[1].sigma_deg,
-                   cfg.consistency_floor_deg)
+        zb, d = _z(bands[0].rpy_deg, bands[0].sigma_deg, bands[1].rpy_deg, bands[1].sigma_deg,
+                   cfg.consistency_floor_deg, cfg.gimbal_compare_deg)
         res = replace(res, band_z=zb, band_rpy_deg=(bands[0].rpy_deg, bands[1].rpy_deg), rigid=bool(zb <= cfg.band_z))
         if zb > cfg.band_z:  # not one rotation: half the bands' spread joins the sigma (the model's error)
-            d = (np.asarray(bands[0].rpy_deg) - np.asarray(bands[1].rpy_deg) + 180.0) % 360.0 - 180.0
             res = replace(res, sigma_deg=tuple(float(x) for x in np.hypot(res.sigma_deg, 0.5 * d)),
                           sigma_data_deg=res.sigma_deg)
     return res
@@ -516,8 +602,9 @@ def imu_to_imu(master: InsLog, slave: InsLog, *, config: ImuToImuConfig = DEFAUL
         # the accelerometers' fit also starts from the gyro triad's rotation (a board's two triads are
         # degrees apart at most): a multirotor's lever-arm accelerations can dominate the moving specific
         # force and put the Wahba start, and Gauss-Newton from it, 180 deg off with the lever arm flipped
-        starts = ((dcm_from_euler(np.radians(out["gyro"].rpy_deg)),)
-                  if name == "accel" and out["gyro"] is not None else ())
+        gyro = out["gyro"]
+        starts = () if name != "accel" or gyro is None else (
+            (dcm_from_quat(gyro.quat_wxyz),) if gyro.gimbal else (dcm_from_euler(np.radians(gyro.rpy_deg)),))
         for i, hp in enumerate((config.highpass_s, *config.highpass_retry_s)):  # slow motion (a ship's sway,
             if i:  # S-turns): a longer window, on the common samples made anew (the last try high-passed them)
                 com = common()
@@ -533,8 +620,34 @@ def imu_to_imu(master: InsLog, slave: InsLog, *, config: ImuToImuConfig = DEFAUL
 
 
 # ---- the two views compared ------------------------------------------------------------------------
-def _z(a_rpy: np.ndarray, a_sig: np.ndarray, b_rpy: np.ndarray, b_sig: np.ndarray, floor_deg: float
-       ) -> tuple[float, np.ndarray]:
+def _at_lock(rpy: np.ndarray) -> bool:
+    """The canonical triple at the gimbal lock (:func:`gimbal_canonical`: roll 0, pitch +-90 deg exactly)."""
+    return bool(rpy[0] == 0.0 and abs(rpy[1]) == 90.0)
+
+
+def _one_convention(a_rpy: np.ndarray, a_sig: np.ndarray, b_rpy: np.ndarray, b_sig: np.ndarray, lock_deg: float
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Two triples (deg) in one convention for their difference: where one is the canonical triple at the
+    gimbal lock and the other (less noisy: not snapped) is within lock_deg of the same lock, the other's roll
+    and yaw are written the canonical way too (roll 0, yaw = atan2(-R01, R11); its pitch kept, so a pitch
+    that differs still shows), their sigmas the smaller of its two (its Euler roll and yaw sigmas each hold
+    the rotation's about the shared axis, and more). Else as they are."""
+    a, sa, b, sb = _arr(a_rpy), _arr(a_sig), _arr(b_rpy), _arr(b_sig)
+    if not (np.isfinite(a).all() and np.isfinite(b).all()) or _at_lock(a) == _at_lock(b):
+        return a, sa, b, sb
+    lock, other, s_other = (a, b, sb) if _at_lock(a) else (b, a, sa)
+    if np.sign(other[1]) != np.sign(lock[1]) or 90.0 - abs(other[1]) > lock_deg:
+        return a, sa, b, sb
+    r = dcm_from_euler(np.radians(other))
+    canon = np.array([0.0, other[1], np.degrees(np.arctan2(-r[0, 1], r[1, 1]))])
+    s_ry = min(s_other[0], s_other[2])
+    s_canon = np.array([s_ry, s_other[1], s_ry])
+    return (a, sa, canon, s_canon) if _at_lock(a) else (canon, s_canon, b, sb)
+
+
+def _z(a_rpy: np.ndarray, a_sig: np.ndarray, b_rpy: np.ndarray, b_sig: np.ndarray, floor_deg: float,
+       lock_deg: float = 0.0) -> tuple[float, np.ndarray]:
+    a_rpy, a_sig, b_rpy, b_sig = _one_convention(a_rpy, a_sig, b_rpy, b_sig, lock_deg)
     d = (_arr(a_rpy) - _arr(b_rpy) + 180.0) % 360.0 - 180.0
     s = np.sqrt(_arr(a_sig) ** 2 + _arr(b_sig) ** 2)
     z = np.abs(d) / np.maximum(s, floor_deg)
@@ -557,13 +670,13 @@ def consistency(mount_rpy_deg, mount_sigma_deg, imu: ImuToImu, config: ImuToImuC
     views = {}
     if mount_ok and imu.gyro:
         views["z_mount_gyro"] = _z(mount_rpy_deg, mount_sigma_deg, imu.gyro.rpy_deg, imu.gyro.sigma_deg,
-                                     config.consistency_floor_deg)
+                                     config.consistency_floor_deg, config.gimbal_compare_deg)
     if mount_ok and imu.accel:
         views["z_mount_accel"] = _z(mount_rpy_deg, mount_sigma_deg, imu.accel.rpy_deg, imu.accel.sigma_deg,
-                                      config.consistency_floor_deg)
+                                      config.consistency_floor_deg, config.gimbal_compare_deg)
     if imu.gyro and imu.accel:
         views["z_gyro_accel"] = _z(imu.gyro.rpy_deg, imu.gyro.sigma_deg, imu.accel.rpy_deg, imu.accel.sigma_deg,
-                                      config.consistency_floor_deg)
+                                      config.consistency_floor_deg, config.gimbal_compare_deg)
     for k, (z, d) in views.items():
         out[k] = z
         out[k.replace("z_", "diff_") + "_deg"] = [float(x) if np.isfinite(x) else None for x in d]

@@ -190,8 +190,19 @@ class AlignmentConfig:
     lever_arm_sigma_m: float = 1.0
     #: an estimated lever arm beyond this many prior sigmas gets a note (absorbing an uncompensated delay?)
     lever_arm_implausible_sigmas: float = 10.0
-    #: a state is observable when its sigma fell below this fraction of its prior
+    #: a state is observable when its sigma fell below this fraction of its prior (a mounting angle: the
+    #: rotation's sigma about that angle's own axis, not the Euler angle's sigma, which is singular at the
+    #: gimbal lock: a 0/90/0 mounting right to 0.0003 deg had its roll and yaw nulled as not observable)
     observable_shrink: float = 0.5
+    #: the gimbal lock (a mounting pitch of +-90 deg: the roll and yaw axes coincide): a mounting whose pitch
+    #: is within this many of its sigmas of +-90 deg (or within gimbal_snap_min_deg, rounding) is reported as
+    #: the canonical triple, roll 0 and yaw their sum (scipy's as_euler at the lock), with the rotation's
+    #: sigmas; the exact rotation is the mounting's quaternion. There the data cannot tell on which side of
+    #: the lock, nor how far, the mounting is, and roll and yaw apart are not determined. 3: the snap moves
+    #: the triple by at most 3 sigma (added to the pitch's sigma), and outside that band roll and yaw apart
+    #: keep Euler sigmas below 1/3 rad (tests/test_alignment.py, the gimbal-lock test)
+    gimbal_snap_sigmas: float = 3.0
+    gimbal_snap_min_deg: float = 1e-7  # euler_from_dcm's roll and yaw there are atan2 of rounding errors
     #: attitude-only matching takes the mounting's Jacobian at the running slave attitude, not the
     #: first-estimate one (C_nm R0^T): with tight attitude noise and a mounting rolled past ~80 deg the
     #: first-estimate Jacobian made the aircraft's straight, unobservable start diverge (residuals of 180

@@ -32,6 +32,7 @@ from logtools.rows import by_rows
 from logtools.results import AlignmentResult
 from logtools.strapdown import body_increments, compose_segments
 
+from .imu_to_imu import axis_sigmas, gimbal_canonical
 from .kf import AlignInputs, FilterRun, FilterSettings, MasterSeries, run_filter
 from .model import StateLayout, exp_so3, make_layout
 from .options import CONFIG, MATCHES, AlignmentConfig, AlignmentOptions, FilterKind
@@ -1021,7 +1022,7 @@ def _result(run: FilterRun, lay: StateLayout, st: FilterSettings, sig0: np.ndarr
         ab = np.full(3, np.nan)
         abs_ = np.full(3, np.nan)
         notes.append("accelerometer bias not estimated: attitude matching only")
-    obs = _observability(run, lay, sig0, k_rep, mnt.sig_e if mnt.determined else None, config, notes)
+    obs = _observability(run, lay, sig0, k_rep, mnt.sig_axes if mnt.determined else None, config, notes)
     rn, resid, rms = _residual_summary(run, lay, notes)
     if run.n_reinit:
         notes.append(f"the master's attitude jumped {run.n_reinit} time(s) (EKF reset): slave attitude restarted")
@@ -1044,6 +1045,7 @@ def _result(run: FilterRun, lay: StateLayout, st: FilterSettings, sig0: np.ndarr
         g = run.gamma[np.isfinite(run.gamma)]
         notes.append(f"H-infinity gamma: median {np.median(g):.3g}, min {g.min():.3g}")
     return AlignmentResult(
+        mounting_quat_wxyz=mnt.quat_wxyz,
         filter=kind.value, match=match, mounting_rpy_deg=mnt.rpy_deg, mounting_sigma_deg=mnt.sigma_deg,
         gyro_bias_dph=tuple(float(x) for x in gb), accel_bias_mg=tuple(float(x) for x in ab),
         converged_s=mnt.converged_s, residual_rms=rms,
@@ -1066,6 +1068,11 @@ class MountingSummary:
     sig_e: np.ndarray  # (M+1, 3) rad, unscaled: the history's sigma
     hist_deg: np.ndarray  # (M+1, 3) yaw continuous around the final value
     converged_s: float | None  # from the start, by the forward filter's sigma (config.converged_arcmin)
+    #: (3,) rad, unscaled: the rotation's sigma about each reported angle's own axis at the reported epoch
+    #: (imu_to_imu.axis_sigmas; defined at the gimbal lock too): what observability is judged on
+    sig_axes: np.ndarray | None = None
+    quat_wxyz: tuple[float, float, float, float] | None = None  # the mounting's exact rotation
+    gimbal: bool = False  # rpy_deg is the canonical triple at the gimbal lock
 
 
 def _innovation_correlation_factor(run: FilterRun) -> float:
@@ -1133,40 +1140,69 @@ def _mounting(run: FilterRun, lay: StateLayout, k_rep: int, sig_scale: float, co
         r_fin = wahba(r_ep[max(k_rep - max(ne // 10, 1), 0):k_rep + 1].sum(0))[0]  # their mean rotation
     else:
         r_fin = r_ep[k_rep]
-    jac = _euler_jacobian(r_fin)
-    rpy = euler_from_dcm(r_fin)
-    cov_e = np.einsum("ij,kjl,ml->kim", jac, run.p_mount, jac)
-    sig_e = np.sqrt(np.maximum(np.einsum("kii->ki", cov_e), 0.0))
+    quat = tuple(float(x) for x in quat_from_dcm(r_fin))
+    p_fwd = run.p_mount_fwd if run.p_mount_fwd is not None else run.p_mount
+    snap_min = config.gimbal_snap_min_deg * DEG
+    gimbal, rpy_g, sig_g, delta = gimbal_canonical(r_fin, sig_scale ** 2 * run.p_mount[k_rep],
+                                                   config.gimbal_snap_sigmas, snap_min)
+    if gimbal:
+        # the gimbal lock: the Euler angles' Jacobian is singular (roll and yaw turn about one axis), the
+        # rotation is not; the canonical triple with the rotation's sigmas (imu_to_imu.gimbal_canonical), the
+        # history in the same convention where it is at the lock too
+        rpy = rpy_g
+        mount_sig = tuple(float(x) for x in np.degrees(sig_g))
+
+        def lock_sigmas(p: np.ndarray) -> np.ndarray:  # the canonical triple's sigmas, the snap left out
+            s_z = np.sqrt(np.maximum(p[:, 2, 2], 0.0))
+            return np.stack([s_z, np.sqrt(np.maximum(p[:, 0, 0] + p[:, 1, 1], 0.0)), s_z], axis=1)
+
+        sig_e = lock_sigmas(run.p_mount)
+        snap_k, rpy_k, _, _ = gimbal_canonical(r_ep, run.p_mount, config.gimbal_snap_sigmas, snap_min)
+        hist_rad = np.where(snap_k[:, None], rpy_k, euler_from_dcm(r_ep))
+        sig_f = lock_sigmas(p_fwd)
+        side = "difference" if rpy[1] > 0 else "sum"
+        notes.append(f"mounting pitch {np.degrees(rpy[1]):+.0f} deg (the estimate {np.degrees(delta):.2g} deg "
+                     f"from it, within {config.gimbal_snap_sigmas:g} sigma): the gimbal lock, where roll and yaw "
+                     f"turn about one axis; reported as roll 0 and yaw their {side} (scipy's as_euler), sigmas "
+                     "the rotation's about each angle's axis; the exact rotation is mounting_quat_wxyz")
+    else:
+        jac = _euler_jacobian(r_fin)
+        rpy = euler_from_dcm(r_fin)
+        cov_e = np.einsum("ij,kjl,ml->kim", jac, run.p_mount, jac)
+        sig_e = np.sqrt(np.maximum(np.einsum("kii->ki", cov_e), 0.0))
+        mount_sig = tuple(float(x) for x in sig_scale * np.degrees(sig_e[k_rep]))
+        hist_rad = euler_from_dcm(r_ep)
+        cov_f = np.einsum("ij,kjl,ml->kim", jac, p_fwd, jac)
+        sig_f = np.sqrt(np.maximum(np.einsum("kii->ki", cov_f), 0.0))
     mount_rpy = tuple(float(x) for x in np.degrees(rpy))
-    mount_sig = tuple(float(x) for x in sig_scale * np.degrees(sig_e[k_rep]))
     # keep yaw continuous around the final value
-    hist_mount = rpy_unwrap(np.degrees(euler_from_dcm(r_ep)), np.degrees(rpy))
+    hist_mount = rpy_unwrap(np.degrees(hist_rad), np.degrees(rpy))
     # convergence (forward filter sigma; the smoother's is not a convergence)
     conv = None
-    p_fwd = run.p_mount_fwd if run.p_mount_fwd is not None else run.p_mount
-    cov_f = np.einsum("ij,kjl,ml->kim", jac, p_fwd, jac)
-    sig_f = np.sqrt(np.maximum(np.einsum("kii->ki", cov_f), 0.0))
     thr = np.array(config.converged_arcmin) * ARCMIN / DEG
     ok = (np.degrees(sig_f) < thr).all(1)
     if ok[-1]:
         bad = np.nonzero(~ok)[0]
         first = 0 if len(bad) == 0 else bad[-1] + 1
         conv = float(run.t_s[first] - run.t_s[0])
-    return MountingSummary(True, mount_rpy, mount_sig, sig_e, hist_mount, conv)
+    sig_axes = axis_sigmas(rpy, run.p_mount[k_rep])
+    return MountingSummary(True, mount_rpy, mount_sig, sig_e, hist_mount, conv, sig_axes, quat, bool(gimbal))
 
 
-def _observability(run: FilterRun, lay: StateLayout, sig0: np.ndarray, k_rep: int, sig_e: np.ndarray | None,
+def _observability(run: FilterRun, lay: StateLayout, sig0: np.ndarray, k_rep: int, sig_axes: np.ndarray | None,
                    config: AlignmentConfig, notes: list[str]) -> dict[str, bool]:
-    """Observable: the sigma shrank below config.observable_shrink x its prior."""
+    """Observable: the sigma shrank below config.observable_shrink x its prior; a mounting angle's sigma is
+    the rotation's about that angle's own axis (``sig_axes``, rad), not the Euler angle's (singular at the
+    gimbal lock, where the rotation is as determined as anywhere)."""
     obs: dict[str, bool] = {}
     shrink = config.observable_shrink
     p_fin = np.sqrt(run.p_diag[k_rep])
-    if sig_e is not None:
+    if sig_axes is not None:
         # the prior's smallest axis: a prior widened about one axis (its own frame, not the Euler angles')
         # never makes an axis look determined that only fell to the others' prior
         s0m = np.degrees(np.min(sig0[lay.mount] if lay.mount is not None else sig0[lay.att]))
         for i, ax in enumerate(("roll", "pitch", "yaw")):
-            obs[f"mounting_{ax}"] = bool(np.degrees(sig_e[k_rep, i]) < shrink * s0m)
+            obs[f"mounting_{ax}"] = bool(np.degrees(sig_axes[i]) < shrink * s0m)
     for name, sl in (("gyro_bias", lay.gyro), ("accel_bias", lay.accel), ("lever_arm", lay.lever)):
         if sl is None:
             continue
