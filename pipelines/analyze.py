@@ -29,6 +29,7 @@ from logtools.compensate import METHODS as COMPENSATIONS
 from logtools.errors import AnalysisError, InputError
 from logtools.inslog import InsLog
 from logtools.results import LATENCY_METHODS, AlignmentResult, LatencyResult
+from logtools.units_check import scale_findings
 from parsers import load
 from pipelines import report as rp
 from pipelines import parallel
@@ -662,6 +663,8 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
     an = Analysis(master, slave, opts,
                   master_arg if isinstance(master_arg, str) else "", slave_arg if isinstance(slave_arg, str) else "")
     extra = an.extra
+    units = scale_findings(master, slave)  # (a unit mix-up: said as a warning, and in a failure's line)
+    extra.setdefault("warnings", []).extend({"stage": "parse", "text": u} for u in units)
 
     # -- latency
     t = time.perf_counter()
@@ -692,6 +695,8 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
                     and (master.meta.clock != slave.meta.clock or min(m1, s1) <= max(m0, s0))):
                 failure += (f" (clocks look unrelated: master {master.meta.clock}, slave {slave.meta.clock}, "
                             "no overlap at face value; try --max-lag auto)")
+    if failure and units:
+        failure += f"; but {'; '.join(units)}"
     an.failure = failure
     parallel.release_freed_memory()
     tim["latency"] = time.perf_counter() - t
