@@ -25,6 +25,37 @@ STRAY_MAX_SAMPLES = 3
 
 
 @dataclass(frozen=True)
+class ClockStepConfig:
+    """When stamps that run backwards in record order are a clock step back or a reset (the unit's clock
+    set back mid-recording: two stretches of the log on clocks that differ), not reordering (a few samples
+    delivered late: sorted) nor stray stamps (:func:`not_stray`). Such a step splits the stream into parts;
+    one part is kept (sorting would interleave the two stretches sample by sample, and the "duplicates"
+    dropped would be half of the overlap)."""
+
+    #: a backward step at least this large (s) may be a clock step: a logger's reordering (queues, USB/UDP
+    #: transport, a ROS bag's receive order) moves a stamp by at most a few tens of milliseconds
+    min_back_s: float = 0.1
+    #: ... when at least this many samples after it stay below the stamp before it, the stamps climbing on
+    #: from where they landed: a burst of packets delivered late is a few samples (sweep B10: single ones)
+    min_run_samples: int = 10
+    #: ... and those samples cover at least this fraction of the step back before the stamps are past the
+    #: stamp before it again (or they never are: a reset); a late burst covers its own few periods, then the
+    #: stamps jump forward by about the step
+    min_cover_fraction: float = 0.5
+    #: the part kept: the one with the most samples; the part before the step when the other holds at most
+    #: this fraction more (the part on the clock the log started on: its t0, its clock, its metadata)
+    tie_fraction: float = 0.1
+    #: more clock steps than this in one stream: not a clock that was set back now and then but stamps
+    #: that run back and forth (sorted as before, said in the warning)
+    max_steps: int = 8
+
+
+CLOCK_STEP = ClockStepConfig()
+#: the words every clock-step warning carries (pipelines.report finds them there)
+CLOCK_STEP_WORDS = "clock step back"
+
+
+@dataclass(frozen=True)
 class Stream:
     """One stream's samples: ``t_ns`` (int64, on the log's clock) and ``values`` (N, k) in SI."""
 
@@ -47,8 +78,105 @@ class ClockOffset:
     clock: str = "epoch"
 
 
-def clean_stream(name: str, s: Stream, warnings: list[str]) -> Stream:
-    """Sort by time, drop non-finite and duplicate stamps; report what was done."""
+def clock_steps(t_ns: np.ndarray, cfg: ClockStepConfig = CLOCK_STEP) -> np.ndarray:
+    """The record indices (into ``t_ns``, stamps in record order) where a clock step back or a reset starts
+    a new part (``ClockStepConfig``); empty when the stamps only run back by reordering or stray stamps.
+    Costs one comparison pass when no step runs back ``min_back_s`` (the usual stream)."""
+    t = np.asarray(t_ns, dtype=np.int64)
+    n = len(t)
+    if n < cfg.min_run_samples + 2:
+        return np.zeros(0, np.int64)
+    back_ns = int(round(cfg.min_back_s * 1e9))
+    cand = np.flatnonzero(np.diff(t) < -back_ns) + 1
+    if not len(cand):
+        return cand
+    # stray stamps (a corrupt time field far from the rest) are no clock: found as drop_stray finds them,
+    # on the sorted stamps, and left out of the judgement
+    order = np.argsort(t, kind="stable")
+    ok = np.ones(n, bool)
+    ok[order] = not_stray(t[order])
+    idx = np.flatnonzero(ok)  # record indices of the stamps judged
+    tj = t[idx]
+    cand = np.flatnonzero(np.diff(tj) < -back_ns) + 1
+    steps = []
+    for c in cand[:cfg.max_steps + 1]:  # a few candidates, each one vectorised pass
+        before = tj[c - 1]
+        above = np.flatnonzero(tj[c:] > before)
+        j = int(above[0]) if len(above) else len(tj) - c  # samples until the stamps are past it again
+        if j < cfg.min_run_samples:
+            continue
+        if len(above) and tj[c + j - 1] - tj[c] < cfg.min_cover_fraction * (before - tj[c]):
+            continue  # a late burst: the stamps then jump forward past the step
+        steps.append(int(idx[c]))
+    if len(steps) > cfg.max_steps:
+        return np.zeros(0, np.int64)
+    return np.asarray(steps, np.int64)
+
+
+def kept_part(t_ns: np.ndarray, steps: np.ndarray, part: int | None = None,
+              cfg: ClockStepConfig = CLOCK_STEP) -> int:
+    """Which part (0 = before the first step) of ``t_ns`` split at ``steps`` is kept: ``part`` when given
+    and there is one, else the one with the most samples (the earlier on a near tie, ``tie_fraction``)."""
+    bounds = np.concatenate([[0], steps, [len(t_ns)]])
+    sizes = np.diff(bounds)
+    if part is not None and 0 <= part < len(sizes):
+        return int(part)
+    best = 0
+    for k in range(1, len(sizes)):
+        if sizes[k] > (1.0 + cfg.tie_fraction) * sizes[best]:
+            best = k
+    return best
+
+
+def clock_step_text(t_ns: np.ndarray, steps: np.ndarray, part: int, unit: str = "sample",
+                    rows: np.ndarray | None = None) -> str:
+    """One line: where the stamps step back (the ``unit``'s number: its index, or ``rows[index]``; the stamps
+    before and after; the size), what was kept and what was left out."""
+    bounds = np.concatenate([[0], steps, [len(t_ns)]])
+
+    def no(i: int) -> int:
+        return int(i) if rows is None else int(rows[i])
+
+    def span(k: int) -> str:
+        a, b = int(bounds[k]), int(bounds[k + 1])
+        return (f"{unit}s {no(a)}..{no(b - 1)} ({b - a} samples, {t_ns[a] * 1e-9:.3f} .. {t_ns[b - 1] * 1e-9:.3f} s, "
+                f"{(t_ns[b - 1] - t_ns[a]) * 1e-9:.1f} s)")
+
+    def size(i: int) -> float:  # the clock's step: the stamp step less the sampling period before it
+        before = np.diff(t_ns[max(int(bounds[np.searchsorted(bounds, i) - 1]), i - 101):i])
+        period = float(np.median(before)) if len(before) else 0.0
+        return (int(t_ns[i]) - int(t_ns[i - 1]) - period) * 1e-9
+
+    where = "; ".join(f"at {unit} {no(i)} (stamp {t_ns[i - 1] * 1e-9:.3f} s -> {t_ns[i] * 1e-9:.3f} s: "
+                      f"a step of {size(i):+.3f} s)" for i in steps)
+    left = ", ".join(span(k) for k in range(len(bounds) - 1) if k != part)
+    return (f"{CLOCK_STEP_WORDS} or reset {where}, the stamps running on from there (not reordering): "
+            f"kept {span(part)}; left out {left}, not interleaved")
+
+
+def split_at_clock_steps(t_ns: np.ndarray, label: str, warnings: list[str], shared: dict | None = None,
+                         unit: str = "sample", rows: np.ndarray | None = None) -> np.ndarray | None:
+    """The record indices to keep of stamps in record order (None: all): one part where a clock step back
+    or reset splits them (said in ``warnings``, prefixed with ``label``). ``shared``: the choice of the
+    first stream of the log with a step ({"part", "parts"}), set here if empty; a stream split into as many
+    parts keeps the same one (the streams of one log stay on one stretch of it)."""
+    steps = clock_steps(t_ns)
+    if not len(steps):
+        return None
+    n_parts = len(steps) + 1
+    given = shared.get("part") if shared and shared.get("parts") == n_parts else None
+    k = kept_part(t_ns, steps, given)
+    if shared is not None and "part" not in shared:
+        shared.update(part=k, parts=n_parts)
+    warnings.append(label + clock_step_text(t_ns, steps, k, unit, rows))
+    bounds = np.concatenate([[0], steps, [len(t_ns)]])
+    return np.arange(bounds[k], bounds[k + 1])
+
+
+def clean_stream(name: str, s: Stream, warnings: list[str], clock: dict | None = None) -> Stream:
+    """Sort by time, drop non-finite and duplicate stamps; report what was done. A clock step back or reset
+    (``clock_steps``) keeps one part of the stream; ``clock`` (shared by the streams of one log) says which
+    part the first stream with a step kept, and the others with as many parts keep the same one."""
     t = np.asarray(s.t_ns, dtype=np.int64)
     v = np.asarray(s.values, dtype=float)
     v = v.reshape(len(t), -1) if len(t) else v.reshape(0, v.shape[-1] if v.ndim > 1 else 0)
@@ -68,6 +196,12 @@ def clean_stream(name: str, s: Stream, warnings: list[str]) -> Stream:
                         f"(corrupt data?)")
         t, v = t[~bad], v[~bad]
     d = np.diff(t) if len(t) > 1 else None  # the stamp steps, reused while no sample is dropped
+    if d is not None and np.any(d < 0):
+        keep_idx = split_at_clock_steps(t, f"{name} ({s.source}): ", warnings, clock)
+        if keep_idx is not None:
+            t, v = t[keep_idx], v[keep_idx]
+            d = np.diff(t) if len(t) > 1 else None
+        del keep_idx
     if d is not None and np.any(d < 0):
         n_back = int(np.sum(d < 0))
         warnings.append(f"{name} ({s.source}): {n_back} backward time steps (clock reset or reordering); sorted")
@@ -306,11 +440,12 @@ def assemble_inslog(streams: dict[str, Stream | None], *, path: str, fmt: str, s
     the frame (a caller that keeps no other reference holds each sample about once)."""
     warns = list(warnings)
     cleaned: dict[str, Stream] = {}
+    step_part: dict = {}  # the part of the log kept at a clock step (the first stream with one decides)
     for k in ("gyro", "accel", "quat", "vel", "pos"):
         s = streams.pop(k, None)
         if s is None:
             continue
-        c = clean_stream(k, s, warns)
+        c = clean_stream(k, s, warns, step_part)
         del s
         if len(c.t_ns):
             cleaned[k] = c

@@ -218,6 +218,9 @@ def build_report(
         if "skipped" in sec:
             skipped[f"alignment.{run}"] = sec["skipped"]
     status = "failed" if "failed" in lat else ("partial" if skipped else "ok")
+    reasons = clock_step_reasons(lat, master, slave)
+    if reasons and status == "ok":
+        status = "partial"
     rep = {
         "schema": SCHEMA,
         "tapost_version": __version__,
@@ -231,11 +234,47 @@ def build_report(
         "options": json_safe(options or {}),
         "timings_s": {k: _num(v) for k, v in timings_s.items()},
     }
+    if reasons:
+        rep["status_reason"] = "; ".join(reasons)
     if extra:
         rep.update(json_safe(extra))
     rep = json_safe(rep)
     add_findings(rep)
     return rep
+
+
+def _ms(x: float) -> str:
+    """Seconds as signed milliseconds, to 0.1 ms (0.01 below 10 ms)."""
+    return f"{x * 1e3:+.1f} ms" if abs(x) >= 0.01 else f"{x * 1e3:+.2f} ms"
+
+
+def clock_step_words(step: dict) -> str:
+    """``latency.quality.clock_step`` in words: the step, where, the latency either side."""
+    t_rel, t_abs = _num(step.get("t_rel_s")), _num(step.get("t_s"))
+    size, sig = _num(step.get("step_s")) or 0.0, _num(step.get("sigma_s"))
+    before, after = _num(step.get("latency_before_s")), _num(step.get("latency_after_s"))
+    where = (f" near {t_rel:.1f} s into the master log" if t_rel is not None else "") + (
+        f" (stamp {t_abs:.3f} s)" if t_abs is not None else "")
+    return (f"the latency steps by {_ms(size)}" + (f" +- {abs(sig) * 1e3:.2g} ms" if sig is not None else "")
+            + f"{where}, a clock step or reset in one log: one latency and drift do not describe the pair"
+            + (f"; before {_ms(before)}, after {_ms(after)}" if before is not None and after is not None else "")
+            + "; analyse the parts apart")
+
+
+def clock_step_reasons(lat: dict, master: InsLog, slave: InsLog) -> list[str]:
+    """Why the status is not "ok" although every step ran: a clock step in the latency (its windows), or a
+    log split at a clock step back or reset by its parser (only one part analysed)."""
+    from parsers.assemble import CLOCK_STEP_WORDS
+
+    out = []
+    step = (lat.get("quality") or {}).get("clock_step") if "failed" not in lat else None
+    if isinstance(step, dict):
+        out.append(clock_step_words(step))
+    for role, log in (("master", master), ("slave", slave)):
+        if any(CLOCK_STEP_WORDS in w for w in log.meta.warnings):
+            out.append(f"the {role} log's clock steps back or resets (see its warnings): only one part of it "
+                       "was analysed")
+    return out
 
 
 # ---- warnings and notes ------------------------------------------------------------------------
@@ -285,7 +324,10 @@ def _latency_flag_words(q: dict) -> list[str]:
         alts = ", ".join(f"{x:+.4f} s" for x in (q.get("periodic_alternatives_s") or [])[:4] if _num(x) is not None)
         out.append("the motion repeats: other lags fit almost as well" + (f" ({alts})" if alts else "")
                    + "; the sigma covers their spread")
-    if q.get("windows_disagree"):
+    step = q.get("clock_step")
+    if isinstance(step, dict):
+        out.append(clock_step_words(step))
+    elif q.get("windows_disagree"):  # (a clock step says why, and more)
         chi = _num(q.get("window_chi2_red"))
         out.append("the latency differs between parts of the log beyond their sigmas"
                    + (f" (reduced chi-square {chi:.3g})" if chi is not None else ""))

@@ -38,6 +38,8 @@ module                open it to change
 ``fusion``            velocity and rate fits fused; periodic alternatives tried on the velocities
 ``uncertainty``       every term of ``sigma_s`` (``SigmaBudget``: report.json ``latency.quality.sigma_budget``)
 ``quality``           the ``quality`` record and the cost curve for the plots
+``steps``             the clock-step check: one line against one line with an offset step
+                      (``quality["clock_step"]``)
 ``estimator``         the order of the stages, the widened search, ``estimate``
 ====================  ====================================================================================
 

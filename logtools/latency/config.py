@@ -240,6 +240,36 @@ class OutputConfig:
 
 
 @dataclass(frozen=True)
+class StepConfig:
+    """The clock-step check (``steps``): the windows' own delays against one line (L, drift) and against
+    one line with an offset step at the best breakpoint (common drift). A unit's clock stepped or reset
+    mid-log: one latency and drift do not describe the pair (sweep F1: a 20 ms step read as 240 ppm drift)."""
+
+    check: bool = True  # run the check (test_clock_steps)
+    window_s: float = 10.0  # the check's windows: about this long (shorter than the drift windows: where the step is)
+    max_windows: int = 24  # ... at most this many (runtime: one search and fit each)
+    min_windows: int = 5  # fewer windows with motion: no check (the step model needs 3 unknowns and spare windows)
+    min_side: int = 2  # windows each side of a breakpoint at least (one window off the line is an outlier, not a step)
+    #: a window's delay searched this far (s) about the fitted line: the steps it can measure (sweep B12: +500 ms;
+    #: larger backward ones are split off by the parsers); with periodic motion at most ``periodic_band`` x the
+    #: nearest alternative's distance (an alias is no step)
+    search_s: float = 1.0
+    periodic_band: float = 0.4
+    #: the step model's chi-square below the line's by at least this (scaled by the step model's own reduced
+    #: chi-square when above 1: the windows' sigmas are optimistic on real logs, chi2 63-86 with no step in
+    #: sweep C07): 5 sigma for the one extra unknown, the choice among <= 24 breakpoints costing a factor ~24
+    #: in the false-alarm rate (6e-7 x 24 ~ 1e-5)
+    min_delta_chi2: float = 25.0
+    min_step_sigmas: float = 5.0  # ... and the step beyond this many of its own (scaled) sigmas
+    #: ... and below a smoothly curving drift's (a quadratic, as many unknowns) by this much: a clock whose
+    #: drift changes over a long log (temperature) is no step (test_clock_steps slow drift)
+    min_delta_vs_curve: float = 9.0
+    #: ... and at least this large (s): below it a "step" is within what a window's motion centroid and a 1 ms
+    #: stamp grid (0.29 ms) move the windows' delays
+    min_step_s: float = 5e-4
+
+
+@dataclass(frozen=True)
 class Stages:
     """The refinement functions a run calls, None for the package's own (``refine.refine_flex``,
     ``refine.accel_aided``): the seam for an ablation or a test replacing a stage with the same signature."""
@@ -260,6 +290,7 @@ class LatencyConfig:
     velocity: VelocityConfig = field(default_factory=VelocityConfig)
     uncertainty: UncertaintyConfig = field(default_factory=UncertaintyConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
+    steps: StepConfig = field(default_factory=StepConfig)
     stages: Stages = field(default_factory=Stages)
 
 

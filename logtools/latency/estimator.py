@@ -19,6 +19,7 @@ from logtools.latency.inputs import motion_snr, series_on_grid
 from logtools.latency.methods import METHODS, Method, run_seed
 from logtools.latency.prepare import Ctx, prepare, refiltered_ctx
 from logtools.latency.quality import cost_curve, quality_record
+from logtools.latency.steps import clock_step
 from logtools.latency.uncertainty import RateSigma, budget, centroid_term, drift_prior, fused, jitter_sigma_s, rate_sigma
 from logtools.latency.velocity_pair import VelocityPair, velocity_pair
 from logtools.latency.windows import Overlap, fit_window_chi2
@@ -180,6 +181,8 @@ def tapost(ctx: Ctx, progress: Progress) -> tuple[LatencyResult, Coarse]:
     quality = quality_record(ctx, co, fin, motion, rs, sb, fit_drift=fit_drift, gls=noise is not None,
                              n_windows=len(centers), window=(w0, w1), nan_fraction=nanfrac, vel_q=vel_q, alts=alts,
                              alts_out=alts_out, jit_sigma=jit_sigma, best=(t_best, lat_best), rpy=rpy)
+    # one line (L, drift) or a clock step: the windows' own delays judged (steps.clock_step)
+    quality["clock_step"] = clock_step(ctx, ov, fin.latency_s, fin.drift, co.alternatives_s, co.d0_s)
     res = LatencyResult(
         latency_s=float(rs.latency_s), sigma_s=float(sb.sigma_s),
         drift_ppm=float(rs.drift * 1e6) if fit_drift else 0.0,

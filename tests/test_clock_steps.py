@@ -1,0 +1,130 @@
+"""A clock step or reset in one log mid-recording (sweep F1): told from reordering and stray stamps by the
+parsers (a step back splits the log: one part kept, said in one line), and from drift by the latency
+stage (``latency.quality.clock_step``: the status is not "ok")."""
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+
+from logtools.inslog import InsLog
+from logtools.latency import estimate
+from parsers import csv_canonical as cc
+from parsers.assemble import CLOCK_STEP_WORDS, Stream, clean_stream, clock_steps
+from parsers.base import Selector
+from pipelines import report as rp
+from test_latency import T0_NS, make_pair, random_rotation
+
+LAT_S = 0.12
+
+
+def _stepped_slave(slave: InsLog, at_s: float, step_s: float) -> InsLog:
+    """The slave with its stamps stepped by ``step_s`` from master time ``at_s`` on (kept in time order)."""
+    t = slave.t_imu_s().copy()
+    t[t >= at_s + LAT_S] += step_s
+    return InsLog.from_arrays(slave.meta, t, slave.gyro_rad_s())
+
+
+def _report(master, slave, res) -> dict:
+    return rp.build_report(master, slave, latency=res, alignment={}, timings_s={})
+
+
+# ---- the latency stage ------------------------------------------------------------------------------
+def test_forward_clock_step_is_found_and_the_status_is_not_ok():
+    """Slave stamps +20 ms from mid-log: one line turned this into ~240 ppm of drift with status ok."""
+    rng = np.random.default_rng(1)
+    master, slave = make_pair(rng, latency_s=LAT_S, drift_ppm=30.0, dur_s=120.0, R=random_rotation(rng))
+    slave = _stepped_slave(slave, 60.0, 0.020)
+    res = estimate(master, slave, compare=False)
+    cs = res.quality["clock_step"]
+    assert cs is not None
+    assert abs(cs["step_s"] - 0.020) <= 3 * cs["sigma_s"] + 1e-5
+    assert abs(cs["t_s"] - (T0_NS * 1e-9 + 60.0)) < 10.0  # near the step (the windows are 10 s)
+    assert cs["latency_before_s"] == pytest.approx(LAT_S, abs=2e-3)
+    assert cs["latency_after_s"] == pytest.approx(LAT_S + 0.020, abs=2e-3)
+    rep = _report(master, slave, res)
+    assert rep["status"] != "ok" and "latency steps by +20" in rep["status_reason"]
+    texts = [w["text"] for w in rep["warnings"] if w["stage"] == "latency"]
+    said = [t for t in texts if t.startswith("the latency steps by +") and "clock step or reset" in t]
+    assert len(said) == 1, texts
+    size, before, after = (float(re.search(pat, said[0]).group(1)) for pat in
+                           (r"steps by ([-+.\d]+) ms", r"before ([-+.\d]+) ms", r"after ([-+.\d]+) ms"))
+    assert size == pytest.approx(20.0, abs=1.0) and before == pytest.approx(120.0, abs=2.0)
+    assert after == pytest.approx(140.0, abs=2.0)
+    assert not any("differs between parts" in t for t in texts)  # the step says why
+
+
+@pytest.mark.parametrize("drift_ppm", [100.0, -100.0])
+def test_drift_without_a_step_is_not_a_step(drift_ppm):
+    rng = np.random.default_rng(2)
+    master, slave = make_pair(rng, latency_s=LAT_S, drift_ppm=drift_ppm, dur_s=120.0, R=random_rotation(rng))
+    res = estimate(master, slave, compare=False)
+    assert res.quality["clock_step"] is None
+    assert res.drift_ppm == pytest.approx(drift_ppm, abs=2.0)
+    rep = _report(master, slave, res)
+    assert rep["status"] == "ok" and "status_reason" not in rep
+    assert not any("latency steps" in w["text"] for w in rep["warnings"])
+
+
+# ---- the parsers --------------------------------------------------------------------------------
+def _csv_text(t_ns: np.ndarray, gyro: np.ndarray) -> str:
+    body = "\n".join(",".join(r) for r in np.column_stack(
+        [cc.ns_to_seconds_text(t_ns), np.char.mod("%.17g", np.asarray(gyro, float))]))
+    return "time_s,gyro_x_rad_s,gyro_y_rad_s,gyro_z_rad_s\n" + body + "\n"
+
+
+def test_csv_clock_step_back_keeps_one_part(tmp_path):
+    """Rows in file order, the slave's stamps stepping back 2 s at 60 s: sorted, the two halves were
+    interleaved (400 "duplicates" dropped) and the latency came out -1037 ms at status ok."""
+    rng = np.random.default_rng(3)
+    master, slave = make_pair(rng, latency_s=LAT_S, dur_s=120.0, R=random_rotation(rng))
+    t_ns = slave.meta.t0_ns + np.round(slave.t_imu_s() * 1e9).astype(np.int64)
+    at = int(np.searchsorted(t_ns, T0_NS + int((60.0 + LAT_S) * 1e9)))
+    t_ns[at:] -= 2_000_000_000
+    p = tmp_path / "slave.csv"
+    p.write_text(_csv_text(t_ns, slave.gyro_rad_s()))
+    log = cc.load(str(p), Selector())
+    w = [x for x in log.meta.warnings if CLOCK_STEP_WORDS in x]
+    assert len(w) == 1, log.meta.warnings
+    assert f"at line {at + 2} " in w[0] and "-2.000 s" in w[0] and "left out lines" in w[0]
+    assert f"{t_ns[at - 1] * 1e-9:.3f} s -> {t_ns[at] * 1e-9:.3f} s" in w[0]
+    assert not any("duplicate" in x or "sorted" in x for x in log.meta.warnings)
+    t = log.t_imu_s()
+    assert len(t) == at and np.all(np.diff(t) > 0)  # the part before the step, not interleaved
+    np.testing.assert_array_equal(log.gyro_rad_s(), slave.gyro_rad_s()[:at])
+    res = estimate(master, log, compare=False)
+    assert res.latency_s == pytest.approx(LAT_S, abs=0.5e-3)
+    assert res.quality["clock_step"] is None
+    rep = _report(master, log, res)
+    assert rep["status"] == "partial" and "slave log's clock steps back" in rep["status_reason"]
+
+
+def test_reordering_and_stray_stamps_are_no_clock_step():
+    """Late samples (single ones, a burst) are sorted as before; a stray stamp is dropped as before."""
+    t = np.arange(20_000, dtype=np.int64) * 5_000_000 + T0_NS  # 200 Hz
+    late = t.copy()
+    late[[500, 7000]] -= 200_000_000  # single samples 0.2 s late in the record
+    idx = np.arange(len(t))
+    burst = np.concatenate([idx[:8800], idx[8830:9030], idx[8800:8830], idx[9030:]])
+    late = late[burst]  # a burst of 30 samples recorded 1 s late
+    assert len(clock_steps(late)) == 0
+    warns: list[str] = []
+    out = clean_stream("gyro", Stream(late, np.zeros((len(t), 3)), "IMU"), warns)
+    assert len(out.t_ns) == len(t) - 2  # sorted; the two single late ones land on stamps already taken
+    assert any("backward time steps" in x and "sorted" in x for x in warns)
+    assert not any(CLOCK_STEP_WORDS in x for x in warns)
+    stray = t.copy()
+    stray[100] += 12 * 86400 * 10**9  # one corrupt stamp 12 days on
+    assert len(clock_steps(stray)) == 0
+    warns: list[str] = []
+    out = clean_stream("gyro", Stream(stray, np.zeros((len(t), 3)), "IMU"), warns)
+    assert len(out.t_ns) == len(t) - 1 and not any(CLOCK_STEP_WORDS in x for x in warns)
+    # a reset (the stamps back to the start of the clock) is one
+    reset = t.copy()
+    reset[12_000:] -= reset[12_000] - t[0] - 1_000_000_000
+    assert clock_steps(reset).tolist() == [12_000]
+    warns = []
+    out = clean_stream("gyro", Stream(reset, np.zeros((len(t), 3)), "IMU"), warns)
+    assert len(out.t_ns) == 12_000 and np.array_equal(out.t_ns, t[:12_000])
+    assert any(CLOCK_STEP_WORDS in x and "at sample 12000" in x for x in warns)
