@@ -283,6 +283,14 @@ def _span(t: np.ndarray) -> tuple[float, float]:
     return (float(t[0]), float(t[-1])) if len(t) else (np.nan, np.nan)
 
 
+def _overlap_s(master: InsLog, slave: InsLog) -> float:
+    """How long the master's streams and the slave's IMU overlap on their stamps as they are (s; <= 0 or NaN:
+    not at all)."""
+    m0, m1 = master.span_s()
+    s0, s1 = _span(slave.t_imu_s())
+    return min(m1, s1) - max(m0, s0)
+
+
 def _resolve_match(master: InsLog, requested: str) -> tuple[str | None, str | None]:
     """(match, None) or (None, reason it cannot be done)."""
     has_att, has_vel = master.has_quat, master.has_vel
@@ -365,10 +373,7 @@ def _alignment(master: InsLog, slave: InsLog, run: str, opts: AnalyzeOptions, pr
     match, why = _resolve_match(master, opts.match)
     if why:
         return why
-    m0, m1 = master.span_s()
-    s0, s1 = _span(slave.t_imu_s())
-    overlap = min(m1, s1) - max(m0, s0)
-    if not overlap > 0:
+    if not _overlap_s(master, slave) > 0:
         hint = " (clocks unrelated? the compensated run uses the estimated latency)" if run == "uncompensated" else ""
         return f"no time overlap between the master and the slave on {run} stamps{hint}"
     try:
@@ -756,7 +761,11 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
             an.align_sections[run] = res
         else:
             an.alignment[run] = None
-            an.align_sections[run] = rp.alignment_skipped(res, opts.filter, opts.match)
+            # a master and a slave on different clocks (UNIX time, time since boot) cannot overlap at face
+            # value: the uncompensated run does not apply there, which is no shortcoming of the analysis
+            applies = not (run == "uncompensated" and master.meta.clock != slave.meta.clock
+                           and face is not None and not _overlap_s(master, face) > 0)
+            an.align_sections[run] = rp.alignment_skipped(res, opts.filter, opts.match, applies=applies)
     if "logtools.alignment.run" in sys.modules:  # the runs are done: their master series go
         sys.modules["logtools.alignment.run"].forget_master(master)
     parallel.release_freed_memory()

@@ -188,8 +188,10 @@ def alignment_section(res: AlignmentResult) -> dict:
     return sec
 
 
-def alignment_skipped(reason: str, filter: str, match: str) -> dict:
-    return {"skipped": reason, "filter": filter, "match": match}
+def alignment_skipped(reason: str, filter: str, match: str, *, applies: bool = True) -> dict:
+    """A run not done, and why. ``applies=False``: the run has no meaning for this pair (the uncompensated run
+    of logs on different clocks): not counted in ``skipped``, said as a note."""
+    return {"skipped": reason, "filter": filter, "match": match, **({} if applies else {"not_applicable": True})}
 
 
 def now_utc() -> str:
@@ -215,7 +217,7 @@ def build_report(
     if "failed" in lat:
         skipped["latency"] = lat["failed"]
     for run, sec in align.items():
-        if "skipped" in sec:
+        if "skipped" in sec and not sec.get("not_applicable"):
             skipped[f"alignment.{run}"] = sec["skipped"]
     status = "failed" if "failed" in lat else ("partial" if skipped else "ok")
     reasons = clock_step_reasons(lat, master, slave)
@@ -387,7 +389,8 @@ def findings(rep: dict) -> tuple[list[dict], list[dict]]:
         sec = al.get(run) or {}
         if "skipped" in sec:
             if why[0] != why[1] and not ("failed" in lat and run == "compensated"):
-                add(warns, "alignment", f"{run} alignment skipped: {sec['skipped']}")
+                add(notes if sec.get("not_applicable") else warns, "alignment",
+                    f"{run} alignment skipped: {sec['skipped']}")
             continue
         for n in sec.get("notes", []) or []:
             bad = any(c in n for c in _ALIGN_WARN_CONTAINS)

@@ -128,6 +128,27 @@ def test_failed_and_skipped_sections_validate():
     assert rep["latency"]["latency_s"] is None
 
 
+def test_an_uncompensated_run_that_does_not_apply_is_a_note_not_a_skip():
+    """Logs on different clocks (UNIX time against time since boot) cannot overlap at face value: the
+    uncompensated run has no meaning there, which leaves the status ok and says so as a note."""
+    an = make_fake_analysis()
+    why = "no time overlap between the master and the slave on uncompensated stamps"
+    rep = rp.build_report(an.master, an.slave, latency=an.latency,
+                          alignment={"uncompensated": rp.alignment_skipped(why, "kf", "vel+att", applies=False),
+                                     "compensated": an.alignment["compensated"]},
+                          timings_s={k: 0.0 for k in rp.TIMING_KEYS})
+    rp.add_findings(rep)
+    rp.validate(rep)
+    assert rep["status"] == "ok" and rep["skipped"] == {}
+    assert rep["alignment"]["uncompensated"]["not_applicable"] is True
+    assert any(why in n["text"] for n in rep["notes"]) and not any(why in w["text"] for w in rep["warnings"])
+    applies = rp.build_report(an.master, an.slave, latency=an.latency,
+                              alignment={"uncompensated": rp.alignment_skipped(why, "kf", "vel+att"),
+                                         "compensated": an.alignment["compensated"]},
+                              timings_s={k: 0.0 for k in rp.TIMING_KEYS})
+    assert applies["status"] == "partial" and "alignment.uncompensated" in applies["skipped"]
+
+
 @pytest.mark.parametrize("mutate", [
     lambda r: r.pop("latency"),
     lambda r: r["latency"].__setitem__("latency_s", "fast"),
