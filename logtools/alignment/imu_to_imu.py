@@ -15,8 +15,9 @@ compensated slave): a latency left in it turns into a rotation error where the r
 
 Each rotation is refined by Gauss-Newton from the Wahba (SVD) start (the accelerometers' also from the gyro
 triad's rotation, the smaller residual kept), the perturbation on the slave's side
-(``R = exp([d x]) R_hat``); its sigma is the sandwich ``J^-1 Omega J^-1`` with ``J = sum H^T H`` and
-``Omega`` the long-run covariance of the scores ``H^T e`` (Newey-West, Bartlett weights, bandwidth from
+(``R = exp([d x]) R_hat``); its sigma is the sandwich ``J^-1 Omega J^-1`` with ``J = sum H^T H`` (the
+master's own white noise taken out of it: errors in variables, see :func:`fit_rotation`) and ``Omega`` the
+long-run covariance of the scores ``H^T e`` (Newey-West, Bartlett weights, bandwidth from
 the scores' correlation time): residuals correlated in time (vibration, scale-factor errors, flexure)
 count as the fewer independent samples they are. A residual delay between the two IMUs is estimated with
 each rotation (it would turn into one). The rotation is fitted again on the slow and on the fast part of
@@ -49,6 +50,10 @@ class ImuToImuConfig:
     min_samples: int = 50  # fewer common samples: not measured
     min_explained: float = 0.5  # the fitted rotation must explain this fraction of the slave's (high-passed) power
     max_sigma_deg: float = 5.0  # an axis less determined than this: the triad's rotation is not reported (null)
+    #: ... the reason then says the motion is along one direction only where the master's moving signal (its
+    #: white noise taken out) has at most this fraction of its power on a second direction (level flight's
+    #: specific force; fit_rotation's sigma then has no information about that direction: the reason why)
+    one_direction_ratio: float = 0.01
     gap_steps: float = 3.0  # a step of a unit's stamps beyond this many of its median steps is a gap (not bridged)
     consistency_z: float = 3.0  # beyond this many combined sigmas the two views disagree
     #: ... the combined sigma taken as at least this (deg): a log against itself agrees to 1e-4 deg, which is
@@ -431,6 +436,27 @@ def _residual(u_m: np.ndarray, v_s: np.ndarray, r_mat: np.ndarray, k_lever: np.n
     return np.subtract(v_s, e, out=e)
 
 
+#: rows of third differences the white-noise estimate takes at most (in blocks spread over the series)
+NOISE_ROWS = 1 << 18
+
+
+def _white_noise_var(x: np.ndarray) -> np.ndarray:
+    """Each column's white-noise variance (n, k) -> (k,), from its third differences (the motion, smooth at
+    the IMU's rate, cancels; 20 = 1 + 9 + 9 + 1 for white noise), robust (MAD); a long series in blocks
+    spread over it (NOISE_ROWS at most). Zeros for fewer than 8 rows."""
+    n = len(x)
+    if n < 8:
+        return np.zeros(x.shape[1])
+    blk = 1024
+    if n <= NOISE_ROWS:
+        d3 = np.diff(x, n=3, axis=0)
+    else:
+        starts = np.linspace(0, n - blk, NOISE_ROWS // blk).astype(int)
+        d3 = np.concatenate([np.diff(x[a:a + blk], n=3, axis=0) for a in starts])
+    mad = np.median(np.abs(d3 - np.median(d3, axis=0)), axis=0) * 1.4826
+    return mad ** 2 / 20.0
+
+
 def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = None, *, dt_s: float = 1.0,
                  iterations: int = 5, starts: tuple[np.ndarray, ...] = ()
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray, float, float]:
@@ -439,7 +465,9 @@ def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = 
     ``starts`` (rotations), the smallest residual kept.
 
     Returns (R, cov of the slave-side rotation perturbation (rad^2, 3x3), r or None, cov of r or None,
-    residual rms, the scores' correlation time in seconds (``dt_s`` per sample))."""
+    residual rms, the scores' correlation time in seconds (``dt_s`` per sample)). The covariance's information
+    counts the master's motion without its white noise (:func:`_white_noise_var`); a direction with none
+    beyond it has an infinite covariance (not determined)."""
     n = len(u_m)
     p = 3 if k_lever is None else 3 + k_lever.shape[2]
     best = None
@@ -461,7 +489,12 @@ def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = 
             best = (cost, r_mat, lev)
     _, r_mat, lev = best
     e = _residual(u_m, v_s, r_mat, k_lever, lev)
-    jtj, _ = mom.normal_equations(r_mat, lev)
+    # the sandwich's bread without the master's own white noise (errors in variables): Gauss-Newton's sum
+    # p p^T counts it as motion, and where the master's signal moves along one direction only (level
+    # flight's specific force: the vertical) its noise alone "determined" the rotation about that direction,
+    # 0.8 deg for an accelerometer rotation 11-75 deg off (tests/test_imu_to_imu.py, the one-direction test)
+    mom.uu = mom.uu - n * np.diag(_white_noise_var(u_m))
+    hess, _ = mom.normal_equations(r_mat, lev)
     scores = np.empty((n, p))  # per sample h^T e: p x e, and (R K)^T e = K^T (R^T e)
     for a in range(0, n, BLOCK_ROWS):  # row by row arithmetic: the blocks bound the temporaries
         b = slice(a, a + BLOCK_ROWS)
@@ -472,8 +505,13 @@ def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = 
     del e
     om, tau = _long_run_cov(scores, overwrite=True)
     del scores
-    jinv = np.linalg.inv(jtj)
-    cov = jinv @ om @ jinv * (n / max(n - p, 1))
+    hess = 0.5 * (hess + hess.T)
+    if np.linalg.eigvalsh(hess)[0] <= 1e-12 * max(float(np.abs(hess).max()), 1e-300):
+        # the master's motion beyond its noise leaves a direction without information: not determined
+        cov = np.full((p, p), np.inf)
+    else:
+        jinv = np.linalg.inv(hess)
+        cov = jinv @ om @ jinv * (n / max(n - p, 1))
     return r_mat, cov[:3, :3], lev, (cov[3:, 3:] if lev is not None else None), rms, tau * dt_s
 
 
@@ -498,7 +536,15 @@ def _triad(u: np.ndarray, v: np.ndarray, k: np.ndarray | None, dt: float, cfg: I
     rpy, sig, sig_axes, gimbal = euler_with_sigma(r_mat, cov, cfg.gimbal_snap_sigmas,
                                                   np.radians(cfg.gimbal_snap_min_deg))
     if not np.all(np.isfinite(sig_axes)) or sig_axes.max() > cfg.max_sigma_deg:
-        return f"too little motion: sigma {' '.join(f'{x:.3g}' for x in sig_axes)} deg"
+        why = f"too little motion: sigma {' '.join(f'{x:.3g}' for x in sig_axes)} deg"
+        # the master's moving signal beyond its own noise: along one direction only, nothing fixes the
+        # rotation about it (level flight's specific force: the vertical)
+        lam, vec = np.linalg.eigh(u.T @ u - len(u) * np.diag(_white_noise_var(u)))
+        if lam[2] > 0 and lam[1] <= cfg.one_direction_ratio * lam[2]:
+            d = vec[:, 2] * np.sign(vec[np.argmax(np.abs(vec[:, 2])), 2])
+            why += (" (the motion beyond the master's noise is along one direction only, master x/y/z "
+                    f"{d[0]:+.2f}/{d[1]:+.2f}/{d[2]:+.2f}: the rotation about it is not determined)")
+        return why
     lever = tuple(float(x) for x in lev[:3]) if lev is not None and len(lev) == 4 else None
     return TriadRotation(tuple(float(x) for x in rpy), tuple(float(x) for x in sig), len(u),
                          rms, float(tau_s), lever, float(lev[-1]) if lev is not None else None,

@@ -256,6 +256,19 @@ class AlignmentConfig:
     #: the 50 beyond 2 sigma. The median over the channels at 2 caught 78 % of those, at 1.5 90 % (11 % of
     #: the clean ones)
     board_auto_corr_min: float = 2.0
+    #: the slave's gyro bias measured before the filter (the mean of its rates less the master's, rotated by the
+    #: coarse mounting: the latency's bias_diff_dph) seeds the filter's bias states where it is beyond
+    #: gyro_bias_seed_sigmas x the sensor grade's prior (300 x ARW, 2..2000 deg/h) and x its own uncertainty on
+    #: some axis. A MEMS turn-on bias of 1 deg/s (3600 deg/h) against the 2 deg/h prior of a quiet gyro was a
+    #: prior outlier the filter never reached: the mounting came out 1-3 deg off at z up to 14, the lever arm
+    #: 22-80 m (tests/test_alignment.py, the large-gyro-bias test). 3: a bias the prior puts within 3 sigma
+    #: is left to the filter as before (bit-identical results there)
+    gyro_bias_seed: bool = True
+    gyro_bias_seed_sigmas: float = 3.0
+    #: ... the seed's uncertainty takes a gyro scale-factor error of this much on the mean rate (the mean of
+    #: R w_m is not zero where the vehicle turns more one way; 1 %: a MEMS gyro's scale factor) on top of the
+    #: residuals' statistics; the seeded states' prior is the grade's and this in quadrature
+    gyro_bias_seed_scale_factor: float = 0.01
 
 
 #: the configuration the benchmarks measured

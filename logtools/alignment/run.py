@@ -110,14 +110,24 @@ def _align(master: InsLog, slave: InsLog, kind: FilterKind, match: str, smoother
         if coarse.note:
             notes.append(coarse.note)
     r0 = coarse.r0
-    ep = _epochs(t_imu, gyro, accel, win.dt_upd_s, span_s, config, src, notes)
+    seed = _gyro_bias_seed(master, ms, t_imu, gyro, win.tau0_s, r0, _gyro_bias_prior(opts, t_imu, gyro), config,
+                           notes)
+    # the filter's gyro-bias states carry what is left of the bias after the seed: the slave's increments are
+    # taken with the seed removed (the bias states are linear, so this is the filter started from the seed)
+    ep = _epochs(t_imu, gyro - seed.b_rad_s if seed.applied else gyro, accel, win.dt_upd_s, span_s, config, src,
+                 notes)
     q0, v0, lever0 = _initial_state(master, slave, ms, ep.t_s[0], win.tau0_s, r0, opts, src, notes)
     llh0 = _initial_position(master, slave, ep.t_s[0], opts, notes)
     inp = AlignInputs(ep.t_s, ep.seg_dq, ep.seg_dv_b, ep.seg_dt_s, ms, q0, v0, llh0, r0, lever0, win.tau0_s,
                       ep.restart)
     prior = _mounting_prior(coarse, dcm_from_quat(q0), opts, config, notes)
-    prob = _Problem(kind, match, smoother, opts, config, master, t_imu, gyro, accel, prior, win, span_s)
+    prob = _Problem(kind, match, smoother, opts, config, master, t_imu, gyro, accel, prior, win, span_s,
+                    seed.prior_rad_s if seed.applied else None)
     run, lay, settings, sig0 = _filter_passes(prob, inp, src, progress, prog, notes)
+    if seed.applied:  # the bias estimates (and their history) are the seed plus the states
+        xs = run.x.copy()
+        xs[:, lay.gyro] += seed.b_rad_s
+        run = replace(run, x=xs)
     res = _result(run, lay, settings, sig0, kind, match, opts, config, notes)
     prog(1.0, "alignment done")
     return res
@@ -200,6 +210,23 @@ class _Problem:
     prior: MountingPrior
     win: DelayWindow
     overlap_s: float
+    #: (3,) rad/s: the gyro-bias states' prior sigma where the bias was seeded (:class:`GyroBiasSeed`); None:
+    #: the sensor grade's (``_gyro_bias_prior``)
+    gyro_bias_prior_rad_s: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class GyroBiasSeed:
+    """The slave's gyro bias measured before the filter: the mean of its rates less the master's inertial
+    rates rotated by the coarse mounting (the latency's ``bias_diff_dph`` on the alignment's data), slave
+    frame, rad/s. ``applied``: it is far beyond the sensor grade's prior, so the filter starts from it (its
+    states then carry the rest) with the prior ``prior_rad_s`` (the grade's, widened by the seed's own
+    uncertainty); otherwise the filter starts from zero as before."""
+
+    b_rad_s: np.ndarray
+    sigma_rad_s: np.ndarray  # the measurement's uncertainty (residuals, their correlation time, scale factor)
+    applied: bool = False
+    prior_rad_s: np.ndarray | None = None
 
 
 def _check_inputs(master: InsLog, slave: InsLog, kind: FilterKind, match: str, src: str) -> None:
@@ -317,7 +344,7 @@ def _setup(prob: _Problem, flexure: bool, board: bool = False) -> tuple[StateLay
                      delay=prob.win.delay_state, board_errors=board)
     st, s0 = _settings(prob.kind, ly, prob.master, prob.t_imu, prob.gyro, prob.accel, prob.opts, prob.config,
                        prob.prior, prob.win.dt_upd_s, prob.win.tau0_s, (prob.win.lo_s, prob.win.hi_s),
-                       prob.smoother)
+                       prob.smoother, prob.gyro_bias_prior_rad_s)
     return ly, st, s0
 
 
@@ -851,26 +878,88 @@ def _hf_sigma(y: np.ndarray) -> float:
     return float(np.max(mad) / np.sqrt(20.0))
 
 
+def _arw_rad_s(opts: AlignmentOptions, t_imu: np.ndarray, gyro: np.ndarray) -> float:
+    """The slave gyro's angle random walk (rad/sqrt(s)): the option, else from the data (with a floor)."""
+    if opts.gyro_arw_dpsh is not None:
+        return float(opts.gyro_arw_dpsh) * DEG / 60.0
+    return max(_hf_sigma(gyro) * np.sqrt(median_step_s(t_imu)), 0.002 * DEG / 60.0)
+
+
+def _gyro_bias_prior(opts: AlignmentOptions, t_imu: np.ndarray, gyro: np.ndarray) -> float:
+    """The gyro bias's prior sigma (rad/s) from the sensor grade its noise reveals (navigation grade ~0.002
+    deg/rt-h, MEMS ~0.2-1 deg/rt-h: 300 x ARW, 2..2000 deg/h); the option overrides."""
+    arw_dpsh = _arw_rad_s(opts, t_imu, gyro) / (DEG / 60.0)
+    return float(_given(opts.gyro_bias_sigma_dph, np.clip(300.0 * arw_dpsh, 2.0, 2000.0))) * DEG_PER_H
+
+
+def _gyro_bias_seed(master: InsLog, ms: MasterSeries, t_imu: np.ndarray, gyro: np.ndarray, tau0: float,
+                    r0: np.ndarray, prior_rad_s: float, config: AlignmentConfig, notes: list[str]) -> GyroBiasSeed:
+    """The slave's gyro bias measured as the mean of w_s - R0 w_m over the overlap (w_m the master's inertial
+    rate: its gyro, else its attitude's rate plus the earth rate; R0 the coarse mounting, fitted on the rates'
+    motion parts, so the means are what it leaves), with its uncertainty: the residuals' variance over their
+    independent samples (their correlation time) and a gyro scale-factor error on the mean rate
+    (config.gyro_bias_seed_scale_factor). Applied where it exceeds config.gyro_bias_seed_sigmas x both the
+    sensor grade's prior and its own uncertainty on some axis: a MEMS turn-on bias of 1 deg/s against a 2 deg/h
+    prior was a prior outlier the filter could not reach, and the mounting and lever arm absorbed it
+    (docs/alignment.md, "A large gyro bias")."""
+    none = GyroBiasSeed(np.zeros(3), np.full(3, np.inf))
+    if not config.gyro_bias_seed:
+        return none
+    grid = np.arange(t_imu[0], t_imu[-1], 0.02)
+    if len(grid) < 20:
+        return none
+    if master.has_gyro:
+        tm, gm = master.t_imu_s(), master.gyro_rad_s()
+        okm = np.isfinite(gm).all(1)
+        if okm.sum() < 2:
+            return none
+        w_m = _interp_cols(grid - tau0, tm[okm], gm[okm])
+    elif ms.w_nm_m is not None and ms.quat is not None:
+        # the attitude's rate is relative to NED: the gyros also sense the earth's rate (transport rate left out)
+        lat = np.radians(master.lat_lon_alt()[1][0, 0]) if master.has_pos else np.radians(45.0)
+        q = _interp_cols(grid - tau0, ms.t_s, ms.quat)
+        c_nm = dcm_from_quat(q / np.linalg.norm(q, axis=1, keepdims=True))
+        w_m = _interp_cols(grid - tau0, ms.t_s, ms.w_nm_m) + np.einsum("kji,j->ki", c_nm, earth.earth_rate_ned(lat))
+    else:
+        return none
+    w_s = _interp_cols(grid, t_imu, gyro)
+    ok = np.isfinite(w_m).all(1) & np.isfinite(w_s).all(1)
+    if ok.sum() < 20:
+        return none
+    u = w_m[ok] @ r0.T
+    b = w_s[ok].mean(0) - u.mean(0)
+    res = w_s[ok] - u - b
+    n = len(res)
+    tau = np.minimum(_correlation_times(res), n / 10.0) if np.all(np.ptp(res, axis=0) > 0) else np.full(3, n / 10.0)
+    sig = np.sqrt(np.mean(res * res, axis=0) * np.maximum(tau, 1.0) / n
+                  + (config.gyro_bias_seed_scale_factor * u.mean(0)) ** 2)
+    k = config.gyro_bias_seed_sigmas
+    if not (np.all(np.isfinite(b)) and np.any((np.abs(b) > k * prior_rad_s) & (np.abs(b) > k * sig))):
+        return GyroBiasSeed(b, sig)
+    prior = np.sqrt(prior_rad_s**2 + sig**2)
+    notes.append(f"slave gyro bias measured before the filter (mean rate difference): {_fmt3(b / DEG_PER_H)} deg/h "
+                 f"(x/y/z), beyond {k:g} x its prior of {prior_rad_s / DEG_PER_H:.3g} deg/h: the filter starts from it, "
+                 f"prior {_fmt3(prior / DEG_PER_H)} deg/h")
+    return GyroBiasSeed(b, sig, True, prior)
+
+
 def _settings(kind: FilterKind, lay: StateLayout, master: InsLog, t_imu, gyro, accel, opts: AlignmentOptions,
               config: AlignmentConfig, prior: MountingPrior, dt_upd: float, tau0: float, tau_bounds: tuple[float, float],
-              smoother: bool) -> tuple[FilterSettings, np.ndarray]:
+              smoother: bool, gyro_prior: np.ndarray | None = None) -> tuple[FilterSettings, np.ndarray]:
     """The filter settings and prior sigmas: noise densities, priors and measurement noise from the
-    options, else from the data (with floors)."""
+    options, else from the data (with floors). ``gyro_prior``: the gyro-bias states' prior sigma (rad/s)
+    where the bias was seeded, else the sensor grade's."""
     dt_imu = median_step_s(t_imu)
     # slave noise densities from the data (sample sigma * sqrt(dt)), with floors
-    if opts.gyro_arw_dpsh is not None:
-        arw = float(opts.gyro_arw_dpsh) * DEG / 60.0
-    else:
-        arw = max(_hf_sigma(gyro) * np.sqrt(dt_imu), 0.002 * DEG / 60.0)
+    arw = _arw_rad_s(opts, t_imu, gyro)
     if opts.accel_vrw_ug_psh is not None:
         vrw = float(opts.accel_vrw_ug_psh) * UG
     else:
         vrw = max(_hf_sigma(accel) * np.sqrt(dt_imu), 5.0 * UG)
-    arw_dpsh = arw / (DEG / 60.0)
     vrw_ug = vrw / UG
     # bias priors from the sensor grade its noise reveals (navigation grade ~0.002 deg/rt-h, 20 ug/rt-Hz;
     # MEMS ~0.2-1 deg/rt-h, 150-400 ug/rt-Hz); options override
-    sg_gyro = float(_given(opts.gyro_bias_sigma_dph, np.clip(300.0 * arw_dpsh, 2.0, 2000.0))) * DEG_PER_H
+    sg_gyro = _gyro_bias_prior(opts, t_imu, gyro)
     sg_acc = float(_given(opts.accel_bias_sigma_mg,
                           np.clip(0.01 * vrw_ug * max(1.0, vrw_ug / 50.0), 0.1, 50.0))) * MG
     # measurement noise from the master's data, with floors
@@ -892,7 +981,8 @@ def _settings(kind: FilterKind, lay: StateLayout, master: InsLog, t_imu, gyro, a
     s_mount, s_att = prior.sigmas()
     sig[lay.att] = s_att
     qc[lay.att] = arw**2
-    sig[lay.gyro] = sg_gyro
+    # a seeded bias (GyroBiasSeed): the prior covers the seed's error; the bias instability stays the grade's
+    sig[lay.gyro] = sg_gyro if gyro_prior is None else gyro_prior
     qc[lay.gyro] = (0.01 * sg_gyro) ** 2 / 3600.0
     if lay.vel is not None:
         sig[lay.vel] = 0.1
