@@ -211,12 +211,14 @@ def widened(res: LatencyResult, ctx: Ctx) -> LatencyResult:
     except AnalysisError as exc:
         wide, why = None, exc.problem
     c1 = float(wide.quality.get("vector_cost_min", np.nan)) if wide is not None else np.nan
+    # (the bounded search's refinement may walk past the window: where it ended, said as such)
+    where = (f"ended at {res.latency_s * 1e3:+.1f} ms" + (", past its edge" if abs(res.latency_s) > max_lag_s else ""))
     if wide is not None and c1 < ctx.cfg.search.search_widen_gain * c0:
         q = dict(wide.quality)
         q["warnings"] = list(q.get("warnings", [])) + [
-            f"the best match within +-{max_lag_s:g} s ({res.latency_s * 1e3:+.1f} ms) fitted the rates poorly "
-            f"(cost {c0:.3g}) or lay at the edge: the whole overlap was searched and {wide.latency_s:+.4f} s "
-            f"fits far better (cost {c1:.3g}); widen --max-lag or use --max-lag auto to search so directly"]
+            f"the search within +-{max_lag_s:g} s {where} and fitted the rates poorly (cost {c0:.3g}) or lay at "
+            f"the edge: the whole overlap was searched and {wide.latency_s:+.4f} s fits far better (cost "
+            f"{c1:.3g}); widen --max-lag or use --max-lag auto to search so directly"]
         q["search_widened"] = True
         return replace(wide, quality=q)
     q = dict(res.quality)
@@ -224,7 +226,7 @@ def widened(res: LatencyResult, ctx: Ctx) -> LatencyResult:
     note = (f"the whole overlap, searched as well, fits no better (cost {c1:.3g} at {wide.latency_s:+.4f} s)"
             if wide is not None else f"a whole-overlap search could not run ({why})")
     q["warnings"] = list(q.get("warnings", [])) + [
-        f"the best match within +-{max_lag_s:g} s lies at its edge or fits the rates poorly (cost {c0:.3g}); "
+        f"the search within +-{max_lag_s:g} s {where}, at its edge or fitting the rates poorly (cost {c0:.3g}); "
         + note]
     return replace(res, quality=q)
 
