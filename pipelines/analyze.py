@@ -477,7 +477,9 @@ def summary_lines(rep: dict, paths: dict[str, str | None]) -> list[str]:
         if others:
             out.append("        other methods: " + ", ".join(others))
         if q.get("too_little_motion"):
-            out.append("        too little motion: this latency and its sigma are doubtful (see the warnings)")
+            what = ("noise large against the motion" if q.get("low_motion_cause") == "noise"
+                    else "too little motion")
+            out.append(f"        {what}: this latency and its sigma are doubtful (see the warnings)")
     for run in rp.RUNS:
         a = rep["alignment"].get(run, {})
         if "skipped" in a:

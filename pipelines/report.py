@@ -321,7 +321,11 @@ def _latency_flag_words(q: dict) -> list[str]:
         snr, dps = _num(q.get("motion_snr")), _num(q.get("motion_dps"))
         fig = ", ".join(x for x in ((f"signal/noise {snr:.3g}" if snr is not None else ""),
                                     (f"motion {dps:.3g} deg/s" if dps is not None else "")) if x)
-        out.append(f"too little motion for a reliable latency ({fig}): the estimate and its sigma are doubtful")
+        if q.get("low_motion_cause") == "noise":  # (the motion is there: the noise drowns it)
+            out.append(f"the sensors' noise is large against the motion ({fig}; vibration?): the latency and its "
+                       "sigma are doubtful")
+        else:
+            out.append(f"too little motion for a reliable latency ({fig}): the estimate and its sigma are doubtful")
     if q.get("periodic"):
         alts = ", ".join(f"{x:+.4f} s" for x in (q.get("periodic_alternatives_s") or [])[:4] if _num(x) is not None)
         out.append("the motion repeats: other lags fit almost as well" + (f" ({alts})" if alts else "")

@@ -93,6 +93,19 @@ def test_findings_say_too_little_motion_and_not_determined_in_words():
     assert any(ln.startswith(f"status ok: {len(warns)} warning(s)") for ln in lines)
 
 
+def test_noise_that_drowns_ample_motion_is_not_called_too_little_motion():
+    """Heavy vibration: the vehicle turns at 6 deg/s but the rates' noise is larger still; the words name
+    the noise, not the motion."""
+    rep = _report()
+    rep["latency"]["quality"].update(too_little_motion=True, motion_snr=3.2, motion_dps=6.4,
+                                     low_motion_cause="noise")
+    text = " | ".join(w["text"] for w in rp.findings(rep)[0])
+    assert "the sensors' noise is large against the motion (signal/noise 3.2, motion 6.4 deg/s" in text
+    assert "too little motion" not in text
+    lines = summary_lines({**rep, "warnings": [], "notes": []}, {})
+    assert any("noise large against the motion" in ln for ln in lines)
+
+
 def test_summary_counts_warnings_not_notes_and_prints_the_status(tmp_path, fake_numerics, capsys):
     m, s = write_fake_pair(tmp_path)
     out = tmp_path / "out"

@@ -74,6 +74,9 @@ def quality_record(ctx: Ctx, co: Coarse, fin: Fit, motion: tuple, rs: RateSigma,
         "motion_snr": float(min(snr, snr_s)),
         "too_little_motion": bool(min(snr, snr_s) < cfg.prepare.low_motion_snr
                                   or motion_dps < cfg.prepare.low_motion_dps),
+        # what limits it: the vehicle barely turning, or the sensors' noise (vibration) drowning ample motion
+        "low_motion_cause": ("motion" if motion_dps < cfg.prepare.low_motion_dps
+                             else "noise" if min(snr, snr_s) < cfg.prepare.low_motion_snr else None),
         "periodic": len(alts) > 0,
         "periodic_alternatives_s": [float(x) for x in alts[:10]],
         "periodic_alternatives_rejected_s": [float(x) for x in alts_out[:10]],
