@@ -651,7 +651,7 @@ def _coarse_mounting(master: InsLog, slave: InsLog, ms: MasterSeries, t_imu: np.
     slave's own attitude; then that joint fit however weakly it is determined (not ok: a wider prior); else
     the identity (not ok). A fit comes with its error covariance and its sensitivity to the accelerometer
     triad's misalignment (:func:`_wahba_covariance`)."""
-    grid = np.arange(t_imu[0], t_imu[-1], 0.02)
+    grid = np.arange(t_imu[0], t_imu[-1], config.gyro_bias_seed_grid_s)
     if master.has_gyro:
         tm = master.t_imu_s()
         gm = master.gyro_rad_s()
@@ -905,7 +905,7 @@ def _gyro_bias_seed(master: InsLog, ms: MasterSeries, t_imu: np.ndarray, gyro: n
     none = GyroBiasSeed(np.zeros(3), np.full(3, np.inf))
     if not config.gyro_bias_seed:
         return none
-    grid = np.arange(t_imu[0], t_imu[-1], 0.02)
+    grid = np.arange(t_imu[0], t_imu[-1], config.gyro_bias_seed_grid_s)
     if len(grid) < 20:
         return none
     if master.has_gyro:
