@@ -336,14 +336,15 @@ def _instances(log: DfLog, name: str) -> list[int]:
 def _quat_source(log: DfLog, src: Src) -> Src | None:
     """The quaternion message of the same EKF core as ``src`` (or of AHR2 itself)."""
     if src.name in QUAT_OF:
-        if src.inst is not None and log.has(src.name[:3] + "Q") and src.name in ("XKF1", "NKF1"):
-            return Src(src.name[:3] + "Q", src.inst)
+        multi = src.name[:2] + "Q"  # the core-instanced quaternion of newer logs: XKF1[C] -> XKQ[C], NKF1 -> NKQ
+        if src.inst is not None and log.has(multi) and src.name in ("XKF1", "NKF1"):
+            return Src(multi, src.inst)
         q = QUAT_OF[src.name]
         if log.has(q):
             return Src(q)
-        if log.has(src.name[:3] + "Q"):
+        if log.has(multi):
             core = src.inst if src.inst is not None else (1 if src.name.endswith("6") else 0)
-            return Src(src.name[:3] + "Q", core)
+            return Src(multi, core)
     return None
 
 

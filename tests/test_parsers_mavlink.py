@@ -728,3 +728,16 @@ def test_fmt_search_by_blocks_finds_every_header_a_whole_file_search_finds(tmp_p
     monkeypatch.setattr(D, "_SEARCH_BLOCK", block)
     np.testing.assert_array_equal(D._find_header(buf, D.FMT_TYPE), whole)
     assert len(whole) > 5 and whole[-1] == len(buf) - 3
+
+
+@pytest.mark.parametrize("ekf,inst,quat", [("XKF1", 0, ("XKQ", 0)), ("XKF1", 1, ("XKQ", 1)), ("NKF1", 1, ("NKQ", 1)),
+                                           ("XKF6", None, ("XKQ", 1))])
+def test_an_ekf_cores_attitude_is_its_instanced_quaternion(ekf, inst, quat):
+    """Newer logs write one XKF1/XKQ per core with the core in field C: nav=XKF1[1] takes XKQ[1] (a
+    quaternion), not XKF1's centidegree Euler angles."""
+    class Log:
+        def has(self, name):
+            return name in ("XKF1", "XKF6", "XKQ", "NKF1", "NKQ", "IMU")
+
+    q = D._quat_source(Log(), D.Src(ekf, inst))
+    assert q is not None and (q.name, q.inst) == quat
