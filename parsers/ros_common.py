@@ -763,8 +763,9 @@ def quat_enu_flu_to_ned_frd_fast(q_wxyz: np.ndarray) -> np.ndarray:
 QUAT_ROWS = 1 << 19
 
 
-def quat_ros_to_ned_frd(cols: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """ROS (x, y, z, w) FLU->ENU columns -> (quat_wxyz FRD->NED, valid mask)."""
+def quat_ros_to_ned_frd(cols: dict[str, np.ndarray], ned: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """ROS (x, y, z, w) FLU->ENU columns -> (quat_wxyz FRD->NED, valid mask). ``ned``: the columns are already
+    FRD->NED (a frame_id with a NED/FRD suffix, :func:`is_ned_frame`): normalised and reordered only."""
     n = len(cols["qw"])
     out = np.empty((n, 4))
     ok = np.empty(n, dtype=bool)
@@ -776,12 +777,13 @@ def quat_ros_to_ned_frd(cols: dict[str, np.ndarray]) -> tuple[np.ndarray, np.nda
         good = np.isfinite(norm) & (np.abs(norm - 1.0) < 0.1)
         ok[i:j] = good
         part = out[i:j]
+        conv = (lambda x: x) if ned else quat_enu_flu_to_ned_frd_fast  # noqa: E731
         if good.all():
-            part[:] = quat_enu_flu_to_ned_frd_fast(q / norm[:, None])
+            part[:] = conv(q / norm[:, None])
         else:
             part[:] = np.nan
             if good.any():
-                part[good] = quat_enu_flu_to_ned_frd_fast(q[good] / norm[good, None])
+                part[good] = conv(q[good] / norm[good, None])
         del q, norm, good, part
     return out, ok
 
@@ -973,6 +975,21 @@ def unit_selector(plan: Plan) -> str:
     return ",".join(items)
 
 
+#: frame_id suffixes that mark a NED world / FRD body frame (REP-103's "_ned" suffix; MAVROS and PX4 name their
+#: body frame "base_link_frd"): such a message's vectors and orientation are already FRD/NED, not ENU/FLU
+NED_FRAME_SUFFIXES = ("_ned", "_frd")
+
+
+def is_ned_frame(frame_id: str) -> bool:
+    """A frame_id that says its frame is NED/FRD (:data:`NED_FRAME_SUFFIXES`)."""
+    return frame_id.strip().lower().endswith(NED_FRAME_SUFFIXES)
+
+
+def _body_vec(d: "TopicData", prefix: str) -> np.ndarray:
+    """A body-frame vector of ``d`` in FRD: converted from FLU, or as it is where the frame_id says FRD/NED."""
+    return _vec(d.cols, prefix) if is_ned_frame(d.frame_id) else _vec_frd(d.cols, prefix)
+
+
 def _vec_frd(cols: dict[str, np.ndarray], prefix: str) -> np.ndarray:
     """``flu_to_frd(_vec(cols, prefix))`` without the intermediate array."""
     x = cols[prefix + "x"]
@@ -1011,6 +1028,9 @@ def to_inslog(rawlog: RawLog, selector: Selector, *, release: bool = False) -> I
     def get(name: str) -> TopicData:
         if name not in cache:
             cache[name] = topic_data(rawlog, name, plan.time_mode, warnings)
+            if is_ned_frame(cache[name].frame_id):
+                warnings.append(f"note: {name}: frame_id '{cache[name].frame_id}' names a NED/FRD frame (REP-103 "
+                                "suffix): its vectors and orientation read as FRD/NED, not converted from ENU/FLU")
             if release:  # the TopicData holds what is needed of the topic from now on
                 raw = rawlog.topics[name]
                 raw.decoded, raw.log_ns, raw.data = None, np.zeros(0, np.int64), []
@@ -1042,26 +1062,26 @@ def to_inslog(rawlog: RawLog, selector: Selector, *, release: bool = False) -> I
         if np.all(c["g_cov0"] == -1):
             warnings.append(f"{d.name}: angular_velocity marked absent (covariance[0] = -1)")
         else:
-            streams["gyro"] = Stream(d.t_ns, _vec_frd(c, "g"), d.name)
+            streams["gyro"] = Stream(d.t_ns, _body_vec(d, "g"), d.name)
         drop(plan.imu, ("g_cov0", "gx", "gy", "gz"))
         if np.all(c["a_cov0"] == -1):
             warnings.append(f"{d.name}: linear_acceleration marked absent (covariance[0] = -1)")
         else:
-            streams["accel"] = Stream(d.t_ns, _vec_frd(c, "a"), d.name)
+            streams["accel"] = Stream(d.t_ns, _body_vec(d, "a"), d.name)
         drop(plan.imu, ("a_cov0", "ax", "ay", "az"))
         sources.append(f"{d.stamp_source} ({d.name})")
         del d, c
         done(plan.imu)
     if plan.gyro_odom:
         d = get(plan.gyro_odom)
-        streams["gyro"] = Stream(d.t_ns, _vec_frd(d.cols, "g"), d.name + " twist.angular")
+        streams["gyro"] = Stream(d.t_ns, _body_vec(d, "g"), d.name + " twist.angular")
         sources.append(f"{d.stamp_source} ({d.name})")
         del d
         done(plan.gyro_odom)
     q_t = q_v = None
     if plan.att:
         d = get(plan.att)
-        q, ok = quat_ros_to_ned_frd(d.cols)
+        q, ok = quat_ros_to_ned_frd(d.cols, is_ned_frame(d.frame_id))
         drop(plan.att, ("qx", "qy", "qz", "qw"))
         if d.msgtype == IMU:  # orientation_covariance[0] = -1: no orientation (REP-145), said as a note
             absent = d.cols["q_cov0"] == -1
@@ -1087,16 +1107,16 @@ def to_inslog(rawlog: RawLog, selector: Selector, *, release: bool = False) -> I
         if body:
             v = _vec(d.cols, "v")
             if d.msgtype == ODOM and plan.vel_frame is None:
-                qv, okq = quat_ros_to_ned_frd(d.cols)
+                qv, okq = quat_ros_to_ned_frd(d.cols, is_ned_frame(d.frame_id))
                 qv[~okq] = np.nan
             else:
                 if q_t is None:
                     raise InputError(f"vel={d.name} in body frame needs an attitude (att=/topic)", rawlog.path)
                 qv = _quat_at(d.t_ns, q_t, q_v)
-            v_ned = body_to_ned(flu_to_frd(v), qv)
+            v_ned = body_to_ned(v if is_ned_frame(d.frame_id) else flu_to_frd(v), qv)
             del v, qv
         else:
-            v_ned = _vec_enu_to_ned(d.cols, "v")
+            v_ned = _vec(d.cols, "v") if is_ned_frame(d.frame_id) else _vec_enu_to_ned(d.cols, "v")
         streams["vel"] = Stream(d.t_ns, v_ned, d.name + (" (body)" if body else " (ENU)"))
         if plan.vel not in (plan.imu, plan.gyro_odom, plan.att):
             sources.append(f"{d.stamp_source} ({d.name})")

@@ -238,6 +238,33 @@ def _odom_north_msg(T, t_ns: int):
                                        covariance=np.zeros(36)))
 
 
+def test_a_frame_id_with_a_ned_suffix_is_read_as_frd_ned(tmp_path):
+    """REP-103 marks NED frames with a "_ned" suffix (MAVROS and PX4 name the body "base_link_frd"): such an
+    Imu's vectors and orientation are FRD/NED already. Heading east (NED yaw +90 deg), turning right (FRD yaw
+    rate +0.1), at rest (FRD accel z -9.81): read as they are, with a note; the same numbers under a plain
+    frame_id are converted from FLU/ENU as before."""
+    T = _ros_types()
+    c45 = np.sqrt(0.5)
+    msgs = []
+    for k in range(20):
+        t = T0_NS + k * 10_000_000
+        for topic, frame in (("/imu_ned", "imu_link_ned"), ("/imu_frd", "base_link_FRD"), ("/imu", "imu_link")):
+            msgs.append((topic, "sensor_msgs/msg/Imu",
+                         _imu_msg(T, t, (0.0, 0.0, c45, c45), (0.0, 0.0, 0.1), (0.0, 0.0, -9.81), frame=frame), t))
+    p = str(tmp_path / "ned.mcap")
+    _hand_mcap(p, msgs)
+    for topic in ("/imu_ned", "/imu_frd"):
+        log = parsers.load(p + f"::imu={topic}")
+        np.testing.assert_allclose(log.gyro_rad_s(), np.tile([0.0, 0.0, 0.1], (20, 1)), atol=1e-15)
+        np.testing.assert_allclose(log.accel_m_s2(), np.tile([0.0, 0.0, -9.81], (20, 1)), atol=1e-15)
+        np.testing.assert_allclose(euler_from_quat(log.quat_wxyz()[1]), np.tile([0.0, 0.0, np.pi / 2], (20, 1)),
+                                   atol=1e-12)
+        assert any(w.startswith(f"note: {topic}: frame_id") and "NED/FRD" in w for w in log.meta.warnings)
+    plain = parsers.load(p + "::imu=/imu")  # FLU/ENU: turning left, upside down, heading north
+    np.testing.assert_allclose(plain.gyro_rad_s(), np.tile([0.0, 0.0, -0.1], (20, 1)), atol=1e-15)
+    assert not any("NED/FRD" in w for w in plain.meta.warnings)
+
+
 def test_enu_flu_hand_built_messages(tmp_path):
     """Heading north, turning left (FLU yaw rate +0.1), at rest (FLU accel z +9.81); ENU identity
     quaternion = heading east; Odometry forward 3 m/s heading north; TwistStamped ENU east 5 m/s."""
