@@ -513,7 +513,23 @@ def _utc_offset_ns(topics, path: str) -> tuple[int, str, list[str]]:
     return off, src, warns
 
 
-def _pick(topics, wanted: str | None, candidates: tuple[str, ...], path: str, what: str) -> TopicKey | None:
+def _default_topic(keys, candidates: tuple[str, ...], inst: int | None = None) -> TopicKey | None:
+    """The stream a unit gets where no selector names one: of the candidate topics (in their order), instance
+    ``inst`` where one has it (a second unit's IMU, vehicle_imu[1], goes with estimator_attitude[1]: the
+    estimator running on it), else the first candidate's lowest instance."""
+    if inst:
+        for name in candidates:
+            if (name, inst) in keys:
+                return name, inst
+    for name in candidates:
+        insts = sorted(i for n, i in keys if n == name)
+        if insts:
+            return name, insts[0]
+    return None
+
+
+def _pick(topics, wanted: str | None, candidates: tuple[str, ...], path: str, what: str,
+          inst: int | None = None) -> TopicKey | None:
     if wanted is not None:
         if wanted.lower() == "none":
             return None
@@ -522,11 +538,7 @@ def _pick(topics, wanted: str | None, candidates: tuple[str, ...], path: str, wh
             have = ", ".join(_fmt_key(k) for k in sorted(topics)) or "nothing"
             raise InputError(f"no topic {_fmt_key(key)} in log for {what}= (has: {have})", path)
         return key
-    for name in candidates:
-        insts = sorted(i for n, i in topics if n == name)
-        if insts:
-            return name, insts[0]
-    return None
+    return _default_topic(topics.keys(), candidates, inst)
 
 
 def load(path: str, selector: Selector, *, engine: str = "auto") -> InsLog:
@@ -562,20 +574,22 @@ def load(path: str, selector: Selector, *, engine: str = "auto") -> InsLog:
             raise InputError(f"imu={_fmt_key(k_imu)}: not an IMU topic (use one of {', '.join(IMU_TOPICS)})", path)
         gyro, acc, imu_src = _imu_streams(topics, k_imu, use_sample, path, warns)
         chosen.append(f"imu={_fmt_key(k_imu)}")
-    k_att = _pick(topics, selector.get("att"), ATT_TOPICS, path, "att")
+    # a unit whose IMU is a further instance takes the same instance of the other streams where the log has it
+    inst = k_imu[1] if k_imu is not None and k_imu[1] > 0 else None
+    k_att = _pick(topics, selector.get("att"), ATT_TOPICS, path, "att", inst)
     if k_att is not None:
         if not all(f"q[{i}]" in topics[k_att] for i in range(4)):
             raise InputError(f"att={_fmt_key(k_att)}: topic has no q[4] quaternion", path)
         quat = _att_stream(topics[k_att], k_att, use_sample)
         chosen.append(f"att={_fmt_key(k_att)}")
-    k_vel = _pick(topics, selector.get("vel"), VEL_TOPICS, path, "vel")
+    k_vel = _pick(topics, selector.get("vel"), VEL_TOPICS, path, "vel", inst)
     if k_vel is not None:
         if "vx" not in topics[k_vel]:
             raise InputError(f"vel={_fmt_key(k_vel)}: topic has no vx/vy/vz", path)
         vel = _vel_stream(topics[k_vel], k_vel, use_sample, warns)
         if vel is not None or selector.get("vel"):
             chosen.append(f"vel={_fmt_key(k_vel)}")
-    k_pos = _pick(topics, selector.get("pos"), POS_TOPICS + VEL_TOPICS, path, "pos")
+    k_pos = _pick(topics, selector.get("pos"), POS_TOPICS + VEL_TOPICS, path, "pos", inst)
     if k_pos is not None:
         pos = _pos_stream(topics[k_pos], k_pos, use_sample, warns)
         if pos is not None or selector.get("pos"):
@@ -599,6 +613,13 @@ def load(path: str, selector: Selector, *, engine: str = "auto") -> InsLog:
             offset = ClockOffset(off_ns, f"{stamp} + boot->UTC offset from {src}", ",".join(chosen + ["clock=epoch"]))
     if not selector:
         warns.append(f"no selector given: picked {','.join(chosen)}")
+    elif inst:
+        other = [f"{k}={_fmt_key(key)}" for k, key in (("att", k_att), ("vel", k_vel), ("pos", k_pos))
+                 if key is not None and selector.get(k) is None and key[1] != inst]
+        if other:  # (another unit's streams, maybe: said, with the way to leave them out)
+            warns.append(f"imu={_fmt_key(k_imu)} is instance {inst}, but the log has no instance {inst} for "
+                         f"{', '.join(other)}: filled in from that instance; give att=none,vel=none,pos=none "
+                         "to leave them out")
     return build_inslog(path=path, fmt=NAME, selector=",".join(chosen),
                         clock="boot", stamp_source=stamp, gyro=gyro, accel=acc, quat=quat, vel=vel, pos=pos,
                         warnings=warns, offset=offset)
@@ -617,18 +638,16 @@ def inventory(path: str) -> Inventory:
                                   fields=tuple(d.keys())))
     keys = set(data.topics)
 
-    def first(cands):
-        for n in cands:
-            insts = sorted(i for m, i in keys if m == n)
-            if insts:
-                return _fmt_key((n, insts[0]))
-        return None
+    def nav_of(inst: int | None) -> list[str]:
+        """The att/vel/pos selectors of a unit: those :func:`load` fills in for its IMU instance."""
+        out = []
+        for k, cands in (("att", ATT_TOPICS), ("vel", VEL_TOPICS), ("pos", POS_TOPICS)):
+            key = _default_topic(keys, cands, inst)
+            if key is not None:
+                out.append(f"{k}={_fmt_key(key)}")
+        return out
 
-    att, vel = first(ATT_TOPICS), first(VEL_TOPICS)
-    pos = first(POS_TOPICS)
-    nav = [f"att={att}"] if att else []
-    nav += [f"vel={vel}"] if vel else []
-    nav += [f"pos={pos}"] if pos else []
+    nav = nav_of(None)
     selectors = []
     for name in IMU_TOPICS:
         for inst in sorted(i for m, i in keys if m == name):
@@ -636,9 +655,9 @@ def inventory(path: str) -> Inventory:
             est = ("estimator_attitude", inst)
             if name == "vehicle_imu" and est in keys and sum(1 for m, _ in keys if m == "estimator_attitude") > 1:
                 sel.append(f"att={_fmt_key(est)}")  # multi-EKF: the estimator running on this IMU
-                sel += [s for s in nav if not s.startswith("att=")]
+                sel += [s for s in nav_of(inst) if not s.startswith("att=")]
             else:
-                sel += nav
+                sel += nav_of(inst)
             selectors.append(",".join(sel))
     if not selectors and nav:
         selectors.append(",".join(nav))

@@ -157,7 +157,7 @@ _VEHICLE_IMU = [("uint64_t", "timestamp"), ("uint64_t", "timestamp_sample"), ("u
                 ("uint8_t", "delta_angle_clipping"), ("uint8_t", "delta_velocity_clipping")]
 
 
-def _multi_imu_file(path: Path) -> dict:
+def _multi_imu_file(path: Path, extra: list = ()) -> dict:
     t_us = 1_000_000 + np.arange(2000, dtype=np.int64) * 2500  # 400 Hz, 5 s
     ts = t_us * 1e-6
     truth = {}
@@ -184,7 +184,7 @@ def _multi_imu_file(path: Path) -> dict:
     v.rows["delta_angle_dt"] = v.rows["delta_velocity_dt"] = 5000
     topics.append(v)
     truth["vehicle_imu"] = (tv_us, rate, spf)
-    ulog.encode(topics).tofile(path)
+    ulog.encode(topics + list(extra)).tofile(path)
     return truth
 
 
@@ -204,6 +204,35 @@ def test_sensor_gyro_instance_selector_pairs_accel_of_same_instance(tmp_path):
     assert {"imu=sensor_gyro", "imu=sensor_gyro[1]", "imu=vehicle_imu"} <= set(inv.selectors)
     kinds = {s.name: s.kind for s in inv.streams}
     assert kinds["sensor_gyro[1]"] == "gyro" and kinds["sensor_accel[1]"] == "accel" and kinds["vehicle_imu"] == "imu"
+
+
+def test_a_second_imu_instance_takes_the_same_instance_of_the_other_streams(tmp_path):
+    """Two units in one ULog: sensor_gyro[1] goes with vehicle_attitude[1] (inspect's selector and a load
+    naming the IMU only), not with instance 0's attitude (the other unit's); a stream the log has only as
+    instance 0 is filled in with a warning that says so."""
+    t_us = 1_000_000 + np.arange(500, dtype=np.int64) * 10_000
+    extra = []
+    for inst, yaw in ((0, 0.0), (1, np.pi / 2)):
+        a = ulog.TopicRows.empty("vehicle_attitude", ulog._VEHICLE_ATTITUDE, len(t_us), multi_id=inst)
+        a.rows["timestamp"] = a.rows["timestamp_sample"] = t_us
+        a.rows["q"] = [np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)]
+        extra.append(a)
+    lp = ulog.TopicRows.empty("vehicle_local_position", ulog._VEHICLE_LOCAL_POSITION, len(t_us))
+    lp.rows["timestamp"] = lp.rows["timestamp_sample"] = t_us
+    lp.rows["vx"] = 3.0
+    lp.rows["v_xy_valid"] = lp.rows["v_z_valid"] = 1
+    extra.append(lp)
+    p = tmp_path / "two_units.ulg"
+    _multi_imu_file(p, extra)
+    inv = registry.inspect_log(str(p))
+    assert "imu=sensor_gyro[1],att=vehicle_attitude[1],vel=vehicle_local_position" in inv.selectors
+    assert "imu=sensor_gyro,att=vehicle_attitude,vel=vehicle_local_position" in inv.selectors
+    log = registry.load(f"{p}::imu=sensor_gyro[1]")
+    assert "att=vehicle_attitude[1]" in log.meta.selector
+    np.testing.assert_allclose(np.abs(log.quat_wxyz()[1][:, [0, 3]]), np.sqrt(0.5), atol=1e-6)  # yaw 90 deg
+    assert any("no instance 1 for vel=vehicle_local_position" in w for w in log.meta.warnings)
+    unit0 = registry.load(f"{p}::imu=sensor_gyro")
+    assert "att=vehicle_attitude," in unit0.meta.selector and not any("no instance" in w for w in unit0.meta.warnings)
 
 
 def test_vehicle_imu_deltas_become_rates_at_interval_midpoints(tmp_path):
