@@ -473,8 +473,27 @@ def _streams_from_table(path: str, cmap: ColumnMap, groups_wanted: tuple[str, ..
                for g, v in groups.items() if masks[g].any()}
     if not streams:
         raise InputError(f"no row with a valid time and complete values ({int(ok_t.sum())} valid times "
-                         f"in {len(ok_t)} rows)", path)
+                         f"in {len(ok_t)} rows){_why_no_rows(df, time_col)}", path)
     return streams
+
+
+_DECIMAL_COMMA = re.compile(r"^\s*[-+]?\d+,\d+(?:[eE][-+]?\d+)?\s*$")
+_DATETIME = re.compile(r"^\s*\d{4}-\d{2}-\d{2}[T ]\d{2}:\d{2}")
+
+
+def _why_no_rows(df: pd.DataFrame, time_col: str, sample: int = 200) -> str:
+    """What the cells of a CSV none of whose rows could be read look like, where it is a known export habit:
+    numbers with decimal commas (a spreadsheet in a comma-decimal locale), date-time text in the time column."""
+    head = df.head(sample)
+    cells = [str(x) for c in head.columns for x in head[c].dropna().tolist()]
+    times = [str(x) for x in head[time_col].dropna().tolist()] if time_col in head.columns else []
+    if times and sum(bool(_DATETIME.match(x)) for x in times) > len(times) // 2:
+        return (f": the time column {printable(time_col)!r} holds date-time text (e.g. {printable(times[0])!r}), "
+                "not a number: write it as seconds (or ms, us, ns as its header says)")
+    if cells and sum(bool(_DECIMAL_COMMA.match(x)) for x in cells) > len(cells) // 2:
+        return (f": the numbers are written with decimal commas (e.g. {printable(cells[0])!r}): save the CSV "
+                "with decimal points")
+    return ""
 
 
 def _time_note(cmap: ColumnMap, path: str) -> str:

@@ -445,6 +445,25 @@ def test_binary_junk_column_names_give_one_printable_line(tmp_path, capsys):
     assert err.rstrip("\n").isprintable() and "quaternion.csv" in err and "Traceback" not in err
 
 
+@pytest.mark.parametrize("habit", ["decimal_comma", "datetime"])
+def test_an_unreadable_vendor_csv_names_the_export_habit(tmp_path, capsys, habit):
+    """A spreadsheet saved in a comma-decimal locale (semicolons, '0,1') or a time column of ISO date-times:
+    no row reads, and the one line says why instead of only '0 valid times'."""
+    from pipelines.cli import main
+
+    hdr = "Time (s);Gyro X (deg/s);Gyro Y (deg/s);Gyro Z (deg/s);Accel X (g);Accel Y (g);Accel Z (g)"
+    if habit == "decimal_comma":
+        rows = "".join(f"{t:.3f};0.1;0.2;0.3;0;0;1\n".replace(".", ",") for t in T)
+    else:
+        rows = "".join(f"2024-05-01T12:00:{t:06.3f}Z;0.1;0.2;0.3;0;0;1\n" for t in T)
+    p = tmp_path / "unit.csv"
+    p.write_text(hdr + "\n" + rows)
+    assert main(["analyze", str(p), str(p), "-o", str(tmp_path / "o")]) == 2  # (refused at the first load)
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert ("decimal commas" if habit == "decimal_comma" else "date-time text") in err
+
+
 def test_implausible_values_are_dropped_where_every_format_meets():
     from parsers.assemble import Stream, build_inslog
 
