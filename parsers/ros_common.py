@@ -761,6 +761,17 @@ def quat_enu_flu_to_ned_frd_fast(q_wxyz: np.ndarray) -> np.ndarray:
 
 #: quaternions converted at a time (row by row arithmetic: the chunks only bound the temporaries)
 QUAT_ROWS = 1 << 19
+#: an Imu orientation bit-identical in at least this many messages is a driver's placeholder (drivers without an
+#: AHRS fill identity with covariance 0 instead of REP-145's -1): a real attitude's last bits move even at rest
+PLACEHOLDER_MIN_SAMPLES = 50
+
+
+def _placeholder(q: np.ndarray, ok: np.ndarray) -> bool:
+    """The valid rows of ``q`` (n, 4) are all one and the same quaternion, over PLACEHOLDER_MIN_SAMPLES or more."""
+    if int(ok.sum()) < PLACEHOLDER_MIN_SAMPLES:
+        return False
+    v = q[ok] if not ok.all() else q
+    return bool(np.all(v == v[0]))
 
 
 def quat_ros_to_ned_frd(cols: dict[str, np.ndarray], ned: bool = False) -> tuple[np.ndarray, np.ndarray]:
@@ -1090,6 +1101,10 @@ def to_inslog(rawlog: RawLog, selector: Selector, *, release: bool = False) -> I
                                 "(orientation_covariance[0] = -1, REP-145); not used")
             bad = ~ok & ~absent
             ok &= ~absent
+            if _placeholder(q, ok):
+                warnings.append(f"note: {d.name}: the orientation is one constant quaternion in all {int(ok.sum())} "
+                                "messages (a driver's placeholder, not an attitude); not used")
+                ok[:] = False
         else:
             bad = ~ok
         if bad.any():

@@ -265,6 +265,27 @@ def test_a_frame_id_with_a_ned_suffix_is_read_as_frd_ned(tmp_path):
     assert not any("NED/FRD" in w for w in plain.meta.warnings)
 
 
+def test_a_constant_placeholder_orientation_is_not_an_attitude(tmp_path):
+    """Drivers without an AHRS publish identity with covariance 0 (not REP-145's -1): one bit-identical
+    quaternion in every message is no attitude; the IMU itself is read."""
+    T = _ros_types()
+    msgs = []
+    for k in range(80):
+        t = T0_NS + k * 10_000_000
+        msgs.append(("/imu", "sensor_msgs/msg/Imu",
+                     _imu_msg(T, t, (0.0, 0.0, 0.0, 1.0), (0.0, 0.0, 0.1 * np.sin(k)), (0.0, 0.0, 9.81)), t))
+        msgs.append(("/imu_real", "sensor_msgs/msg/Imu",
+                     _imu_msg(T, t, (0.0, 0.0, np.sin(1e-3 * k), np.cos(1e-3 * k)), (0.0, 0.0, 0.1), (0.0, 0.0, 9.81)),
+                     t))
+    p = str(tmp_path / "placeholder.mcap")
+    _hand_mcap(p, msgs)
+    log = parsers.load(p + "::imu=/imu")
+    assert log.has_gyro and not log.has_quat
+    assert any("one constant quaternion" in w and w.startswith("note:") for w in log.meta.warnings)
+    real = parsers.load(p + "::imu=/imu_real")
+    assert real.has_quat and not any("constant quaternion" in w for w in real.meta.warnings)
+
+
 def test_enu_flu_hand_built_messages(tmp_path):
     """Heading north, turning left (FLU yaw rate +0.1), at rest (FLU accel z +9.81); ENU identity
     quaternion = heading east; Odometry forward 3 m/s heading north; TwistStamped ENU east 5 m/s."""
