@@ -69,7 +69,11 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"the report's slave was read on the {slave_rep['clock']} clock, this one on "
                          f"{slave.meta.clock}: give the report's selector ({slave_rep.get('selector')})", path)
     out_dir = os.path.dirname(os.path.abspath(report_path))
-    entries = export.write_slave(kinds, out_dir, slave, shift, out_path=args.out)
+    # the report's master is an input too: never written over (its path as analyze was given it: from where
+    # analyze ran, unknown here, so as it reads from here and from the report's folder)
+    m = str((rep.get("master") or {}).get("path") or "").partition("::")[0]
+    masters = tuple(x for x in ((m, os.path.join(out_dir, m)) if m else ()) if os.path.exists(x))
+    entries = export.write_slave(kinds, out_dir, slave, shift, out_path=args.out, inputs=masters)
     sec = export.report_section(entries, shift)
     for line in notes + export.summary_from_report({"slave_on_master_clock": sec}):
         print(line)

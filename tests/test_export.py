@@ -107,6 +107,29 @@ def test_export_never_replaces_an_input(slaves, pair, tmp_path, kind):
     assert sha(src) == before
 
 
+def test_restamp_never_writes_over_the_reports_master(tmp_path, capsys):
+    """`tapost restamp SLAVE --from REPORT -o MASTER`: the report's master is an input as well."""
+    import shutil
+
+    from pipelines.cli import main
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    for f in ("master.mcap", "slave.tlog"):
+        shutil.copy(os.path.join(root, "sample_logs", f), tmp_path / f)
+    cwd = os.getcwd()
+    os.chdir(tmp_path)
+    try:
+        assert main(["analyze", "master.mcap", "slave.tlog", "-o", "out", "--no-html", "--no-recording"]) == 0
+        before = sha(tmp_path / "master.mcap")
+        assert main(["restamp", "slave.tlog", "--from", "out/report.json", "-o", "master.mcap"]) == 2
+        assert main(["restamp", "slave.tlog", "--from", "out/report.json", "-o", "master.mcap",
+                     "--format", "csv"]) == 2
+    finally:
+        os.chdir(cwd)
+    assert sha(tmp_path / "master.mcap") == before
+    assert "overwrite an input" in capsys.readouterr().err
+
+
 def test_parse_kinds():
     assert export.parse_kinds("csv, native,csv") == ("csv", "native")
     assert export.parse_kinds(None) == ()
