@@ -185,6 +185,19 @@ def alignment_section(res: AlignmentResult) -> dict:
     }
     if undetermined:
         sec["mounting_not_determined"] = undetermined
+    # the other states likewise: an axis whose sigma did not shrink from its prior holds the prior, not an
+    # estimate (DESIGN.md: null, never the prior); which ones in ``states_not_determined``, the note says why
+    prior_held = []
+    for state, key in (("gyro_bias", "gyro_bias_dph"), ("accel_bias", "accel_bias_mg"), ("lever_arm", "lever_arm_m")):
+        vals = sec.get(key)
+        if vals is None or res.lever_arm_sigma_m is None and state == "lever_arm":  # (a lever arm as given)
+            continue
+        axes = [i for i, ax in enumerate("xyz") if res.observability.get(f"{state}_{ax}") is False]
+        if axes:
+            sec[key] = [None if i in axes else x for i, x in enumerate(vals)]
+            prior_held += [f"{state}_{'xyz'[i]}" for i in axes]
+    if prior_held:
+        sec["states_not_determined"] = prior_held
     return sec
 
 

@@ -128,6 +128,20 @@ def test_failed_and_skipped_sections_validate():
     assert rep["latency"]["latency_s"] is None
 
 
+def test_a_bias_axis_the_data_did_not_determine_is_null_not_its_prior():
+    """DESIGN.md: an estimate the data cannot determine is null with a reason, never its prior: the biases
+    and the lever arm as the mounting."""
+    an = make_fake_analysis()
+    res = an.alignment["compensated"]
+    obs = {**res.observability, "gyro_bias_x": True, "gyro_bias_y": True, "gyro_bias_z": False,
+           "accel_bias_x": False, "accel_bias_y": True, "accel_bias_z": True}
+    sec = rp.alignment_section(replace(res, observability=obs))
+    assert sec["gyro_bias_dph"][2] is None and sec["gyro_bias_dph"][:2] == list(res.gyro_bias_dph[:2])
+    assert sec["accel_bias_mg"][0] is None and sec["accel_bias_mg"][1:] == list(res.accel_bias_mg[1:])
+    assert sec["states_not_determined"] == ["gyro_bias_z", "accel_bias_x"]
+    assert "states_not_determined" not in rp.alignment_section(replace(res, observability={}))
+
+
 def test_an_uncompensated_run_that_does_not_apply_is_a_note_not_a_skip():
     """Logs on different clocks (UNIX time against time since boot) cannot overlap at face value: the
     uncompensated run has no meaning there, which leaves the status ok and says so as a note."""
