@@ -86,6 +86,14 @@ def glue_vector_values(argv: list[str]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:  # (Ctrl-C while the command's modules load, before _main's own handler)
+        print("tapost: interrupted", file=sys.stderr)
+        return 130
+
+
+def _main(argv: list[str] | None) -> int:
     fresh = argv is None  # a fresh process (the console script, python -m), not a call from Python
     argv = list(sys.argv[1:] if argv is None else argv)
     command = command_of(argv)

@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import os
 import sys
+import tempfile
 from pathlib import Path
 
 import pandas as pd
@@ -297,3 +298,23 @@ def test_batch_no_html_skips_every_pairs_report_html_and_links_report_json(tmp_p
     ok = summary[summary.status != "failed"]
     assert len(ok) == 2 and all(str(x).endswith("report.json") for x in ok.report)
     assert (out / "index.html").exists()
+
+
+@pytest.mark.parametrize("after_s", [0.15, 0.4])
+def test_ctrl_c_while_the_command_loads_is_one_line(after_s):
+    """Ctrl-C during the imports of a fresh `tapost analyze` printed 30-58 lines of KeyboardInterrupt
+    traceback; it is the same one line as later in the run."""
+    import signal
+    import subprocess
+    import time
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    with tempfile.TemporaryDirectory() as out:
+        p = subprocess.Popen([sys.executable, "-m", "pipelines.cli", "analyze", f"{root}/sample_logs/master.mcap",
+                              f"{root}/sample_logs/slave.tlog", "-o", out], stdout=subprocess.DEVNULL,
+                             stderr=subprocess.PIPE, text=True, env={**os.environ, "TAPOST_WARMUP": "0"})
+        time.sleep(after_s)
+        p.send_signal(signal.SIGINT)
+        err = p.communicate(timeout=60)[1]
+    assert "Traceback" not in err, err
+    assert p.returncode in (130, -signal.SIGINT), (p.returncode, err)
