@@ -278,11 +278,11 @@ def report_warnings(rep: dict) -> list[tuple[str, str]]:
                     out.append((role, str(w)))
         for w in ((rep.get("latency") or {}).get("quality") or {}).get("warnings") or []:
             out.append(("latency", str(w)))
-    seen = {t for _, t in out}
+    seen = [t for _, t in out]
     for k, v in (rep.get("skipped") or {}).items():
-        text = f"{k}: {v}"
-        if text not in seen and str(v) not in seen:
-            out.append((f"skipped {k}", text))
+        # (the contract's list says each skipped step in its own words, the reason quoted: counted once)
+        if not any(str(v) in t for t in seen):
+            out.append((f"skipped {k}", f"{k}: {v}"))
     return out
 
 

@@ -80,6 +80,12 @@ def test_report_warnings_prefers_the_contracts_list_and_ranks_damage_first():
            "skipped": {"recording": "OSError: disk full"}}
     assert batch.report_warnings(top) == [("latency", "stamps are whole multiples of 1 ms"),
                                           ("skipped recording", "recording: OSError: disk full")]
+    # a skipped step the contract's list already says in its own words is counted once
+    said = {**rep, "warnings": [{"stage": "latency", "text": "latency failed: no overlap between the two logs"},
+                                {"stage": "alignment", "text": "alignment skipped (both runs): latency failed"}],
+            "skipped": {"latency": "no overlap between the two logs", "alignment.compensated": "latency failed",
+                        "alignment.uncompensated": "latency failed"}}
+    assert len(batch.report_warnings(said)) == 2
 
 
 def test_latency_instant_in_utc_for_an_epoch_master():
