@@ -204,7 +204,10 @@ def alignment_section(res: AlignmentResult) -> dict:
 def alignment_skipped(reason: str, filter: str, match: str, *, applies: bool = True) -> dict:
     """A run not done, and why. ``applies=False``: the run has no meaning for this pair (the uncompensated run
     of logs on different clocks): not counted in ``skipped``, said as a note."""
-    return {"skipped": reason, "filter": filter, "match": match, **({} if applies else {"not_applicable": True})}
+    # (the contract's RESULT keys all present, null: a reader of mounting_rpy_deg gets null, not a KeyError)
+    return {"skipped": reason, "filter": filter, "match": match, "mounting_rpy_deg": None, "mounting_sigma_deg": None,
+            "gyro_bias_dph": None, "accel_bias_mg": None, "converged_s": None, "residual_rms": {},
+            **({} if applies else {"not_applicable": True})}
 
 
 def now_utc() -> str:

@@ -125,6 +125,10 @@ def test_failed_and_skipped_sections_validate():
     rp.validate(rep)
     assert rep["status"] == "failed"
     assert rep["skipped"]["latency"] == "no overlap between the two logs"
+    for run in rp.RUNS:  # DESIGN.md's RESULT keys are there, null
+        sec = rep["alignment"][run]
+        assert all(sec[k] is None for k in ("mounting_rpy_deg", "mounting_sigma_deg", "gyro_bias_dph",
+                                            "accel_bias_mg", "converged_s")) and sec["residual_rms"] == {}
     assert rep["latency"]["latency_s"] is None
 
 
