@@ -47,8 +47,9 @@ NATIVE_WRITERS: dict[str, tuple[str, str, str]] = {
 }
 
 
-def parse_kinds(text) -> tuple[str, ...]:
-    """``csv,parquet,native`` -> ('csv', 'parquet', 'native'); InputError naming what is unknown."""
+def parse_kinds(text, option: str = "--write-slave") -> tuple[str, ...]:
+    """``csv,parquet,native`` -> ('csv', 'parquet', 'native'); InputError naming what is unknown (and the
+    ``option`` it was given to)."""
     if text is None or text == "" or text == ():
         return ()
     items = text if isinstance(text, (list, tuple)) else str(text).split(",")
@@ -57,7 +58,7 @@ def parse_kinds(text) -> tuple[str, ...]:
         if not k:
             continue
         if k not in KINDS:
-            raise InputError(f"--write-slave takes {', '.join(KINDS)} (comma-separated), not {k!r}")
+            raise InputError(f"{option} takes {', '.join(KINDS)} (comma-separated), not {k!r}")
         if k not in out:
             out.append(k)
     return tuple(out)

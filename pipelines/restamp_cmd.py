@@ -45,7 +45,7 @@ def read_report(path: str) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    kinds = export.parse_kinds(args.format)
+    kinds = export.parse_kinds(args.format, "--format")
     if not kinds:
         raise InputError("--format names nothing to write (native, csv or parquet)")
     if args.out and len(kinds) > 1:

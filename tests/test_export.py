@@ -135,6 +135,8 @@ def test_parse_kinds():
     assert export.parse_kinds(None) == ()
     with pytest.raises(InputError, match="--write-slave takes"):
         export.parse_kinds("csv,hdf5")
+    with pytest.raises(InputError, match="--format takes"):  # (restamp's option)
+        export.parse_kinds("xml", "--format")
 
 
 def test_missing_ros_writer_is_one_clear_error(monkeypatch):
