@@ -275,6 +275,18 @@ def warnings_of(entries: list[ExportEntry]) -> list[str]:
     return out
 
 
+def clock_step_caveat(quality: dict | None) -> str | None:
+    """The warning for an export whose latency found a clock step (``quality["clock_step"]``): one line put
+    through both sides of the step, so either side's stamps are off by about half the step."""
+    step = (quality or {}).get("clock_step")
+    if not isinstance(step, dict) or step.get("step_s") is None:
+        return None
+    half = 0.5 * abs(float(step["step_s"])) * 1e3
+    return (f"the latency steps by {float(step['step_s']) * 1e3:+.1f} ms near {float(step.get('t_rel_s', 0.0)):.1f} s "
+            f"into the master log: the export puts one line through both sides, so its stamps are off by about "
+            f"{half:.1f} ms on either side (export each part apart)")
+
+
 def attach_to_analysis(kinds: tuple[str, ...], out_dir: str, slave: InsLog, master: InsLog, latency,
                        paths: dict, extra: dict) -> list[ExportEntry]:
     """``tapost analyze --write-slave``: write the exports, list them in ``paths`` (report.json
@@ -284,6 +296,10 @@ def attach_to_analysis(kinds: tuple[str, ...], out_dir: str, slave: InsLog, mast
     paths.update(output_keys(entries))
     extra["slave_on_master_clock"] = report_section(entries, shift)
     warns = warnings_of(entries)
+    caveat = clock_step_caveat(latency.quality) if entries else None
+    if caveat:
+        extra["slave_on_master_clock"]["clock_step"] = caveat
+        warns.append(f"slave export: {caveat}")
     if warns:
         extra.setdefault("warnings", []).extend({"stage": "outputs", "text": w} for w in warns)
     return entries

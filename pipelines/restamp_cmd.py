@@ -75,6 +75,9 @@ def run(args: argparse.Namespace) -> int:
     masters = tuple(x for x in ((m, os.path.join(out_dir, m)) if m else ()) if os.path.exists(x))
     entries = export.write_slave(kinds, out_dir, slave, shift, out_path=args.out, inputs=masters)
     sec = export.report_section(entries, shift)
+    caveat = export.clock_step_caveat((rep.get("latency") or {}).get("quality"))
+    if caveat:
+        notes.append(f"warning: {caveat}")
     for line in notes + export.summary_from_report({"slave_on_master_clock": sec}):
         print(line)
     failed = [e for e in entries if e.failed]

@@ -128,3 +128,14 @@ def test_reordering_and_stray_stamps_are_no_clock_step():
     out = clean_stream("gyro", Stream(reset, np.zeros((len(t), 3)), "IMU"), warns)
     assert len(out.t_ns) == 12_000 and np.array_equal(out.t_ns, t[:12_000])
     assert any(CLOCK_STEP_WORDS in x and "at sample 12000" in x for x in warns)
+
+
+def test_an_export_through_a_clock_step_says_so():
+    """The export puts one line through both sides of a clock step: its section and a warning say how far
+    off either side is; without a step, nothing."""
+    from pipelines import export
+
+    q = {"clock_step": {"step_s": 0.0202, "t_rel_s": 60.0, "latency_before_s": 0.1199, "latency_after_s": 0.1401}}
+    text = export.clock_step_caveat(q)
+    assert text is not None and "+20.2 ms near 60.0 s" in text and "about 10.1 ms on either side" in text
+    assert export.clock_step_caveat({"clock_step": None}) is None and export.clock_step_caveat(None) is None
