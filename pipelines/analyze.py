@@ -473,7 +473,11 @@ def summary_lines(rep: dict, paths: dict[str, str | None]) -> list[str]:
                    f"drift {lat['drift_ppm'] if lat['drift_ppm'] is not None else float('nan'):+.2f} ppm  "
                    f"[{lat['method']}{' gyro+accel' if aided else ''}{how}, "
                    f"window {lat['window_s'][1] - lat['window_s'][0]:.1f} s]")
-        others = [f"{k} {_fmt_ms(v['latency_s'])}" for k, v in lat.get("methods", {}).items() if k != lat["method"]]
+        # (the seeds' methods assume the units' axes aligned: said beside their figures, which a mounting
+        # rotation makes meaningless)
+        others = [f"{k} {_fmt_ms(v['latency_s'])}" + (" (axes assumed aligned)" if "axes assumed aligned" in
+                                                     str(v.get("note", "")) else "")
+                  for k, v in lat.get("methods", {}).items() if k != lat["method"]]
         if others:
             out.append("        other methods: " + ", ".join(others))
         if q.get("too_little_motion"):

@@ -318,3 +318,14 @@ def test_ctrl_c_while_the_command_loads_is_one_line(after_s):
         err = p.communicate(timeout=60)[1]
     assert "Traceback" not in err, err
     assert p.returncode in (130, -signal.SIGINT), (p.returncode, err)
+
+
+def test_the_summary_marks_the_methods_that_assume_aligned_axes():
+    rep = _report()
+    rep["latency"]["methods"] = {
+        "tapost": {"latency_s": 0.08, "sigma_s": 5e-6},
+        "s000-rate-integral": {"latency_s": 0.416, "sigma_s": 5e-4, "note": "eqs 1-5, axes assumed aligned; t_s=2 ms"},
+        "xcorr-norm": {"latency_s": 0.08, "sigma_s": 1e-3, "note": "peak correlation 1.000"}}
+    line = next(ln for ln in summary_lines({**rep, "warnings": [], "notes": []}, {}) if "other methods" in ln)
+    assert "s000-rate-integral +416.000 ms (axes assumed aligned)" in line and "xcorr-norm +80.000 ms" in line
+    assert line.count("axes assumed aligned") == 1
