@@ -54,6 +54,11 @@ class ImuToImuConfig:
     #: white noise taken out) has at most this fraction of its power on a second direction (level flight's
     #: specific force; fit_rotation's sigma then has no information about that direction: the reason why)
     one_direction_ratio: float = 0.01
+    #: the master's white noise (taken out of its moments: errors in variables) from the third differences of
+    #: at most this many rows, in blocks of noise_block_rows spread over a longer series (a robust MAD settles
+    #: long before; 4 h of 200 Hz would otherwise be 2.9 M rows of differences per fit)
+    noise_rows: int = 1 << 18
+    noise_block_rows: int = 1024
     gap_steps: float = 3.0  # a step of a unit's stamps beyond this many of its median steps is a gap (not bridged)
     consistency_z: float = 3.0  # beyond this many combined sigmas the two views disagree
     #: ... the combined sigma taken as at least this (deg): a log against itself agrees to 1e-4 deg, which is
@@ -436,22 +441,18 @@ def _residual(u_m: np.ndarray, v_s: np.ndarray, r_mat: np.ndarray, k_lever: np.n
     return np.subtract(v_s, e, out=e)
 
 
-#: rows of third differences the white-noise estimate takes at most (in blocks spread over the series)
-NOISE_ROWS = 1 << 18
-
-
-def _white_noise_var(x: np.ndarray) -> np.ndarray:
+def _white_noise_var(x: np.ndarray, cfg: ImuToImuConfig = DEFAULT) -> np.ndarray:
     """Each column's white-noise variance (n, k) -> (k,), from its third differences (the motion, smooth at
     the IMU's rate, cancels; 20 = 1 + 9 + 9 + 1 for white noise), robust (MAD); a long series in blocks
-    spread over it (NOISE_ROWS at most). Zeros for fewer than 8 rows."""
+    spread over it (cfg.noise_rows at most). Zeros for fewer than 8 rows."""
     n = len(x)
     if n < 8:
         return np.zeros(x.shape[1])
-    blk = 1024
-    if n <= NOISE_ROWS:
+    blk = cfg.noise_block_rows
+    if n <= cfg.noise_rows:
         d3 = np.diff(x, n=3, axis=0)
     else:
-        starts = np.linspace(0, n - blk, NOISE_ROWS // blk).astype(int)
+        starts = np.linspace(0, n - blk, cfg.noise_rows // blk).astype(int)
         d3 = np.concatenate([np.diff(x[a:a + blk], n=3, axis=0) for a in starts])
     mad = np.median(np.abs(d3 - np.median(d3, axis=0)), axis=0) * 1.4826
     return mad ** 2 / 20.0
@@ -539,7 +540,7 @@ def _triad(u: np.ndarray, v: np.ndarray, k: np.ndarray | None, dt: float, cfg: I
         why = f"too little motion: sigma {' '.join(f'{x:.3g}' for x in sig_axes)} deg"
         # the master's moving signal beyond its own noise: along one direction only, nothing fixes the
         # rotation about it (level flight's specific force: the vertical)
-        lam, vec = np.linalg.eigh(u.T @ u - len(u) * np.diag(_white_noise_var(u)))
+        lam, vec = np.linalg.eigh(u.T @ u - len(u) * np.diag(_white_noise_var(u, cfg)))
         if lam[2] > 0 and lam[1] <= cfg.one_direction_ratio * lam[2]:
             d = vec[:, 2] * np.sign(vec[np.argmax(np.abs(vec[:, 2])), 2])
             why += (" (the motion beyond the master's noise is along one direction only, master x/y/z "
