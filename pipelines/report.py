@@ -196,6 +196,9 @@ def alignment_section(res: AlignmentResult) -> dict:
         if axes:
             sec[key] = [None if i in axes else x for i, x in enumerate(vals)]
             prior_held += [f"{state}_{'xyz'[i]}" for i in axes]
+    if res.observability.get("delay") is False and sec.get("delay_s") is not None:
+        sec["delay_s"] = None
+        prior_held.append("delay")
     if prior_held:
         sec["states_not_determined"] = prior_held
     return sec

@@ -144,6 +144,8 @@ def test_a_bias_axis_the_data_did_not_determine_is_null_not_its_prior():
     assert sec["accel_bias_mg"][0] is None and sec["accel_bias_mg"][1:] == list(res.accel_bias_mg[1:])
     assert sec["states_not_determined"] == ["gyro_bias_z", "accel_bias_x"]
     assert "states_not_determined" not in rp.alignment_section(replace(res, observability={}))
+    delayed = rp.alignment_section(replace(res, delay_s=0.004, delay_sigma_s=0.1, observability={"delay": False}))
+    assert delayed["delay_s"] is None and delayed["states_not_determined"] == ["delay"]
 
 
 def test_an_uncompensated_run_that_does_not_apply_is_a_note_not_a_skip():

@@ -1303,7 +1303,7 @@ def _observability(run: FilterRun, lay: StateLayout, sig0: np.ndarray, k_rep: in
     unobs = [k for k, v in obs.items() if not v]
     if unobs:
         notes.append("not observable with this motion (sigma did not shrink below "
-                     f"{shrink:g} x prior): {', '.join(unobs)}; values are the prior, not estimates")
+                     f"{shrink:g} x prior): {', '.join(unobs)}; they hold the prior, not estimates (null in report.json)")
     return obs
 
 
