@@ -312,7 +312,10 @@ def test_ctrl_c_while_the_command_loads_is_one_line(after_s):
     with tempfile.TemporaryDirectory() as out:
         p = subprocess.Popen([sys.executable, "-m", "pipelines.cli", "analyze", f"{root}/sample_logs/master.mcap",
                               f"{root}/sample_logs/slave.tlog", "-o", out], stdout=subprocess.DEVNULL,
-                             stderr=subprocess.PIPE, text=True, env={**os.environ, "TAPOST_WARMUP": "0"})
+                             stderr=subprocess.PIPE, text=True, env={**os.environ, "TAPOST_WARMUP": "0"},
+                             # (a test worker may ignore SIGINT, and an ignored signal stays ignored across
+                             # exec: the child then never sees Ctrl-C; a user's shell leaves it at default)
+                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
         time.sleep(after_s)
         p.send_signal(signal.SIGINT)
         err = p.communicate(timeout=60)[1]
