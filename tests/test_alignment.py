@@ -825,6 +825,7 @@ def test_the_gyro_bias_seed_of_a_master_without_an_imu_takes_the_earth_rate():
     s = p.slave.rebased(p.master.meta.t0_ns)
     t, g = s.t_imu_s(), s.gyro_rad_s()
     r0 = dcm_from_euler(np.radians(p.truth.mounting_rpy_deg))
-    seed = run_mod._gyro_bias_seed(master, run_mod._master_series(master), t, g, 0.0, r0, 3.0 * DEG_PER_H,
-                                   CONFIG, [])
+    ms = run_mod._master_series(master)
+    seed = run_mod._gyro_bias_seed(master, ms, run_mod._rates_on_grid(master, ms, t, g, 0.0), 0.0, r0,
+                                   3.0 * DEG_PER_H, CONFIG, [])
     assert seed.applied and seed.b_rad_s / DEG_PER_H == pytest.approx(b, abs=1.0)

@@ -269,9 +269,9 @@ class AlignmentConfig:
     #: R w_m is not zero where the vehicle turns more one way; 1 %: a MEMS gyro's scale factor) on top of the
     #: residuals' statistics; the seeded states' prior is the grade's and this in quadrature
     gyro_bias_seed_scale_factor: float = 0.01
-    #: the grid (s) the two units' rates are compared on for the seed: 50 Hz, far above the vehicle's motion and
-    #: below every IMU rate in use (a mean needs no more samples)
-    gyro_bias_seed_grid_s: float = 0.02
+    #: the grid (s) the two units' angular rates are interpolated onto for the coarse mounting's fit and the
+    #: gyro-bias seed's mean: 50 Hz, far above a vehicle's motion and below every IMU rate in use
+    rate_grid_s: float = 0.02
 
 
 #: the configuration the benchmarks measured

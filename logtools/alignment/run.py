@@ -103,15 +103,15 @@ def _align(master: InsLog, slave: InsLog, kind: FilterKind, match: str, smoother
     ms = _master_series_cached(master, config)
     win = _delay_window(kind, opts, config, master, ms, t_imu, gyro, notes)
     t_imu, gyro, accel, span_s = _overlap(master, ms, t_imu, gyro, accel, win, src)
+    rates = _rates_on_grid(master, ms, t_imu, gyro, win.tau0_s, config)  # (the coarse mounting's and the seed's)
     if opts.mounting_guess_rpy_deg is not None:
         coarse = CoarseMounting(dcm_from_euler(np.radians(np.asarray(opts.mounting_guess_rpy_deg, float))), True)
     else:
-        coarse = _coarse_mounting(master, slave, ms, t_imu, gyro, win.tau0_s, accel, config)
+        coarse = _coarse_mounting(master, slave, ms, rates, t_imu, win.tau0_s, accel, config)
         if coarse.note:
             notes.append(coarse.note)
     r0 = coarse.r0
-    seed = _gyro_bias_seed(master, ms, t_imu, gyro, win.tau0_s, r0, _gyro_bias_prior(opts, t_imu, gyro), config,
-                           notes)
+    seed = _gyro_bias_seed(master, ms, rates, win.tau0_s, r0, _gyro_bias_prior(opts, t_imu, gyro), config, notes)
     # the filter's gyro-bias states carry what is left of the bias after the seed: the slave's increments are
     # taken with the seed removed (the bias states are linear, so this is the filter started from the seed)
     ep = _epochs(t_imu, gyro - seed.b_rad_s if seed.applied else gyro, accel, win.dt_upd_s, span_s, config, src,
@@ -643,28 +643,47 @@ def _check_motion(gyro: np.ndarray, accel: np.ndarray, src: str) -> None:
         raise AnalysisError(f"{src}: no motion: the slave's IMU readings are constant over the overlap")
 
 
-def _coarse_mounting(master: InsLog, slave: InsLog, ms: MasterSeries, t_imu: np.ndarray, gyro: np.ndarray,
-                     tau0: float, accel: np.ndarray | None = None, config: AlignmentConfig = CONFIG
-                     ) -> CoarseMounting:
-    """Wahba/Kabsch on angular rates: min sum |w_s - R w_m|^2 by SVD of sum w_s w_m^T. Where the rates turn
-    about one axis only, the specific forces' motion joins them (``accel``: the slave's, at t_imu); then the
-    slave's own attitude; then that joint fit however weakly it is determined (not ok: a wider prior); else
-    the identity (not ok). A fit comes with its error covariance and its sensitivity to the accelerometer
-    triad's misalignment (:func:`_wahba_covariance`)."""
-    grid = np.arange(t_imu[0], t_imu[-1], config.gyro_bias_seed_grid_s)
+@dataclass(frozen=True)
+class RateGrid:
+    """The two units' angular rates on one grid of slave times (``AlignmentConfig.rate_grid_s``), the master's
+    ``tau0`` earlier: what the coarse mounting fits and the gyro-bias seed averages, interpolated once."""
+
+    t_s: np.ndarray
+    w_s: np.ndarray  # the slave's gyro
+    #: the master's gyro, else its attitude's rate (relative to NED: no earth rate in it); None: neither
+    w_m: np.ndarray | None
+    inertial: bool  # w_m is the master's gyro
+    n_master: int  # the master's finite gyro samples behind w_m (0 where it is the attitude's rate)
+
+
+def _rates_on_grid(master: InsLog, ms: MasterSeries, t_imu: np.ndarray, gyro: np.ndarray, tau0: float,
+                   config: AlignmentConfig = CONFIG) -> RateGrid:
+    grid = np.arange(t_imu[0], t_imu[-1], config.rate_grid_s)
+    w_m, n_master = None, 0
     if master.has_gyro:
         tm = master.t_imu_s()
         gm = master.gyro_rad_s()
         okm = np.isfinite(gm).all(1)
+        n_master = int(okm.sum())
         w_m = _interp_cols(grid - tau0, tm[okm], gm[okm])
     elif ms.w_nm_m is not None:
         w_m = _interp_cols(grid - tau0, ms.t_s, ms.w_nm_m)
-    else:
-        w_m = None
+    return RateGrid(grid, _interp_cols(grid, t_imu, gyro), w_m, master.has_gyro, n_master)
+
+
+def _coarse_mounting(master: InsLog, slave: InsLog, ms: MasterSeries, rates: RateGrid, t_imu: np.ndarray,
+                     tau0: float, accel: np.ndarray | None = None, config: AlignmentConfig = CONFIG
+                     ) -> CoarseMounting:
+    """Wahba/Kabsch on angular rates (``rates``): min sum |w_s - R w_m|^2 by SVD of sum w_s w_m^T. Where the
+    rates turn about one axis only, the specific forces' motion joins them (``accel``: the slave's, at t_imu);
+    then the slave's own attitude; then that joint fit however weakly it is determined (not ok: a wider
+    prior); else the identity (not ok). A fit comes with its error covariance and its sensitivity to the
+    accelerometer triad's misalignment (:func:`_wahba_covariance`)."""
+    grid, w_m = rates.t_s, rates.w_m
     weak = None  # a joint rate + specific-force start that is only weakly determined
 
     if w_m is not None:
-        w_s = _interp_cols(grid, t_imu, gyro)
+        w_s = rates.w_s
         # remove slow parts (biases, earth rate) so the fit sees the motion
         w_s = w_s - w_s.mean(0)
         w_m = w_m - w_m.mean(0)
@@ -892,8 +911,8 @@ def _gyro_bias_prior(opts: AlignmentOptions, t_imu: np.ndarray, gyro: np.ndarray
     return float(_given(opts.gyro_bias_sigma_dph, np.clip(300.0 * arw_dpsh, 2.0, 2000.0))) * DEG_PER_H
 
 
-def _gyro_bias_seed(master: InsLog, ms: MasterSeries, t_imu: np.ndarray, gyro: np.ndarray, tau0: float,
-                    r0: np.ndarray, prior_rad_s: float, config: AlignmentConfig, notes: list[str]) -> GyroBiasSeed:
+def _gyro_bias_seed(master: InsLog, ms: MasterSeries, rates: RateGrid, tau0: float, r0: np.ndarray,
+                    prior_rad_s: float, config: AlignmentConfig, notes: list[str]) -> GyroBiasSeed:
     """The slave's gyro bias measured as the mean of w_s - R0 w_m over the overlap (w_m the master's inertial
     rate: its gyro, else its attitude's rate plus the earth rate; R0 the coarse mounting, fitted on the rates'
     motion parts, so the means are what it leaves), with its uncertainty: the residuals' variance over their
@@ -905,24 +924,20 @@ def _gyro_bias_seed(master: InsLog, ms: MasterSeries, t_imu: np.ndarray, gyro: n
     none = GyroBiasSeed(np.zeros(3), np.full(3, np.inf))
     if not config.gyro_bias_seed:
         return none
-    grid = np.arange(t_imu[0], t_imu[-1], config.gyro_bias_seed_grid_s)
-    if len(grid) < 20:
+    grid, w_m, w_s = rates.t_s, rates.w_m, rates.w_s
+    if len(grid) < 20 or w_m is None:
         return none
-    if master.has_gyro:
-        tm, gm = master.t_imu_s(), master.gyro_rad_s()
-        okm = np.isfinite(gm).all(1)
-        if okm.sum() < 2:
+    if rates.inertial:
+        if rates.n_master < 2:
             return none
-        w_m = _interp_cols(grid - tau0, tm[okm], gm[okm])
-    elif ms.w_nm_m is not None and ms.quat is not None:
+    elif ms.quat is not None:
         # the attitude's rate is relative to NED: the gyros also sense the earth's rate (transport rate left out)
         lat = np.radians(master.lat_lon_alt()[1][0, 0]) if master.has_pos else np.radians(45.0)
         q = _interp_cols(grid - tau0, ms.t_s, ms.quat)
         c_nm = dcm_from_quat(q / np.linalg.norm(q, axis=1, keepdims=True))
-        w_m = _interp_cols(grid - tau0, ms.t_s, ms.w_nm_m) + np.einsum("kji,j->ki", c_nm, earth.earth_rate_ned(lat))
+        w_m = w_m + np.einsum("kji,j->ki", c_nm, earth.earth_rate_ned(lat))
     else:
         return none
-    w_s = _interp_cols(grid, t_imu, gyro)
     ok = np.isfinite(w_m).all(1) & np.isfinite(w_s).all(1)
     if ok.sum() < 20:
         return none
