@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from logtools.conventions import G0_M_S2
-from logtools.inslog import InsLog
+from logtools.inslog import ACCEL, GYRO, InsLog
 
 DEG_PER_RAD = float(np.degrees(1.0))
 
@@ -43,9 +43,12 @@ class UnitsCheckConfig:
 CONFIG = UnitsCheckConfig()
 
 
-def _norms(x: np.ndarray, cfg: UnitsCheckConfig) -> np.ndarray:
-    step = max(1, len(x) // cfg.max_samples)
-    n = np.sqrt(np.sum(np.asarray(x[::step], float) ** 2, axis=1))
+def _norms(log: InsLog, cols: tuple[str, ...], cfg: UnitsCheckConfig) -> np.ndarray:
+    """|x| of the IMU columns ``cols``, every k-th row (at most ``max_samples``; the rows taken first, so
+    that a long log is not copied whole for them)."""
+    step = max(1, len(log.imu) // cfg.max_samples)
+    x = log.imu.iloc[::step][list(cols)].to_numpy(dtype=float)
+    n = np.sqrt(np.sum(x ** 2, axis=1))
     return n[np.isfinite(n)]
 
 
@@ -53,7 +56,7 @@ def scale_findings(master: InsLog, slave: InsLog, cfg: UnitsCheckConfig = CONFIG
     """Sentences naming a likely unit mistake in either log (empty when the sizes agree)."""
     out: list[str] = []
     if master.has_gyro and slave.has_gyro:
-        wm, ws = _norms(master.gyro_rad_s(), cfg), _norms(slave.gyro_rad_s(), cfg)
+        wm, ws = _norms(master, GYRO, cfg), _norms(slave, GYRO, cfg)
         if len(wm) and len(ws):
             qm, qs = float(np.quantile(wm, cfg.rate_quantile)), float(np.quantile(ws, cfg.rate_quantile))
             if min(qm, qs) * DEG_PER_RAD >= cfg.min_rate_rad_s and qm > 0:  # (the smaller one may be the rad/s)
@@ -66,7 +69,7 @@ def scale_findings(master: InsLog, slave: InsLog, cfg: UnitsCheckConfig = CONFIG
     for who, log in (("master", master), ("slave", slave)):
         if not log.has_accel:
             continue
-        f = _norms(log.accel_m_s2(), cfg)
+        f = _norms(log, ACCEL, cfg)
         if not len(f):
             continue
         med = float(np.median(f))
