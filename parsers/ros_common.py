@@ -40,7 +40,6 @@ import numpy as np
 from logtools.conventions import (
     dcm_from_quat,
     enu_to_ned,
-    flu_to_frd,
     ned_to_enu,
     frd_to_flu,
     quat_mul,
@@ -780,6 +779,7 @@ def quat_ros_to_ned_frd(cols: dict[str, np.ndarray], ned: bool = False) -> tuple
     n = len(cols["qw"])
     out = np.empty((n, 4))
     ok = np.empty(n, dtype=bool)
+    conv = (lambda x: x) if ned else quat_enu_flu_to_ned_frd_fast  # noqa: E731
     for i in range(0, n, QUAT_ROWS):
         j = min(n, i + QUAT_ROWS)
         q = np.stack([cols["qw"][i:j], cols["qx"][i:j], cols["qy"][i:j], cols["qz"][i:j]], axis=-1)
@@ -788,7 +788,6 @@ def quat_ros_to_ned_frd(cols: dict[str, np.ndarray], ned: bool = False) -> tuple
         good = np.isfinite(norm) & (np.abs(norm - 1.0) < 0.1)
         ok[i:j] = good
         part = out[i:j]
-        conv = (lambda x: x) if ned else quat_enu_flu_to_ned_frd_fast  # noqa: E731
         if good.all():
             part[:] = conv(q / norm[:, None])
         else:
@@ -1120,7 +1119,7 @@ def to_inslog(rawlog: RawLog, selector: Selector, *, release: bool = False) -> I
         d = get(plan.vel)
         body = d.msgtype == ODOM if plan.vel_frame is None else plan.vel_frame == "body"
         if body:
-            v = _vec(d.cols, "v")
+            v = _body_vec(d, "v")
             if d.msgtype == ODOM and plan.vel_frame is None:
                 qv, okq = quat_ros_to_ned_frd(d.cols, is_ned_frame(d.frame_id))
                 qv[~okq] = np.nan
@@ -1128,11 +1127,12 @@ def to_inslog(rawlog: RawLog, selector: Selector, *, release: bool = False) -> I
                 if q_t is None:
                     raise InputError(f"vel={d.name} in body frame needs an attitude (att=/topic)", rawlog.path)
                 qv = _quat_at(d.t_ns, q_t, q_v)
-            v_ned = body_to_ned(v if is_ned_frame(d.frame_id) else flu_to_frd(v), qv)
+            v_ned = body_to_ned(v, qv)
             del v, qv
         else:
             v_ned = _vec(d.cols, "v") if is_ned_frame(d.frame_id) else _vec_enu_to_ned(d.cols, "v")
-        streams["vel"] = Stream(d.t_ns, v_ned, d.name + (" (body)" if body else " (ENU)"))
+        world = "NED" if is_ned_frame(d.frame_id) else "ENU"
+        streams["vel"] = Stream(d.t_ns, v_ned, d.name + (" (body)" if body else f" ({world})"))
         if plan.vel not in (plan.imu, plan.gyro_odom, plan.att):
             sources.append(f"{d.stamp_source} ({d.name})")
         del d, v_ned
