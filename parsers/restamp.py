@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from logtools.errors import InputError
+from logtools.latency.config import SearchConfig
 from parsers.atomic import atomic_path
 
 
@@ -75,8 +76,8 @@ class ClockShift:
         else:
             raise ValueError("the report states neither latency.t_mid_rel_s nor latency.window_s")
         latency = float(lat["latency_s"])
-        # a damaged or hand-edited report: stamps moved by more than a day, or a clock running at another
-        # rate altogether, are no latency estimate (and would overflow or divide by zero below)
+        # a damaged or hand-edited report: stamps moved by more than any two clocks can differ, or a clock running
+        # at another rate altogether, are no latency estimate (and would overflow or divide by zero below)
         if not (np.isfinite(latency) and abs(latency) <= MAX_REPORT_LATENCY_S):
             raise ValueError(f"the report's latency_s {latency!r} is not a usable latency "
                              f"(finite, within +-{MAX_REPORT_LATENCY_S:g} s)")
@@ -89,9 +90,10 @@ class ClockShift:
 #: shifts (ns) at or beyond this do not fit int64 stamps (2**63 rounded down to a float that is exact)
 _INT64_NS = 9.2e18
 
-#: the largest latency and drift a report may hand to ``tapost restamp``: a day, and 1 % (clocks that
-#: disagree by more are unrelated or the report is damaged)
-MAX_REPORT_LATENCY_S = 86_400.0
+#: the largest latency and drift a report may hand to ``tapost restamp``: the latency estimator's own bound
+#: (a slave on time since boot against a master on UNIX time differs by ~1.7e9 s, a legitimate estimate that
+#: ``analyze --write-slave`` exports; no two clocks up to 2100 differ by more than 4.2e9 s), and 1 % drift
+MAX_REPORT_LATENCY_S = SearchConfig().max_latency_s
 MAX_REPORT_DRIFT_PPM = 10_000.0
 
 

@@ -450,6 +450,31 @@ def test_restamp_cli(slaves, pair, tmp_path, capsys):
     assert "no latency estimate" in capsys.readouterr().err
 
 
+def test_restamp_cli_takes_a_report_of_unrelated_clocks(slaves, pair, tmp_path, capsys):
+    """A slave stamped in time since boot against a master in UNIX time: the latency is ~-1.7e9 s, a legitimate
+    estimate that `analyze --write-slave` exports; `restamp --from` that report must write the same (it refused
+    anything beyond a day)."""
+    t = pair.truth
+    offset_s = -1_700_000_000.0  # slave clock = master clock - 1.7e9 s
+    rep = {"schema": "tapost.report/1", "master": {"t0_ns": int(t.t_mid_ns) - 6_000_000_000},
+           "slave": {"path": str(slaves["csv"]), "format": "csv", "selector": "", "clock": "epoch"},
+           "latency": {"latency_s": t.latency_s + offset_s, "drift_ppm": t.drift_ppm, "t_mid_rel_s": 6.0}}
+    (tmp_path / "report.json").write_text(json.dumps(rep))
+    assert ClockShift.from_report(rep).latency_s == t.latency_s + offset_s
+    code = cli_main(["restamp", str(slaves["csv"]), "--from", str(tmp_path / "report.json"), "--format", "csv"])
+    assert code == 0, capsys.readouterr().err
+    out = registry.load(str(tmp_path / "slave_on_master_clock.csv"))
+    src = registry.load(str(slaves["csv"]))
+    # every IMU stamp moved by -latency(t): 1.7e9 s later, to the ns the CSV keeps
+    t_src = src.meta.t0_ns + np.round(src.imu.index.to_numpy() * 1e9).astype(np.int64)
+    t_out = out.meta.t0_ns + np.round(out.imu.dropna().index.to_numpy() * 1e9).astype(np.int64)
+    want = ClockShift.from_report(rep).to_master_ns(t_src)
+    assert len(t_out) == len(want) and np.max(np.abs(t_out - want)) <= 1000
+    rep["latency"]["latency_s"] = 5e9  # beyond any two clocks up to 2100: a damaged report
+    with pytest.raises(ValueError, match="not a usable"):
+        ClockShift.from_report(rep)
+
+
 def test_export_table_has_every_channel(pair):
     sh = shift_of(pair)
     tab = export.table_on_master_clock(pair.slave, sh)
