@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import inspect
 import os
 import sys
 import time
@@ -695,8 +696,13 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
             extra["latency_search"] = (f"whole overlap: the master is on {clocks[0]} time and the slave on "
                                        f"{clocks[1]} time, so their stamps cannot be compared at face value")
         try:
+            # the comparison methods in a forked child beside the headline (CLI, logs up to about 1 h); an
+            # estimate put in with use_numerics may not take the argument
+            beside = ({"beside": parallel.submit} if parallel.available() and opts.compare
+                      and len(master.imu) + len(slave.imu) <= parallel.FORK_COMPARE_MAX_SAMPLES
+                      and "beside" in inspect.signature(estimate).parameters else {})
             an.latency = estimate(master, slave, method=opts.latency_method, max_lag_s=max_lag,
-                                  compare=opts.compare, progress=sub(0.15, 0.45, "latency"))
+                                  compare=opts.compare, progress=sub(0.15, 0.45, "latency"), **beside)
         except AnalysisError as exc:
             failure = exc.problem
             face = slave.rebased(master.meta.t0_ns)

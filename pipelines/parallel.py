@@ -44,6 +44,12 @@ FORK_PARSE_MIN_INPUT_BYTES = PREPARED_MAX_INPUT_BYTES
 #: 200 Hz logs; beyond, where the long logs' peak memory is the constraint, the fit waits for the child
 FORK_IMU_TO_IMU_MAX_SAMPLES = 1_500_000
 
+#: master + slave IMU samples up to which ``analyze`` runs the latency's comparison methods (the seeds' and
+#: cross-correlation) in a forked child while this process computes the tapost estimate (rather than after
+#: it: about 2 s of the 1 h pair's 6-8 s latency stage). The child's arrays sit beside this process's: up to
+#: about 1 h of 200 Hz logs, as for the IMU-to-IMU fit; beyond, the long logs' peak memory decides
+FORK_COMPARE_MAX_SAMPLES = FORK_IMU_TO_IMU_MAX_SAMPLES
+
 
 def enable(on: bool = True) -> None:
     """Allow forking in this process (the CLI's ``analyze``)."""
@@ -148,6 +154,25 @@ class Pending:
         if not ok:
             raise value
         return value
+
+
+    def cancel(self) -> None:
+        """The result is not wanted (the stage beside it failed): the child is ended and reaped."""
+        if self._done:
+            return
+        self._done = True
+        if self._pid is not None:
+            import signal
+
+            try:
+                os.kill(self._pid, signal.SIGKILL)
+            except OSError:
+                pass
+            _close(self._rfd)
+            try:
+                os.waitpid(self._pid, 0)
+            except OSError:
+                pass
 
 
 def submit(fn: Callable, *args, **kwargs) -> Pending:

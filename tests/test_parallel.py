@@ -227,3 +227,56 @@ def test_large_pairs_fix_the_mmap_threshold_and_the_user_setting_wins(monkeypatc
     parallel.large_arrays_mmapped(10 * parallel.LARGE_PAIR_ROWS)
     parallel.release_freed_memory()
     assert calls[1:] == [("malloc_trim", 0)]
+
+
+@posix_fork
+def test_the_comparison_methods_beside_the_headline_give_the_same_estimates(forking):
+    """`estimate(..., beside=parallel.submit)` (the CLI: the seeds' and cross-correlation methods in a forked
+    child while the tapost estimate is computed) equals the in-process run, every method's figure."""
+    from logtools import sim
+    from logtools.latency import estimate
+
+    pair = sim.simulate(sim.scenario_config("aircraft", duration_s=40.0, seed=5, latency_s=0.031))
+    here = estimate(pair.master, pair.slave)
+    forked = estimate(pair.master, pair.slave, beside=parallel.submit)
+    assert set(forked.methods) == set(here.methods) and len(here.methods) > 1
+    for name, me in here.methods.items():
+        assert (forked.methods[name].latency_s == me.latency_s
+                or (np.isnan(me.latency_s) and np.isnan(forked.methods[name].latency_s))), name
+        assert forked.methods[name].note == me.note
+    assert forked.latency_s == here.latency_s and forked.sigma_s == here.sigma_s
+
+
+@posix_fork
+def test_a_failed_headline_ends_the_comparison_child(forking, monkeypatch):
+    """The headline fails (its error is the run's): the child running the comparison is ended and reaped,
+    not left behind."""
+    from logtools import sim
+    from logtools.errors import AnalysisError
+    from logtools.latency import estimate, estimator
+
+    pair = sim.simulate(sim.scenario_config("aircraft", duration_s=20.0, seed=6))
+    started = []
+
+    def beside(fn, *args):
+        job = parallel.submit(_sleep_then, 30.0)
+        started.append(job)
+        return job
+
+    def fail(ctx, prog):
+        raise AnalysisError("the headline's own failure")
+
+    monkeypatch.setattr(estimator, "tapost", fail)
+    with pytest.raises(AnalysisError, match="headline's own"):
+        estimate(pair.master, pair.slave, beside=beside)
+    (job,) = started
+    assert job._pid is not None
+    with pytest.raises(ChildProcessError):  # reaped already: no such child any more
+        os.waitpid(job._pid, os.WNOHANG)
+
+
+def _sleep_then(s):
+    import time
+
+    time.sleep(s)
+    return s

@@ -246,45 +246,16 @@ def check_plausible(latency_s: float, ctx: Ctx) -> None:
                             f"overlap at all ({lo:+.6g} .. {hi:+.6g} s): no common data supports it")
 
 
-def estimate(master: InsLog, slave: InsLog, *, method: str = "tapost", max_lag_s: float | None = 2.0,
-             compare: bool = True, progress: Progress = None, accelerometers: bool = True,
-             velocity: bool = True, config: LatencyConfig = DEFAULT) -> LatencyResult:
-    """Latency (s) and drift (ppm) of ``slave`` behind ``master``; see the package docstring (``logtools.latency``).
-
-    ``max_lag_s`` bounds the search at face value (both logs' absolute stamps); ``None`` searches the
-    whole overlap (unrelated clocks). Raises AnalysisError (one line) for no/too short overlap, no motion,
-    NaN-only data. With ``compare`` every other method that can run is stored in ``methods`` (a method
-    that cannot run is stored with NaN and its reason). ``accelerometers=False`` keeps the tapost method
-    on the gyros alone (no accelerometer-aided GLS); ``velocity=False`` leaves the units' velocities out
-    (no velocity matching). ``config``: every tuning number and switch (``LatencyConfig``).
-    """
-    if method not in METHODS:
-        raise AnalysisError(f"unknown latency method {method!r} (choose from {', '.join(METHODS)})")
-
-    def prog(f: float, stage: str) -> None:
-        if progress is not None:
-            progress(float(f), stage)
-
-    prog(0.0, "preparing")
-    ctx = prepare(master, slave, max_lag_s, accelerometers=accelerometers, velocity=velocity, cfg=config)
+def _run_methods(names: list[str], method: str, ctx: Ctx, master: InsLog, slave: InsLog, max_lag_s: float | None,
+                 config: LatencyConfig, prog: Callable[[int, str], None] | None
+                 ) -> tuple[dict[str, MethodEstimate], AnalysisError | None]:
+    """The methods ``names`` in turn (``estimate``'s comparison, or a headline other than tapost with it):
+    each one's estimate, or NaN with why it could not run; the headline ``method``'s failure is returned
+    (the run's failure) and ends the loop."""
     methods: dict[str, MethodEstimate] = {}
-    head: LatencyResult | None = None
-    err: AnalysisError | None = None
-    # the headline first: its failure is the run's failure
-    if method == Method.TAPOST:
-        head, _ = tapost(ctx, lambda f, st: prog(0.05 + 0.75 * f, st))
-        if max_lag_s is not None and config.search.search_widen and suspect(head, max_lag_s, config):
-            prog(0.78, "whole-overlap search")
-            head = widened(head, ctx)
-        cost = float(head.quality.get("vector_cost_min", 0.0))
-        if cost > config.search.no_match_cost:
-            raise AnalysisError(
-                f"the two units' angular rates match at no lag searched (best normalised cost {cost:.2f}; "
-                "0 = identical, 1 = unrelated): logs of different vehicles or of different times?")
-        methods[Method.TAPOST.value] = MethodEstimate(head.latency_s, head.sigma_s, "")
-    others = [x for x in METHODS if x != method] if compare else []
-    for i, name in enumerate(([method] if method != Method.TAPOST else []) + others):
-        prog(0.8 + 0.2 * i / max(1, len(others) + 1), name)
+    for i, name in enumerate(names):
+        if prog is not None:
+            prog(i, name)
         try:
             if name == Method.TAPOST:
                 r, _ = tapost(ctx, None)
@@ -295,14 +266,72 @@ def estimate(master: InsLog, slave: InsLog, *, method: str = "tapost", max_lag_s
                 me = run_seed(name, master, slave, max_lag_s, headline=name == method, cfg=config)
         except AnalysisError as exc:
             if name == method:
-                err = exc
-                break
+                return methods, exc
             me = MethodEstimate(float("nan"), float("nan"), f"cannot run: {exc.problem}")
         except Exception as exc:  # noqa: BLE001 - a comparison method must never crash the run
             if name == method:
                 raise
             me = MethodEstimate(float("nan"), float("nan"), f"failed: {type(exc).__name__}: {exc}")
         methods[name] = me
+    return methods, None
+
+
+def estimate(master: InsLog, slave: InsLog, *, method: str = "tapost", max_lag_s: float | None = 2.0,
+             compare: bool = True, progress: Progress = None, accelerometers: bool = True,
+             velocity: bool = True, config: LatencyConfig = DEFAULT, beside: Callable | None = None) -> LatencyResult:
+    """Latency (s) and drift (ppm) of ``slave`` behind ``master``; see the package docstring (``logtools.latency``).
+
+    ``max_lag_s`` bounds the search at face value (both logs' absolute stamps); ``None`` searches the
+    whole overlap (unrelated clocks). Raises AnalysisError (one line) for no/too short overlap, no motion,
+    NaN-only data. With ``compare`` every other method that can run is stored in ``methods`` (a method
+    that cannot run is stored with NaN and its reason). ``accelerometers=False`` keeps the tapost method
+    on the gyros alone (no accelerometer-aided GLS); ``velocity=False`` leaves the units' velocities out
+    (no velocity matching). ``config``: every tuning number and switch (``LatencyConfig``). ``beside``: a
+    function like ``pipelines.parallel.submit`` (``beside(fn, *args)`` -> an object with ``result()`` and
+    ``cancel()``) that runs the comparison methods while the tapost headline is computed (the CLI forks them:
+    the same numbers, sooner); None runs them after it, here.
+    """
+    if method not in METHODS:
+        raise AnalysisError(f"unknown latency method {method!r} (choose from {', '.join(METHODS)})")
+
+    def prog(f: float, stage: str) -> None:
+        if progress is not None:
+            progress(float(f), stage)
+
+    prog(0.0, "preparing")
+    ctx = prepare(master, slave, max_lag_s, accelerometers=accelerometers, velocity=velocity, cfg=config)
+    others = [x for x in METHODS if x != method] if compare else []
+    pending = None
+    if beside is not None and method == Method.TAPOST and others:
+        pending = beside(_run_methods, others, method, ctx, master, slave, max_lag_s, config, None)
+    methods: dict[str, MethodEstimate] = {}
+    head: LatencyResult | None = None
+    err: AnalysisError | None = None
+    # the headline first: its failure is the run's failure
+    try:
+        if method == Method.TAPOST:
+            head, _ = tapost(ctx, lambda f, st: prog(0.05 + 0.75 * f, st))
+            if max_lag_s is not None and config.search.search_widen and suspect(head, max_lag_s, config):
+                prog(0.78, "whole-overlap search")
+                head = widened(head, ctx)
+            cost = float(head.quality.get("vector_cost_min", 0.0))
+            if cost > config.search.no_match_cost:
+                raise AnalysisError(
+                    f"the two units' angular rates match at no lag searched (best normalised cost {cost:.2f}; "
+                    "0 = identical, 1 = unrelated): logs of different vehicles or of different times?")
+            methods[Method.TAPOST.value] = MethodEstimate(head.latency_s, head.sigma_s, "")
+    except BaseException:
+        if pending is not None:
+            pending.cancel()
+        raise
+    if pending is not None:
+        prog(0.8, "comparison methods")
+        more, err = pending.result()
+    else:
+        names = ([method] if method != Method.TAPOST else []) + others
+        more, err = _run_methods(names, method, ctx, master, slave, max_lag_s, config,
+                                 lambda i, name: prog(0.8 + 0.2 * i / max(1, len(others) + 1), name))
+    methods.update(more)
     if err is not None:
         raise err
     if head is None:
