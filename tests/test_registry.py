@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import sys
 from pathlib import Path
@@ -298,3 +299,18 @@ def test_inspect_selection_prints_a_note_as_a_note():
                               "channels": {}, "warnings": ["note: /imu: 5 of 40 orientations marked absent",
                                                            "gap of 2.0 s"]})
     assert lines[1:] == ["    note: /imu: 5 of 40 orientations marked absent", "    warning: gap of 2.0 s"]
+
+
+def test_detecting_a_format_imports_only_the_readers_tried_before_it():
+    """Detection walks the readers in order and imports each when it is reached: an MCAP master costs no
+    MAVLink dialect import (0.13 s of every run)."""
+    import subprocess
+    import sys
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    code = ("import sys; from parsers import registry; "
+            f"assert registry.detect({os.path.join(root, 'sample_logs', 'master.mcap')!r}).NAME == 'mcap'; "
+            "print(sorted(m for m in sys.modules if m.startswith(('pymavlink', 'parsers.mavlink', 'parsers.csv'))))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=root, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
