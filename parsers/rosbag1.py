@@ -6,6 +6,9 @@ raw message bytes + record times collected per connection, message definitions f
 records registered in a rosbags typestore. Content decoded by :mod:`parsers.ros_common` (vectorised,
 with the rosbags deserialiser as reference and fallback). Damage (truncation, a chunk that does not
 decompress, a broken record) is reported in ``meta.warnings`` and the readable part is used.
+``load`` and ``inventory`` use :func:`read_streamed`: the file memory-mapped, record times kept as int64
+arrays and each kept topic decoded while read (ros_common.StreamDecoder), not one bytes object and one int
+per message; the classic :func:`read_raw` where that cannot be exact (rc.NotStreamable).
 
 Writing (``write(path, log, log_delay_ns=0, compression="none"|"bz2"|"lz4")``) with ``rosbags.rosbag1.Writer``: same topics as
 :mod:`parsers.mcap_ros` (/imu, /velocity, /fix, /attitude), ENU/FLU, header stamps exact ns.
@@ -411,8 +414,16 @@ def read_raw(path: str, keep: Callable[[str, str], bool] = rc.keep_supported, fm
     with open(path, "rb") as fh:
         buf = fh.read()
     scan = _Scan(keep)
+    _walk_file(buf, scan, path)
+    return _rawlog(path, fmt, scan)
+
+
+def _walk_file(buf, scan: _Scan, path: str, progress: Callable[[int], None] | None = None) -> _Scan:
+    """The top-level record walk of a bag's bytes ``buf`` (bytes or a read-only map of the file) into
+    ``scan``, damage noted in ``scan.warnings``; ``progress(offset)``: called after each top-level record
+    (the streamed read lets the pages behind it go)."""
     off, end = len(MAGIC), len(buf)
-    if not buf.startswith(MAGIC):
+    if bytes(buf[:len(MAGIC)]) != MAGIC:
         off = resync_top(buf, 0, end)
         if off is None:
             raise InputError("not a ROS 1 bag (magic '#ROSBAG V2.0' missing)", path)
@@ -434,6 +445,7 @@ def read_raw(path: str, keep: Callable[[str, str], bool] = rc.keep_supported, fm
                                  f"record (byte {at})")
             floor = off = at
             continue
+        scan.done = nxt
         try:
             if op == bytes([_OP_BAGHEADER]):
                 (index_pos,) = struct.unpack_from("<Q", header.get("index_pos", b"\0" * 8), 0)
@@ -447,13 +459,212 @@ def read_raw(path: str, keep: Callable[[str, str], bool] = rc.keep_supported, fm
             scan.warnings.append(f"damaged: {exc}; its messages dropped" if not isinstance(exc, _Damage)
                                  else f"damaged: {exc}")
         good = off = nxt  # (its framing read: a later resynchronisation starts after it)
+        if progress is not None:
+            progress(off)
     if index_pos == 0:
         scan.warnings.append("bag has no index (recording interrupted?): messages read by a linear scan")
     elif index_pos is not None and index_pos >= end and not any("truncated" in w for w in scan.warnings):
-        firsts = [min(t) for t in scan.times.values() if t]
-        span = (max(max(t) for t in scan.times.values() if t) - min(firsts)) * 1e-9 if firsts else None
+        span = _time_span(scan)
         scan.warnings.append(index_past_end(index_pos, end, span) + " up to the cut")
-    return _rawlog(path, fmt, scan)
+    return scan
+
+
+def _time_span(scan: _Scan) -> float | None:
+    """The record time the messages read cover (s), None without messages."""
+    ranges = []
+    for t in scan.times.values():
+        if not len(t):
+            continue
+        if isinstance(t, _Times):
+            a = t.array()
+            ranges.append((int(a.min()), int(a.max())))
+        else:
+            ranges.append((min(t), max(t)))
+    if not ranges:
+        return None
+    return (max(r[1] for r in ranges) - min(r[0] for r in ranges)) * 1e-9
+
+
+# ---- the streamed read: kept topics decoded while the bag is read -----------------------------------
+class _Times:
+    """One connection's record times as int64 arrays, batch by batch (the one-by-one path's ints are
+    gathered in a short list first). Has ``append`` and ``len`` as the plain scan's lists."""
+
+    __slots__ = ("parts", "pending", "n")
+
+    def __init__(self):
+        self.parts: list[np.ndarray] = []
+        self.pending: list[int] = []
+        self.n = 0
+
+    def append(self, t: int) -> None:
+        self.pending.append(t)
+        self.n += 1
+
+    def add(self, t_ns: np.ndarray) -> None:
+        self._flush()
+        self.parts.append(t_ns)
+        self.n += len(t_ns)
+
+    def _flush(self) -> None:
+        if self.pending:
+            self.parts.append(np.array(self.pending, np.int64))
+            self.pending = []
+
+    def __len__(self) -> int:
+        return self.n
+
+    def array(self) -> np.ndarray:
+        self._flush()
+        if len(self.parts) != 1:
+            self.parts = [np.concatenate(self.parts) if self.parts else np.zeros(0, np.int64)]
+        return self.parts[0]
+
+
+class _Feed:
+    """One kept connection's payloads handed to its StreamDecoder as they are read: vectorised runs as
+    (buffer, starts, ends), the one-by-one path's ``append``-ed bytes in batches, the order of the file
+    kept."""
+
+    __slots__ = ("dec", "pending", "expect")
+    BATCH = 4096
+
+    def __init__(self, dec: rc.StreamDecoder, expect: Callable[[], int]):
+        self.dec, self.expect = dec, expect
+        self.pending: list[bytes] = []
+
+    def append(self, payload: bytes) -> None:
+        self.pending.append(payload)
+        if len(self.pending) >= self.BATCH:
+            self.flush()
+
+    def add(self, arr: np.ndarray, s: np.ndarray, e: np.ndarray) -> None:
+        self.flush()
+        self.dec.add(arr, s, e, self.expect())
+
+    def flush(self) -> None:
+        if self.pending:
+            p, self.pending = self.pending, []
+            lens = np.fromiter(map(len, p), np.int64, len(p))
+            e = np.cumsum(lens)
+            self.dec.add(np.frombuffer(b"".join(p), np.uint8), e - lens, e, self.expect())
+
+
+def _decoder(topic: str, msgtype: str, msgdef: str) -> rc.StreamDecoder:
+    """The streaming decoder of a kept connection: layouts made with the connection's own message
+    definition, else the built-in one (``_rawlog_streamed`` checks them against the bag's final ones)."""
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.EMPTY)
+    if msgdef:
+        try:
+            rc.register_msgdef(store, msgtype, msgdef, "msg")
+        except Exception:  # noqa: BLE001 - _rawlog_streamed says so; the built-in definitions then
+            pass
+    if msgtype not in store.fielddefs:
+        from parsers.mcap_ros import _closure
+
+        base = rc.default_typestore("ros1")
+        try:
+            store.register({k: base.fielddefs[k] for k in _closure(base, {msgtype}) if k not in store.fielddefs})
+        except Exception:  # noqa: BLE001 - no layout then: every message kept for the end
+            pass
+    return rc.StreamDecoder(topic, msgtype, "ros1", store)
+
+
+class _StreamScan(_Scan):
+    """The scan of :func:`read_streamed`: record times as int64 arrays (:class:`_Times`), the payloads of
+    kept connections fed to a StreamDecoder per connection (:class:`_Feed`) instead of kept as bytes."""
+
+    def __init__(self, keep: Callable[[str, str], bool], size: int):
+        super().__init__(keep)
+        self.size = max(size, 1)
+        self.done = 0  # the end of the top-level record being read (the decoders' capacity estimates)
+        self.decoders: dict[int, rc.StreamDecoder] = {}
+
+    def connection(self, header: dict[str, bytes], data: bytes) -> None:
+        (cid,) = _U32.unpack_from(header["conn"], 0)
+        if cid in self.conns:
+            return
+        super().connection(header, data)
+        topic, msgtype, msgdef = self.conns[cid]
+        times = self.times[cid] = _Times()
+        if self.data[cid] is not None:
+            if msgtype not in rc.SUPPORTED:
+                raise rc.NotStreamable(f"{topic}: kept, but not a type decoded while reading")
+            dec = self.decoders[cid] = _decoder(topic, msgtype, msgdef)
+            self.data[cid] = _Feed(dec, lambda: int(1.25 * len(times) * self.size / max(self.done, 1)) + 1024)
+
+    def _keep(self, buf: bytes, arr: np.ndarray, cid, t_ns, d0, lens) -> None:
+        d1 = d0 + lens
+        present = np.unique(cid).tolist()
+        for c in present:
+            rows = None if len(present) == 1 else np.flatnonzero(cid == c)
+            self.times[c].add(t_ns.copy() if rows is None else t_ns[rows])
+            d = self.data[c]
+            if d is not None:
+                d.add(arr, d0 if rows is None else d0[rows], d1 if rows is None else d1[rows])
+
+
+def read_streamed(path: str, keep: Callable[[str, str], bool] = rc.keep_supported, fmt: str = NAME) -> rc.RawLog:
+    """:func:`read_raw` with every kept topic decoded while the bag is read (``RawTopic.decoded``, only the
+    first messages' bytes kept; record times as int64 arrays), the file memory-mapped and its pages let go
+    behind the walk: the log in memory about once, in columns, instead of as per-message bytes and ints.
+    rc.NotStreamable where that cannot give exactly what read_raw + decode give."""
+    from parsers.filemap import FileMap
+
+    check_readable(path)
+    with FileMap(path) as fm:
+        scan = _StreamScan(keep, fm.size)
+        _walk_file(fm.buf, scan, path, fm.release_before)
+    return _rawlog_streamed(path, fmt, scan)
+
+
+def _rawlog_streamed(path: str, fmt: str, scan: _StreamScan) -> rc.RawLog:
+    """:func:`_rawlog` of a streamed scan: the same typestore and warnings, the kept topics' decoders
+    finished with the bag's final message definitions."""
+    from rosbags.typesys import Stores, get_typestore
+
+    typestore = get_typestore(Stores.EMPTY)
+    topics: dict[str, rc.RawTopic] = {}
+    streamed: dict[str, rc.StreamDecoder] = {}
+    for cid, (topic, msgtype, msgdef) in scan.conns.items():
+        keep = scan.data[cid] is not None
+        if keep and msgdef and msgtype not in typestore.fielddefs:
+            try:
+                rc.register_msgdef(typestore, msgtype, msgdef, "msg")
+            except Exception as exc:
+                scan.warnings.append(f"{topic}: message definition of {msgtype} unusable ({type(exc).__name__})")
+        if keep and msgtype not in typestore.fielddefs and msgtype in rc.SUPPORTED:
+            base = rc.default_typestore("ros1")
+            from parsers.mcap_ros import _closure
+
+            typestore.register({k: base.fielddefs[k] for k in _closure(base, {msgtype})
+                                if k not in typestore.fielddefs})
+        if keep:
+            scan.data[cid].flush()
+        log_ns = scan.times.pop(cid).array()
+        if topic in topics:
+            old = topics[topic]
+            if keep or topic in streamed:  # (read_raw merges the messages in time order)
+                raise rc.NotStreamable(f"{topic}: kept, on several connections")
+            old.log_ns = np.sort(np.concatenate([old.log_ns, log_ns]), kind="stable")
+            continue
+        topics[topic] = rc.RawTopic(topic, msgtype, "ros1", log_ns, [])
+        if keep:
+            streamed[topic] = scan.decoders.pop(cid)
+    for topic, dec in streamed.items():  # the rest of each streamed topic, with the final definitions
+        topics[topic].decoded, topics[topic].data = dec.finish(typestore)
+    return rc.RawLog(path=path, fmt=fmt, topics=topics, typestore=typestore, warnings=scan.warnings)
+
+
+def _read_for_decode(path: str) -> rc.RawLog:
+    """The bag decoded while read (:func:`read_streamed`), or read the classic way where that cannot be
+    exact (rc.NotStreamable: a zoo of message lengths, a kept topic on several connections...)."""
+    try:
+        return read_streamed(path)
+    except rc.NotStreamable:
+        return read_raw(path, keep=rc.keep_supported)
 
 
 def index_past_end(index_pos: int | None, size: int, span_s: float | None) -> str | None:
@@ -500,11 +711,11 @@ def _rawlog(path: str, fmt: str, scan: _Scan) -> rc.RawLog:
 def load(path: str, selector: Selector) -> InsLog:
     if os.path.isdir(path):
         raise InputError("is a directory, not a ROS 1 bag", path)
-    return rc.to_inslog(read_raw(path), selector)
+    return rc.to_inslog(_read_for_decode(path), selector, release=True)
 
 
 def inventory(path: str) -> Inventory:
-    return rc.to_inventory(read_raw(path))
+    return rc.to_inventory(_read_for_decode(path))
 
 
 def write(path: str, log: InsLog, *, log_delay_ns: int = 0, compression: str = "none") -> None:
