@@ -162,6 +162,37 @@ def test_periodic_motion_is_flagged_not_confident():
     assert 2 * res.sigma_s >= 0.8 - 0.05
 
 
+class OneTurn:
+    """A still vehicle (noise only) with one smooth turn of ``dur`` s from ``t0``: a yaw-rate bump with the
+    bank rolled in and out."""
+
+    def __init__(self, t0: float, dur: float, rate_dps: float = 5.0):
+        self.t0, self.dur, self.r = t0, dur, np.radians(rate_dps)
+
+    def __call__(self, t: np.ndarray) -> np.ndarray:
+        x = np.clip((np.asarray(t, float) - self.t0) / self.dur, 0.0, 1.0)
+        yaw = self.r * np.sin(np.pi * x) ** 2
+        roll = 0.5 * np.pi * self.r * np.sin(2 * np.pi * x)
+        return np.stack([roll, 0.3 * roll, yaw], axis=1)
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_one_turn_in_a_still_log_gives_no_drift_from_windows_of_noise(seed):
+    """Motion in one 30 s turn, off the middle of a 10-minute log: the drift windows of noise alone locked on
+    lags along their search band, and their line was taken for the drift (-500 ppm +- 5 for a true 0; the
+    latency at the middle 25 sigma off on average). Windows without motion beyond the noise are left out:
+    no drift is fitted, and the latency's sigma holds the drift prior over the distance to the turn."""
+    rng = np.random.default_rng(seed)
+    m, s = make_pair(rng, w=OneTurn(100.0, 30.0), dur_s=600.0, f_m=100.0, f_s=100.0, latency_s=0.04,
+                     noise_dps=0.05)
+    r = estimate(m, s, compare=False)
+    q = r.quality
+    assert abs(r.latency_s - 0.04) < 3 * r.sigma_s, (r.latency_s, r.sigma_s)
+    sd = q.get("drift_sigma_ppm")
+    assert not q.get("drift_estimated") or abs(r.drift_ppm) < 3 * sd, (r.drift_ppm, sd)
+    assert not q.get("windows_disagree")
+
+
 def test_nans_are_dropped_and_nan_only_is_an_error():
     rng = np.random.default_rng(9)
     master, slave = make_pair(rng, latency_s=0.1, dur_s=60.0)

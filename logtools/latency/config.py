@@ -157,6 +157,15 @@ class WindowConfig:
     drift_search_ppm: float = 250.0  # a window's search band grows with the distance from the middle at this rate
     min_window_samples: int = 50  # a drift window needs this many refinement samples
     window_motion_fraction: float = 0.2  # windows with less motion than this x the median window's are left out
+    #: ... and, where the fit has no accelerometers to aid it (gyros or attitude alone), windows whose motion
+    #: beyond the master's noise is below this x the noisier unit's noise (``windows.window_snr``): a window of
+    #: noise alone carries no delay, yet it locks on some lag with a linearised sigma of a few ms. On a log
+    #: whose only motion is one turn the median is such a window, the fraction above keeps them all, and their
+    #: line gave the drift: -502 +- 4.6 ppm for a true 0, the latency 3 sigma off (test_latency, one turn);
+    #: "windows_disagree" fired at chi2 27-87 on one constant latency. With accelerometers the whole-overlap
+    #: fit determined the drift of such logs (calm one-turn flights: latency errors within 1 sigma of 0.8-0.9
+    #: ms); leaving the windows out there only tripled the sigma, so they stay
+    window_min_snr: float = 0.5
     window_search_margin_steps: float = 2.0  # a window's lag search band: the drift's reach plus this many grid steps
     window_reject: float = 5.0  # a window this many sigma off the drift line is an outlier (a wrong minimum)
     window_drift: bool = True  # the windows' delays fitted with the joint fit's drift inside each (test_latency)

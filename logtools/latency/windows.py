@@ -59,6 +59,22 @@ def drift_windows(ctx: Ctx, t0: float, t1: float, t_ok: np.ndarray | None = None
     return list(zip(edges[:-1], edges[1:]))
 
 
+def window_snr(ctx: Ctx, wmot: np.ndarray) -> np.ndarray:
+    """Motion/noise RMS of windows whose master rate varies by ``wmot`` (RMS about the mean, rad/s, of the
+    refinement samples: low-passed at ``ctx.cutoff_hz``, so the noise is counted in that band): the motion
+    beyond the master's own noise (a window of noise alone is no motion, whichever unit is the noisier)
+    against the noisier unit's noise; infinite where no unit's noise is known."""
+    def noise_dps(u) -> float:  # (inputs.motion_snr's in-band noise, over the refinement's band)
+        if not (np.isfinite(u.noise_dps) and u.noise_dps > 0 and u.rate_hz > 0):
+            return 0.0
+        return float(u.noise_dps * np.sqrt(3.0) * np.sqrt(min(1.0, 2.0 * ctx.cutoff_hz / u.rate_hz)))
+    n_m = noise_dps(ctx.master)
+    noise = max(n_m, noise_dps(ctx.slave))
+    if noise <= 0:
+        return np.full(len(wmot), np.inf)
+    return np.sqrt(np.maximum(np.degrees(np.asarray(wmot, float)) ** 2 - n_m ** 2, 0.0)) / noise
+
+
 def wls_line(x: np.ndarray, y: np.ndarray, sig: np.ndarray) -> tuple[float, float, np.ndarray]:
     w = 1.0 / np.maximum(sig, 1e-12) ** 2
     A = np.stack([np.ones_like(x), x], axis=1)
@@ -112,7 +128,8 @@ def window_fits(ctx: Ctx, ov: Overlap, wins: list, line: tuple[float, float] | N
     """Each window's delay at its centre. The drift inside a window is that of ``line`` (L, drift at
     t_mid), else none: a window's delay without it is that of the window's motion centroid, not its
     centre (100 ppm over a 15 s window whose motion sits at one end: 0.7 ms). Windows with little motion
-    (below a fifth of the median's) are left out."""
+    (below a fifth of the median's; without the accelerometers' aid, not beyond the noise: ``window_snr``)
+    are left out."""
     cfg = ctx.cfg
     t_m, a, valid, t_mid = ov.t_m, ov.a, ov.valid, ov.t_mid
     centers, lats, sigs, wmot, bounds = [], [], [], [], {}
@@ -141,6 +158,8 @@ def window_fits(ctx: Ctx, ov: Overlap, wins: list, line: tuple[float, float] | N
     centers, lats, sigs, wmot = map(np.asarray, (centers, lats, sigs, wmot))
     if len(wmot):
         keep = wmot >= cfg.windows.window_motion_fraction * np.median(wmot)  # windows with enough motion
+        if ctx.acc_src is None:  # gyros alone: a window of noise carries no delay (the median may be one)
+            keep &= window_snr(ctx, wmot) >= cfg.windows.window_min_snr
         centers, lats, sigs = centers[keep], lats[keep], sigs[keep]
     return WindowSet(centers, lats, sigs, bounds)
 
