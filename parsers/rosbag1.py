@@ -620,6 +620,21 @@ def read_streamed(path: str, keep: Callable[[str, str], bool] = rc.keep_supporte
     return _rawlog_streamed(path, fmt, scan)
 
 
+def _register_type(typestore, topic: str, msgtype: str, msgdef: str, warnings: list[str]) -> None:
+    """A kept connection's message type in ``typestore``: from the bag's own definition, else (none, or
+    unusable: said in ``warnings``) the built-in one of a supported type."""
+    if msgdef and msgtype not in typestore.fielddefs:
+        try:
+            rc.register_msgdef(typestore, msgtype, msgdef, "msg")
+        except Exception as exc:
+            warnings.append(f"{topic}: message definition of {msgtype} unusable ({type(exc).__name__})")
+    if msgtype not in typestore.fielddefs and msgtype in rc.SUPPORTED:
+        base = rc.default_typestore("ros1")
+        from parsers.mcap_ros import _closure
+
+        typestore.register({k: base.fielddefs[k] for k in _closure(base, {msgtype}) if k not in typestore.fielddefs})
+
+
 def _rawlog_streamed(path: str, fmt: str, scan: _StreamScan) -> rc.RawLog:
     """:func:`_rawlog` of a streamed scan: the same typestore and warnings, the kept topics' decoders
     finished with the bag's final message definitions."""
@@ -630,17 +645,8 @@ def _rawlog_streamed(path: str, fmt: str, scan: _StreamScan) -> rc.RawLog:
     streamed: dict[str, rc.StreamDecoder] = {}
     for cid, (topic, msgtype, msgdef) in scan.conns.items():
         keep = scan.data[cid] is not None
-        if keep and msgdef and msgtype not in typestore.fielddefs:
-            try:
-                rc.register_msgdef(typestore, msgtype, msgdef, "msg")
-            except Exception as exc:
-                scan.warnings.append(f"{topic}: message definition of {msgtype} unusable ({type(exc).__name__})")
-        if keep and msgtype not in typestore.fielddefs and msgtype in rc.SUPPORTED:
-            base = rc.default_typestore("ros1")
-            from parsers.mcap_ros import _closure
-
-            typestore.register({k: base.fielddefs[k] for k in _closure(base, {msgtype})
-                                if k not in typestore.fielddefs})
+        if keep:
+            _register_type(typestore, topic, msgtype, msgdef, scan.warnings)
         if keep:
             scan.data[cid].flush()
         log_ns = scan.times.pop(cid).array()
@@ -685,17 +691,8 @@ def _rawlog(path: str, fmt: str, scan: _Scan) -> rc.RawLog:
     topics: dict[str, rc.RawTopic] = {}
     for cid, (topic, msgtype, msgdef) in scan.conns.items():
         keep = scan.data[cid] is not None
-        if keep and msgdef and msgtype not in typestore.fielddefs:
-            try:
-                rc.register_msgdef(typestore, msgtype, msgdef, "msg")
-            except Exception as exc:
-                scan.warnings.append(f"{topic}: message definition of {msgtype} unusable ({type(exc).__name__})")
-        if keep and msgtype not in typestore.fielddefs and msgtype in rc.SUPPORTED:
-            base = rc.default_typestore("ros1")
-            from parsers.mcap_ros import _closure
-
-            typestore.register({k: base.fielddefs[k] for k in _closure(base, {msgtype})
-                                if k not in typestore.fielddefs})
+        if keep:
+            _register_type(typestore, topic, msgtype, msgdef, scan.warnings)
         raw = rc.RawTopic(topic, msgtype, "ros1", scan.times[cid], scan.data[cid] if keep else [])
         if topic in topics:
             old = topics[topic]
