@@ -556,19 +556,10 @@ def _decoder(topic: str, msgtype: str, msgdef: str) -> rc.StreamDecoder:
     from rosbags.typesys import Stores, get_typestore
 
     store = get_typestore(Stores.EMPTY)
-    if msgdef:
-        try:
-            rc.register_msgdef(store, msgtype, msgdef, "msg")
-        except Exception:  # noqa: BLE001 - _rawlog_streamed says so; the built-in definitions then
-            pass
-    if msgtype not in store.fielddefs:
-        from parsers.mcap_ros import _closure
-
-        base = rc.default_typestore("ros1")
-        try:
-            store.register({k: base.fielddefs[k] for k in _closure(base, {msgtype}) if k not in store.fielddefs})
-        except Exception:  # noqa: BLE001 - no layout then: every message kept for the end
-            pass
+    try:  # (an unusable definition is said by _rawlog_streamed, not here)
+        _register_type(store, topic, msgtype, msgdef, [])
+    except Exception:  # noqa: BLE001 - no layout then: every message kept for the end
+        pass
     return rc.StreamDecoder(topic, msgtype, "ros1", store)
 
 
@@ -647,7 +638,6 @@ def _rawlog_streamed(path: str, fmt: str, scan: _StreamScan) -> rc.RawLog:
         keep = scan.data[cid] is not None
         if keep:
             _register_type(typestore, topic, msgtype, msgdef, scan.warnings)
-        if keep:
             scan.data[cid].flush()
         log_ns = scan.times.pop(cid).array()
         if topic in topics:

@@ -12,8 +12,8 @@ long options with ``_`` for ``-``, top level or under an ``[analyze]`` table), e
 from __future__ import annotations
 
 import argparse
-import json
 import inspect
+import json
 import os
 import sys
 import time

@@ -19,6 +19,7 @@ import functools
 import importlib
 import os
 import pickle
+import signal
 import sys
 from typing import Any, Callable
 
@@ -155,15 +156,12 @@ class Pending:
             raise value
         return value
 
-
     def cancel(self) -> None:
         """The result is not wanted (the stage beside it failed): the child is ended and reaped."""
         if self._done:
             return
         self._done = True
         if self._pid is not None:
-            import signal
-
             try:
                 os.kill(self._pid, signal.SIGKILL)
             except OSError:

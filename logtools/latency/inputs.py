@@ -161,12 +161,17 @@ def make_unit(nat: UniformSeries, noise: float, src: str, name: str, rate: float
     return Unit(name, src, rate, lp, itp, grid, float(np.degrees(noise)))
 
 
+def inband_noise_dps(u: Unit, cutoff_hz: float) -> float:
+    """The unit's white rate noise over the band below ``cutoff_hz``, as an RMS of the three axes (deg/s)."""
+    return u.noise_dps * np.sqrt(3.0) * np.sqrt(min(1.0, 2.0 * cutoff_hz / u.rate_hz))
+
+
 def motion_snr(u: Unit, cutoff_hz: float) -> tuple[float, float]:
     """(motion RMS deg/s of the low-passed, mean-removed rate; in-band SNR)."""
     v = u.grid.values[u.grid.valid]
     if len(v) < 10:
         return 0.0, 0.0
     motion = float(np.degrees(np.sqrt(np.mean(np.sum((v - v.mean(axis=0)) ** 2, axis=1)))))
-    noise_inband = u.noise_dps * np.sqrt(3.0) * np.sqrt(min(1.0, 2.0 * cutoff_hz / u.rate_hz))
+    noise_inband = inband_noise_dps(u, cutoff_hz)
     return motion, float(motion / noise_inband) if noise_inband > 0 else np.inf
 

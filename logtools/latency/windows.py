@@ -12,6 +12,7 @@ from logtools.errors import AnalysisError
 from logtools.latency.coarse import window_start
 from logtools.latency.fit import Fit, refine
 from logtools.latency.gls import window_chi2
+from logtools.latency.inputs import inband_noise_dps
 from logtools.latency.prepare import Ctx
 from logtools.resample import Interpolant
 
@@ -64,10 +65,10 @@ def window_snr(ctx: Ctx, wmot: np.ndarray) -> np.ndarray:
     refinement samples: low-passed at ``ctx.cutoff_hz``, so the noise is counted in that band): the motion
     beyond the master's own noise (a window of noise alone is no motion, whichever unit is the noisier)
     against the noisier unit's noise; infinite where no unit's noise is known."""
-    def noise_dps(u) -> float:  # (inputs.motion_snr's in-band noise, over the refinement's band)
+    def noise_dps(u) -> float:  # (over the refinement's band; 0 where the unit's noise is not known)
         if not (np.isfinite(u.noise_dps) and u.noise_dps > 0 and u.rate_hz > 0):
             return 0.0
-        return float(u.noise_dps * np.sqrt(3.0) * np.sqrt(min(1.0, 2.0 * ctx.cutoff_hz / u.rate_hz)))
+        return float(inband_noise_dps(u, ctx.cutoff_hz))
     n_m = noise_dps(ctx.master)
     noise = max(n_m, noise_dps(ctx.slave))
     if noise <= 0:
