@@ -31,6 +31,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from scipy import fft as sfft
 
 from logtools import jit
 from logtools.conventions import (dcm_from_euler, dcm_from_quat, dcm_from_rotvec, euler_from_dcm, median_step_s,
@@ -160,12 +161,12 @@ def _clean(t: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _interp_at(t: np.ndarray, tp: np.ndarray, yp: np.ndarray, gap_steps: float) -> tuple[np.ndarray, np.ndarray]:
-    """yp (n, k) at t, linearly; and the mask of t not inside a gap of tp (nor outside it)."""
+    """yp (n, k) at t, linearly; and the mask of t inside tp's span (its first and last stamps included) and
+    not inside a gap of tp (a t on a sample of tp is that sample: inside)."""
     step = median_step_s(tp, default=np.inf)
-    j = np.searchsorted(tp, t)
-    inside = (j > 0) & (j < len(tp))
-    jj = np.clip(j, 1, len(tp) - 1)
-    inside &= (tp[jj] - tp[jj - 1]) <= gap_steps * step
+    jj = np.clip(np.searchsorted(tp, t, side="right"), 1, len(tp) - 1)  # t in [tp[jj-1], tp[jj]]
+    inside = (t >= tp[0]) & (t <= tp[-1])
+    inside &= ((tp[jj] - tp[jj - 1]) <= gap_steps * step) | (t == tp[jj - 1]) | (t == tp[jj])
     y = np.stack([np.interp(t, tp, yp[:, i]) for i in range(yp.shape[1])], -1)
     return y, inside
 
@@ -223,13 +224,10 @@ def _common(t_m: np.ndarray, y_m: np.ndarray, t_s: np.ndarray, y_s: np.ndarray, 
 
 
 # ---- the estimate ----------------------------------------------------------------------------------
-#: frequencies whose power is summed at a time in _long_run_cov (bounds a temporary; row by row the same)
-FFT_ROWS = 1 << 16
-
-
 #: lags of the scores' autocorrelation taken one by one while looking for its first zero crossing; a
-#: longer correlation goes the FFT way (the scores of IMU samples decorrelate within a few samples)
-DIRECT_LAGS = 256
+#: longer correlation goes the FFT way (:func:`_corr_time_fft`), which costs about what 30-60 lags do (1 h of
+#: 200 Hz: 0.15 s against 0.5-1.1 ms a lag; the same sums: the estimates agree to 1e-15)
+DIRECT_LAGS = 32
 
 
 def _bartlett_lags(n: int, tau: float) -> int:
@@ -247,10 +245,10 @@ def _long_run_cov(s: np.ndarray, overwrite: bool = False) -> tuple[np.ndarray, f
     """Newey-West (Bartlett) long-run covariance of the score series s (n, p) summed over n; and the
     scores' integrated correlation time in samples (1 + 2 sum rho up to its first zero crossing).
 
-    The autocorrelation is taken lag by lag up to its first zero crossing, and the Bartlett sum
+    The autocorrelation is taken lag by lag up to its first zero crossing (by FFT where that is beyond
+    DIRECT_LAGS samples: :func:`_corr_time_fft`), and the Bartlett sum
     sum_{|j| <= L} (1 - |j|/(L+1)) Gamma_j as s^T (T s) / (L+1), T s the scores convolved with the
-    triangle L+1-|j| = two boxes of L+1 samples (moving sums): O(n p) whatever L. A correlation
-    longer than DIRECT_LAGS samples goes through the FFT (:func:`_long_run_cov_fft`, the same sums).
+    triangle L+1-|j| = two boxes of L+1 samples (moving sums): O(n p^2) whatever L.
     ``overwrite``: s (C-contiguous) may be centred in place (no copy of a million rows)."""
     n = len(s)
     if overwrite and s.flags.c_contiguous and s.flags.writeable:
@@ -269,9 +267,7 @@ def _long_run_cov(s: np.ndarray, overwrite: bool = False) -> tuple[np.ndarray, f
             crossed = True
             break
         rho.append(a)
-    if not crossed:
-        return _long_run_cov_fft(s, tot)
-    tau = max(1.0 + 2.0 * float(np.sum(rho)), 1.0)
+    tau = max(1.0 + 2.0 * float(np.sum(rho)), 1.0) if crossed else _corr_time_fft(s, tot)
     L = _bartlett_lags(n, tau)
     om = np.empty((p, p))
     for c in range(p):  # column by column: a few series of n values at a time (4 h of 200 Hz: 23 MB each)
@@ -281,42 +277,23 @@ def _long_run_cov(s: np.ndarray, overwrite: bool = False) -> tuple[np.ndarray, f
     return 0.5 * (om + om.T), tau
 
 
-def _long_run_cov_fft(s: np.ndarray, tot: float) -> tuple[np.ndarray, float]:
-    """:func:`_long_run_cov` of centred scores by FFT, for scores correlated over many samples."""
+def _corr_time_fft(s: np.ndarray, tot: float) -> float:
+    """:func:`_long_run_cov`'s correlation time of centred scores correlated over many samples: their
+    summed autocorrelation (up to its first zero crossing) from the power spectra, zero padded to at least
+    2n (no wrap-around), one column's spectrum at a time (4 h of 200 Hz: 46 MB, not p of them)."""
     n = len(s)
-    # integrated correlation time of the scores (their summed autocorrelation), by FFT
-    nfft = 1 << int(np.ceil(np.log2(2 * n)))
-    # the scores' spectra column by column, their power summed FFT_ROWS frequencies at a time: the numbers
-    # of rfft(s, axis=0) and sum(f * conj(f), axis=1) without two more full-size complex copies
-    f = np.empty((nfft // 2 + 1, s.shape[1]), dtype=complex)
+    nfft = sfft.next_fast_len(2 * n, real=True)
+    power = np.zeros(nfft // 2 + 1)
     for j in range(s.shape[1]):
-        f[:, j] = np.fft.rfft(s[:, j], nfft)
-    power = np.empty(len(f), dtype=complex)
-    for i in range(0, len(f), FFT_ROWS):
-        blk = f[i:i + FFT_ROWS]
-        power[i:i + FFT_ROWS] = np.sum(blk * np.conj(blk), axis=1)
-    del blk
-    ac = np.fft.irfft(power, nfft)[:n] / tot
+        f = sfft.rfft(s[:, j], nfft)
+        power += f.real ** 2
+        power += f.imag ** 2
+    del f
+    ac = sfft.irfft(power, nfft)[:n] / tot
     del power
     neg = np.nonzero(ac[1:] <= 0)[0]
     m = int(neg[0]) if len(neg) else n - 1
-    tau = max(1.0 + 2.0 * float(np.sum(ac[1:m + 1])), 1.0)
-    L = _bartlett_lags(n, tau)
-    # sum_{|j| <= L} (1 - |j|/(L+1)) Gamma_j in the frequency domain: the scores' cross-spectra (f, zero
-    # padded to nfft >= 2n: no wrap-around) weighted by the Bartlett window's transform (the Fejer
-    # kernel), O(n log n) whatever L (a loop over the lags cost O(n L): 12 s at L = 1900 on 1 h of 200 Hz)
-    w = np.zeros(nfft)
-    j = np.arange(1, L + 1)
-    w[0] = 1.0
-    w[j] = w[nfft - j] = 1.0 - j / (L + 1.0)
-    wk = np.fft.rfft(w).real  # real: the window is symmetric
-    wk[1:(nfft + 1) // 2] *= 2.0  # the interior bins stand for their conjugate twins too
-    om = np.zeros((s.shape[1], s.shape[1]))
-    for i in range(0, len(f), FFT_ROWS):  # (in blocks of frequencies: no full-size weighted copy)
-        blk = f[i:i + FFT_ROWS]
-        om += ((blk * wk[i:i + FFT_ROWS, None]).T @ np.conj(blk)).real
-    om /= nfft
-    return 0.5 * (om + om.T), tau
+    return max(1.0 + 2.0 * float(np.sum(ac[1:m + 1])), 1.0)
 
 
 def _euler_sigma_deg(r: np.ndarray, cov_rad2: np.ndarray) -> np.ndarray:
@@ -567,7 +544,10 @@ def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highp
     if name == "accel" and gm is not None and len(gm[0]) >= 3:
         w, okw = _interp_at(t, *gm, cfg.gap_steps)
         if okw.all():
-            dw = np.gradient(w, t, axis=0)
+            # the angular acceleration differentiated on the master's own stamps, then interpolated: on the
+            # sparser unit's common stamps a central difference loses a vibration's amplitude (0.84 of it at
+            # 16 Hz on a 100 Hz grid), and the lever arm comes out that much too long, the rotation with it
+            dw = _interp_at(t, gm[0], np.gradient(gm[1], gm[0], axis=0), cfg.gap_steps)[0]
             # the lever arm's regressors and the delay's (below) in one array, filled in place: 4 h of
             # 200 Hz is 207 MB for each (n, 3, 3) a whole-array expression would make
             k = np.empty((n, 3, 4))
