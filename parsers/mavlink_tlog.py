@@ -434,8 +434,16 @@ def _msg_time(s: RawStream) -> tuple[np.ndarray, np.ndarray]:
     return epoch.astype(np.int8), us.astype(np.int64) * 1000
 
 
+#: SYSTEM_TIME's time_boot_ms counts the whole milliseconds elapsed since boot (ArduPilot's millis(), PX4's
+#: hrt_absolute_time() / 1000: truncated), taken with time_unix_usec at one instant: that instant is on
+#: average half a millisecond after the boot stamp, and the boot -> UNIX offset without it half a millisecond
+#: too large (a tlog slave's latency +0.5 ms, a tlog master's -0.5 ms, against an offset exact to the us)
+BOOT_MS_MEAN_LAG_NS = 500_000
+
+
 def _system_time_offset_ns(fr: "Frames | FrameStore", sysid: int, compid: int) -> int | None:
-    """UNIX ns - boot ns from SYSTEM_TIME of this system (same component preferred)."""
+    """UNIX ns - boot ns from SYSTEM_TIME of this system (same component preferred): the median over its
+    records, time_boot_ms taken at the middle of its millisecond (``BOOT_MS_MEAN_LAG_NS``)."""
     d = msgdef("SYSTEM_TIME")
     r, _recv = fr.take(d.id, sysid, compid)
     if len(r) == 0:
@@ -446,7 +454,7 @@ def _system_time_offset_ns(fr: "Frames | FrameStore", sysid: int, compid: int) -
     good = unix > EPOCH_US_THRESHOLD
     if not good.any():
         return None
-    off = unix[good] * 1000 - r["time_boot_ms"][good].astype(np.int64) * 1_000_000
+    off = unix[good] * 1000 - (r["time_boot_ms"][good].astype(np.int64) * 1_000_000 + BOOT_MS_MEAN_LAG_NS)
     return int(np.sort(off)[len(off) // 2])  # integer median (float64 loses ns at 1e18)
 
 
@@ -1071,12 +1079,14 @@ def write(path: str, log: InsLog, *, sysid: int = 1, compid: int = 1, transport_
         r["time_boot_ms"] = boot_ms(tv_ns)
         r["vx"], r["vy"], r["vz"] = v.T
         add(d, r, tv_ns)
-    # 1 Hz housekeeping on whole boot milliseconds
+    # 1 Hz housekeeping, half a millisecond after each whole boot second: SYSTEM_TIME as an autopilot sends
+    # it, time_unix_usec of the instant and time_boot_ms its whole milliseconds (the reader's
+    # BOOT_MS_MEAN_LAG_NS: an instant in the middle of its millisecond, where a unit's are on average)
     b0 = int(np.ceil(boot_of(first_ns) / 1e9))
     b1 = int(np.floor(boot_of(last_ns) / 1e9))
     sec_boot_ns = np.arange(b0, b1 + 1, dtype=np.int64) * 1_000_000_000
     if len(sec_boot_ns):
-        t_abs = sec_boot_ns + (boot_epoch_ns if epoch else 0)
+        t_abs = sec_boot_ns + BOOT_MS_MEAN_LAG_NS + (boot_epoch_ns if epoch else 0)
         d, r = _records("SYSTEM_TIME", len(sec_boot_ns))
         r["time_boot_ms"] = sec_boot_ns // 1_000_000
         r["time_unix_usec"] = (t_abs // 1000).astype(np.uint64) if epoch else 0
