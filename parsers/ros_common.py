@@ -873,6 +873,13 @@ def _imu_all_zero(rawlog: RawLog, topic: str, n: int = 200) -> bool:
     return bool(vals.size) and bool(np.all(vals == 0.0))
 
 
+def _orientation_only_imus(rawlog: RawLog, but: str | None = None) -> list[str]:
+    """Imu topics (other than ``but``) whose rates and specific forces are all zero while their orientation is
+    given: an attitude published as an Imu (REP-145's -1 covariances on what it does not carry)."""
+    return [n for n in _topics_of(rawlog, IMU)
+            if n != but and _imu_all_zero(rawlog, n) and _imu_has_orientation(rawlog, n)]
+
+
 def plan_unit(rawlog: RawLog, selector: Selector) -> tuple[Plan, list[str]]:
     """Decide the topics of the unit (selector, else defaults); notes say what was picked."""
     notes: list[str] = []
@@ -920,6 +927,8 @@ def plan_unit(rawlog: RawLog, selector: Selector) -> tuple[Plan, list[str]]:
             gyro_odom = odom
         elif not explicit:
             imus = _topics_of(rawlog, IMU)
+            moving = [n for n in imus if not _imu_all_zero(rawlog, n)]  # (not an attitude-only Imu topic)
+            imus = moving + [n for n in imus if n not in moving]
             if imus:
                 imu = imus[0]
                 more = f" (other Imu topics: {', '.join(imus[1:])})" if len(imus) > 1 else ""
@@ -935,8 +944,10 @@ def plan_unit(rawlog: RawLog, selector: Selector) -> tuple[Plan, list[str]]:
         elif imu and _imu_has_orientation(rawlog, imu):
             att = imu
         elif not explicit:
-            # an Odometry's pose orientation last (an Imu may say "no orientation": covariance[0] = -1)
-            cands = _topics_of(rawlog, QUAT_STAMPED, POSE, POSE_COV) or _topics_of(rawlog, ODOM)
+            # an Odometry's pose orientation last (an Imu may say "no orientation": covariance[0] = -1), after
+            # an attitude-only Imu topic
+            cands = (_topics_of(rawlog, QUAT_STAMPED, POSE, POSE_COV) or _orientation_only_imus(rawlog, imu)
+                     or _topics_of(rawlog, ODOM))
             if cands:
                 att = cands[0]
         if att and not explicit:
@@ -1189,14 +1200,15 @@ def to_inventory(rawlog: RawLog) -> Inventory:
     nav_extra = []
     vels = _topics_of(rawlog, TWIST, TWIST_COV, VEC3)
     fixes = _topics_of(rawlog, FIX)
-    atts = _topics_of(rawlog, QUAT_STAMPED, POSE, POSE_COV)
+    atts = _topics_of(rawlog, QUAT_STAMPED, POSE, POSE_COV) + _orientation_only_imus(rawlog)
     if vels:
         nav_extra.append(f"vel={vels[0]}")
     if fixes:
         nav_extra.append(f"pos={fixes[0]}")
     for imu in _topics_of(rawlog, IMU):
         if _imu_all_zero(rawlog, imu):
-            notes.append(f"{imu}: every reading zero (a placeholder topic): not offered as a unit")
+            notes.append(f"{imu}: rates and specific forces all zero (orientation only): offered as att={imu}"
+                         if imu in atts else f"{imu}: every reading zero (a placeholder topic): not offered as a unit")
             continue
         items = [f"imu={imu}"]
         if atts and not _imu_has_orientation(rawlog, imu):

@@ -1129,3 +1129,29 @@ def test_imu_orientation_marked_absent_is_a_note_not_a_warning(tmp_path):
     assert len(bad) == 1 and bad[0] == "/imu: 3 of 40 orientations not unit quaternions; dropped", w
     assert not _is_parse_note(bad[0])
     assert len(log.quat_wxyz()[0]) == 40 - 5 - 3
+
+
+def test_an_attitude_published_as_an_imu_is_the_units_attitude(tmp_path):
+    """A unit publishing its rates on /imu (orientation_covariance[0] = -1: none) and its attitude as another
+    Imu, /attitude, with zero rates and specific forces (REP-145's -1 covariances): with no selector the IMU
+    is /imu (not the all-zero topic, which sorts first) and the attitude /attitude's orientation (heading
+    north: yaw 0); inspect offers it as att=."""
+    T = _ros_types()
+    c45 = np.sqrt(0.5)
+    msgs = []
+    for k in range(20):
+        t = T0_NS + k * 10_000_000
+        att = _imu_msg(T, t, (0.0, 0.0, c45, c45), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+        att.angular_velocity_covariance[0] = att.linear_acceleration_covariance[0] = -1.0
+        msgs.append(("/attitude", "sensor_msgs/msg/Imu", att, t))
+        imu = _imu_msg(T, t, (0.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.1), (0.0, 0.0, 9.81))
+        imu.orientation_covariance[0] = -1.0
+        msgs.append(("/imu", "sensor_msgs/msg/Imu", imu, t))
+    p = str(tmp_path / "att_as_imu.mcap")
+    _hand_mcap(p, msgs)
+    log = parsers.load(p)
+    assert log.has_quat, log.meta.warnings
+    np.testing.assert_allclose(euler_from_quat(log.quat_wxyz()[1]), np.zeros((20, 3)), atol=1e-12)
+    np.testing.assert_allclose(log.gyro_rad_s(), np.tile([0.0, 0.0, -0.1], (20, 1)), atol=1e-15)
+    inv = registry.inspect_log(p)
+    assert any("att=/attitude" in s and "imu=/imu" in s for s in inv.selectors), inv.selectors
