@@ -497,7 +497,8 @@ def summary_lines(rep: dict, paths: dict[str, str | None]) -> list[str]:
             continue
         rpy = " ".join(f"{x:+.4f}" if x is not None else "n/a" for x in a["mounting_rpy_deg"])
         sig = " ".join(f"{x * 60:.3g}'" if x is not None else "n/a" for x in a["mounting_sigma_deg"])
-        conv = f"{a['converged_s']:.1f} s" if a.get("converged_s") is not None else "not converged"
+        conv = (f"{a['converged_s']:.1f} s" if a.get("converged_s") is not None
+                else "settled" if a.get("still_converging") is False else "not converged")
         out.append(f"mounting ({run}, {a['filter']}/{a['match']}): roll pitch yaw = {rpy} deg "
                    f"+/- {sig} (arcmin, 1 sigma), {conv}")
         if a.get("mounting_not_determined"):
@@ -773,10 +774,10 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
             an.align_sections[run] = res
         else:
             an.alignment[run] = None
-            # a master and a slave on different clocks (UNIX time, time since boot) cannot overlap at face
-            # value: the uncompensated run does not apply there, which is no shortcoming of the analysis
-            applies = not (run == "uncompensated" and master.meta.clock != slave.meta.clock
-                           and face is not None and not _overlap_s(master, face) > 0)
+            # a master and a slave whose stamps do not overlap at face value (UNIX time against time since
+            # boot, or two units' boot clocks) have nothing to align uncompensated: the run does not apply
+            # there, which is no shortcoming of the analysis
+            applies = not (run == "uncompensated" and face is not None and not _overlap_s(master, face) > 0)
             an.align_sections[run] = rp.alignment_skipped(res, opts.filter, opts.match, applies=applies)
     if "logtools.alignment.run" in sys.modules:  # the runs are done: their master series go
         sys.modules["logtools.alignment.run"].forget_master(master)

@@ -472,3 +472,25 @@ def test_real_cli_board_errors(tmp_path, capsys):
     with pytest.raises(SystemExit) as bad:
         main(["analyze", m, s, "-o", str(tmp_path / "bad"), "--board-errors", "maybe"])
     assert bad.value.code == 2 and "--board-errors" in capsys.readouterr().err
+
+
+def test_two_units_on_their_own_boot_clocks_without_overlap_leave_the_status_ok(tmp_path):
+    """Master and slave each on the time since its own boot, the stamps 1000 s apart: the latency is found
+    over the whole overlap; the uncompensated run has nothing to align at face value, which is no shortcoming
+    of the analysis (a note, status ok), as for a slave on boot time against a master on UNIX time."""
+    from dataclasses import replace as _replace
+
+    sim = _real()
+    pair = sim.simulate(sim.scenario_config("ship", duration_s=120.0, slave_clock="boot", slave_boot_start_s=1000.0,
+                                            latency_s=0.0431, mount_rpy_deg=(2.0, -1.0, 45.0), drift_ppm=10.0))
+    master = _replace(pair.master, meta=_replace(pair.master.meta, t0_ns=5_000_000_000, clock="boot"))
+    m, s = str(tmp_path / "m.csv"), str(tmp_path / "s.csv")
+    registry.write(m, master, "csv")
+    registry.write(s, pair.slave, "csv")
+    out = tmp_path / "out"
+    assert main(["analyze", m, s, "-o", str(out), "--no-recording", "--no-html", "--max-lag", "auto"]) == 0
+    rep = json.loads((out / "report.json").read_text())
+    rp.validate(rep)
+    assert rep["alignment"]["uncompensated"].get("not_applicable") is True
+    assert rep["status"] == "ok", (rep["status"], rep["skipped"], [w["text"] for w in rep["warnings"]])
+    assert rep["alignment"]["compensated"]["mounting_rpy_deg"] == pytest.approx([2.0, -1.0, 45.0], abs=0.05)
