@@ -89,6 +89,9 @@ class AlignmentResult:
     #: holds, larger when the data carry errors correlated in time that it does not model (a consumer
     #: board's EKF attitude error); None where not computed
     innovation_corr_epochs: tuple[float, ...] | None = None
+    #: the mounting's sigma still fell at the end of the run (AlignmentConfig.settle_fall_ratio over its last
+    #: settle_tail_frac): more data would tighten it; None where the mounting is not determined
+    still_converging: bool | None = None
     # time histories for plots: t_s (master relative), states (N, k) with names, sigmas (N, k)
     history_t_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
     history_names: tuple[str, ...] = ()

@@ -481,10 +481,13 @@ def headline_html(rep: dict) -> str:
             conv.append(f"{r}: <span class=warn>skipped</span>")
         elif a.get("converged_s") is not None:
             conv.append(f"{r}: <span class=ok>yes</span>, {a['converged_s']:.1f} s")
+        elif a.get("still_converging") is False:
+            conv.append(f"{r}: <span class=ok>settled</span> (above the navigation-grade thresholds)")
         else:
             conv.append(f"{r}: <span class=warn>not converged</span>")
     main_conv = align.get(run or "compensated") or {}
     big = ("<span class=ok>converged</span>" if main_conv.get("converged_s") is not None
+           else "<span class=ok>settled</span>" if main_conv.get("still_converging") is False
            else "<span class=warn>not converged</span>")
     cells.append(("alignment", big, "; ".join(conv)))
     warns = report_warnings(rep)

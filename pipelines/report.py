@@ -174,6 +174,8 @@ def alignment_section(res: AlignmentResult) -> dict:
         "gyro_bias_sigma_dph": _vec(res.gyro_bias_sigma_dph),
         "accel_bias_sigma_mg": _vec(res.accel_bias_sigma_mg),
         "converged_s": _num(res.converged_s),
+        # the sigma still fell at the end of the run (AlignmentConfig.settle_fall_ratio): more data would tighten it
+        "still_converging": res.still_converging,
         "residual_rms": {k: _num(v) for k, v in res.residual_rms.items()},
         "delay_s": _num(res.delay_s),
         "delay_sigma_s": _num(res.delay_sigma_s),
@@ -422,7 +424,15 @@ def findings(rep: dict) -> tuple[list[dict], list[dict]]:
         if sec.get("mounting_rpy_deg") and None in sec["mounting_rpy_deg"] and run == "compensated":
             add(warns, "alignment", f"{run}: the mounting was not determined")
         if run == "compensated" and sec.get("converged_s") is None:
-            add(warns, "alignment", f"{run}: the mounting's sigma did not converge")
+            sig = sec.get("mounting_sigma_deg") or []
+            at = ("" if not sig or None in sig else
+                  " at " + "/".join(f"{60 * x:.2g}" for x in sig) + "' (roll/pitch/yaw)")
+            if sec.get("still_converging") is False:  # settled above the thresholds: what the pair allows
+                add(notes, "alignment", f"{run}: the mounting's sigma settled{at}, above the convergence "
+                    "thresholds of a navigation-grade pair (converged_s null)")
+            else:
+                add(warns, "alignment", f"{run}: the mounting's sigma did not converge: it still fell over the "
+                    f"last part of the log{at} (more motion or a longer log would tighten it)")
     for step, why in (rep.get("skipped") or {}).items():
         if not (step == "latency" or step.startswith("alignment.")):
             add(warns, "outputs", f"{step} skipped: {why}")

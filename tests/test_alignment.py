@@ -829,3 +829,19 @@ def test_the_gyro_bias_seed_of_a_master_without_an_imu_takes_the_earth_rate():
     seed = run_mod._gyro_bias_seed(master, ms, run_mod._rates_on_grid(master, ms, t, g, 0.0), 0.0, r0,
                                    3.0 * DEG_PER_H, CONFIG, [])
     assert seed.applied and seed.b_rad_s / DEG_PER_H == pytest.approx(b, abs=1.0)
+
+
+def test_still_converging_is_the_sigmas_fall_over_the_last_part_of_the_run():
+    """_still_converging: the forward sigma of some angle fell by more than settle_fall_ratio over the last
+    settle_tail_frac of the run (1/sqrt(t) all along: 1.12x over the last fifth, settled; the yaw still
+    halving at the end: still converging)."""
+    from logtools.alignment.options import CONFIG
+    from logtools.alignment.run import _still_converging
+
+    t = np.linspace(0.0, 600.0, 3001)
+    settled = np.column_stack([1.0 / np.sqrt(1.0 + t)] * 3)
+    assert _still_converging(t, settled, CONFIG) is False
+    late = settled.copy()
+    late[:, 2] = np.where(t < 480.0, 1.0, 1.0 - 0.5 * (t - 480.0) / 120.0)  # yaw learnt in the last 2 minutes
+    assert _still_converging(t, late, CONFIG) is True
+    assert _still_converging(t[:1], settled[:1], CONFIG) is None

@@ -225,3 +225,23 @@ def test_real_analyze_report_validates(tmp_path):
     assert rep == json.loads(json.dumps(out.report))
     truth = pair.truth.to_dict()
     assert math.isclose(rep["latency"]["latency_s"], truth["latency_s"], abs_tol=2e-3)
+
+
+@pytest.mark.parametrize("still, where", [(False, "notes"), (True, "warnings"), (None, "warnings")])
+def test_a_mounting_sigma_that_settled_above_the_thresholds_is_a_note(still, where):
+    """converged_s null (the sigma never went below the navigation-grade 1/1/2 arcmin): where the sigma had
+    settled by the end of the log (a MEMS slave's 2-10') that is what the pair allows, a note; where it still
+    fell at the end (or a report that does not say), a warning that more data would tighten it."""
+    an = make_fake_analysis()
+    rep = rp.build_report(an.master, an.slave, latency=an.latency, alignment=an.alignment,
+                          timings_s={k: 0.0 for k in rp.TIMING_KEYS})
+    sec = rep["alignment"]["compensated"]
+    sec["converged_s"], sec["still_converging"] = None, still
+    sec["mounting_sigma_deg"] = [0.05, 0.04, 0.1]
+    rp.add_findings(rep)
+    texts = {k: [f["text"] for f in rep[k]] for k in ("notes", "warnings")}
+    hits = [t for t in texts[where] if "mounting's sigma" in t]
+    assert len(hits) == 1 and "3/2.4/6' (roll/pitch/yaw)" in hits[0], texts
+    other = "warnings" if where == "notes" else "notes"
+    assert not any("mounting's sigma" in t for t in texts[other])
+    rp.validate(rep)

@@ -1153,7 +1153,7 @@ def _result(run: FilterRun, lay: StateLayout, st: FilterSettings, sig0: np.ndarr
         mounting_quat_wxyz=mnt.quat_wxyz,
         filter=kind.value, match=match, mounting_rpy_deg=mnt.rpy_deg, mounting_sigma_deg=mnt.sigma_deg,
         gyro_bias_dph=tuple(float(x) for x in gb), accel_bias_mg=tuple(float(x) for x in ab),
-        converged_s=mnt.converged_s, residual_rms=rms,
+        converged_s=mnt.converged_s, still_converging=mnt.still_converging, residual_rms=rms,
         gyro_bias_sigma_dph=tuple(float(x) for x in gbs), accel_bias_sigma_mg=tuple(float(x) for x in abs_),
         delay_s=delay_s, delay_sigma_s=delay_sig, lever_arm_m=lever_m, lever_arm_sigma_m=lever_sig,
         observability=obs, notes=tuple(notes), innovation_corr_epochs=_innovation_correlation_times(run),
@@ -1178,6 +1178,7 @@ class MountingSummary:
     sig_axes: np.ndarray | None = None
     quat_wxyz: tuple[float, float, float, float] | None = None  # the mounting's exact rotation
     gimbal: bool = False  # rpy_deg is the canonical triple at the gimbal lock
+    still_converging: bool | None = None  # (AlignmentResult.still_converging)
 
 
 def _innovation_correlation_factor(run: FilterRun) -> float:
@@ -1291,7 +1292,19 @@ def _mounting(run: FilterRun, lay: StateLayout, k_rep: int, sig_scale: float, co
         first = 0 if len(bad) == 0 else bad[-1] + 1
         conv = float(run.t_s[first] - run.t_s[0])
     sig_axes = axis_sigmas(rpy, run.p_mount[k_rep])
-    return MountingSummary(True, mount_rpy, mount_sig, sig_e, hist_mount, conv, sig_axes, quat, bool(gimbal))
+    return MountingSummary(True, mount_rpy, mount_sig, sig_e, hist_mount, conv, sig_axes, quat, bool(gimbal),
+                           _still_converging(run.t_s, sig_f, config))
+
+
+def _still_converging(t_s: np.ndarray, sig_f: np.ndarray, config: AlignmentConfig) -> bool | None:
+    """Whether the forward filter's mounting sigma (epochs, 3) of some angle fell by more than
+    config.settle_fall_ratio over the last config.settle_tail_frac of the run."""
+    if len(t_s) < 2 or not np.isfinite(sig_f[-1]).all():
+        return None
+    k0 = int(np.searchsorted(t_s, t_s[-1] - config.settle_tail_frac * (t_s[-1] - t_s[0])))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        fall = sig_f[min(k0, len(t_s) - 1)] / sig_f[-1]
+    return bool(np.any(fall > config.settle_fall_ratio))
 
 
 def _observability(run: FilterRun, lay: StateLayout, sig0: np.ndarray, k_rep: int, sig_axes: np.ndarray | None,
