@@ -138,7 +138,9 @@ class AlignmentConfig:
     #: "still converging": the forward filter's mounting sigma of some angle fell by more than settle_fall_ratio
     #: over the last settle_tail_frac of the run: more of that motion would still tighten it (a warning where
     #: it did not converge). A sigma that settled above converged_arcmin (a MEMS slave's 2-10') is what the
-    #: pair allows: a note, not a warning (an independent simulator's MEMS pairs: 45 of 69 runs warned)
+    #: pair allows: a note, not a warning (an independent simulator's MEMS pairs: 45 of 69 runs warned).
+    #: 1.25 over the last fifth is a sigma falling like 1/t, twice the log-rate of steady averaging (1/sqrt(t):
+    #: 1.118x); that simulator's 90-150 s logs fell 1.1-2.0x there, its 300 s ones 1.07-1.34x
     settle_tail_frac: float = 0.2
     settle_fall_ratio: float = 1.25
     #: a step of the slave's IMU stamps beyond imu_gap_s and beyond imu_gap_periods x its median step is a gap:
