@@ -61,6 +61,16 @@ class SearchConfig:
     #: test_latency periodic tests
     periodic_margin: float = 1e-4
     periodic_rel_margin: float = 0.1  # ... or within this fraction of the best cost (the cost's spread on noisy data)
+    #: the integer-lag minima re-ranked at their continuous minima (``coarse.subsample_minima``): a constant-
+    #: frequency vibration makes minima a period apart and the grid favours whichever falls on a grid point
+    #: (an aircraft vibrating at 8.56 Hz came out one period, 116 ms, off at sigma 0.05 ms) -- test_latency_alias
+    subsample_rank: bool = True
+    #: ... the minima within this x the cost a lag half a grid step off its minimum can add (the rates'
+    #: derivative; the true lag 4.7 ms off the 10 ms grid added 0.94^2 of it) ...
+    subsample_margin: float = 1.5
+    subsample_candidates: int = 8  # ... at most this many (the best included): runtime, a bounded search each
+    subsample_xtol: float = 0.01  # ... each minimum located to this fraction of a grid step
+    subsample_max_rows: int = 30_000  # ... on every k-th grid row beyond this many (runtime: 45 ms a cost at 60 000)
     periodic_velocity: bool = True  # alternatives checked on the velocities where both units have them (test_latency)
     #: an alternative whose velocity residual RMS exceeds the estimate's this many times is rejected (3x the
     #: noise's power) -- test_latency
@@ -276,6 +286,10 @@ class StepConfig:
     #: ... and at least this large (s): below it a "step" is within what a window's motion centroid and a 1 ms
     #: stamp grid (0.29 ms) move the windows' delays
     min_step_s: float = 5e-4
+    #: ... and beyond this many steps of the coarser stamp grid (``Ctx.stamp_resolution_s``): stamps truncated to
+    #: a grid under a drifting clock carry a sawtooth error whose phase wraps by one grid step (a 50 Hz slave's
+    #: 1 ms stamps at 5 ppm: a "step" of +0.54 +- 0.075 ms) -- test_latency_alias
+    min_step_resolution: float = 1.5
 
 
 @dataclass(frozen=True)

@@ -111,8 +111,9 @@ def clock_step(ctx: Ctx, ov: Overlap, latency_s: float, drift: float, alternativ
     if b is None:
         return None
     step, s_step = float(b["p"][2]), b["sigma_step"]
+    min_step = max(sc.min_step_s, sc.min_step_resolution * max(ctx.stamp_resolution_s))
     if not (b["delta_chi2"] >= sc.min_delta_chi2 and b["delta_vs_curve"] >= sc.min_delta_vs_curve
-            and abs(step) >= sc.min_step_s and abs(step) >= sc.min_step_sigmas * s_step):
+            and abs(step) >= min_step and abs(step) >= sc.min_step_sigmas * s_step):
         return None
     j = b["j"]
     if b["inside"]:  # inside window j: its middle (the window blends both sides)
