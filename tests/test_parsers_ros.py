@@ -332,16 +332,24 @@ def test_attitude_from_odometry_when_the_imu_has_none(tmp_path):
     msgs = []
     for k in range(20):
         t = T0_NS + k * 10_000_000
-        imu = _imu_msg(T, t, (0.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.1), (0.0, 0.0, 9.81))
-        imu.orientation_covariance[0] = -1.0
-        msgs.append(("/imu", "sensor_msgs/msg/Imu", imu, t))
+        msgs.append(("/imu", "sensor_msgs/msg/Imu", _rates_only_imu_msg(T, t), t))
         msgs.append(("/odom", "nav_msgs/msg/Odometry", _odom_north_msg(T, t), t))
     p = str(tmp_path / "odom_att.mcap")
     _hand_mcap(p, msgs)
-    log = parsers.load(p)
+    _assert_heading_north_turning_left(parsers.load(p))
+
+
+def _rates_only_imu_msg(T, t_ns: int):
+    """An Imu turning left at 0.1 rad/s, level, that says "no orientation" (orientation_covariance[0] = -1)."""
+    imu = _imu_msg(T, t_ns, (0.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.1), (0.0, 0.0, 9.81))
+    imu.orientation_covariance[0] = -1.0
+    return imu
+
+
+def _assert_heading_north_turning_left(log, n: int = 20) -> None:
     assert log.has_quat, log.meta.warnings
-    np.testing.assert_allclose(euler_from_quat(log.quat_wxyz()[1]), np.zeros((20, 3)), atol=1e-12)
-    np.testing.assert_allclose(log.gyro_rad_s(), np.tile([0.0, 0.0, -0.1], (20, 1)), atol=1e-15)
+    np.testing.assert_allclose(euler_from_quat(log.quat_wxyz()[1]), np.zeros((n, 3)), atol=1e-12)
+    np.testing.assert_allclose(log.gyro_rad_s(), np.tile([0.0, 0.0, -0.1], (n, 1)), atol=1e-15)
 
 
 # ---- the fast path against the libraries --------------------------------------------------------
@@ -1144,14 +1152,9 @@ def test_an_attitude_published_as_an_imu_is_the_units_attitude(tmp_path):
         att = _imu_msg(T, t, (0.0, 0.0, c45, c45), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
         att.angular_velocity_covariance[0] = att.linear_acceleration_covariance[0] = -1.0
         msgs.append(("/attitude", "sensor_msgs/msg/Imu", att, t))
-        imu = _imu_msg(T, t, (0.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.1), (0.0, 0.0, 9.81))
-        imu.orientation_covariance[0] = -1.0
-        msgs.append(("/imu", "sensor_msgs/msg/Imu", imu, t))
+        msgs.append(("/imu", "sensor_msgs/msg/Imu", _rates_only_imu_msg(T, t), t))
     p = str(tmp_path / "att_as_imu.mcap")
     _hand_mcap(p, msgs)
-    log = parsers.load(p)
-    assert log.has_quat, log.meta.warnings
-    np.testing.assert_allclose(euler_from_quat(log.quat_wxyz()[1]), np.zeros((20, 3)), atol=1e-12)
-    np.testing.assert_allclose(log.gyro_rad_s(), np.tile([0.0, 0.0, -0.1], (20, 1)), atol=1e-15)
+    _assert_heading_north_turning_left(parsers.load(p))
     inv = registry.inspect_log(p)
     assert any("att=/attitude" in s and "imu=/imu" in s for s in inv.selectors), inv.selectors
