@@ -856,7 +856,10 @@ def _need(rawlog: RawLog, key: str, topic: str, types: tuple[str, ...]) -> str:
 
 def _imu_has_orientation(rawlog: RawLog, topic: str) -> bool:
     raw = rawlog.topics[topic]
-    sub = RawTopic(raw.name, raw.msgtype, raw.encoding, raw.log_ns[:20], raw.data[:20])
+    n = min(20, len(raw.data))
+    if n == 0:
+        return False
+    sub = RawTopic(raw.name, raw.msgtype, raw.encoding, raw.log_ns[:n], raw.data[:n])
     c = decode_topic(rawlog.typestore, sub, {k: FIELDS[IMU][k] for k in ("qx", "qy", "qz", "qw", "q_cov0")}).columns
     _q, ok = quat_ros_to_ned_frd(c)
     return bool(np.any(ok & (c["q_cov0"] != -1)))
@@ -866,6 +869,9 @@ def _imu_all_zero(rawlog: RawLog, topic: str, n: int = 200) -> bool:
     """True when the first ``n`` messages of an Imu topic hold only zero rates and specific forces (a
     placeholder topic: nothing to estimate from, so not offered as a unit)."""
     raw = rawlog.topics[topic]
+    n = min(n, len(raw.data))  # (a reader that reads the times only, the restamp's, holds a few contents)
+    if n == 0:
+        return False
     sub = RawTopic(raw.name, raw.msgtype, raw.encoding, raw.log_ns[:n], raw.data[:n])
     keys = [f"g{c}" for c in "xyz"] + [f"a{c}" for c in "xyz"]
     c = decode_topic(rawlog.typestore, sub, {k: FIELDS[IMU][k] for k in keys}).columns
@@ -927,8 +933,9 @@ def plan_unit(rawlog: RawLog, selector: Selector) -> tuple[Plan, list[str]]:
             gyro_odom = odom
         elif not explicit:
             imus = _topics_of(rawlog, IMU)
-            moving = [n for n in imus if not _imu_all_zero(rawlog, n)]  # (not an attitude-only Imu topic)
-            imus = moving + [n for n in imus if n not in moving]
+            if len(imus) > 1:  # one with readings first (not an attitude-only Imu topic)
+                moving = [n for n in imus if not _imu_all_zero(rawlog, n)]
+                imus = moving + [n for n in imus if n not in moving]
             if imus:
                 imu = imus[0]
                 more = f" (other Imu topics: {', '.join(imus[1:])})" if len(imus) > 1 else ""
