@@ -34,6 +34,9 @@ class ChannelInfo:
     source: str = ""  # e.g. "IMU2", "/xsens/imu_data", "HIGHRES_IMU"
     #: the stamps' step when the format's is coarse (MAVLink time_boot_ms: 1e-3 s); 0 when fine (us, ns)
     stamp_resolution_s: float = 0.0
+    #: the sigma of the offset that put the stamps on the log's clock, common to all of them (a tlog's boot
+    #: stamps mapped to UNIX time by SYSTEM_TIME, whose time_boot_ms is whole ms: up to 1 ms / sqrt(12)); 0 exact
+    clock_sigma_s: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -139,6 +142,16 @@ class InsLog:
             ch = self.meta.channels.get(key)
             if ch is not None:
                 return float(ch.stamp_resolution_s or 0.0)
+        return 0.0
+
+    def clock_sigma_s(self, group: str) -> float:
+        """The sigma of the offset that put a group's stamps on the log's clock (``ChannelInfo.clock_sigma_s``),
+        else 0."""
+        kind = "imu" if group in ("gyro", "accel") else "nav"
+        for key in (group, kind):
+            ch = self.meta.channels.get(key)
+            if ch is not None:
+                return float(ch.clock_sigma_s or 0.0)
         return 0.0
 
     # -- array views -------------------------------------------------------------------------

@@ -63,6 +63,7 @@ class Stream:
     values: np.ndarray
     source: str = ""
     stamp_resolution_s: float = 0.0  # the format's stamp step when coarse (tlog time_boot_ms, DataFlash TimeMS: 1e-3)
+    clock_sigma_s: float = 0.0  # the sigma of the offset that put the stamps on the log's clock (ChannelInfo's)
 
 
 @dataclass(frozen=True)
@@ -240,7 +241,8 @@ def clean_stream(name: str, s: Stream, warnings: list[str], clock: dict | None =
                 f"{name} ({s.source}): {int(big.sum())} gap(s) in stamps, longest {d.max() * 1e-9:.3f} s")
         del big
     # the stamps' resolution: the format's (tlog time_boot_ms), or the grid the stamps show they are on
-    return Stream(t, v, s.source, max(s.stamp_resolution_s, stamp_grid_s(t, steps=d if len(t) > 2 else None)))
+    return Stream(t, v, s.source, max(s.stamp_resolution_s, stamp_grid_s(t, steps=d if len(t) > 2 else None)),
+                  s.clock_sigma_s)
 
 
 #: physically impossible magnitudes per stream (SI): a sample beyond them is a corrupt value (a flipped
@@ -428,7 +430,8 @@ def _shifted(cleaned: dict[str, Stream], offset: ClockOffset, clock: str, stamp_
                      f"stamps at {lo * 1e-9:.3f} .. {hi * 1e-9:.3f} s, outside UNIX time 1980..2100 (a corrupt "
                      f"time field?): kept on the {clock} clock")
         return cleaned, clock, stamp_source, selector
-    out = {k: Stream(s.t_ns + int(offset.ns), s.values, s.source, s.stamp_resolution_s) for k, s in cleaned.items()}
+    out = {k: Stream(s.t_ns + int(offset.ns), s.values, s.source, s.stamp_resolution_s, s.clock_sigma_s)
+           for k, s in cleaned.items()}
     return out, offset.clock, offset.source, offset.selector
 
 
@@ -470,7 +473,7 @@ def assemble_inslog(streams: dict[str, Stream | None], *, path: str, fmt: str, s
         rows: list[tuple[tuple[str, ...], np.ndarray]] = []
         if g is not None:
             rows.append((GYRO, g.values))
-            channels["gyro"] = ChannelInfo(rate_imu, len(t_imu), g.source, g.stamp_resolution_s)
+            channels["gyro"] = ChannelInfo(rate_imu, len(t_imu), g.source, g.stamp_resolution_s, g.clock_sigma_s)
         if a is not None:
             same = g is None or a.t_ns is g.t_ns or np.array_equal(a.t_ns, g.t_ns)
             if not same:
@@ -479,11 +482,12 @@ def assemble_inslog(streams: dict[str, Stream | None], *, path: str, fmt: str, s
                     rows.append((ACCEL, np.stack([np.interp(t_imu, ta, c, left=np.nan, right=np.nan)
                                                   for c in a.values.T], axis=-1)))
                     warns.append("accel interpolated onto gyro stamps (different stamps)")
-                channels["accel"] = ChannelInfo(rate_of(ta), len(a.t_ns), a.source, a.stamp_resolution_s)
+                channels["accel"] = ChannelInfo(rate_of(ta), len(a.t_ns), a.source, a.stamp_resolution_s,
+                                               a.clock_sigma_s)
                 del ta
             else:
                 rows.append((ACCEL, a.values))
-                channels["accel"] = ChannelInfo(rate_imu, len(a.t_ns), a.source, a.stamp_resolution_s)
+                channels["accel"] = ChannelInfo(rate_imu, len(a.t_ns), a.source, a.stamp_resolution_s, a.clock_sigma_s)
         del g, a, base
         names = [n for group, _v in rows for n in group]
         block = np.empty((len(names), len(t_imu)))
@@ -525,7 +529,7 @@ def assemble_inslog(streams: dict[str, Stream | None], *, path: str, fmt: str, s
                 rows[:, at] = s.values.T
             r += len(group)
             channels[{"quat": "att", "vel": "vel", "pos": "pos"}[key]] = ChannelInfo(
-                rate_of(rel(s.t_ns)), len(s.t_ns), s.source, s.stamp_resolution_s)
+                rate_of(rel(s.t_ns)), len(s.t_ns), s.source, s.stamp_resolution_s, s.clock_sigma_s)
             del s, rows, at
         nav = _frame(block, rel(t_nav), names)
         del block, t_nav

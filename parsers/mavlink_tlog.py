@@ -435,15 +435,30 @@ def _msg_time(s: RawStream) -> tuple[np.ndarray, np.ndarray]:
 
 
 #: SYSTEM_TIME's time_boot_ms counts the whole milliseconds elapsed since boot (ArduPilot's millis(), PX4's
-#: hrt_absolute_time() / 1000: truncated), taken with time_unix_usec at one instant: that instant is on
-#: average half a millisecond after the boot stamp, and the boot -> UNIX offset without it half a millisecond
-#: too large (a tlog slave's latency +0.5 ms, a tlog master's -0.5 ms, against an offset exact to the us)
-BOOT_MS_MEAN_LAG_NS = 500_000
+#: hrt_absolute_time() / 1000: truncated), taken with time_unix_usec at one instant that lies anywhere in
+#: that millisecond: each record's time_unix_usec - time_boot_ms is the offset plus that fraction, in
+#: [0, 1 ms). The median alone was half a millisecond too large on average (a tlog slave's latency +0.5 ms,
+#: 80 sigma; a master's -0.5 ms)
+BOOT_MS_NS = 1_000_000
+#: ... the records' fractions spread over the millisecond (a unit's scheduler: they vary) bound the offset from
+#: both sides; records sent in step with the millisecond (a fixed phase) leave it anywhere in one millisecond
+#: (sigma 0.29 ms). The spread is read between these quantiles of the records within 2 ms of their median
+#: (a clock step of the unit's UNIX time elsewhere in the log not counted)
+SYSTEM_TIME_SPREAD_QUANTILES = (0.02, 0.98)
 
 
 def _system_time_offset_ns(fr: "Frames | FrameStore", sysid: int, compid: int) -> int | None:
-    """UNIX ns - boot ns from SYSTEM_TIME of this system (same component preferred): the median over its
-    records, time_boot_ms taken at the middle of its millisecond (``BOOT_MS_MEAN_LAG_NS``)."""
+    """UNIX ns - boot ns from SYSTEM_TIME of this system (same component preferred): :func:`system_time_offset`."""
+    got = system_time_offset(fr, sysid, compid)
+    return None if got is None else got[0]
+
+
+def system_time_offset(fr: "Frames | FrameStore", sysid: int, compid: int) -> tuple[int, float] | None:
+    """(UNIX ns - boot ns, its sigma in s) from SYSTEM_TIME of this system (same component preferred). Each
+    record's d = time_unix_usec - time_boot_ms is the offset plus the fraction of a millisecond its instant
+    lay past the whole ms (``BOOT_MS_NS``; 0 to 999 us): the offset lies in [max d - 999 us, min d], taken at
+    the middle,
+    its sigma that interval's width / sqrt(12) (``SYSTEM_TIME_SPREAD_QUANTILES`` for max and min)."""
     d = msgdef("SYSTEM_TIME")
     r, _recv = fr.take(d.id, sysid, compid)
     if len(r) == 0:
@@ -454,8 +469,14 @@ def _system_time_offset_ns(fr: "Frames | FrameStore", sysid: int, compid: int) -
     good = unix > EPOCH_US_THRESHOLD
     if not good.any():
         return None
-    off = unix[good] * 1000 - (r["time_boot_ms"][good].astype(np.int64) * 1_000_000 + BOOT_MS_MEAN_LAG_NS)
-    return int(np.sort(off)[len(off) // 2])  # integer median (float64 loses ns at 1e18)
+    d = np.sort(unix[good] * 1000 - r["time_boot_ms"][good].astype(np.int64) * BOOT_MS_NS)  # (int64: float64
+    med = d[len(d) // 2]                                                                  # loses ns at 1e18)
+    d = d[np.abs(d - med) < 2 * BOOT_MS_NS]
+    q0, q1 = SYSTEM_TIME_SPREAD_QUANTILES
+    lo, hi = d[int(q0 * (len(d) - 1))], d[int(np.ceil(q1 * (len(d) - 1)))]
+    span = BOOT_MS_NS - 1000  # the fraction in time_unix_usec's whole microseconds: 0 .. 999 us
+    width = max(span - int(hi - lo), 0)
+    return int(lo + hi - span) // 2, width / np.sqrt(12.0) * 1e-9
 
 
 @dataclass(frozen=True)
@@ -789,7 +810,8 @@ def load(path: str, selector: Selector) -> InsLog:
         except InputError as exc:
             raise InputError(exc.problem, path) from None
         del s
-    sys_off = _system_time_offset_ns(fr, sysid, compid)
+    sys_time = system_time_offset(fr, sysid, compid)
+    sys_off = None if sys_time is None else sys_time[0]
     fr.by_id.clear()  # what is left of the frames is in ``picked``: each stream goes once read below
     raws.clear()
     release_free_memory()  # the scan's window temporaries
@@ -798,6 +820,9 @@ def load(path: str, selector: Selector) -> InsLog:
     plan = plan_clock([(k_, t_, s.recv_ns) for (k_, t_), s in
                        ((timing[k], picked[k]) for k in picked)], sys_off, mode)
     warns += list(plan.warnings)
+    # boot stamps put on UNIX time by SYSTEM_TIME carry its offset's sigma
+    map_sigma = {k: (sys_time[1] if sys_time is not None and mode != "receive" and plan.add_ns[0] == sys_off
+                     and bool(np.any(timing[k][0] == 0)) else 0.0) for k in timing}
 
     del by_stream
 
@@ -823,24 +848,24 @@ def load(path: str, selector: Selector) -> InsLog:
         if s.name in RATE_ONLY:
             r = s.rec
             gyro = _columns(r, ("rollspeed", "pitchspeed", "yawspeed"))
-            kw["gyro"] = Stream(t, gyro, f"{s.name} body rates", res)
+            kw["gyro"] = Stream(t, gyro, f"{s.name} body rates", res, map_sigma["imu"])
             warns.append(f"gyro from {s.name} rollspeed/pitchspeed/yawspeed (estimator output, no accel)")
             del r
         else:
             gyro, acc = _imu_values(s)
-            kw["gyro"] = Stream(t, gyro, s.name, res)
-            kw["accel"] = Stream(t, acc, s.name, res)
+            kw["gyro"] = Stream(t, gyro, s.name, res, map_sigma["imu"])
+            kw["accel"] = Stream(t, acc, s.name, res, map_sigma["imu"])
             del acc
         del s, t, gyro
         picked.pop("imu")
     if "att" in picked:
         s = picked["att"]
-        kw["quat"] = Stream(stamps("att"), _quat_values(s), s.name, resolution("att"))
+        kw["quat"] = Stream(stamps("att"), _quat_values(s), s.name, resolution("att"), map_sigma["att"])
         del s
         picked.pop("att")
     if "vel" in picked:
         s = picked["vel"]
-        kw["vel"] = Stream(stamps("vel"), _vel_values(s), s.name, resolution("vel"))
+        kw["vel"] = Stream(stamps("vel"), _vel_values(s), s.name, resolution("vel"), map_sigma["vel"])
         del s
         picked.pop("vel")
     if "pos" in picked:
@@ -850,8 +875,8 @@ def load(path: str, selector: Selector) -> InsLog:
             warns.append(f"{s.name}: {int((~valid).sum())} samples without a position fix (0,0) dropped")
         if valid.any():
             t, res = stamps("pos"), resolution("pos")
-            kw["pos"] = (Stream(t, vals, s.name, res) if valid.all() else
-                         Stream(t[valid], vals[valid], s.name, res))
+            kw["pos"] = (Stream(t, vals, s.name, res, map_sigma["pos"]) if valid.all() else
+                         Stream(t[valid], vals[valid], s.name, res, map_sigma["pos"]))
             del t
         del s, vals, valid
         picked.pop("pos")
@@ -1079,14 +1104,17 @@ def write(path: str, log: InsLog, *, sysid: int = 1, compid: int = 1, transport_
         r["time_boot_ms"] = boot_ms(tv_ns)
         r["vx"], r["vy"], r["vz"] = v.T
         add(d, r, tv_ns)
-    # 1 Hz housekeeping, half a millisecond after each whole boot second: SYSTEM_TIME as an autopilot sends
-    # it, time_unix_usec of the instant and time_boot_ms its whole milliseconds (the reader's
-    # BOOT_MS_MEAN_LAG_NS: an instant in the middle of its millisecond, where a unit's are on average)
+    # 1 Hz housekeeping after each whole boot second: SYSTEM_TIME as an autopilot sends it, time_unix_usec of
+    # the instant and time_boot_ms its whole milliseconds, the instants at fractions of the millisecond that
+    # vary from record to record (the first two at 0 and 999 us, which bound the offset exactly; then k x the
+    # golden ratio's: spread evenly over it, as a scheduler's do)
     b0 = int(np.ceil(boot_of(first_ns) / 1e9))
     b1 = int(np.floor(boot_of(last_ns) / 1e9))
     sec_boot_ns = np.arange(b0, b1 + 1, dtype=np.int64) * 1_000_000_000
     if len(sec_boot_ns):
-        t_abs = sec_boot_ns + BOOT_MS_MEAN_LAG_NS + (boot_epoch_ns if epoch else 0)
+        frac_ns = (np.mod(np.arange(len(sec_boot_ns)) * 0.6180339887498949, 1.0) * 1000).astype(np.int64) * 1000
+        frac_ns[1:2] = BOOT_MS_NS - 1000
+        t_abs = sec_boot_ns + frac_ns + (boot_epoch_ns if epoch else 0)
         d, r = _records("SYSTEM_TIME", len(sec_boot_ns))
         r["time_boot_ms"] = sec_boot_ns // 1_000_000
         r["time_unix_usec"] = (t_abs // 1000).astype(np.uint64) if epoch else 0

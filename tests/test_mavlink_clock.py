@@ -4,6 +4,7 @@ master on UNIX/GPS time meets the slave on its own clock."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from pymavlink import mavutil
 
 from parsers import registry
@@ -49,7 +50,7 @@ def test_unix_imu_and_boot_attitude_without_system_time_land_on_unix_time(tmp_pa
     assert np.abs(err_ns).max() <= 1_000_000
 
 
-def _as_autopilot_sends_it(src: str, dst: str) -> int:
+def _as_autopilot_sends_it(src: str, dst: str, phase=lambda k: (k * 0.6180339887) % 1) -> int:
     """Copy a UNIX-clocked tlog as an autopilot on boot time writes it, through pymavlink: HIGHRES_IMU in boot
     microseconds, and SYSTEM_TIME taken at instants spread over their millisecond (time_unix_usec of the
     instant, time_boot_ms its whole milliseconds: truncated, as ArduPilot's millis() and PX4's are). Returns
@@ -64,15 +65,15 @@ def _as_autopilot_sends_it(src: str, dst: str) -> int:
         buf = m.get_msgbuf()
         msgs.append((m, raw[raw.find(buf) - 8:raw.find(buf)]))
     st = [m for m, _ in msgs if m.get_type() == "SYSTEM_TIME"]
-    boot_epoch_us = st[0].time_unix_usec - st[0].time_boot_ms * 1000 - 500  # the writer's: mid-millisecond
+    boot_epoch_us = st[0].time_unix_usec - st[0].time_boot_ms * 1000  # (the writer's first: on the whole ms)
     k = 0
     with open(dst, "wb") as out:
         for m, stamp in msgs:
             if m.get_type() in ("HIGHRES_IMU", "SYSTEM_TIME"):
                 if m.get_type() == "HIGHRES_IMU":
                     m.time_usec -= boot_epoch_us
-                else:  # the instant k * 0.618 of the way through its millisecond (spread, deterministic)
-                    m.time_unix_usec = boot_epoch_us + m.time_boot_ms * 1000 + int(1000 * ((k * 0.6180339887) % 1))
+                else:  # the instant phase(k) of the way through its millisecond (spread by default)
+                    m.time_unix_usec = boot_epoch_us + m.time_boot_ms * 1000 + int(1000 * phase(k))
                     k += 1
                 mav = mavutil.mavlink.MAVLink(None, srcSystem=m.get_srcSystem(), srcComponent=m.get_srcComponent())
                 mav.seq = m.get_seq()
@@ -97,3 +98,50 @@ def test_boot_stamps_land_on_unix_time_through_system_time_without_the_half_mill
     err_ms = (abs_ns(back, back.t_imu_s()) - abs_ns(log, log.t_imu_s())) / 1e6
     assert np.ptp(err_ms) < 1e-3  # one offset for every sample
     assert abs(np.median(err_ms)) < 0.1, np.median(err_ms)
+
+    assert back.meta.channels["gyro"].clock_sigma_s < 0.03e-3  # (30 records spread over the millisecond)
+
+
+@pytest.mark.parametrize("phase", [0.0, 0.37, 0.999])
+def test_system_time_sent_in_step_with_the_millisecond_leaves_the_offset_uncertain_and_says_so(tmp_path, phase):
+    """SYSTEM_TIME records all taken at one fraction of their millisecond (a simulator on whole milliseconds,
+    a scheduler locked to it): the offset lies anywhere in one millisecond. The mapped stamps are within
+    0.5 ms of the truth and their channels carry a sigma of 1 ms / sqrt(12) (the latency's sigma includes
+    it: tests/test_mavlink_clock.py's CLI test)."""
+    log = make_log(duration_s=30.0, clock="epoch")
+    full = str(tmp_path / "unix.tlog")
+    registry.write(full, log, "tlog")
+    path = str(tmp_path / "boot.tlog")
+    _as_autopilot_sends_it(full, path, phase=lambda k: phase)
+    back = registry.load(path)
+    err_ms = (abs_ns(back, back.t_imu_s()) - abs_ns(log, log.t_imu_s())) / 1e6
+    assert np.abs(err_ms).max() <= 0.5 + 1e-6, err_ms[:3]
+    assert back.meta.channels["gyro"].clock_sigma_s == pytest.approx(1e-3 / np.sqrt(12.0), rel=1e-3)
+    assert back.meta.channels["att"].clock_sigma_s == pytest.approx(1e-3 / np.sqrt(12.0), rel=1e-3)
+
+
+def test_the_latency_sigma_carries_the_system_time_offsets_uncertainty(tmp_path):
+    """A tlog slave whose SYSTEM_TIME records sit on the whole millisecond (the offset uncertain by 1 ms): the
+    latency's sigma carries 1 ms / sqrt(12) (sigma_budget.clock_mapping, a warning says why) and covers the
+    error; with records spread over the millisecond it does not (the sample pair's 5 us)."""
+    from logtools import sim
+    from logtools.latency import estimate
+
+    pair = sim.simulate(sim.scenario_config("ship", duration_s=60.0, latency_s=0.0417, drift_ppm=0.0,
+                                            mount_rpy_deg=(1.0, -2.0, 30.0)))
+    full = str(tmp_path / "s_unix.tlog")
+    registry.write(full, pair.slave, "tlog")
+    locked = str(tmp_path / "s_locked.tlog")
+    _as_autopilot_sends_it(full, locked, phase=lambda k: 0.0)
+    res = estimate(pair.master, registry.load(locked), compare=False)
+    budget = res.quality["sigma_budget"]
+    assert budget["clock_mapping"] == pytest.approx(1e-3 / np.sqrt(12.0), rel=0.01)
+    assert res.sigma_s >= 0.999e-3 / np.sqrt(12.0)  # (time_unix_usec in whole us: 0 .. 999 us)
+    assert abs(res.latency_s - pair.truth.latency_s) <= 3 * res.sigma_s
+    assert any("SYSTEM_TIME" in w and "uncertain" in w for w in res.quality["warnings"]), res.quality["warnings"]
+    spread = str(tmp_path / "s_spread.tlog")
+    _as_autopilot_sends_it(full, spread)
+    res2 = estimate(pair.master, registry.load(spread), compare=False)
+    assert res2.quality["sigma_budget"].get("clock_mapping", 0.0) < 2e-5
+    assert not any("SYSTEM_TIME" in w for w in res2.quality["warnings"])
+    assert abs(res2.latency_s - pair.truth.latency_s) < 0.05e-3

@@ -42,6 +42,9 @@ class PrepareConfig:
     #: CSV written to the nanosecond, a 1 us clock) only enter the sigma budget: their floor of <= 2.9 us is
     #: below a tenth of the best sigma real logs give (0.02-0.03 ms, docs/latency.md)
     resolution_warn_s: float = 1e-5
+    #: a unit's stamps put on its clock by an offset this uncertain (s) or more: said as a warning (a tlog's
+    #: SYSTEM_TIME records sent in step with the millisecond: 0.29 ms, LogMeta channels' clock_sigma_s)
+    clock_sigma_warn_s: float = 1e-4
     min_motion_snr: float = 2.0  # in-band motion/noise RMS below this: "no motion" AnalysisError (test_latency)
     low_motion_snr: float = 10.0  # ... below this: the "too_little_motion" flag (test_latency)
     low_motion_dps: float = 0.5  # ... or a master motion below this RMS (deg/s): the same flag

@@ -173,7 +173,7 @@ def tapost(ctx: Ctx, progress: Progress) -> tuple[LatencyResult, Coarse]:
     if alts and cfg.search.periodic_velocity and vel_q is not None and vel_q["agrees"]:
         alts, alts_out = periodic_by_velocity(ctx, vp, alts, co.d0_s, rs.latency_s, rs.drift, t_mid, fit_drift)
     spread = max(abs(x - co.d0_s) for x in alts) if alts else None
-    sb = budget(rs, V, v_best, jit_sigma, spread, cfg)
+    sb = budget(rs, V, v_best, jit_sigma, spread, cfg, float(np.hypot(*ctx.clock_sigma_s)))
     rpy = tuple(float(x) for x in np.degrees(euler_from_dcm(fin.R)))
     gr = smp.grid
     nanfrac = float(1.0 - np.mean(smp.ok0[(gr.t_s >= w0) & (gr.t_s <= w1)]))

@@ -2,6 +2,8 @@
 stamp statistics; the accelerometer and velocity sources. Returns a frozen ``Ctx``."""
 from __future__ import annotations
 
+import re
+
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -32,9 +34,22 @@ class Ctx:
     t0_abs_s: float = 0.0
     stamp_jitter_s: tuple[float, float] = (0.0, 0.0)  # (master, slave) white stamp noise, s
     stamp_resolution_s: tuple[float, float] = (0.0, 0.0)  # (master, slave) coarse stamp step of the rates' source
+    #: (master, slave) sigma of the offset that put the rates' source on its log's clock (0 where both logs
+    #: share it: two units of one tlog system, one SYSTEM_TIME)
+    clock_sigma_s: tuple[float, float] = (0.0, 0.0)
     acc_src: tuple | None = None  # (master, slave, cutoff, master rate) for the accelerometer-aided GLS
     vel_src: tuple | None = None  # (master, slave) for the velocity fit, both with NED velocity
     cfg: LatencyConfig = DEFAULT
+
+
+def _shared_clock_mapping(master: InsLog, slave: InsLog) -> bool:
+    """Both units' stamps put on UNIX time by the same offset (one file, one tlog system): its error cancels."""
+    def sysid(log: InsLog) -> str | None:
+        m = re.search(r"(?:^|,)sysid=(\d+)", log.meta.selector or "")
+        return m.group(1) if m else None
+
+    return bool(master.meta.source_path) and master.meta.source_path == slave.meta.source_path \
+        and sysid(master) == sysid(slave)
 
 
 def prepare(master: InsLog, slave: InsLog, max_lag_s: float | None, *, accelerometers: bool = True,
@@ -81,7 +96,13 @@ def prepare(master: InsLog, slave: InsLog, max_lag_s: float | None, *, accelerom
     us = make_unit(nats, ns, srcs, "slave", fs, 1.0 / f_s, cutoff)
     res_s = (master.stamp_resolution_s("gyro" if srcm == "gyro" else "att"),
              slave.stamp_resolution_s("gyro" if srcs == "gyro" else "att"))
+    clk_s = (0.0, 0.0) if _shared_clock_mapping(master, slave) else (
+        master.clock_sigma_s("gyro" if srcm == "gyro" else "att"), slave.clock_sigma_s("gyro" if srcs == "gyro" else "att"))
     warnings = list(um.native.warnings) + list(us.native.warnings)
+    for role, q in zip(("master", "slave"), clk_s):
+        if q >= cfg.prepare.clock_sigma_warn_s:
+            warnings.append(f"{role} stamps put on UNIX time by an offset uncertain by {q * 1e3:.2g} ms (1 sigma; a "
+                            f"tlog's SYSTEM_TIME records in step with the millisecond): in the latency's sigma")
     acc_src = vel_src = None
     if (accelerometers and cfg.prepare.accel_aided and srcm == "gyro" and srcs == "gyro" and master.has_accel
             and slave_r.has_accel):
@@ -103,7 +124,7 @@ def prepare(master: InsLog, slave: InsLog, max_lag_s: float | None, *, accelerom
                             f"at a reset left out of the rates")
     return Ctx(um, us, dt_c, cutoff, max_lag_s, band_cutoff_hz=band_cutoff, t0_abs_s=master.t0_s,
                dt_s=1.0 / f_s, dt_r=1.0 / f_r, raw=(natm, nats),
-               stamp_jitter_s=(stamp_noise_s(tm), stamp_noise_s(ts)), stamp_resolution_s=res_s,
+               stamp_jitter_s=(stamp_noise_s(tm), stamp_noise_s(ts)), stamp_resolution_s=res_s, clock_sigma_s=clk_s,
                warnings=tuple(warnings), acc_src=acc_src, vel_src=vel_src, cfg=cfg)
 
 

@@ -111,6 +111,7 @@ def quality_record(ctx: Ctx, co: Coarse, fin: Fit, motion: tuple, rs: RateSigma,
         "stamp_jitter_latency_sigma_s": jit_sigma,
         "stamp_resolution_s": {"master": ctx.stamp_resolution_s[0], "slave": ctx.stamp_resolution_s[1]},
         "stamp_resolution_latency_sigma_s": rs.resolution_sigma_s,
+        "clock_mapping_sigma_s": {"master": ctx.clock_sigma_s[0], "slave": ctx.clock_sigma_s[1]},
         "best_instant_s": float(ctx.t0_abs_s + best[0]),  # absolute, like window_s
         "latency_at_best_instant_s": float(best[1]),
         "sigma_at_best_instant_s": float(sb.sigma_at_best_instant_s),

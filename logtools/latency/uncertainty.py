@@ -153,9 +153,12 @@ def centroid_term(rs: RateSigma, ctx: Ctx, t_m: np.ndarray, valid: np.ndarray, t
     return replace(rs, sigma_latency_s=sig_l, terms=_grown(rs.terms, "drift_prior", sig_l, rs.sigma_latency_s))
 
 
-def _finish(sig_l: float, terms: dict, jit_sigma: float, spread: float | None, cfg) -> tuple[float, dict]:
+def _finish(sig_l: float, terms: dict, jit_sigma: float, spread: float | None, cfg,
+            clock_sigma: float = 0.0) -> tuple[float, dict]:
     """The floors after the fits: stamp jitter (the aided fit does not see it in its residuals), the
-    calibration, the model floor, the periodic spread (sigma covers the ambiguity)."""
+    calibration, the model floor, the periodic spread (sigma covers the ambiguity), and in quadrature the
+    offsets that put the units' stamps on their clocks (``Ctx.clock_sigma_s``: common to every stamp, no
+    residual shows it)."""
     grown = max(sig_l, jit_sigma)
     terms = _grown(terms, "stamp_jitter", grown, sig_l)
     cal = cfg.uncertainty.sigma_calibration
@@ -165,16 +168,19 @@ def _finish(sig_l: float, terms: dict, jit_sigma: float, spread: float | None, c
     if spread is not None:
         new = max(sigma, 0.5 * spread)
         terms, sigma = _grown(terms, "periodic_spread", new, sigma), new
+    if clock_sigma > 0:
+        new = float(np.hypot(sigma, clock_sigma))
+        terms, sigma = _grown(terms, "clock_mapping", new, sigma), new
     return sigma, terms
 
 
 def budget(rs: RateSigma, V: np.ndarray | None, v_best: float | None, jit_sigma: float, spread: float | None,
-           cfg) -> SigmaBudget:
+           cfg, clock_sigma: float = 0.0) -> SigmaBudget:
     """``sigma_s`` and ``sigma_at_best_instant_s`` through the same floors; ``v_best``: the latency's variance
     at the best-determined instant (from ``V``; None: the middle)."""
-    sigma, terms = _finish(rs.sigma_latency_s, rs.terms, jit_sigma, spread, cfg)
+    sigma, terms = _finish(rs.sigma_latency_s, rs.terms, jit_sigma, spread, cfg, clock_sigma)
     sig_best = sigma
     if v_best is not None:
         s_b = float(np.sqrt(max(v_best, 0.0)))
-        sig_best, _ = _finish(s_b, _scaled(rs.terms, s_b, rs.sigma_latency_s), jit_sigma, spread, cfg)
+        sig_best, _ = _finish(s_b, _scaled(rs.terms, s_b, rs.sigma_latency_s), jit_sigma, spread, cfg, clock_sigma)
     return SigmaBudget(float(sigma), {k: float(np.sqrt(max(v, 0.0))) for k, v in terms.items()}, float(sig_best))
