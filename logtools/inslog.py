@@ -130,29 +130,25 @@ class InsLog:
     def has_pos(self) -> bool:
         return all(c in self.nav.columns for c in POS) and self.nav[list(POS)].notna().any().all()
 
-    def stamp_resolution_s(self, group: str) -> float:
-        """The step of a group's stamps (``"gyro"``, ``"accel"``, ``"att"``, ``"vel"``, ``"pos"``) when
-        coarse (``ChannelInfo.stamp_resolution_s``: MAVLink ``time_boot_ms``, DataFlash ``TimeMS``, a
-        CSV's fixed decimals, stamps on a visible grid), else 0. Stamps rounded so may all be off by
-        the same fraction of it (a fixed sampling phase): a delay bias of up to half of it. Logs that
-        name their channels by row kind (canonical CSV, the simulator: ``imu``, ``nav``) are read
-        through those names."""
+    def _channel(self, group: str) -> ChannelInfo | None:
+        """A group's (``"gyro"``, ``"accel"``, ``"att"``, ``"vel"``, ``"pos"``) ChannelInfo; logs that name their
+        channels by row kind (canonical CSV, the simulator: ``imu``, ``nav``) through those names."""
         kind = "imu" if group in ("gyro", "accel") else "nav"
-        for key in (group, kind):
-            ch = self.meta.channels.get(key)
-            if ch is not None:
-                return float(ch.stamp_resolution_s or 0.0)
-        return 0.0
+        return next((ch for ch in (self.meta.channels.get(k) for k in (group, kind)) if ch is not None), None)
+
+    def stamp_resolution_s(self, group: str) -> float:
+        """The step of a group's stamps when coarse (``ChannelInfo.stamp_resolution_s``: MAVLink
+        ``time_boot_ms``, DataFlash ``TimeMS``, a CSV's fixed decimals, stamps on a visible grid), else 0.
+        Stamps rounded so may all be off by the same fraction of it (a fixed sampling phase): a delay bias
+        of up to half of it."""
+        ch = self._channel(group)
+        return float(ch.stamp_resolution_s or 0.0) if ch is not None else 0.0
 
     def clock_sigma_s(self, group: str) -> float:
         """The sigma of the offset that put a group's stamps on the log's clock (``ChannelInfo.clock_sigma_s``),
         else 0."""
-        kind = "imu" if group in ("gyro", "accel") else "nav"
-        for key in (group, kind):
-            ch = self.meta.channels.get(key)
-            if ch is not None:
-                return float(ch.clock_sigma_s or 0.0)
-        return 0.0
+        ch = self._channel(group)
+        return float(ch.clock_sigma_s or 0.0) if ch is not None else 0.0
 
     # -- array views -------------------------------------------------------------------------
     def t_imu_s(self) -> np.ndarray:
