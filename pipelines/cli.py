@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
+import signal
 import sys
 
 from logtools import __version__
@@ -85,12 +86,29 @@ def glue_vector_values(argv: list[str]) -> list[str]:
     return out
 
 
+_INTERRUPTED = [False]
+
+
+def _on_sigint(signum, frame) -> None:
+    _INTERRUPTED[0] = True
+    raise KeyboardInterrupt
+
+
 def main(argv: list[str] | None = None) -> int:
+    if argv is None and signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        # (a fresh process: Ctrl-C remembered, for what an import turns it into: numba's C extension
+        # reports it as "ImportError: numba._devicearray failed to import")
+        signal.signal(signal.SIGINT, _on_sigint)
     try:
         return _main(argv)
     except KeyboardInterrupt:  # (Ctrl-C while the command's modules load, before _main's own handler)
         print("tapost: interrupted", file=sys.stderr)
         return 130
+    except Exception:
+        if _INTERRUPTED[0]:  # the same Ctrl-C, become another exception on its way out of an import
+            print("tapost: interrupted", file=sys.stderr)
+            return 130
+        raise
 
 
 def _main(argv: list[str] | None) -> int:
