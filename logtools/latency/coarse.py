@@ -131,14 +131,11 @@ def lobe_halfwidth(cost: np.ndarray, j: int) -> int:
         k += 1
 
 
-def continuous_cost(t_s: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant, d_s: float,
-                    min_count: float) -> float:
-    """The normalised rotation- and bias-solved cost of ``vector_cost`` at a continuous lag ``d_s``: the
-    master's rows (instants ``t_s``, rates ``a``) against the slave's interpolant read at t + d_s (on the grid's
-    instants and at d_s = k dt, the same series as lag k)."""
-    b, ok = itp(t_s + d_s)
-    use = ok & valid
-    if use.sum() < max(min_count, 10):
+def rotation_solved_cost(a: np.ndarray, b: np.ndarray, use: np.ndarray, min_count: float) -> float:
+    """The normalised rotation- and bias-solved cost of ``vector_cost`` between the master's rates ``a`` and the
+    slave's ``b`` read at the same instants, over the rows ``use``: NaN for fewer than ``min_count`` rows or
+    no motion."""
+    if use.sum() < min_count:
         return float("nan")
     au = a[use]
     bu = b[use]
@@ -149,6 +146,15 @@ def continuous_cost(t_s: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Inte
         return float("nan")
     best = float(wahba(au.T @ bu)[1])
     return (caa + cbb - 2.0 * best) / (caa + cbb)
+
+
+def continuous_cost(t_s: np.ndarray, a: np.ndarray, valid: np.ndarray, itp: Interpolant, d_s: float,
+                    min_count: float) -> float:
+    """:func:`rotation_solved_cost` at a continuous lag ``d_s``: the master's rows (instants ``t_s``, rates
+    ``a``) against the slave's interpolant read at t + d_s (on the grid's instants and at d_s = k dt, the same
+    series as lag k)."""
+    b, ok = itp(t_s + d_s)
+    return rotation_solved_cost(a, b, ok & valid, max(min_count, 10))
 
 
 def substep_penalty(m: UniformSeries, s: UniformSeries) -> float:

@@ -94,10 +94,10 @@ def prepare(master: InsLog, slave: InsLog, max_lag_s: float | None, *, accelerom
     f_s = min(f_r, cfg.prepare.max_coarse_rate_hz)
     um = make_unit(natm, nm, srcm, "master", fm, 1.0 / f_s, cutoff)
     us = make_unit(nats, ns, srcs, "slave", fs, 1.0 / f_s, cutoff)
-    res_s = (master.stamp_resolution_s("gyro" if srcm == "gyro" else "att"),
-             slave.stamp_resolution_s("gyro" if srcs == "gyro" else "att"))
-    clk_s = (0.0, 0.0) if _shared_clock_mapping(master, slave) else (
-        master.clock_sigma_s("gyro" if srcm == "gyro" else "att"), slave.clock_sigma_s("gyro" if srcs == "gyro" else "att"))
+    grp_m, grp_s = ("gyro" if src == "gyro" else "att" for src in (srcm, srcs))  # the rates' source channels
+    res_s = (master.stamp_resolution_s(grp_m), slave.stamp_resolution_s(grp_s))
+    clk_s = ((0.0, 0.0) if _shared_clock_mapping(master, slave)
+             else (master.clock_sigma_s(grp_m), slave.clock_sigma_s(grp_s)))
     warnings = list(um.native.warnings) + list(us.native.warnings)
     for role, q in zip(("master", "slave"), clk_s):
         if q >= cfg.prepare.clock_sigma_warn_s:

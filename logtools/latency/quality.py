@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from logtools.conventions import wahba
-from logtools.latency.coarse import Coarse
+from logtools.latency.coarse import Coarse, rotation_solved_cost
 from logtools.latency.fit import Fit
 from logtools.latency.prepare import Ctx
 from logtools.latency.uncertainty import RateSigma, SigmaBudget
@@ -29,13 +28,7 @@ def fine_cost(ctx: Ctx, latency_s: float, drift: float, t_mid: float, w0: float,
     shift = drift * (t - t_mid)
     for k, d in enumerate(lags):
         b, ok = ctx.slave.itp(t + d + shift)
-        if ok.sum() < 20:
-            continue
-        aa, bb = a[ok] - a[ok].mean(axis=0), b[ok] - b[ok].mean(axis=0)
-        _, best = wahba(aa.T @ bb)
-        tot = float(np.sum(aa * aa) + np.sum(bb * bb))
-        if tot > 0:
-            out[k] = (tot - 2.0 * float(best)) / tot
+        out[k] = rotation_solved_cost(a, b, ok, 20)
     return lags, out
 
 
