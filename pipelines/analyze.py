@@ -388,6 +388,18 @@ def _alignment(master: InsLog, slave: InsLog, run: str, opts: AnalyzeOptions, pr
         return exc.problem
 
 
+def _prepare_master(master: InsLog) -> None:
+    """logtools' alignment's per-master preparation done once (``prepare_master``) before the runs fork;
+    nothing for an alignment put in with ``use_numerics``."""
+    if _numerics.run_alignment is not None:
+        return
+    try:
+        from logtools.alignment.run import prepare_master
+    except ImportError:
+        return  # (the runs say it)
+    prepare_master(master)
+
+
 def _uncompensated_options(opts: AnalyzeOptions, compensated: bool) -> AnalyzeOptions:
     """The uncompensated run's options. With ``--board-errors auto`` the compensated run decides: the delay
     left in the uncompensated slave correlates its innovations by itself, which says nothing of the master's
@@ -740,9 +752,21 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
     run_opts = {"uncompensated": _uncompensated_options(opts, an.slave_comp is not None), "compensated": opts}
     pending = {}
     if runs["uncompensated"][0] is not None and runs["compensated"][0] is not None and parallel.available():
-        # the two runs share nothing but their inputs: the uncompensated one in a forked child (CLI only)
+        # the two runs share nothing but their inputs: the uncompensated one in a forked child (CLI only),
+        # the master's series prepared before (the child shares them instead of preparing its own)
+        _prepare_master(master)
         pending["uncompensated"] = parallel.submit(_alignment, master, face, "uncompensated",
                                                    run_opts["uncompensated"], null_progress, an.latency)
+    imu_fit = None
+    if (isinstance(pending.get("uncompensated"), parallel.Pending) and an.slave_comp is not None
+            and _wants_imu_to_imu(master, an.slave)
+            and len(master.imu) + len(an.slave.imu) <= parallel.FORK_IMU_TO_IMU_MAX_SAMPLES):
+        # the IMU-to-IMU fit in a second forked child, beside the uncompensated run's and the compensated
+        # run here, when the logs are short enough for its arrays to sit beside theirs
+        # (parallel.FORK_IMU_TO_IMU_MAX_SAMPLES); else here once the runs are done
+        from logtools.alignment.imu_to_imu import imu_to_imu
+
+        imu_fit = parallel.submit(imu_to_imu, master, an.slave_comp)
     for run, (slog, p) in runs.items():
         if slog is None:
             why = ("latency failed" if an.latency is None
@@ -751,15 +775,6 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
         elif run not in pending:
             p(0.0, "")
             pending[run] = _alignment(master, slog, run, run_opts[run], p, an.latency)
-    imu_fit = None
-    if (isinstance(pending.get("uncompensated"), parallel.Pending) and an.slave_comp is not None
-            and _wants_imu_to_imu(master, an.slave)
-            and len(master.imu) + len(an.slave.imu) <= parallel.FORK_IMU_TO_IMU_MAX_SAMPLES):
-        # the IMU-to-IMU fit here while the child's (longer, two-pass) uncompensated run goes on, when the
-        # logs are short enough for its arrays to sit beside the child's (parallel.FORK_IMU_TO_IMU_MAX_SAMPLES)
-        from logtools.alignment.imu_to_imu import imu_to_imu
-
-        imu_fit = imu_to_imu(master, an.slave_comp)
     for run in runs:
         res = pending[run]
         if isinstance(res, parallel.Pending):
@@ -782,7 +797,8 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
     if "logtools.alignment.run" in sys.modules:  # the runs are done: their master series go
         sys.modules["logtools.alignment.run"].forget_master(master)
     parallel.release_freed_memory()
-    _imu_to_imu_sections(master, an, an.align_sections, extra, imu_fit)
+    _imu_to_imu_sections(master, an, an.align_sections, extra,
+                         imu_fit.result() if isinstance(imu_fit, parallel.Pending) else None)
     parallel.release_freed_memory()
     tim["alignment"] = time.perf_counter() - t
     tim["total"] = time.perf_counter() - t_all

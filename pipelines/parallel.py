@@ -38,11 +38,11 @@ PREPARED_MAX_INPUT_BYTES = 60_000_000
 #: a parse of a fraction of a second would not pay for a second numba set-up (0.5-0.7 s of CPU)
 FORK_PARSE_MIN_INPUT_BYTES = PREPARED_MAX_INPUT_BYTES
 
-#: master + slave IMU samples up to which ``analyze`` computes the IMU-to-IMU fit while the forked child
-#: runs the uncompensated alignment (rather than after it: 1.8 s less of the 1 h pair's alignment stage,
-#: whose uncompensated run takes two passes, 3.6 s, against 1.8 s for the compensated one): the fit's arrays
-#: (about 0.4 GB per hour of 200 Hz data for both units) then sit beside the child's. Up to about 1 h of
-#: 200 Hz logs; beyond, where the long logs' peak memory is the constraint, the fit waits for the child
+#: master + slave IMU samples up to which ``analyze`` computes the IMU-to-IMU fit in a second forked child
+#: beside the two alignment runs (the uncompensated one in the first child, two passes, the compensated one
+#: here), rather than here after them: the fit's arrays (about 0.4 GB per hour of 200 Hz data for both
+#: units) then sit beside the runs'. Up to about 1 h of 200 Hz logs; beyond, where the long logs' peak memory
+#: is the constraint, the fit waits for the runs
 FORK_IMU_TO_IMU_MAX_SAMPLES = 1_500_000
 
 #: master + slave IMU samples up to which ``analyze`` runs the latency's comparison methods (the seeds' and

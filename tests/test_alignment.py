@@ -845,3 +845,30 @@ def test_still_converging_is_the_sigmas_fall_over_the_last_part_of_the_run():
     late[:, 2] = np.where(t < 480.0, 1.0, 1.0 - 0.5 * (t - 480.0) / 120.0)  # yaw learnt in the last 2 minutes
     assert _still_converging(t, late, CONFIG) is True
     assert _still_converging(t[:1], settled[:1], CONFIG) is None
+
+
+def test_slave_noise_measured_once_per_run_and_master_prepared_once(monkeypatch):
+    """The slave IMU's white noise (a median over the whole overlap per axis) is measured once per run, not
+    by the prior, the seed and every pass's settings again (13 medians of 720k rows on the 1 h pair, 1 s);
+    prepare_master (analyze calls it before the uncompensated run is forked) leaves nothing for the runs
+    to prepare. Same results either way."""
+    from logtools.alignment import run as run_mod
+
+    m, s, _truth = _pair(duration_s=40.0)
+    before = run_alignment(m, s, filter="kf", match="vel+att")
+    run_mod.forget_master(m)
+    calls = []
+    orig = run_mod._hf_sigma
+    monkeypatch.setattr(run_mod, "_hf_sigma", lambda y: calls.append(len(y)) or orig(y))
+    prepared = []
+    orig_series = run_mod._master_series
+    monkeypatch.setattr(run_mod, "_master_series", lambda *a, **k: prepared.append(1) or orig_series(*a, **k))
+    run_mod.prepare_master(m)
+    assert len(prepared) == 1 and len(calls) == 2  # the master's series, its attitude's and velocity's noise
+    calls.clear()
+    after = run_alignment(m, s, filter="kf", match="vel+att")
+    assert len(prepared) == 1  # nothing prepared again for the same master
+    assert len(calls) == 2, calls  # the slave's gyros and accelerometers, once each
+    assert np.array_equal(before.mounting_rpy_deg, after.mounting_rpy_deg)
+    assert np.array_equal(before.mounting_sigma_deg, after.mounting_sigma_deg)
+    assert before.notes == after.notes

@@ -86,7 +86,7 @@ def test_the_cli_analyze_with_forked_alignment_equals_the_in_process_answer(tmp_
             list(an.alignment[run].mounting_rpy_deg), rel=1e-12, abs=1e-12)
         assert rep["alignment"][run]["mounting_sigma_deg"] == pytest.approx(
             list(an.alignment[run].mounting_sigma_deg), rel=1e-9)
-    # the IMU-to-IMU fit, computed by the forked child after its run: the same triads' rotations
+    # the IMU-to-IMU fit, computed in a second forked child beside the runs: the same triads' rotations
     here = an.align_sections["imu_to_imu"]
     for key in ("gyro_rpy_deg", "gyro_sigma_deg", "accel_rpy_deg", "accel_sigma_deg"):
         assert here[key] is not None and rep["alignment"]["imu_to_imu"][key] == pytest.approx(
