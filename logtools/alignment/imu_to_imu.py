@@ -73,6 +73,19 @@ class ImuToImuConfig:
     #: (benchmarks/bench_alignment_random.py --real-errors)
     lever_plausible_m: float = 2.0
     lever_min_effect: float = 0.01
+    #: the lever arm's regressors (the master's angular rate and its derivative) carry the master gyro's white
+    #: noise, differentiated (0.6 rad/s^2 a sample for a MEMS gyro at 400 Hz): their moment sum K^T K counts it
+    #: as motion and shortens the lever arm (errors in variables), and with a vibrating mount the rotation
+    #: takes up what the short lever arm leaves (a 1.5 m lever arm 2 % short turned an accelerometer triad
+    #: 0.3 deg at sigma 0.02). That noise's moment, simulated through the same derivative, interpolation and
+    #: filters (:func:`_regressor_noise_cov`), is taken out of K^T K, where that leaves every direction of the
+    #: lever arm's regressors at least this fraction of its power (else the noise estimate would decide the lever
+    #: arm: left as it is)
+    regressor_noise_max_frac: float = 0.5
+    #: the angular acceleration of the lever arm's regressors by the five-point difference (5; 3: the
+    #: three-point one, which keeps 0.987 of an 18 Hz vibration's derivative at 400 Hz and 0.76 of a 20 Hz one
+    #: at 100 Hz: the lever arm then comes out that much too long; benchmarks/bench_imu_to_imu_vibration.py)
+    lever_derivative_points: int = 5
     #: the gimbal lock (pitch +-90 deg, where the roll and yaw axes coincide): a rotation whose pitch is within
     #: this many of its sigmas of +-90 deg (or within gimbal_snap_min_deg, rounding) is reported as the
     #: canonical triple (roll 0, yaw the two's sum, scipy's as_euler) with the rotation's sigmas (see
@@ -385,6 +398,22 @@ class _Moments:
             self.kk = (kf.T @ kf).reshape(3, self.m, 3, self.m)  # [i, l, j, q] = sum K[i, l] K[j, q]
             self.ktk = np.einsum("iliq->lq", self.kk)
 
+    def without_regressor_noise(self, noise_kk: np.ndarray, keep_frac: float) -> bool:
+        """``noise_kk`` ((3 m, 3 m), the regressors' columns as ``k.reshape(n, 3 m)``: the sum of their noise's
+        moments) taken out of sum K (x) K, where every direction of the regressors' moment keeps at least
+        ``keep_frac`` of its power; True where it was."""
+        if self.m == 0:
+            return False
+        kk = self.kk.reshape(3 * self.m, 3 * self.m)
+        corr = kk - noise_kk
+        lo_raw = float(np.linalg.eigvalsh(0.5 * (kk + kk.T))[0])
+        lo = float(np.linalg.eigvalsh(0.5 * (corr + corr.T))[0])
+        if not (lo_raw > 0 and lo >= keep_frac * lo_raw):
+            return False
+        self.kk = corr.reshape(3, self.m, 3, self.m)
+        self.ktk = np.einsum("iliq->lq", self.kk)
+        return True
+
     def normal_equations(self, r_mat: np.ndarray, lev: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         ww, wv = self.uu, self.uv
         if lev is not None:
@@ -436,7 +465,8 @@ def _white_noise_var(x: np.ndarray, cfg: ImuToImuConfig = DEFAULT) -> np.ndarray
 
 
 def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = None, *, dt_s: float = 1.0,
-                 iterations: int = 5, starts: tuple[np.ndarray, ...] = ()
+                 iterations: int = 5, starts: tuple[np.ndarray, ...] = (), k_noise_cov: np.ndarray | None = None,
+                 k_noise_keep_frac: float = DEFAULT.regressor_noise_max_frac
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray, float, float]:
     """R (and nuisance parameters r with regressors ``k_lever`` (n, 3, m): a lever arm, a residual delay)
     minimising sum |v_s - R (u_m + K r)|^2, by Gauss-Newton from the Wahba solution and from each of
@@ -445,11 +475,15 @@ def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = 
     Returns (R, cov of the slave-side rotation perturbation (rad^2, 3x3), r or None, cov of r or None,
     residual rms, the scores' correlation time in seconds (``dt_s`` per sample)). The covariance's information
     counts the master's motion without its white noise (:func:`_white_noise_var`); a direction with none
-    beyond it has an infinite covariance (not determined)."""
+    beyond it has an infinite covariance (not determined). ``k_noise_cov``: the per-sample covariance of the
+    regressors' own noise ((3 m, 3 m), as ``k_lever.reshape(n, 3 m)``), taken out of their moments (errors in
+    variables: the estimate and its sigma; see ``ImuToImuConfig.regressor_noise_max_frac``)."""
     n = len(u_m)
     p = 3 if k_lever is None else 3 + k_lever.shape[2]
     best = None
     mom = _Moments(u_m, v_s, k_lever)
+    if k_noise_cov is not None and k_lever is not None:
+        mom.without_regressor_noise(n * k_noise_cov, k_noise_keep_frac)
     for r_mat in (wahba(v_s.T @ u_m)[0], *starts):
         lev = np.zeros(k_lever.shape[2]) if k_lever is not None else None
         for _ in range(iterations):
@@ -494,14 +528,16 @@ def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = 
 
 
 def _triad(u: np.ndarray, v: np.ndarray, k: np.ndarray | None, dt: float, cfg: ImuToImuConfig,
-           min_explained: float | None = None, starts: tuple[np.ndarray, ...] = ()) -> TriadRotation | str:
+           min_explained: float | None = None, starts: tuple[np.ndarray, ...] = (),
+           k_noise_cov: np.ndarray | None = None) -> TriadRotation | str:
     if len(u) < cfg.min_samples:
         return f"only {len(u)} common samples (at least {cfg.min_samples} needed)"
     sv = np.linalg.svd(v.T @ u, compute_uv=False)
     if not sv[1] > 1e-6 * sv[0]:
         return "the motion is about one axis only: the rotation is not determined"
     try:
-        r_mat, cov, lev, _, rms, tau_s = fit_rotation(u, v, k, dt_s=dt, starts=starts)
+        r_mat, cov, lev, _, rms, tau_s = fit_rotation(u, v, k, dt_s=dt, starts=starts, k_noise_cov=k_noise_cov,
+                                                      k_noise_keep_frac=cfg.regressor_noise_max_frac)
     except np.linalg.LinAlgError:
         return "the fit is singular (too little motion)"
     explained = 1.0 - rms ** 2 / max(float(np.mean(np.sum(v * v, axis=1))), 1e-300)
@@ -529,6 +565,79 @@ def _triad(u: np.ndarray, v: np.ndarray, k: np.ndarray | None, dt: float, cfg: I
                          quat_wxyz=tuple(float(x) for x in quat_from_dcm(r_mat)), gimbal=gimbal)
 
 
+def _derivative(t: np.ndarray, y: np.ndarray, points: int = 5) -> np.ndarray:
+    """dy/dt (n, k) by the five-point central difference on the stamps as they are (the derivative of the
+    Lagrange polynomial through samples i-2..i+2: exact to the fourth degree, the fourth-order stencil on a
+    uniform grid), np.gradient's second-order one at the two first and last samples. A vibration of 18 Hz
+    sampled at 400 Hz keeps 0.9998 of its derivative's amplitude (the three-point difference: 0.987, and
+    the lever arm came out 1.3 % long). ``points`` 3: np.gradient throughout."""
+    n = len(t)
+    if n < 5 or points == 3:
+        return np.gradient(y, t, axis=0)
+    d = np.empty(y.shape)
+    d[:3], d[-3:] = np.gradient(y[:5], t[:5], axis=0)[:3], np.gradient(y[-5:], t[-5:], axis=0)[-3:]
+    offs = (-2, -1, 1, 2)
+    for a in range(2, n - 2, BLOCK_ROWS):  # row by row arithmetic: the blocks bound the temporaries
+        b = min(a + BLOCK_ROWS, n - 2)
+        dt = {k: t[a + k:b + k] - t[a:b] for k in offs}
+        acc = -sum(1.0 / dt[k] for k in offs)[:, None] * y[a:b]  # the centre's weight: -sum 1 / d_m
+        for k in offs:
+            num = np.ones(b - a)
+            den = dt[k].copy()
+            for m in offs:
+                if m != k:
+                    num *= -dt[m]
+                    den *= dt[k] - dt[m]
+            acc += (num / den)[:, None] * y[a + k:b + k]
+        d[a:b] = acc
+    return d
+
+
+def _lever_regressors(t: np.ndarray, tm: np.ndarray, gyro_m: np.ndarray, cfg: ImuToImuConfig, out: np.ndarray,
+                      w: np.ndarray | None = None) -> None:
+    """The lever arm's regressors at t (dw x r + w x (w x r) = K r) into ``out[:, :, :3]`` ((n, 3, >= 3)), from
+    the master's gyro (tm, gyro_m): the angular acceleration differentiated on the master's own stamps, then
+    interpolated (on the sparser unit's common stamps a central difference loses a vibration's amplitude,
+    0.84 of it at 16 Hz on a 100 Hz grid, and the lever arm comes out that much too long, the rotation with
+    it). ``w``: the rates at t, where already interpolated."""
+    w = _interp_at(t, tm, gyro_m, cfg.gap_steps)[0] if w is None else w
+    dw = _interp_at(t, tm, _derivative(tm, gyro_m, cfg.lever_derivative_points), cfg.gap_steps)[0]
+    for a in range(0, len(t), BLOCK_ROWS):  # row by row arithmetic: the blocks bound the temporaries (4 h of
+        b = slice(a, a + BLOCK_ROWS)  # 200 Hz is 207 MB for each (n, 3, 3) a whole-array expression makes)
+        out[b, :, :3] = skew(dw[b]) + skew(w[b]) @ skew(w[b])  # f at r = f + dw x r + w x (w x r)
+
+
+def _regressor_noise_cov(t: np.ndarray, gm: tuple[np.ndarray, np.ndarray], nwin: int, nlp: int,
+                         cfg: ImuToImuConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The per-sample covariance ((12, 12), as ``k.reshape(n, 12)``; the delay's column none) of the noise the
+    master gyro's white noise puts into the lever arm's regressors, as the fits see them: the whole motion
+    (high-passed over ``nwin``), its slow and its fast part (split over ``nlp``). By simulation, on a stretch
+    of at most cfg.noise_rows common samples in the middle of the log: a white noise of the gyro's own
+    variance (:func:`_white_noise_var`, per axis; a fixed seed: the same log, the same answer) added to the
+    master's rates there, pushed through :func:`_lever_regressors` and the same filters, less the
+    regressors without it. None where the stretch is too short for the filters."""
+    n = len(t)
+    rows = min(n, cfg.noise_rows)
+    if rows < 2 * nwin + 1000:
+        return None
+    a = (n - rows) // 2
+    tb = t[a:a + rows]
+    tm, g = gm
+    i0 = max(int(np.searchsorted(tm, tb[0])) - 3, 0)
+    i1 = min(int(np.searchsorted(tm, tb[-1])) + 3, len(tm))
+    tmb, gb = tm[i0:i1], g[i0:i1]
+    sig = np.sqrt(_white_noise_var(gb, cfg))
+    noisy = gb + np.random.default_rng(0).standard_normal(gb.shape) * sig
+    k0, k1 = np.zeros((rows, 3, 4)), np.zeros((rows, 3, 4))
+    _lever_regressors(tb, tmb, gb, cfg, k0)
+    _lever_regressors(tb, tmb, noisy, cfg, k1)
+    nf = _highpass((k1 - k0).reshape(rows, 12), nwin)
+    fast = _highpass(nf, nlp)
+    slow = nf - fast
+    cut = slice(nwin // 2, rows - nwin // 2)
+    return tuple((x[cut].T @ x[cut]) / len(x[cut]) for x in (nf, slow, fast))
+
+
 def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highpass_s: float,
                cfg: ImuToImuConfig, starts: tuple[np.ndarray, ...] = ()) -> TriadRotation | str:
     """One triad's rotation on common samples (t, master u, slave v: high-passed in place), the slow part
@@ -544,17 +653,9 @@ def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highp
     if name == "accel" and gm is not None and len(gm[0]) >= 3:
         w, okw = _interp_at(t, *gm, cfg.gap_steps)
         if okw.all():
-            # the angular acceleration differentiated on the master's own stamps, then interpolated: on the
-            # sparser unit's common stamps a central difference loses a vibration's amplitude (0.84 of it at
-            # 16 Hz on a 100 Hz grid), and the lever arm comes out that much too long, the rotation with it
-            dw = _interp_at(t, gm[0], np.gradient(gm[1], gm[0], axis=0), cfg.gap_steps)[0]
-            # the lever arm's regressors and the delay's (below) in one array, filled in place: 4 h of
-            # 200 Hz is 207 MB for each (n, 3, 3) a whole-array expression would make
+            # the lever arm's regressors and the delay's (below) in one array, filled in place
             k = np.empty((n, 3, 4))
-            for a in range(0, n, BLOCK_ROWS):  # row by row arithmetic: the blocks bound the temporaries
-                b = slice(a, a + BLOCK_ROWS)
-                k[b, :, :3] = skew(dw[b]) + skew(w[b]) @ skew(w[b])  # f at r = f + dw x r + w x (w x r)
-            del dw
+            _lever_regressors(t, *gm, cfg, k, w)
             kf = k.reshape(n, 12)
             for j in range(12):
                 if j % 4 != 3:
@@ -567,6 +668,9 @@ def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highp
                     or effect > cfg.lever_min_effect * moving):
                 k = None
             del w
+    nlp = max(int(round(cfg.band_split_s / dt)), 2)  # (the slow and fast parts' split, below)
+    # the noise the master gyro puts into the lever arm's regressors: taken out of their moments in each fit
+    ncov = _regressor_noise_cov(t, gm, nwin, nlp, cfg) if k is not None else None
     # a delay left between the two (the latency's error, the sensors' own sampling instants) as one more
     # parameter: v(t) = R u(t - d) ~ R (u - d du/dt); a delay of 1.4 ms turned the rotation of IMU2's gyro
     # triad by 0.2 deg on a hand-carried ArduPlane (rates and their derivatives correlate across axes)
@@ -575,23 +679,24 @@ def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highp
     else:
         k[:, :, 3] = -np.gradient(u, t, axis=0)
     cut = slice(nwin // 2, len(t) - nwin // 2)
-    res = _triad(u[cut], v[cut], k[cut], dt, cfg, starts=starts)
+    res = _triad(u[cut], v[cut], k[cut], dt, cfg, starts=starts, k_noise_cov=ncov[0] if ncov else None)
     if isinstance(res, str):
         return res
     # a rotation is the same at every frequency: fitted on the slow and on the fast part of the motion
     # apart, two figures beyond band_z sigmas say the triads differ by more than a rotation (the
     # sensors' own filters, vibration aliased into the snapshots, scale factors)
-    nlp = max(int(round(cfg.band_split_s / dt)), 2)
     lo = []
     for x in (u, v, k):  # x - highpass(x), written over the highpass's own array
         hp = _highpass(x.reshape(len(t), -1), nlp).reshape(x.shape)
         lo.append(np.subtract(x, hp, out=hp))
     # (a band the rotation explains poorly is itself the sign: no minimum there, the sigmas judge)
-    band_lo = _triad(lo[0][cut], lo[1][cut], lo[2][cut], dt, cfg, min_explained=0.0, starts=starts)
+    band_lo = _triad(lo[0][cut], lo[1][cut], lo[2][cut], dt, cfg, min_explained=0.0, starts=starts,
+                     k_noise_cov=ncov[1] if ncov else None)
     for x, y in zip((u, v, k), lo):  # the fast band: x - lo in place, once the slow band's fit is done
         x -= y
     del lo, x, y, hp  # (the loops' names held the lever arm's slow copy: 276 MB at 4 h of 200 Hz)
-    bands = [band_lo, _triad(u[cut], v[cut], k[cut], dt, cfg, min_explained=0.0, starts=starts)]
+    bands = [band_lo, _triad(u[cut], v[cut], k[cut], dt, cfg, min_explained=0.0, starts=starts,
+                             k_noise_cov=ncov[2] if ncov else None)]
     del u, v, k
     if all(isinstance(b, TriadRotation) for b in bands):
         zb, d = _z(bands[0].rpy_deg, bands[0].sigma_deg, bands[1].rpy_deg, bands[1].sigma_deg,
