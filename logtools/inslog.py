@@ -37,6 +37,9 @@ class ChannelInfo:
     #: the sigma of the offset that put the stamps on the log's clock, common to all of them (a tlog's boot
     #: stamps mapped to UNIX time by SYSTEM_TIME, whose time_boot_ms is whole ms: up to 1 ms / sqrt(12)); 0 exact
     clock_sigma_s: float = 0.0
+    #: that offset itself (ns), where one put the stamps on the log's clock: two units whose stamps were put on
+    #: UNIX time by the very same offset (one file's two units, an exported copy read back) share its error
+    clock_offset_ns: int | None = None
 
 
 @dataclass(frozen=True)
@@ -149,6 +152,11 @@ class InsLog:
         else 0."""
         ch = self._channel(group)
         return float(ch.clock_sigma_s or 0.0) if ch is not None else 0.0
+
+    def clock_offset_ns(self, group: str) -> int | None:
+        """The offset that put a group's stamps on the log's clock (``ChannelInfo.clock_offset_ns``), else None."""
+        ch = self._channel(group)
+        return ch.clock_offset_ns if ch is not None else None
 
     # -- array views -------------------------------------------------------------------------
     def t_imu_s(self) -> np.ndarray:

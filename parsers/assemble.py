@@ -64,6 +64,7 @@ class Stream:
     source: str = ""
     stamp_resolution_s: float = 0.0  # the format's stamp step when coarse (tlog time_boot_ms, DataFlash TimeMS: 1e-3)
     clock_sigma_s: float = 0.0  # the sigma of the offset that put the stamps on the log's clock (ChannelInfo's)
+    clock_offset_ns: int | None = None  # that offset itself, where one did (ChannelInfo's)
 
 
 @dataclass(frozen=True)
@@ -77,6 +78,9 @@ class ClockOffset:
     source: str  # the stamp source when applied ("... + boot->UTC offset from ...")
     selector: str  # the selector text when applied (else the one given: the boot clock's)
     clock: str = "epoch"
+    #: the offset's 1-sigma (s): joins every shifted stream's ``clock_sigma_s`` (the latency's sigma counts it
+    #: where the two units' stamps were not put on UNIX time by one and the same offset)
+    sigma_s: float = 0.0
 
 
 def clock_steps(t_ns: np.ndarray, cfg: ClockStepConfig = CLOCK_STEP) -> np.ndarray:
@@ -242,7 +246,7 @@ def clean_stream(name: str, s: Stream, warnings: list[str], clock: dict | None =
         del big
     # the stamps' resolution: the format's (tlog time_boot_ms), or the grid the stamps show they are on
     return Stream(t, v, s.source, max(s.stamp_resolution_s, stamp_grid_s(t, steps=d if len(t) > 2 else None)),
-                  s.clock_sigma_s)
+                  s.clock_sigma_s, s.clock_offset_ns)
 
 
 #: physically impossible magnitudes per stream (SI): a sample beyond them is a corrupt value (a flipped
@@ -430,7 +434,8 @@ def _shifted(cleaned: dict[str, Stream], offset: ClockOffset, clock: str, stamp_
                      f"stamps at {lo * 1e-9:.3f} .. {hi * 1e-9:.3f} s, outside UNIX time 1980..2100 (a corrupt "
                      f"time field?): kept on the {clock} clock")
         return cleaned, clock, stamp_source, selector
-    out = {k: Stream(s.t_ns + int(offset.ns), s.values, s.source, s.stamp_resolution_s, s.clock_sigma_s)
+    out = {k: Stream(s.t_ns + int(offset.ns), s.values, s.source, s.stamp_resolution_s,
+                     float(np.hypot(s.clock_sigma_s, offset.sigma_s)), int(offset.ns) + (s.clock_offset_ns or 0))
            for k, s in cleaned.items()}
     return out, offset.clock, offset.source, offset.selector
 
@@ -473,7 +478,8 @@ def assemble_inslog(streams: dict[str, Stream | None], *, path: str, fmt: str, s
         rows: list[tuple[tuple[str, ...], np.ndarray]] = []
         if g is not None:
             rows.append((GYRO, g.values))
-            channels["gyro"] = ChannelInfo(rate_imu, len(t_imu), g.source, g.stamp_resolution_s, g.clock_sigma_s)
+            channels["gyro"] = ChannelInfo(rate_imu, len(t_imu), g.source, g.stamp_resolution_s, g.clock_sigma_s,
+                                           g.clock_offset_ns)
         if a is not None:
             same = g is None or a.t_ns is g.t_ns or np.array_equal(a.t_ns, g.t_ns)
             if not same:
@@ -483,11 +489,12 @@ def assemble_inslog(streams: dict[str, Stream | None], *, path: str, fmt: str, s
                                                   for c in a.values.T], axis=-1)))
                     warns.append("accel interpolated onto gyro stamps (different stamps)")
                 channels["accel"] = ChannelInfo(rate_of(ta), len(a.t_ns), a.source, a.stamp_resolution_s,
-                                               a.clock_sigma_s)
+                                               a.clock_sigma_s, a.clock_offset_ns)
                 del ta
             else:
                 rows.append((ACCEL, a.values))
-                channels["accel"] = ChannelInfo(rate_imu, len(a.t_ns), a.source, a.stamp_resolution_s, a.clock_sigma_s)
+                channels["accel"] = ChannelInfo(rate_imu, len(a.t_ns), a.source, a.stamp_resolution_s, a.clock_sigma_s,
+                                                a.clock_offset_ns)
         del g, a, base
         names = [n for group, _v in rows for n in group]
         block = np.empty((len(names), len(t_imu)))
@@ -529,7 +536,7 @@ def assemble_inslog(streams: dict[str, Stream | None], *, path: str, fmt: str, s
                 rows[:, at] = s.values.T
             r += len(group)
             channels[{"quat": "att", "vel": "vel", "pos": "pos"}[key]] = ChannelInfo(
-                rate_of(rel(s.t_ns)), len(s.t_ns), s.source, s.stamp_resolution_s, s.clock_sigma_s)
+                rate_of(rel(s.t_ns)), len(s.t_ns), s.source, s.stamp_resolution_s, s.clock_sigma_s, s.clock_offset_ns)
             del s, rows, at
         nav = _frame(block, rel(t_nav), names)
         del block, t_nav

@@ -143,6 +143,19 @@ def consensus_offset(diff: np.ndarray, counts_per_s: int) -> tuple[np.ndarray, s
     return ok, ""
 
 
+def offset_sigma_s(diff: np.ndarray, counts_per_s: int, quantum_s: float) -> float:
+    """The 1-sigma (s) of a boot -> UTC offset taken as the median of per-fix readings ``diff`` (int64 counts,
+    the agreeing fixes): their robust spread (MAD x 1.4826: the logging delay's jitter, which the log cannot
+    separate from the delay itself, so counted in full, not divided by the fixes' number) and the GPS time's
+    own quantisation ``quantum_s`` (whole milliseconds: 0.29 ms), combined."""
+    d = np.asarray(diff, dtype=np.int64)
+    if not len(d):
+        return float(quantum_s / np.sqrt(12.0))
+    med = np.median(d)
+    mad = float(np.median(np.abs(d - med))) * 1.4826 / counts_per_s
+    return float(np.hypot(mad, quantum_s / np.sqrt(12.0)))
+
+
 #: stamp grids tested for (s), coarsest first: stamps on one of these are quantised to it
 STAMP_GRIDS_S = (1e-2, 1e-3, 1e-4)
 

@@ -43,7 +43,7 @@ from logtools.errors import InputError
 from logtools.inslog import InsLog
 from parsers.assemble import ClockOffset, Stream, build_inslog, implausible
 from parsers.base import (EPOCH_MAX_NS, STAMP_LIMIT_NS, Inventory, Selector, StreamInfo, check_readable,
-                          consensus_offset, counts_to_ns, rate_of)
+                          consensus_offset, counts_to_ns, offset_sigma_s, rate_of)
 from parsers.mavlink_common import GPS_EPOCH_UNIX_S, gather_rows, gps_to_unix_ns, scatter_rows, walk_dataflash
 
 NAME = "dataflash"
@@ -405,10 +405,11 @@ def _pos(log: DfLog, src: Src) -> tuple[np.ndarray, np.ndarray]:
     raise InputError(f"{src} carries no position (Lat/Lng/Alt, or PN/PE/PD with an ORGN origin)", log.path)
 
 
-def _gps_epoch_offset(log: DfLog) -> tuple[int | None, str, list[str], str]:
+def _gps_epoch_offset(log: DfLog) -> tuple[int | None, str, list[str], str, float]:
     """UNIX ns - boot ns from GPS week/ms of fixed GPS messages (upper median over the fixes whose GPS time
     lies in 1980..2100 with a boot stamp that is a possible one, kept to those agreeing with the majority:
-    ``consensus_offset``), the message, warnings, and the problem ("" when the log has no fixed GPS time)."""
+    ``consensus_offset``), the message, warnings, the problem ("" when the log has no fixed GPS time), and
+    the offset's 1-sigma in s (``offset_sigma_s``: the readings' spread and the milliseconds of GMS)."""
     problems = []
     for name in ("GPS", "GPS2"):
         if not log.has(name):
@@ -443,13 +444,13 @@ def _gps_epoch_offset(log: DfLog) -> tuple[int | None, str, list[str], str]:
             warns.append(f"{name}: {n_bad} of {int(ok.sum())} fixed GPS messages ignored for the boot->UNIX offset "
                          "(an impossible GPS time or boot stamp, or inconsistent with the others: corrupt?)")
         off = np.sort(diff)
-        return int(off[len(off) // 2]), name, warns, ""
-    return None, "", [], "; ".join(problems)
+        return int(off[len(off) // 2]), name, warns, "", offset_sigma_s(diff, 1_000_000_000, 1e-3)
+    return None, "", [], "; ".join(problems), 0.0
 
 
 def _gps_epoch_offset_ns(log: DfLog) -> tuple[int | None, str]:
     """UNIX ns - boot ns from GPS week/ms of fixed GPS messages (``_gps_epoch_offset``), or None."""
-    off, name, _w, _p = _gps_epoch_offset(log)
+    off, name, _w, _p, _sig = _gps_epoch_offset(log)
     return off, name
 
 
@@ -580,7 +581,7 @@ def load(path: str, selector: Selector) -> InsLog:
         raise InputError("selector picks no streams", path)
     off, gps_name, problem = None, "", ""
     if mode != "boot":
-        off, gps_name, w, problem = _gps_epoch_offset(log)
+        off, gps_name, w, problem, off_sigma = _gps_epoch_offset(log)
         warns.extend(w)
         if problem:
             warns.append(f"GPS time gives no trustworthy boot->UNIX offset ({problem}): kept on the boot clock")
@@ -591,8 +592,8 @@ def load(path: str, selector: Selector) -> InsLog:
     offset = None
     if off is not None:  # added by build_inslog once the stamps are cleaned on the boot clock, checked
         offset = ClockOffset(off, f"DataFlash TimeUS (boot) mapped to UNIX time by {gps_name} week/ms (median "
-                                  f"offset over fixed GPS messages; GPS logging latency not removed){att_txt}",
-                             sel_txt + ",time=gps")
+                                  f"offset over fixed GPS messages, 1-sigma {off_sigma * 1e3:.2g} ms; GPS logging "
+                                  f"latency not removed){att_txt}", sel_txt + ",time=gps", sigma_s=off_sigma)
     return build_inslog(path=path, fmt=NAME, selector=sel_txt + ",time=boot", clock="boot",
                         stamp_source=src + att_txt, warnings=warns, offset=offset, **kw)
 
@@ -620,7 +621,7 @@ def inventory(path: str) -> Inventory:
                 rate_hz=rate_of(t_s - t_s[:1].sum()), start_s=float(t_s[0]) if len(t_s) else 0.0,
                 duration_s=float(t_s[-1] - t_s[0]) if len(t_s) else 0.0, clock="boot (TimeUS)",
                 fields=f.columns))
-    off, gps_name, _w, problem = _gps_epoch_offset(log)
+    off, gps_name, _w, problem, _sig = _gps_epoch_offset(log)
     notes = [f"{sum(len(v) for v in log.offsets.values())} records, {len(log.by_name)} message types; "
              + (f"stamps are boot time (TimeUS); loaded on the epoch clock (UNIX time from {gps_name} week/ms, "
                 "time=gps) by default, as analyze reports it; time=boot keeps boot time" if off is not None

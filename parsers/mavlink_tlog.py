@@ -821,8 +821,10 @@ def load(path: str, selector: Selector) -> InsLog:
                        ((timing[k], picked[k]) for k in picked)], sys_off, mode)
     warns += list(plan.warnings)
     # boot stamps put on UNIX time by SYSTEM_TIME carry its offset's sigma
-    map_sigma = {k: (sys_time[1] if sys_time is not None and mode != "receive" and plan.add_ns[0] == sys_off
-                     and bool(np.any(timing[k][0] == 0)) else 0.0) for k in timing}
+    mapped = {k: (sys_time is not None and mode != "receive" and plan.add_ns[0] == sys_off
+                  and bool(np.any(timing[k][0] == 0))) for k in timing}
+    map_sigma = {k: sys_time[1] if mapped[k] else 0.0 for k in timing}
+    map_off = {k: int(sys_off) if mapped[k] else None for k in timing}
 
     del by_stream
 
@@ -848,24 +850,24 @@ def load(path: str, selector: Selector) -> InsLog:
         if s.name in RATE_ONLY:
             r = s.rec
             gyro = _columns(r, ("rollspeed", "pitchspeed", "yawspeed"))
-            kw["gyro"] = Stream(t, gyro, f"{s.name} body rates", res, map_sigma["imu"])
+            kw["gyro"] = Stream(t, gyro, f"{s.name} body rates", res, map_sigma["imu"], map_off["imu"])
             warns.append(f"gyro from {s.name} rollspeed/pitchspeed/yawspeed (estimator output, no accel)")
             del r
         else:
             gyro, acc = _imu_values(s)
-            kw["gyro"] = Stream(t, gyro, s.name, res, map_sigma["imu"])
-            kw["accel"] = Stream(t, acc, s.name, res, map_sigma["imu"])
+            kw["gyro"] = Stream(t, gyro, s.name, res, map_sigma["imu"], map_off["imu"])
+            kw["accel"] = Stream(t, acc, s.name, res, map_sigma["imu"], map_off["imu"])
             del acc
         del s, t, gyro
         picked.pop("imu")
     if "att" in picked:
         s = picked["att"]
-        kw["quat"] = Stream(stamps("att"), _quat_values(s), s.name, resolution("att"), map_sigma["att"])
+        kw["quat"] = Stream(stamps("att"), _quat_values(s), s.name, resolution("att"), map_sigma["att"], map_off["att"])
         del s
         picked.pop("att")
     if "vel" in picked:
         s = picked["vel"]
-        kw["vel"] = Stream(stamps("vel"), _vel_values(s), s.name, resolution("vel"), map_sigma["vel"])
+        kw["vel"] = Stream(stamps("vel"), _vel_values(s), s.name, resolution("vel"), map_sigma["vel"], map_off["vel"])
         del s
         picked.pop("vel")
     if "pos" in picked:
@@ -875,8 +877,8 @@ def load(path: str, selector: Selector) -> InsLog:
             warns.append(f"{s.name}: {int((~valid).sum())} samples without a position fix (0,0) dropped")
         if valid.any():
             t, res = stamps("pos"), resolution("pos")
-            kw["pos"] = (Stream(t, vals, s.name, res, map_sigma["pos"]) if valid.all() else
-                         Stream(t[valid], vals[valid], s.name, res, map_sigma["pos"]))
+            kw["pos"] = (Stream(t, vals, s.name, res, map_sigma["pos"], map_off["pos"]) if valid.all() else
+                         Stream(t[valid], vals[valid], s.name, res, map_sigma["pos"], map_off["pos"]))
             del t
         del s, vals, valid
         picked.pop("pos")

@@ -40,7 +40,7 @@ from logtools.inslog import InsLog
 from parsers.assemble import ClockOffset, Stream, build_inslog
 from parsers.atomic import atomic_path
 from parsers.base import (EPOCH_MAX_NS, STAMP_LIMIT_NS, Inventory, Selector, StreamInfo, check_readable,
-                          consensus_offset, counts_to_ns)
+                          consensus_offset, counts_to_ns, offset_sigma_s)
 
 NAME = "ulog"
 EXTENSIONS = (".ulg",)
@@ -462,10 +462,11 @@ def _pos_stream(d, key: TopicKey, use_sample: bool, warns: list[str]) -> Stream 
     return Stream(t_ns[ok], llh, f"{_fmt_key(key)}.ref+x/y/z")
 
 
-def _utc_offset(topics) -> tuple[int | None, str, list[str], str]:
-    """(UTC - boot) offset in ns from GPS messages, its source, warnings, and the problem ("" when the log has
-    no GPS UTC time at all). The offset is the median over the fixes whose UTC time lies in 2001..2100 and
-    whose boot stamp is a possible one, kept to those agreeing with the majority (``consensus_offset``); a
+def _utc_offset(topics) -> tuple[int | None, str, list[str], str, float]:
+    """(UTC - boot) offset in ns from GPS messages, its source, warnings, the problem ("" when the log has
+    no GPS UTC time at all), and the offset's 1-sigma in s (``offset_sigma_s``: the readings' spread, the
+    microseconds of time_utc_usec). The offset is the median over the fixes whose UTC time lies in 2001..2100
+    and whose boot stamp is a possible one, kept to those agreeing with the majority (``consensus_offset``); a
     topic whose fixes have no majority gives none (None, and the problem says why)."""
     problems = []
     for name in GPS_TOPICS:
@@ -496,21 +497,21 @@ def _utc_offset(topics) -> tuple[int | None, str, list[str], str]:
             if n_bad:
                 warns.append(f"{label}: {n_bad} of {int(fix.sum())} GPS fixes ignored for the boot->UTC offset "
                              "(an impossible UTC time or boot stamp, or inconsistent with the others: corrupt?)")
-            return off * 1000, f"{label} (median of {len(diff)})", warns, ""
-    return None, "", [], "; ".join(problems)
+            return off * 1000, f"{label} (median of {len(diff)})", warns, "", offset_sigma_s(diff, 1_000_000, 1e-6)
+    return None, "", [], "; ".join(problems), 0.0
 
 
-def _utc_offset_ns(topics, path: str) -> tuple[int, str, list[str]]:
-    """(UTC - boot) offset in ns from GPS messages, its source, and warnings; InputError when the log gives
-    none (no GPS UTC time, or none to trust)."""
-    off, src, warns, problem = _utc_offset(topics)
+def _utc_offset_ns(topics, path: str) -> tuple[int, str, list[str], float]:
+    """(UTC - boot) offset in ns from GPS messages, its source, warnings and its 1-sigma (s); InputError when
+    the log gives none (no GPS UTC time, or none to trust)."""
+    off, src, warns, problem, sigma = _utc_offset(topics)
     if off is None:
         if problem:
             raise InputError(f"clock=epoch: the GPS UTC time gives no trustworthy boot->UTC offset ({problem})",
                              path)
         raise InputError("clock=epoch needs GPS time (vehicle_gps_position/sensor_gps time_utc_usec); "
                          "the log has none", path)
-    return off, src, warns
+    return off, src, warns, sigma
 
 
 def _default_topic(keys, candidates: tuple[str, ...], inst: int | None = None) -> TopicKey | None:
@@ -601,16 +602,17 @@ def load(path: str, selector: Selector, *, engine: str = "auto") -> InsLog:
     offset = None
     if clock in ("epoch", "auto"):
         if clock == "epoch":
-            off_ns, src, w = _utc_offset_ns(topics, path)
+            off_ns, src, w, off_sigma = _utc_offset_ns(topics, path)
         else:  # auto: UNIX time where the log's GPS gives it
-            off_ns, src, w, problem = _utc_offset(topics)
+            off_ns, src, w, problem, off_sigma = _utc_offset(topics)
             if problem:
                 warns.append(f"GPS UTC time gives no trustworthy boot->UTC offset ({problem}): kept on the boot "
                              "clock")
         if off_ns is not None:
             warns.extend(w)
             # added by build_inslog once the stamps are cleaned on the boot clock (stray stamps gone), checked
-            offset = ClockOffset(off_ns, f"{stamp} + boot->UTC offset from {src}", ",".join(chosen + ["clock=epoch"]))
+            offset = ClockOffset(off_ns, f"{stamp} + boot->UTC offset from {src}, 1-sigma {off_sigma * 1e3:.2g} ms",
+                                 ",".join(chosen + ["clock=epoch"]), sigma_s=off_sigma)
     if not selector:
         warns.append(f"no selector given: picked {','.join(chosen)}")
     elif inst:

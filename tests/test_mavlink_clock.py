@@ -145,3 +145,45 @@ def test_the_latency_sigma_carries_the_system_time_offsets_uncertainty(tmp_path)
     assert res2.quality["sigma_budget"].get("clock_mapping", 0.0) < 2e-5
     assert not any("SYSTEM_TIME" in w for w in res2.quality["warnings"])
     assert abs(res2.latency_s - pair.truth.latency_s) < 0.05e-3
+
+
+def test_offset_sigma_counts_the_readings_spread_and_the_gps_milliseconds():
+    from parsers.base import offset_sigma_s
+
+    q = 1e-3 / np.sqrt(12.0)
+    assert offset_sigma_s(np.full(50, 123_456_789_000), 1_000_000_000, 1e-3) == pytest.approx(q)
+    rng = np.random.default_rng(3)
+    d = 123_456_789_000 + rng.normal(0, 8e6, 400).astype(np.int64)  # a logging delay jittering by 8 ms
+    assert offset_sigma_s(d, 1_000_000_000, 1e-3) == pytest.approx(np.hypot(8e-3, q), rel=0.15)
+
+
+def test_a_dataflash_slave_on_gps_time_carries_its_offsets_sigma_into_the_latency(tmp_path):
+    """A DataFlash slave put on UNIX time by its GPS week/ms (whole milliseconds) against a master on UNIX
+    time: the latency's sigma counts the offset's (sigma_budget.clock_mapping, at least 1 ms / sqrt(12)) and a
+    warning says it; two units of one DataFlash file share the offset and carry none."""
+    from logtools import sim
+    from logtools.latency import estimate
+
+    pair = sim.simulate(sim.scenario_config("ship", duration_s=60.0, latency_s=0.0417, drift_ppm=0.0,
+                                            mount_rpy_deg=(1.0, -2.0, 30.0)))
+    path = str(tmp_path / "slave.bin")
+    registry.write(path, pair.slave, "dataflash")
+    slave = registry.load(path)
+    assert slave.meta.clock == "epoch" and "1-sigma" in slave.meta.stamp_source
+    assert slave.meta.channels["gyro"].clock_sigma_s == pytest.approx(1e-3 / np.sqrt(12.0), rel=1e-3)
+    res = estimate(pair.master, slave, compare=False)
+    assert res.quality["sigma_budget"]["clock_mapping"] == pytest.approx(1e-3 / np.sqrt(12.0), rel=0.01)
+    assert res.sigma_s >= 0.999e-3 / np.sqrt(12.0)
+    assert abs(res.latency_s - pair.truth.latency_s) <= 3 * res.sigma_s
+    assert any("uncertain" in w for w in res.quality["warnings"]), res.quality["warnings"]
+    same = estimate(registry.load(f"{path}::imu=IMU"), registry.load(f"{path}::imu=IMU"), compare=False,
+                    max_lag_s=0.5)
+    assert same.quality["sigma_budget"].get("clock_mapping", 0.0) == 0.0
+    # a second file whose stamps were put on UNIX time by the very same offset (an exported copy read back):
+    # shared too
+    copy = str(tmp_path / "copy.bin")
+    registry.write(copy, pair.slave, "dataflash")
+    other = registry.load(copy)
+    assert other.meta.channels["gyro"].clock_offset_ns == slave.meta.channels["gyro"].clock_offset_ns is not None
+    both = estimate(slave, other, compare=False, max_lag_s=0.5)
+    assert both.quality["sigma_budget"].get("clock_mapping", 0.0) == 0.0

@@ -43,7 +43,8 @@ class PrepareConfig:
     #: below a tenth of the best sigma real logs give (0.02-0.03 ms, docs/latency.md)
     resolution_warn_s: float = 1e-5
     #: a unit's stamps put on its clock by an offset this uncertain (s) or more: said as a warning (a tlog's
-    #: SYSTEM_TIME records sent in step with the millisecond: 0.29 ms, LogMeta channels' clock_sigma_s)
+    #: SYSTEM_TIME records sent in step with the millisecond: 0.29 ms; a DataFlash log's GPS week/ms: at least
+    #: the 0.29 ms of its milliseconds; LogMeta channels' clock_sigma_s)
     clock_sigma_warn_s: float = 1e-4
     min_motion_snr: float = 2.0  # in-band motion/noise RMS below this: "no motion" AnalysisError (test_latency)
     low_motion_snr: float = 10.0  # ... below this: the "too_little_motion" flag (test_latency)

@@ -42,12 +42,16 @@ class Ctx:
     cfg: LatencyConfig = DEFAULT
 
 
-def _shared_clock_mapping(master: InsLog, slave: InsLog) -> bool:
-    """Both units' stamps put on UNIX time by the same offset (one file, one tlog system): its error cancels."""
+def _shared_clock_mapping(master: InsLog, slave: InsLog, groups: tuple[str, str]) -> bool:
+    """Both units' stamps put on UNIX time by the same offset (one file, one tlog system; or the very same
+    offset, to the nanosecond, in two files: a log and its exported copy read back): its error cancels."""
     def sysid(log: InsLog) -> str | None:
         m = re.search(r"(?:^|,)sysid=(\d+)", log.meta.selector or "")
         return m.group(1) if m else None
 
+    off_m, off_s = master.clock_offset_ns(groups[0]), slave.clock_offset_ns(groups[1])
+    if off_m is not None and off_m == off_s:
+        return True
     return bool(master.meta.source_path) and master.meta.source_path == slave.meta.source_path \
         and sysid(master) == sysid(slave)
 
@@ -96,13 +100,14 @@ def prepare(master: InsLog, slave: InsLog, max_lag_s: float | None, *, accelerom
     us = make_unit(nats, ns, srcs, "slave", fs, 1.0 / f_s, cutoff)
     grp_m, grp_s = ("gyro" if src == "gyro" else "att" for src in (srcm, srcs))  # the rates' source channels
     res_s = (master.stamp_resolution_s(grp_m), slave.stamp_resolution_s(grp_s))
-    clk_s = ((0.0, 0.0) if _shared_clock_mapping(master, slave)
+    clk_s = ((0.0, 0.0) if _shared_clock_mapping(master, slave, (grp_m, grp_s))
              else (master.clock_sigma_s(grp_m), slave.clock_sigma_s(grp_s)))
     warnings = list(um.native.warnings) + list(us.native.warnings)
     for role, q in zip(("master", "slave"), clk_s):
         if q >= cfg.prepare.clock_sigma_warn_s:
             warnings.append(f"{role} stamps put on UNIX time by an offset uncertain by {q * 1e3:.2g} ms (1 sigma; a "
-                            f"tlog's SYSTEM_TIME records in step with the millisecond): in the latency's sigma")
+                            f"tlog's SYSTEM_TIME records in step with the millisecond, a GPS time logged with a "
+                            f"varying delay: the unit's stamp source): in the latency's sigma")
     acc_src = vel_src = None
     if (accelerometers and cfg.prepare.accel_aided and srcm == "gyro" and srcs == "gyro" and master.has_accel
             and slave_r.has_accel):
