@@ -103,11 +103,14 @@ def prepare(master: InsLog, slave: InsLog, max_lag_s: float | None, *, accelerom
     clk_s = ((0.0, 0.0) if _shared_clock_mapping(master, slave, (grp_m, grp_s))
              else (master.clock_sigma_s(grp_m), slave.clock_sigma_s(grp_s)))
     warnings = list(um.native.warnings) + list(us.native.warnings)
-    for role, q in zip(("master", "slave"), clk_s):
+    for role, q, log in zip(("master", "slave"), clk_s, (master, slave)):
         if q >= cfg.prepare.clock_sigma_warn_s:
-            warnings.append(f"{role} stamps put on UNIX time by an offset uncertain by {q * 1e3:.2g} ms (1 sigma; a "
-                            f"tlog's SYSTEM_TIME records in step with the millisecond, a GPS time logged with a "
-                            f"varying delay: the unit's stamp source): in the latency's sigma")
+            src = log.meta.stamp_source or ""
+            why = ("its SYSTEM_TIME records in step with the millisecond" if "SYSTEM_TIME" in src else
+                   "its GPS time's per-fix offsets spread (a varying logging delay, whole milliseconds)"
+                   if "GPS" in src else "see its stamp source")
+            warnings.append(f"{role} stamps put on UNIX time by an offset uncertain by {q * 1e3:.2g} ms (1 sigma; "
+                            f"{why}): in the latency's sigma")
     acc_src = vel_src = None
     if (accelerometers and cfg.prepare.accel_aided and srcm == "gyro" and srcs == "gyro" and master.has_accel
             and slave_r.has_accel):
