@@ -445,3 +445,27 @@ def test_gps_time_without_a_trustworthy_offset_stays_on_the_boot_clock(tmp_path,
     with pytest.raises(InputError, match="no trustworthy") as exc:
         ulog.load(str(p), Selector.parse("clock=epoch"))
     assert "\n" not in str(exc.value) and str(p) in str(exc.value)
+
+
+def test_the_gps_utc_offset_carries_its_spread_as_a_sigma(tmp_path):
+    """A ULog put on UNIX time by its GPS UTC time: the offset's sigma (the per-fix readings' spread, the
+    microsecond of time_utc_usec) and the offset itself ride on every channel (the latency's clock_mapping;
+    two files with the very same offset share it). A GPS whose UTC readings jitter by 3 ms gives ~3 ms."""
+    from logtools import sim
+    from parsers import registry, ulog as ul
+
+    p = sim.simulate(sim.scenario_config("ship", duration_s=20.0))
+    path = str(tmp_path / "s.ulg")
+    registry.write(path, p.slave, "ulog")
+    log = registry.load(path)
+    ch = log.meta.channels["gyro"]
+    assert log.meta.clock == "epoch" and ch.clock_offset_ns is not None
+    assert ch.clock_sigma_s == pytest.approx(1e-6 / np.sqrt(12.0), rel=1e-3)
+    assert all(c.clock_offset_ns == ch.clock_offset_ns for c in log.meta.channels.values())
+    rng = np.random.default_rng(0)
+    utc = 1_700_000_000_000_000 + np.arange(200) * 200_000
+    topics = {("vehicle_gps_position", 0): {"time_utc_usec": (utc + rng.normal(0, 3000, 200)).astype(np.uint64),
+                                            "timestamp": (np.arange(200) * 200_000 + 5_000_000).astype(np.uint64)}}
+    off, _src, _w, problem, sigma = ul._utc_offset(topics)
+    assert problem == "" and off is not None
+    assert sigma == pytest.approx(3e-3, rel=0.2)
