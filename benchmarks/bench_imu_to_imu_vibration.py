@@ -8,11 +8,13 @@ white noise of MEMS units (gyros 1-4 mrad/s a sample, accelerometers 0.02-0.05 m
 signal is evaluated exactly at each unit's own stamps (no interpolation in the generator).
 
 On the same pairs, three variants of ``imu_to_imu`` (``ImuToImuConfig``):
-* ``tapost``: the defaults (five-point angular acceleration, the gyro noise's moment taken out of the
-  lever-arm regressors' moments: errors in variables);
-* ``no_eiv``: the five-point difference, the noise left in (``regressor_noise_max_frac`` = 2: never applied);
-* ``three_point_no_eiv``: the three-point difference and the noise left in (the code before 2026-12-04's
-  evening).
+* ``tapost``: the defaults (five-point angular acceleration, the rates interpolated onto the common stamps
+  by four points, the gyro noise's moment taken out of the lever-arm regressors' moments: errors in
+  variables);
+* ``linear_regressors``: the same with the rates interpolated linearly;
+* ``no_eiv``: the defaults with the noise left in (``regressor_noise_max_frac`` = 2: never applied);
+* ``before``: the three-point difference, linear interpolation, the noise left in (the code before
+  2026-12-04's evening).
 Per variant: the rotation error (deg, the angle of R_est R_true^T) RMS and worst, the axes within 2 and 3
 sigma, the runs beyond 3 sigma on some axis, the lever arm's error RMS (m), the triads not measured.
 
@@ -39,8 +41,10 @@ from logtools.inslog import InsLog, LogMeta  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results" / "imu_to_imu_vibration.json"
 VARIANTS = {"tapost": ii.DEFAULT,
+            "linear_regressors": replace(ii.DEFAULT, lever_interp_points=2),
             "no_eiv": replace(ii.DEFAULT, regressor_noise_max_frac=2.0),
-            "three_point_no_eiv": replace(ii.DEFAULT, regressor_noise_max_frac=2.0, lever_derivative_points=3)}
+            "before": replace(ii.DEFAULT, regressor_noise_max_frac=2.0, lever_derivative_points=3,
+                              lever_interp_points=2)}
 
 
 def _random_rotation(rng: np.random.Generator) -> np.ndarray:

@@ -86,6 +86,11 @@ class ImuToImuConfig:
     #: three-point one, which keeps 0.987 of an 18 Hz vibration's derivative at 400 Hz and 0.76 of a 20 Hz one
     #: at 100 Hz: the lever arm then comes out that much too long; benchmarks/bench_imu_to_imu_vibration.py)
     lever_derivative_points: int = 5
+    #: ... and the rates and angular acceleration interpolated onto the common stamps by four points (4; 2:
+    #: linearly, which keeps 0.951 of a 20 Hz vibration half-way between 200 Hz samples: the lever arm came out
+    #: 4.5 % long on a 100 Hz slave). The gyro noise this carries more of is taken out with the rest
+    #: (regressor_noise_max_frac); the specific forces stay linear (their noise is not taken out of the fit)
+    lever_interp_points: int = 4
     #: the gimbal lock (pitch +-90 deg, where the roll and yaw axes coincide): a rotation whose pitch is within
     #: this many of its sigmas of +-90 deg (or within gimbal_snap_min_deg, rounding) is reported as the
     #: canonical triple (roll 0, yaw the two's sum, scipy's as_euler) with the rotation's sigmas (see
@@ -173,14 +178,38 @@ def _clean(t: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return t[keep], y[keep]
 
 
-def _interp_at(t: np.ndarray, tp: np.ndarray, yp: np.ndarray, gap_steps: float) -> tuple[np.ndarray, np.ndarray]:
-    """yp (n, k) at t, linearly; and the mask of t inside tp's span (its first and last stamps included) and
-    not inside a gap of tp (a t on a sample of tp is that sample: inside)."""
+def _interp_at(t: np.ndarray, tp: np.ndarray, yp: np.ndarray, gap_steps: float, points: int = 2
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """yp (n, k) at t, linearly, or with ``points`` 4 by the four-point (cubic Lagrange) interpolation on tp's
+    own stamps (linear where the four samples would straddle a gap or an end); and the mask of t inside tp's
+    span (its first and last stamps included) and not inside a gap of tp (a t on a sample of tp is that
+    sample: inside). Half-way between two samples a vibration at a tenth of the rate keeps 0.951 of its
+    amplitude linearly, 0.996 with four points."""
     step = median_step_s(tp, default=np.inf)
     jj = np.clip(np.searchsorted(tp, t, side="right"), 1, len(tp) - 1)  # t in [tp[jj-1], tp[jj]]
     inside = (t >= tp[0]) & (t <= tp[-1])
     inside &= ((tp[jj] - tp[jj - 1]) <= gap_steps * step) | (t == tp[jj - 1]) | (t == tp[jj])
     y = np.stack([np.interp(t, tp, yp[:, i]) for i in range(yp.shape[1])], -1)
+    if points != 4 or len(tp) < 4:
+        return y, inside
+    i1 = jj - 1  # the samples i1 - 1 .. i1 + 2 around t
+    idx = np.flatnonzero((i1 >= 1) & (i1 + 2 < len(tp)) & (t > tp[0]) & (t < tp[-1]))
+    a = i1[idx]
+    lim = gap_steps * step
+    near = (tp[a] - tp[a - 1] <= lim) & (tp[a + 1] - tp[a] <= lim) & (tp[a + 2] - tp[a + 1] <= lim)
+    idx, a = idx[near], a[near]
+    for lo in range(0, len(idx), BLOCK_ROWS):  # row by row arithmetic: the blocks bound the temporaries
+        ii, aa = idx[lo:lo + BLOCK_ROWS], a[lo:lo + BLOCK_ROWS]
+        x = t[ii]
+        nodes = [tp[aa + d] for d in (-1, 0, 1, 2)]
+        acc = np.zeros((len(ii), yp.shape[1]))
+        for jn in range(4):
+            wgt = np.ones(len(ii))
+            for mn in range(4):
+                if mn != jn:
+                    wgt *= (x - nodes[mn]) / (nodes[jn] - nodes[mn])
+            acc += wgt[:, None] * yp[aa + jn - 1]
+        y[ii] = acc
     return y, inside
 
 
@@ -464,6 +493,30 @@ def _white_noise_var(x: np.ndarray, cfg: ImuToImuConfig = DEFAULT) -> np.ndarray
     return mad ** 2 / 20.0
 
 
+def _noise_floor_var(x: np.ndarray, seg: int = 1024, band: tuple[float, float] = (0.25, 0.5)) -> np.ndarray:
+    """Each column's white-noise variance (n, k) -> (k,) from the floor of its spectrum: the median over the
+    upper part of the band (``band``, fractions of the sampling rate) of Welch's periodogram (Hann segments of
+    ``seg`` rows, half overlapping), times the band's width. A vibration is a few lines there and does not move
+    the median; third differences (:func:`_white_noise_var`) keep (2 sin(pi f / fs))^3 of it, and a rigid-body
+    vibration at a tenth of the rate read as gyro noise over-corrected the lever arm's regressors."""
+    n = len(x)
+    seg = int(min(seg, n))
+    if seg < 16:
+        return np.zeros(x.shape[1])
+    win = np.hanning(seg)
+    step = seg // 2
+    starts = range(0, n - seg + 1, step)
+    psd = np.zeros((seg // 2 + 1, x.shape[1]))
+    for a in starts:
+        y = x[a:a + seg]
+        y = (y - y.mean(axis=0)) * win[:, None]
+        psd += np.abs(np.fft.rfft(y, axis=0)) ** 2
+    psd /= len(starts) * float(np.sum(win ** 2))  # white noise of variance sigma^2: sigma^2 in every bin
+    f = np.arange(len(psd)) / seg
+    sel = (f >= band[0]) & (f <= band[1])
+    return np.median(psd[sel], axis=0)
+
+
 def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = None, *, dt_s: float = 1.0,
                  iterations: int = 5, starts: tuple[np.ndarray, ...] = (), k_noise_cov: np.ndarray | None = None,
                  k_noise_keep_frac: float = DEFAULT.regressor_noise_max_frac
@@ -473,7 +526,8 @@ def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = 
     ``starts`` (rotations), the smallest residual kept.
 
     Returns (R, cov of the slave-side rotation perturbation (rad^2, 3x3), r or None, cov of r or None,
-    residual rms, the scores' correlation time in seconds (``dt_s`` per sample)). The covariance's information
+    residual rms, the scores' correlation time in seconds (``dt_s`` per sample), and the mean square of the
+    regressors' own noise in that residual where it was taken out, else 0). The covariance's information
     counts the master's motion without its white noise (:func:`_white_noise_var`); a direction with none
     beyond it has an infinite covariance (not determined). ``k_noise_cov``: the per-sample covariance of the
     regressors' own noise ((3 m, 3 m), as ``k_lever.reshape(n, 3 m)``), taken out of their moments (errors in
@@ -482,8 +536,8 @@ def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = 
     p = 3 if k_lever is None else 3 + k_lever.shape[2]
     best = None
     mom = _Moments(u_m, v_s, k_lever)
-    if k_noise_cov is not None and k_lever is not None:
-        mom.without_regressor_noise(n * k_noise_cov, k_noise_keep_frac)
+    noise_out = (k_noise_cov is not None and k_lever is not None
+                 and mom.without_regressor_noise(n * k_noise_cov, k_noise_keep_frac))
     for r_mat in (wahba(v_s.T @ u_m)[0], *starts):
         lev = np.zeros(k_lever.shape[2]) if k_lever is not None else None
         for _ in range(iterations):
@@ -524,7 +578,12 @@ def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = 
     else:
         jinv = np.linalg.inv(hess)
         cov = jinv @ om @ jinv * (n / max(n - p, 1))
-    return r_mat, cov[:3, :3], lev, (cov[3:, 3:] if lev is not None else None), rms, tau * dt_s
+    # the regressors' own noise in the residual, per sample (|N r|^2: what they carry that no rotation explains)
+    noise_ms = 0.0
+    if noise_out and lev is not None:
+        c4 = np.asarray(k_noise_cov).reshape(3, len(lev), 3, len(lev))
+        noise_ms = float(sum(lev @ c4[i, :, i, :] @ lev for i in range(3)))
+    return r_mat, cov[:3, :3], lev, (cov[3:, 3:] if lev is not None else None), rms, tau * dt_s, noise_ms
 
 
 def _triad(u: np.ndarray, v: np.ndarray, k: np.ndarray | None, dt: float, cfg: ImuToImuConfig,
@@ -536,11 +595,12 @@ def _triad(u: np.ndarray, v: np.ndarray, k: np.ndarray | None, dt: float, cfg: I
     if not sv[1] > 1e-6 * sv[0]:
         return "the motion is about one axis only: the rotation is not determined"
     try:
-        r_mat, cov, lev, _, rms, tau_s = fit_rotation(u, v, k, dt_s=dt, starts=starts, k_noise_cov=k_noise_cov,
-                                                      k_noise_keep_frac=cfg.regressor_noise_max_frac)
+        r_mat, cov, lev, _, rms, tau_s, noise_ms = fit_rotation(u, v, k, dt_s=dt, starts=starts, k_noise_cov=k_noise_cov,
+                                                                k_noise_keep_frac=cfg.regressor_noise_max_frac)
     except np.linalg.LinAlgError:
         return "the fit is singular (too little motion)"
-    explained = 1.0 - rms ** 2 / max(float(np.mean(np.sum(v * v, axis=1))), 1e-300)
+    # (the master gyro's noise in the lever arm's regressors is no motion the rotation failed to explain)
+    explained = 1.0 - max(rms ** 2 - noise_ms, 0.0) / max(float(np.mean(np.sum(v * v, axis=1))), 1e-300)
     min_explained = cfg.min_explained if min_explained is None else min_explained
     if explained < min_explained:
         return (f"too little motion: the rotation explains {100 * max(explained, 0):.0f} % of the slave's "
@@ -600,8 +660,9 @@ def _lever_regressors(t: np.ndarray, tm: np.ndarray, gyro_m: np.ndarray, cfg: Im
     interpolated (on the sparser unit's common stamps a central difference loses a vibration's amplitude,
     0.84 of it at 16 Hz on a 100 Hz grid, and the lever arm comes out that much too long, the rotation with
     it). ``w``: the rates at t, where already interpolated."""
-    w = _interp_at(t, tm, gyro_m, cfg.gap_steps)[0] if w is None else w
-    dw = _interp_at(t, tm, _derivative(tm, gyro_m, cfg.lever_derivative_points), cfg.gap_steps)[0]
+    pts = cfg.lever_interp_points
+    w = _interp_at(t, tm, gyro_m, cfg.gap_steps, pts)[0] if w is None else w
+    dw = _interp_at(t, tm, _derivative(tm, gyro_m, cfg.lever_derivative_points), cfg.gap_steps, pts)[0]
     for a in range(0, len(t), BLOCK_ROWS):  # row by row arithmetic: the blocks bound the temporaries (4 h of
         b = slice(a, a + BLOCK_ROWS)  # 200 Hz is 207 MB for each (n, 3, 3) a whole-array expression makes)
         out[b, :, :3] = skew(dw[b]) + skew(w[b]) @ skew(w[b])  # f at r = f + dw x r + w x (w x r)
@@ -613,7 +674,8 @@ def _regressor_noise_cov(t: np.ndarray, gm: tuple[np.ndarray, np.ndarray], nwin:
     master gyro's white noise puts into the lever arm's regressors, as the fits see them: the whole motion
     (high-passed over ``nwin``), its slow and its fast part (split over ``nlp``). By simulation, on a stretch
     of at most cfg.noise_rows common samples in the middle of the log: a white noise of the gyro's own
-    variance (:func:`_white_noise_var`, per axis; a fixed seed: the same log, the same answer) added to the
+    variance (its spectrum's floor, :func:`_noise_floor_var`, per axis; a fixed seed: the same log, the same
+    answer) added to the
     master's rates there, pushed through :func:`_lever_regressors` and the same filters, less the
     regressors without it. None where the stretch is too short for the filters."""
     n = len(t)
@@ -626,7 +688,7 @@ def _regressor_noise_cov(t: np.ndarray, gm: tuple[np.ndarray, np.ndarray], nwin:
     i0 = max(int(np.searchsorted(tm, tb[0])) - 3, 0)
     i1 = min(int(np.searchsorted(tm, tb[-1])) + 3, len(tm))
     tmb, gb = tm[i0:i1], g[i0:i1]
-    sig = np.sqrt(_white_noise_var(gb, cfg))
+    sig = np.sqrt(_noise_floor_var(gb))
     noisy = gb + np.random.default_rng(0).standard_normal(gb.shape) * sig
     k0, k1 = np.zeros((rows, 3, 4)), np.zeros((rows, 3, 4))
     _lever_regressors(tb, tmb, gb, cfg, k0)
@@ -651,7 +713,7 @@ def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highp
     n = len(t)
     k = None
     if name == "accel" and gm is not None and len(gm[0]) >= 3:
-        w, okw = _interp_at(t, *gm, cfg.gap_steps)
+        w, okw = _interp_at(t, *gm, cfg.gap_steps, cfg.lever_interp_points)
         if okw.all():
             # the lever arm's regressors and the delay's (below) in one array, filled in place
             k = np.empty((n, 3, 4))
