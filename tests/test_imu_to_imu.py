@@ -512,8 +512,8 @@ def test_a_long_lever_arm_on_a_vibrating_mount_with_a_mems_master_gyro(seed):
     assert np.allclose(acc.lever_arm_m, lever, rtol=0.015, atol=0.005), acc.lever_arm_m
     err = np.asarray(acc.rpy_deg) - [1.5, -0.5, -61.0]
     # (the lever arm's signal dominates the slave's specific force here, so the rotation rests on the noise
-    # correction: its ~1.5 % precision on 60 s of data moves the rotation by up to 0.2 deg, which the sigma
-    # does not count; seed 1: 0.18 deg at sigma 0.04)
+    # correction: its ~1.5 % precision on 60 s of data moves the rotation by up to 0.2 deg, of which the sigma
+    # counts part; seed 1: 0.18 deg at sigma 0.052)
     assert np.all(np.abs(err) < 0.25), err
     assert np.all(np.abs(err) < 5.0 * np.asarray(acc.sigma_deg) + 0.01), (err, acc.sigma_deg)
     assert acc.rigid, acc.band_z

@@ -28,6 +28,7 @@ nav-referenced mounting of the transfer alignment and names the likely cause whe
 """
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -35,7 +36,7 @@ from scipy import fft as sfft
 
 from logtools import jit
 from logtools.conventions import (dcm_from_euler, dcm_from_quat, dcm_from_rotvec, euler_from_dcm, median_step_s,
-                                  quat_from_dcm, skew, wahba)
+                                  quat_from_dcm, rotvec_from_dcm, skew, wahba)
 from logtools.inslog import InsLog
 from logtools.rows import BLOCK_ROWS
 
@@ -493,16 +494,19 @@ def _white_noise_var(x: np.ndarray, cfg: ImuToImuConfig = DEFAULT) -> np.ndarray
     return mad ** 2 / 20.0
 
 
-def _noise_floor_var(x: np.ndarray, seg: int = 1024, band: tuple[float, float] = (0.25, 0.5)) -> np.ndarray:
+def _noise_floor_var(x: np.ndarray, seg: int = 1024, band: tuple[float, float] = (0.25, 0.5),
+                     with_rel_sd: bool = False):
     """Each column's white-noise variance (n, k) -> (k,) from the floor of its spectrum: the median over the
     upper part of the band (``band``, fractions of the sampling rate) of Welch's periodogram (Hann segments of
     ``seg`` rows, half overlapping), times the band's width. A vibration is a few lines there and does not move
     the median; third differences (:func:`_white_noise_var`) keep (2 sin(pi f / fs))^3 of it, and a rigid-body
-    vibration at a tenth of the rate read as gyro noise over-corrected the lever arm's regressors."""
+    vibration at a tenth of the rate read as gyro noise over-corrected the lever arm's regressors.
+    ``with_rel_sd``: also its relative 1-sigma (the median of B bins each averaged over S segments:
+    1.2533 / sqrt(B S))."""
     n = len(x)
     seg = int(min(seg, n))
     if seg < 16:
-        return np.zeros(x.shape[1])
+        return (np.zeros(x.shape[1]), 1.0) if with_rel_sd else np.zeros(x.shape[1])
     win = np.hanning(seg)
     step = seg // 2
     starts = range(0, n - seg + 1, step)
@@ -514,13 +518,28 @@ def _noise_floor_var(x: np.ndarray, seg: int = 1024, band: tuple[float, float] =
     psd /= len(starts) * float(np.sum(win ** 2))  # white noise of variance sigma^2: sigma^2 in every bin
     f = np.arange(len(psd)) / seg
     sel = (f >= band[0]) & (f <= band[1])
-    return np.median(psd[sel], axis=0)
+    var = np.median(psd[sel], axis=0)
+    return (var, 1.2533 / np.sqrt(max(int(sel.sum()) * len(starts), 1))) if with_rel_sd else var
+
+
+def _gauss_newton(mom: _Moments, r_mat: np.ndarray, lev: np.ndarray | None, iterations: int
+                  ) -> tuple[np.ndarray, np.ndarray | None]:
+    """Gauss-Newton steps of :func:`fit_rotation` on the moments from (r_mat, lev)."""
+    for _ in range(iterations):
+        jtj, rhs = mom.normal_equations(r_mat, lev)
+        x = np.linalg.solve(jtj, rhs)
+        r_mat = dcm_from_rotvec(x[:3]) @ r_mat
+        if lev is not None:
+            lev = lev + x[3:]
+        if np.linalg.norm(x[:3]) < 1e-12:
+            break
+    return r_mat, lev
 
 
 def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = None, *, dt_s: float = 1.0,
                  iterations: int = 5, starts: tuple[np.ndarray, ...] = (), k_noise_cov: np.ndarray | None = None,
-                 k_noise_keep_frac: float = DEFAULT.regressor_noise_max_frac
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray, float, float]:
+                 k_noise_keep_frac: float = DEFAULT.regressor_noise_max_frac, k_noise_rel_sd: float = 0.0
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray, float, float, float]:
     """R (and nuisance parameters r with regressors ``k_lever`` (n, 3, m): a lever arm, a residual delay)
     minimising sum |v_s - R (u_m + K r)|^2, by Gauss-Newton from the Wahba solution and from each of
     ``starts`` (rotations), the smallest residual kept.
@@ -531,7 +550,8 @@ def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = 
     counts the master's motion without its white noise (:func:`_white_noise_var`); a direction with none
     beyond it has an infinite covariance (not determined). ``k_noise_cov``: the per-sample covariance of the
     regressors' own noise ((3 m, 3 m), as ``k_lever.reshape(n, 3 m)``), taken out of their moments (errors in
-    variables: the estimate and its sigma; see ``ImuToImuConfig.regressor_noise_max_frac``)."""
+    variables: the estimate and its sigma; see ``ImuToImuConfig.regressor_noise_max_frac``), known to
+    ``k_noise_rel_sd`` (relative 1-sigma), which the rotation's covariance counts."""
     n = len(u_m)
     p = 3 if k_lever is None else 3 + k_lever.shape[2]
     best = None
@@ -540,20 +560,25 @@ def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = 
                  and mom.without_regressor_noise(n * k_noise_cov, k_noise_keep_frac))
     for r_mat in (wahba(v_s.T @ u_m)[0], *starts):
         lev = np.zeros(k_lever.shape[2]) if k_lever is not None else None
-        for _ in range(iterations):
-            jtj, rhs = mom.normal_equations(r_mat, lev)
-            x = np.linalg.solve(jtj, rhs)
-            r_mat = dcm_from_rotvec(x[:3]) @ r_mat
-            if lev is not None:
-                lev = lev + x[3:]
-            if np.linalg.norm(x[:3]) < 1e-12:
-                break
+        r_mat, lev = _gauss_newton(mom, r_mat, lev, iterations)
         e = _residual(u_m, v_s, r_mat, k_lever, lev)
         cost = float(np.einsum("ij,ij->", e, e))  # (no squared copy)
         del e
         if best is None or cost < best[0]:
             best = (cost, r_mat, lev)
     _, r_mat, lev = best
+    # the noise correction's own uncertainty (its variance known to k_noise_rel_sd): the rotation refitted with
+    # the noise taken out 1 sigma more and 1 sigma less; half the difference joins the rotation's covariance
+    # (where the lever arm's signal dominates the slave's specific force, the rotation rests on the correction)
+    d_noise = np.zeros(3)
+    if noise_out and k_noise_rel_sd > 0:
+        sols = []
+        for sgn in (1.0, -1.0):
+            mp = copy.copy(mom)
+            mp.kk = mom.kk - sgn * k_noise_rel_sd * (n * np.asarray(k_noise_cov)).reshape(mom.kk.shape)
+            mp.ktk = np.einsum("iliq->lq", mp.kk)
+            sols.append(_gauss_newton(mp, r_mat, lev.copy(), iterations)[0])
+        d_noise = rotvec_from_dcm(sols[0] @ sols[1].T) / 2.0
     e = _residual(u_m, v_s, r_mat, k_lever, lev)
     # the sandwich's bread without the master's own white noise (errors in variables): Gauss-Newton's sum
     # p p^T counts it as motion, and where the master's signal moves along one direction only (level
@@ -583,20 +608,22 @@ def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = 
     if noise_out and lev is not None:
         c4 = np.asarray(k_noise_cov).reshape(3, len(lev), 3, len(lev))
         noise_ms = float(sum(lev @ c4[i, :, i, :] @ lev for i in range(3)))
-    return r_mat, cov[:3, :3], lev, (cov[3:, 3:] if lev is not None else None), rms, tau * dt_s, noise_ms
+    return (r_mat, cov[:3, :3] + np.outer(d_noise, d_noise), lev, (cov[3:, 3:] if lev is not None else None), rms,
+            tau * dt_s, noise_ms)
 
 
 def _triad(u: np.ndarray, v: np.ndarray, k: np.ndarray | None, dt: float, cfg: ImuToImuConfig,
            min_explained: float | None = None, starts: tuple[np.ndarray, ...] = (),
-           k_noise_cov: np.ndarray | None = None) -> TriadRotation | str:
+           k_noise_cov: np.ndarray | None = None, k_noise_rel_sd: float = 0.0) -> TriadRotation | str:
     if len(u) < cfg.min_samples:
         return f"only {len(u)} common samples (at least {cfg.min_samples} needed)"
     sv = np.linalg.svd(v.T @ u, compute_uv=False)
     if not sv[1] > 1e-6 * sv[0]:
         return "the motion is about one axis only: the rotation is not determined"
     try:
-        r_mat, cov, lev, _, rms, tau_s, noise_ms = fit_rotation(u, v, k, dt_s=dt, starts=starts, k_noise_cov=k_noise_cov,
-                                                                k_noise_keep_frac=cfg.regressor_noise_max_frac)
+        r_mat, cov, lev, _, rms, tau_s, noise_ms = fit_rotation(
+            u, v, k, dt_s=dt, starts=starts, k_noise_cov=k_noise_cov, k_noise_keep_frac=cfg.regressor_noise_max_frac,
+            k_noise_rel_sd=k_noise_rel_sd)
     except np.linalg.LinAlgError:
         return "the fit is singular (too little motion)"
     # (the master gyro's noise in the lever arm's regressors is no motion the rotation failed to explain)
@@ -669,7 +696,7 @@ def _lever_regressors(t: np.ndarray, tm: np.ndarray, gyro_m: np.ndarray, cfg: Im
 
 
 def _regressor_noise_cov(t: np.ndarray, gm: tuple[np.ndarray, np.ndarray], nwin: int, nlp: int,
-                         cfg: ImuToImuConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+                         cfg: ImuToImuConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
     """The per-sample covariance ((12, 12), as ``k.reshape(n, 12)``; the delay's column none) of the noise the
     master gyro's white noise puts into the lever arm's regressors, as the fits see them: the whole motion
     (high-passed over ``nwin``), its slow and its fast part (split over ``nlp``). By simulation, on a stretch
@@ -677,7 +704,7 @@ def _regressor_noise_cov(t: np.ndarray, gm: tuple[np.ndarray, np.ndarray], nwin:
     variance (its spectrum's floor, :func:`_noise_floor_var`, per axis; a fixed seed: the same log, the same
     answer) added to the
     master's rates there, pushed through :func:`_lever_regressors` and the same filters, less the
-    regressors without it. None where the stretch is too short for the filters."""
+    regressors without it; and their relative 1-sigma. None where the stretch is too short for the filters."""
     n = len(t)
     rows = min(n, cfg.noise_rows)
     if rows < 2 * nwin + 1000:
@@ -688,7 +715,8 @@ def _regressor_noise_cov(t: np.ndarray, gm: tuple[np.ndarray, np.ndarray], nwin:
     i0 = max(int(np.searchsorted(tm, tb[0])) - 3, 0)
     i1 = min(int(np.searchsorted(tm, tb[-1])) + 3, len(tm))
     tmb, gb = tm[i0:i1], g[i0:i1]
-    sig = np.sqrt(_noise_floor_var(gb))
+    var, rel_var = _noise_floor_var(gb, with_rel_sd=True)
+    sig = np.sqrt(var)
     noisy = gb + np.random.default_rng(0).standard_normal(gb.shape) * sig
     k0, k1 = np.zeros((rows, 3, 4)), np.zeros((rows, 3, 4))
     _lever_regressors(tb, tmb, gb, cfg, k0)
@@ -697,7 +725,10 @@ def _regressor_noise_cov(t: np.ndarray, gm: tuple[np.ndarray, np.ndarray], nwin:
     fast = _highpass(nf, nlp)
     slow = nf - fast
     cut = slice(nwin // 2, rows - nwin // 2)
-    return tuple((x[cut].T @ x[cut]) / len(x[cut]) for x in (nf, slow, fast))
+    # the moments' relative 1-sigma: the variance's, and the simulation's own (one draw over len(cut) rows of a
+    # noise correlated over a few of them: 2 / sqrt(rows))
+    rel_sd = float(np.hypot(rel_var, 2.0 / np.sqrt(max(len(range(rows)[cut]), 1))))
+    return tuple((x[cut].T @ x[cut]) / len(x[cut]) for x in (nf, slow, fast)) + (rel_sd,)
 
 
 def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highpass_s: float,
@@ -741,7 +772,9 @@ def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highp
     else:
         k[:, :, 3] = -np.gradient(u, t, axis=0)
     cut = slice(nwin // 2, len(t) - nwin // 2)
-    res = _triad(u[cut], v[cut], k[cut], dt, cfg, starts=starts, k_noise_cov=ncov[0] if ncov else None)
+    rel = ncov[3] if ncov else 0.0
+    res = _triad(u[cut], v[cut], k[cut], dt, cfg, starts=starts, k_noise_cov=ncov[0] if ncov else None,
+                 k_noise_rel_sd=rel)
     if isinstance(res, str):
         return res
     # a rotation is the same at every frequency: fitted on the slow and on the fast part of the motion
@@ -753,12 +786,12 @@ def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highp
         lo.append(np.subtract(x, hp, out=hp))
     # (a band the rotation explains poorly is itself the sign: no minimum there, the sigmas judge)
     band_lo = _triad(lo[0][cut], lo[1][cut], lo[2][cut], dt, cfg, min_explained=0.0, starts=starts,
-                     k_noise_cov=ncov[1] if ncov else None)
+                     k_noise_cov=ncov[1] if ncov else None, k_noise_rel_sd=rel)
     for x, y in zip((u, v, k), lo):  # the fast band: x - lo in place, once the slow band's fit is done
         x -= y
     del lo, x, y, hp  # (the loops' names held the lever arm's slow copy: 276 MB at 4 h of 200 Hz)
     bands = [band_lo, _triad(u[cut], v[cut], k[cut], dt, cfg, min_explained=0.0, starts=starts,
-                             k_noise_cov=ncov[2] if ncov else None)]
+                             k_noise_cov=ncov[2] if ncov else None, k_noise_rel_sd=rel)]
     del u, v, k
     if all(isinstance(b, TriadRotation) for b in bands):
         zb, d = _z(bands[0].rpy_deg, bands[0].sigma_deg, bands[1].rpy_deg, bands[1].sigma_deg,
