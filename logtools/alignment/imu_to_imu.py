@@ -497,29 +497,23 @@ def _white_noise_var(x: np.ndarray, cfg: ImuToImuConfig = DEFAULT) -> np.ndarray
 def _noise_floor_var(x: np.ndarray, seg: int = 1024, band: tuple[float, float] = (0.25, 0.5),
                      with_rel_sd: bool = False):
     """Each column's white-noise variance (n, k) -> (k,) from the floor of its spectrum: the median over the
-    upper part of the band (``band``, fractions of the sampling rate) of Welch's periodogram (Hann segments of
-    ``seg`` rows, half overlapping), times the band's width. A vibration is a few lines there and does not move
-    the median; third differences (:func:`_white_noise_var`) keep (2 sin(pi f / fs))^3 of it, and a rigid-body
-    vibration at a tenth of the rate read as gyro noise over-corrected the lever arm's regressors.
-    ``with_rel_sd``: also its relative 1-sigma (the median of B bins each averaged over S segments:
-    1.2533 / sqrt(B S))."""
+    upper part of the band (``band``, fractions of the sampling rate, Nyquist's own bin left out) of Welch's
+    periodogram (:func:`logtools.dsp.welch_psd`, segments of ``seg`` rows), a white noise's one-sided density
+    being twice its variance per unit rate. A vibration is a few lines there and does not move the median;
+    third differences (:func:`_white_noise_var`) keep (2 sin(pi f / fs))^3 of it, and a rigid-body vibration
+    at a tenth of the rate read as gyro noise over-corrected the lever arm's regressors. ``with_rel_sd``: also
+    its relative 1-sigma (the median of B bins each averaged over S segments: 1.2533 / sqrt(B S))."""
+    from logtools.dsp import welch_psd
+
     n = len(x)
     seg = int(min(seg, n))
     if seg < 16:
         return (np.zeros(x.shape[1]), 1.0) if with_rel_sd else np.zeros(x.shape[1])
-    win = np.hanning(seg)
-    step = seg // 2
-    starts = range(0, n - seg + 1, step)
-    psd = np.zeros((seg // 2 + 1, x.shape[1]))
-    for a in starts:
-        y = x[a:a + seg]
-        y = (y - y.mean(axis=0)) * win[:, None]
-        psd += np.abs(np.fft.rfft(y, axis=0)) ** 2
-    psd /= len(starts) * float(np.sum(win ** 2))  # white noise of variance sigma^2: sigma^2 in every bin
-    f = np.arange(len(psd)) / seg
-    sel = (f >= band[0]) & (f <= band[1])
-    var = np.median(psd[sel], axis=0)
-    return (var, 1.2533 / np.sqrt(max(int(sel.sum()) * len(starts), 1))) if with_rel_sd else var
+    f, psd = welch_psd(x, 1.0, seg)
+    sel = (f >= band[0]) & (f < band[1])
+    var = 0.5 * np.median(psd[sel], axis=0)
+    n_seg = (n - seg) // (seg - seg // 2) + 1
+    return (var, 1.2533 / np.sqrt(max(int(sel.sum()) * n_seg, 1))) if with_rel_sd else var
 
 
 def _gauss_newton(mom: _Moments, r_mat: np.ndarray, lev: np.ndarray | None, iterations: int
@@ -702,9 +696,9 @@ def _regressor_noise_cov(t: np.ndarray, gm: tuple[np.ndarray, np.ndarray], nwin:
     (high-passed over ``nwin``), its slow and its fast part (split over ``nlp``). By simulation, on a stretch
     of at most cfg.noise_rows common samples in the middle of the log: a white noise of the gyro's own
     variance (its spectrum's floor, :func:`_noise_floor_var`, per axis; a fixed seed: the same log, the same
-    answer) added to the
-    master's rates there, pushed through :func:`_lever_regressors` and the same filters, less the
-    regressors without it; and their relative 1-sigma. None where the stretch is too short for the filters."""
+    answer) added to the master's rates there, pushed through :func:`_lever_regressors` and the same filters,
+    less the regressors without it; and their relative 1-sigma. None where the stretch is too short for the
+    filters."""
     n = len(t)
     rows = min(n, cfg.noise_rows)
     if rows < 2 * nwin + 1000:
@@ -725,10 +719,11 @@ def _regressor_noise_cov(t: np.ndarray, gm: tuple[np.ndarray, np.ndarray], nwin:
     fast = _highpass(nf, nlp)
     slow = nf - fast
     cut = slice(nwin // 2, rows - nwin // 2)
-    # the moments' relative 1-sigma: the variance's, and the simulation's own (one draw over len(cut) rows of a
-    # noise correlated over a few of them: 2 / sqrt(rows))
-    rel_sd = float(np.hypot(rel_var, 2.0 / np.sqrt(max(len(range(rows)[cut]), 1))))
-    return tuple((x[cut].T @ x[cut]) / len(x[cut]) for x in (nf, slow, fast)) + (rel_sd,)
+    m = rows - 2 * (nwin // 2)  # (the rows the fits keep)
+    # the moments' relative 1-sigma: the variance's, and the simulation's own (one draw over m rows of a noise
+    # correlated over a few of them: 2 / sqrt(m))
+    rel_sd = float(np.hypot(rel_var, 2.0 / np.sqrt(m)))
+    return tuple((x[cut].T @ x[cut]) / m for x in (nf, slow, fast)) + (rel_sd,)
 
 
 def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highpass_s: float,
