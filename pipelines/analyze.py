@@ -438,17 +438,19 @@ def _imu_to_imu_sections(master: InsLog, an: rp.Analysis, align_sections: dict, 
     res = fit if fit is not None else imu_to_imu(master, slave)
     align_sections["imu_to_imu"] = res.section()
     comp = align_sections.get("compensated")
-    mount = sig = None
+    mount = sig = lever = lever_sig = None
     board = False
     if isinstance(comp, AlignmentResult):
         sec = rp.alignment_section(comp)
         mount, sig = sec["mounting_rpy_deg"], sec["mounting_sigma_deg"]
+        lever, lever_sig = sec.get("lever_arm_m"), sec.get("lever_arm_sigma_m")
         board = _has_board_states(comp)  # the filter carried the master's error
-    cons = consistency(mount, sig, res, board_states=board)
+    cons = consistency(mount, sig, res, board_states=board, lever_m=lever, lever_sigma_m=lever_sig)
     warning = cons.pop("warning")
     align_sections["consistency"] = cons
-    if warning:
-        extra.setdefault("warnings", []).append({"stage": "alignment", "text": warning})
+    for text in (warning, cons.get("lever_arm_note")):
+        if text:
+            extra.setdefault("warnings", []).append({"stage": "alignment", "text": text})
 
 
 def _fmt_ms(x: float | None) -> str:
@@ -558,6 +560,8 @@ def _imu_to_imu_lines(align: dict) -> list[str]:
     cons = align.get("consistency")
     if cons and cons.get("note"):
         out.append(("WARNING: " if cons.get("agrees") is False else "") + "mounting vs imu-to-imu: " + cons["note"])
+    if cons and cons.get("lever_arm_agrees") is False and cons.get("lever_arm_note"):
+        out.append("WARNING: " + cons["lever_arm_note"])
     return out
 
 

@@ -66,6 +66,11 @@ class ImuToImuConfig:
     #: ... the combined sigma taken as at least this (deg): a log against itself agrees to 1e-4 deg, which is
     #: no disagreement however small its sigma (interpolation between the two units' stamps)
     consistency_floor_deg: float = 0.005
+    #: the lever arms of the transfer alignment and of the accelerometer triad compared with the combined sigma
+    #: taken as at least this (m): two estimates of one offset from different signals (velocity against specific
+    #: force) each carry model errors of a centimetre or so (the IMUs' sensing points, the strapdown's
+    #: integration), which their sigmas do not count
+    consistency_lever_floor_m: float = 0.02
     band_split_s: float = 0.4  # the slow and the fast part of the motion split at this period (moving mean)
     band_z: float = 3.0  # the two bands' rotations further apart than this many combined sigmas: not one rotation
     lever_min_rate_rad_s: float = 0.3  # the accelerometers' lever arm is estimated where the rates move this (rms)
@@ -134,6 +139,7 @@ class TriadRotation:
     #: where ``rpy_deg`` is the canonical triple at the gimbal lock (``gimbal``)
     quat_wxyz: tuple[float, float, float, float] | None = None
     gimbal: bool = False  # rpy_deg is the canonical triple at the gimbal lock (roll 0, yaw the two's sum)
+    lever_arm_sigma_m: tuple[float, float, float] | None = None  # lever_arm_m's 1-sigma from the data
 
 
 @dataclass(frozen=True)
@@ -164,6 +170,8 @@ class ImuToImu:
                     out[f"{name}_sigma_data_deg"] = list(tr.sigma_data_deg)
         if self.accel and self.accel.lever_arm_m is not None:
             out["accel_lever_arm_m"] = list(self.accel.lever_arm_m)
+            if self.accel.lever_arm_sigma_m is not None:
+                out["accel_lever_arm_sigma_m"] = [float(x) if np.isfinite(x) else None for x in self.accel.lever_arm_sigma_m]
         if self.reasons:
             out["reasons"] = dict(self.reasons)
         return out
@@ -615,7 +623,7 @@ def _triad(u: np.ndarray, v: np.ndarray, k: np.ndarray | None, dt: float, cfg: I
     if not sv[1] > 1e-6 * sv[0]:
         return "the motion is about one axis only: the rotation is not determined"
     try:
-        r_mat, cov, lev, _, rms, tau_s, noise_ms = fit_rotation(
+        r_mat, cov, lev, cov_lev, rms, tau_s, noise_ms = fit_rotation(
             u, v, k, dt_s=dt, starts=starts, k_noise_cov=k_noise_cov, k_noise_keep_frac=cfg.regressor_noise_max_frac,
             k_noise_rel_sd=k_noise_rel_sd)
     except np.linalg.LinAlgError:
@@ -641,9 +649,12 @@ def _triad(u: np.ndarray, v: np.ndarray, k: np.ndarray | None, dt: float, cfg: I
                     f"{d[0]:+.2f}/{d[1]:+.2f}/{d[2]:+.2f}: the rotation about it is not determined)")
         return why
     lever = tuple(float(x) for x in lev[:3]) if lev is not None and len(lev) == 4 else None
+    lever_sig = (tuple(float(np.sqrt(x)) for x in np.diag(cov_lev)[:3])
+                 if lever is not None and cov_lev is not None else None)
     return TriadRotation(tuple(float(x) for x in rpy), tuple(float(x) for x in sig), len(u),
                          rms, float(tau_s), lever, float(lev[-1]) if lev is not None else None,
-                         quat_wxyz=tuple(float(x) for x in quat_from_dcm(r_mat)), gimbal=gimbal)
+                         quat_wxyz=tuple(float(x) for x in quat_from_dcm(r_mat)), gimbal=gimbal,
+                         lever_arm_sigma_m=lever_sig)
 
 
 def _derivative(t: np.ndarray, y: np.ndarray, points: int = 5) -> np.ndarray:
@@ -880,12 +891,57 @@ def _arr(v) -> np.ndarray:
     return np.array([np.nan if x is None else float(x) for x in v])
 
 
+def lever_arm_consistency(lever_m, lever_sigma_m, imu: ImuToImu, config: ImuToImuConfig = DEFAULT) -> dict | None:
+    """The transfer alignment's lever arm (``lever_m``, ``lever_sigma_m``: the compensated run's, m, master body
+    frame) against the accelerometer triad's (the same offset, from the specific forces' difference): ``{z,
+    diff_m, agrees, warning}``, the largest per-axis difference over the combined sigma (at least
+    ``config.consistency_lever_floor_m``); None where either is missing. Two lever arms apart say one of the two
+    fits took up something else: the velocity matching a motion the master's navigation output does not
+    resolve (vibration between its samples), the accelerometer fit too little rotation, a scale factor or a
+    wrong sensing point: the warning names no winner."""
+    acc = imu.accel
+    if (lever_m is None or lever_sigma_m is None or acc is None or acc.lever_arm_m is None
+            or acc.lever_arm_sigma_m is None):
+        return None
+    a, sa = _arr(lever_m), _arr(lever_sigma_m)
+    b, sb = _arr(acc.lever_arm_m), _arr(acc.lever_arm_sigma_m)
+    if not (len(a) == len(b) == 3 and np.isfinite(a).all() and np.isfinite(sa).all()
+            and np.isfinite(b).all() and np.isfinite(sb).all()):
+        return None
+    d = a - b
+    z = float(np.max(np.abs(d) / np.maximum(np.hypot(sa, sb), config.consistency_lever_floor_m)))
+    out = {"z": z, "diff_m": [float(x) for x in d], "agrees": bool(z <= config.consistency_z), "warning": None}
+    if not out["agrees"]:
+        out["warning"] = (
+            "lever arms disagree: transfer alignment x y z = " + " ".join(f"{x:+.3f}" for x in a) + " +/- "
+            + " ".join(f"{x:.3f}" for x in sa) + " m, accelerometer triad " + " ".join(f"{x:+.3f}" for x in b)
+            + " +/- " + " ".join(f"{x:.3f}" for x in sb) + f" m (z {z:.1f}): one of the two fits took up something "
+            "else (the velocity matching: motion the master's navigation output does not resolve, such as vibration "
+            "between its samples; the accelerometers: too little rotation, a scale factor or their sensing point), "
+            "so neither lever arm is to be trusted at its sigma")
+    return out
+
+
 def consistency(mount_rpy_deg, mount_sigma_deg, imu: ImuToImu, config: ImuToImuConfig = DEFAULT, *,
-                board_states: bool = False) -> dict:
+                board_states: bool = False, lever_m=None, lever_sigma_m=None) -> dict:
     """``alignment.consistency``: the compensated nav-referenced mounting against the gyro triad's rotation
     (and the accelerometer triad's), ``{agrees, z, note}`` plus the per-view figures; ``warning`` holds the
     text of a disagreement (None when they agree). ``board_states``: the mounting came from a filter that
-    carried the master's attitude error (``--board-errors on``); else the note says that option exists."""
+    carried the master's attitude error (``--board-errors on``); else the note says that option exists.
+    ``lever_m``, ``lever_sigma_m``: the transfer alignment's lever arm, compared with the accelerometer triad's
+    (:func:`lever_arm_consistency`: ``lever_arm_z``, ``lever_arm_diff_m``, ``lever_arm_agrees`` and, where they
+    disagree, ``lever_arm_note``, the warning's text). ``agrees``, ``z`` and ``warning`` stay the rotations'."""
+    out = _rotation_consistency(mount_rpy_deg, mount_sigma_deg, imu, config, board_states)
+    lev = lever_arm_consistency(lever_m, lever_sigma_m, imu, config)
+    if lev is not None:
+        out["lever_arm_z"], out["lever_arm_diff_m"], out["lever_arm_agrees"] = lev["z"], lev["diff_m"], lev["agrees"]
+        if lev["warning"]:
+            out["lever_arm_note"] = lev["warning"]
+    return out
+
+
+def _rotation_consistency(mount_rpy_deg, mount_sigma_deg, imu: ImuToImu, config: ImuToImuConfig,
+                          board_states: bool) -> dict:
     out: dict = {"agrees": None, "z": None, "note": "", "warning": None}
     mount_ok = (mount_rpy_deg is not None and mount_sigma_deg is not None
                 and bool(np.isfinite(_arr(mount_rpy_deg) + _arr(mount_sigma_deg)).any()))
