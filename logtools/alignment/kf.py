@@ -160,6 +160,14 @@ def _lerp_row(arr, i, a):
 
 
 # ---- inputs ---------------------------------------------------------------------------------------
+def _index(ts: np.ndarray, t: float) -> tuple[int, float]:
+    """(i, a): t between ts[i] and ts[i + 1] at the fraction a (clamped to [-1, 2] beyond the ends)."""
+    i = int(np.searchsorted(ts, t, side="right")) - 1
+    i = min(max(i, 0), len(ts) - 2)
+    a = (t - ts[i]) / (ts[i + 1] - ts[i])
+    return i, min(max(a, -1.0), 2.0)
+
+
 @dataclass(frozen=True)
 class MasterSeries:
     """Master quantities on the master's stamps (relative seconds), linearly interpolated on demand."""
@@ -171,6 +179,15 @@ class MasterSeries:
     w_nm_m: np.ndarray | None  # (K, 3) master body rate relative to NED, master frame (lever arm)
     valid: np.ndarray | None = None  # (K,) False where the master's output is unusable (frozen, jumps)
     reset_t_s: np.ndarray = field(default_factory=lambda: np.zeros(0))  # attitude resets (jumps)
+    #: the stamps of ``w_nm_m`` where they are not ``t_s``: the master's gyro at its own rate (a vibration
+    #: between two navigation samples is in the slave's velocity through the lever arm, and rates
+    #: interpolated from the navigation rate do not have it)
+    w_t_s: np.ndarray | None = None
+
+    @property
+    def w_stamps_s(self) -> np.ndarray:
+        """The stamps of ``w_nm_m``."""
+        return self.t_s if self.w_t_s is None else self.w_t_s
 
     def usable(self, t: float) -> bool:
         """Both master samples around t are valid."""
@@ -180,11 +197,7 @@ class MasterSeries:
         return bool(self.valid[i] and self.valid[i + 1])
 
     def _idx(self, t: float) -> tuple[int, float]:
-        ts = self.t_s
-        i = int(np.searchsorted(ts, t, side="right")) - 1
-        i = min(max(i, 0), len(ts) - 2)
-        a = (t - ts[i]) / (ts[i + 1] - ts[i])
-        return i, min(max(a, -1.0), 2.0)
+        return _index(self.t_s, t)
 
     def sample(self, t: float) -> tuple:
         """(C_nm or None, v or None, a or None, w_nm_m or None) at relative time t."""
@@ -197,7 +210,11 @@ class MasterSeries:
             v = b * self.vel[i] + a * self.vel[i + 1]
             acc = b * self.acc[i] + a * self.acc[i + 1]
         if self.w_nm_m is not None:
-            w = b * self.w_nm_m[i] + a * self.w_nm_m[i + 1]
+            if self.w_t_s is None:
+                w = b * self.w_nm_m[i] + a * self.w_nm_m[i + 1]
+            else:  # (on the gyro's own stamps: the same interpolation there)
+                j, aw = _index(self.w_t_s, t)
+                w = (1.0 - aw) * self.w_nm_m[j] + aw * self.w_nm_m[j + 1]
         return c_nm, v, acc, w
 
 
@@ -804,9 +821,9 @@ def _nb_propagate(q, v, llh, dq, dv_b, dt, restart_k, offs, qc, beta, mk_rate, f
 
 
 @njit
-def _nb_master_at(mt, mq, mv, ma, mw, has_q, has_v, has_w, t, c_nm, v_m, a_m, w_m):
-    """:meth:`MasterSeries.sample` compiled: the master at time t into c_nm, v_m, a_m, w_m (those it has);
-    returns the index of the master sample at or before t."""
+def _nb_master_at(mt, mq, mv, ma, mwt, mw, has_q, has_v, has_w, t, c_nm, v_m, a_m, w_m):
+    """:meth:`MasterSeries.sample` compiled: the master at time t into c_nm, v_m, a_m, w_m (those it has; w on
+    its own stamps mwt); returns the index of the master sample at or before t."""
     km = len(mt)
     i = np.searchsorted(mt, t, side="right") - 1
     i = min(max(i, 0), km - 2)
@@ -818,7 +835,12 @@ def _nb_master_at(mt, mq, mv, ma, mw, has_q, has_v, has_w, t, c_nm, v_m, a_m, w_
         v_m[:] = (1.0 - al) * mv[i] + al * mv[i + 1]
         a_m[:] = (1.0 - al) * ma[i] + al * ma[i + 1]
     if has_w:
-        w_m[:] = (1.0 - al) * mw[i] + al * mw[i + 1]
+        kw = len(mwt)
+        j = np.searchsorted(mwt, t, side="right") - 1
+        j = min(max(j, 0), kw - 2)
+        aw = (t - mwt[j]) / (mwt[j + 1] - mwt[j])
+        aw = min(max(aw, -1.0), 2.0)
+        w_m[:] = (1.0 - aw) * mw[j] + aw * mw[j + 1]
     return i
 
 
@@ -937,7 +959,7 @@ def _nb_finite(x, P):
 
 
 @njit
-def _kf_loop(t_ep, seg_dq, seg_dv, seg_dt, mt, mq, mv, ma, mw, mvalid, resets, restart, has_q, has_v, has_w,
+def _kf_loop(t_ep, seg_dq, seg_dv, seg_dt, mt, mq, mv, ma, mwt, mw, mvalid, resets, restart, has_q, has_v, has_w,
              q0, v0, llh0, r0, lever0, tau0, offs, n, m_meas, p0, qc, r_diag, beta, mk_rate, lo_tau, hi_tau,
              fb_mask,
              att_only_fej, dyn_fej, keep, xs, pd, r_hist, pm_hist, tau_hist, lev_hist, innov, nis, q_hist, cnm_hist,
@@ -965,7 +987,7 @@ def _kf_loop(t_ep, seg_dq, seg_dv, seg_dt, mt, mq, mv, ma, mw, mvalid, resets, r
             _nb_propagate(q, v, llh, seg_dq[j], seg_dv[j], seg_dt[j], restart[k], offs, qc, beta, mk_rate, f_buf,
                           phi_k, qd_k, q_new, v_new, llh_new, c_nm, r_fej, dyn_fej)
         tm_ = t_ep[k] - tau
-        i = _nb_master_at(mt, mq, mv, ma, mw, has_q, has_v, has_w, tm_, c_nm, v_m, a_m, w_m)
+        i = _nb_master_at(mt, mq, mv, ma, mwt, mw, has_q, has_v, has_w, tm_, c_nm, v_m, a_m, w_m)
         if k > 0:
             n_r, n_g = _nb_restarts(t_ep[k - 1] - tau, tm_, resets, restart[k], has_q, has_v, c_nm, v_m, w_m,
                                     r_hat, lever, q, v, P, x, p0, a0, v_off)
@@ -1047,6 +1069,7 @@ def run_filter_compiled(inp: AlignInputs, s: FilterSettings) -> FilterRun:
              np.ascontiguousarray(ms.quat if ms.quat is not None else z4, float),
              np.ascontiguousarray(ms.vel if ms.vel is not None else z3, float),
              np.ascontiguousarray(ms.acc if ms.acc is not None else z3, float),
+             np.ascontiguousarray(ms.w_stamps_s if ms.w_nm_m is not None else ms.t_s, float),
              np.ascontiguousarray(ms.w_nm_m if ms.w_nm_m is not None else z3, float),
              np.ascontiguousarray(valid, np.bool_), np.ascontiguousarray(ms.reset_t_s, float), restart,
              ms.quat is not None, ms.vel is not None, ms.w_nm_m is not None,
