@@ -88,6 +88,15 @@ class ImuToImuConfig:
     #: lever arm's regressors at least this fraction of its power (else the noise estimate would decide the lever
     #: arm: left as it is)
     regressor_noise_max_frac: float = 0.5
+    #: ... and where some direction keeps less than this fraction, the lever arm is reported as not determined
+    #: (its regressors are mostly noise there: a quiet vehicle's; the fit's lever arm tends to zero at a sigma
+    #: that does not know it)
+    lever_noise_undetermined_frac: float = 0.5
+    #: ... unless a low-pass of every series of the fit brings it there: the cutoff halved from an eighth of the
+    #: rate down to this (Hz; a vehicle's manoeuvres are slower than a hertz only at sea), Butterworth of this
+    #: order, zero-phase (:func:`_lever_band`)
+    lever_lowpass_min_hz: float = 0.5
+    lever_lowpass_order: int = 4
     #: the angular acceleration of the lever arm's regressors by the five-point difference (5; 3: the
     #: three-point one, which keeps 0.987 of an 18 Hz vibration's derivative at 400 Hz and 0.76 of a 20 Hz one
     #: at 100 Hz: the lever arm then comes out that much too long; benchmarks/bench_imu_to_imu_vibration.py)
@@ -140,6 +149,9 @@ class TriadRotation:
     quat_wxyz: tuple[float, float, float, float] | None = None
     gimbal: bool = False  # rpy_deg is the canonical triple at the gimbal lock (roll 0, yaw the two's sum)
     lever_arm_sigma_m: tuple[float, float, float] | None = None  # lever_arm_m's 1-sigma from the data
+    #: the low-pass every series of the fit went through (Hz), where the lever arm's regressors were mostly noise
+    #: over the whole band (a quiet vehicle: :func:`_lever_band`); None: the whole band
+    lowpass_hz: float | None = None
 
 
 @dataclass(frozen=True)
@@ -168,6 +180,8 @@ class ImuToImu:
                     out[f"{name}_band_rpy_deg"] = {"slow": list(tr.band_rpy_deg[0]), "fast": list(tr.band_rpy_deg[1])}
                 if tr.sigma_data_deg is not None:
                     out[f"{name}_sigma_data_deg"] = list(tr.sigma_data_deg)
+                if tr.lowpass_hz is not None:
+                    out[f"{name}_lowpass_hz"] = tr.lowpass_hz
         if self.accel and self.accel.lever_arm_m is not None:
             out["accel_lever_arm_m"] = list(self.accel.lever_arm_m)
             if self.accel.lever_arm_sigma_m is not None:
@@ -436,19 +450,24 @@ class _Moments:
             self.kk = (kf.T @ kf).reshape(3, self.m, 3, self.m)  # [i, l, j, q] = sum K[i, l] K[j, q]
             self.ktk = np.einsum("iliq->lq", self.kk)
 
-    def without_regressor_noise(self, noise_kk: np.ndarray, keep_frac: float) -> bool:
-        """``noise_kk`` ((3 m, 3 m), the regressors' columns as ``k.reshape(n, 3 m)``: the sum of their noise's
-        moments) taken out of sum K (x) K, where every direction of the regressors' moment keeps at least
-        ``keep_frac`` of its power; True where it was."""
+    def kept_fraction(self, noise_kk: np.ndarray) -> float:
+        """The smallest eigenvalue of sum K (x) K with ``noise_kk`` ((3 m, 3 m), the regressors' columns as
+        ``k.reshape(n, 3 m)``: the sum of their noise's moments) taken out, over the raw one's (-inf where the
+        raw one has none): the regressors' motion beyond their noise in their weakest direction."""
         if self.m == 0:
-            return False
+            return -np.inf
         kk = self.kk.reshape(3 * self.m, 3 * self.m)
         corr = kk - noise_kk
         lo_raw = float(np.linalg.eigvalsh(0.5 * (kk + kk.T))[0])
         lo = float(np.linalg.eigvalsh(0.5 * (corr + corr.T))[0])
-        if not (lo_raw > 0 and lo >= keep_frac * lo_raw):
+        return lo / lo_raw if lo_raw > 0 else -np.inf
+
+    def without_regressor_noise(self, noise_kk: np.ndarray, keep_frac: float) -> bool:
+        """``noise_kk`` (:meth:`kept_fraction`) taken out of sum K (x) K, where every direction of the regressors'
+        moment keeps at least ``keep_frac`` of its power; True where it was."""
+        if not self.kept_fraction(noise_kk) >= keep_frac:
             return False
-        self.kk = corr.reshape(3, self.m, 3, self.m)
+        self.kk = (self.kk.reshape(3 * self.m, 3 * self.m) - noise_kk).reshape(3, self.m, 3, self.m)
         self.ktk = np.einsum("iliq->lq", self.kk)
         return True
 
@@ -540,8 +559,9 @@ def _gauss_newton(mom: _Moments, r_mat: np.ndarray, lev: np.ndarray | None, iter
 
 def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = None, *, dt_s: float = 1.0,
                  iterations: int = 5, starts: tuple[np.ndarray, ...] = (), k_noise_cov: np.ndarray | None = None,
-                 k_noise_keep_frac: float = DEFAULT.regressor_noise_max_frac, k_noise_rel_sd: float = 0.0
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray, float, float, float]:
+                 k_noise_keep_frac: float = DEFAULT.regressor_noise_max_frac, k_noise_rel_sd: float = 0.0,
+                 k_noise_undetermined_frac: float = DEFAULT.lever_noise_undetermined_frac,
+                 u_noise_var: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray, float, float, float]:
     """R (and nuisance parameters r with regressors ``k_lever`` (n, 3, m): a lever arm, a residual delay)
     minimising sum |v_s - R (u_m + K r)|^2, by Gauss-Newton from the Wahba solution and from each of
     ``starts`` (rotations), the smallest residual kept.
@@ -553,11 +573,14 @@ def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = 
     beyond it has an infinite covariance (not determined). ``k_noise_cov``: the per-sample covariance of the
     regressors' own noise ((3 m, 3 m), as ``k_lever.reshape(n, 3 m)``), taken out of their moments (errors in
     variables: the estimate and its sigma; see ``ImuToImuConfig.regressor_noise_max_frac``), known to
-    ``k_noise_rel_sd`` (relative 1-sigma), which the rotation's covariance counts."""
+    ``k_noise_rel_sd`` (relative 1-sigma), which the rotation's covariance counts. ``u_noise_var``: the variance
+    of u_m's noise per column where u_m's third differences do not give it (a low-passed u_m)."""
     n = len(u_m)
     p = 3 if k_lever is None else 3 + k_lever.shape[2]
     best = None
     mom = _Moments(u_m, v_s, k_lever)
+    noise_dominates = (k_noise_cov is not None and k_lever is not None
+                       and not mom.kept_fraction(n * k_noise_cov) >= k_noise_undetermined_frac)
     noise_out = (k_noise_cov is not None and k_lever is not None
                  and mom.without_regressor_noise(n * k_noise_cov, k_noise_keep_frac))
     for r_mat in (wahba(v_s.T @ u_m)[0], *starts):
@@ -586,7 +609,7 @@ def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = 
     # p p^T counts it as motion, and where the master's signal moves along one direction only (level
     # flight's specific force: the vertical) its noise alone "determined" the rotation about that direction,
     # 0.8 deg for an accelerometer rotation 11-75 deg off (tests/test_imu_to_imu.py, the one-direction test)
-    mom.uu = mom.uu - n * np.diag(_white_noise_var(u_m))
+    mom.uu = mom.uu - n * np.diag(_white_noise_var(u_m) if u_noise_var is None else np.asarray(u_noise_var))
     hess, _ = mom.normal_equations(r_mat, lev)
     scores = np.empty((n, p))  # per sample h^T e: p x e, and (R K)^T e = K^T (R^T e)
     for a in range(0, n, BLOCK_ROWS):  # row by row arithmetic: the blocks bound the temporaries
@@ -605,6 +628,11 @@ def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = 
     else:
         jinv = np.linalg.inv(hess)
         cov = jinv @ om @ jinv * (n / max(n - p, 1))
+    if noise_dominates and lev is not None and len(lev) >= 3:
+        # in some direction the regressors' moments are mostly their own noise (a quiet vehicle's differentiated
+        # gyro noise; 97 % of them on a car without vibration): the lever arm (the first three of r) came out
+        # near zero at a millimetre sigma, 1.8 m off. Not determined
+        cov[np.arange(3, 6), np.arange(3, 6)] = np.inf
     # the regressors' own noise in the residual, per sample (|N r|^2: what they carry that no rotation explains)
     noise_ms = 0.0
     if noise_out and lev is not None:
@@ -616,7 +644,8 @@ def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = 
 
 def _triad(u: np.ndarray, v: np.ndarray, k: np.ndarray | None, dt: float, cfg: ImuToImuConfig,
            min_explained: float | None = None, starts: tuple[np.ndarray, ...] = (),
-           k_noise_cov: np.ndarray | None = None, k_noise_rel_sd: float = 0.0) -> TriadRotation | str:
+           k_noise_cov: np.ndarray | None = None, k_noise_rel_sd: float = 0.0,
+           u_noise_var: np.ndarray | None = None) -> TriadRotation | str:
     if len(u) < cfg.min_samples:
         return f"only {len(u)} common samples (at least {cfg.min_samples} needed)"
     sv = np.linalg.svd(v.T @ u, compute_uv=False)
@@ -625,7 +654,8 @@ def _triad(u: np.ndarray, v: np.ndarray, k: np.ndarray | None, dt: float, cfg: I
     try:
         r_mat, cov, lev, cov_lev, rms, tau_s, noise_ms = fit_rotation(
             u, v, k, dt_s=dt, starts=starts, k_noise_cov=k_noise_cov, k_noise_keep_frac=cfg.regressor_noise_max_frac,
-            k_noise_rel_sd=k_noise_rel_sd)
+            k_noise_rel_sd=k_noise_rel_sd, k_noise_undetermined_frac=cfg.lever_noise_undetermined_frac,
+            u_noise_var=u_noise_var)
     except np.linalg.LinAlgError:
         return "the fit is singular (too little motion)"
     # (the master gyro's noise in the lever arm's regressors is no motion the rotation failed to explain)
@@ -642,7 +672,8 @@ def _triad(u: np.ndarray, v: np.ndarray, k: np.ndarray | None, dt: float, cfg: I
         why = f"too little motion: sigma {' '.join(f'{x:.3g}' for x in sig_axes)} deg"
         # the master's moving signal beyond its own noise: along one direction only, nothing fixes the
         # rotation about it (level flight's specific force: the vertical)
-        lam, vec = np.linalg.eigh(u.T @ u - len(u) * np.diag(_white_noise_var(u, cfg)))
+        lam, vec = np.linalg.eigh(u.T @ u - len(u) * np.diag(
+            _white_noise_var(u, cfg) if u_noise_var is None else np.asarray(u_noise_var)))
         if lam[2] > 0 and lam[1] <= cfg.one_direction_ratio * lam[2]:
             d = vec[:, 2] * np.sign(vec[np.argmax(np.abs(vec[:, 2])), 2])
             why += (" (the motion beyond the master's noise is along one direction only, master x/y/z "
@@ -651,6 +682,8 @@ def _triad(u: np.ndarray, v: np.ndarray, k: np.ndarray | None, dt: float, cfg: I
     lever = tuple(float(x) for x in lev[:3]) if lev is not None and len(lev) == 4 else None
     lever_sig = (tuple(float(np.sqrt(x)) for x in np.diag(cov_lev)[:3])
                  if lever is not None and cov_lev is not None else None)
+    if lever_sig is not None and not np.all(np.isfinite(lever_sig)):  # (fit_rotation: not determined)
+        lever = lever_sig = None
     return TriadRotation(tuple(float(x) for x in rpy), tuple(float(x) for x in sig), len(u),
                          rms, float(tau_s), lever, float(lev[-1]) if lev is not None else None,
                          quat_wxyz=tuple(float(x) for x in quat_from_dcm(r_mat)), gimbal=gimbal,
@@ -701,15 +734,17 @@ def _lever_regressors(t: np.ndarray, tm: np.ndarray, gyro_m: np.ndarray, cfg: Im
 
 
 def _regressor_noise_cov(t: np.ndarray, gm: tuple[np.ndarray, np.ndarray], nwin: int, nlp: int,
-                         cfg: ImuToImuConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
+                         cfg: ImuToImuConfig, sos: np.ndarray | None = None
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, np.ndarray] | None:
     """The per-sample covariance ((12, 12), as ``k.reshape(n, 12)``; the delay's column none) of the noise the
     master gyro's white noise puts into the lever arm's regressors, as the fits see them: the whole motion
     (high-passed over ``nwin``), its slow and its fast part (split over ``nlp``). By simulation, on a stretch
     of at most cfg.noise_rows common samples in the middle of the log: a white noise of the gyro's own
     variance (its spectrum's floor, :func:`_noise_floor_var`, per axis; a fixed seed: the same log, the same
     answer) added to the master's rates there, pushed through :func:`_lever_regressors` and the same filters,
-    less the regressors without it; and their relative 1-sigma. None where the stretch is too short for the
-    filters."""
+    less the regressors without it; their relative 1-sigma; and the per-sample moment of the regressors
+    themselves on that stretch (for :func:`_kept_fraction`). ``sos``: a zero-phase low-pass after the high-pass
+    (:func:`_lowpassed`), as the fits then see them. None where the stretch is too short for the filters."""
     n = len(t)
     rows = min(n, cfg.noise_rows)
     if rows < 2 * nwin + 1000:
@@ -727,6 +762,10 @@ def _regressor_noise_cov(t: np.ndarray, gm: tuple[np.ndarray, np.ndarray], nwin:
     _lever_regressors(tb, tmb, gb, cfg, k0)
     _lever_regressors(tb, tmb, noisy, cfg, k1)
     nf = _highpass((k1 - k0).reshape(rows, 12), nwin)
+    sg = _highpass(k0.reshape(rows, 12), nwin)
+    del k1
+    if sos is not None:
+        nf, sg = _lowpassed(nf, sos), _lowpassed(sg, sos)
     fast = _highpass(nf, nlp)
     slow = nf - fast
     cut = slice(nwin // 2, rows - nwin // 2)
@@ -734,7 +773,54 @@ def _regressor_noise_cov(t: np.ndarray, gm: tuple[np.ndarray, np.ndarray], nwin:
     # the moments' relative 1-sigma: the variance's, and the simulation's own (one draw over m rows of a noise
     # correlated over a few of them: 2 / sqrt(m))
     rel_sd = float(np.hypot(rel_var, 2.0 / np.sqrt(m)))
-    return tuple((x[cut].T @ x[cut]) / m for x in (nf, slow, fast)) + (rel_sd,)
+    return tuple((x[cut].T @ x[cut]) / m for x in (nf, slow, fast)) + (rel_sd, (sg[cut].T @ sg[cut]) / m)
+
+
+def _lowpassed(x: np.ndarray, sos: np.ndarray) -> np.ndarray:
+    """Each column of x (n, k) through the zero-phase low-pass ``sos``, in place (x itself returned)."""
+    from logtools.dsp import sosfiltfilt_even
+
+    for j in range(x.shape[1]):
+        x[:, j] = sosfiltfilt_even(sos, x[:, j])
+    return x
+
+
+def _noise_gain(sos: np.ndarray, rows: int = 1 << 16) -> float:
+    """The variance a unit white noise keeps through the zero-phase low-pass ``sos`` (a fixed draw)."""
+    x = np.random.default_rng(1).standard_normal((rows, 1))
+    return float(np.var(_lowpassed(x, sos)[rows // 8:-rows // 8]))
+
+
+def _kept_fraction(kk: np.ndarray, noise_kk: np.ndarray) -> float:
+    """The lever arm's regressors' motion beyond their noise in their weakest direction: the smallest eigenvalue
+    of their moment with the noise's out over the raw one's (the lever arm's columns of the (12, 12) moments)."""
+    cols = [j for j in range(12) if j % 4 != 3]
+    a, b = kk[np.ix_(cols, cols)], noise_kk[np.ix_(cols, cols)]
+    lo_raw = float(np.linalg.eigvalsh(0.5 * (a + a.T))[0])
+    lo = float(np.linalg.eigvalsh(0.5 * (a - b + (a - b).T))[0])
+    return lo / lo_raw if lo_raw > 0 else -np.inf
+
+
+def _lever_band(t: np.ndarray, gm, nwin: int, nlp: int, dt: float, ncov, cfg: ImuToImuConfig):
+    """(sos, cutoff Hz, ncov) of the low-pass under which the lever arm's regressors are motion more than noise
+    (:func:`_kept_fraction` at least cfg.lever_noise_undetermined_frac), halving the cutoff from an eighth of the
+    rate down to cfg.lever_lowpass_min_hz; (None, None, ncov) where the whole band is (or none is). A quiet
+    vehicle's angular acceleration is a few hertz, the differentiated gyro noise rises with the frequency up to
+    the Nyquist's: on a car without vibration the regressors' moments were 97 % noise, the lever arm came out at
+    zero and the accelerometer triad 7.6 deg off at a sigma of 0.7 (4 Hz: 0.02 deg, the lever arm within 2 cm).
+    Every series of the fit goes through the same low-pass (the model is linear in them)."""
+    from logtools.resample import _lowpass_sos
+
+    if ncov is None or _kept_fraction(ncov[4], ncov[0]) >= cfg.lever_noise_undetermined_frac:
+        return None, None, ncov
+    fc = 0.125 / dt
+    while fc >= cfg.lever_lowpass_min_hz:
+        sos = _lowpass_sos(len(t), dt, fc, cfg.lever_lowpass_order)
+        nc = _regressor_noise_cov(t, gm, nwin, nlp, cfg, sos) if sos is not None else None
+        if nc is not None and _kept_fraction(nc[4], nc[0]) >= cfg.lever_noise_undetermined_frac:
+            return sos, fc, nc
+        fc *= 0.5
+    return None, None, ncov
 
 
 def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highpass_s: float,
@@ -748,7 +834,7 @@ def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highp
     # (shorter means) trimmed below
     u, v = _highpass(u, nwin, out=u), _highpass(v, nwin, out=v)
     n = len(t)
-    k = None
+    k = w = None
     if name == "accel" and gm is not None and len(gm[0]) >= 3:
         w, okw = _interp_at(t, *gm, cfg.gap_steps, cfg.lever_interp_points)
         if okw.all():
@@ -761,15 +847,22 @@ def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highp
                     _highpass(kf[:, j:j + 1], nwin, out=kf[:, j:j + 1])
             moving = float(np.sqrt(np.mean(np.sum(u ** 2, axis=1))))
             kl = k[:, :, :3] * k[:, :, :3]
-            effect = cfg.lever_plausible_m * float(np.sqrt(np.mean(np.sum(kl, axis=(1, 2))) / 3.0))
+            power = float(np.mean(np.sum(kl, axis=(1, 2))))
             del kl
-            if not (float(np.sqrt(np.mean(np.sum(_highpass(w, nwin) ** 2, axis=1)))) > cfg.lever_min_rate_rad_s
-                    or effect > cfg.lever_min_effect * moving):
-                k = None
-            del w
     nlp = max(int(round(cfg.band_split_s / dt)), 2)  # (the slow and fast parts' split, below)
     # the noise the master gyro puts into the lever arm's regressors: taken out of their moments in each fit
     ncov = _regressor_noise_cov(t, gm, nwin, nlp, cfg) if k is not None else None
+    if k is not None:
+        # the lever arm's effect from the regressors' motion, their noise out: a quiet vehicle's differentiated
+        # gyro noise alone passed the test, and the fit, its moments all noise in some directions (where the
+        # correction is refused), put the lever arm at zero with a millimetre sigma (a car 1.8 m off)
+        if ncov is not None:
+            power -= float(np.trace(ncov[0]))  # (per sample, the delay's columns none)
+        effect = cfg.lever_plausible_m * float(np.sqrt(max(power, 0.0) / 3.0))
+        if not (float(np.sqrt(np.mean(np.sum(_highpass(w, nwin) ** 2, axis=1)))) > cfg.lever_min_rate_rad_s
+                or effect > cfg.lever_min_effect * moving):
+            k, ncov = None, None
+    del w
     # a delay left between the two (the latency's error, the sensors' own sampling instants) as one more
     # parameter: v(t) = R u(t - d) ~ R (u - d du/dt); a delay of 1.4 ms turned the rotation of IMU2's gyro
     # triad by 0.2 deg on a hand-carried ArduPlane (rates and their derivatives correlate across axes)
@@ -778,11 +871,22 @@ def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highp
     else:
         k[:, :, 3] = -np.gradient(u, t, axis=0)
     cut = slice(nwin // 2, len(t) - nwin // 2)
+    lp_hz = u_var = None
+    if name == "accel" and k.shape[2] == 4:
+        sos, lp_hz, ncov = _lever_band(t, gm, nwin, nlp, dt, ncov, cfg)
+        if sos is not None:  # every series of the fit through the same low-pass
+            # (the master's white noise as the fit sees it: measured before, times the low-pass's power gain;
+            # third differences of a low-passed series see little of it, and straight and level flight's
+            # horizontal specific force, its noise low-passed, came out "determined" 20 deg off)
+            u_var = _white_noise_var(u[cut], cfg) * _noise_gain(sos)
+            _lowpassed(u, sos), _lowpassed(v, sos), _lowpassed(k.reshape(n, 12), sos)
     rel = ncov[3] if ncov else 0.0
     res = _triad(u[cut], v[cut], k[cut], dt, cfg, starts=starts, k_noise_cov=ncov[0] if ncov else None,
-                 k_noise_rel_sd=rel)
+                 k_noise_rel_sd=rel, u_noise_var=u_var)
     if isinstance(res, str):
         return res
+    if lp_hz is not None:
+        res = replace(res, lowpass_hz=float(lp_hz))
     # a rotation is the same at every frequency: fitted on the slow and on the fast part of the motion
     # apart, two figures beyond band_z sigmas say the triads differ by more than a rotation (the
     # sensors' own filters, vibration aliased into the snapshots, scale factors)
