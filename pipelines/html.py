@@ -658,12 +658,24 @@ def render(rep: dict, an: Analysis) -> str:
                      "<p class=note>No alignment run produced state histories.</p>"))
     sections.append(("residuals", "Residuals",
                      img(fig_residuals(an), "residuals", "No residuals were recorded.")))
-    warn = []
+    from pipelines.batch import report_warnings
+
+    # the warnings the headline counts first (every stage's, as report.json lists them), then the notes
+    warnings = report_warnings(rep)
+    warn = [f"<li class=warnitem><b>{_esc(st or 'warning')}</b>: <span class=warn>{_esc(w)}</span></li>"
+            for st, w in warnings]
+    said = [w for _, w in warnings]
+
+    def fresh(text: str) -> bool:  # (not one of the warnings above, in its own words)
+        return text not in said
+
     for role in ("master", "slave"):
-        warn += [f"<li><b>{role}</b>: {_esc(w)}</li>" for w in rep[role].get("warnings", [])]
-    warn += [f"<li><b>skipped {_esc(k)}</b>: {_esc(v)}</li>" for k, v in rep.get("skipped", {}).items()]
+        warn += [f"<li><b>{role}</b>: {_esc(w)}</li>" for w in rep[role].get("warnings", []) if fresh(w)]
+    warn += [f"<li><b>skipped {_esc(k)}</b>: {_esc(v)}</li>" for k, v in rep.get("skipped", {}).items()
+             if fresh(f"{k}: {v}") and not any(str(v) in w for w in said)]
     for run in RUNS:
-        warn += [f"<li><b>alignment {run}</b>: {_esc(n)}</li>" for n in rep["alignment"].get(run, {}).get("notes", [])]
+        warn += [f"<li><b>alignment {run}</b>: {_esc(n)}</li>" for n in rep["alignment"].get(run, {}).get("notes", [])
+                 if fresh(n) and fresh(f"{run}: {n}")]
     sections.append(("warnings", "Warnings and notes", "<ul>" + "".join(warn) + "</ul>" if warn
                      else "<p class=note>None.</p>"))
     tim = rep.get("timings_s", {})

@@ -142,3 +142,25 @@ def test_timings_of_stages_written_after_the_page_point_to_report_json():
     sec = text[text.index('<section id="timings">'):]
     sec = sec[:sec.index("</section>")]
     assert sec.count("<td class=note>in report.json</td>") == 2 and "0.00 s" not in sec and "0.50 s" in sec
+
+
+def test_every_warning_the_headline_counts_is_listed_in_the_warnings_section(page):
+    """The result line says "N warnings (listed below)": the Warnings section lists those N (report.json's
+    top-level warnings of every stage, an alignment consistency warning among them), each once."""
+    from pipelines.batch import report_warnings
+
+    path, rep = page
+    rep = dict(rep, warnings=list(rep.get("warnings") or []) + [
+        {"stage": "alignment", "text": "lever arms disagree: transfer alignment x y z = +0.169 -0.002 +0.520 m"}])
+    text = render(rep, make_fake_analysis(duration_s=60))
+    warns = report_warnings(rep)
+    assert len(warns) >= 2 and f"{len(warns)} warnings" in text
+    section = text.split('<section id="warnings">', 1)[1].split("</section>", 1)[0]
+    for _, w in warns:
+        assert section.count(html_escape(w)) == 1, w
+
+
+def html_escape(s: str) -> str:
+    import html
+
+    return html.escape(s)
