@@ -809,14 +809,14 @@ def _lever_band(t: np.ndarray, gm, nwin: int, nlp: int, dt: float, ncov, cfg: Im
     the Nyquist's: on a car without vibration the regressors' moments were 97 % noise, the lever arm came out at
     zero and the accelerometer triad 7.6 deg off at a sigma of 0.7 (4 Hz: 0.02 deg, the lever arm within 2 cm).
     Every series of the fit goes through the same low-pass (the model is linear in them)."""
-    from logtools.resample import _lowpass_sos
+    from logtools.dsp import butter_lowpass_sos
 
     if ncov is None or _kept_fraction(ncov[4], ncov[0]) >= cfg.lever_noise_undetermined_frac:
         return None, None, ncov
     fc = 0.125 / dt
     while fc >= cfg.lever_lowpass_min_hz:
-        sos = _lowpass_sos(len(t), dt, fc, cfg.lever_lowpass_order)
-        nc = _regressor_noise_cov(t, gm, nwin, nlp, cfg, sos) if sos is not None else None
+        sos = butter_lowpass_sos(cfg.lever_lowpass_order, 2.0 * fc * dt)  # (cutoff over Nyquist: at most 1/4)
+        nc = _regressor_noise_cov(t, gm, nwin, nlp, cfg, sos)
         if nc is not None and _kept_fraction(nc[4], nc[0]) >= cfg.lever_noise_undetermined_frac:
             return sos, fc, nc
         fc *= 0.5
