@@ -192,7 +192,9 @@ class ImuToImu:
 
 
 # ---- common samples --------------------------------------------------------------------------------
-def _clean(t: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def finite_increasing(t: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(t, y (n, k)) without the rows whose stamp or values are not finite, sorted by time (stable), the first
+    of each repeated stamp kept: strictly increasing stamps, for interpolation."""
     ok = np.isfinite(t) & np.isfinite(y).all(1)
     t, y = t[ok], y[ok]
     order = np.argsort(t, kind="stable")
@@ -451,25 +453,16 @@ class _Moments:
             self.ktk = np.einsum("iliq->lq", self.kk)
 
     def kept_fraction(self, noise_kk: np.ndarray) -> float:
-        """The smallest eigenvalue of sum K (x) K with ``noise_kk`` ((3 m, 3 m), the regressors' columns as
-        ``k.reshape(n, 3 m)``: the sum of their noise's moments) taken out, over the raw one's (-inf where the
-        raw one has none): the regressors' motion beyond their noise in their weakest direction."""
+        """:func:`_kept_fraction` of sum K (x) K with ``noise_kk`` ((3 m, 3 m), the regressors' columns as
+        ``k.reshape(n, 3 m)``: the sum of their noise's moments); -inf without regressors."""
         if self.m == 0:
             return -np.inf
-        kk = self.kk.reshape(3 * self.m, 3 * self.m)
-        corr = kk - noise_kk
-        lo_raw = float(np.linalg.eigvalsh(0.5 * (kk + kk.T))[0])
-        lo = float(np.linalg.eigvalsh(0.5 * (corr + corr.T))[0])
-        return lo / lo_raw if lo_raw > 0 else -np.inf
+        return _kept_fraction(self.kk.reshape(3 * self.m, 3 * self.m), noise_kk)
 
-    def without_regressor_noise(self, noise_kk: np.ndarray, keep_frac: float) -> bool:
-        """``noise_kk`` (:meth:`kept_fraction`) taken out of sum K (x) K, where every direction of the regressors'
-        moment keeps at least ``keep_frac`` of its power; True where it was."""
-        if not self.kept_fraction(noise_kk) >= keep_frac:
-            return False
+    def without_regressor_noise(self, noise_kk: np.ndarray) -> None:
+        """``noise_kk`` (:meth:`kept_fraction`) taken out of sum K (x) K."""
         self.kk = (self.kk.reshape(3 * self.m, 3 * self.m) - noise_kk).reshape(3, self.m, 3, self.m)
         self.ktk = np.einsum("iliq->lq", self.kk)
-        return True
 
     def normal_equations(self, r_mat: np.ndarray, lev: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         ww, wv = self.uu, self.uv
@@ -579,10 +572,13 @@ def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = 
     p = 3 if k_lever is None else 3 + k_lever.shape[2]
     best = None
     mom = _Moments(u_m, v_s, k_lever)
-    noise_dominates = (k_noise_cov is not None and k_lever is not None
-                       and not mom.kept_fraction(n * k_noise_cov) >= k_noise_undetermined_frac)
-    noise_out = (k_noise_cov is not None and k_lever is not None
-                 and mom.without_regressor_noise(n * k_noise_cov, k_noise_keep_frac))
+    # the regressors' motion beyond their noise in their weakest direction: their noise taken out where that
+    # leaves it k_noise_keep_frac; below k_noise_undetermined_frac the lever arm is not determined (below)
+    kept = mom.kept_fraction(n * k_noise_cov) if k_noise_cov is not None and k_lever is not None else np.inf
+    noise_dominates = not kept >= k_noise_undetermined_frac
+    noise_out = k_noise_cov is not None and k_lever is not None and kept >= k_noise_keep_frac
+    if noise_out:
+        mom.without_regressor_noise(n * k_noise_cov)
     for r_mat in (wahba(v_s.T @ u_m)[0], *starts):
         lev = np.zeros(k_lever.shape[2]) if k_lever is not None else None
         r_mat, lev = _gauss_newton(mom, r_mat, lev, iterations)
@@ -743,7 +739,7 @@ def _regressor_noise_cov(t: np.ndarray, gm: tuple[np.ndarray, np.ndarray], nwin:
     variance (its spectrum's floor, :func:`_noise_floor_var`, per axis; a fixed seed: the same log, the same
     answer) added to the master's rates there, pushed through :func:`_lever_regressors` and the same filters,
     less the regressors without it; their relative 1-sigma; and the per-sample moment of the regressors
-    themselves on that stretch (for :func:`_kept_fraction`). ``sos``: a zero-phase low-pass after the high-pass
+    themselves on that stretch (for :func:`_lever_kept_fraction`). ``sos``: a zero-phase low-pass after the high-pass
     (:func:`_lowpassed`), as the fits then see them. None where the stretch is too short for the filters."""
     n = len(t)
     rows = min(n, cfg.noise_rows)
@@ -792,18 +788,23 @@ def _noise_gain(sos: np.ndarray, rows: int = 1 << 16) -> float:
 
 
 def _kept_fraction(kk: np.ndarray, noise_kk: np.ndarray) -> float:
-    """The lever arm's regressors' motion beyond their noise in their weakest direction: the smallest eigenvalue
-    of their moment with the noise's out over the raw one's (the lever arm's columns of the (12, 12) moments)."""
-    cols = [j for j in range(12) if j % 4 != 3]
-    a, b = kk[np.ix_(cols, cols)], noise_kk[np.ix_(cols, cols)]
-    lo_raw = float(np.linalg.eigvalsh(0.5 * (a + a.T))[0])
-    lo = float(np.linalg.eigvalsh(0.5 * (a - b + (a - b).T))[0])
+    """The regressors' motion beyond their noise in their weakest direction: the smallest eigenvalue of their
+    moment ``kk`` with their noise's ``noise_kk`` out, over the raw one's (-inf where the raw one has none)."""
+    corr = kk - noise_kk
+    lo_raw = float(np.linalg.eigvalsh(0.5 * (kk + kk.T))[0])
+    lo = float(np.linalg.eigvalsh(0.5 * (corr + corr.T))[0])
     return lo / lo_raw if lo_raw > 0 else -np.inf
+
+
+def _lever_kept_fraction(kk: np.ndarray, noise_kk: np.ndarray) -> float:
+    """:func:`_kept_fraction` of the lever arm's columns of the (12, 12) moments (the delay's left out)."""
+    cols = [j for j in range(12) if j % 4 != 3]
+    return _kept_fraction(kk[np.ix_(cols, cols)], noise_kk[np.ix_(cols, cols)])
 
 
 def _lever_band(t: np.ndarray, gm, nwin: int, nlp: int, dt: float, ncov, cfg: ImuToImuConfig):
     """(sos, cutoff Hz, ncov) of the low-pass under which the lever arm's regressors are motion more than noise
-    (:func:`_kept_fraction` at least cfg.lever_noise_undetermined_frac), halving the cutoff from an eighth of the
+    (:func:`_lever_kept_fraction` at least cfg.lever_noise_undetermined_frac), halving the cutoff from an eighth of the
     rate down to cfg.lever_lowpass_min_hz; (None, None, ncov) where the whole band is (or none is). A quiet
     vehicle's angular acceleration is a few hertz, the differentiated gyro noise rises with the frequency up to
     the Nyquist's: on a car without vibration the regressors' moments were 97 % noise, the lever arm came out at
@@ -811,13 +812,13 @@ def _lever_band(t: np.ndarray, gm, nwin: int, nlp: int, dt: float, ncov, cfg: Im
     Every series of the fit goes through the same low-pass (the model is linear in them)."""
     from logtools.dsp import butter_lowpass_sos
 
-    if ncov is None or _kept_fraction(ncov[4], ncov[0]) >= cfg.lever_noise_undetermined_frac:
+    if ncov is None or _lever_kept_fraction(ncov[4], ncov[0]) >= cfg.lever_noise_undetermined_frac:
         return None, None, ncov
     fc = 0.125 / dt
     while fc >= cfg.lever_lowpass_min_hz:
         sos = butter_lowpass_sos(cfg.lever_lowpass_order, 2.0 * fc * dt)  # (cutoff over Nyquist: at most 1/4)
         nc = _regressor_noise_cov(t, gm, nwin, nlp, cfg, sos)
-        if nc is not None and _kept_fraction(nc[4], nc[0]) >= cfg.lever_noise_undetermined_frac:
+        if nc is not None and _lever_kept_fraction(nc[4], nc[0]) >= cfg.lever_noise_undetermined_frac:
             return sos, fc, nc
         fc *= 0.5
     return None, None, ncov
@@ -920,15 +921,15 @@ def imu_to_imu(master: InsLog, slave: InsLog, *, config: ImuToImuConfig = DEFAUL
         slave = slave.rebased(master.meta.t0_ns)
     reasons: dict[str, str] = {}
     out: dict[str, TriadRotation | None] = {"gyro": None, "accel": None}
-    gm = _clean(master.t_imu_s(), master.gyro_rad_s()) if master.has_gyro else None
+    gm = finite_increasing(master.t_imu_s(), master.gyro_rad_s()) if master.has_gyro else None
     for name, has, get in (("gyro", "has_gyro", "gyro_rad_s"), ("accel", "has_accel", "accel_m_s2")):
         if not (getattr(master, has) and getattr(slave, has)):
             who = " and ".join(r for r, lg in (("master", master), ("slave", slave)) if not getattr(lg, has))
             reasons[name] = f"the {who} logs no {'angular rate' if name == 'gyro' else 'specific force'}"
             continue
         def common() -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-            tm, ym = _clean(master.t_imu_s(), getattr(master, get)())
-            ts, ys = _clean(slave.t_imu_s(), getattr(slave, get)())
+            tm, ym = finite_increasing(master.t_imu_s(), getattr(master, get)())
+            ts, ys = finite_increasing(slave.t_imu_s(), getattr(slave, get)())
             return _common(tm, ym, ts, ys, config.gap_steps)
 
         com = common()

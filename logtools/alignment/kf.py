@@ -821,25 +821,26 @@ def _nb_propagate(q, v, llh, dq, dv_b, dt, restart_k, offs, qc, beta, mk_rate, f
 
 
 @njit
+def _nb_index(ts, t):
+    """:func:`_index` compiled."""
+    i = np.searchsorted(ts, t, side="right") - 1
+    i = min(max(i, 0), len(ts) - 2)
+    a = (t - ts[i]) / (ts[i + 1] - ts[i])
+    return i, min(max(a, -1.0), 2.0)
+
+
+@njit
 def _nb_master_at(mt, mq, mv, ma, mwt, mw, has_q, has_v, has_w, t, c_nm, v_m, a_m, w_m):
     """:meth:`MasterSeries.sample` compiled: the master at time t into c_nm, v_m, a_m, w_m (those it has; w on
     its own stamps mwt); returns the index of the master sample at or before t."""
-    km = len(mt)
-    i = np.searchsorted(mt, t, side="right") - 1
-    i = min(max(i, 0), km - 2)
-    al = (t - mt[i]) / (mt[i + 1] - mt[i])
-    al = min(max(al, -1.0), 2.0)
+    i, al = _nb_index(mt, t)
     if has_q:
         c_nm[:, :] = _dcm((1.0 - al) * mq[i] + al * mq[i + 1])
     if has_v:
         v_m[:] = (1.0 - al) * mv[i] + al * mv[i + 1]
         a_m[:] = (1.0 - al) * ma[i] + al * ma[i + 1]
     if has_w:
-        kw = len(mwt)
-        j = np.searchsorted(mwt, t, side="right") - 1
-        j = min(max(j, 0), kw - 2)
-        aw = (t - mwt[j]) / (mwt[j + 1] - mwt[j])
-        aw = min(max(aw, -1.0), 2.0)
+        j, aw = _nb_index(mwt, t)
         w_m[:] = (1.0 - aw) * mw[j] + aw * mw[j + 1]
     return i
 

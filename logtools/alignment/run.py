@@ -33,7 +33,7 @@ from logtools.rows import by_rows
 from logtools.results import AlignmentResult
 from logtools.strapdown import body_increments, compose_segments
 
-from .imu_to_imu import axis_sigmas, gimbal_canonical
+from .imu_to_imu import axis_sigmas, finite_increasing, gimbal_canonical
 from .kf import AlignInputs, FilterRun, FilterSettings, MasterSeries, run_filter
 from .model import StateLayout, exp_so3, make_layout
 from .options import CONFIG, MATCHES, AlignmentConfig, AlignmentOptions, FilterKind
@@ -563,14 +563,7 @@ def _gyro_rate_nm(master: InsLog, t: np.ndarray, quat: np.ndarray) -> tuple[np.n
     rate has none of it (an independent simulator's car: its lever arm 1.15 m off at a sigma of 0.023 m).
     The earth rate in the body frame (slow) is interpolated from the navigation stamps. (None, None) without
     two finite gyro samples there."""
-    tg, g = master.t_imu_s(), master.gyro_rad_s()
-    okg = np.isfinite(g).all(1) & np.isfinite(tg)
-    tg, g = tg[okg], g[okg]
-    if len(tg) >= 2 and np.any(np.diff(tg) <= 0):
-        order = np.argsort(tg, kind="stable")
-        tg, g = tg[order], g[order]
-        keep = np.concatenate([[True], np.diff(tg) > 0])
-        tg, g = tg[keep], g[keep]
+    tg, g = finite_increasing(master.t_imu_s(), master.gyro_rad_s())
     i0 = max(int(np.searchsorted(tg, t[0], side="right")) - 2, 0)
     i1 = min(int(np.searchsorted(tg, t[-1], side="left")) + 2, len(tg))
     tg, g = tg[i0:i1], g[i0:i1]
