@@ -23,7 +23,7 @@ from scipy import fft as sfft
 from logtools import jit
 
 __all__ = ["butter_lowpass_sos", "sosfiltfilt_even", "sosfilt_zi", "welch_psd", "correlate_valid",
-           "cubic_spline_at", "weighted_rows"]
+           "cubic_spline_at", "weighted_rows", "as_trapezoid_integrates"]
 
 
 def butter_lowpass_sos(order: int, wn: float) -> np.ndarray:
@@ -258,6 +258,54 @@ def welch_psd(x: np.ndarray, fs: float, nperseg: int) -> tuple[np.ndarray, np.nd
         p[1:-1] *= 2.0
     f = sfft.rfftfreq(nperseg, 1.0 / fs)
     return f, (p[:, 0] if x.ndim == 1 else p)
+
+
+def as_trapezoid_integrates(t_s: np.ndarray, x: np.ndarray, rate_hz: float, gap_s: float, upsample: int = 1
+                            ) -> tuple[np.ndarray, np.ndarray]:
+    """The columns of ``x`` (n, k) on sorted stamps ``t_s`` as a strapdown sampling their derivative at
+    ``rate_hz`` and integrating it by the trapezoid (point samples, linear between them) reproduces them:
+    each frequency f below rate_hz/2 scaled by x / tan(x), x = pi f / rate_hz (exact for a sinusoid at the
+    sample instants), nothing above rate_hz/2 (an unknown alias: the derivative's noise there has no bound
+    once integrated). A 15 Hz vibration keeps 0.68 of itself at 50 Hz, 0.93 at 200 Hz; a slow motion all of it.
+
+    Returns (stamps, series) with ``upsample`` - 1 band-limited samples between two of ``t_s`` (their
+    stamps interpolated linearly between the neighbours'): a series read by linear interpolation between
+    coarse samples loses a fast motion (a 20 Hz vibration on a 100 Hz grid: 19 % at the midpoints).
+
+    By FFT over each gap-free run (steps beyond ``gap_s`` split runs), at the run's median step; the straight
+    line through each run's ends is taken out first (the trapezoid integrates it exactly) so that the run
+    wraps without a jump."""
+    t = np.asarray(t_s, dtype=float)
+    x = np.asarray(x, dtype=float)
+    x2 = x[:, None] if x.ndim == 1 else x
+    u = max(int(upsample), 1)
+    cuts = np.flatnonzero(np.diff(t) > gap_s) + 1
+    t_out, x_out = [], []
+    for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(t)]):
+        n = int(b - a)
+        seg, ts = x2[a:b], t[a:b]
+        if n < 4:
+            t_out.append(ts)
+            x_out.append(seg)
+            continue
+        pos = np.arange((n - 1) * u + 1, dtype=float) / u
+        dt = float(np.median(np.diff(ts)))
+        ramp_step = (seg[-1] - seg[0]) / (n - 1)
+        nfft = sfft.next_fast_len(n, real=True)
+        arg = np.pi * sfft.rfftfreq(nfft, dt) / float(rate_hz)
+        gain = np.zeros_like(arg)
+        inside = arg < 0.5 * np.pi
+        gain[inside] = 1.0
+        nz = inside & (arg > 0.0)
+        gain[nz] = arg[nz] / np.tan(arg[nz])
+        if u > 1 and nfft % 2 == 0:
+            gain[-1] *= 0.5  # (the Nyquist bin split between its two images)
+        spec = sfft.rfft(seg - seg[0] - np.arange(n, dtype=float)[:, None] * ramp_step, nfft, axis=0)
+        y = sfft.irfft(spec * gain[:, None], nfft * u, axis=0)[:len(pos)] * u
+        t_out.append(np.interp(pos, np.arange(n, dtype=float), ts))
+        x_out.append(y + seg[0] + pos[:, None] * ramp_step)
+    tt, xx = np.concatenate(t_out), np.concatenate(x_out, axis=0)
+    return tt, (xx[:, 0] if x.ndim == 1 else xx)
 
 
 def correlate_valid(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -163,6 +163,11 @@ class SimConfig:
     slave_vibration_accel_m_s2: float = 0.0
     slave_vibration_gyro_dps: float = 0.0
     vibration_hz: float = 97.0
+    #: a rigid-body angular vibration of the whole vehicle (both units, and the lever arm between them, move
+    #: with it): amplitude per Euler angle (deg, roll pitch yaw) at rigid_vibration_hz; a car's 8-20 Hz
+    #: shake, which a 50 Hz slave samples below its Nyquist rate (0 = none)
+    rigid_vibration_deg: Vec3 = (0.0, 0.0, 0.0)
+    rigid_vibration_hz: Vec3 = (15.0, 12.0, 17.0)
     # -- flexure (seed 000 eq. 8) -------------------------------------------------------------
     flexure: bool = False
     flexure_sigma_deg: Vec3 = (0.05, 0.05, 0.05)
@@ -198,7 +203,8 @@ def _validate(c: SimConfig) -> None:
             raise bad(f"{name} must be in [1, 10000] Hz, got {v}")
     for name in ("sway_amp_deg", "sway_period_s", "master_gyro_bias_dph", "master_accel_bias_mg",
                  "mount_rpy_deg", "lever_arm_m", "slave_gyro_bias_dph", "slave_accel_bias_mg",
-                 "flexure_sigma_deg", "flexure_beta_1_s", "slave_accel_misalign_rpy_deg"):
+                 "flexure_sigma_deg", "flexure_beta_1_s", "slave_accel_misalign_rpy_deg", "rigid_vibration_deg",
+                 "rigid_vibration_hz"):
         v = getattr(c, name)
         if len(v) != 3 or not all(math.isfinite(float(x)) for x in v):
             raise bad(f"{name} needs 3 finite numbers, got {v!r}")
@@ -230,8 +236,8 @@ def _validate(c: SimConfig) -> None:
            c.slave_vel_noise_m_s, c.slave_pos_noise_m, c.master_att_markov_deg, c.slave_vibration_accel_m_s2,
            c.slave_vibration_gyro_dps) < 0:
         raise bad("noise and jitter levels must be >= 0")
-    if not (c.master_att_markov_tau_s > 0 and c.vibration_hz > 0):
-        raise bad("master_att_markov_tau_s and vibration_hz must be positive")
+    if not (c.master_att_markov_tau_s > 0 and c.vibration_hz > 0 and min(c.rigid_vibration_hz) > 0):
+        raise bad("master_att_markov_tau_s, vibration_hz and rigid_vibration_hz must be positive")
 
 
 _SCENARIO_DEFAULTS: dict[str, dict] = {
@@ -519,7 +525,10 @@ _PROFILES: dict[str, Callable[[SimConfig, _Jet], Profile]] = {
 def _profile(cfg: SimConfig, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(rpy, rpy', rpy'', vel, vel') arrays (N, 3) at times t_s."""
     t_s = np.asarray(t_s, dtype=float)
-    att, vel = _PROFILES[cfg.scenario](cfg, _Jet.time(t_s))
+    tj = _Jet.time(t_s)
+    att, vel = _PROFILES[cfg.scenario](cfg, tj)
+    att = [a + _sine(tj, amp * DEG, 1.0 / f, 0.7 * (i + 1)) if amp else a
+           for i, (a, amp, f) in enumerate(zip(att, cfg.rigid_vibration_deg, cfg.rigid_vibration_hz))]
 
     def col(j, k):
         return np.broadcast_to(np.asarray(j.c[k], dtype=float), t_s.shape)

@@ -147,6 +147,12 @@ class AlignmentConfig:
     #: the slave's navigation restarts from the master after it (tests: slave_gaps_s in the compiled/reference test)
     imu_gap_s: float = 0.25
     imu_gap_periods: float = 10.0
+    #: the lever arm's rate (run._lever_rate_as_integrated) is read by linear interpolation: a master gyro
+    #: slower than this is resampled (band-limited) to at least this rate first, where a 20 Hz vibration
+    #: keeps 99 % of itself between two samples (at 100 Hz 81 % at the midpoints: a car with a 100 Hz master
+    #: had its lever arm 7-9 % long at 21-28 sigma, tests/test_alignment.py::
+    #: test_a_vibrating_car_gives_its_lever_arm_at_any_pair_of_imu_rates)
+    lever_rate_grid_hz: float = 400.0
     #: flexure="auto": a second pass with flexure states when the mean NIS exceeds flex_auto_nis x dof ...
     flex_auto_nis: float = 10.0
     #: ... kept when its mean NIS falls below flex_auto_gain x the rigid pass's (the flexing-multirotor tests)
