@@ -153,6 +153,19 @@ class AlignmentConfig:
     #: had its lever arm 7-9 % long at 21-28 sigma, tests/test_alignment.py::
     #: test_a_vibrating_car_gives_its_lever_arm_at_any_pair_of_imu_rates)
     lever_rate_grid_hz: float = 400.0
+    #: the slave's accelerometer noise (the filter's velocity random walk, the bias prior) is measured without
+    #: the lever arm's acceleration (alignment/noise.py; a 50-100 Hz slave's 8-20 Hz rigid-body vibration
+    #: counted 31-69x the true noise and shrank the lever arm to 0.3-0.84 of itself): on at most
+    #: noise_fit_samples slave samples (its cost), in chunks of noise_fit_chunk_s, each with its own delay
+    #: within +- noise_fit_max_delay_s of the filter's start (a drift of 100 ppm moves it 1 ms in 10 s) ...
+    noise_fit_samples: int = 200_000
+    noise_fit_chunk_s: float = 10.0
+    noise_fit_max_delay_s: float = 0.01
+    #: ... and only against a master IMU at least this many times as fast as the slave's: at one rate both
+    #: carry the same aliases of a vibration, which the master's navigation output does not (a real plane's
+    #: IMU2 against its EKF, both IMUs at 50 Hz: the mounting moved by 1.1 deg, 14 sigma); 1.5, not 2, so that
+    #: a 200 Hz master over a 100 Hz slave counts whatever the stamps' jitter
+    noise_fit_min_rate_ratio: float = 1.5
     #: flexure="auto": a second pass with flexure states when the mean NIS exceeds flex_auto_nis x dof ...
     flex_auto_nis: float = 10.0
     #: ... kept when its mean NIS falls below flex_auto_gain x the rigid pass's (the flexing-multirotor tests)

@@ -37,6 +37,7 @@ from logtools.strapdown import body_increments, compose_segments
 from .imu_to_imu import axis_sigmas, finite_increasing, gimbal_canonical
 from .kf import AlignInputs, FilterRun, FilterSettings, MasterSeries, run_filter
 from .model import StateLayout, exp_so3, make_layout
+from .noise import accel_noise_without_lever, d3_sigma
 from .options import CONFIG, MATCHES, AlignmentConfig, AlignmentOptions, FilterKind
 
 
@@ -113,7 +114,13 @@ def _align(master: InsLog, slave: InsLog, kind: FilterKind, match: str, smoother
         if coarse.note:
             notes.append(coarse.note)
     r0 = coarse.r0
-    noise = SlaveNoise(t_imu, gyro, accel)  # (measured once: the seed and each pass's settings read it)
+    # (measured once: the seed and each pass's settings read it)
+    noise = SlaveNoise(t_imu, gyro, accel,
+                       accel_noise_without_lever(master, t_imu, gyro, accel, win.tau0_s, r0,
+                                                 max_samples=config.noise_fit_samples,
+                                                 chunk_s=config.noise_fit_chunk_s,
+                                                 max_delay_s=config.noise_fit_max_delay_s,
+                                                 min_rate_ratio=config.noise_fit_min_rate_ratio))
     seed = _gyro_bias_seed(master, ms, rates, win.tau0_s, r0, _gyro_bias_prior(opts, noise), config, notes)
     # the filter's gyro-bias states carry what is left of the bias after the seed: the slave's increments are
     # taken with the seed removed (the bias states are linear, so this is the filter started from the seed)
@@ -948,18 +955,20 @@ def _hf_sigma(y: np.ndarray) -> float:
     """White-noise sigma from third differences (robust: MAD); smooth motion cancels."""
     if len(y) < 8:
         return 0.0
-    d3 = np.diff(y, n=3, axis=0)
-    mad = np.median(np.abs(d3 - np.median(d3, axis=0)), axis=0) * 1.4826
-    return float(np.max(mad) / np.sqrt(20.0))
+    return d3_sigma(np.diff(y, n=3, axis=0))
 
 
 class SlaveNoise:
     """The slave IMU's white noise (:func:`_hf_sigma` of its gyros, rad/s, and of its accelerometers,
     m/s^2) and its sample step (s), measured once per alignment run: the prior, the seed and every filter
-    pass's settings read them (each is a median over the whole overlap)."""
+    pass's settings read them (each is a median over the whole overlap). ``accel_without_lever``: the
+    accelerometers' measured without the lever arm's acceleration (``noise.accel_noise_without_lever``; None
+    where it could not be), the smaller taken: a rigid-body vibration's w' x r is motion the filter models."""
 
-    def __init__(self, t_imu: np.ndarray, gyro: np.ndarray, accel: np.ndarray):
+    def __init__(self, t_imu: np.ndarray, gyro: np.ndarray, accel: np.ndarray,
+                 accel_without_lever: float | None = None):
         self._t, self._g, self._a = t_imu, gyro, accel
+        self._a_lever = accel_without_lever
 
     @cached_property
     def dt_s(self) -> float:
@@ -971,7 +980,8 @@ class SlaveNoise:
 
     @cached_property
     def accel(self) -> float:
-        return _hf_sigma(self._a)
+        own = _hf_sigma(self._a)
+        return own if self._a_lever is None else min(own, self._a_lever)
 
 
 def _arw_rad_s(opts: AlignmentOptions, noise: SlaveNoise) -> float:
