@@ -280,17 +280,22 @@ def as_trapezoid_integrates(t_s: np.ndarray, x: np.ndarray, rate_hz: float, gap_
     x2 = x[:, None] if x.ndim == 1 else x
     u = max(int(upsample), 1)
     cuts = np.flatnonzero(np.diff(t) > gap_s) + 1
-    t_out, x_out = [], []
-    for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(t)]):
-        n = int(b - a)
+    runs = [(int(a), int(b)) for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(t)])]
+    # (one output array, filled a column at a time: at 4 h of a 200 Hz gyro the batched temporaries cost
+    # 0.3 GB more at the alignment's peak)
+    sizes = [(b - a - 1) * u + 1 if b - a >= 4 else b - a for a, b in runs]
+    tt = np.empty(sum(sizes))
+    xx = np.empty((len(tt), x2.shape[1]))
+    o = 0
+    for (a, b), size in zip(runs, sizes):
+        n = b - a
         seg, ts = x2[a:b], t[a:b]
         if n < 4:
-            t_out.append(ts)
-            x_out.append(seg)
+            tt[o:o + n], xx[o:o + n] = ts, seg
+            o += n
             continue
-        pos = np.arange((n - 1) * u + 1, dtype=float) / u
+        pos = np.arange(size, dtype=float) / u
         dt = float(np.median(np.diff(ts)))
-        ramp_step = (seg[-1] - seg[0]) / (n - 1)
         nfft = sfft.next_fast_len(n, real=True)
         arg = np.pi * sfft.rfftfreq(nfft, dt) / float(rate_hz)
         gain = np.zeros_like(arg)
@@ -300,11 +305,19 @@ def as_trapezoid_integrates(t_s: np.ndarray, x: np.ndarray, rate_hz: float, gap_
         gain[nz] = arg[nz] / np.tan(arg[nz])
         if u > 1 and nfft % 2 == 0:
             gain[-1] *= 0.5  # (the Nyquist bin split between its two images)
-        spec = sfft.rfft(seg - seg[0] - np.arange(n, dtype=float)[:, None] * ramp_step, nfft, axis=0)
-        y = sfft.irfft(spec * gain[:, None], nfft * u, axis=0)[:len(pos)] * u
-        t_out.append(np.interp(pos, np.arange(n, dtype=float), ts))
-        x_out.append(y + seg[0] + pos[:, None] * ramp_step)
-    tt, xx = np.concatenate(t_out), np.concatenate(x_out, axis=0)
+        idx = np.arange(n, dtype=float)
+        tt[o:o + size] = np.interp(pos, idx, ts)
+        for j in range(x2.shape[1]):
+            c = seg[:, j]
+            step = (c[-1] - c[0]) / (n - 1)
+            spec = sfft.rfft(c - c[0] - idx * step, nfft)
+            spec *= gain
+            col = xx[o:o + size, j]
+            col[:] = sfft.irfft(spec, nfft * u)[:size]
+            col *= u
+            col += c[0]
+            col += pos * step
+        o += size
     return tt, (xx[:, 0] if x.ndim == 1 else xx)
 
 
