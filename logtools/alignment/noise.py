@@ -111,6 +111,9 @@ def accel_noise_without_lever(master: InsLog, t_imu: np.ndarray, gyro: np.ndarra
         j0 = max(int(np.searchsorted(tm, t[0] - margin)), 0)
         j1 = min(int(np.searchsorted(tm, t[-1] + margin)), len(tm))
         tmc = tm[j0:j1]
+        if (len(tmc) < 64 or tmc[0] > t[0] - max_delay_s or tmc[-1] < t[-1] + max_delay_s
+                or np.diff(tmc).max() > 10 * dt_m):
+            continue  # (a gap in the master's gyro: no spline across it, no FFT over it)
         gmc, gdc = _below(tmc, gm[j0:j1], f_max)
         # the delay's residual: g_s = R w(t - dtau) ~ R w(t) - R w'(t) dtau
         y, x = _d3(gyro[idx] - _cols_at(tmc, gmc, t) @ r0.T), _d3(_cols_at(tmc, gdc, t) @ r0.T)
@@ -118,7 +121,7 @@ def accel_noise_without_lever(master: InsLog, t_imu: np.ndarray, gyro: np.ndarra
         t = t - dtau
         k0 = max(int(np.searchsorted(ta, t[0])) - 8, 0)
         k1 = min(int(np.searchsorted(ta, t[-1])) + 8, len(ta))
-        if k1 - k0 < 4 or ta[k0] > t[0] or ta[k1 - 1] < t[-1]:
+        if k1 - k0 < 64 or ta[k0] > t[0] or ta[k1 - 1] < t[-1] or np.diff(ta[k0:k1]).max() > 10 * dt_m:
             continue
         f = _cols_at(ta[k0:k1], _below(ta[k0:k1], fm[k0:k1], f_max)[0], t)
         sw = _skew(_cols_at(tmc, gmc, t))
