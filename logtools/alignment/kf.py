@@ -160,9 +160,11 @@ def _lerp_row(arr, i, a):
 
 
 # ---- inputs ---------------------------------------------------------------------------------------
+@njit
 def _index(ts: np.ndarray, t: float) -> tuple[int, float]:
-    """(i, a): t between ts[i] and ts[i + 1] at the fraction a (clamped to [-1, 2] beyond the ends)."""
-    i = int(np.searchsorted(ts, t, side="right")) - 1
+    """(i, a): t between ts[i] and ts[i + 1] at the fraction a (clamped to [-1, 2] beyond the ends); the
+    Python lookups' and the compiled loop's."""
+    i = np.searchsorted(ts, t, side="right") - 1
     i = min(max(i, 0), len(ts) - 2)
     a = (t - ts[i]) / (ts[i + 1] - ts[i])
     return i, min(max(a, -1.0), 2.0)
@@ -209,12 +211,9 @@ class MasterSeries:
         if self.vel is not None:
             v = b * self.vel[i] + a * self.vel[i + 1]
             acc = b * self.acc[i] + a * self.acc[i + 1]
-        if self.w_nm_m is not None:
-            if self.w_t_s is None:
-                w = b * self.w_nm_m[i] + a * self.w_nm_m[i + 1]
-            else:  # (on the gyro's own stamps: the same interpolation there)
-                j, aw = _index(self.w_t_s, t)
-                w = (1.0 - aw) * self.w_nm_m[j] + aw * self.w_nm_m[j + 1]
+        if self.w_nm_m is not None:  # (on its own stamps)
+            j, aw = _index(self.w_stamps_s, t)
+            w = (1.0 - aw) * self.w_nm_m[j] + aw * self.w_nm_m[j + 1]
         return c_nm, v, acc, w
 
 
@@ -832,26 +831,17 @@ def _nb_propagate(q, v, llh, dq, dv_b, dt, restart_k, offs, qc, beta, mk_rate, f
 
 
 @njit
-def _nb_index(ts, t):
-    """:func:`_index` compiled."""
-    i = np.searchsorted(ts, t, side="right") - 1
-    i = min(max(i, 0), len(ts) - 2)
-    a = (t - ts[i]) / (ts[i + 1] - ts[i])
-    return i, min(max(a, -1.0), 2.0)
-
-
-@njit
 def _nb_master_at(mt, mq, mv, ma, mwt, mw, has_q, has_v, has_w, t, c_nm, v_m, a_m, w_m):
     """:meth:`MasterSeries.sample` compiled: the master at time t into c_nm, v_m, a_m, w_m (those it has; w on
     its own stamps mwt); returns the index of the master sample at or before t."""
-    i, al = _nb_index(mt, t)
+    i, al = _index(mt, t)
     if has_q:
         c_nm[:, :] = _dcm((1.0 - al) * mq[i] + al * mq[i + 1])
     if has_v:
         v_m[:] = (1.0 - al) * mv[i] + al * mv[i + 1]
         a_m[:] = (1.0 - al) * ma[i] + al * ma[i + 1]
     if has_w:
-        j, aw = _nb_index(mwt, t)
+        j, aw = _index(mwt, t)
         w_m[:] = (1.0 - aw) * mw[j] + aw * mw[j + 1]
     return i
 

@@ -31,6 +31,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import fft as sfft
 
+from logtools.conventions import skew
 from logtools.dsp import cubic_spline_at
 from logtools.inslog import InsLog
 
@@ -67,12 +68,6 @@ def _below(t: np.ndarray, y: np.ndarray, f_max_hz: float) -> tuple[np.ndarray, n
     value = sfft.irfft(spec, nfft, axis=0)[:n] + line
     rate = sfft.irfft(spec * (2j * np.pi * f)[:, None], nfft, axis=0)[:n] + slope / dt
     return value, rate
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    z = np.zeros(len(v))
-    return np.stack([np.stack([z, -v[:, 2], v[:, 1]], -1), np.stack([v[:, 2], z, -v[:, 0]], -1),
-                     np.stack([-v[:, 1], v[:, 0], z], -1)], 1)
 
 
 def accel_noise_without_lever(master: InsLog, t_imu: np.ndarray, gyro: np.ndarray, accel: np.ndarray,
@@ -124,8 +119,8 @@ def accel_noise_without_lever(master: InsLog, t_imu: np.ndarray, gyro: np.ndarra
         if k1 - k0 < 64 or ta[k0] > t[0] or ta[k1 - 1] < t[-1] or np.diff(ta[k0:k1]).max() > 10 * dt_m:
             continue
         f = _cols_at(ta[k0:k1], _below(ta[k0:k1], fm[k0:k1], f_max)[0], t)
-        sw = _skew(_cols_at(tmc, gmc, t))
-        rk = np.einsum("ij,njk->nik", r0, _skew(_cols_at(tmc, gdc, t)) + sw @ sw)  # R0 K: lever accel = R0 K r
+        sw = skew(_cols_at(tmc, gmc, t))
+        rk = np.einsum("ij,njk->nik", r0, skew(_cols_at(tmc, gdc, t)) + sw @ sw)  # R0 K: lever accel = R0 K r
         y_a.append(_d3(accel[idx] - f @ r0.T))
         a_a.append(_d3(rk))
     if not y_a:

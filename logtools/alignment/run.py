@@ -599,7 +599,7 @@ def _lever_rate_as_integrated(ms: MasterSeries, t_imu: np.ndarray, config: Align
     left in it (``_rate_from_attitude``)."""
     if ms.w_nm_m is None or ms.w_t_s is None or len(t_imu) < 2:
         return ms
-    tw = ms.w_stamps_s
+    tw = ms.w_t_s
     step = median_step_s(tw)
     gap = max(config.imu_gap_s, config.imu_gap_periods * step)
     up = int(np.ceil(config.lever_rate_grid_hz * step - 1e-9))
