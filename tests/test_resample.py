@@ -109,3 +109,55 @@ def test_a_grid_far_longer_than_its_samples_is_refused_not_allocated():
     t2 = np.concatenate([np.arange(2000) * 0.005, 300.0 + np.arange(2000) * 0.005])
     u = to_uniform(t2, _sig(t2))
     assert not u.valid.all() and u.gaps_s
+
+
+def test_the_sample_clock_is_the_stamps_mean_interval_and_phase():
+    """Stamps quantised to the microsecond of a 50 Hz clock running 75 ppm fast, with dropped samples:
+    the interval is the clock's (the median step is the quantised 20 ms), the phase its offset."""
+    from logtools.resample import sample_clock
+
+    dt_true, phase = 0.02 * (1 - 75e-6), 0.0137
+    k = np.arange(9000)
+    k = k[(k % 1000) != 7]  # single samples dropped
+    k = np.concatenate([k[:5000], k[5100:]])  # and a gap
+    t = np.round((phase + k * dt_true) * 1e6) / 1e6
+    dt, ph = sample_clock(t)
+    assert abs(dt - dt_true) < 1e-10
+    assert abs((ph - phase + dt / 2) % dt - dt / 2) < 2e-6
+    # stamps jittered by 5 % of a step: the interval within 1e-5 of itself (larger jitter leaves the
+    # samples at offsets from any uniform grid anyway: the band-limited grid then reads them as to_uniform)
+    rng = np.random.default_rng(1)
+    tj = np.sort(phase + k * dt_true + rng.normal(0.0, 0.05 * dt_true, len(k)))
+    assert abs(sample_clock(tj)[0] / dt_true - 1) < 1e-5
+
+
+@pytest.mark.parametrize("phase_frac", [0.1, 0.35, 0.6, 0.85])
+def test_a_slow_stream_is_gridded_without_a_phase_error(phase_frac):
+    """A 15 Hz tone sampled at 50 Hz with its samples at a fraction of the grid's interval: the cubic spline
+    of to_uniform delays it by up to 0.33 ms depending on that fraction; the band-limited grid holds it
+    within 2 microseconds, with the gaps masked as to_uniform masks them."""
+    from logtools.resample import to_uniform_band_limited
+
+    dt = 0.02
+    t = (phase_frac + np.arange(3000)) * dt
+    keep = (t < 20.0) | (t > 20.5)
+    t = t[keep]
+    f = 15.0
+    x = np.column_stack([np.sin(2 * np.pi * f * t), np.cos(2 * np.pi * f * t)])
+
+    def delay(s: UniformSeries) -> float:
+        tg, v, ok = s.t_s, s.values, s.valid.copy()
+        ok &= (tg > 2.0) & (tg < tg[-1] - 2.0) & ((tg < 19.0) | (tg > 21.5))
+        # the tone's phase on the grid against the truth: a delay (s)
+        z = (v[ok, 1] + 1j * v[ok, 0]) * np.exp(-2j * np.pi * f * tg[ok])
+        return float(-np.angle(np.mean(z)) / (2 * np.pi * f))
+
+    plain = to_uniform(t, x)
+    bl = to_uniform_band_limited(t, x, 4)
+    assert bl.dt_s == pytest.approx(dt / 4)
+    tg = bl.t_s
+    assert not bl.valid[(tg > 20.0 + 4 * dt) & (tg < 20.5 - 4 * dt)].any()
+    assert bl.valid[(tg > 1.0) & (tg < 19.0)].all()
+    assert abs(delay(bl)) < 2e-6
+    if abs(phase_frac - 0.5) > 0.2:  # (at half an interval the spline's error is symmetric: none)
+        assert abs(delay(plain)) > 5e-5

@@ -37,6 +37,12 @@ class PrepareConfig:
     band_factor: float = 3.0  # the low-pass cutoff at this x the motion's band (the noise above would bias the delay)
     refine_band_factor: float = 5.0  # refinement samples at this x the cutoff (band-limited: all the information) ...
     min_refine_rate_hz: float = 20.0  # ... and at least this rate
+    #: a unit whose low-pass cutoff exceeds this fraction of its rate is put on its grid band-limited
+    #: (``resample.to_uniform_band_limited``): a cubic spline read at a fixed offset from the samples delays a
+    #: motion near the Nyquist frequency by up to 0.33 ms (15 Hz at 50 Hz); below this fraction by < 0.3 %
+    #: of a sample interval (50 Hz slaves of a vibrating vehicle were up to 16 sigma off) -- test_latency_alias.py
+    #: (test_a_50_hz_slave_...), bench_latency_hard.py set slow-vibrating
+    band_limited_fraction: float = 0.15
     min_overlap_s: float = 5.0  # less overlap than this: an AnalysisError (test_latency short-log tests)
     #: stamps on a grid at least this coarse get a warning (a 1 ms logger clock: a floor of 0.29 ms); finer (a
     #: CSV written to the nanosecond, a 1 us clock) only enter the sigma budget: their floor of <= 2.9 us is

@@ -11,7 +11,8 @@ from logtools.conventions import dcm_from_quat, quat_conj, quat_make_continuous,
 from logtools.errors import AnalysisError
 from logtools.inslog import InsLog
 from logtools.navcheck import output_validity
-from logtools.resample import Interpolant, UniformSeries, interpolant, lowpass, to_uniform
+from logtools.resample import (Interpolant, UniformSeries, interpolant, lowpass, to_uniform,
+                               to_uniform_band_limited)
 
 
 def rate_from_attitude(t_s: np.ndarray, quat_wxyz: np.ndarray, *, drop_invalid: bool = False
@@ -123,6 +124,20 @@ def uniform_native(t: np.ndarray, w: np.ndarray, name: str) -> tuple[UniformSeri
     d2 = np.diff(nat.values[nat.valid], n=2, axis=0)
     noise = float(np.sqrt(np.mean((np.median(np.abs(d2), axis=0) * 1.4826) ** 2)) / np.sqrt(6.0)) if len(d2) else 0.0
     return nat, noise
+
+
+def band_limited_native(nat: UniformSeries, t: np.ndarray, w: np.ndarray, rate_hz: float, cutoff_hz: float,
+                        fraction: float, name: str) -> UniformSeries:
+    """The unit on a grid ``up`` times denser than its rate, band-limited (``to_uniform_band_limited``), when
+    its cutoff exceeds ``fraction`` of its rate (``up`` brings the cutoff within that fraction); else ``nat``."""
+    up = int(np.ceil(cutoff_hz / (fraction * rate_hz) - 1e-9)) if rate_hz > 0 else 1
+    if up <= 1:
+        return nat
+    try:
+        return to_uniform_band_limited(t, w, up, name=name)
+    except ValueError as exc:
+        msg = str(exc)
+        raise AnalysisError(msg if msg.startswith(name) else f"{name}: {msg}") from None
 
 
 def signal_band_hz(nat: UniformSeries, noise_rad_s: float) -> float:

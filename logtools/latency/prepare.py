@@ -11,7 +11,8 @@ import numpy as np
 from logtools.errors import AnalysisError
 from logtools.inslog import InsLog
 from logtools.latency.config import DEFAULT, LatencyConfig
-from logtools.latency.inputs import Unit, make_unit, series_on_grid, signal_band_hz, uniform_native, unit_rate
+from logtools.latency.inputs import (Unit, band_limited_native, make_unit, series_on_grid, signal_band_hz,
+                                     uniform_native, unit_rate)
 from logtools.latency.system import Accel
 from logtools.resample import Interpolant, interpolant, lowpass, median_rate_hz, smooth_interpolant, stamp_noise_s
 
@@ -37,7 +38,7 @@ class Ctx:
     #: (master, slave) sigma of the offset that put the rates' source on its log's clock (0 where both logs
     #: share it: two units of one tlog system, one SYSTEM_TIME)
     clock_sigma_s: tuple[float, float] = (0.0, 0.0)
-    acc_src: tuple | None = None  # (master, slave, cutoff, master rate) for the accelerometer-aided GLS
+    acc_src: tuple | None = None  # accel_pair's arguments, for the accelerometer-aided GLS
     vel_src: tuple | None = None  # (master, slave) for the velocity fit, both with NED velocity
     cfg: LatencyConfig = DEFAULT
 
@@ -96,6 +97,8 @@ def prepare(master: InsLog, slave: InsLog, max_lag_s: float | None, *, accelerom
     # information (a denser grid only costs time; the residuals' correlation is handled by the HAC)
     f_r = min(f_c, max(cfg.prepare.refine_band_factor * cutoff, cfg.prepare.min_refine_rate_hz))
     f_s = min(f_r, cfg.prepare.max_coarse_rate_hz)
+    natm = band_limited_native(natm, tm, wm, fm, cutoff, cfg.prepare.band_limited_fraction, "master")
+    nats = band_limited_native(nats, ts, ws, fs, cutoff, cfg.prepare.band_limited_fraction, "slave")
     um = make_unit(natm, nm, srcm, "master", fm, 1.0 / f_s, cutoff)
     us = make_unit(nats, ns, srcs, "slave", fs, 1.0 / f_s, cutoff)
     grp_m, grp_s = ("gyro" if src == "gyro" else "att" for src in (srcm, srcs))  # the rates' source channels
@@ -114,7 +117,8 @@ def prepare(master: InsLog, slave: InsLog, max_lag_s: float | None, *, accelerom
     acc_src = vel_src = None
     if (accelerometers and cfg.prepare.accel_aided and srcm == "gyro" and srcs == "gyro" and master.has_accel
             and slave_r.has_accel):
-        acc_src = (master, slave_r, cutoff, um.itp)  # built when needed (accel_pair)
+        # built when needed (accel_pair)
+        acc_src = (master, slave_r, cutoff, um.itp, cfg.prepare.band_limited_fraction)
     if velocity and cfg.prepare.velocity_aided and master.has_vel and slave_r.has_vel:
         vel_src = (master, slave_r)  # built when needed (velocity_step)
     for role, q in zip(("master", "slave"), res_s):
@@ -146,9 +150,11 @@ def refiltered_ctx(ctx: "Ctx", cutoff_hz: float) -> "Ctx":
     return replace(ctx, master=units[0], slave=units[1], cutoff_hz=cutoff_hz, adapted_cutoff=True)
 
 
-def accel_pair(master: InsLog, slave: InsLog, cutoff_hz: float, master_rate: Interpolant) -> Accel | None:
-    """Both units' specific force, uniform and low-passed at the rates' cutoff; None when either unit
-    has no (or too little finite) accelerometer data."""
+def accel_pair(master: InsLog, slave: InsLog, cutoff_hz: float, master_rate: Interpolant,
+               band_limited_fraction: float | None = None) -> Accel | None:
+    """Both units' specific force, uniform and low-passed at the rates' cutoff (band-limited as the rates
+    are, ``PrepareConfig.band_limited_fraction``); None when either unit has no (or too little finite)
+    accelerometer data."""
     itps = []
     for log, role in ((master, "master"), (slave, "slave")):
         if not log.has_accel:
@@ -158,7 +164,8 @@ def accel_pair(master: InsLog, slave: InsLog, cutoff_hz: float, master_rate: Int
         if ok.sum() < 256:
             return None
         try:
-            itps.append(smooth_interpolant(t[ok], f[ok], cutoff_hz, name=f"{role} accelerometer"))
+            itps.append(smooth_interpolant(t[ok], f[ok], cutoff_hz, name=f"{role} accelerometer",
+                                              band_limited_fraction=band_limited_fraction))
         except ValueError:
             return None
     return Accel(itps[0], itps[1], master_rate)

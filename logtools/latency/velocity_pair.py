@@ -72,7 +72,8 @@ def velocity_pair(master: InsLog, slave: InsLog, cutoff_hz: float, master_rate: 
     f_min = min(median_rate_hz(tm), median_rate_hz(ts))
     cut = float(min(cutoff_hz, cfg.velocity.max_cutoff_hz, cfg.velocity.cutoff_fraction * f_min))
     try:
-        itps = [smooth_interpolant(t, v, cut, name=f"{role} velocity")
+        itps = [smooth_interpolant(t, v, cut, name=f"{role} velocity",
+                                   band_limited_fraction=cfg.prepare.band_limited_fraction)
                 for t, v, role in ((tm, vm, "master"), (ts, vs, "slave"))]
     except ValueError:
         return None
@@ -95,7 +96,8 @@ def velocity_pair(master: InsLog, slave: InsLog, cutoff_hz: float, master_rate: 
             t_rows = tq[okw]
             del q, w, tq, o
             try:  # (column by column: 4 h of 9 columns is 207 MB a copy)
-                lev_itp = smooth_interpolant(t_rows, rows, cut, name="master lever-arm rows")
+                lev_itp = smooth_interpolant(t_rows, rows, cut, name="master lever-arm rows",
+                                             band_limited_fraction=cfg.prepare.band_limited_fraction)
             except ValueError:
                 lev_itp = None
             del rows, t_rows
