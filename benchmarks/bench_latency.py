@@ -131,6 +131,9 @@ def sim_config(d: dict):
     for k in ("master_jitter_s", "slave_jitter_s", "slave_gaps_s", "duration_s"):
         if k in d:
             ov[k] = d[k]
+    for k in ("rigid_vibration_deg", "rigid_vibration_hz"):
+        if k in d:
+            ov[k] = tuple(d[k])
     return sim.scenario_config(d["scenario"], **ov)
 
 

@@ -13,7 +13,11 @@ one thing:
 * ``rotated-velocity``: the slave logs a nav velocity as an INS whose attitude is off by a heading error
   of 1-8 deg and a tilt of up to 0.5 deg would (R (v - g t) + g t), flexure in half of the runs;
 * ``short-flexure``: 25-45 s logs, all with seed 000's flexure (without: the flexure model's likelihood
-  asking for 4 blocks per unknown, as before 2026-11-24, which kept records under ~40 s from the Kalman stage).
+  asking for 4 blocks per unknown, as before 2026-11-24, which kept records under ~40 s from the Kalman stage);
+* ``slow-vibrating``: the slave at 40, 50, 62.5 or 100 Hz, the whole vehicle shaking 0.003-0.012 deg per
+  axis at 8 Hz to 0.4 of the slave's rate (a rigid-body vibration: the delay's information near the
+  slave's Nyquist rate), no flexure (without: the slave gridded by a cubic spline at its stamps' fixed
+  offset, ``PrepareConfig.band_limited_fraction`` infinite, as before 2026-12-05).
 
 Every run is estimated twice: ``tapost`` and ``tapost-without`` (the remedy of that set switched off
 through its configuration (``WITHOUT``, ``without_config``): 1-2 drift windows below 45 s as before; no stamp-resolution floor; no frame
@@ -41,7 +45,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import bench_latency as bl  # noqa: E402
 
 OUT = os.path.join(bl.RESULTS_DIR, "latency_hard.json")
-SETS = ("short", "dropout", "ms-stamps", "rotated-velocity", "short-flexure")
+SETS = ("short", "dropout", "ms-stamps", "rotated-velocity", "short-flexure", "slow-vibrating")
 VARIANTS = ("tapost", "tapost-without")
 G_NED = np.array([0.0, 0.0, 9.80665])
 
@@ -60,6 +64,12 @@ def draw(set_name: str, i: int, base_seed: int) -> dict:
     elif set_name == "short-flexure":
         d["duration_s"] = float(rng.choice([25.0, 30.0, 35.0, 40.0, 45.0]))
         d["flexure"] = True
+    elif set_name == "slow-vibrating":
+        rate = float(rng.choice([40.0, 50.0, 62.5, 100.0]))
+        d["slave_imu_rate_hz"] = rate
+        d["flexure"] = False
+        d["rigid_vibration_deg"] = [float(x) for x in rng.uniform(0.003, 0.012, 3)]
+        d["rigid_vibration_hz"] = [float(x) for x in rng.uniform(8.0, 0.4 * rate, 3)]
     elif set_name == "dropout":
         dur = float(rng.uniform(60.0, 300.0))
         d["duration_s"] = dur
@@ -109,6 +119,7 @@ WITHOUT = {
     "rotated-velocity": {"velocity": {"frame_min_deg": float("inf"), "tilt_exact_deg": float("inf")}},
     "dropout": {},
     "short-flexure": {"flexure": {"ml_blocks_per_unknown": 4.0}},
+    "slow-vibrating": {"prepare": {"band_limited_fraction": float("inf")}},
 }
 
 
