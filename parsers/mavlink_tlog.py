@@ -427,8 +427,8 @@ def _msg_time(s: RawStream) -> tuple[np.ndarray, np.ndarray]:
     n = len(s.rec)
     if tf is None:
         return np.full(n, 2, np.int8), s.recv_ns.copy()
-    if tf == "time_boot_ms":
-        return np.zeros(n, np.int8), s.rec[tf].astype(np.int64) * 1_000_000
+    if tf == "time_boot_ms":  # the whole ms elapsed (truncated, BOOT_MS_NS): the instant is half a ms on
+        return np.zeros(n, np.int8), s.rec[tf].astype(np.int64) * BOOT_MS_NS + BOOT_MS_NS // 2
     us = s.rec[tf].astype(np.uint64)
     epoch = us > EPOCH_US_THRESHOLD
     return epoch.astype(np.int8), us.astype(np.int64) * 1000
@@ -1037,8 +1037,8 @@ def write(path: str, log: InsLog, *, sysid: int = 1, compid: int = 1, transport_
     def add(d, rec, t_abs_ns):
         pend.append(_Pending(d, rec, (recv_epoch_of(t_abs_ns) + delay_ns) // 1000))
 
-    def boot_ms(t_ns):
-        return np.round(boot_of(t_ns) / 1e6).astype(np.int64)
+    def boot_ms(t_ns):  # the whole milliseconds elapsed, as an autopilot's millis() gives them (BOOT_MS_NS)
+        return np.floor(boot_of(t_ns) / 1e6).astype(np.int64)
 
     t_imu_ns = None
     if log.has_gyro or log.has_accel:

@@ -187,3 +187,52 @@ def test_a_dataflash_slave_on_gps_time_carries_its_offsets_sigma_into_the_latenc
     assert other.meta.channels["gyro"].clock_offset_ns == slave.meta.channels["gyro"].clock_offset_ns is not None
     both = estimate(slave, other, compare=False, max_lag_s=0.5)
     assert both.quality["sigma_budget"].get("clock_mapping", 0.0) == 0.0
+
+
+def test_whole_millisecond_stamps_are_read_at_the_middle_of_their_millisecond(tmp_path):
+    """time_boot_ms counts the whole milliseconds elapsed (ArduPilot's millis(), PX4's hrt_absolute_time() /
+    1000: truncated), so a sample's instant lies anywhere in [ms, ms + 1). Read at the whole ms, every such
+    stamp was early by half a millisecond on average: a tlog slave whose IMU is SCALED_IMU2 came out 0.5 ms
+    early against a microsecond-stamped master (the simulator's 100 Hz tlog pairs -0.41 to -0.75 ms, the
+    real SITL log's RAW_IMU against SCALED_IMU2 -0.52 ms). Here an autopilot's HIGHRES_IMU (microseconds)
+    and SCALED_IMU2 (truncated milliseconds) of the same samples, at instants spread over their millisecond:
+    the two read within half a millisecond of each other and unbiased (-0.5 ms before)."""
+    rng = np.random.default_rng(4)
+    t_us = np.cumsum(rng.integers(9_500, 10_500, 2000)) + 5_000_000  # ~100 Hz, boot microseconds
+    mav = mavutil.mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    path = str(tmp_path / "autopilot.tlog")
+    with open(path, "wb") as out:
+        for k, tu in enumerate(t_us):
+            g = [0.1 * np.sin(0.01 * k), 0.05, -0.02]
+            for m in (mavutil.mavlink.MAVLink_highres_imu_message(int(tu), 0.1, 0.2, -9.8, *g, 0, 0, 0, 0, 0, 0, 20.0,
+                                                                  0x3F),
+                      mavutil.mavlink.MAVLink_scaled_imu2_message(int(tu // 1000), 10, 20, -1000,
+                                                                  *[int(round(x * 1000)) for x in g], 0, 0, 0)):
+                mav.seq = k % 256
+                out.write(int(1_700_000_000_000_000 + tu + 3000).to_bytes(8, "big") + m.pack(mav))
+    a = registry.load(f"{path}::imu=HIGHRES_IMU")
+    b = registry.load(f"{path}::imu=SCALED_IMU2")
+    err_ms = (abs_ns(b, b.t_imu_s()) - abs_ns(a, a.t_imu_s())) / 1e6
+    assert len(err_ms) == len(t_us)
+    assert np.all(np.abs(err_ms) <= 0.5 + 1e-6)
+    assert abs(np.mean(err_ms)) < 0.05, np.mean(err_ms)
+
+
+def test_the_tlog_writer_puts_whole_milliseconds_elapsed_in_time_boot_ms(tmp_path):
+    """tapost's own tlog writer fills time_boot_ms as an autopilot does (truncated): attitude instants at
+    random fractions of their millisecond come back within half a millisecond and unbiased."""
+    from logtools.inslog import InsLog
+
+    log = make_log(duration_s=20.0, clock="boot")
+    rng = np.random.default_rng(4)
+    tq, q = log.quat_wxyz()
+    tq = tq + rng.uniform(0.0, 1e-3, len(tq))  # each instant somewhere in its millisecond
+    _, v = log.vel_ned_m_s()
+    _, p = log.lat_lon_alt()
+    log = InsLog.from_arrays(log.meta, log.t_imu_s(), log.gyro_rad_s(), log.accel_m_s2(), tq, q, v, p)
+    path = str(tmp_path / "unit.tlog")
+    registry.write(path, log, "tlog")
+    back = registry.load(path)
+    err_ms = (abs_ns(back, back.quat_wxyz()[0]) - abs_ns(log, tq)) / 1e6
+    assert np.all(np.abs(err_ms) <= 0.5 + 1e-6)
+    assert abs(np.mean(err_ms)) < 0.05, np.mean(err_ms)

@@ -109,9 +109,11 @@ def test_tlog_round_trip(tmp_path, clock):
     np.testing.assert_array_equal(abs_ns(back, back.t_imu_s()), abs_ns(log, log.t_imu_s()))
     np.testing.assert_allclose(back.gyro_rad_s(), log.gyro_rad_s().astype(np.float32), rtol=0, atol=1e-7)
     np.testing.assert_allclose(back.accel_m_s2(), log.accel_m_s2().astype(np.float32), rtol=0, atol=1e-6)
-    # attitude (float32 quaternion, time_boot_ms mapped back through SYSTEM_TIME), vel (cm/s), pos
+    # attitude (float32 quaternion, time_boot_ms mapped back through SYSTEM_TIME), vel (cm/s), pos. The
+    # writer puts the whole milliseconds elapsed in time_boot_ms, as an autopilot's millis() does; the reader
+    # takes the middle of that millisecond: these whole-ms instants come back half a millisecond later
     tq, q = back.quat_wxyz()
-    np.testing.assert_array_equal(abs_ns(back, tq), abs_ns(log, log.quat_wxyz()[0]))
+    np.testing.assert_array_equal(abs_ns(back, tq), abs_ns(log, log.quat_wxyz()[0]) + 500_000)
     assert quat_err(q, log.quat_wxyz()[1]) < 1e-12 + 1e-7
     tv, v = back.vel_ned_m_s()
     np.testing.assert_allclose(v, log.vel_ned_m_s()[1], atol=0.005 + 1e-9)
