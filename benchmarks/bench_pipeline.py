@@ -12,7 +12,7 @@ written by ``parsers.registry.write``. For each pair, every step a fresh process
   recording.rrd), the whole process, its peak RSS (``wait4``'s ru_maxrss), its stage times (report.json);
   the median of ``--repeat`` runs (3 by default; 1 from 1 h on);
 * a parse-only child (each file loaded alone), and a cProfile of the analyze
-  (``benchmarks/results/pipeline_profile_<N>s.txt``; the sample pair's, or every length's with
+  (``benchmarks/results/pipeline_profile_<sample|minutes>.txt``; the sample pair's, or every length's with
   ``--profile-all``).
 
 tapost's modules are byte-compiled first (``compileall``), as ``pip install`` leaves an installed package and

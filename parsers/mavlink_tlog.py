@@ -427,7 +427,7 @@ def _msg_time(s: RawStream) -> tuple[np.ndarray, np.ndarray]:
     n = len(s.rec)
     if tf is None:
         return np.full(n, 2, np.int8), s.recv_ns.copy()
-    if tf == "time_boot_ms":  # the whole ms elapsed (truncated, BOOT_MS_NS): the instant is half a ms on
+    if tf == "time_boot_ms":  # whole ms elapsed (truncated, BOOT_MS_NS): the instant lies in [ms, ms + 1), read mid
         return np.zeros(n, np.int8), s.rec[tf].astype(np.int64) * BOOT_MS_NS + BOOT_MS_NS // 2
     us = s.rec[tf].astype(np.uint64)
     epoch = us > EPOCH_US_THRESHOLD

@@ -150,7 +150,7 @@ def test_real_log0036_estimate_follows_any_restamp(tmp_path):
     """A restamp of the slave by one whole step of its 25 Hz grid or by a fraction of one moves the latency
     by the shift and leaves the drift and the sigma as they were. While the slave was read by a cubic spline
     at a fixed offset from its samples, only whole steps did: 2.67 ms moved the drift by +1.69 ppm, 30 ms by
-    -3.06 ppm (content near Nyquist delayed by the sampling phase). Now within 2 us and 0.012 ppm."""
+    -3.06 ppm (content near Nyquist delayed by the sampling phase). Now within 2 us and 0.013 ppm."""
     p = real("arducopter_log0036.bin")
     master, slave = registry.load(f"{p}::imu=IMU"), registry.load(f"{p}::imu=IMU2")
     step_s = round(float(np.median(np.diff(slave.t_imu_s()))) * 1e6) * 1e-6  # whole us, as TimeUS
