@@ -23,7 +23,7 @@ from scipy import fft as sfft
 from logtools import jit
 
 __all__ = ["butter_lowpass_sos", "sosfiltfilt_even", "sosfilt_zi", "welch_psd", "correlate_valid",
-           "cubic_spline_at", "weighted_rows", "as_trapezoid_integrates"]
+           "cubic_spline_at", "weighted_rows", "as_trapezoid_integrates", "mad_sigma"]
 
 
 def butter_lowpass_sos(order: int, wn: float) -> np.ndarray:
@@ -319,6 +319,11 @@ def as_trapezoid_integrates(t_s: np.ndarray, x: np.ndarray, rate_hz: float, gap_
             col += pos * step
         o += size
     return tt, (xx[:, 0] if x.ndim == 1 else xx)
+
+
+def mad_sigma(x: np.ndarray) -> np.ndarray:
+    """Each column's robust standard deviation (n, k) -> (k,): 1.4826 x its median absolute deviation."""
+    return np.median(np.abs(x - np.median(x, axis=0)), axis=0) * 1.4826
 
 
 def correlate_valid(a: np.ndarray, b: np.ndarray) -> np.ndarray:

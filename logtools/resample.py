@@ -26,8 +26,8 @@ from logtools.dsp import butter_lowpass_sos, cubic_spline_at, sosfiltfilt_even, 
 from logtools.rows import BLOCK_ROWS
 
 __all__ = ["CleanSamples", "UniformSeries", "Interpolant", "clean_samples", "median_rate_hz",
-           "to_uniform", "to_uniform_band_limited", "sample_clock", "lowpass", "interpolant", "smooth_interpolant",
-           "stamp_noise_s"]
+           "to_uniform", "to_uniform_band_limited", "band_limited_factor", "sample_clock", "lowpass", "interpolant",
+           "smooth_interpolant", "stamp_noise_s"]
 
 
 @dataclass(frozen=True)
@@ -149,6 +149,18 @@ class _Grid:
     gaps_s: tuple[tuple[float, float], ...]
 
 
+def _gap_limit_s(dt_s: float, max_gap_samples: float) -> float:
+    """The longest step between two samples of a stream at interval ``dt_s`` that is not a gap: a gap is an
+    interval with more than ``max_gap_samples`` samples missing in it."""
+    return (max_gap_samples + 1.5) * dt_s
+
+
+def band_limited_factor(cutoff_hz: float, dt_s: float, fraction: float) -> int:
+    """How many times denser than its interval ``dt_s`` a stream's grid must be for ``cutoff_hz`` to lie within
+    ``fraction`` of its rate (1: its own interval is enough; :func:`to_uniform_band_limited`)."""
+    return int(np.ceil(cutoff_hz * dt_s / fraction - 1e-9))
+
+
 def _grid(t_s: np.ndarray, values: np.ndarray, dt_s: float | None, max_gap_samples: float, name: str) -> _Grid:
     cs = clean_samples(t_s, values, name=name)
     t, x = cs.t_s, cs.values
@@ -168,8 +180,7 @@ def _grid(t_s: np.ndarray, values: np.ndarray, dt_s: float | None, max_gap_sampl
     gaps: list[tuple[float, float]] = []
     steps = np.diff(t)
     jitter = stamp_noise_s(t) * np.sqrt(2.0) / dt_nat  # the intervals' spread, as a fraction of one
-    # an interval is a gap when more than max_gap_samples samples are missing in it
-    big = np.flatnonzero(steps > (max_gap_samples + 1.5) * dt_nat)
+    big = np.flatnonzero(steps > _gap_limit_s(dt_nat, max_gap_samples))
     if len(big):
         # grid points strictly inside (t[j], t[j+1]) of a long interval are masked
         eps = 1e-6 * dt  # a grid point on a bounding sample (up to rounding) is that sample
@@ -379,9 +390,9 @@ def smooth_interpolant(t_s: np.ndarray, values: np.ndarray, cutoff_hz: float, *,
     ``up`` times denser by :func:`to_uniform_band_limited` instead (``up`` brings the cutoff within it)."""
     g = _grid(t_s, values, None, MAX_GAP_SAMPLES, name)
     if band_limited_fraction:
-        up = int(np.ceil(cutoff_hz * g.dt_s / band_limited_fraction - 1e-9))
+        up = band_limited_factor(cutoff_hz, g.dt_s, band_limited_fraction)
         if up > 1:
-            return interpolant(lowpass(to_uniform_band_limited(t_s, values, up, name=name), cutoff_hz))
+            return interpolant(lowpass(_band_limited(g, up, MAX_GAP_SAMPLES), cutoff_hz))
     sos = _lowpass_sos(len(g.t_grid_s), g.dt_s, cutoff_hz, LOWPASS_ORDER)
     valid = g.valid if sos is None else _lowpassed_valid(g.valid, g.dt_s, cutoff_hz)
 
@@ -426,7 +437,7 @@ def sample_clock(t_s: np.ndarray, max_gap_samples: float = MAX_GAP_SAMPLES) -> t
     steps = np.diff(t)
     med = float(np.median(steps))
     k = np.rint(steps / med)
-    use = steps <= (max_gap_samples + 1.5) * med
+    use = steps <= _gap_limit_s(med, max_gap_samples)
     dt = float(steps[use].sum() / k[use].sum()) if k[use].sum() > 0 else med
     ang = 2.0 * np.pi * ((t - t[0]) / dt)
     phase = float(t[0] + dt * np.angle(np.mean(np.exp(1j * ang))) / (2.0 * np.pi))
@@ -444,10 +455,14 @@ def to_uniform_band_limited(t_s: np.ndarray, values: np.ndarray, up: int, *,
     delay error that depends on that offset and grows towards the Nyquist frequency (up to 0.33 ms for a
     15 Hz motion sampled at 50 Hz). Here the spline only reads a series sampled ``up`` times faster than its
     content (0.3 % of that at 4x). Masking as :func:`to_uniform` (gaps, ends)."""
+    return _band_limited(_grid(t_s, values, None, max_gap_samples, name), up, max_gap_samples)
+
+
+def _band_limited(g: _Grid, up: int, max_gap_samples: float) -> UniformSeries:
+    """:func:`to_uniform_band_limited` of a stream's cleaned samples and gaps (``_grid``, at its own interval)."""
     from scipy.signal import resample_poly
 
     up = max(int(up), 1)
-    g = _grid(t_s, values, None, max_gap_samples, name)
     t, x = g.t_s, g.values
     dt, phase = sample_clock(t, max_gap_samples)
     dtf = dt / up
@@ -456,7 +471,7 @@ def to_uniform_band_limited(t_s: np.ndarray, values: np.ndarray, up: int, *,
     n = i1 - i0 + 1
     vg = np.zeros((n, x.shape[1]))
     valid = np.zeros(n, dtype=bool)
-    cuts = np.flatnonzero(np.diff(t) > (max_gap_samples + 1.5) * float(np.median(np.diff(t)))) + 1
+    cuts = np.flatnonzero(np.diff(t) > _gap_limit_s(g.dt_s, max_gap_samples)) + 1
     for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(t)]):
         tr, xr = t[a:b], x[a:b]
         # the run's grid points, and its own sample instants (phase + k dt) inside it

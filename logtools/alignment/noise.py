@@ -32,7 +32,7 @@ import numpy as np
 from scipy import fft as sfft
 
 from logtools.conventions import skew
-from logtools.dsp import cubic_spline_at
+from logtools.dsp import cubic_spline_at, mad_sigma
 from logtools.inslog import InsLog
 
 from .imu_to_imu import finite_increasing
@@ -43,8 +43,7 @@ def d3_sigma(d3: np.ndarray) -> float:
     (a white sample noise s gives third differences of variance 20 s^2)."""
     if len(d3) < 5:
         return 0.0
-    mad = np.median(np.abs(d3 - np.median(d3, axis=0)), axis=0) * 1.4826
-    return float(np.max(mad) / np.sqrt(20.0))
+    return float(np.max(mad_sigma(d3)) / np.sqrt(20.0))
 
 
 def _d3(x: np.ndarray) -> np.ndarray:
@@ -55,9 +54,11 @@ def _cols_at(t: np.ndarray, y: np.ndarray, ts: np.ndarray) -> np.ndarray:
     return np.stack([cubic_spline_at(t, y[:, i], ts) for i in range(y.shape[1])], -1)
 
 
-def _below(t: np.ndarray, y: np.ndarray, f_max_hz: float) -> tuple[np.ndarray, np.ndarray]:
-    """The columns of ``y`` on near-uniform stamps ``t`` and their d/dt, nothing above ``f_max_hz`` in either
-    (FFT; the line through the ends taken out first, so that the series wraps without a jump)."""
+def _below(t: np.ndarray, y: np.ndarray, f_max_hz: float, with_rate: bool = True
+           ) -> tuple[np.ndarray, np.ndarray | None]:
+    """The columns of ``y`` on near-uniform stamps ``t`` and (``with_rate``) their d/dt, nothing above
+    ``f_max_hz`` in either (FFT; the line through the ends taken out first, so that the series wraps without
+    a jump)."""
     n = len(t)
     dt = (t[-1] - t[0]) / (n - 1)
     slope = (y[-1] - y[0]) / (n - 1)
@@ -66,8 +67,9 @@ def _below(t: np.ndarray, y: np.ndarray, f_max_hz: float) -> tuple[np.ndarray, n
     f = sfft.rfftfreq(nfft, dt)
     spec = sfft.rfft(y - line, nfft, axis=0) * (f <= f_max_hz)[:, None]
     value = sfft.irfft(spec, nfft, axis=0)[:n] + line
-    rate = sfft.irfft(spec * (2j * np.pi * f)[:, None], nfft, axis=0)[:n] + slope / dt
-    return value, rate
+    if not with_rate:
+        return value, None
+    return value, sfft.irfft(spec * (2j * np.pi * f)[:, None], nfft, axis=0)[:n] + slope / dt
 
 
 def accel_noise_without_lever(master: InsLog, t_imu: np.ndarray, gyro: np.ndarray, accel: np.ndarray,
@@ -118,7 +120,7 @@ def accel_noise_without_lever(master: InsLog, t_imu: np.ndarray, gyro: np.ndarra
         k1 = min(int(np.searchsorted(ta, t[-1])) + 8, len(ta))
         if k1 - k0 < 64 or ta[k0] > t[0] or ta[k1 - 1] < t[-1] or np.diff(ta[k0:k1]).max() > 10 * dt_m:
             continue
-        f = _cols_at(ta[k0:k1], _below(ta[k0:k1], fm[k0:k1], f_max)[0], t)
+        f = _cols_at(ta[k0:k1], _below(ta[k0:k1], fm[k0:k1], f_max, with_rate=False)[0], t)
         sw = skew(_cols_at(tmc, gmc, t))
         rk = np.einsum("ij,njk->nik", r0, skew(_cols_at(tmc, gdc, t)) + sw @ sw)  # R0 K: lever accel = R0 K r
         y_a.append(_d3(accel[idx] - f @ r0.T))

@@ -11,8 +11,8 @@ from logtools.conventions import dcm_from_quat, quat_conj, quat_make_continuous,
 from logtools.errors import AnalysisError
 from logtools.inslog import InsLog
 from logtools.navcheck import output_validity
-from logtools.resample import (Interpolant, UniformSeries, interpolant, lowpass, to_uniform,
-                               to_uniform_band_limited)
+from logtools.resample import (Interpolant, UniformSeries, band_limited_factor, interpolant, lowpass,
+                               to_uniform, to_uniform_band_limited)
 
 
 def rate_from_attitude(t_s: np.ndarray, quat_wxyz: np.ndarray, *, drop_invalid: bool = False
@@ -130,14 +130,9 @@ def band_limited_native(nat: UniformSeries, t: np.ndarray, w: np.ndarray, rate_h
                         fraction: float, name: str) -> UniformSeries:
     """The unit on a grid ``up`` times denser than its rate, band-limited (``to_uniform_band_limited``), when
     its cutoff exceeds ``fraction`` of its rate (``up`` brings the cutoff within that fraction); else ``nat``."""
-    up = int(np.ceil(cutoff_hz / (fraction * rate_hz) - 1e-9)) if rate_hz > 0 else 1
-    if up <= 1:
-        return nat
-    try:
-        return to_uniform_band_limited(t, w, up, name=name)
-    except ValueError as exc:
-        msg = str(exc)
-        raise AnalysisError(msg if msg.startswith(name) else f"{name}: {msg}") from None
+    up = band_limited_factor(cutoff_hz, 1.0 / rate_hz, fraction) if rate_hz > 0 else 1
+    # (the same stamps as uniform_native's: its checks passed, so this grid's do)
+    return to_uniform_band_limited(t, w, up, name=name) if up > 1 else nat
 
 
 def signal_band_hz(nat: UniformSeries, noise_rad_s: float) -> float:
