@@ -12,6 +12,7 @@ long options with ``_`` for ``-``, top level or under an ``[analyze]`` table), e
 from __future__ import annotations
 
 import argparse
+import importlib
 import inspect
 import json
 import os
@@ -409,6 +410,25 @@ def _uncompensated_options(opts: AnalyzeOptions, compensated: bool) -> AnalyzeOp
     return opts
 
 
+#: the modules of the outputs (write_outputs) and what they import: rerun's SDK alone is about 0.4 s
+OUTPUT_MODULES = {"html": ("pipelines.html",), "recording": ("pipelines.recording", "rerun", "rerun.blueprint")}
+
+
+def _import_output_modules(opts: AnalyzeOptions) -> None:
+    """The output stage's imports, done while this process would wait for the alignment's forked children
+    (the 1 h pair: 2-3 s of waiting; its recording then starts 0.4 s sooner). Not the recording's where a
+    prepared child holds them (``parallel.prepare``); an import that fails here fails again where it is
+    used, and is reported there."""
+    names = list(OUTPUT_MODULES["html"]) if opts.html else []
+    if opts.recording and not parallel.is_prepared("recording"):
+        names += OUTPUT_MODULES["recording"]
+    for name in names:
+        try:
+            importlib.import_module(name)
+        except ImportError:
+            return
+
+
 def _has_board_states(res) -> bool:
     return isinstance(res, AlignmentResult) and res.has_board_states
 
@@ -755,22 +775,23 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
             "compensated": (an.slave_comp, sub(0.7, 0.9, "alignment (compensated)"))}
     run_opts = {"uncompensated": _uncompensated_options(opts, an.slave_comp is not None), "compensated": opts}
     pending = {}
-    if runs["uncompensated"][0] is not None and runs["compensated"][0] is not None and parallel.available():
+    forked = runs["uncompensated"][0] is not None and runs["compensated"][0] is not None and parallel.available()
+    imu_fit = None
+    if (forked and _wants_imu_to_imu(master, an.slave)
+            and len(master.imu) + len(an.slave.imu) <= parallel.FORK_IMU_TO_IMU_MAX_SAMPLES):
+        # the IMU-to-IMU fit in a forked child beside the two runs (the uncompensated one in a second child, the
+        # compensated one here), when the logs are short enough for its arrays to sit beside theirs
+        # (parallel.FORK_IMU_TO_IMU_MAX_SAMPLES); else here once the runs are done. Forked first: it is the
+        # stage's longest part (5 s of the 1 h pair's 11 s of CPU) and needs none of the runs' master series
+        from logtools.alignment.imu_to_imu import imu_to_imu
+
+        imu_fit = parallel.submit(imu_to_imu, master, an.slave_comp)
+    if forked:
         # the two runs share nothing but their inputs: the uncompensated one in a forked child (CLI only),
         # the master's series prepared before (the child shares them instead of preparing its own)
         _prepare_master(master)
         pending["uncompensated"] = parallel.submit(_alignment, master, face, "uncompensated",
                                                    run_opts["uncompensated"], null_progress, an.latency)
-    imu_fit = None
-    if (isinstance(pending.get("uncompensated"), parallel.Pending) and an.slave_comp is not None
-            and _wants_imu_to_imu(master, an.slave)
-            and len(master.imu) + len(an.slave.imu) <= parallel.FORK_IMU_TO_IMU_MAX_SAMPLES):
-        # the IMU-to-IMU fit in a second forked child, beside the uncompensated run's and the compensated
-        # run here, when the logs are short enough for its arrays to sit beside theirs
-        # (parallel.FORK_IMU_TO_IMU_MAX_SAMPLES); else here once the runs are done
-        from logtools.alignment.imu_to_imu import imu_to_imu
-
-        imu_fit = parallel.submit(imu_to_imu, master, an.slave_comp)
     for run, (slog, p) in runs.items():
         if slog is None:
             why = ("latency failed" if an.latency is None
@@ -779,6 +800,8 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
         elif run not in pending:
             p(0.0, "")
             pending[run] = _alignment(master, slog, run, run_opts[run], p, an.latency)
+    if imu_fit is not None or any(isinstance(x, parallel.Pending) for x in pending.values()):
+        _import_output_modules(opts)  # (this process would wait for the children here)
     for run in runs:
         res = pending[run]
         if isinstance(res, parallel.Pending):

@@ -292,6 +292,11 @@ def call_prepared(name: str, fn: Callable, *args, **kwargs) -> Any:
     return value
 
 
+def is_prepared(name: str) -> bool:
+    """Whether a child ``prepare(name, ...)`` started is waiting for its call."""
+    return name in _PREPARED
+
+
 def release(name: str) -> None:
     """Let a prepared child go unused (it sees its end of file and exits)."""
     entry = _PREPARED.pop(name, None)

@@ -93,6 +93,31 @@ def test_the_cli_analyze_with_forked_alignment_equals_the_in_process_answer(tmp_
             list(here[key]), rel=1e-12, abs=1e-12)
 
 
+_WAIT_IMPORTS = """
+import sys
+from pipelines import analyze, parallel
+parallel.enable(True)
+opts = analyze.AnalyzeOptions(recording={rec}, html={html})
+an = analyze.compute(sys.argv[1], sys.argv[2], opts)
+assert an.alignment["compensated"] is not None
+print(" ".join(m for m in ("rerun", "pipelines.recording", "pipelines.html") if m in sys.modules))
+"""
+
+
+@posix_fork
+@pytest.mark.parametrize("rec,html", [(True, True), (False, True), (False, False)])
+def test_while_the_alignment_children_run_the_outputs_modules_are_imported(rec, html):
+    """compute() imports the outputs' modules (rerun's SDK: 0.4 s) where it would wait for the alignment's
+    forked children; only those of the outputs asked for (a process without them never imports rerun)."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    p = subprocess.run([sys.executable, "-c", _WAIT_IMPORTS.format(rec=rec, html=html), str(SAMPLE / "master.mcap"),
+                        str(SAMPLE / "slave.tlog")], capture_output=True, text=True, env=env, timeout=600)
+    assert p.returncode == 0, p.stderr
+    got = set(p.stdout.split())
+    want = ({"rerun", "pipelines.recording"} if rec else set()) | ({"pipelines.html"} if html else set())
+    assert got == want
+
+
 def _import_state():
     return os.getpid(), "colorsys" in sys.modules
 
@@ -102,6 +127,7 @@ def test_a_prepared_child_imports_ahead_and_runs_the_call_sent_later(forking):
     sys.modules.pop("colorsys", None)
     assert parallel.prepare("t", ("colorsys",))
     assert not parallel.prepare("t", ("colorsys",))  # one child per name
+    assert parallel.is_prepared("t") and not parallel.is_prepared("other")
     pid, imported = parallel.call_prepared("t", _import_state)
     assert pid != os.getpid() and imported and "colorsys" not in sys.modules
     # used once: the next call of the name runs here
