@@ -278,6 +278,27 @@ def test_the_highpass_kernel_gives_the_numpy_arithmetic_bit_for_bit(monkeypatch)
         assert np.array_equal(got, want), n_win
 
 
+def test_the_four_point_interpolation_kernel_gives_the_numpy_arithmetic_bit_for_bit(monkeypatch):
+    """_interp_at's four-point (cubic Lagrange) interpolation compiled and as numpy (blocks of rows): the same
+    numbers, on jittered stamps with a gap, at points on, between and outside the samples."""
+    from logtools import jit
+    from logtools.alignment import imu_to_imu as i2i
+
+    if not jit.compiled():
+        pytest.skip("kernels run as Python in this session")
+    rng = np.random.default_rng(6)
+    tp = np.cumsum(0.005 * (1.0 + 0.2 * rng.uniform(-1, 1, 20000)))
+    tp[12000:] += 0.5  # a gap
+    yp = np.cumsum(rng.standard_normal((len(tp), 3)), axis=0)
+    t = np.sort(np.concatenate([rng.uniform(tp[0] - 1.0, tp[-1] + 1.0, 30000), tp[::7]]))
+    got = i2i._interp_at(t, tp, yp, 3.0, points=4)
+    monkeypatch.setattr(jit, "compiled", lambda: False)
+    want = i2i._interp_at(t, tp, yp, 3.0, points=4)
+    monkeypatch.undo()
+    assert np.array_equal(got[1], want[1]) and np.array_equal(got[0], want[0])
+    assert not np.array_equal(got[0], i2i._interp_at(t, tp, yp, 3.0, points=2)[0])  # (the four points did act)
+
+
 def test_a_retry_with_a_longer_window_works_on_fresh_samples_and_leaves_the_logs_untouched():
     """The fit high-passes its common samples in place; a retry (a longer window) must start from fresh ones:
     a first window that leaves no motion, then 4 s, gives exactly what 4 s gives at once, and the logs'

@@ -196,6 +196,8 @@ def finite_increasing(t: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndar
     """(t, y (n, k)) without the rows whose stamp or values are not finite, sorted by time (stable), the first
     of each repeated stamp kept: strictly increasing stamps, for interpolation."""
     ok = np.isfinite(t) & np.isfinite(y).all(1)
+    if ok.all() and (len(t) < 2 or bool(np.all(t[1:] > t[:-1]))):  # (the usual log: copies, nothing to sort)
+        return t.copy(), y.copy()
     t, y = t[ok], y[ok]
     order = np.argsort(t, kind="stable")
     t, y = t[order], y[order]
@@ -223,6 +225,9 @@ def _interp_at(t: np.ndarray, tp: np.ndarray, yp: np.ndarray, gap_steps: float, 
     lim = gap_steps * step
     near = (tp[a] - tp[a - 1] <= lim) & (tp[a + 1] - tp[a] <= lim) & (tp[a + 2] - tp[a + 1] <= lim)
     idx, a = idx[near], a[near]
+    if jit.compiled():  # one pass, the same arithmetic (tests/test_imu_to_imu.py)
+        _lagrange4_kernel(t, tp, yp, idx, a, y)
+        return y, inside
     for lo in range(0, len(idx), BLOCK_ROWS):  # row by row arithmetic: the blocks bound the temporaries
         ii, aa = idx[lo:lo + BLOCK_ROWS], a[lo:lo + BLOCK_ROWS]
         x = t[ii]
@@ -238,15 +243,30 @@ def _interp_at(t: np.ndarray, tp: np.ndarray, yp: np.ndarray, gap_steps: float, 
     return y, inside
 
 
+@jit.njit
+def _lagrange4_kernel(t, tp, yp, idx, a, y):  # pragma: no cover - compiled (_interp_at's numpy arithmetic)
+    for q in range(idx.shape[0]):
+        i, aa = idx[q], a[q]
+        x = t[i]
+        for c in range(yp.shape[1]):
+            acc = 0.0
+            for jn in range(4):
+                wgt = 1.0
+                for mn in range(4):
+                    if mn != jn:
+                        wgt *= (x - tp[aa + mn - 1]) / (tp[aa + jn - 1] - tp[aa + mn - 1])
+                acc += wgt * yp[aa + jn - 1, c]
+            y[i, c] = acc
+
+
 def _highpass(y: np.ndarray, n_win: int, out: np.ndarray | None = None) -> np.ndarray:
     """y minus its centred moving mean over n_win samples (shorter at the ends), per column; into ``out``
     when given (``y`` itself allowed: a column's running sum is taken before any of it is written)."""
     n = len(y)
     h = max(n_win // 2, 1)
     out = np.empty(y.shape) if out is None else out
-    if jit.compiled():  # one pass a column, the same arithmetic (tests/test_imu_to_imu.py)
-        for j in range(y.shape[1]):
-            _highpass_kernel(y[:, j], h, out[:, j])
+    if jit.compiled():  # one pass over the rows, the same arithmetic (tests/test_imu_to_imu.py)
+        _highpass_kernel(y, h, out)
         return out
     for j in range(y.shape[1]):  # column by column (one column's running sum at a time: 4 h of the
         c = np.concatenate([[0.0], np.cumsum(y[:, j])])  # accelerometers' 12 regressors are 280 MB a copy)
@@ -260,17 +280,29 @@ def _highpass(y: np.ndarray, n_win: int, out: np.ndarray | None = None) -> np.nd
 
 @jit.njit
 def _highpass_kernel(y, h, out):  # pragma: no cover - compiled (_highpass's numpy arithmetic, same order)
-    n = y.shape[0]
-    c = np.empty(n + 1)
-    c[0] = 0.0
-    acc = 0.0
-    for i in range(n):  # np.cumsum: a running sum, element after element
-        acc += y[i]
-        c[i + 1] = acc
+    # every column's running sum c (np.cumsum: element after element) read at i1 = r + h + 1 and at
+    # i0 = r - h (clipped) as two running sums, each advanced one element at a time, so no (n + 1, k) array
+    # of them: c[i1] - c[i0] holds the same numbers. The rows i0 reads again are kept in a ring of h + 2
+    # (``out`` may be ``y``: a row is overwritten once read into the ring)
+    n, k = y.shape
+    ring_n = h + 2
+    ring = np.empty((ring_n, k))
+    hi, lo = np.zeros(k), np.zeros(k)
+    i_hi, i_lo = 0, 0  # hi = c[i_hi], lo = c[i_lo]
     for r in range(n):
         i0 = min(max(r - h, 0), n)
         i1 = min(max(r + h + 1, 0), n)
-        out[r] = y[r] - (c[i1] - c[i0]) / (i1 - i0)
+        while i_hi < i1:
+            for j in range(k):
+                hi[j] += y[i_hi, j]
+            i_hi += 1
+        while i_lo < i0:
+            for j in range(k):
+                lo[j] += ring[i_lo % ring_n, j]
+            i_lo += 1
+        for j in range(k):
+            ring[r % ring_n, j] = y[r, j]
+            out[r, j] = y[r, j] - (hi[j] - lo[j]) / (i1 - i0)
 
 
 def _common(t_m: np.ndarray, y_m: np.ndarray, t_s: np.ndarray, y_s: np.ndarray, gap_steps: float
@@ -731,7 +763,7 @@ def _lever_regressors(t: np.ndarray, tm: np.ndarray, gyro_m: np.ndarray, cfg: Im
 
 
 def _regressor_noise_cov(t: np.ndarray, gm: tuple[np.ndarray, np.ndarray], nwin: int, nlp: int,
-                         cfg: ImuToImuConfig, sos: np.ndarray | None = None
+                         cfg: ImuToImuConfig, sos: np.ndarray | None = None, parts: tuple | None = None
                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, np.ndarray] | None:
     """The per-sample covariance ((12, 12), as ``k.reshape(n, 12)``; the delay's column none) of the noise the
     master gyro's white noise puts into the lever arm's regressors, as the fits see them: the whole motion
@@ -741,7 +773,32 @@ def _regressor_noise_cov(t: np.ndarray, gm: tuple[np.ndarray, np.ndarray], nwin:
     answer) added to the master's rates there, pushed through :func:`_lever_regressors` and the same filters,
     less the regressors without it; their relative 1-sigma; and the per-sample moment of the regressors
     themselves on that stretch (for :func:`_lever_kept_fraction`). ``sos``: a zero-phase low-pass after the high-pass
-    (:func:`_lowpassed`), as the fits then see them. None where the stretch is too short for the filters."""
+    (:func:`_lowpassed`), as the fits then see them. None where the stretch is too short for the filters.
+    ``parts``: :func:`_noise_regressors`' answer for these (t, gm, nwin, cfg), where already computed (the
+    low-pass trials of :func:`_lever_band` share it: the simulation does not depend on the low-pass)."""
+    parts = _noise_regressors(t, gm, nwin, cfg) if parts is None else parts
+    if parts is None:
+        return None
+    nf, sg, rel_var = parts
+    rows = len(nf)
+    if sos is not None:  # (on copies: the parts serve the next trial too)
+        nf, sg = _lowpassed(nf.copy(), sos), _lowpassed(sg.copy(), sos)
+    fast = _highpass(nf, nlp)
+    slow = nf - fast
+    cut = slice(nwin // 2, rows - nwin // 2)
+    m = rows - 2 * (nwin // 2)  # (the rows the fits keep)
+    # the moments' relative 1-sigma: the variance's, and the simulation's own (one draw over m rows of a noise
+    # correlated over a few of them: 2 / sqrt(m))
+    rel_sd = float(np.hypot(rel_var, 2.0 / np.sqrt(m)))
+    return tuple((x[cut].T @ x[cut]) / m for x in (nf, slow, fast)) + (rel_sd, (sg[cut].T @ sg[cut]) / m)
+
+
+def _noise_regressors(t: np.ndarray, gm: tuple[np.ndarray, np.ndarray], nwin: int, cfg: ImuToImuConfig
+                      ) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """:func:`_regressor_noise_cov`'s simulation, before any low-pass: on the stretch of at most cfg.noise_rows
+    common samples in the middle of t, the lever arm's regressors' noise (with the white noise less without it)
+    and the regressors themselves, both high-passed over ``nwin`` ((rows, 12) each), and the noise variance's
+    relative 1-sigma; None where the stretch is too short for the filters."""
     n = len(t)
     rows = min(n, cfg.noise_rows)
     if rows < 2 * nwin + 1000:
@@ -760,17 +817,7 @@ def _regressor_noise_cov(t: np.ndarray, gm: tuple[np.ndarray, np.ndarray], nwin:
     _lever_regressors(tb, tmb, noisy, cfg, k1)
     nf = _highpass((k1 - k0).reshape(rows, 12), nwin)
     sg = _highpass(k0.reshape(rows, 12), nwin)
-    del k1
-    if sos is not None:
-        nf, sg = _lowpassed(nf, sos), _lowpassed(sg, sos)
-    fast = _highpass(nf, nlp)
-    slow = nf - fast
-    cut = slice(nwin // 2, rows - nwin // 2)
-    m = rows - 2 * (nwin // 2)  # (the rows the fits keep)
-    # the moments' relative 1-sigma: the variance's, and the simulation's own (one draw over m rows of a noise
-    # correlated over a few of them: 2 / sqrt(m))
-    rel_sd = float(np.hypot(rel_var, 2.0 / np.sqrt(m)))
-    return tuple((x[cut].T @ x[cut]) / m for x in (nf, slow, fast)) + (rel_sd, (sg[cut].T @ sg[cut]) / m)
+    return nf, sg, rel_var
 
 
 def _lowpassed(x: np.ndarray, sos: np.ndarray) -> np.ndarray:
@@ -803,7 +850,8 @@ def _lever_kept_fraction(kk: np.ndarray, noise_kk: np.ndarray) -> float:
     return _kept_fraction(kk[np.ix_(cols, cols)], noise_kk[np.ix_(cols, cols)])
 
 
-def _lever_band(t: np.ndarray, gm, nwin: int, nlp: int, dt: float, ncov, cfg: ImuToImuConfig):
+def _lever_band(t: np.ndarray, gm, nwin: int, nlp: int, dt: float, ncov, cfg: ImuToImuConfig,
+                parts: tuple | None = None):
     """(sos, cutoff Hz, ncov) of the low-pass under which the lever arm's regressors are motion more than noise
     (:func:`_lever_kept_fraction` at least cfg.lever_noise_undetermined_frac), halving the cutoff from an eighth of the
     rate down to cfg.lever_lowpass_min_hz; (None, None, ncov) where the whole band is (or none is). A quiet
@@ -818,7 +866,7 @@ def _lever_band(t: np.ndarray, gm, nwin: int, nlp: int, dt: float, ncov, cfg: Im
     fc = 0.125 / dt
     while fc >= cfg.lever_lowpass_min_hz:
         sos = butter_lowpass_sos(cfg.lever_lowpass_order, 2.0 * fc * dt)  # (cutoff over Nyquist: at most 1/4)
-        nc = _regressor_noise_cov(t, gm, nwin, nlp, cfg, sos)
+        nc = _regressor_noise_cov(t, gm, nwin, nlp, cfg, sos, parts)
         if nc is not None and _lever_kept_fraction(nc[4], nc[0]) >= cfg.lever_noise_undetermined_frac:
             return sos, fc, nc
         fc *= 0.5
@@ -853,7 +901,8 @@ def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highp
             del kl
     nlp = max(int(round(cfg.band_split_s / dt)), 2)  # (the slow and fast parts' split, below)
     # the noise the master gyro puts into the lever arm's regressors: taken out of their moments in each fit
-    ncov = _regressor_noise_cov(t, gm, nwin, nlp, cfg) if k is not None else None
+    parts = _noise_regressors(t, gm, nwin, cfg) if k is not None else None  # (shared with _lever_band's trials)
+    ncov = _regressor_noise_cov(t, gm, nwin, nlp, cfg, parts=parts) if parts is not None else None
     if k is not None:
         # the lever arm's effect from the regressors' motion, their noise out: a quiet vehicle's differentiated
         # gyro noise alone passed the test, and the fit, its moments all noise in some directions (where the
@@ -875,13 +924,14 @@ def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highp
     cut = slice(nwin // 2, len(t) - nwin // 2)
     lp_hz = u_var = None
     if name == "accel" and k.shape[2] == 4:
-        sos, lp_hz, ncov = _lever_band(t, gm, nwin, nlp, dt, ncov, cfg)
+        sos, lp_hz, ncov = _lever_band(t, gm, nwin, nlp, dt, ncov, cfg, parts)
         if sos is not None:  # every series of the fit through the same low-pass
             # (the master's white noise as the fit sees it: measured before, times the low-pass's power gain;
             # third differences of a low-passed series see little of it, and straight and level flight's
             # horizontal specific force, its noise low-passed, came out "determined" 20 deg off)
             u_var = _white_noise_var(u[cut], cfg) * _noise_gain(sos)
             _lowpassed(u, sos), _lowpassed(v, sos), _lowpassed(k.reshape(n, 12), sos)
+    del parts
     rel = ncov[3] if ncov else 0.0
     res = _triad(u[cut], v[cut], k[cut], dt, cfg, starts=starts, k_noise_cov=ncov[0] if ncov else None,
                  k_noise_rel_sd=rel, u_noise_var=u_var)
