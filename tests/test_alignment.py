@@ -168,6 +168,33 @@ def test_compiled_kf_step_equals_reference_joseph_update():
     assert nis == pytest.approx(info["nis"]) and np.allclose(e, info["innovation"])
 
 
+@pytest.mark.parametrize("n,m,predict", [(18, 6, True), (21, 3, True), (12, 6, False)])
+def test_the_filter_loops_workspace_step_equals_the_allocating_one_bit_for_bit(n, m, predict):
+    """kf_step_ws (the compiled loop's: intermediate arrays made once per run) and kf_step_nb, and the
+    discretisation into work arrays and allocating: the same numbers to the bit, the prediction included."""
+    from logtools.alignment import model as mdl
+
+    rng = np.random.default_rng(n + m)
+    a = rng.normal(size=(n, n))
+    P = a @ a.T + n * np.eye(n)
+    x, z = rng.normal(size=n), rng.normal(size=m)
+    H = np.where(rng.random((m, n)) < 0.5, rng.normal(size=(m, n)), 0.0)
+    r = rng.uniform(0.5, 2.0, m)
+    f = np.where(rng.random((n, n)) < 0.3, rng.normal(size=(n, n)), 0.0)
+    qc = rng.uniform(1e-6, 1e-3, n)
+    phi1, qd1, phi2, qd2 = (np.empty((n, n)) for _ in range(4))
+    ws = kfm.kf_workspace(n, m)
+    mdl._discretise(f, qc, 0.05, phi1, qd1)
+    mdl._discretise_ws(f, qc, 0.05, phi2, qd2, *ws[18:])
+    assert np.array_equal(phi1, phi2) and np.array_equal(qd1, qd2)
+    phi, qd = (phi1, qd1) if predict else (np.zeros((0, 0)), np.zeros((0, 0)))
+    x1, p1, e1, x2, p2, e2 = x.copy(), P.copy(), np.zeros(m), x.copy(), P.copy(), np.zeros(m)
+    for _ in range(3):  # (the work arrays' leftovers from a step must not leak into the next)
+        nis1 = kfm.kf_step_nb(x1, p1, phi, qd, z, H, r, e1)
+        nis2 = kfm.kf_step_ws(x2, p2, phi, qd, z, H, r, e2, ws)
+        assert nis1 == nis2 and np.array_equal(x1, x2) and np.array_equal(p1, p2) and np.array_equal(e1, e2)
+
+
 def test_discretise_matches_matrix_exponential_for_small_steps():
     from scipy.linalg import expm
     f = RNG.normal(size=(5, 5)) * 0.1

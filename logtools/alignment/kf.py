@@ -25,7 +25,7 @@ from logtools.errors import AnalysisError
 from logtools.strapdown import HAVE_NUMBA, _WIE, _radii, nav_step, njit
 
 from .options import FilterKind
-from .model import StateLayout, _discretise, _fill_dynamics, discretise_step, _fill_h, att_residual, exp_so3, rotvec_small
+from .model import StateLayout, _discretise_ws, _fill_dynamics, discretise_step, _fill_h, att_residual, exp_so3, rotvec_small
 
 
 
@@ -84,6 +84,115 @@ def _chol(s):
                 acc -= l[i, k] * l[j, k]
             l[i, j] = acc / l[j, j]
     return l
+
+
+@njit
+def _chol_solve_into(l, b, y):
+    """:func:`_chol_solve` into ``y`` (the same arithmetic)."""
+    m = l.shape[0]
+    for c in range(b.shape[1]):
+        for i in range(m):
+            acc = b[i, c]
+            for k in range(i):
+                acc -= l[i, k] * y[k, c]
+            y[i, c] = acc / l[i, i]
+        for i in range(m - 1, -1, -1):
+            acc = y[i, c]
+            for k in range(i + 1, m):
+                acc -= l[k, i] * y[k, c]
+            y[i, c] = acc / l[i, i]
+
+
+@njit
+def _chol_into(s, l):
+    """:func:`_chol` into ``l`` (the same arithmetic; l's upper triangle zeroed)."""
+    m = s.shape[0]
+    for i in range(m):
+        for j in range(m):
+            l[i, j] = 0.0
+    for j in range(m):
+        d = s[j, j]
+        for k in range(j):
+            d -= l[j, k] * l[j, k]
+        if d <= 0.0:
+            d = 1e-300
+        l[j, j] = np.sqrt(d)
+        for i in range(j + 1, m):
+            acc = s[i, j]
+            for k in range(j):
+                acc -= l[i, k] * l[j, k]
+            l[i, j] = acc / l[j, j]
+
+
+@njit
+def kf_workspace(n, m):
+    """The work arrays of :func:`kf_step_ws` (its first 18) and of the discretisation (``model._discretise_ws``,
+    the last 4) for n states and m measurements: made once per filter run, not per epoch."""
+    return (np.empty(n), np.empty(n), np.empty(m), np.empty(m), np.empty((n, n)), np.empty((n, n)),
+            np.empty((n, n)), np.empty((n, n)), np.empty((n, m)), np.empty((n, m)), np.empty((n, m)),
+            np.empty((n, m)), np.empty((m, n)), np.empty((m, n)), np.empty((m, m)), np.empty((m, m)),
+            np.empty((m, 1)), np.empty((m, 1)), np.empty((n, n)), np.empty((n, n)), np.empty((n, n)),
+            np.empty((n, n)))
+
+
+@njit
+def kf_step_ws(x, P, phi, qd, z, H, r_diag, e_out, ws):
+    """:func:`kf_step_nb` with its intermediate arrays in ``ws`` (:func:`kf_workspace`): the same operations
+    in the same order (matrix products as np.dot into the work arrays: the same BLAS calls), so the same
+    numbers to the bit (tests/test_kernels.py), without some twenty allocations per epoch."""
+    (xn, kx, hx, e, t1, t2, t3, ikh, ph, k, negk, kr, pht, kt, s, l, e_col, se, _a, _b, _c, _d) = ws
+    n = x.shape[0]
+    m = z.shape[0]
+    if phi.shape[0] == n:
+        np.dot(phi, x, xn)
+        np.dot(phi, P, t1)
+        np.dot(t1, phi.T, t2)
+        for i in range(n):
+            x[i] = xn[i]
+            for j in range(n):
+                P[i, j] = t2[i, j] + qd[i, j]
+    np.dot(H, x, hx)
+    for i in range(m):
+        e[i] = z[i] - hx[i]
+        e_out[i] = e[i]
+    np.dot(P, H.T, ph)
+    np.dot(H, ph, s)
+    for i in range(m):
+        s[i, i] += r_diag[i]
+    _chol_into(s, l)
+    for i in range(m):
+        for j in range(n):
+            pht[i, j] = ph[j, i]
+    _chol_solve_into(l, pht, kt)
+    for i in range(n):
+        for j in range(m):
+            k[i, j] = kt[j, i]
+    np.dot(k, e, kx)
+    for i in range(n):
+        x[i] += kx[i]
+    for i in range(n):
+        for j in range(m):
+            negk[i, j] = -k[i, j]
+            kr[i, j] = k[i, j] * r_diag[j]
+    np.dot(negk, H, ikh)
+    for i in range(n):
+        ikh[i, i] += 1.0
+    np.dot(ikh, P, t1)
+    np.dot(t1, ikh.T, t2)
+    np.dot(kr, k.T, t3)
+    for i in range(n):
+        for j in range(n):
+            t1[i, j] = t2[i, j] + t3[i, j]
+    for i in range(n):
+        for j in range(n):
+            P[i, j] = 0.5 * (t1[i, j] + t1[j, i])
+    for i in range(m):
+        e_col[i, 0] = e[i]
+    _chol_solve_into(l, e_col, se)
+    nis = 0.0
+    for i in range(m):
+        nis += e[i] * se[i, 0]
+    return nis
 
 
 @njit
@@ -800,10 +909,10 @@ def _reset_block(P, x, p0, blk):
 
 @njit
 def _nb_propagate(q, v, llh, dq, dv_b, dt, restart_k, offs, qc, beta, mk_rate, f_buf, phi_k, qd_k, q_new, v_new,
-                  llh_new, c_nm, r_fej, use_fej):
+                  llh_new, c_nm, r_fej, use_fej, ws):
     """:func:`_propagate` compiled: Phi, Qd of one segment (in place) from the error dynamics at its start,
     then the slave mechanised over it (q, v, llh in place). ``use_fej``: the dynamics at the slave
-    attitude's first estimate ``c_nm r_fej^T``."""
+    attitude's first estimate ``c_nm r_fej^T``. ``ws``: :func:`kf_workspace`'s arrays."""
     n = phi_k.shape[0]
     c_ns = c_nm @ r_fej.T if use_fej else _dcm(q)
     lat, h = llh[0], llh[2]
@@ -818,7 +927,7 @@ def _nb_propagate(q, v, llh, dq, dv_b, dt, restart_k, offs, qc, beta, mk_rate, f
     f_n = c_ns @ (dv_b / dt)
     f_buf[:, :] = 0.0
     _fill_dynamics(f_buf, offs, _mid_segment(c_ns, dq), f_n, w_ie, w_en, v, mav, beta, mk_rate)
-    _discretise(f_buf, qc, dt, phi_k, qd_k)
+    _discretise_ws(f_buf, qc, dt, phi_k, qd_k, ws[18], ws[19], ws[20], ws[21])
     if restart_k:  # a gap: the error state is not propagated through unknown motion
         for ii in range(n):
             for jj in range(n):
@@ -981,13 +1090,14 @@ def _kf_loop(t_ep, seg_dq, seg_dv, seg_dt, mt, mq, mv, ma, mwt, mw, mvalid, rese
     phi_k, qd_k, no_phi = np.eye(n), np.zeros((n, n)), np.zeros((0, 0))
     c_nm = np.eye(3)
     v_m, a_m, w_m = np.zeros(3), np.zeros(3), np.zeros(3)
+    ws = kf_workspace(n, m_meas)
     n_skip = 0
     n_reinit = 0
     for k in range(ne):
         if k > 0:
             j = k - 1
             _nb_propagate(q, v, llh, seg_dq[j], seg_dv[j], seg_dt[j], restart[k], offs, qc, beta, mk_rate, f_buf,
-                          phi_k, qd_k, q_new, v_new, llh_new, c_nm, r_fej, dyn_fej)
+                          phi_k, qd_k, q_new, v_new, llh_new, c_nm, r_fej, dyn_fej, ws)
         tm_ = t_ep[k] - tau
         i = _nb_master_at(mt, mq, mv, ma, mwt, mw, has_q, has_v, has_w, tm_, c_nm, v_m, a_m, w_m)
         if k > 0:
@@ -1011,7 +1121,7 @@ def _kf_loop(t_ep, seg_dq, seg_dv, seg_dt, mt, mq, mv, ma, mwt, mw, mvalid, rese
         else:
             _nb_measurement(k, q, v, llh, x, r_hat, r_fej, lever, c_nm, v_m, a_m, w_m, seg_dq, seg_dt, offs,
                             has_q, att_only_fej, z, h_buf)
-            nis[k] = kf_step_nb(x, P, phi_k if k > 0 else no_phi, qd_k, z, h_buf, r_diag, e_buf)
+            nis[k] = kf_step_ws(x, P, phi_k if k > 0 else no_phi, qd_k, z, h_buf, r_diag, e_buf, ws)
             innov[k] = e_buf
             if keep and k > 0:
                 sm_phi[k] = phi_k

@@ -214,14 +214,26 @@ def discretise(f: np.ndarray, qc_diag: np.ndarray, dt_s: float) -> tuple[np.ndar
 @njit
 def _discretise(f, qc, dt, phi, qd):
     n = f.shape[0]
-    ft = f * dt
-    p = ft @ ft
+    _discretise_ws(f, qc, dt, phi, qd, np.empty((n, n)), np.empty((n, n)), np.empty((n, n)), np.empty((n, n)))
+
+
+@njit
+def _discretise_ws(f, qc, dt, phi, qd, ft, p, pq, q):
+    """:func:`_discretise` into the work arrays ft, p, pq, q ((n, n) each; the filter loop's, made once):
+    the same operations, none allocated."""
+    n = f.shape[0]
+    for i in range(n):
+        for j in range(n):
+            ft[i, j] = f[i, j] * dt
+    np.dot(ft, ft, p)
     for i in range(n):
         for j in range(n):
             phi[i, j] = ft[i, j] + 0.5 * p[i, j]
         phi[i, i] += 1.0
-    pq = phi * qc  # scales columns
-    q = pq @ phi.T
+    for i in range(n):
+        for j in range(n):
+            pq[i, j] = phi[i, j] * qc[j]  # scales columns
+    np.dot(pq, phi.T, q)
     for i in range(n):
         q[i, i] += qc[i]
     for i in range(n):
