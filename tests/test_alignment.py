@@ -170,8 +170,9 @@ def test_compiled_kf_step_equals_reference_joseph_update():
 
 @pytest.mark.parametrize("n,m,predict", [(18, 6, True), (21, 3, True), (12, 6, False)])
 def test_the_filter_loops_workspace_step_equals_the_allocating_one_bit_for_bit(n, m, predict):
-    """kf_step_ws (the compiled loop's: intermediate arrays made once per run) and kf_step_nb, and the
-    discretisation into work arrays and allocating: the same numbers to the bit, the prediction included."""
+    """kf_step_ws with one set of work arrays through consecutive steps (the compiled loop's: made once per
+    run) against kf_step_nb (fresh ones every call), and the discretisation into work arrays against the
+    allocating one: the same numbers to the bit, the prediction included (no step's leftovers in the next)."""
     from logtools.alignment import model as mdl
 
     rng = np.random.default_rng(n + m)

@@ -48,47 +48,16 @@ def kf_update(x: np.ndarray, P: np.ndarray, z: np.ndarray, H: np.ndarray, R: np.
 
 
 @njit
-def _chol_solve(l, b):
-    """Solve (L L^T) X = B for lower-triangular L (forward then back substitution)."""
-    m = l.shape[0]
-    y = np.empty_like(b)
-    for c in range(b.shape[1]):
-        for i in range(m):
-            acc = b[i, c]
-            for k in range(i):
-                acc -= l[i, k] * y[k, c]
-            y[i, c] = acc / l[i, i]
-        for i in range(m - 1, -1, -1):
-            acc = y[i, c]
-            for k in range(i + 1, m):
-                acc -= l[k, i] * y[k, c]
-            y[i, c] = acc / l[i, i]
-    return y
-
-
-@njit
 def _chol(s):
     """Cholesky factor (lower) of a small SPD matrix (a loop: cheaper to compile than LAPACK)."""
-    m = s.shape[0]
-    l = np.zeros_like(s)
-    for j in range(m):
-        d = s[j, j]
-        for k in range(j):
-            d -= l[j, k] * l[j, k]
-        if d <= 0.0:
-            d = 1e-300
-        l[j, j] = np.sqrt(d)
-        for i in range(j + 1, m):
-            acc = s[i, j]
-            for k in range(j):
-                acc -= l[i, k] * l[j, k]
-            l[i, j] = acc / l[j, j]
+    l = np.empty_like(s)
+    _chol_into(s, l)
     return l
 
 
 @njit
 def _chol_solve_into(l, b, y):
-    """:func:`_chol_solve` into ``y`` (the same arithmetic)."""
+    """Solve (L L^T) Y = B for lower-triangular L (forward then back substitution), into ``y``."""
     m = l.shape[0]
     for c in range(b.shape[1]):
         for i in range(m):
@@ -198,36 +167,9 @@ def kf_step_ws(x, P, phi, qd, z, H, r_diag, e_out, ws):
 @njit
 def kf_step_nb(x, P, phi, qd, z, H, r_diag, e_out):
     """Compiled predict (when phi has rows) + Joseph update; same algebra as :func:`kf_update`.
-    Updates x, P in place, writes the prior innovation into e_out, returns the NIS."""
-    n = x.shape[0]
-    if phi.shape[0] == n:
-        xn = phi @ x
-        pn = phi @ P @ phi.T + qd
-        x[:] = xn
-        P[:, :] = pn
-    e = z - H @ x
-    e_out[:] = e
-    ph = P @ H.T
-    s = H @ ph
-    for i in range(len(r_diag)):
-        s[i, i] += r_diag[i]
-    l = _chol(s)
-    kt = _chol_solve(l, np.ascontiguousarray(ph.T))
-    k = kt.T.copy()
-    x += k @ e
-    ikh = -k @ H
-    for i in range(n):
-        ikh[i, i] += 1.0
-    kr = k * r_diag
-    pp = ikh @ P @ ikh.T + kr @ k.T
-    for i in range(n):
-        for j in range(n):
-            P[i, j] = 0.5 * (pp[i, j] + pp[j, i])
-    se = _chol_solve(l, e.reshape(-1, 1).copy())
-    nis = 0.0
-    for i in range(len(e)):
-        nis += e[i] * se[i, 0]
-    return nis
+    Updates x, P in place, writes the prior innovation into e_out, returns the NIS (:func:`kf_step_ws`
+    with its work arrays made for this call)."""
+    return kf_step_ws(x, P, phi, qd, z, H, r_diag, e_out, kf_workspace(x.shape[0], z.shape[0]))
 
 
 @njit
