@@ -106,9 +106,10 @@ def kf_workspace(n, m):
 
 @njit
 def kf_step_ws(x, P, phi, qd, z, H, r_diag, e_out, ws):
-    """:func:`kf_step_nb` with its intermediate arrays in ``ws`` (:func:`kf_workspace`): the same operations
-    in the same order (matrix products as np.dot into the work arrays: the same BLAS calls), so the same
-    numbers to the bit (tests/test_kernels.py), without some twenty allocations per epoch."""
+    """Compiled predict (when phi has rows) + Joseph update, the same algebra as :func:`kf_update`, its
+    intermediate arrays in ``ws`` (:func:`kf_workspace`; the filter loop's, made once per run: some twenty
+    allocations per epoch fewer than the matrix expressions made; the same numbers to the bit,
+    tests/test_alignment.py). Updates x, P in place, writes the prior innovation into e_out, returns the NIS."""
     (xn, kx, hx, e, t1, t2, t3, ikh, ph, k, negk, kr, pht, kt, s, l, e_col, se, _a, _b, _c, _d) = ws
     n = x.shape[0]
     m = z.shape[0]
