@@ -186,7 +186,7 @@ def test_the_filter_loops_workspace_step_equals_the_allocating_one_bit_for_bit(n
     phi1, qd1, phi2, qd2 = (np.empty((n, n)) for _ in range(4))
     ws = kfm.kf_workspace(n, m)
     mdl._discretise(f, qc, 0.05, phi1, qd1)
-    mdl._discretise_ws(f, qc, 0.05, phi2, qd2, *ws[18:])
+    mdl._discretise_ws(f, qc, 0.05, phi2, qd2, mdl.discretise_workspace(n))
     assert np.array_equal(phi1, phi2) and np.array_equal(qd1, qd2)
     phi, qd = (phi1, qd1) if predict else (np.zeros((0, 0)), np.zeros((0, 0)))
     x1, p1, e1, x2, p2, e2 = x.copy(), P.copy(), np.zeros(m), x.copy(), P.copy(), np.zeros(m)

@@ -762,23 +762,15 @@ def _lever_regressors(t: np.ndarray, tm: np.ndarray, gyro_m: np.ndarray, cfg: Im
         out[b, :, :3] = skew(dw[b]) + skew(w[b]) @ skew(w[b])  # f at r = f + dw x r + w x (w x r)
 
 
-def _regressor_noise_cov(t: np.ndarray, gm: tuple[np.ndarray, np.ndarray], nwin: int, nlp: int,
-                         cfg: ImuToImuConfig, sos: np.ndarray | None = None, parts: tuple | None = None
-                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, np.ndarray] | None:
+def _regressor_noise_cov(parts: tuple[np.ndarray, np.ndarray, float], nwin: int, nlp: int,
+                         sos: np.ndarray | None = None
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, np.ndarray]:
     """The per-sample covariance ((12, 12), as ``k.reshape(n, 12)``; the delay's column none) of the noise the
     master gyro's white noise puts into the lever arm's regressors, as the fits see them: the whole motion
-    (high-passed over ``nwin``), its slow and its fast part (split over ``nlp``). By simulation, on a stretch
-    of at most cfg.noise_rows common samples in the middle of the log: a white noise of the gyro's own
-    variance (its spectrum's floor, :func:`_noise_floor_var`, per axis; a fixed seed: the same log, the same
-    answer) added to the master's rates there, pushed through :func:`_lever_regressors` and the same filters,
-    less the regressors without it; their relative 1-sigma; and the per-sample moment of the regressors
-    themselves on that stretch (for :func:`_lever_kept_fraction`). ``sos``: a zero-phase low-pass after the high-pass
-    (:func:`_lowpassed`), as the fits then see them. None where the stretch is too short for the filters.
-    ``parts``: :func:`_noise_regressors`' answer for these (t, gm, nwin, cfg), where already computed (the
-    low-pass trials of :func:`_lever_band` share it: the simulation does not depend on the low-pass)."""
-    parts = _noise_regressors(t, gm, nwin, cfg) if parts is None else parts
-    if parts is None:
-        return None
+    (high-passed over ``nwin``), its slow and its fast part (split over ``nlp``); their relative 1-sigma; and
+    the per-sample moment of the regressors themselves (for :func:`_lever_kept_fraction`). From ``parts``,
+    :func:`_noise_regressors`' simulation (computed once: the low-pass trials of :func:`_lever_band` share it).
+    ``sos``: a zero-phase low-pass after the high-pass (:func:`_lowpassed`), as the fits then see them."""
     nf, sg, rel_var = parts
     rows = len(nf)
     if sos is not None:  # (on copies: the parts serve the next trial too)
@@ -795,10 +787,12 @@ def _regressor_noise_cov(t: np.ndarray, gm: tuple[np.ndarray, np.ndarray], nwin:
 
 def _noise_regressors(t: np.ndarray, gm: tuple[np.ndarray, np.ndarray], nwin: int, cfg: ImuToImuConfig
                       ) -> tuple[np.ndarray, np.ndarray, float] | None:
-    """:func:`_regressor_noise_cov`'s simulation, before any low-pass: on the stretch of at most cfg.noise_rows
-    common samples in the middle of t, the lever arm's regressors' noise (with the white noise less without it)
-    and the regressors themselves, both high-passed over ``nwin`` ((rows, 12) each), and the noise variance's
-    relative 1-sigma; None where the stretch is too short for the filters."""
+    """:func:`_regressor_noise_cov`'s simulation, before any low-pass, on a stretch of at most cfg.noise_rows
+    common samples in the middle of t: a white noise of the master gyro's own variance (its spectrum's floor,
+    :func:`_noise_floor_var`, per axis; a fixed seed: the same log, the same answer) added to its rates there,
+    pushed through :func:`_lever_regressors`, less the regressors without it; and the regressors themselves:
+    both high-passed over ``nwin`` ((rows, 12) each), and the noise variance's relative 1-sigma. None where the
+    stretch is too short for the filters."""
     n = len(t)
     rows = min(n, cfg.noise_rows)
     if rows < 2 * nwin + 1000:
@@ -850,8 +844,7 @@ def _lever_kept_fraction(kk: np.ndarray, noise_kk: np.ndarray) -> float:
     return _kept_fraction(kk[np.ix_(cols, cols)], noise_kk[np.ix_(cols, cols)])
 
 
-def _lever_band(t: np.ndarray, gm, nwin: int, nlp: int, dt: float, ncov, cfg: ImuToImuConfig,
-                parts: tuple | None = None):
+def _lever_band(parts: tuple, nwin: int, nlp: int, dt: float, ncov, cfg: ImuToImuConfig):
     """(sos, cutoff Hz, ncov) of the low-pass under which the lever arm's regressors are motion more than noise
     (:func:`_lever_kept_fraction` at least cfg.lever_noise_undetermined_frac), halving the cutoff from an eighth of the
     rate down to cfg.lever_lowpass_min_hz; (None, None, ncov) where the whole band is (or none is). A quiet
@@ -866,8 +859,8 @@ def _lever_band(t: np.ndarray, gm, nwin: int, nlp: int, dt: float, ncov, cfg: Im
     fc = 0.125 / dt
     while fc >= cfg.lever_lowpass_min_hz:
         sos = butter_lowpass_sos(cfg.lever_lowpass_order, 2.0 * fc * dt)  # (cutoff over Nyquist: at most 1/4)
-        nc = _regressor_noise_cov(t, gm, nwin, nlp, cfg, sos, parts)
-        if nc is not None and _lever_kept_fraction(nc[4], nc[0]) >= cfg.lever_noise_undetermined_frac:
+        nc = _regressor_noise_cov(parts, nwin, nlp, sos)
+        if _lever_kept_fraction(nc[4], nc[0]) >= cfg.lever_noise_undetermined_frac:
             return sos, fc, nc
         fc *= 0.5
     return None, None, ncov
@@ -902,7 +895,7 @@ def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highp
     nlp = max(int(round(cfg.band_split_s / dt)), 2)  # (the slow and fast parts' split, below)
     # the noise the master gyro puts into the lever arm's regressors: taken out of their moments in each fit
     parts = _noise_regressors(t, gm, nwin, cfg) if k is not None else None  # (shared with _lever_band's trials)
-    ncov = _regressor_noise_cov(t, gm, nwin, nlp, cfg, parts=parts) if parts is not None else None
+    ncov = _regressor_noise_cov(parts, nwin, nlp) if parts is not None else None
     if k is not None:
         # the lever arm's effect from the regressors' motion, their noise out: a quiet vehicle's differentiated
         # gyro noise alone passed the test, and the fit, its moments all noise in some directions (where the
@@ -924,7 +917,7 @@ def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highp
     cut = slice(nwin // 2, len(t) - nwin // 2)
     lp_hz = u_var = None
     if name == "accel" and k.shape[2] == 4:
-        sos, lp_hz, ncov = _lever_band(t, gm, nwin, nlp, dt, ncov, cfg, parts)
+        sos, lp_hz, ncov = _lever_band(parts, nwin, nlp, dt, ncov, cfg)
         if sos is not None:  # every series of the fit through the same low-pass
             # (the master's white noise as the fit sees it: measured before, times the low-pass's power gain;
             # third differences of a low-passed series see little of it, and straight and level flight's

@@ -25,7 +25,7 @@ from logtools.errors import AnalysisError
 from logtools.strapdown import HAVE_NUMBA, _WIE, _radii, nav_step, njit
 
 from .options import FilterKind
-from .model import StateLayout, _discretise_ws, _fill_dynamics, discretise_step, _fill_h, att_residual, exp_so3, rotvec_small
+from .model import StateLayout, _discretise_ws, discretise_workspace, _fill_dynamics, discretise_step, _fill_h, att_residual, exp_so3, rotvec_small
 
 
 
@@ -95,13 +95,12 @@ def _chol_into(s, l):
 
 @njit
 def kf_workspace(n, m):
-    """The work arrays of :func:`kf_step_ws` (its first 18) and of the discretisation (``model._discretise_ws``,
-    the last 4) for n states and m measurements: made once per filter run, not per epoch."""
+    """The work arrays of :func:`kf_step_ws` for n states and m measurements: made once per filter run, not
+    per epoch."""
     return (np.empty(n), np.empty(n), np.empty(m), np.empty(m), np.empty((n, n)), np.empty((n, n)),
             np.empty((n, n)), np.empty((n, n)), np.empty((n, m)), np.empty((n, m)), np.empty((n, m)),
             np.empty((n, m)), np.empty((m, n)), np.empty((m, n)), np.empty((m, m)), np.empty((m, m)),
-            np.empty((m, 1)), np.empty((m, 1)), np.empty((n, n)), np.empty((n, n)), np.empty((n, n)),
-            np.empty((n, n)))
+            np.empty((m, 1)), np.empty((m, 1)))
 
 
 @njit
@@ -110,7 +109,7 @@ def kf_step_ws(x, P, phi, qd, z, H, r_diag, e_out, ws):
     intermediate arrays in ``ws`` (:func:`kf_workspace`; the filter loop's, made once per run: some twenty
     allocations per epoch fewer than the matrix expressions made; the same numbers to the bit,
     tests/test_alignment.py). Updates x, P in place, writes the prior innovation into e_out, returns the NIS."""
-    (xn, kx, hx, e, t1, t2, t3, ikh, ph, k, negk, kr, pht, kt, s, l, e_col, se, _a, _b, _c, _d) = ws
+    (xn, kx, hx, e, t1, t2, t3, ikh, ph, k, negk, kr, pht, kt, s, l, e_col, se) = ws
     n = x.shape[0]
     m = z.shape[0]
     if phi.shape[0] == n:
@@ -855,7 +854,7 @@ def _nb_propagate(q, v, llh, dq, dv_b, dt, restart_k, offs, qc, beta, mk_rate, f
                   llh_new, c_nm, r_fej, use_fej, ws):
     """:func:`_propagate` compiled: Phi, Qd of one segment (in place) from the error dynamics at its start,
     then the slave mechanised over it (q, v, llh in place). ``use_fej``: the dynamics at the slave
-    attitude's first estimate ``c_nm r_fej^T``. ``ws``: :func:`kf_workspace`'s arrays."""
+    attitude's first estimate ``c_nm r_fej^T``. ``ws``: ``model.discretise_workspace``'s arrays."""
     n = phi_k.shape[0]
     c_ns = c_nm @ r_fej.T if use_fej else _dcm(q)
     lat, h = llh[0], llh[2]
@@ -870,7 +869,7 @@ def _nb_propagate(q, v, llh, dq, dv_b, dt, restart_k, offs, qc, beta, mk_rate, f
     f_n = c_ns @ (dv_b / dt)
     f_buf[:, :] = 0.0
     _fill_dynamics(f_buf, offs, _mid_segment(c_ns, dq), f_n, w_ie, w_en, v, mav, beta, mk_rate)
-    _discretise_ws(f_buf, qc, dt, phi_k, qd_k, ws[18], ws[19], ws[20], ws[21])
+    _discretise_ws(f_buf, qc, dt, phi_k, qd_k, ws)
     if restart_k:  # a gap: the error state is not propagated through unknown motion
         for ii in range(n):
             for jj in range(n):
@@ -1033,14 +1032,14 @@ def _kf_loop(t_ep, seg_dq, seg_dv, seg_dt, mt, mq, mv, ma, mwt, mw, mvalid, rese
     phi_k, qd_k, no_phi = np.eye(n), np.zeros((n, n)), np.zeros((0, 0))
     c_nm = np.eye(3)
     v_m, a_m, w_m = np.zeros(3), np.zeros(3), np.zeros(3)
-    ws = kf_workspace(n, m_meas)
+    ws, dws = kf_workspace(n, m_meas), discretise_workspace(n)
     n_skip = 0
     n_reinit = 0
     for k in range(ne):
         if k > 0:
             j = k - 1
             _nb_propagate(q, v, llh, seg_dq[j], seg_dv[j], seg_dt[j], restart[k], offs, qc, beta, mk_rate, f_buf,
-                          phi_k, qd_k, q_new, v_new, llh_new, c_nm, r_fej, dyn_fej, ws)
+                          phi_k, qd_k, q_new, v_new, llh_new, c_nm, r_fej, dyn_fej, dws)
         tm_ = t_ep[k] - tau
         i = _nb_master_at(mt, mq, mv, ma, mwt, mw, has_q, has_v, has_w, tm_, c_nm, v_m, a_m, w_m)
         if k > 0:

@@ -213,14 +213,20 @@ def discretise(f: np.ndarray, qc_diag: np.ndarray, dt_s: float) -> tuple[np.ndar
 
 @njit
 def _discretise(f, qc, dt, phi, qd):
-    n = f.shape[0]
-    _discretise_ws(f, qc, dt, phi, qd, np.empty((n, n)), np.empty((n, n)), np.empty((n, n)), np.empty((n, n)))
+    _discretise_ws(f, qc, dt, phi, qd, discretise_workspace(f.shape[0]))
 
 
 @njit
-def _discretise_ws(f, qc, dt, phi, qd, ft, p, pq, q):
-    """:func:`_discretise` into the work arrays ft, p, pq, q ((n, n) each; the filter loop's, made once):
-    the same operations, none allocated."""
+def discretise_workspace(n):
+    """The work arrays (ft, p, pq, q: (n, n) each) of :func:`_discretise_ws`."""
+    return np.empty((n, n)), np.empty((n, n)), np.empty((n, n)), np.empty((n, n))
+
+
+@njit
+def _discretise_ws(f, qc, dt, phi, qd, ws):
+    """:func:`_discretise` with its intermediate arrays in ``ws`` (:func:`discretise_workspace`; the filter
+    loop's, made once per run): the same operations, none allocated."""
+    ft, p, pq, q = ws
     n = f.shape[0]
     for i in range(n):
         for j in range(n):
