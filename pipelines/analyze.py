@@ -800,7 +800,7 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
         elif run not in pending:
             p(0.0, "")
             pending[run] = _alignment(master, slog, run, run_opts[run], p, an.latency)
-    if imu_fit is not None or any(isinstance(x, parallel.Pending) for x in pending.values()):
+    if forked:
         _import_output_modules(opts)  # (this process would wait for the children here)
     for run in runs:
         res = pending[run]
@@ -921,7 +921,7 @@ def run(args: argparse.Namespace) -> int:
     if opts.recording:  # the recording's imports in a child, beside the parse (small inputs: pipelines.parallel)
         size = input_bytes("analyze", [args.master, args.slave])
         if size is not None and size <= parallel.PREPARED_MAX_INPUT_BYTES:
-            parallel.prepare("recording", ("pipelines.recording", "rerun"))
+            parallel.prepare("recording", OUTPUT_MODULES["recording"])
     try:
         an = compute(args.master, args.slave, opts, progress=progress)
         outcome = write_outputs(an, out or "tapost_out", progress)
