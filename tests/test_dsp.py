@@ -114,6 +114,23 @@ def test_correlate_valid_is_the_sum_of_scipys_per_column_correlations():
         dsp.correlate_valid(b, a)
 
 
+@pytest.mark.parametrize("shape, n, axis", [((1000,), None, -1), ((997,), 2048, -1), ((1009,), 500, -1),
+                                             ((3001, 3), 6144, 0), ((4, 3, 256), None, 2), ((600, 3, 14), None, 0)])
+def test_the_plan_free_real_ffts_are_scipys_bit_for_bit_in_c_order(shape, n, axis):
+    """dsp.rfft / dsp.irfft (numpy's pocketfft, which keeps no plans) against scipy.fft: the same values to the
+    bit and the same memory order, so that every reduction over their output rounds as before."""
+    from scipy import fft as sfft
+
+    rng = np.random.default_rng(11)
+    x = rng.standard_normal(shape)
+    want, got = sfft.rfft(x, n, axis=axis), dsp.rfft(x, n, axis=axis)
+    assert np.array_equal(got, want) and got.flags.c_contiguous and got.strides == want.strides
+    m = n or shape[axis]
+    for nn in (m, m + 1):  # (an even and an odd output length from the same spectrum)
+        back_want, back = sfft.irfft(want, nn, axis=axis), dsp.irfft(want, nn, axis=axis)
+        assert np.array_equal(back, back_want) and back.flags.c_contiguous and back.strides == back_want.strides
+
+
 def test_the_analysis_path_does_not_import_scipy_signal():
     code = ("import sys; from pipelines import analyze; from logtools import resample, latency_seeds; "
             "from logtools.latency import inputs; "

@@ -34,7 +34,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy import fft as sfft
 
-from logtools import jit
+from logtools import dsp, jit
 from logtools.conventions import (dcm_from_euler, dcm_from_quat, dcm_from_rotvec, euler_from_dcm, median_step_s,
                                   quat_from_dcm, rotvec_from_dcm, skew, wahba)
 from logtools.inslog import InsLog
@@ -384,11 +384,11 @@ def _corr_time_fft(s: np.ndarray, tot: float) -> float:
     nfft = sfft.next_fast_len(2 * n, real=True)
     power = np.zeros(nfft // 2 + 1)
     for j in range(s.shape[1]):
-        f = sfft.rfft(s[:, j], nfft)
+        f = dsp.rfft(s[:, j], nfft)
         power += f.real ** 2
         power += f.imag ** 2
     del f
-    ac = sfft.irfft(power, nfft)[:n] / tot
+    ac = dsp.irfft(power, nfft)[:n] / tot
     del power
     neg = np.nonzero(ac[1:] <= 0)[0]
     m = int(neg[0]) if len(neg) else n - 1

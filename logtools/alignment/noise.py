@@ -31,6 +31,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import fft as sfft
 
+from logtools import dsp
 from logtools.conventions import skew
 from logtools.dsp import cubic_spline_at, mad_sigma
 from logtools.inslog import InsLog
@@ -65,11 +66,11 @@ def _below(t: np.ndarray, y: np.ndarray, f_max_hz: float, with_rate: bool = True
     line = y[0] + np.arange(n, dtype=float)[:, None] * slope
     nfft = sfft.next_fast_len(n, real=True)
     f = sfft.rfftfreq(nfft, dt)
-    spec = sfft.rfft(y - line, nfft, axis=0) * (f <= f_max_hz)[:, None]
-    value = sfft.irfft(spec, nfft, axis=0)[:n] + line
+    spec = dsp.rfft(y - line, nfft, axis=0) * (f <= f_max_hz)[:, None]
+    value = dsp.irfft(spec, nfft, axis=0)[:n] + line
     if not with_rate:
         return value, None
-    return value, sfft.irfft(spec * (2j * np.pi * f)[:, None], nfft, axis=0)[:n] + slope / dt
+    return value, dsp.irfft(spec * (2j * np.pi * f)[:, None], nfft, axis=0)[:n] + slope / dt
 
 
 def accel_noise_without_lever(master: InsLog, t_imu: np.ndarray, gyro: np.ndarray, accel: np.ndarray,

@@ -8,6 +8,7 @@ import numpy as np
 from scipy import fft as sfft
 from scipy import optimize
 
+from logtools import dsp
 from logtools.conventions import wahba
 from logtools.errors import AnalysisError
 from logtools.latency.config import LatencyConfig
@@ -27,17 +28,17 @@ class Correlator:
         self.off = m.i0 - s.i0
 
     def fa(self, x: np.ndarray) -> np.ndarray:
-        return np.conj(sfft.rfft(x, self.nfft, axis=0))
+        return np.conj(dsp.rfft(x, self.nfft, axis=0))
 
     def fb(self, y: np.ndarray) -> np.ndarray:
-        return sfft.rfft(y, self.nfft, axis=0)
+        return dsp.rfft(y, self.nfft, axis=0)
 
     def lag_range(self) -> tuple[int, int]:
         """Lags (grid steps) with at least one overlapping pair."""
         return -(self.n - 1) - self.off, self.m_len - 1 - self.off
 
     def corr(self, FA: np.ndarray, FB: np.ndarray, lags: np.ndarray) -> np.ndarray:
-        c = sfft.irfft(FA * FB, self.nfft, axis=0)
+        c = dsp.irfft(FA * FB, self.nfft, axis=0)
         return c[(lags + self.off) % self.nfft]
 
 

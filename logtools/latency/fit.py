@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import fft as sfft
 
+from logtools import dsp
 from logtools.conventions import median_step_s, wahba
 from logtools.latency.config import DEFAULT, LatencyConfig
 from logtools.latency.flexure import FlexureModel
@@ -171,8 +172,8 @@ def best_cutoff(t_m: np.ndarray, a: np.ndarray, valid: np.ndarray, r: np.ndarray
     # noise spectrum smoothed over a few bins
     am = np.where(valid[:, None], a - a[valid].mean(axis=0), 0.0)
     f = sfft.rfftfreq(len(r), dt_s)
-    S = np.sum(np.abs(sfft.rfft(am, axis=0)) ** 2, axis=1)
-    N = np.sum(np.abs(sfft.rfft(r, axis=0)) ** 2, axis=1)
+    S = np.sum(np.abs(dsp.rfft(am, axis=0)) ** 2, axis=1)
+    N = np.sum(np.abs(dsp.rfft(r, axis=0)) ** 2, axis=1)
     k = 9
     N = np.convolve(np.pad(N, k // 2, mode="edge"), np.ones(k) / k, mode="valid")
     w2s = (2 * np.pi * f) ** 2 * S

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import fft as sfft
 
+from logtools import dsp
 from logtools.latency.config import DEFAULT, LatencyConfig
 
 
@@ -17,13 +18,13 @@ def hac_cov(u: np.ndarray, max_lag: int, cfg: LatencyConfig = DEFAULT) -> tuple[
     Returns (covariance (p, p), bandwidth in samples)."""
     N, p = u.shape
     nfft = sfft.next_fast_len(2 * N, real=True)
-    F = sfft.rfft(u, nfft, axis=0)
+    F = dsp.rfft(u, nfft, axis=0)
     nl = min(N, max_lag + 1)
     # ac[h, i, j] = sum_k u_i[k] u_j[k + h]
     ac = np.empty((nl, p, p))
     for i in range(p):
         for j in range(p):
-            ac[:, i, j] = sfft.irfft(np.conj(F[:, i]) * F[:, j], nfft)[:nl]
+            ac[:, i, j] = dsp.irfft(np.conj(F[:, i]) * F[:, j], nfft)[:nl]
     g0 = np.diag(ac[0]).copy()
     g0[g0 <= 0] = np.finfo(float).tiny
     rho = (np.diagonal(ac, axis1=1, axis2=2) / g0).mean(axis=1)
@@ -78,12 +79,12 @@ class NoiseModel:
         ``self.weights(len(x), dt_s)`` when already computed."""
         n = len(x)
         nfft, w = weights if weights is not None else self.weights(n, dt_s)
-        X = sfft.rfft(x, nfft, axis=0)
+        X = dsp.rfft(x, nfft, axis=0)
         if w.ndim == 1:
             Z = X * w.reshape((len(w),) + (1,) * (x.ndim - 1))
         else:
             Z = np.matmul(w, X)
-        return sfft.irfft(Z, nfft, axis=0)[:n]
+        return dsp.irfft(Z, nfft, axis=0)[:n]
 
 
 def end_taper(use: np.ndarray, n_ramp: int) -> np.ndarray:
@@ -111,7 +112,7 @@ def leverage_spectrum(J: np.ndarray, use: np.ndarray) -> np.ndarray:
     Q, Rq = np.linalg.qr(A[:, keep])
     d = np.abs(np.diag(Rq))
     Q = Q[:, d > 1e-10 * d.max()].reshape(n, C, -1)
-    F = sfft.rfft(Q, axis=0)
+    F = dsp.rfft(Q, axis=0)
     return np.sum(np.abs(F) ** 2, axis=2).mean(axis=1) / max(1.0, float(use.sum()))
 
 
@@ -127,7 +128,7 @@ def noise_model(r: np.ndarray, use: np.ndarray, dt_s: float, *, matrix: bool = F
     if n < 256 or use.sum() < 128:
         return None
     x = np.where(use[:, None], r, 0.0)
-    X = sfft.rfft(x, axis=0)
+    X = dsp.rfft(x, axis=0)
     f = sfft.rfftfreq(n, dt_s)
     k = max(3, int(round(cfg.gls.smooth_hz * n * dt_s))) | 1
     if matrix:
