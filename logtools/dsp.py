@@ -26,20 +26,34 @@ __all__ = ["butter_lowpass_sos", "sosfiltfilt_even", "sosfilt_zi", "welch_psd", 
            "cubic_spline_at", "weighted_rows", "as_trapezoid_integrates", "mad_sigma", "rfft", "irfft"]
 
 
-# ---- real FFTs that keep no plans ------------------------------------------------------------------
-# scipy.fft keeps the plans of the last 16 transform lengths for the life of the process; a plan holds its
-# twiddle factors, 45-90 MB at the lengths of a 4 h log (a spectrum zero padded to 2n). numpy.fft runs the
-# same pocketfft transforms, equal to scipy.fft's bit for bit (tests/test_dsp.py), and keeps none: the 4 h
-# pair's peak memory is about 70 MB lower with it, and a 1 h log's transforms take the same time.
+# ---- real FFTs that keep no plans of long transforms ----------------------------------------------
+#: transform length from which rfft / irfft run numpy.fft rather than scipy.fft. scipy.fft keeps the plans of
+#: its last 16 lengths for the life of the process, and a plan holds its twiddle factors: 45-90 MB at the
+#: lengths of a 4 h log (spectra zero padded to 2n), 1-2 MB at 2^16. numpy.fft runs the same pocketfft
+#: transforms, equal to scipy.fft's bit for bit (tests/test_dsp.py), and keeps none; it makes its plan anew
+#: each call, 5-12 % slower on the short transforms the latency repeats hundreds of times, no slower on
+#: the long ones. From 2^18 points on (4 MB plans and more): the 4 h pair's peak memory 2.68 -> 2.57 GB (2.54 with
+#: every transform through numpy.fft), the 1 h pair's transforms as fast as before.
+PLAN_FREE_MIN_LENGTH = 1 << 18
+
+
+def _fft_module(x: np.ndarray, n: int | None, axis: int):
+    length = n if n is not None else np.shape(x)[axis]
+    return np.fft if length >= PLAN_FREE_MIN_LENGTH else sfft
+
+
 def rfft(x: np.ndarray, n: int | None = None, axis: int = -1) -> np.ndarray:
     """``scipy.fft.rfft(x, n, axis=axis)``, bit for bit, in C order as scipy returns it (numpy's own layout
-    puts the transformed axis last in memory, and reductions over the other axes then round differently)."""
-    return np.ascontiguousarray(np.fft.rfft(x, n, axis=axis))
+    puts the transformed axis last in memory, and reductions over the other axes then round differently);
+    through numpy.fft from PLAN_FREE_MIN_LENGTH on."""
+    return np.ascontiguousarray(_fft_module(x, n, axis).rfft(x, n, axis=axis))
 
 
 def irfft(x: np.ndarray, n: int | None = None, axis: int = -1) -> np.ndarray:
-    """``scipy.fft.irfft(x, n, axis=axis)``, bit for bit, in C order (see :func:`rfft`)."""
-    return np.ascontiguousarray(np.fft.irfft(x, n, axis=axis))
+    """``scipy.fft.irfft(x, n, axis=axis)``, bit for bit, in C order (see :func:`rfft`); ``n`` is the output
+    length (default 2 (m - 1) for m input bins, as scipy's)."""
+    length = n if n is not None else 2 * (np.shape(x)[axis] - 1)
+    return np.ascontiguousarray(_fft_module(x, length, axis).irfft(x, n, axis=axis))
 
 
 def butter_lowpass_sos(order: int, wn: float) -> np.ndarray:

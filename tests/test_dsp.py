@@ -115,12 +115,17 @@ def test_correlate_valid_is_the_sum_of_scipys_per_column_correlations():
 
 
 @pytest.mark.parametrize("shape, n, axis", [((1000,), None, -1), ((997,), 2048, -1), ((1009,), 500, -1),
-                                             ((3001, 3), 6144, 0), ((4, 3, 256), None, 2), ((600, 3, 14), None, 0)])
-def test_the_plan_free_real_ffts_are_scipys_bit_for_bit_in_c_order(shape, n, axis):
-    """dsp.rfft / dsp.irfft (numpy's pocketfft, which keeps no plans) against scipy.fft: the same values to the
-    bit and the same memory order, so that every reduction over their output rounds as before."""
+                                             ((3001, 3), 6144, 0), ((4, 3, 256), None, 2), ((600, 3, 14), None, 0),
+                                             ((dsp.PLAN_FREE_MIN_LENGTH + 7,), None, -1)])
+@pytest.mark.parametrize("plan_free_from", ["default", 0])
+def test_the_plan_free_real_ffts_are_scipys_bit_for_bit_in_c_order(shape, n, axis, plan_free_from, monkeypatch):
+    """dsp.rfft / dsp.irfft (numpy's pocketfft, which keeps no plans, for long transforms; with the threshold
+    at 0 for every one) against scipy.fft: the same values to the bit and the same memory order, so that
+    every reduction over their output rounds as before."""
     from scipy import fft as sfft
 
+    if plan_free_from != "default":
+        monkeypatch.setattr(dsp, "PLAN_FREE_MIN_LENGTH", plan_free_from)
     rng = np.random.default_rng(11)
     x = rng.standard_normal(shape)
     want, got = sfft.rfft(x, n, axis=axis), dsp.rfft(x, n, axis=axis)
