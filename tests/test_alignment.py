@@ -653,20 +653,30 @@ def test_board_errors_on_a_navigation_grade_pair_cost_precision_not_coverage():
     assert max(off.innovation_corr_epochs) < CONFIG.board_auto_corr_min
 
 
-def test_board_errors_auto_adds_the_states_where_the_innovations_are_correlated():
+def test_board_errors_auto_adds_the_states_where_the_innovations_are_correlated(monkeypatch):
     """board_errors="auto" on the pair of the test above (a 0.12 deg Markov master error over 50 s, a
     misaligned accelerometer triad): the run without the states has innovations correlated over many
-    epochs, so the states are added, the result is the on run's, and a note says why."""
+    epochs, so the states are added, the result is the on run's, and a note says why. Its two filters run
+    on one preparation of the logs (the coarse mounting, the noise fit, the epochs: none of it depends on
+    the board's states), and give what two runs preparing their own give, to the bit."""
+    from logtools.alignment import run as run_mod
+
     p = sim.simulate(sim.scenario_config(
         "vehicle", duration_s=120.0, seed=3, mount_rpy_deg=(2.0, -3.0, 40.0), latency_s=0.0,
         slave_accel_misalign_rpy_deg=(0.9, -0.7, 0.4), master_att_markov_deg=0.12, master_att_markov_tau_s=50.0))
     m, s = p.master, p.slave.rebased(p.master.meta.t0_ns)
     off = run_alignment(m, s, filter="kf", match="vel+att", options=AlignmentOptions(board_errors=False))
     on = run_alignment(m, s, filter="kf", match="vel+att", options=AlignmentOptions(board_errors=True))
+    calls = []
+    prepare = run_mod._prepare
+    monkeypatch.setattr(run_mod, "_prepare", lambda *a, **k: calls.append(1) or prepare(*a, **k))
     auto = run_alignment(m, s, filter="kf", match="vel+att", options=AlignmentOptions(board_errors="auto"))
+    assert len(calls) == 1
     assert max(off.innovation_corr_epochs) > CONFIG.board_auto_corr_min
     assert auto.mounting_rpy_deg == on.mounting_rpy_deg and auto.mounting_sigma_deg == on.mounting_sigma_deg
     assert auto.notes[0].startswith("board error states added") and auto.notes[1:] == on.notes
+    assert np.array_equal(auto.history_x, on.history_x) and np.array_equal(auto.residuals, on.residuals)
+    assert auto.lever_arm_m == on.lever_arm_m and auto.gyro_bias_dph == on.gyro_bias_dph
 
 
 def test_board_error_states_compiled_loop_equals_reference_loop_and_other_filters_run():

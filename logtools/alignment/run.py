@@ -59,15 +59,19 @@ def _align_board_auto(master: InsLog, slave: InsLog, kind: FilterKind, match: st
     """board_errors="auto": without the board's states first; when an innovation channel of that run is
     correlated in time (errors the white model leaves out), again with them (docs/alignment.md)."""
     prog = progress or (lambda f, s="": None)
-    first = _align(master, slave, kind, match, smoother, lambda f, s="": prog(0.5 * f, s),
-                   replace(opts, board_errors=False), config)
+
+    def first_prog(f: float, s: str = "") -> None:
+        prog(0.5 * f, s)
+
+    prep = _prepare(master, slave, kind, match, opts, config, first_prog)  # (the two runs' common part, once)
+    first = _align(master, slave, kind, match, smoother, first_prog, replace(opts, board_errors=False), config, prep)
     corr = max(first.innovation_corr_epochs or (1.0,))
     if not corr > config.board_auto_corr_min:
         return replace(first, notes=first.notes + (
             f"board error states not needed: no innovation channel is correlated over more than {corr:.1f} "
             f"epochs (at most {config.board_auto_corr_min:g}; --board-errors auto)",))
     res = _align(master, slave, kind, match, smoother, lambda f, s="": prog(0.5 + 0.5 * f, s),
-                 replace(opts, board_errors=True), config)
+                 replace(opts, board_errors=True), config, prep)
     if _did_not_follow(res) and not _did_not_follow(first):
         # the states cannot explain what correlates the innovations (an unmodelled lever arm of metres:
         # tests/test_analyze_cli.py) and the larger filter lost the data: the run without them stands
@@ -90,8 +94,51 @@ def _did_not_follow(res: AlignmentResult) -> bool:
 
 
 def _align(master: InsLog, slave: InsLog, kind: FilterKind, match: str, smoother: bool, progress: Callable | None,
-           opts: AlignmentOptions, config: AlignmentConfig) -> AlignmentResult:
-    """One alignment with the board's states as ``opts.board_errors`` (a bool) says."""
+           opts: AlignmentOptions, config: AlignmentConfig, prep: Prepared | None = None) -> AlignmentResult:
+    """One alignment with the board's states as ``opts.board_errors`` (a bool) says; on ``prep`` when given
+    (:func:`_prepare` of the same logs, kind, match and options but the board's states)."""
+    prog = progress or (lambda f, s="": None)
+    if prep is None:
+        prep = _prepare(master, slave, kind, match, opts, config, prog)
+    else:
+        prog(0.0, "alignment: preparing")
+    notes = list(prep.notes)
+    prior = _mounting_prior(prep.coarse, dcm_from_quat(prep.inp.q0), opts, config, notes)
+    prob = _Problem(kind, match, smoother, opts, config, master, prep.t_imu, prep.gyro, prep.accel, prior, prep.win,
+                    prep.span_s, prep.seed.prior_rad_s if prep.seed.applied else None, prep.noise)
+    run, lay, settings, sig0 = _filter_passes(prob, prep.inp, prep.src, progress, prog, notes)
+    if prep.seed.applied:  # the bias estimates (and their history) are the seed plus the states
+        xs = run.x.copy()
+        xs[:, lay.gyro] += prep.seed.b_rad_s
+        run = replace(run, x=xs)
+    res = _result(run, lay, settings, sig0, kind, match, opts, config, notes)
+    prog(1.0, "alignment done")
+    return res
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """What an alignment prepares from the two logs before its filter: the slave's IMU over the overlap, the
+    delay window, the coarse mounting, the slave's noise, the gyro-bias seed, the filter's inputs, and the
+    notes said on the way. None of it depends on the board's states: ``board_errors="auto"`` runs its two
+    filters on one preparation (:func:`_align_board_auto`)."""
+
+    src: str
+    t_imu: np.ndarray
+    gyro: np.ndarray
+    accel: np.ndarray
+    win: DelayWindow
+    span_s: float
+    coarse: CoarseMounting
+    noise: SlaveNoise
+    seed: GyroBiasSeed
+    inp: AlignInputs
+    notes: tuple[str, ...]
+
+
+def _prepare(master: InsLog, slave: InsLog, kind: FilterKind, match: str, opts: AlignmentOptions,
+             config: AlignmentConfig, prog: Callable) -> Prepared:
+    """The preparation of :func:`_align` (the board's states aside)."""
     src = slave.meta.source_path or "slave"
     # one time base: relative times of logs with different t0 are not comparable (a no-op when the slave
     # is already rebased, as compensate() leaves it)
@@ -99,7 +146,6 @@ def _align(master: InsLog, slave: InsLog, kind: FilterKind, match: str, smoother
         slave = slave.rebased(master.meta.t0_ns)
     _check_inputs(master, slave, kind, match, src)
     notes: list[str] = []
-    prog = progress or (lambda f, s="": None)
     prog(0.0, "alignment: preparing")
 
     t_imu, gyro, accel = _slave_imu(slave, src)
@@ -131,17 +177,7 @@ def _align(master: InsLog, slave: InsLog, kind: FilterKind, match: str, smoother
     llh0 = _initial_position(master, slave, ep.t_s[0], opts, notes)
     inp = AlignInputs(ep.t_s, ep.seg_dq, ep.seg_dv_b, ep.seg_dt_s, ms_lever, q0, v0, llh0, r0, lever0, win.tau0_s,
                       ep.restart)
-    prior = _mounting_prior(coarse, dcm_from_quat(q0), opts, config, notes)
-    prob = _Problem(kind, match, smoother, opts, config, master, t_imu, gyro, accel, prior, win, span_s,
-                    seed.prior_rad_s if seed.applied else None, noise)
-    run, lay, settings, sig0 = _filter_passes(prob, inp, src, progress, prog, notes)
-    if seed.applied:  # the bias estimates (and their history) are the seed plus the states
-        xs = run.x.copy()
-        xs[:, lay.gyro] += seed.b_rad_s
-        run = replace(run, x=xs)
-    res = _result(run, lay, settings, sig0, kind, match, opts, config, notes)
-    prog(1.0, "alignment done")
-    return res
+    return Prepared(src, t_imu, gyro, accel, win, span_s, coarse, noise, seed, inp, tuple(notes))
 
 
 # ---- the steps of run_alignment ---------------------------------------------------------------------
