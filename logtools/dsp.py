@@ -32,8 +32,8 @@ __all__ = ["butter_lowpass_sos", "sosfiltfilt_even", "sosfilt_zi", "welch_psd", 
 #: lengths of a 4 h log (spectra zero padded to 2n), 1-2 MB at 2^16. numpy.fft runs the same pocketfft
 #: transforms, equal to scipy.fft's bit for bit (tests/test_dsp.py), and keeps none; it makes its plan anew
 #: each call, 5-12 % slower on the short transforms the latency repeats hundreds of times, no slower on
-#: the long ones. From 2^18 points on (4 MB plans and more): the 4 h pair's peak memory 2.68 -> 2.57 GB (2.54 with
-#: every transform through numpy.fft), the 1 h pair's transforms as fast as before.
+#: the long ones. From 2^18 points on (4 MB plans and more): the 4 h pair's peak memory 2.67 -> 2.55 GB (whole
+#: processes alternated with scipy.fft for every length), the 1 h pair's latency as fast as before.
 PLAN_FREE_MIN_LENGTH = 1 << 18
 
 

@@ -7,8 +7,9 @@ slave's IMU stamps (``update_hz``, default 20 Hz) with the slave IMU's body incr
 -> slave initialised from the master at the first epoch -> filter passes (kf.py; flexure "auto" and the
 noise recalibration may run it again) -> AlignmentResult with totals (coarse mounting combined with the
 filter's residual), sigmas, convergence time, residual RMS, observability flags and decimated histories.
-With ``board_errors="auto"`` all of that runs without the board's states, and again with them when an
-innovation channel of the first run is correlated in time (:func:`_align_board_auto`).
+With ``board_errors="auto"`` the filter passes run without the board's states, and again with them when an
+innovation channel of the first run is correlated in time, both on one preparation (:func:`_prepare`, what
+comes before the filter passes: none of it depends on the board's states; :func:`_align_board_auto`).
 
 What the caller knows goes in :class:`~logtools.alignment.options.AlignmentOptions`, the tuning in
 :class:`~logtools.alignment.options.AlignmentConfig` (both documented field by field there).
