@@ -368,8 +368,9 @@ def _flexure_options(opts: AnalyzeOptions, lat: LatencyResult | None) -> dict:
 
 
 def _alignment(master: InsLog, slave: InsLog, run: str, opts: AnalyzeOptions, progress,
-               lat: LatencyResult | None = None) -> AlignmentResult | str:
-    """One alignment run, or the reason it could not be done (str)."""
+               lat: LatencyResult | None = None, board_decided=None) -> AlignmentResult | str:
+    """One alignment run, or the reason it could not be done (str). ``board_decided``: see run_alignment
+    (passed where the alignment takes it)."""
     if not (slave.has_gyro and slave.has_accel):
         return "alignment needs the slave's IMU (angular rate and specific force)"
     match, why = _resolve_match(master, opts.match)
@@ -382,9 +383,11 @@ def _alignment(master: InsLog, slave: InsLog, run: str, opts: AnalyzeOptions, pr
         run_alignment = numerics_stage("run_alignment")
     except ImportError as exc:
         return f"alignment is not available in this installation ({exc})"
+    hook = ({"board_decided": board_decided} if board_decided is not None
+            and "board_decided" in inspect.signature(run_alignment).parameters else {})
     try:
         return run_alignment(master, slave, filter=opts.filter, match=match, smoother=opts.smoother,
-                             progress=progress, options=alignment_options(slave, opts, lat))
+                             progress=progress, options=alignment_options(slave, opts, lat), **hook)
     except AnalysisError as exc:
         return exc.problem
 
@@ -792,6 +795,22 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
         _prepare_master(master)
         pending["uncompensated"] = parallel.submit(_alignment, master, face, "uncompensated",
                                                    run_opts["uncompensated"], null_progress, an.latency)
+    early: dict[str, bool] = {}
+
+    def board_decided(on: bool) -> None:
+        """--board-errors auto: the compensated run takes the board's states; the uncompensated one, waiting
+        in its child with the white model, is ended and started again with them, beside the compensated
+        run's second filter (not after the children, here: on a consumer board's 1 h pair 4.8 s at the
+        stage's end). Logs up to parallel.FORK_IMU_TO_IMU_MAX_SAMPLES: a child forked now holds this
+        process's arrays of the moment, which beyond that is the long logs' peak."""
+        unc = pending.get("uncompensated")
+        if (on and isinstance(unc, parallel.Pending) and run_opts["uncompensated"] is not opts
+                and len(master.imu) + len(an.slave.imu) <= parallel.FORK_IMU_TO_IMU_MAX_SAMPLES):
+            unc.cancel()
+            early["board"] = True
+            pending["uncompensated"] = parallel.submit(_alignment, master, face, "uncompensated",
+                                                       replace(opts, board_errors="on"), null_progress, an.latency)
+
     for run, (slog, p) in runs.items():
         if slog is None:
             why = ("latency failed" if an.latency is None
@@ -799,18 +818,24 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
             pending[run] = why
         elif run not in pending:
             p(0.0, "")
-            pending[run] = _alignment(master, slog, run, run_opts[run], p, an.latency)
+            pending[run] = _alignment(master, slog, run, run_opts[run], p, an.latency,
+                                      board_decided if forked and run == "compensated" else None)
     if forked:
         _import_output_modules(opts)  # (this process would wait for the children here)
     for run in runs:
         res = pending[run]
         if isinstance(res, parallel.Pending):
             res = res.result()
-        if (run == "uncompensated" and run_opts[run] is not opts and isinstance(res, AlignmentResult)
-                and _has_board_states(pending.get("compensated"))):
+        if run == "uncompensated" and run_opts[run] is not opts:
             # --board-errors auto added the board's states to the compensated run: the uncompensated one
-            # with the same model, so that the two differ by the compensation alone
-            res = _alignment(master, face, run, replace(opts, board_errors="on"), null_progress, an.latency)
+            # with the same model, so that the two differ by the compensation alone (started with them as
+            # soon as that was decided, board_decided; else here, now); and without them where the
+            # compensated run's filter with them did not follow the data and the run without them stands
+            board = _has_board_states(pending.get("compensated"))
+            if early.get("board") and not board:
+                res = _alignment(master, face, run, run_opts[run], null_progress, an.latency)
+            elif not early.get("board") and board and isinstance(res, AlignmentResult):
+                res = _alignment(master, face, run, replace(opts, board_errors="on"), null_progress, an.latency)
         if isinstance(res, AlignmentResult):
             an.alignment[run] = res
             an.align_sections[run] = res

@@ -306,3 +306,39 @@ def _sleep_then(s):
 
     time.sleep(s)
     return s
+
+
+@posix_fork
+def test_a_consumer_boards_uncompensated_run_restarts_with_the_boards_states_as_soon_as_they_are_decided(
+        forking, monkeypatch):
+    """--board-errors auto on a consumer board's pair (a Markov master attitude error, a misaligned
+    accelerometer triad): the compensated run takes the board's states, so the uncompensated one must too.
+    It is started with them in a forked child as soon as the compensated run decides, not rerun here after
+    the children; the answer is the one computed without forking."""
+    from logtools import sim
+    from pipelines import analyze
+
+    p = sim.simulate(sim.scenario_config(
+        "vehicle", duration_s=120.0, seed=3, mount_rpy_deg=(2.0, -3.0, 40.0), latency_s=0.05,
+        slave_accel_misalign_rpy_deg=(0.9, -0.7, 0.4), master_att_markov_deg=0.12, master_att_markov_tau_s=50.0))
+    opts = analyze.AnalyzeOptions()
+    parallel.enable(False)
+    ref = analyze.compute(p.master, p.slave, opts)
+    parallel.enable(True)
+    here = []  # the alignment runs computed in this process (a forked child's calls are its own)
+    alignment = analyze._alignment
+
+    def spy(master, slave, run, run_opts, *args, **kwargs):
+        here.append((run, run_opts.board_errors))
+        return alignment(master, slave, run, run_opts, *args, **kwargs)
+
+    monkeypatch.setattr(analyze, "_alignment", spy)
+    an = analyze.compute(p.master, p.slave, opts)
+    assert ref.alignment["compensated"].has_board_states and an.alignment["compensated"].has_board_states
+    assert an.alignment["uncompensated"].has_board_states
+    assert here == [("compensated", "auto")]  # (the uncompensated runs: in children)
+    for run in ("uncompensated", "compensated"):
+        a, b = an.alignment[run], ref.alignment[run]
+        assert a.mounting_rpy_deg == pytest.approx(b.mounting_rpy_deg, rel=1e-12, abs=1e-12)
+        assert a.mounting_sigma_deg == pytest.approx(b.mounting_sigma_deg, rel=1e-9)
+        assert a.notes == b.notes
