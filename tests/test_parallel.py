@@ -342,3 +342,27 @@ def test_a_consumer_boards_uncompensated_run_restarts_with_the_boards_states_as_
         assert a.mounting_rpy_deg == pytest.approx(b.mounting_rpy_deg, rel=1e-12, abs=1e-12)
         assert a.mounting_sigma_deg == pytest.approx(b.mounting_sigma_deg, rel=1e-9)
         assert a.notes == b.notes
+
+
+@posix_fork
+def test_where_the_boards_filter_does_not_follow_the_uncompensated_run_stays_without_the_states(
+        forking, monkeypatch):
+    """The compensated run decided for the board's states (the uncompensated one restarted with them in a
+    child), but its result came without them (that filter did not follow the data; simulated here): the
+    uncompensated run is the one without them, as without forking."""
+    from logtools import sim
+    from pipelines import analyze
+
+    p = sim.simulate(sim.scenario_config(
+        "vehicle", duration_s=120.0, seed=3, mount_rpy_deg=(2.0, -3.0, 40.0), latency_s=0.05,
+        slave_accel_misalign_rpy_deg=(0.9, -0.7, 0.4), master_att_markov_deg=0.12, master_att_markov_tau_s=50.0))
+    monkeypatch.setattr(analyze, "_has_board_states", lambda res: False)
+    opts = analyze.AnalyzeOptions()
+    parallel.enable(False)
+    ref = analyze.compute(p.master, p.slave, opts)
+    parallel.enable(True)
+    an = analyze.compute(p.master, p.slave, opts)
+    assert not ref.alignment["uncompensated"].has_board_states
+    assert not an.alignment["uncompensated"].has_board_states
+    a, b = an.alignment["uncompensated"], ref.alignment["uncompensated"]
+    assert a.mounting_rpy_deg == pytest.approx(b.mounting_rpy_deg, rel=1e-12, abs=1e-12) and a.notes == b.notes
