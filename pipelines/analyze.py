@@ -368,9 +368,9 @@ def _flexure_options(opts: AnalyzeOptions, lat: LatencyResult | None) -> dict:
 
 
 def _alignment(master: InsLog, slave: InsLog, run: str, opts: AnalyzeOptions, progress,
-               lat: LatencyResult | None = None, board_decided=None) -> AlignmentResult | str:
-    """One alignment run, or the reason it could not be done (str). ``board_decided``: see run_alignment
-    (passed where the alignment takes it)."""
+               lat: LatencyResult | None = None, board_decided=None, board_follow=None) -> AlignmentResult | str:
+    """One alignment run, or the reason it could not be done (str). ``board_decided``, ``board_follow``: see
+    run_alignment (passed where the alignment takes them)."""
     if not (slave.has_gyro and slave.has_accel):
         return "alignment needs the slave's IMU (angular rate and specific force)"
     match, why = _resolve_match(master, opts.match)
@@ -383,8 +383,9 @@ def _alignment(master: InsLog, slave: InsLog, run: str, opts: AnalyzeOptions, pr
         run_alignment = numerics_stage("run_alignment")
     except ImportError as exc:
         return f"alignment is not available in this installation ({exc})"
-    hook = ({"board_decided": board_decided} if board_decided is not None
-            and "board_decided" in inspect.signature(run_alignment).parameters else {})
+    takes = inspect.signature(run_alignment).parameters
+    hook = {k: v for k, v in (("board_decided", board_decided), ("board_follow", board_follow))
+            if v is not None and k in takes}
     try:
         return run_alignment(master, slave, filter=opts.filter, match=match, smoother=opts.smoother,
                              progress=progress, options=alignment_options(slave, opts, lat), **hook)
@@ -402,6 +403,43 @@ def _prepare_master(master: InsLog) -> None:
     except ImportError:
         return  # (the runs say it)
     prepare_master(master)
+
+
+class _BoardDecision:
+    """--board-errors auto: the compensated run's decision on the board's states, for the uncompensated run
+    in its forked child (which takes the same model): sent through a pipe once the compensated run's first
+    filter has decided (run_alignment's ``board_decided``), read by the child after its own first filter
+    (``board_follow``), which then runs the filter with the states, if they join, on its own preparation.
+    The end of file (this process gone) reads as "without them"; a run that fell back to this process
+    (no fork) reads the decision kept here."""
+
+    def __init__(self) -> None:
+        self._r, self._w = os.pipe()
+        self._home = os.getpid()
+        self.on: bool | None = None
+
+    def after_fork(self) -> None:
+        """In this process once the child is forked (or not): the read end is the child's alone."""
+        os.close(self._r)
+
+    def send(self, on: bool) -> None:
+        """The decision, once (later calls are ignored)."""
+        if self.on is not None:
+            return
+        self.on = bool(on)
+        try:
+            os.write(self._w, b"1" if on else b"0")
+        except OSError:
+            pass  # (the child is gone: its result is read, or not, at result())
+        finally:
+            os.close(self._w)
+
+    def __call__(self) -> bool:
+        if os.getpid() == self._home:  # (the run fell back to this process: the decision is known by then)
+            return bool(self.on)
+        os.close(self._w)  # (the child's copy: the end of file must come when this process's closes)
+        with os.fdopen(self._r, "rb") as fh:
+            return fh.read(1) == b"1"
 
 
 def _uncompensated_options(opts: AnalyzeOptions, compensated: bool) -> AnalyzeOptions:
@@ -778,6 +816,7 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
             "compensated": (an.slave_comp, sub(0.7, 0.9, "alignment (compensated)"))}
     run_opts = {"uncompensated": _uncompensated_options(opts, an.slave_comp is not None), "compensated": opts}
     pending = {}
+    decision: _BoardDecision | None = None
     forked = runs["uncompensated"][0] is not None and runs["compensated"][0] is not None and parallel.available()
     imu_fit = None
     if (forked and _wants_imu_to_imu(master, an.slave)
@@ -793,24 +832,18 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
         # the two runs share nothing but their inputs: the uncompensated one in a forked child (CLI only),
         # the master's series prepared before (the child shares them instead of preparing its own)
         _prepare_master(master)
-        pending["uncompensated"] = parallel.submit(_alignment, master, face, "uncompensated",
-                                                   run_opts["uncompensated"], null_progress, an.latency)
-    early: dict[str, bool] = {}
-
-    def board_decided(on: bool) -> None:
-        """--board-errors auto: the compensated run takes the board's states; the uncompensated one, waiting
-        in its child with the white model, is ended and started again with them, beside the compensated
-        run's second filter (not after the children, here: on a consumer board's 1 h pair 4.8 s at the
-        stage's end). Logs up to parallel.FORK_IMU_TO_IMU_MAX_SAMPLES: a child forked now holds this
-        process's arrays of the moment, which beyond that is the long logs' peak."""
-        unc = pending.get("uncompensated")
-        if (on and isinstance(unc, parallel.Pending) and run_opts["uncompensated"] is not opts
-                and len(master.imu) + len(an.slave.imu) <= parallel.FORK_IMU_TO_IMU_MAX_SAMPLES):
-            unc.cancel()
-            early["board"] = True
+        if run_opts["uncompensated"] is not opts and _numerics.run_alignment is None:
+            # --board-errors auto: the compensated run decides the board's states; the uncompensated one
+            # follows its decision in the child (the filter with them, if they join, on the child's own
+            # preparation, beside the compensated run's second filter; not rerun here after the children:
+            # a consumer board's 1 h pair spent 4.8 s so at the stage's end)
+            decision = _BoardDecision()
+            pending["uncompensated"] = parallel.submit(_alignment, master, face, "uncompensated", opts,
+                                                       null_progress, an.latency, None, decision)
+            decision.after_fork()
+        else:
             pending["uncompensated"] = parallel.submit(_alignment, master, face, "uncompensated",
-                                                       replace(opts, board_errors="on"), null_progress, an.latency)
-
+                                                       run_opts["uncompensated"], null_progress, an.latency)
     for run, (slog, p) in runs.items():
         if slog is None:
             why = ("latency failed" if an.latency is None
@@ -818,8 +851,14 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
             pending[run] = why
         elif run not in pending:
             p(0.0, "")
-            pending[run] = _alignment(master, slog, run, run_opts[run], p, an.latency,
-                                      board_decided if forked and run == "compensated" else None)
+            try:
+                pending[run] = _alignment(master, slog, run, run_opts[run], p, an.latency,
+                                          decision.send if decision is not None and run == "compensated" else None)
+            finally:
+                if decision is not None and run == "compensated":
+                    decision.send(False)  # (no decision made: the run failed, or never reached it)
+    if decision is not None and decision.on is None:
+        decision.send(False)  # (no compensated run)
     if forked:
         _import_output_modules(opts)  # (this process would wait for the children here)
     for run in runs:
@@ -828,13 +867,14 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
             res = res.result()
         if run == "uncompensated" and run_opts[run] is not opts:
             # --board-errors auto added the board's states to the compensated run: the uncompensated one
-            # with the same model, so that the two differ by the compensation alone (started with them as
-            # soon as that was decided, board_decided; else here, now); and without them where the
-            # compensated run's filter with them did not follow the data and the run without them stands
+            # with the same model, so that the two differ by the compensation alone (in its child, following
+            # the decision; else here, now); and without them where the compensated run's filter with them
+            # did not follow the data and the run without them stands
             board = _has_board_states(pending.get("compensated"))
-            if early.get("board") and not board:
-                res = _alignment(master, face, run, run_opts[run], null_progress, an.latency)
-            elif not early.get("board") and board and isinstance(res, AlignmentResult):
+            if decision is not None:  # (the child followed the decision)
+                if decision.on and not board:
+                    res = _alignment(master, face, run, run_opts[run], null_progress, an.latency)
+            elif board and isinstance(res, AlignmentResult):
                 res = _alignment(master, face, run, replace(opts, board_errors="on"), null_progress, an.latency)
         if isinstance(res, AlignmentResult):
             an.alignment[run] = res

@@ -309,12 +309,12 @@ def _sleep_then(s):
 
 
 @posix_fork
-def test_a_consumer_boards_uncompensated_run_restarts_with_the_boards_states_as_soon_as_they_are_decided(
+def test_a_consumer_boards_uncompensated_run_follows_the_compensated_runs_board_decision_in_its_child(
         forking, monkeypatch):
     """--board-errors auto on a consumer board's pair (a Markov master attitude error, a misaligned
     accelerometer triad): the compensated run takes the board's states, so the uncompensated one must too.
-    It is started with them in a forked child as soon as the compensated run decides, not rerun here after
-    the children; the answer is the one computed without forking."""
+    Its child follows the compensated run's decision (the filter with them on its own preparation), rather
+    than the run being redone here after the children; the answer is the one computed without forking."""
     from logtools import sim
     from pipelines import analyze
 
@@ -333,10 +333,14 @@ def test_a_consumer_boards_uncompensated_run_restarts_with_the_boards_states_as_
         return alignment(master, slave, run, run_opts, *args, **kwargs)
 
     monkeypatch.setattr(analyze, "_alignment", spy)
+    submitted = []
+    submit = parallel.submit
+    monkeypatch.setattr(parallel, "submit", lambda fn, *a, **k: submitted.append(a[2:3]) or submit(fn, *a, **k))
     an = analyze.compute(p.master, p.slave, opts)
     assert ref.alignment["compensated"].has_board_states and an.alignment["compensated"].has_board_states
     assert an.alignment["uncompensated"].has_board_states
-    assert here == [("compensated", "auto")]  # (the uncompensated runs: in children)
+    assert here == [("compensated", "auto")]  # (the uncompensated run: in its child)
+    assert submitted.count(("uncompensated",)) == 1  # (one child, which followed the decision)
     for run in ("uncompensated", "compensated"):
         a, b = an.alignment[run], ref.alignment[run]
         assert a.mounting_rpy_deg == pytest.approx(b.mounting_rpy_deg, rel=1e-12, abs=1e-12)
@@ -347,8 +351,8 @@ def test_a_consumer_boards_uncompensated_run_restarts_with_the_boards_states_as_
 @posix_fork
 def test_where_the_boards_filter_does_not_follow_the_uncompensated_run_stays_without_the_states(
         forking, monkeypatch):
-    """The compensated run decided for the board's states (the uncompensated one restarted with them in a
-    child), but its result came without them (that filter did not follow the data; simulated here): the
+    """The compensated run decided for the board's states (the uncompensated one took them in its child),
+    but its result came without them (that filter did not follow the data; simulated here): the
     uncompensated run is the one without them, as without forking."""
     from logtools import sim
     from pipelines import analyze

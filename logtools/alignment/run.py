@@ -45,25 +45,33 @@ from .options import CONFIG, MATCHES, AlignmentConfig, AlignmentOptions, FilterK
 def run_alignment(master: InsLog, slave: InsLog, *, filter: str | FilterKind = "kf", match: str = "vel+att",
                   smoother: bool = False, progress: Callable | None = None,
                   options: AlignmentOptions | None = None, config: AlignmentConfig = CONFIG,
-                  board_decided: Callable[[bool], None] | None = None) -> AlignmentResult:
+                  board_decided: Callable[[bool], None] | None = None,
+                  board_follow: Callable[[], bool] | None = None) -> AlignmentResult:
     """Transfer alignment; ``slave`` already on the master's clock (DESIGN.md). See the module doc.
 
     ``board_decided``: with ``board_errors="auto"``, called once with the decision as soon as it is made,
     before the filter with the board's states runs (True: it runs), so that a caller can start what depends
     on it. The result can still come without them, where that filter did not follow the data
-    (``AlignmentResult.has_board_states`` says)."""
+    (``AlignmentResult.has_board_states`` says).
+
+    ``board_follow``: with ``board_errors="auto"``, the decision is someone else's (another run's
+    ``board_decided``): after the filter without the board's states, ``board_follow()`` says whether the
+    filter runs again with them, on the same preparation; the result is the run without them or the one
+    with them as it comes, exactly as ``board_errors=False`` or ``True`` would give it."""
     opts = AlignmentOptions() if options is None else options
     kind = FilterKind.parse(filter)
     if match not in MATCHES:
         raise AnalysisError(f"match must be one of {', '.join(MATCHES)}, not {match!r}")
     if opts.board_auto:
-        return _align_board_auto(master, slave, kind, match, smoother, progress, opts, config, board_decided)
+        return _align_board_auto(master, slave, kind, match, smoother, progress, opts, config, board_decided,
+                                 board_follow)
     return _align(master, slave, kind, match, smoother, progress, opts, config)
 
 
 def _align_board_auto(master: InsLog, slave: InsLog, kind: FilterKind, match: str, smoother: bool,
                       progress: Callable | None, opts: AlignmentOptions, config: AlignmentConfig,
-                      board_decided: Callable[[bool], None] | None = None) -> AlignmentResult:
+                      board_decided: Callable[[bool], None] | None = None,
+                      board_follow: Callable[[], bool] | None = None) -> AlignmentResult:
     """board_errors="auto": without the board's states first; when an innovation channel of that run is
     correlated in time (errors the white model leaves out), again with them (docs/alignment.md)."""
     prog = progress or (lambda f, s="": None)
@@ -73,6 +81,11 @@ def _align_board_auto(master: InsLog, slave: InsLog, kind: FilterKind, match: st
 
     prep = _prepare(master, slave, kind, match, opts, config, first_prog)  # (the two runs' common part, once)
     first = _align(master, slave, kind, match, smoother, first_prog, replace(opts, board_errors=False), config, prep)
+    if board_follow is not None:  # (the decision of another run: each run as it comes)
+        if not board_follow():
+            return first
+        return _align(master, slave, kind, match, smoother, lambda f, s="": prog(0.5 + 0.5 * f, s),
+                      replace(opts, board_errors=True), config, prep)
     corr = max(first.innovation_corr_epochs or (1.0,))
     if board_decided is not None:
         board_decided(bool(corr > config.board_auto_corr_min))
