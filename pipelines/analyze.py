@@ -851,14 +851,12 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
             pending[run] = why
         elif run not in pending:
             p(0.0, "")
+            decided = decision.send if decision is not None and run == "compensated" else None
             try:
-                pending[run] = _alignment(master, slog, run, run_opts[run], p, an.latency,
-                                          decision.send if decision is not None and run == "compensated" else None)
+                pending[run] = _alignment(master, slog, run, run_opts[run], p, an.latency, decided)
             finally:
-                if decision is not None and run == "compensated":
-                    decision.send(False)  # (no decision made: the run failed, or never reached it)
-    if decision is not None and decision.on is None:
-        decision.send(False)  # (no compensated run)
+                if decided is not None:
+                    decided(False)  # (no decision made: the run failed, or never reached it; else ignored)
     if forked:
         _import_output_modules(opts)  # (this process would wait for the children here)
     for run in runs:

@@ -542,9 +542,7 @@ def _white_noise_var(x: np.ndarray, cfg: ImuToImuConfig = DEFAULT) -> np.ndarray
     else:
         starts = np.linspace(0, n - blk, cfg.noise_rows // blk).astype(int)
         d3 = np.concatenate([np.diff(x[a:a + blk], n=3, axis=0) for a in starts])
-    from logtools.dsp import mad_sigma
-
-    return mad_sigma(d3) ** 2 / 20.0
+    return dsp.mad_sigma(d3) ** 2 / 20.0
 
 
 def _noise_floor_var(x: np.ndarray, seg: int = 1024, band: tuple[float, float] = (0.25, 0.5),

@@ -31,9 +31,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import fft as sfft
 
-from logtools import dsp
 from logtools.conventions import skew
-from logtools.dsp import cubic_spline_at, mad_sigma
+from logtools.dsp import cubic_spline_at, irfft, mad_sigma, rfft
 from logtools.inslog import InsLog
 
 from .imu_to_imu import finite_increasing
@@ -66,11 +65,11 @@ def _below(t: np.ndarray, y: np.ndarray, f_max_hz: float, with_rate: bool = True
     line = y[0] + np.arange(n, dtype=float)[:, None] * slope
     nfft = sfft.next_fast_len(n, real=True)
     f = sfft.rfftfreq(nfft, dt)
-    spec = dsp.rfft(y - line, nfft, axis=0) * (f <= f_max_hz)[:, None]
-    value = dsp.irfft(spec, nfft, axis=0)[:n] + line
+    spec = rfft(y - line, nfft, axis=0) * (f <= f_max_hz)[:, None]
+    value = irfft(spec, nfft, axis=0)[:n] + line
     if not with_rate:
         return value, None
-    return value, dsp.irfft(spec * (2j * np.pi * f)[:, None], nfft, axis=0)[:n] + slope / dt
+    return value, irfft(spec * (2j * np.pi * f)[:, None], nfft, axis=0)[:n] + slope / dt
 
 
 def accel_noise_without_lever(master: InsLog, t_imu: np.ndarray, gyro: np.ndarray, accel: np.ndarray,
