@@ -8,10 +8,11 @@ bags with sqlite3 and with mcap storage). In the same run, for each file:
   rewritten with a ClockShift of 37.2 ms and 30 ppm);
 * the ratio export / parse (the target: at most 1);
 * the CSV and Parquet exports from the parsed InsLog.
-Parse and export run ``--repeat`` times interleaved, after one warm-up run of each (numba caches loaded):
-the figures are the best of each and the median of the ratios of neighbouring runs (this 2-core
-machine's run-to-run scatter is +-30 %). Both run
-the compiled kernels (``TAPOST_KERNELS=compiled`` unless set), as every run after the first does.
+Both run with numpy's environment of a ``tapost`` process (``pipelines.cli.set_numpy_environment``: one
+BLAS thread, no huge pages). Parse and export run ``--repeat`` times interleaved, after one warm-up run of
+each (numba caches loaded): the figures are the best of each and the median of the ratios of neighbouring
+runs (this 2-core machine's run-to-run scatter is +-30 %). Both run the compiled kernels
+(``TAPOST_KERNELS=compiled`` unless set), as every run after the first does.
 
     python benchmarks/bench_export.py            # 1 h logs
     python benchmarks/bench_export.py --quick    # 10 min logs
@@ -29,11 +30,13 @@ import sys
 import tempfile
 from pathlib import Path
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parents[1]
 os.environ.setdefault("TAPOST_KERNELS", "compiled")  # a warm installation's speed (see logtools.jit)
 sys.path.insert(0, str(ROOT))
+from pipelines.cli import set_numpy_environment  # noqa: E402
+
+set_numpy_environment()  # numpy's threads and pages as in a tapost process (before numpy loads)
+import numpy as np  # noqa: E402
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from bench_parse_ulog_csv import best_of  # noqa: E402 (one timing helper for the parse and export benchmarks)
 RESULTS = ROOT / "benchmarks" / "results" / "export.json"

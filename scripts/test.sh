@@ -13,9 +13,10 @@ if ! command -v chromium >/dev/null 2>&1 && [ "$(id -u)" = 0 ] && command -v apt
 fi
 # the numba kernels compiled once, here, rather than by every test worker on its own (about 50 s each)
 python -m pipelines.warmup --quiet || echo "test.sh: the kernels could not be compiled ahead; the tests compile them" >&2
-# a worker per core, one BLAS thread each (as the CLI runs: pipelines/cli.py BLAS_THREADS); more only wait
+# a worker per core, one BLAS thread each, numpy without huge pages (as the CLI runs: pipelines/cli.py
+# BLAS_THREADS, NUMPY_HUGEPAGES); more threads only wait
 OPENBLAS_NUM_THREADS="${OPENBLAS_NUM_THREADS:-1}" OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}" \
-  MKL_NUM_THREADS="${MKL_NUM_THREADS:-1}" python -m pytest -p no:cacheprovider -n auto "$@"
+  MKL_NUM_THREADS="${MKL_NUM_THREADS:-1}" NUMPY_MADVISE_HUGEPAGE="${NUMPY_MADVISE_HUGEPAGE:-0}" python -m pytest -p no:cacheprovider -n auto "$@"
 rc=$?
 if [ "$rc" -eq 5 ]; then echo "test.sh: pytest collected no tests" >&2; exit 1; fi
 exit "$rc"

@@ -5,8 +5,9 @@ import os
 
 os.environ.setdefault("TAPOST_KERNELS", "compiled")
 os.environ.setdefault("TAPOST_WARMUP", "0")
-# one BLAS thread per test worker, as the CLI runs: with a worker per core (-n auto), BLAS threads only
-# wait on each other (scripts/test.sh sets it before pytest imports numpy; pipelines.cli imports no numpy)
-from pipelines.cli import limit_blas_threads  # noqa: E402
+# one BLAS thread per test worker and no huge pages for numpy's arrays, as the CLI runs: with a worker per
+# core (-n auto), BLAS threads only wait on each other (scripts/test.sh sets them before pytest imports
+# numpy; pipelines.cli imports no numpy)
+from pipelines.cli import set_numpy_environment  # noqa: E402
 
-limit_blas_threads()
+set_numpy_environment()

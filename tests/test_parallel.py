@@ -184,25 +184,29 @@ def test_the_cli_recording_written_by_the_prepared_child_equals_the_in_process_o
     assert read_entities(str(out / "recording.rrd")) == read_entities(str(tmp_path / "here.rrd"))
 
 
-def test_the_cli_runs_one_blas_thread_unless_the_user_chose(tmp_path):
-    """`tapost` sets BLAS_THREADS where the environment does not say, before numpy is imported (after, the
-    variable would do nothing), and keeps a value the user set; its children inherit it."""
+def test_the_cli_runs_one_blas_thread_and_no_numpy_huge_pages_unless_the_user_chose(tmp_path):
+    """`tapost` sets BLAS_THREADS and NUMPY_HUGEPAGES where the environment does not say, before numpy is
+    imported (after, the variables would do nothing: numpy reads its page switch at import), and keeps a
+    value the user set; its children inherit them."""
     from pipelines import cli
 
     probe = ("import os, sys, pipelines.cli as c\n"
              "assert 'numpy' not in sys.modules\n"
              "sys.argv = ['tapost', '--version']\n"
              "try:\n    c.main()\nexcept SystemExit:\n    pass\n"
-             "print(os.environ['OPENBLAS_NUM_THREADS'], os.environ['OMP_NUM_THREADS'])")
-    env = {k: v for k, v in os.environ.items() if k not in cli.BLAS_THREAD_VARIABLES}
+             "import numpy\n"
+             "print(os.environ['OPENBLAS_NUM_THREADS'], os.environ['OMP_NUM_THREADS'],\n"
+             "      int(numpy._core.multiarray._get_madvise_hugepage()))")
+    names = (*cli.BLAS_THREAD_VARIABLES, cli.NUMPY_HUGEPAGE_VARIABLE)
+    env = {k: v for k, v in os.environ.items() if k not in names}
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])
     p = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, env=env, timeout=60)
     assert p.returncode == 0, p.stderr
-    assert p.stdout.split()[-2:] == [cli.BLAS_THREADS, cli.BLAS_THREADS]
+    assert p.stdout.split()[-3:] == [cli.BLAS_THREADS, cli.BLAS_THREADS, cli.NUMPY_HUGEPAGES]
     p = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
-                       env={**env, "OPENBLAS_NUM_THREADS": "3"}, timeout=60)
+                       env={**env, "OPENBLAS_NUM_THREADS": "3", cli.NUMPY_HUGEPAGE_VARIABLE: "1"}, timeout=60)
     assert p.returncode == 0, p.stderr
-    assert p.stdout.split()[-2:] == ["3", cli.BLAS_THREADS]
+    assert p.stdout.split()[-3:] == ["3", cli.BLAS_THREADS, "1"]
 
 
 @posix_fork
