@@ -776,9 +776,12 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
         try:
             # the comparison methods in a forked child beside the headline (CLI, logs up to about 1 h); an
             # estimate put in with use_numerics may not take the argument
+            n_imu = len(master.imu) + len(slave.imu)
+            takes = inspect.signature(estimate).parameters
             beside = ({"beside": parallel.submit} if parallel.available() and opts.compare
-                      and len(master.imu) + len(slave.imu) <= parallel.FORK_COMPARE_MAX_SAMPLES
-                      and "beside" in inspect.signature(estimate).parameters else {})
+                      and n_imu <= parallel.FORK_COMPARE_MAX_SAMPLES and "beside" in takes else {})
+            if parallel.available() and n_imu <= parallel.THREAD_LATENCY_MAX_SAMPLES and "overlap" in takes:
+                beside["overlap"] = True  # (the velocity pair in a thread beside the rate fit)
             an.latency = estimate(master, slave, method=opts.latency_method, max_lag_s=max_lag,
                                   compare=opts.compare, progress=sub(0.15, 0.45, "latency"), **beside)
         except AnalysisError as exc:

@@ -51,6 +51,12 @@ FORK_IMU_TO_IMU_MAX_SAMPLES = 1_500_000
 #: about 1 h of 200 Hz logs, as for the IMU-to-IMU fit; beyond, the long logs' peak memory decides
 FORK_COMPARE_MAX_SAMPLES = FORK_IMU_TO_IMU_MAX_SAMPLES
 
+#: master + slave IMU samples up to which ``analyze``'s tapost latency makes its velocity pair in a thread
+#: beside its rate fit (``estimate(..., overlap=True)``): the 1 h pair's latency stage 0.4-0.5 s shorter,
+#: the same estimate to the bit. The two stages' arrays then sit side by side: up to about 1 h of 200 Hz
+#: logs, as the forks above; beyond, the long logs' peak memory decides
+THREAD_LATENCY_MAX_SAMPLES = FORK_IMU_TO_IMU_MAX_SAMPLES
+
 
 def enable(on: bool = True) -> None:
     """Allow forking in this process (the CLI's ``analyze``)."""

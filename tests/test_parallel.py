@@ -2,6 +2,7 @@
 come back, and a child that dies falls back to running the call here."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -293,7 +294,8 @@ def test_a_failed_headline_ends_the_comparison_child(forking, monkeypatch):
         started.append(job)
         return job
 
-    def fail(ctx, prog):
+    def fail(ctx, prog, overlap=False, threads_done=None):
+        threads_done()  # (where the child is forked: no thread of the headline's left)
         raise AnalysisError("the headline's own failure")
 
     monkeypatch.setattr(estimator, "tapost", fail)
@@ -303,6 +305,41 @@ def test_a_failed_headline_ends_the_comparison_child(forking, monkeypatch):
     assert job._pid is not None
     with pytest.raises(ChildProcessError):  # reaped already: no such child any more
         os.waitpid(job._pid, os.WNOHANG)
+
+
+def test_the_velocity_pair_in_a_thread_gives_the_same_estimate_and_the_child_forks_after_it(forking):
+    """``estimate(..., overlap=True)``: the velocity pair made in a thread beside the rate fit gives the
+    estimate of the plain run to the bit; the comparison methods' child is forked once that thread has ended
+    (a fork beside a running thread could copy a lock it holds), and gives the same comparison."""
+    import threading
+
+    from logtools import sim
+    from logtools.latency import estimate, estimator
+
+    pair = sim.simulate(sim.scenario_config("aircraft", duration_s=60.0, seed=6))
+    assert pair.master.has_vel and pair.slave.has_vel
+    alive_at_fork, made = [], []
+    real = estimator._velocity_pair
+
+    def beside(fn, *args):
+        alive_at_fork.append(sorted(t.name for t in threading.enumerate()))
+        return parallel.submit(fn, *args)
+
+    def counted(ctx):
+        made.append(threading.current_thread().name)
+        return real(ctx)
+
+    estimator._velocity_pair = counted
+    try:
+        plain = estimate(pair.master, pair.slave)
+        beside_run = estimate(pair.master, pair.slave, beside=beside, overlap=True)
+    finally:
+        estimator._velocity_pair = real
+    assert made == ["MainThread", "tapost-latency"]
+    assert alive_at_fork and all("tapost-latency" not in names for names in alive_at_fork)
+    for f in dataclasses.fields(plain):  # (every array whole: a repr elides long ones)
+        a, b = getattr(plain, f.name), getattr(beside_run, f.name)
+        assert (np.array_equal(a, b) if isinstance(a, np.ndarray) else repr(a) == repr(b)), f.name
 
 
 def _sleep_then(s):

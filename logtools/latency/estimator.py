@@ -1,6 +1,7 @@
 """The estimate: the stages in order (``tapost``), the widened search, the other methods, ``estimate``."""
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
@@ -115,13 +116,46 @@ def first_fit(ctx: Ctx, co: Coarse, smp: Samples) -> tuple[Ctx, Samples, float, 
     return ctx, smp, d_center, noise
 
 
-def velocity_stage(ctx: Ctx, smp: Samples, rs: RateSigma, fit_drift: bool, flexure: bool
-                   ) -> tuple[dict | None, VelocityPair | None, RateSigma]:
+class _Beside:
+    """``fn(*args, **kwargs)`` started in a thread, beside the caller's work (numpy and the compiled kernels
+    leave the GIL for their arrays' loops); ``result()`` waits, then returns or raises what ``fn`` did.
+    ``join()`` only waits. Nothing is shared but the arguments, which ``fn`` does not change."""
+
+    def __init__(self, fn: Callable, *args, **kwargs):
+        self._out: list = []
+        self._err: list[BaseException] = []
+
+        def run() -> None:
+            try:
+                self._out.append(fn(*args, **kwargs))
+            except BaseException as exc:  # noqa: BLE001 - raised in the caller's thread, by result()
+                self._err.append(exc)
+
+        self._thread = threading.Thread(target=run, name="tapost-latency", daemon=True)
+        self._thread.start()
+
+    def join(self) -> None:
+        self._thread.join()
+
+    def result(self):
+        self._thread.join()
+        if self._err:
+            raise self._err[0]
+        return self._out[0]
+
+
+def _velocity_pair(ctx: Ctx) -> VelocityPair | None:
+    return velocity_pair(*ctx.vel_src, ctx.band_cutoff_hz, ctx.master.itp, cfg=ctx.cfg)
+
+
+def velocity_stage(ctx: Ctx, smp: Samples, rs: RateSigma, fit_drift: bool, flexure: bool,
+                   pair: _Beside | None = None) -> tuple[dict | None, VelocityPair | None, RateSigma]:
     """Velocity matching (both units with NED velocity): its quality entry, the pair, and the rate fit's
-    estimate fused with it where they agree (``fusion.velocity_step``)."""
+    estimate fused with it where they agree (``fusion.velocity_step``). ``pair``: the pair of this ``ctx``,
+    being made in a thread."""
     if ctx.vel_src is None:
         return None, None, rs
-    vp = velocity_pair(*ctx.vel_src, ctx.band_cutoff_hz, ctx.master.itp, cfg=ctx.cfg)
+    vp = pair.result() if pair is not None else _velocity_pair(ctx)
     vel_q, fusion = velocity_step(ctx, vp, smp.w0, smp.w1, smp.t_mid, fit_drift, rs.latency_s, rs.drift,
                                   rs.sigma_latency_s, rs.sigma_drift, rs.corr_ld, flexure=flexure)
     return vel_q, vp, fused(rs, fusion)
@@ -141,8 +175,28 @@ def best_instant(rs: RateSigma, V: np.ndarray | None, smp: Samples, fit_drift: b
     return t_best, lat_best, v_best
 
 
-def tapost(ctx: Ctx, progress: Progress) -> tuple[LatencyResult, Coarse]:
-    """tapost's method, stage by stage (the package map names each stage's module)."""
+def tapost(ctx: Ctx, progress: Progress, *, overlap: bool = False, threads_done: Callable[[], None] | None = None
+           ) -> tuple[LatencyResult, Coarse]:
+    """tapost's method, stage by stage (the package map names each stage's module). ``overlap``: the velocity
+    pair (its interpolants and lever-arm rows: a third of the stage) made in a thread beside the rate fit,
+    which it does not need (the same numbers, sooner where a core is free). ``threads_done``: called once no
+    thread of this call runs any more (at the velocity stage; at once without the thread), before the rest of
+    the stage: a caller may fork there."""
+    pair = _Beside(_velocity_pair, ctx) if overlap and ctx.vel_src is not None else None
+    if pair is None and threads_done is not None:
+        threads_done()
+        threads_done = None
+    try:
+        return _tapost(ctx, progress, pair, threads_done)
+    finally:
+        if pair is not None:  # (an error before the pair was used: the thread ends before the caller goes on)
+            pair.join()
+
+
+def _tapost(ctx: Ctx, progress: Progress, pair: _Beside | None, threads_done: Callable[[], None] | None
+            ) -> tuple[LatencyResult, Coarse]:
+    ctx0 = ctx
+
     def prog(f: float, stage: str) -> None:
         if progress is not None:
             progress(f, stage)
@@ -163,7 +217,13 @@ def tapost(ctx: Ctx, progress: Progress) -> tuple[LatencyResult, Coarse]:
     rs = rate_sigma(fin, centers, lats, sigs, t_mid, ctx, fit_window_chi2(fin, centers, lats, sigs, t_mid))
     if ctx.vel_src is not None:
         prog(0.85, "velocity matching")
-    vel_q, vp, rs = velocity_stage(ctx, smp, rs, fit_drift, fin.flex is not None)
+    if pair is not None:
+        pair.join()
+        if ctx.master is not ctx0.master:  # (first_fit low-passed the units again: the pair of their new rates)
+            pair = None
+    if threads_done is not None:
+        threads_done()
+    vel_q, vp, rs = velocity_stage(ctx, smp, rs, fit_drift, fin.flex is not None, pair)
     rs, V = drift_prior(rs, fit_drift, cfg)
     if not fit_drift:
         rs = centroid_term(rs, ctx, smp.t_m, smp.valid, t_mid)
@@ -278,7 +338,8 @@ def _run_methods(names: list[str], method: str, ctx: Ctx, master: InsLog, slave:
 
 def estimate(master: InsLog, slave: InsLog, *, method: str = "tapost", max_lag_s: float | None = 2.0,
              compare: bool = True, progress: Progress = None, accelerometers: bool = True,
-             velocity: bool = True, config: LatencyConfig = DEFAULT, beside: Callable | None = None) -> LatencyResult:
+             velocity: bool = True, config: LatencyConfig = DEFAULT, beside: Callable | None = None,
+             overlap: bool = False) -> LatencyResult:
     """Latency (s) and drift (ppm) of ``slave`` behind ``master``; see the package docstring (``logtools.latency``).
 
     ``max_lag_s`` bounds the search at face value (both logs' absolute stamps); ``None`` searches the
@@ -289,7 +350,9 @@ def estimate(master: InsLog, slave: InsLog, *, method: str = "tapost", max_lag_s
     (no velocity matching). ``config``: every tuning number and switch (``LatencyConfig``). ``beside``: a
     function like ``pipelines.parallel.submit`` (``beside(fn, *args)`` -> an object with ``result()`` and
     ``cancel()``) that runs the comparison methods while the tapost headline is computed (the CLI forks them:
-    the same numbers, sooner); None runs them after it, here.
+    the same numbers, sooner); None runs them after it, here. ``overlap``: the tapost headline makes its
+    velocity pair in a thread beside its rate fit (``tapost``; the CLI, up to about 1 h of 200 Hz logs: the
+    two stages' arrays side by side).
     """
     if method not in METHODS:
         raise AnalysisError(f"unknown latency method {method!r} (choose from {', '.join(METHODS)})")
@@ -301,16 +364,19 @@ def estimate(master: InsLog, slave: InsLog, *, method: str = "tapost", max_lag_s
     prog(0.0, "preparing")
     ctx = prepare(master, slave, max_lag_s, accelerometers=accelerometers, velocity=velocity, cfg=config)
     others = [x for x in METHODS if x != method] if compare else []
-    pending = None
+    beside_started: list = []
+    start_beside = None
     if beside is not None and method == Method.TAPOST and others:
-        pending = beside(_run_methods, others, method, ctx, master, slave, max_lag_s, config, None)
+        def start_beside() -> None:  # (forked once the headline's own thread is done)
+            beside_started.append(beside(_run_methods, others, method, ctx, master, slave, max_lag_s, config, None))
     methods: dict[str, MethodEstimate] = {}
     head: LatencyResult | None = None
     err: AnalysisError | None = None
     # the headline first: its failure is the run's failure
     try:
         if method == Method.TAPOST:
-            head, _ = tapost(ctx, lambda f, st: prog(0.05 + 0.75 * f, st))
+            head, _ = tapost(ctx, lambda f, st: prog(0.05 + 0.75 * f, st), overlap=overlap,
+                             threads_done=start_beside)
             if max_lag_s is not None and config.search.search_widen and suspect(head, max_lag_s, config):
                 prog(0.78, "whole-overlap search")
                 head = widened(head, ctx)
@@ -321,12 +387,12 @@ def estimate(master: InsLog, slave: InsLog, *, method: str = "tapost", max_lag_s
                     "0 = identical, 1 = unrelated): logs of different vehicles or of different times?")
             methods[Method.TAPOST.value] = MethodEstimate(head.latency_s, head.sigma_s, "")
     except BaseException:
-        if pending is not None:
+        for pending in beside_started:
             pending.cancel()
         raise
-    if pending is not None:
+    if beside_started:
         prog(0.8, "comparison methods")
-        more, err = pending.result()
+        more, err = beside_started[0].result()
     else:
         names = ([method] if method != Method.TAPOST else []) + others
         more, err = _run_methods(names, method, ctx, master, slave, max_lag_s, config,
