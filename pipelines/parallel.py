@@ -6,7 +6,9 @@ more than one core:
 * ``prepare`` / ``call_prepared``: a child forked at the start that imports the modules of a later stage
   (the recording's: rerun's SDK, about 0.5 s of imports) while this process parses the logs, then runs
   that stage's call when it is sent (its arguments pickled through a pipe: 4.5 MB, 20 ms for the sample
-  pair; so only for small inputs, see ``PREPARED_MAX_INPUT_BYTES``).
+  pair; so only for small inputs, see ``PREPARED_MAX_INPUT_BYTES``);
+* ``start_prepared``: that call sent now and its answer read later (the recording beside the HTML report),
+  or, without a prepared child, ``submit``.
 
 The child sends its result (or its exception) back pickled through a pipe and exits; anything that goes
 wrong with the fork itself (no fork, one core, a child that dies) falls back to running the call in this
@@ -270,32 +272,58 @@ def prepare(name: str, modules: tuple[str, ...]) -> bool:
 def call_prepared(name: str, fn: Callable, *args, **kwargs) -> Any:
     """``fn(*args, **kwargs)`` in the child ``prepare(name, ...)`` started (its exception re-raised here),
     or in this process when there is none or it failed (so the answer never depends on it)."""
-    entry = _PREPARED.pop(name, None)
-    if entry is None:
+    if name not in _PREPARED:
         return fn(*args, **kwargs)
-    pid, req_w, res_r = entry
-    ok, value = None, None
-    try:
+    return start_prepared(name, fn, *args, **kwargs).result()
+
+
+class _Sent:
+    """A call sent to a prepared child (``result()`` waits for its answer), run here instead where the
+    child cannot take it or dies."""
+
+    def __init__(self, entry: tuple[int, int, int], fn: Callable, args: tuple, kwargs: dict):
+        self._pid, req_w, self._res_r = entry
+        self._call = (fn, args, kwargs)
+        self._sent = False
         try:
-            payload = pickle.dumps((fn, args, kwargs), protocol=5)
+            payload = pickle.dumps(self._call, protocol=5)
             with os.fdopen(req_w, "wb", closefd=False) as fh:
                 fh.write(payload)
+            self._sent = True
+        except (OSError, TypeError, AttributeError, pickle.PickleError):
+            pass  # not picklable, or the child died: the same call here, at result()
         finally:
-            os.close(req_w)
-        ok, value = _read_answer(res_r, closefd=False)
-    except (OSError, EOFError, TypeError, AttributeError, pickle.PickleError):
-        ok = None  # not picklable, or the child died: the same call here
-    finally:
-        _close(res_r)
+            _close(req_w)
+
+    def result(self) -> Any:
+        ok, value = None, None
         try:
-            os.waitpid(pid, 0)
-        except OSError:
-            pass
-    if ok is None:
-        return fn(*args, **kwargs)
-    if not ok:
-        raise value
-    return value
+            if self._sent:
+                ok, value = _read_answer(self._res_r, closefd=False)
+        except (OSError, EOFError, pickle.PickleError):
+            ok = None
+        finally:
+            _close(self._res_r)
+            try:
+                os.waitpid(self._pid, 0)
+            except OSError:
+                pass
+        if ok is None:
+            fn, args, kwargs = self._call
+            return fn(*args, **kwargs)
+        if not ok:
+            raise value
+        return value
+
+
+def start_prepared(name: str, fn: Callable, *args, **kwargs) -> "Pending | _Sent":
+    """``fn(*args, **kwargs)`` started now, beside what this process does next: in the child
+    ``prepare(name, ...)`` started, else in a forked child (:func:`submit`), else (forking not allowed) in this
+    process when ``result()`` is asked for. ``result()`` waits and returns or re-raises as the call did."""
+    entry = _PREPARED.pop(name, None)
+    if entry is None:
+        return submit(fn, *args, **kwargs)
+    return _Sent(entry, fn, args, kwargs)
 
 
 def is_prepared(name: str) -> bool:

@@ -144,6 +144,38 @@ def test_a_prepared_childs_exception_comes_back_and_what_cannot_travel_runs_here
     assert parallel.call_prepared("local", lambda: os.getpid()) == os.getpid()  # a lambda does not pickle
 
 
+def _pid_after_flag(path):
+    import time
+
+    deadline = time.monotonic() + 30.0
+    while not os.path.exists(path) and time.monotonic() < deadline:  # (runs beside the caller: waits for it)
+        time.sleep(0.01)
+    return os.getpid(), os.path.exists(path)
+
+
+@posix_fork
+def test_a_started_call_runs_beside_the_caller_in_the_prepared_child_or_a_forked_one(forking, tmp_path):
+    """``start_prepared``: the call is under way when it returns (it sees a file the caller writes only
+    afterwards), in the prepared child where there is one, else in a child forked for it; its exception
+    comes back from ``result()``; without forking, it runs here at ``result()``."""
+    parallel.prepare("rec", ())
+    prepared_pid = parallel._PREPARED["rec"][0]
+    flag = tmp_path / "html-written"
+    job = parallel.start_prepared("rec", _pid_after_flag, str(flag))
+    assert not parallel.is_prepared("rec")
+    flag.write_text("x")
+    assert job.result() == (prepared_pid, True)
+    flag2 = tmp_path / "second"
+    job = parallel.start_prepared("rec", _pid_after_flag, str(flag2))  # (none prepared any more: forked)
+    flag2.write_text("x")
+    pid, seen = job.result()
+    assert seen and pid not in (os.getpid(), prepared_pid)
+    with pytest.raises(ValueError, match="the child's own error"):
+        parallel.start_prepared("none", _boom).result()
+    parallel.enable(False)
+    assert parallel.start_prepared("none", _pid_and_sum, np.ones(3)).result() == (os.getpid(), 3.0)
+
+
 @posix_fork
 def test_a_prepared_child_that_died_or_was_released_changes_nothing(forking):
     parallel.prepare("dead", ())
