@@ -206,3 +206,16 @@ def test_as_trapezoid_integrates_is_what_a_strapdown_integrates_from_point_sampl
     assert len(tu) == 4 * (len(t_c) - 1) + 1 and np.allclose(tu[::4], t_c)
     inner = (tu > 5) & (tu < 55)
     assert np.max(np.abs(up[inner] - np.sin(2 * np.pi * 15.0 * tu[inner]))) < 1e-3
+
+
+@pytest.mark.parametrize("shape", [(1001, 3), (720, 1), (64, 12), (500,)])
+def test_mad_sigma_is_the_columns_median_absolute_deviation_whatever_the_layout(shape):
+    """mad_sigma (its medians along contiguous rows of a transposed copy) gives each column's 1.4826 x
+    median |x - median x| to the bit, for C- and F-ordered and strided inputs alike."""
+    rng = np.random.default_rng(7)
+    x = rng.standard_normal(shape) * 3.0 + 1.0
+    want = np.median(np.abs(x - np.median(x, axis=0)), axis=0) * 1.4826
+    for v in (x, np.asfortranarray(x), np.repeat(x, 2, axis=0)[::2]):
+        assert np.array_equal(dsp.mad_sigma(v), want)
+    if x.ndim == 2:
+        assert np.array_equal(dsp.mad_sigma(x)[0], dsp.mad_sigma(x[:, :1].copy())[0])

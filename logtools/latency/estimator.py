@@ -1,7 +1,6 @@
 """The estimate: the stages in order (``tapost``), the widened search, the other methods, ``estimate``."""
 from __future__ import annotations
 
-import threading
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
@@ -10,6 +9,7 @@ import numpy as np
 from logtools.conventions import euler_from_dcm
 from logtools.errors import AnalysisError
 from logtools.inslog import InsLog
+from logtools.latency.beside import Beside
 from logtools.latency.candidates import fit_all
 from logtools.latency.coarse import Coarse, coarse, xcorr_estimate
 from logtools.latency.config import DEFAULT, LatencyConfig
@@ -116,40 +116,12 @@ def first_fit(ctx: Ctx, co: Coarse, smp: Samples) -> tuple[Ctx, Samples, float, 
     return ctx, smp, d_center, noise
 
 
-class _Beside:
-    """``fn(*args, **kwargs)`` started in a thread, beside the caller's work (numpy and the compiled kernels
-    leave the GIL for their arrays' loops); ``result()`` waits, then returns or raises what ``fn`` did.
-    ``join()`` only waits. Nothing is shared but the arguments, which ``fn`` does not change."""
-
-    def __init__(self, fn: Callable, *args, **kwargs):
-        self._out: list = []
-        self._err: list[BaseException] = []
-
-        def run() -> None:
-            try:
-                self._out.append(fn(*args, **kwargs))
-            except BaseException as exc:  # noqa: BLE001 - raised in the caller's thread, by result()
-                self._err.append(exc)
-
-        self._thread = threading.Thread(target=run, name="tapost-latency", daemon=True)
-        self._thread.start()
-
-    def join(self) -> None:
-        self._thread.join()
-
-    def result(self):
-        self._thread.join()
-        if self._err:
-            raise self._err[0]
-        return self._out[0]
-
-
 def _velocity_pair(ctx: Ctx) -> VelocityPair | None:
     return velocity_pair(*ctx.vel_src, ctx.band_cutoff_hz, ctx.master.itp, cfg=ctx.cfg)
 
 
 def velocity_stage(ctx: Ctx, smp: Samples, rs: RateSigma, fit_drift: bool, flexure: bool,
-                   pair: _Beside | None = None) -> tuple[dict | None, VelocityPair | None, RateSigma]:
+                   pair: Beside | None = None) -> tuple[dict | None, VelocityPair | None, RateSigma]:
     """Velocity matching (both units with NED velocity): its quality entry, the pair, and the rate fit's
     estimate fused with it where they agree (``fusion.velocity_step``). ``pair``: the pair of this ``ctx``,
     being made in a thread."""
@@ -182,7 +154,7 @@ def tapost(ctx: Ctx, progress: Progress, *, overlap: bool = False, threads_done:
     which it does not need (the same numbers, sooner where a core is free). ``threads_done``: called once no
     thread of this call runs any more (at the velocity stage; at once without the thread), before the rest of
     the stage: a caller may fork there."""
-    pair = _Beside(_velocity_pair, ctx) if overlap and ctx.vel_src is not None else None
+    pair = Beside(_velocity_pair, ctx) if overlap and ctx.vel_src is not None else None
     if pair is None and threads_done is not None:
         threads_done()
         threads_done = None
@@ -193,7 +165,7 @@ def tapost(ctx: Ctx, progress: Progress, *, overlap: bool = False, threads_done:
             pair.join()
 
 
-def _tapost(ctx: Ctx, progress: Progress, pair: _Beside | None, threads_done: Callable[[], None] | None
+def _tapost(ctx: Ctx, progress: Progress, pair: Beside | None, threads_done: Callable[[], None] | None
             ) -> tuple[LatencyResult, Coarse]:
     ctx0 = ctx
 
@@ -362,7 +334,8 @@ def estimate(master: InsLog, slave: InsLog, *, method: str = "tapost", max_lag_s
             progress(float(f), stage)
 
     prog(0.0, "preparing")
-    ctx = prepare(master, slave, max_lag_s, accelerometers=accelerometers, velocity=velocity, cfg=config)
+    ctx = prepare(master, slave, max_lag_s, accelerometers=accelerometers, velocity=velocity, cfg=config,
+                  threads=overlap)
     others = [x for x in METHODS if x != method] if compare else []
     beside_started: list = []
     start_beside = None

@@ -10,6 +10,7 @@ import numpy as np
 
 from logtools.errors import AnalysisError
 from logtools.inslog import InsLog
+from logtools.latency.beside import both
 from logtools.latency.config import DEFAULT, LatencyConfig
 from logtools.latency.inputs import (Unit, band_limited_native, make_unit, series_on_grid, signal_band_hz,
                                      uniform_native, unit_rate)
@@ -58,9 +59,10 @@ def _shared_clock_mapping(master: InsLog, slave: InsLog, groups: tuple[str, str]
 
 
 def prepare(master: InsLog, slave: InsLog, max_lag_s: float | None, *, accelerometers: bool = True,
-            velocity: bool = True, cfg: LatencyConfig = DEFAULT) -> Ctx:
+            velocity: bool = True, cfg: LatencyConfig = DEFAULT, threads: bool = False) -> Ctx:
     """Both units on the master's relative clock, gridded, low-passed at one cutoff; AnalysisError for
-    no or too short overlap and unusable rates."""
+    no or too short overlap and unusable rates. ``threads``: the slave's grids and filters made in a thread
+    beside the master's (``beside.both``; the same numbers)."""
     if max_lag_s is not None and not (np.isfinite(max_lag_s) and max_lag_s > 0):
         raise AnalysisError(f"max_lag_s must be positive or None (whole overlap), not {max_lag_s!r}")
     slave_r = slave.rebased(master.meta.t0_ns)
@@ -84,11 +86,10 @@ def prepare(master: InsLog, slave: InsLog, max_lag_s: float | None, *, accelerom
                 f"no overlap between master [{m0 + master.t0_s:.3f}, {m1 + master.t0_s:.3f}] s and slave "
                 f"[{s0 + master.t0_s:.3f}, {s1 + master.t0_s:.3f}] s within +-{max_lag_s:g} s at face value "
                 f"(clocks unrelated? use --max-lag auto)")
-    natm, nm = uniform_native(tm, wm, "master")
-    nats, ns = uniform_native(ts, ws, "slave")
+    (natm, nm, band_m), (nats, ns, band_s) = both(_native_and_band, (tm, wm, "master"), (ts, ws, "slave"), threads)
     # zero-phase low-pass of both units at the same cutoff: a few times the motion's band (the noise
     # between the motion's band and Nyquist would otherwise bias a spline-interpolated sub-sample delay)
-    band = (min if cfg.prepare.band_common else max)(signal_band_hz(natm, nm), signal_band_hz(nats, ns))
+    band = (min if cfg.prepare.band_common else max)(band_m, band_s)
     floor = min(cfg.prepare.min_cutoff_hz, max(cfg.prepare.band_min_cutoff_hz, cfg.prepare.min_cutoff_fraction * f_c))
     cutoff = float(np.clip(cfg.prepare.band_factor * band, floor, cfg.prepare.cutoff_fraction * f_c))
     band_cutoff = float(np.clip(cfg.prepare.band_factor * band, cfg.prepare.band_min_cutoff_hz,
@@ -97,10 +98,8 @@ def prepare(master: InsLog, slave: InsLog, max_lag_s: float | None, *, accelerom
     # information (a denser grid only costs time; the residuals' correlation is handled by the HAC)
     f_r = min(f_c, max(cfg.prepare.refine_band_factor * cutoff, cfg.prepare.min_refine_rate_hz))
     f_s = min(f_r, cfg.prepare.max_coarse_rate_hz)
-    natm = band_limited_native(natm, tm, wm, fm, cutoff, cfg.prepare.band_limited_fraction, "master")
-    nats = band_limited_native(nats, ts, ws, fs, cutoff, cfg.prepare.band_limited_fraction, "slave")
-    um = make_unit(natm, nm, srcm, "master", fm, 1.0 / f_s, cutoff)
-    us = make_unit(nats, ns, srcs, "slave", fs, 1.0 / f_s, cutoff)
+    (natm, um), (nats, us) = both(_unit, (natm, tm, wm, fm, nm, srcm, "master", f_s, cutoff, cfg),
+                                  (nats, ts, ws, fs, ns, srcs, "slave", f_s, cutoff, cfg), threads)
     grp_m, grp_s = ("gyro" if src == "gyro" else "att" for src in (srcm, srcs))  # the rates' source channels
     res_s = (master.stamp_resolution_s(grp_m), slave.stamp_resolution_s(grp_s))
     clk_s = ((0.0, 0.0) if _shared_clock_mapping(master, slave, (grp_m, grp_s))
@@ -138,6 +137,19 @@ def prepare(master: InsLog, slave: InsLog, max_lag_s: float | None, *, accelerom
                dt_s=1.0 / f_s, dt_r=1.0 / f_r, raw=(natm, nats),
                stamp_jitter_s=(stamp_noise_s(tm), stamp_noise_s(ts)), stamp_resolution_s=res_s, clock_sigma_s=clk_s,
                warnings=tuple(warnings), acc_src=acc_src, vel_src=vel_src, cfg=cfg)
+
+
+def _native_and_band(t: np.ndarray, w: np.ndarray, name: str) -> tuple:
+    """One unit's rates on their own uniform grid, their white-noise level and their motion's band."""
+    nat, noise = uniform_native(t, w, name)
+    return nat, noise, signal_band_hz(nat, noise)
+
+
+def _unit(nat, t: np.ndarray, w: np.ndarray, rate_hz: float, noise: float, src: str, name: str, f_s: float,
+          cutoff: float, cfg: LatencyConfig) -> tuple:
+    """One unit band-limited where its cutoff asks for it (that series), low-passed and gridded (``make_unit``)."""
+    nat = band_limited_native(nat, t, w, rate_hz, cutoff, cfg.prepare.band_limited_fraction, name)
+    return nat, make_unit(nat, noise, src, name, rate_hz, 1.0 / f_s, cutoff)
 
 
 def refiltered_ctx(ctx: "Ctx", cutoff_hz: float) -> "Ctx":
