@@ -393,6 +393,17 @@ def _alignment(master: InsLog, slave: InsLog, run: str, opts: AnalyzeOptions, pr
         return exc.problem
 
 
+def _import_numerics() -> None:
+    """The numerical stages' modules imported (the latency's: 0.28 s of scipy and logtools modules), where
+    this process would wait for the master's parse in its child; an import that fails here fails again where
+    its stage needs it, and is reported there."""
+    for name in ("estimate", "compensate", "run_alignment"):
+        try:
+            numerics_stage(name)
+        except ImportError:
+            return
+
+
 def _prepare_master(master: InsLog) -> None:
     """logtools' alignment's per-master preparation done once (``prepare_master``) before the runs fork;
     nothing for an alignment put in with ``use_numerics``."""
@@ -706,10 +717,12 @@ def same_stream(master: InsLog, slave: InsLog) -> bool:
     return same_file and master.meta.selector == slave.meta.selector
 
 
-def parse_pair(master_arg: str | InsLog, slave_arg: str | InsLog, prog=null_progress) -> tuple[InsLog, InsLog]:
+def parse_pair(master_arg: str | InsLog, slave_arg: str | InsLog, prog=null_progress,
+               meanwhile: Callable[[], None] | None = None) -> tuple[InsLog, InsLog]:
     """Both logs loaded (an InsLog given is taken as it is). Where forking is allowed (the CLI's analyze) and
     the files are large (``parallel.FORK_PARSE_MIN_INPUT_BYTES``), the master is parsed in a forked child
-    while this process parses the slave. A bad master is reported before a bad slave either way."""
+    while this process parses the slave, then calls ``meanwhile`` (work of a later stage) before it waits for
+    the child. A bad master is reported before a bad slave either way."""
     prog(0.0, "parse master")
     if (isinstance(master_arg, str) and isinstance(slave_arg, str) and parallel.available()
             and (input_bytes("analyze", [master_arg, slave_arg]) or 0) > parallel.FORK_PARSE_MIN_INPUT_BYTES):
@@ -720,6 +733,8 @@ def parse_pair(master_arg: str | InsLog, slave_arg: str | InsLog, prog=null_prog
         except Exception:
             pending.result()  # (raises the master's error, if it has one)
             raise
+        if meanwhile is not None:
+            meanwhile()
         return pending.result(), slave
     master = master_arg if isinstance(master_arg, InsLog) else load(master_arg)
     prog(0.08, "parse slave")
@@ -741,7 +756,7 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
 
     # -- parse
     t = time.perf_counter()
-    master, slave = parse_pair(master_arg, slave_arg, prog)
+    master, slave = parse_pair(master_arg, slave_arg, prog, meanwhile=_import_numerics)
     parallel.large_arrays_mmapped(len(master.imu) + len(master.nav) + len(slave.imu) + len(slave.nav))
     parallel.release_freed_memory()  # (each stage's freed temporaries: not carried into the next stage)
     tim["parse"] = time.perf_counter() - t

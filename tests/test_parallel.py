@@ -255,8 +255,10 @@ def test_large_inputs_parse_the_master_in_a_child_with_the_same_log(forking, mon
     monkeypatch.setattr(parallel, "FORK_PARSE_MIN_INPUT_BYTES", 0)
     calls = []
     monkeypatch.setattr(parallel, "submit", lambda *a, **k: calls.append(a) or parallel.Pending(a[0], a[1:], k))
-    master, slave = analyze.parse_pair(m, s)
+    waited = []
+    master, slave = analyze.parse_pair(m, s, meanwhile=lambda: waited.append(len(calls)))
     assert calls and calls[0][1] == m  # forked
+    assert waited == [1]  # the later stage's work done once, while the child parsed the master
     ref_m, ref_s = load(m), load(s)
     for got, ref in ((master, ref_m), (slave, ref_s)):
         assert got.imu.equals(ref.imu) and got.nav.equals(ref.nav) and got.meta == ref.meta
@@ -264,8 +266,11 @@ def test_large_inputs_parse_the_master_in_a_child_with_the_same_log(forking, mon
     bad_m.write_bytes(b"\x00" * 4096)
     bad_s.write_bytes(b"\x00" * 100)
     with pytest.raises(InputError) as err:
-        analyze.parse_pair(str(bad_m), str(bad_s))
-    assert str(bad_m) in str(err.value)
+        analyze.parse_pair(str(bad_m), str(bad_s), meanwhile=lambda: waited.append("bad"))
+    assert str(bad_m) in str(err.value) and waited == [1]  # (not after a failed parse)
+    parallel.enable(False)  # no fork: nothing to wait for, the later stage imports its own
+    analyze.parse_pair(m, s, meanwhile=lambda: waited.append("no fork"))
+    assert waited == [1]
 
 
 def test_large_pairs_fix_the_mmap_threshold_and_the_user_setting_wins(monkeypatch):
