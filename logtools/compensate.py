@@ -125,6 +125,20 @@ def _group_rows(df: pd.DataFrame, cols: tuple[str, ...]) -> tuple[np.ndarray, np
     return t[keep], v[keep]
 
 
+def _group_stamps(df: pd.DataFrame, cols: tuple[str, ...]) -> np.ndarray:
+    """``_group_rows(df, cols)[0]`` (the stamps of the rows with every column set, increasing, each once)
+    without its values: the channels' rates and counts need only these."""
+    if not all(c in df.columns for c in cols) or len(df) == 0:
+        return np.zeros(0)
+    ok = np.ones(len(df), bool)
+    for c in cols:
+        ok &= df[c].notna().to_numpy()
+    t = df.index.to_numpy(dtype=float)[ok]
+    if len(t) > 1 and not np.all(t[1:] >= t[:-1]):
+        t = np.sort(t, kind="stable")
+    return t[np.concatenate([[True], np.diff(t) > 0])] if len(t) else t
+
+
 def _bracket(t_src: np.ndarray, t_dst: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Index j (t_src[j] <= t_dst <= t_src[j+1]), fraction, and a mask of usable (in span, no gap)."""
     j = np.clip(np.searchsorted(t_src, t_dst, side="right") - 1, 0, len(t_src) - 2)
@@ -227,7 +241,7 @@ def _update_channels(log: InsLog) -> dict[str, ChannelInfo]:
         if name not in groups:
             continue
         df, cols = groups[name]
-        t = df.index.to_numpy(dtype=float) if not cols else _group_rows(df, cols)[0]
+        t = df.index.to_numpy(dtype=float) if not cols else _group_stamps(df, cols)
         ch[name] = ChannelInfo(_rate_hz(t), int(len(t)), old.source)
     return ch
 

@@ -196,3 +196,23 @@ def test_bad_inputs():
     far = LatencyResult(latency_s=500.0, sigma_s=0.0, drift_ppm=0.0, method="x", window_s=(0, 1))
     with pytest.raises(AnalysisError, match="no master instant"):
         compensate(s, far, m, method="interp")
+
+
+def test_the_channels_stamps_are_the_grouped_rows_stamps_without_their_values():
+    """``_group_stamps`` (what the channels' rates and counts are refreshed from) gives ``_group_rows``'s
+    stamps to the bit: rows with a column unset left out, unsorted stamps sorted, repeated ones once;
+    empty where a column is missing or the frame is empty."""
+    import pandas as pd
+
+    from logtools.compensate import _group_rows, _group_stamps
+
+    rng = np.random.default_rng(3)
+    t = rng.random(2000) * 100.0
+    t[5] = t[7]
+    v = rng.standard_normal((2000, 3))
+    v[3, 1] = v[11, 0] = np.nan
+    for idx in (t, np.sort(t)):
+        df = pd.DataFrame(v, columns=["a", "b", "c"], index=pd.Index(idx))
+        for cols in (("a", "b", "c"), ("c",), ("a", "x")):
+            assert np.array_equal(_group_stamps(df, cols), _group_rows(df, cols)[0])
+    assert len(_group_stamps(pd.DataFrame({"a": []}), ("a",))) == 0
