@@ -943,7 +943,7 @@ def write_outputs(an: Analysis, out_dir: str, progress=None) -> PairOutcome:
             rep = an.build_report({**tim, "report": 0.0, "recording": 0.0}, paths)
             recording = parallel.start_prepared("recording", write_recording, paths["recording"], an, rep,
                                                 max_rows=opts.recording_max_rows)
-        except ImportError as exc:
+        except (ImportError, OSError, RuntimeError, ValueError) as exc:
             an.skipped_steps["recording"] = f"{type(exc).__name__}: {exc}"
             paths["recording"] = None
     elif opts.recording:

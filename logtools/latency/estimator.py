@@ -322,9 +322,10 @@ def estimate(master: InsLog, slave: InsLog, *, method: str = "tapost", max_lag_s
     (no velocity matching). ``config``: every tuning number and switch (``LatencyConfig``). ``beside``: a
     function like ``pipelines.parallel.submit`` (``beside(fn, *args)`` -> an object with ``result()`` and
     ``cancel()``) that runs the comparison methods while the tapost headline is computed (the CLI forks them:
-    the same numbers, sooner); None runs them after it, here. ``overlap``: the tapost headline makes its
-    velocity pair in a thread beside its rate fit (``tapost``; the CLI, up to about 1 h of 200 Hz logs: the
-    two stages' arrays side by side).
+    the same numbers, sooner); None runs them after it, here. ``overlap``: the two units are prepared in two
+    threads and the tapost headline makes its velocity pair in a thread beside its rate fit (``tapost``), the
+    comparison methods forked by ``beside`` once that thread has ended (the same numbers, sooner: the CLI, up
+    to about 1 h of 200 Hz logs, where the arrays side by side fit).
     """
     if method not in METHODS:
         raise AnalysisError(f"unknown latency method {method!r} (choose from {', '.join(METHODS)})")
