@@ -185,12 +185,25 @@ def _comparisons(an: Analysis) -> list[tuple[str, str, tuple[str, ...], str, obj
 
 
 def build(an: Analysis, rep: dict | None = None, *, max_rows: int = MAX_ROWS,
-          pose_rate_hz: float = POSE_RATE_HZ, application_id: str = "tapost"):
-    """Fill a RecordingStream (not yet saved). Returns (rec, info) with the downsampling factors."""
+          pose_rate_hz: float = POSE_RATE_HZ, application_id: str = "tapost", save_to: str | None = None):
+    """Fill a RecordingStream (not yet saved; with ``save_to``, streamed to that file as it is filled: rerun's
+    encoder then runs in its own thread beside this one). Returns (rec, info) with the downsampling factors."""
     import rerun as rr
     import rerun.blueprint as rrb
 
     rec = rr.RecordingStream(application_id, recording_id=None, send_properties=True)
+    if save_to is None:
+        return rec, _fill(rec, rr, rrb, an, rep, max_rows, pose_rate_hz)
+    rec.save(save_to)
+    try:
+        return rec, _fill(rec, rr, rrb, an, rep, max_rows, pose_rate_hz)
+    except BaseException:
+        rec.disconnect()  # (the file's writer stopped before the caller removes the file)
+        raise
+
+
+def _fill(rec, rr, rrb, an: Analysis, rep: dict | None, max_rows: int, pose_rate_hz: float) -> dict:
+    """Everything :func:`build` logs, into ``rec``; returns the downsampling info."""
     name = pair_name(an, rep)
     rec.send_recording_name(f"tapost: {name}")
     props = {k: v for k, v in headline(an, rep).items() if v is not None}
@@ -308,7 +321,7 @@ def build(an: Analysis, rep: dict | None = None, *, max_rows: int = MAX_ROWS,
         rec.log("/summary", rr.TextDocument("\n".join(lines), media_type=rr.MediaType.MARKDOWN), static=True)
 
     rec.send_blueprint(_blueprint(rrb, an, [c for c in comparisons if c[0] in info["comparisons"]]))
-    return rec, info
+    return info
 
 
 def _blueprint(rrb, an: Analysis, comparisons=()):
@@ -344,9 +357,8 @@ def _blueprint(rrb, an: Analysis, comparisons=()):
 
 def write_recording(path: str, an: Analysis, rep: dict | None = None, *, max_rows: int = MAX_ROWS) -> dict:
     """Build and save the recording to ``path`` atomically; returns the downsampling info."""
-    rec, info = build(an, rep, max_rows=max_rows)
     with atomic_path(path) as tmp:
-        rec.save(tmp)
+        rec, info = build(an, rep, max_rows=max_rows, save_to=tmp)
         rec.flush(timeout_sec=120.0) if _flush_takes_timeout(rec) else rec.flush()
         rec.disconnect()
         if not os.path.getsize(tmp):

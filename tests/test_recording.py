@@ -79,3 +79,22 @@ def test_view_command_rejects_missing(tmp_path, capsys):
 
     assert main(["view", str(tmp_path)]) == 2
     assert "no recording found" in capsys.readouterr().err
+
+
+def test_a_recording_that_fails_while_streamed_to_its_file_leaves_no_file(tmp_path, monkeypatch):
+    """The recording is streamed to its temporary file as it is built (rerun's encoder beside the builder);
+    an error while building stops the stream and leaves neither the recording nor a temporary file."""
+    import pipelines.recording as recording
+
+    an = make_fake_analysis()
+    real = recording._fill
+
+    def fail(rec, *args):
+        real(rec, *args)  # (everything logged, then the failure)
+        raise RuntimeError("a failure while building")
+
+    monkeypatch.setattr(recording, "_fill", fail)
+    out = tmp_path / "recording.rrd"
+    with pytest.raises(RuntimeError, match="while building"):
+        write_recording(str(out), an, fake_report(an))
+    assert list(tmp_path.iterdir()) == []
