@@ -192,13 +192,13 @@ def build(an: Analysis, rep: dict | None = None, *, max_rows: int = MAX_ROWS,
     import rerun.blueprint as rrb
 
     rec = rr.RecordingStream(application_id, recording_id=None, send_properties=True)
-    if save_to is None:
-        return rec, _fill(rec, rr, rrb, an, rep, max_rows, pose_rate_hz)
-    rec.save(save_to)
+    if save_to is not None:
+        rec.save(save_to)
     try:
         return rec, _fill(rec, rr, rrb, an, rep, max_rows, pose_rate_hz)
     except BaseException:
-        rec.disconnect()  # (the file's writer stopped before the caller removes the file)
+        if save_to is not None:
+            rec.disconnect()  # (the file's writer stopped before the caller removes the file)
         raise
 
 
