@@ -9,7 +9,9 @@ written by ``parsers.registry.write``. For each pair, every step a fresh process
 * pymavlink's plain ``recv_match()`` loop over the slave tlog, the whole process (interpreter, import,
   loop): the baseline a user writes, timed in this run;
 * ``tapost analyze MASTER SLAVE -o OUT`` exactly as a user types it (report.json + report.html +
-  recording.rrd), the whole process, its peak RSS (``wait4``'s ru_maxrss), its stage times (report.json);
+  recording.rrd), the whole process, its peak memory (the larger of ``wait4``'s ru_maxrss, the largest single
+  process's, and the process tree's summed Pss sampled every 0.1 s, forked children included), its stage
+  times (report.json);
   the median of ``--repeat`` runs (3 by default; 1 from 1 h on);
 * a parse-only child (each file loaded alone), and a cProfile of the analyze
   (``benchmarks/results/pipeline_profile_<sample|minutes>.txt``; the sample pair's, or every length's with
@@ -20,7 +22,7 @@ as the baseline's pymavlink is. First run after installing (the sample pair): a 
 (``NUMBA_CACHE_DIR``, ``XDG_CACHE_HOME`` = empty temp dirs), ``TAPOST_KERNELS`` unset, as a new user has
 it: the first ``tapost analyze``, then the background compile it started is waited for and the next
 analyze timed (warm). Targets (issue 20): sample pair <= 1.0 x the pymavlink loop over its slave, 1 h
-<= 0.25 x, 4 h peak RSS <= 2 GB, first run <= 2 x a warm run. The 1-minute load average is recorded
+<= 0.25 x, 4 h peak memory <= 2 GB, first run <= 2 x a warm run. The 1-minute load average is recorded
 before each timed step (shared machine).
 
     python benchmarks/bench_pipeline.py            # sample pair, 10 min, 1 h
@@ -211,16 +213,80 @@ def run_child(args: list[str], env: dict | None = None, timeout_s: float = 3600.
             "process_wall_s": wall, "loadavg_1_5_15_before": load0}
 
 
+def _process_tree(pid: int) -> list[int]:
+    """pid and its descendants (from /proc/*/stat's parent pids)."""
+    kids: dict[int, list[int]] = {}
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                with open(f"/proc/{d}/stat") as fh:
+                    kids.setdefault(int(fh.read().rsplit(")", 1)[1].split()[1]), []).append(int(d))
+            except (OSError, IndexError, ValueError):
+                pass
+    todo, tree = [pid], []
+    while todo:
+        x = todo.pop()
+        tree.append(x)
+        todo += kids.get(x, [])
+    return tree
+
+
+def _tree_pss_mb(pid: int) -> float:
+    """The summed proportional set size (Pss) of a process and its descendants, MB: the memory the whole tree
+    holds, a page shared by a fork counted once (wait4's ru_maxrss is the largest single process's)."""
+    kb = 0
+    for x in _process_tree(pid):
+        try:
+            with open(f"/proc/{x}/smaps_rollup") as fh:
+                kb += next((int(line.split()[1]) for line in fh if line.startswith("Pss:")), 0)
+        except (OSError, ValueError):
+            pass
+    return kb / 1024.0
+
+
+class _TreeMemory:
+    """Samples :func:`_tree_pss_mb` of a running process every ``period_s`` in a thread; ``peak_mb`` the largest
+    (None where /proc has no smaps_rollup: not Linux, or a kernel before 4.14)."""
+
+    def __init__(self, pid: int, period_s: float = 0.1):
+        import threading
+
+        self.pid, self.period_s, self.peak_mb = pid, period_s, None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        if os.path.exists(f"/proc/{os.getpid()}/smaps_rollup"):
+            self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            mb = _tree_pss_mb(self.pid)
+            if mb > 0:
+                self.peak_mb = max(self.peak_mb or 0.0, mb)
+            self._stop.wait(self.period_s)
+
+    def stop(self) -> float | None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join()
+        return self.peak_mb
+
+
 def timed_process(cmd: list[str], env: dict | None = None, timeout_s: float = 7200.0) -> dict:
-    """Wall time, CPU time and peak RSS of one whole process (``wait4``), with its stderr's last lines."""
+    """Wall time, CPU time and peak memory of one whole process, with its stderr's last lines: ``peak_rss_mb``
+    the largest single process's (``wait4``), ``tree_peak_pss_mb`` the whole process tree's (forked children
+    included, sampled every 0.1 s), ``peak_mb`` the larger of the two (the memory figure)."""
     load0 = _loadavg()
     t = time.perf_counter()
     p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env, cwd=ROOT)
+    mem = _TreeMemory(p.pid)
     err = p.stderr.read()
+    tree_mb = mem.stop()  # (stderr closed: the process is exiting; its tree was sampled until now)
     _, status, ru = os.wait4(p.pid, 0)
     wall = time.perf_counter() - t
     p.returncode = os.waitstatus_to_exitcode(status)
-    return {"wall_s": wall, "cpu_s": ru.ru_utime + ru.ru_stime, "peak_rss_mb": ru.ru_maxrss / 1024.0,
+    rss_mb = ru.ru_maxrss / 1024.0
+    return {"wall_s": wall, "cpu_s": ru.ru_utime + ru.ru_stime, "peak_rss_mb": rss_mb,
+            "tree_peak_pss_mb": tree_mb, "peak_mb": max(rss_mb, tree_mb or 0.0),
             "rc": p.returncode, "stderr_head": err.strip().splitlines()[:2], "loadavg_1_5_15_before": load0}
 
 
@@ -304,7 +370,7 @@ def bench_pair(name: str, m: str, s: str, work: str, repeat: int, profile: bool,
           f"({msgs['slave']['total']} messages)", flush=True)
     ana = _median_of([analyze_once(m, s, os.path.join(work, "out")) for _ in range(repeat)])
     print(f"   tapost analyze: {ana['wall_s']:.2f} s process (runs {ana.get('walls_s')}), CPU {ana['cpu_s']:.1f} s, "
-          f"peak RSS {ana['peak_rss_mb']:.0f} MB" + (f"  ERROR {ana['error']}" if ana.get("error") else ""), flush=True)
+          f"peak {ana.get('peak_mb', ana['peak_rss_mb']):.0f} MB (largest process {ana['peak_rss_mb']:.0f})" + (f"  ERROR {ana['error']}" if ana.get("error") else ""), flush=True)
     print(f"   stages: {json.dumps({k: round(v, 2) for k, v in (ana.get('timings_s') or {}).items()})}", flush=True)
     parse = run_child(["parse", m, s])
     prof_path = None
@@ -382,8 +448,8 @@ def main() -> int:
             targets[f"{key}: analyze / pymavlink <= {TARGETS[key][1]}"] = {
                 "value": round(r["analyze_over_pymavlink"], 3), "met": r["analyze_over_pymavlink"] <= TARGETS[key][1]}
         if key == "240 min" and "analyze_process" in r:
-            targets["240 min: peak RSS <= 2048 MB"] = {"value": round(r["analyze_process"]["peak_rss_mb"]),
-                                                      "met": r["analyze_process"]["peak_rss_mb"] <= 2048}
+            peak = r["analyze_process"].get("peak_mb", r["analyze_process"]["peak_rss_mb"])
+            targets["240 min: peak memory <= 2048 MB"] = {"value": round(peak), "met": peak <= 2048}
     if "first_run" in results:
         v = results["first_run"]["first_over_second"]
         targets["first run <= 2 x warm"] = {"value": round(v, 3), "met": v <= 2.0}
@@ -400,7 +466,7 @@ def main() -> int:
         a = r["analyze_process"]
         print(f"{r['pair']:>16}  {r['messages_total']:>9d} msgs  analyze {a['wall_s']:7.2f} s  pymavlink "
               f"{r['pymavlink_process']['wall_s']:7.2f} s  ratio {r['analyze_over_pymavlink'] or float('nan'):.2f}  "
-              f"peak {a.get('peak_rss_mb', 0):.0f} MB  dominant {r['dominant_stage']}")
+              f"peak {a.get('peak_mb', a.get('peak_rss_mb', 0)):.0f} MB  dominant {r['dominant_stage']}")
     for k, v in targets.items():
         print(f"target {k}: {v['value']} ({'met' if v['met'] else 'NOT met'})")
     return 0

@@ -835,7 +835,8 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
     run_opts = {"uncompensated": _uncompensated_options(opts, an.slave_comp is not None), "compensated": opts}
     pending = {}
     decision: _BoardDecision | None = None
-    forked = runs["uncompensated"][0] is not None and runs["compensated"][0] is not None and parallel.available()
+    forked = (runs["uncompensated"][0] is not None and runs["compensated"][0] is not None and parallel.available()
+              and len(master.imu) + len(an.slave.imu) <= parallel.FORK_ALIGNMENT_MAX_SAMPLES)
     imu_fit = None
     if (forked and _wants_imu_to_imu(master, an.slave)
             and len(master.imu) + len(an.slave.imu) <= parallel.FORK_IMU_TO_IMU_MAX_SAMPLES):

@@ -47,6 +47,12 @@ FORK_PARSE_MIN_INPUT_BYTES = PREPARED_MAX_INPUT_BYTES
 #: is the constraint, the fit waits for the runs
 FORK_IMU_TO_IMU_MAX_SAMPLES = 1_500_000
 
+#: master + slave IMU samples up to which ``analyze`` runs the uncompensated alignment in a forked child beside
+#: the compensated one here. The child's filter, histories and master series sit beside this process's
+#: (0.3-0.5 GB per hour of 200 Hz logs): the 4 h pair's whole process tree peaked at 3.0 GB so, 2.5 GB with
+#: the runs in turn. Up to about 1 h of 200 Hz logs, as the IMU-to-IMU fit; beyond, the runs in turn
+FORK_ALIGNMENT_MAX_SAMPLES = FORK_IMU_TO_IMU_MAX_SAMPLES
+
 #: master + slave IMU samples up to which ``analyze`` runs the latency's comparison methods (the seeds' and
 #: cross-correlation) in a forked child while this process computes the tapost estimate (rather than after
 #: it: about 2 s of the 1 h pair's 6-8 s latency stage). The child's arrays sit beside this process's: up to

@@ -119,6 +119,42 @@ def test_while_the_alignment_children_run_the_outputs_modules_are_imported(rec, 
     assert got == want
 
 
+_FORK_LIMIT = """
+import sys
+from pipelines import analyze, parallel
+parallel.enable(True)
+sent = []
+submit = parallel.submit
+def recording_submit(fn, *args, **kwargs):
+    sent.append(getattr(fn, "__name__", str(fn)))
+    return submit(fn, *args, **kwargs)
+parallel.submit = recording_submit
+opts = analyze.AnalyzeOptions(recording=False, html=False, compare=False)
+figures = []
+for limit in (parallel.FORK_ALIGNMENT_MAX_SAMPLES, 0):
+    parallel.FORK_ALIGNMENT_MAX_SAMPLES = limit
+    sent.clear()
+    an = analyze.compute(sys.argv[1], sys.argv[2], opts)
+    figures.append([list(an.alignment[r].mounting_rpy_deg) for r in ("uncompensated", "compensated")])
+    print(limit, " ".join(sorted(set(sent))) or "-")
+assert figures[0] == figures[1], figures
+"""
+
+
+@posix_fork
+def test_long_logs_run_the_alignment_in_turn_not_in_a_forked_child():
+    """Beyond FORK_ALIGNMENT_MAX_SAMPLES the uncompensated run is not forked beside the compensated one (their
+    arrays would sit side by side: the 4 h pair's process tree peaked at 3.0 GB so), nor the IMU-to-IMU fit
+    beside them; the same mounting figures either way."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    p = subprocess.run([sys.executable, "-c", _FORK_LIMIT, str(SAMPLE / "master.mcap"), str(SAMPLE / "slave.tlog")],
+                       capture_output=True, text=True, env=env, timeout=600)
+    assert p.returncode == 0, p.stderr
+    runs = dict(line.split(" ", 1) for line in p.stdout.strip().splitlines())
+    assert "_alignment" in runs[str(parallel.FORK_ALIGNMENT_MAX_SAMPLES)].split()
+    assert runs["0"] == "-"
+
+
 def _import_state():
     return os.getpid(), "colorsys" in sys.modules
 

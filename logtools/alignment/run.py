@@ -1367,13 +1367,15 @@ def _correlation_times(x: np.ndarray) -> np.ndarray:
         return np.zeros(0)
     n = len(x)
     nfft = 1 << int(np.ceil(np.log2(2 * n)))
-    f = np.fft.rfft(x, nfft, axis=0)
-    ac = np.fft.irfft(f * np.conj(f), nfft, axis=0)[:n] / np.sum(x * x, axis=0)
+    tot = np.sum(x * x, axis=0)
     taus = []
-    for c in range(ac.shape[1]):  # over the (at most 6) channels
-        neg = np.nonzero(ac[1:, c] <= 0)[0]
+    for c in range(x.shape[1]):  # over the (at most 6) channels, one spectrum at a time: the same transforms
+        f = np.fft.rfft(x[:, c], nfft)  # as all columns' at once, a sixth of their memory (4 h: 0.1 GB)
+        ac = np.fft.irfft(f * np.conj(f), nfft)[:n] / tot[c]
+        del f
+        neg = np.nonzero(ac[1:] <= 0)[0]
         m = int(neg[0]) if len(neg) else n - 1
-        taus.append(1.0 + 2.0 * float(np.sum(ac[1:m + 1, c])))
+        taus.append(1.0 + 2.0 * float(np.sum(ac[1:m + 1])))
     return np.asarray(taus)
 
 
