@@ -31,7 +31,7 @@ import io
 import os
 import re
 import struct
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -82,6 +82,40 @@ _MAX_STAMP_US = STAMP_LIMIT_NS // 1000
 
 def sniff(head: bytes, path: str) -> bool:
     return head[:7] == MAGIC
+
+
+#: bytes past the 16-byte header searched for the first intact message of a ULog whose first bytes are damaged
+DAMAGED_HEAD_SEARCH_BYTES = 1 << 16
+#: consecutive plausible message headers (a format definition among them) that mark the messages' start there
+DAMAGED_HEAD_CHAIN = 8
+_FORMAT_TEXT = re.compile(rb"[A-Za-z_][A-Za-z0-9_]*:[a-z]")
+
+
+def body_start(buf) -> int | None:
+    """Where the messages of a ULog whose header is damaged resume: the first offset from 16 on (within
+    DAMAGED_HEAD_SEARCH_BYTES) from which DAMAGED_HEAD_CHAIN message headers follow one another plausibly (known
+    type, size 1..10000, inside the file) and one of them is a format definition ("F", its text ``name:type
+    ...``). None where there is no such offset: not a ULog's messages."""
+    b = memoryview(buf).cast("B") if not isinstance(buf, (bytes, bytearray)) else buf
+    n = len(b)
+    for at in range(16, min(n - 3, 16 + DAMAGED_HEAD_SEARCH_BYTES)):
+        pos, chain, fmt = at, 0, False
+        while chain < DAMAGED_HEAD_CHAIN and pos + 3 <= n:
+            size, typ = b[pos] | (b[pos + 1] << 8), b[pos + 2]
+            if size == 0 or size > _MAX_MSG_SIZE or not _KNOWN_TYPES[typ] or pos + 3 + size > n:
+                break
+            fmt = fmt or (typ == _T_FORMAT and _FORMAT_TEXT.match(bytes(b[pos + 3:pos + 3 + min(size, 64)])) is not None)
+            chain += 1
+            pos += 3 + size
+        if chain >= DAMAGED_HEAD_CHAIN and fmt:
+            return at
+    return None
+
+
+def sniff_damaged(head: bytes, path: str) -> bool:
+    """A ULog whose first bytes (its magic among them) are damaged: its messages resume within the first bytes
+    read (:func:`body_start`)."""
+    return len(head) > 16 and head[:7] != MAGIC and body_start(head) is not None
 
 
 # ============================================================================================
@@ -266,14 +300,16 @@ def _read_fast(path: str, buf: np.ndarray, names: set[str] | None) -> ULogTopics
     return ULogTopics(topics, info, tuple(warns), "fast")
 
 
-def _read_pyulog(path: str, names: set[str] | None, why: str = "") -> ULogTopics:
+def _read_pyulog(path: str, names: set[str] | None, why: str = "", source: np.ndarray | None = None) -> ULogTopics:
+    """pyulog's reading of ``path`` (or of ``source``, the file's bytes behind a header made anew)."""
     from pyulog import ULog
     from pyulog.core import ULogException
 
     out = io.StringIO()
     try:
         with contextlib.redirect_stdout(out):  # pyulog prints its complaints
-            ulog = ULog(path, sorted(names) if names is not None else None, disable_str_exceptions=True)
+            ulog = ULog(path if source is None else io.BytesIO(source.tobytes()),
+                        sorted(names) if names is not None else None, disable_str_exceptions=True)
     except ULogException as exc:
         raise InputError(f"not a readable ULog: {exc}", path) from None
     except (struct.error, ValueError, IndexError, KeyError, OverflowError) as exc:
@@ -302,20 +338,30 @@ def read_topics(path: str, names: set[str] | None = None, *, engine: str = "auto
     buf = np.fromfile(path, dtype=np.uint8)
     if len(buf) < 16:
         raise InputError(f"truncated ULog: {len(buf)} bytes, header needs 16", path)
+    head_note = None
     if buf[:7].tobytes() != MAGIC:
-        raise InputError("not a ULog file (bad magic bytes)", path)
+        # a damaged header: the messages read from where they resume, behind a header made anew (in memory;
+        # the file is not touched). What lay before them (the flag bits, the first definitions) is lost
+        at = body_start(buf[:16 + DAMAGED_HEAD_SEARCH_BYTES + 4 * _MAX_MSG_SIZE])
+        if at is None:
+            raise InputError("not a ULog file (bad magic bytes)", path)
+        head_note = (f"damaged header: the first {at} bytes are no ULog messages (bad magic bytes); read from byte "
+                     f"{at}, where its messages resume")
+        buf = np.concatenate([np.frombuffer(MAGIC + bytes(9), np.uint8), buf[at:]])
     try:
-        return _read_fast(path, buf, names)
+        res = _read_fast(path, buf, names)
     except InputError:
         raise
     except _Fallback as why:
         if engine == "fast":
             raise InputError(f"fast ULog reader refused: {why}", path) from None
-        return _read_pyulog(path, names, str(why))
+        res = _read_pyulog(path, names, str(why), source=buf if head_note else None)
     except (KeyError, ValueError, IndexError, struct.error, UnicodeDecodeError) as exc:
         if engine == "fast":
             raise InputError(f"fast ULog reader refused: {type(exc).__name__}: {exc}", path) from None
-        return _read_pyulog(path, names, f"definitions unreadable: {type(exc).__name__}")
+        res = _read_pyulog(path, names, f"definitions unreadable: {type(exc).__name__}",
+                           source=buf if head_note else None)
+    return replace(res, warnings=(head_note,) + res.warnings) if head_note else res
 
 
 # ============================================================================================
