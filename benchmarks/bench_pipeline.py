@@ -276,8 +276,8 @@ def timed_process(cmd: list[str], env: dict | None = None, timeout_s: float = 72
     """Wall time, CPU time and peak RSS of one whole process (``wait4``'s ru_maxrss: the largest single
     process's), with its stderr's last lines. ``tree_memory``: also ``tree_peak_pss_mb``, the whole process
     tree's (forked children included) sampled every 0.1 s. Reading a process's smaps_rollup walks its page
-    tables under its memory map's lock: the 1 h pair's analyze took 0.3-1.5 s longer sampled (alternated runs): so a run of its own,
-    not a timed one."""
+    tables under its memory map's lock: the 1 h pair's analyze took 0.3-1.5 s longer sampled (alternated
+    runs), so that is a run of its own, not a timed one."""
     load0 = _loadavg()
     t = time.perf_counter()
     p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env, cwd=ROOT)

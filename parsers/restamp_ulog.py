@@ -85,12 +85,11 @@ def restamp_ulog(src: str, dst: str, shift: ClockShift, *, selector=None) -> Res
     sel = selector if isinstance(selector, Selector) else Selector.parse(str(selector or ""))
     buf = read_bytes(src)
     damage: list[str] = []
-    if len(buf) >= 16 and buf[:7].tobytes() != ul.MAGIC:  # a damaged header: as the parser reads it (ulog.body_start)
-        at = ul.body_start(buf[:16 + ul.DAMAGED_HEAD_SEARCH_BYTES + 4 * ul._MAX_MSG_SIZE])
-        if at is not None:
-            damage.append(f"damaged header: the first {at} bytes are no ULog messages (bad magic bytes); a new "
-                          f"header (start time 0) written before the messages from byte {at} on")
-            buf = np.concatenate([np.frombuffer(ul.MAGIC + bytes(9), np.uint8), buf[at:]])
+    repaired = ul.repaired_head(buf) if len(buf) >= 16 and buf[:7].tobytes() != ul.MAGIC else None
+    if repaired is not None:  # a damaged header: as the parser reads it
+        buf, at = repaired
+        damage.append(f"damaged header: the first {at} bytes are no ULog messages (bad magic bytes); a new "
+                      f"header (start time 0) written before the messages from byte {at} on")
     if len(buf) < 16 or buf[:7].tobytes() != ul.MAGIC:
         raise InputError("not a ULog file (bad magic bytes)", src)
     offsets, sizes, types = _walk_resyncing(buf, damage)

@@ -112,6 +112,15 @@ def body_start(buf) -> int | None:
     return None
 
 
+def repaired_head(buf: np.ndarray) -> tuple[np.ndarray, int] | None:
+    """A ULog's bytes whose header is damaged, as they read: a header made anew (start time 0) before the
+    messages from where they resume (:func:`body_start`), and that offset; None where they do not resume."""
+    at = body_start(buf[:16 + DAMAGED_HEAD_SEARCH_BYTES + 4 * _MAX_MSG_SIZE])
+    if at is None:
+        return None
+    return np.concatenate([np.frombuffer(MAGIC + bytes(9), np.uint8), buf[at:]]), at
+
+
 def sniff_damaged(head: bytes, path: str) -> bool:
     """A ULog whose first bytes (its magic among them) are damaged: its messages resume within the first bytes
     read (:func:`body_start`)."""
@@ -342,12 +351,12 @@ def read_topics(path: str, names: set[str] | None = None, *, engine: str = "auto
     if buf[:7].tobytes() != MAGIC:
         # a damaged header: the messages read from where they resume, behind a header made anew (in memory;
         # the file is not touched). What lay before them (the flag bits, the first definitions) is lost
-        at = body_start(buf[:16 + DAMAGED_HEAD_SEARCH_BYTES + 4 * _MAX_MSG_SIZE])
-        if at is None:
+        repaired = repaired_head(buf)
+        if repaired is None:
             raise InputError("not a ULog file (bad magic bytes)", path)
+        buf, at = repaired
         head_note = (f"damaged header: the first {at} bytes are no ULog messages (bad magic bytes); read from byte "
                      f"{at}, where its messages resume")
-        buf = np.concatenate([np.frombuffer(MAGIC + bytes(9), np.uint8), buf[at:]])
     try:
         res = _read_fast(path, buf, names)
     except InputError:
