@@ -45,10 +45,12 @@ def _is_time_field(name: str, base: np.dtype) -> bool:
 _SYNC_MESSAGE = b"\x08\x00S" + b"\x2f\x73\x13\x20\x25\x0c\xbb\x12"
 
 
-def _walk_resyncing(buf: np.ndarray, damage: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _walk_resyncing(buf: np.ndarray, damage: list[str], byte_shift: int = 0
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(offsets, sizes, types) of every message the chain of headers reaches, resuming after an
     implausible header at the next sync message (where pyulog, which reads a damaged ULog, resumes too).
-    Bytes no message covers are copied unchanged; each such place is named in ``damage``."""
+    Bytes no message covers are copied unchanged; each such place is named in ``damage``, at the input file's
+    offsets (``byte_shift`` added: a repaired header's, :func:`parsers.ulog.repaired_head`)."""
     from parsers import ulog as ul
 
     walk = ul.kernel("_walk")
@@ -61,17 +63,20 @@ def _walk_resyncing(buf: np.ndarray, damage: list[str]) -> tuple[np.ndarray, np.
         if status == 0:
             break
         if status == 1:
-            damage.append(f"damaged ULog: truncated last message at byte {end} of {len(buf)}; the "
+            damage.append(f"damaged ULog: truncated last message at byte {end + byte_shift} of "
+                          f"{len(buf) + byte_shift}; the "
                           f"{len(buf) - end} byte(s) from there copied unchanged")
             break
         raw = raw if raw is not None else buf.tobytes()
         nxt = raw.find(_SYNC_MESSAGE, end + 1)
         if nxt < 0:
-            damage.append(f"damaged ULog: implausible message header at byte {end} of {len(buf)} and no sync "
+            damage.append(f"damaged ULog: implausible message header at byte {end + byte_shift} of "
+                          f"{len(buf) + byte_shift} and no sync "
                           f"message after it; the {len(buf) - end} byte(s) from there copied unchanged (their "
                           "time fields not rewritten)")
             break
-        damage.append(f"damaged ULog: implausible message header at byte {end}; bytes {end}-{nxt - 1} copied "
+        damage.append(f"damaged ULog: implausible message header at byte {end + byte_shift}; bytes "
+                      f"{end + byte_shift}-{nxt - 1 + byte_shift} copied "
                       "unchanged, rewriting resumed at the next sync message")
         start = nxt
     return tuple(np.concatenate([p[k] for p in parts]) for k in range(3))  # (one part per walk, at least one)
@@ -85,14 +90,16 @@ def restamp_ulog(src: str, dst: str, shift: ClockShift, *, selector=None) -> Res
     sel = selector if isinstance(selector, Selector) else Selector.parse(str(selector or ""))
     buf = read_bytes(src)
     damage: list[str] = []
+    byte_shift = 0  # (what a byte offset of buf adds to be the input file's)
     repaired = ul.repaired_head(buf) if len(buf) >= 16 and buf[:7].tobytes() != ul.MAGIC else None
     if repaired is not None:  # a damaged header: as the parser reads it
         buf, at = repaired
+        byte_shift = at - 16
         damage.append(f"damaged header: the first {at} bytes are no ULog messages (bad magic bytes); a new "
                       f"header (start time 0) written before the messages from byte {at} on")
     if len(buf) < 16 or buf[:7].tobytes() != ul.MAGIC:
         raise InputError("not a ULog file (bad magic bytes)", src)
-    offsets, sizes, types = _walk_resyncing(buf, damage)
+    offsets, sizes, types = _walk_resyncing(buf, damage, byte_shift)
     header = ULog._MessageHeader()
     formats: dict[str, object] = {}
     subs: dict[int, object] = {}
@@ -108,7 +115,8 @@ def restamp_ulog(src: str, dst: str, shift: ClockShift, *, selector=None) -> Res
                 add = ULog._MessageAddLogged(data, header, formats)
                 subs.setdefault(add.msg_id, add)
         except (KeyError, ValueError, IndexError, UnicodeDecodeError) as exc:
-            damage.append(f"unreadable definition at byte {o} ({type(exc).__name__}): its data copied unchanged")
+            damage.append(f"unreadable definition at byte {o + byte_shift} ({type(exc).__name__}): its data copied "
+                          "unchanged")
     data_idx = np.flatnonzero(types == ul._T_DATA)
     d_off = offsets[data_idx]
     d_size = sizes[data_idx]

@@ -233,7 +233,9 @@ class _Fallback(Exception):
     """The fast path met something only pyulog should judge (damage, appended data...)."""
 
 
-def _read_fast(path: str, buf: np.ndarray, names: set[str] | None) -> ULogTopics:
+def _read_fast(path: str, buf: np.ndarray, names: set[str] | None, byte_shift: int = 0) -> ULogTopics:
+    """The topics by the compiled walk; ``byte_shift``: what a byte offset of ``buf`` adds to be the file's
+    (a damaged header's repair, :func:`repaired_head`: the resume offset less the new header's 16 bytes)."""
     from pyulog import ULog
 
     offsets, sizes, types, end, status = kernel("_walk")(buf, 16, _KNOWN_TYPES, _MAX_MSG_SIZE)
@@ -242,11 +244,11 @@ def _read_fast(path: str, buf: np.ndarray, names: set[str] | None) -> ULogTopics
         # nothing but zero bytes after the last message: a file preallocated by the logger (or an SD card's
         # zeroed blocks after a power loss). pyulog would resync through them byte by byte (about 0.7 s/MB)
         # to find nothing; every message before them is intact
-        warns.append(f"zero-filled tail: the last {len(buf) - int(end)} bytes (from byte {int(end)}) hold "
+        warns.append(f"zero-filled tail: the last {len(buf) - int(end)} bytes (from byte {int(end) + byte_shift}) hold "
                      "no messages (a preallocated file, or cut by a power loss)")
     elif status != 0:
         what = "truncated last message" if status == 1 else "implausible message header"
-        raise _Fallback(f"{what} at byte {int(end)} of {len(buf)}")
+        raise _Fallback(f"{what} at byte {int(end) + byte_shift} of {len(buf) + byte_shift}")
     formats: dict[str, object] = {}
     subs: dict[int, object] = {}
     sub_at: dict[int, int] = {}  # file offset of each subscription
@@ -347,7 +349,7 @@ def read_topics(path: str, names: set[str] | None = None, *, engine: str = "auto
     buf = np.fromfile(path, dtype=np.uint8)
     if len(buf) < 16:
         raise InputError(f"truncated ULog: {len(buf)} bytes, header needs 16", path)
-    head_note = None
+    head_note, shift = None, 0
     if buf[:7].tobytes() != MAGIC:
         # a damaged header: the messages read from where they resume, behind a header made anew (in memory;
         # the file is not touched). What lay before them (the flag bits, the first definitions) is lost
@@ -355,10 +357,11 @@ def read_topics(path: str, names: set[str] | None = None, *, engine: str = "auto
         if repaired is None:
             raise InputError("not a ULog file (bad magic bytes)", path)
         buf, at = repaired
+        shift = at - 16  # (the repaired bytes' offsets, as the file's in what is said)
         head_note = (f"damaged header: the first {at} bytes are no ULog messages (bad magic bytes); read from byte "
                      f"{at}, where its messages resume")
     try:
-        res = _read_fast(path, buf, names)
+        res = _read_fast(path, buf, names, shift)
     except InputError:
         raise
     except _Fallback as why:

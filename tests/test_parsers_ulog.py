@@ -353,7 +353,32 @@ def test_a_damaged_header_is_read_past_where_the_messages_resume(tmp_path, writt
         registry.load(str(junk))
 
 
-def test_a_damaged_header_is_exported_behind_a_new_one(tmp_path, written):
+def test_damage_after_a_repaired_header_is_named_at_the_files_own_bytes(tmp_path, written):
+    """A ULog with its first 64 bytes and its last message damaged: the reader and the native export say where
+    the tail is cut in the file's own offsets (not in those of the repaired bytes, shifted by the resume offset
+    less the new header's 16 bytes)."""
+    import re
+
+    from parsers.restamp import ClockShift
+    from parsers.restamp_ulog import restamp_ulog
+
+    _, path = written
+    data = path.read_bytes()
+    p = tmp_path / "head_and_tail.ulg"
+    cut = len(data) - 5  # (inside the last message)
+    p.write_bytes(bytes(range(64)) + data[64:cut])
+    at = ulog.body_start(np.frombuffer(p.read_bytes(), np.uint8))
+    assert at is not None and at > 16
+    try:
+        said = registry.load(str(p)).meta.warnings
+    except InputError as exc:  # (the lost definition may be the IMU's)
+        said = (str(exc),)
+    out = tmp_path / "out.ulg"
+    said += restamp_ulog(str(p), str(out), ClockShift(0.01, 0.0, 0)).damage
+    cuts = [(int(a), int(b)) for w in said for a, b in re.findall(r"truncated last message at byte (\d+) of (\d+)", w)]
+    assert cuts, said
+    for a, b in cuts:
+        assert b == cut and cut - 64 * 1024 < a < cut  # the file's size, and a byte inside its last message
     """The native export of a ULog whose magic is damaged: every message kept behind a header made anew, the
     damage named; pyulog reads the output with the original's topics and message counts."""
     from pyulog import ULog
