@@ -12,7 +12,9 @@ written by ``parsers.registry.write``. For each pair, every step a fresh process
   recording.rrd), the whole process, its peak RSS (``wait4``'s ru_maxrss, the largest single process's),
   its stage times (report.json); and one more run, not timed, for its peak memory: the larger of that and
   the process tree's summed Pss (forked children included) sampled every 0.1 s;
-  the median of ``--repeat`` runs (3 by default; 1 from 1 h on);
+  the median of ``--repeat`` runs (3 by default; 1 beyond 1 h), the pymavlink loop and the analyze
+  alternated run by run (a shared machine's speed drifts over minutes; the ratio of the medians is the
+  figure, the median of the alternated runs' ratios is written beside it);
 * a parse-only child (each file loaded alone), and a cProfile of the analyze
   (``benchmarks/results/pipeline_profile_<sample|minutes>.txt``; the sample pair's, or every length's with
   ``--profile-all``).
@@ -42,6 +44,7 @@ import platform
 import pstats
 import resource
 import shutil
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -335,9 +338,9 @@ def _median_of(runs: list[dict]) -> dict:
     return med
 
 
-def pymavlink_process(slave: str, repeat: int) -> dict:
-    cmd = [sys.executable, os.path.abspath(__file__), "--child", "pymavlink", slave]
-    return _median_of([timed_process(cmd) for _ in range(repeat)])
+def pymavlink_once(slave: str) -> dict:
+    """One whole process of pymavlink's recv_match loop over the slave tlog (the baseline)."""
+    return timed_process([sys.executable, os.path.abspath(__file__), "--child", "pymavlink", slave])
 
 
 def ensure_warm() -> None:
@@ -378,10 +381,16 @@ def bench_pair(name: str, m: str, s: str, work: str, repeat: int, profile: bool,
     if "error" in msgs:
         raise RuntimeError(msgs["error"])
     total = msgs["master"]["total"] + msgs["slave"]["total"]
-    base = pymavlink_process(s, repeat)
+    # the baseline and the analyze alternated, run by run: on a shared machine whose speed drifts over minutes
+    # (the 1 h pair's pymavlink loop took 45.9 s one evening and 48.8-51.0 s that morning), each ratio then
+    # compares runs made minutes apart at most
+    bases, anas = [], []
+    for _ in range(repeat):
+        bases.append(pymavlink_once(s))
+        anas.append(analyze_once(m, s, os.path.join(work, "out")))
+    base, ana = _median_of(bases), _median_of(anas)
     print(f"   pymavlink recv_match loop over the slave tlog: {base['wall_s']:.2f} s process "
           f"({msgs['slave']['total']} messages)", flush=True)
-    ana = _median_of([analyze_once(m, s, os.path.join(work, "out")) for _ in range(repeat)])
     mem = memory_run(m, s, os.path.join(work, "out_mem"))
     ana["peak_mb"], ana["tree_peak_pss_mb"] = mem["peak_mb"], mem.get("tree_peak_pss_mb")
     print(f"   tapost analyze: {ana['wall_s']:.2f} s process (runs {ana.get('walls_s')}), CPU {ana['cpu_s']:.1f} s, "
@@ -395,10 +404,13 @@ def bench_pair(name: str, m: str, s: str, work: str, repeat: int, profile: bool,
         run_child(["analyze", m, s, os.path.join(work, "out_prof"), "--profile", prof_path])
     stages = {k: v for k, v in (ana.get("timings_s") or {}).items() if k != "total" and v is not None}
     ratio = ana["wall_s"] / base["wall_s"] if not ana.get("error") and base.get("wall_s") else None
+    pairs = [a["wall_s"] / b["wall_s"] for a, b in zip(anas, bases) if a.get("rc") == 0 and b.get("rc") == 0]
     return {"pair": name, "files": pair_info or {"master": os.path.relpath(m, ROOT), "slave": os.path.relpath(s, ROOT)},
             "messages": msgs, "messages_total": total, "pymavlink_process": base, "analyze_process": ana,
             "parse_alone": parse, "dominant_stage": max(stages, key=stages.get) if stages else None,
             "analyze_over_pymavlink": ratio,
+            "ratios_of_alternated_runs": [round(x, 4) for x in pairs],
+            "ratio_median_of_alternated_runs": statistics.median(pairs) if pairs else None,
             "profile_file": os.path.relpath(prof_path, ROOT) if prof_path else None}
 
 
@@ -409,7 +421,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="the sample pair only")
     ap.add_argument("--long", action="store_true", help="also the 4 h pair")
-    ap.add_argument("--repeat", type=int, default=3, help="runs per step below 1 h (median); 1 from 1 h on")
+    ap.add_argument("--repeat", type=int, default=3, help="runs per step up to 1 h (median); 1 beyond")
     ap.add_argument("--no-first-run", action="store_true", help="skip the first-run (cold cache) measurement")
     ap.add_argument("--fix-rate", type=float, default=10.0, help="master /fix rate, Hz (velocity stays 200 Hz)")
     ap.add_argument("--profile-all", action="store_true", help="cProfile the analyze of every pair")
@@ -448,7 +460,7 @@ def main() -> int:
             name = f"{dur / 60:.0f} min"
             try:
                 pair = make_pair(dur, work, args.fix_rate)
-                res = bench_pair(name, pair["master"], pair["slave"], work, args.repeat if dur < 3600 else 1,
+                res = bench_pair(name, pair["master"], pair["slave"], work, args.repeat if dur <= 3600 else 1,
                                  profile=args.profile_all, pair_info=pair)
                 results["runs"].append(res)
                 shutil.rmtree(os.path.dirname(pair["master"]), ignore_errors=True)
