@@ -7,7 +7,12 @@ bags with sqlite3 and with mcap storage). In the same run, for each file:
 * export: the native writer (``pipelines.export.write_native``: every record copied, the time fields
   rewritten with a ClockShift of 37.2 ms and 30 ppm);
 * the ratio export / parse (the target: at most 1);
-* the CSV and Parquet exports from the parsed InsLog.
+* the CSV and Parquet exports from the parsed InsLog;
+* with ``--library-read``, once: the format's own library reading every message of the same file (pymavlink's
+  ``recv_match`` loop for tlog and DataFlash, pyulog's ``ULog``, pandas' ``read_csv``, the ``mcap`` reader's
+  ``iter_messages``, rosbags' ``AnyReader.messages`` without deserialising), opening included, imports not:
+  what the export costs against reading the file with the tool a user has (context for the target, which
+  compares with tapost's own parse).
 Both run with numpy's environment of a ``tapost`` process (``pipelines.cli.set_numpy_environment``: one
 BLAS thread, no huge pages). Parse and export run ``--repeat`` times interleaved, after one warm-up run of
 each (numba caches loaded): the figures are the best of each and the median of the ratios of neighbouring
@@ -16,6 +21,7 @@ runs (this 2-core machine's run-to-run scatter is +-30 %). Both run the compiled
 
     python benchmarks/bench_export.py            # 1 h logs
     python benchmarks/bench_export.py --quick    # 10 min logs
+    python benchmarks/bench_export.py --library-read   # and the formats' own libraries' read loops (+3 min)
 
 Figures go to ``benchmarks/results/export.json``.
 """
@@ -59,11 +65,54 @@ def _remove(path: Path) -> None:
         path.unlink()
 
 
+def library_read(case: str, path: Path) -> tuple[float, int]:
+    """Seconds and messages of one pass of the format's own library over every message of ``path``: the file
+    opened (its index read, where the library reads one) and every message read; the library imported
+    before the clock starts."""
+    import time
+
+    if case in ("tlog", "dataflash"):
+        from pymavlink import mavutil
+
+        t, n = time.perf_counter(), 0
+        conn = mavutil.mavlink_connection(str(path), dialect="ardupilotmega")
+        while conn.recv_match() is not None:
+            n += 1
+        return time.perf_counter() - t, n
+    if case == "ulog":
+        from pyulog import ULog
+
+        t = time.perf_counter()
+        u = ULog(str(path))
+        return time.perf_counter() - t, sum(len(d.data["timestamp"]) for d in u.data_list)
+    if case == "csv":
+        import pandas as pd
+
+        t = time.perf_counter()
+        frame = pd.read_csv(path)
+        return time.perf_counter() - t, len(frame)
+    if case == "mcap":
+        from mcap.reader import make_reader
+
+        with open(path, "rb") as fh:
+            t = time.perf_counter()
+            n = sum(1 for _ in make_reader(fh).iter_messages())
+        return time.perf_counter() - t, n
+    from rosbags.highlevel import AnyReader
+
+    t = time.perf_counter()
+    with AnyReader([path]) as reader:
+        n = sum(1 for _ in reader.messages())
+    return time.perf_counter() - t, n
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="10 min logs instead of 1 h")
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--formats", default=",".join(FORMATS))
+    ap.add_argument("--library-read", action="store_true",
+                    help="also time the format's own library reading every message (once per format)")
     args = ap.parse_args(argv)
     sys.path.insert(0, str(ROOT / "benchmarks"))
     from bench_parse_ulog_csv import synthetic_log
@@ -99,13 +148,17 @@ def main(argv=None) -> int:
                    "export_native_s": t_exp, "ratio_export_over_parse": t_exp / t_parse,
                    "ratio_median_of_pairs": float(np.median(ratios)), "ratios_of_pairs": ratios,
                    "imu_samples": int(len(parsed.imu))}
+            if args.library_read:
+                t_lib, n_lib = library_read(case, src)
+                row.update(library_read_s=t_lib, library_read_messages=n_lib, export_over_library_read=t_exp / t_lib)
             if fmt == "tlog":  # CSV/Parquet from the parsed slave, once
                 t_csv, _ = best_of(lambda: export.write_slave(("csv",), str(d), parsed, shift), 1)
                 t_pq, _ = best_of(lambda: export.write_slave(("parquet",), str(d), parsed, shift), 1)
                 out["csv_export_s"], out["parquet_export_s"] = t_csv, t_pq
             out["formats"][case] = row
             print(f"{case:16s} {row['file_mb']:8.1f} MB  parse {t_parse:7.2f} s  export {t_exp:7.2f} s  "
-                  f"ratio {row['ratio_export_over_parse']:.2f} (median of pairs {row['ratio_median_of_pairs']:.2f})",
+                  f"ratio {row['ratio_export_over_parse']:.2f} (median of pairs {row['ratio_median_of_pairs']:.2f})"
+                  + (f"  library read {row['library_read_s']:7.2f} s" if "library_read_s" in row else ""),
                   flush=True)
             _remove(src)
             _remove(dst)
