@@ -379,6 +379,9 @@ def test_damage_after_a_repaired_header_is_named_at_the_files_own_bytes(tmp_path
     assert cuts, said
     for a, b in cuts:
         assert b == cut and cut - 64 * 1024 < a < cut  # the file's size, and a byte inside its last message
+
+
+def test_a_damaged_header_is_exported_behind_a_new_one(tmp_path, written):
     """The native export of a ULog whose magic is damaged: every message kept behind a header made anew, the
     damage named; pyulog reads the output with the original's topics and message counts."""
     from pyulog import ULog
