@@ -480,6 +480,8 @@ class _McapScan:
         self.damage: list[str] = []
         self.compression: str | None = None
         self.chunk_size = 0
+        self._known: np.ndarray | None = None  # (:meth:`_known_channels`)
+        self._known_count = -1
 
     def schema(self, buf, off):
         (sid,) = _U16.unpack_from(buf, off)
@@ -503,8 +505,7 @@ class _McapScan:
         for op, off in zip(oop[:k].tolist(), ooff[:k].tolist()):
             (self.schema if op == _OP["schema"] else self.channel)(buf, off + 9)
         cid, s, e = cid[:m], s[:m], e[:m]
-        known = np.zeros(1 << 16, bool)
-        known[list(self.channels)] = True
+        known = self._known_channels()
         unknown = set(np.unique(cid[~known[cid]]).tolist()) if m and not known[cid].all() else set()
         if unknown:
             raise mcap_ros._Damage(f"{where}: messages for undefined channel(s) {sorted(unknown)}")
@@ -513,6 +514,15 @@ class _McapScan:
         self.blocks.append((arr[start:end], s - start, e - s))
         self.whole.append(whole_chunk)
         return m
+
+    def _known_channels(self) -> np.ndarray:
+        """A mask over the 65536 channel ids of those defined so far, made anew only when a channel was added
+        (channels are only ever added): a chunk's check of its messages' channels does not allocate 64 KB."""
+        if self._known is None or self._known_count != len(self.channels):
+            self._known = np.zeros(1 << 16, bool)
+            self._known[list(self.channels)] = True
+            self._known_count = len(self.channels)
+        return self._known
 
     @property
     def count(self) -> int:
