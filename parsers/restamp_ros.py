@@ -480,8 +480,8 @@ class _McapScan:
         self.damage: list[str] = []
         self.compression: str | None = None
         self.chunk_size = 0
-        self._known: np.ndarray | None = None  # (:meth:`_known_channels`)
-        self._known_count = -1
+        #: the channel ids defined so far, as a mask over all 65536 (set as each is defined, checked per chunk)
+        self.known = np.zeros(1 << 16, bool)
 
     def schema(self, buf, off):
         (sid,) = _U16.unpack_from(buf, off)
@@ -496,6 +496,7 @@ class _McapScan:
         enc, o = mcap_ros._string(buf, o)
         meta, _ = _map(buf, o)
         self.channels.setdefault(cid, (topic, enc, sid, meta))
+        self.known[cid] = True
 
     def records(self, buf, start: int, end: int, where: str, cut_ok: bool = False, whole_chunk: bool = False) -> int:
         arr = np.frombuffer(buf, np.uint8)
@@ -505,7 +506,7 @@ class _McapScan:
         for op, off in zip(oop[:k].tolist(), ooff[:k].tolist()):
             (self.schema if op == _OP["schema"] else self.channel)(buf, off + 9)
         cid, s, e = cid[:m], s[:m], e[:m]
-        known = self._known_channels()
+        known = self.known
         unknown = set(np.unique(cid[~known[cid]]).tolist()) if m and not known[cid].all() else set()
         if unknown:
             raise mcap_ros._Damage(f"{where}: messages for undefined channel(s) {sorted(unknown)}")
@@ -514,15 +515,6 @@ class _McapScan:
         self.blocks.append((arr[start:end], s - start, e - s))
         self.whole.append(whole_chunk)
         return m
-
-    def _known_channels(self) -> np.ndarray:
-        """A mask over the 65536 channel ids of those defined so far, made anew only when a channel was added
-        (channels are only ever added): a chunk's check of its messages' channels does not allocate 64 KB."""
-        if self._known is None or self._known_count != len(self.channels):
-            self._known = np.zeros(1 << 16, bool)
-            self._known[list(self.channels)] = True
-            self._known_count = len(self.channels)
-        return self._known
 
     @property
     def count(self) -> int:

@@ -349,7 +349,7 @@ def read_topics(path: str, names: set[str] | None = None, *, engine: str = "auto
     buf = np.fromfile(path, dtype=np.uint8)
     if len(buf) < 16:
         raise InputError(f"truncated ULog: {len(buf)} bytes, header needs 16", path)
-    head_note, shift = None, 0
+    head_note, byte_shift = None, 0
     if buf[:7].tobytes() != MAGIC:
         # a damaged header: the messages read from where they resume, behind a header made anew (in memory;
         # the file is not touched). What lay before them (the flag bits, the first definitions) is lost
@@ -357,11 +357,11 @@ def read_topics(path: str, names: set[str] | None = None, *, engine: str = "auto
         if repaired is None:
             raise InputError("not a ULog file (bad magic bytes)", path)
         buf, at = repaired
-        shift = at - 16  # (the repaired bytes' offsets, as the file's in what is said)
+        byte_shift = at - 16  # (the repaired bytes' offsets, as the file's in what is said)
         head_note = (f"damaged header: the first {at} bytes are no ULog messages (bad magic bytes); read from byte "
                      f"{at}, where its messages resume")
     try:
-        res = _read_fast(path, buf, names, shift)
+        res = _read_fast(path, buf, names, byte_shift)
     except InputError:
         raise
     except _Fallback as why:

@@ -835,11 +835,11 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
     run_opts = {"uncompensated": _uncompensated_options(opts, an.slave_comp is not None), "compensated": opts}
     pending = {}
     decision: _BoardDecision | None = None
+    n_imu = len(master.imu) + len(an.slave.imu)
     forked = (runs["uncompensated"][0] is not None and runs["compensated"][0] is not None and parallel.available()
-              and len(master.imu) + len(an.slave.imu) <= parallel.FORK_ALIGNMENT_MAX_SAMPLES)
+              and n_imu <= parallel.FORK_ALIGNMENT_MAX_SAMPLES)
     imu_fit = None
-    if (forked and _wants_imu_to_imu(master, an.slave)
-            and len(master.imu) + len(an.slave.imu) <= parallel.FORK_IMU_TO_IMU_MAX_SAMPLES):
+    if forked and _wants_imu_to_imu(master, an.slave) and n_imu <= parallel.FORK_IMU_TO_IMU_MAX_SAMPLES:
         # the IMU-to-IMU fit in a forked child beside the two runs (the uncompensated one in a second child, the
         # compensated one here), when the logs are short enough for its arrays to sit beside theirs
         # (parallel.FORK_IMU_TO_IMU_MAX_SAMPLES); else here once the runs are done. Forked first: it is the
