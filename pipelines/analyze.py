@@ -721,8 +721,9 @@ def parse_pair(master_arg: str | InsLog, slave_arg: str | InsLog, prog=null_prog
                meanwhile: Callable[[], None] | None = None) -> tuple[InsLog, InsLog]:
     """Both logs loaded (an InsLog given is taken as it is). Where forking is allowed (the CLI's analyze) and
     the files are large (``parallel.FORK_PARSE_MIN_INPUT_BYTES``), the master is parsed in a forked child
-    while this process parses the slave, then calls ``meanwhile`` (work of a later stage) before it waits for
-    the child. A bad master is reported before a bad slave either way."""
+    while this process parses the slave, then calls ``meanwhile`` (work of a later stage) before it takes the
+    child's answer (its arrays mapped, not copied: ``parallel.OOB_MIN_BYTES``). A bad master is reported
+    before a bad slave either way."""
     prog(0.0, "parse master")
     if (isinstance(master_arg, str) and isinstance(slave_arg, str) and parallel.available()
             and (input_bytes("analyze", [master_arg, slave_arg]) or 0) > parallel.FORK_PARSE_MIN_INPUT_BYTES):

@@ -10,15 +10,18 @@ more than one core:
 * ``start_prepared``: that call sent now and its answer read later (the recording beside the HTML report),
   or, without a prepared child, ``submit``.
 
-The child sends its result (or its exception) back pickled through a pipe and exits; anything that goes
-wrong with the fork itself (no fork, one core, a child that dies) falls back to running the call in this
-process, so the answer never depends on it. Batch workers and the Python API do not fork (a process with
+The child sends its result (or its exception) back pickled through a pipe and exits; its large arrays travel
+beside the pickle, through a shared-memory file the parent made before the fork (Linux's memfd), which the
+parent maps instead of reading them through the pipe (``OOB_MIN_BYTES``). Anything that goes wrong with the
+fork itself (no fork, one core, a child that dies) falls back to running the call in this process, so the
+answer never depends on it. Batch workers and the Python API do not fork (a process with
 threads of its own may not fork safely): ``analyze`` turns it on for its own process only.
 """
 from __future__ import annotations
 
 import functools
 import importlib
+import mmap
 import os
 import pickle
 import signal
@@ -26,7 +29,8 @@ import sys
 from typing import Any, Callable
 
 _ENABLED = {"on": False}
-_PREPARED: dict[str, tuple[int, int, int]] = {}  # name -> (pid, request write fd, result read fd)
+#: name -> (pid, request write fd, result read fd, result memfd or -1)
+_PREPARED: dict[str, tuple[int, int, int, int]] = {}
 
 #: inputs (master + slave file bytes) up to which a prepared child is worth its pipe: the pickled analysis
 #: is about 1.2x the logs' bytes and exists twice while the child reads it; up to 60 MB (about 15 minutes
@@ -35,8 +39,8 @@ _PREPARED: dict[str, tuple[int, int, int]] = {}  # name -> (pid, request write f
 PREPARED_MAX_INPUT_BYTES = 60_000_000
 
 #: master + slave file bytes above which ``analyze`` parses the master in a forked child while it parses the
-#: slave: on the 1 h pair 1.9-2.2 s against 3.1-3.4 s in turn (the master's InsLog comes back pickled, about
-#: 0.15 s a 100 MB). Below, a prepared child imports the recording's libraries during the parse already, and
+#: slave: on the 1 h pair 1.9-2.2 s against 3.1-3.4 s in turn (the master's InsLog comes back through shared
+#: memory, OOB_MIN_BYTES: its 104 MB through the pipe, pickled, had cost another 0.3 s). Below, a prepared child imports the recording's libraries during the parse already, and
 #: a parse of a fraction of a second would not pay for a second numba set-up (0.5-0.7 s of CPU)
 FORK_PARSE_MIN_INPUT_BYTES = PREPARED_MAX_INPUT_BYTES
 
@@ -64,6 +68,27 @@ FORK_COMPARE_MAX_SAMPLES = FORK_IMU_TO_IMU_MAX_SAMPLES
 #: the same estimate to the bit. The two stages' arrays then sit side by side: up to about 1 h of 200 Hz
 #: logs, as the forks above; beyond, the long logs' peak memory decides
 THREAD_LATENCY_MAX_SAMPLES = FORK_IMU_TO_IMU_MAX_SAMPLES
+
+
+#: a child's answer carries its arrays (numpy's pickle buffers, protocol 5) of this size and more out of band:
+#: written into a memfd the parent made before the fork and mapped by the parent (copy-on-write, private), not
+#: pickled into the pipe. The 1 h pair's master (104 MB) came back through the pipe in 0.5-0.7 s on a 2-core
+#: machine (a pipe moves 64 KB per wake-up, and the pickle was copied once on each side); smaller buffers stay
+#: in the pickle, where a page-aligned slot would cost more than it saves
+OOB_MIN_BYTES = 1 << 20
+_OOB_TAG = "tapost-parallel-oob-1"
+_OOB_ALIGN = 64
+
+
+def _memfd() -> int:
+    """An anonymous shared-memory file for a child's large arrays (-1 where the system has none: they go
+    through the pipe)."""
+    if not hasattr(os, "memfd_create"):
+        return -1
+    try:
+        return os.memfd_create("tapost-answer", getattr(os, "MFD_CLOEXEC", 0))
+    except OSError:
+        return -1
 
 
 def enable(on: bool = True) -> None:
@@ -140,6 +165,7 @@ class Pending:
         self._fn, self._args, self._kwargs = fn, args, kwargs
         self._pid: int | None = None
         self._rfd: int | None = None
+        self._memfd = -1
         self._done = False
         self._value: Any = None
         if available():
@@ -148,23 +174,28 @@ class Pending:
     def _start(self) -> None:
         try:
             rfd, wfd = os.pipe()
+        except OSError:
+            return
+        memfd = _memfd()
+        try:
             sys.stdout.flush()
             sys.stderr.flush()
             pid = _fork()
         except OSError:
+            _close(rfd, wfd, memfd)
             return
         if pid == 0:  # the child: compute, send, leave without running the parent's exit handlers
             code = 0
             try:
                 os.close(rfd)
                 _close_prepared()  # a prepared child must see its end of file when the parent closes it
-                _answer(self._fn, self._args, self._kwargs, wfd)
+                _answer(self._fn, self._args, self._kwargs, wfd, memfd)
             except BaseException:  # noqa: BLE001
                 code = 1
             finally:
                 os._exit(code)
         os.close(wfd)
-        self._pid, self._rfd = pid, rfd
+        self._pid, self._rfd, self._memfd = pid, rfd, memfd
 
     def result(self) -> Any:
         if self._done:
@@ -172,10 +203,13 @@ class Pending:
         ok, value = None, None
         if self._pid is not None:
             try:
-                ok, value = _read_answer(self._rfd)
+                ok, value = _read_answer(self._rfd, memfd=self._memfd)
                 os.waitpid(self._pid, 0)
-            except (OSError, EOFError, pickle.UnpicklingError):
+            except (OSError, EOFError, ValueError, pickle.UnpicklingError):
                 ok = None
+            finally:
+                _close(self._memfd)
+                self._memfd = -1
         if ok is None:  # no fork, or the child died: the same call here
             ok, value = True, self._fn(*self._args, **self._kwargs)
         self._done, self._value = True, value
@@ -193,7 +227,7 @@ class Pending:
                 os.kill(self._pid, signal.SIGKILL)
             except OSError:
                 pass
-            _close(self._rfd)
+            _close(self._rfd, self._memfd)
             try:
                 os.waitpid(self._pid, 0)
             except OSError:
@@ -205,25 +239,75 @@ def submit(fn: Callable, *args, **kwargs) -> Pending:
     return Pending(fn, args, kwargs)
 
 
-def _answer(fn: Callable, args: tuple, kwargs: dict, wfd: int) -> None:
-    """In a child: run the call and write (True, its value) or (False, its exception), pickled, to ``wfd``."""
+def _answer(fn: Callable, args: tuple, kwargs: dict, wfd: int, memfd: int = -1) -> None:
+    """In a child: run the call and write (True, its value) or (False, its exception), pickled, to ``wfd``; its
+    arrays of OOB_MIN_BYTES and more into ``memfd`` (where there is one), the pickle then wrapped with their
+    places there (:func:`_read_answer` maps them)."""
     try:
-        payload = pickle.dumps((True, fn(*args, **kwargs)), protocol=5)
+        payload = _dumps((True, fn(*args, **kwargs)), memfd)
     except BaseException as exc:  # noqa: BLE001 - the parent re-raises it
         payload = pickle.dumps((False, exc), protocol=5)
     with os.fdopen(wfd, "wb") as fh:
         fh.write(payload)
 
 
-def _read_answer(rfd: int, closefd: bool = True) -> tuple[bool | None, Any]:
-    """In the parent: what :func:`_answer` wrote, or (None, None) when nothing came."""
+def _dumps(answer: tuple, memfd: int) -> bytes:
+    """``answer`` pickled; its large buffers written into ``memfd`` at aligned offsets and the pickle wrapped
+    as (_OOB_TAG, their (offset, size), the file's size, the pickle), where there are any (else, or where the
+    file cannot take them, the plain pickle)."""
+    if memfd < 0:
+        return pickle.dumps(answer, protocol=5)
+    big: list[memoryview] = []
+
+    def out_of_band(buf: pickle.PickleBuffer) -> bool:  # (True: in the pickle)
+        try:
+            raw = buf.raw()
+        except BufferError:  # (neither C- nor Fortran-contiguous)
+            return True
+        if raw.nbytes < OOB_MIN_BYTES:
+            return True
+        big.append(raw)
+        return False
+
+    payload = pickle.dumps(answer, protocol=5, buffer_callback=out_of_band)
+    if not big:
+        return payload
+    layout, end = [], 0
+    for raw in big:
+        layout.append((end, raw.nbytes))
+        end = -(-(end + raw.nbytes) // _OOB_ALIGN) * _OOB_ALIGN
+    try:
+        os.ftruncate(memfd, max(end, 1))
+        for (off, size), raw in zip(layout, big):
+            done = 0
+            while done < size:
+                done += os.pwrite(memfd, raw[done:], off + done)
+    except OSError:  # (no room for them: all through the pipe)
+        return pickle.dumps(answer, protocol=5)
+    return pickle.dumps((_OOB_TAG, layout, end, payload), protocol=5)
+
+
+def _read_answer(rfd: int, closefd: bool = True, memfd: int = -1) -> tuple[bool | None, Any]:
+    """In the parent: what :func:`_answer` wrote, or (None, None) when nothing came. Arrays it put in ``memfd``
+    are mapped from there (private, copy-on-write: writing into one touches neither the file nor a child forked
+    later), not copied."""
     with os.fdopen(rfd, "rb", closefd=closefd) as fh:
         data = fh.read()
-    return pickle.loads(data) if data else (None, None)
+    if not data:
+        return None, None
+    answer = pickle.loads(data)
+    if type(answer) is tuple and len(answer) == 4 and answer[0] == _OOB_TAG:
+        _, layout, size, payload = answer
+        shared = mmap.mmap(memfd, size, flags=mmap.MAP_PRIVATE, prot=mmap.PROT_READ | mmap.PROT_WRITE)
+        whole = memoryview(shared)  # (the arrays hold views of it: the map lasts as long as the last of them)
+        answer = pickle.loads(payload, buffers=[whole[off:off + n] for off, n in layout])
+    return answer
 
 
 def _close(*fds: int) -> None:
     for fd in fds:
+        if fd is None or fd < 0:
+            continue
         try:
             os.close(fd)
         except OSError:
@@ -231,8 +315,8 @@ def _close(*fds: int) -> None:
 
 
 def _close_prepared() -> None:
-    for _pid, w, r in _PREPARED.values():
-        _close(w, r)
+    for _pid, w, r, mfd in _PREPARED.values():
+        _close(w, r, mfd)
     _PREPARED.clear()
 
 
@@ -246,12 +330,13 @@ def prepare(name: str, modules: tuple[str, ...]) -> bool:
         res_r, res_w = os.pipe()
     except OSError:
         return False
+    memfd = _memfd()
     sys.stdout.flush()
     sys.stderr.flush()
     try:
         pid = _fork()
     except OSError:
-        _close(req_r, req_w, res_r, res_w)
+        _close(req_r, req_w, res_r, res_w, memfd)
         return False
     if pid == 0:  # the child: import, wait for the call (or the end of file), answer, leave
         code = 0
@@ -264,14 +349,14 @@ def prepare(name: str, modules: tuple[str, ...]) -> bool:
             with os.fdopen(req_r, "rb") as fh:
                 data = fh.read()
             if data:
-                _answer(*pickle.loads(data), res_w)
+                _answer(*pickle.loads(data), res_w, memfd)
         except BaseException:  # noqa: BLE001 - an interrupt, a broken pipe: the parent runs the call itself
             code = 1
         finally:
             os._exit(code)
     os.close(req_r)
     os.close(res_w)
-    _PREPARED[name] = (pid, req_w, res_r)
+    _PREPARED[name] = (pid, req_w, res_r, memfd)
     return True
 
 
@@ -287,8 +372,8 @@ class _Sent:
     """A call sent to a prepared child (``result()`` waits for its answer), run here instead where the
     child cannot take it or dies."""
 
-    def __init__(self, entry: tuple[int, int, int], fn: Callable, args: tuple, kwargs: dict):
-        self._pid, req_w, self._res_r = entry
+    def __init__(self, entry: tuple[int, int, int, int], fn: Callable, args: tuple, kwargs: dict):
+        self._pid, req_w, self._res_r, self._memfd = entry
         self._call = (fn, args, kwargs)
         self._sent = False
         try:
@@ -305,11 +390,12 @@ class _Sent:
         ok, value = None, None
         try:
             if self._sent:
-                ok, value = _read_answer(self._res_r, closefd=False)
-        except (OSError, EOFError, pickle.PickleError):
+                ok, value = _read_answer(self._res_r, closefd=False, memfd=self._memfd)
+        except (OSError, EOFError, ValueError, pickle.PickleError):
             ok = None
         finally:
-            _close(self._res_r)
+            _close(self._res_r, self._memfd)
+            self._memfd = -1
             try:
                 os.waitpid(self._pid, 0)
             except OSError:
@@ -342,8 +428,8 @@ def release(name: str) -> None:
     entry = _PREPARED.pop(name, None)
     if entry is None:
         return
-    pid, req_w, res_r = entry
-    _close(req_w, res_r)
+    pid, req_w, res_r, memfd = entry
+    _close(req_w, res_r, memfd)
     try:
         os.waitpid(pid, os.WNOHANG)
     except OSError:

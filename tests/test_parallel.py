@@ -62,6 +62,72 @@ def test_a_child_that_dies_falls_back_to_this_process(forking):
     assert total == 3.0
 
 
+def _big_and_small(n):
+    import pandas as pd
+
+    frame = pd.DataFrame({"a": np.arange(n, dtype=float), "b": -np.arange(n, dtype=float)},
+                         index=pd.Index(np.arange(n) * 0.005, name="t_s"))
+    return frame, np.arange(10.0), np.asfortranarray(np.arange(3.0 * n).reshape(n, 3))
+
+
+def _maps(arr: np.ndarray) -> bool:
+    """Whether the array's memory is a mapping (its base chain ends in a memoryview of an mmap)."""
+    import mmap
+
+    b = arr
+    while isinstance(b, np.ndarray) and b.base is not None:
+        b = b.base
+    return isinstance(b, memoryview) and isinstance(b.obj, mmap.mmap)
+
+
+@pytest.mark.skipif(not hasattr(os, "memfd_create"), reason="needs memfd (Linux)")
+def test_an_answers_large_arrays_come_through_shared_memory_not_the_pipe():
+    """_answer puts arrays of OOB_MIN_BYTES and more into the memfd and only a small pickle into the pipe;
+    _read_answer maps them back: equal values, writable, small arrays still in the pickle."""
+    n = parallel.OOB_MIN_BYTES // 8 + 1000
+    r, w = os.pipe()
+    memfd = parallel._memfd()
+    try:
+        parallel._answer(_big_and_small, (n,), {}, w, memfd)
+        assert os.fstat(memfd).st_size >= 4 * n * 8  # (two columns, the index, the (n, 3) array's three)
+        ok, (frame, small, f3) = parallel._read_answer(r, memfd=memfd)
+    finally:
+        parallel._close(memfd)
+    want = _big_and_small(n)
+    assert ok and frame.equals(want[0]) and np.array_equal(small, want[1]) and np.array_equal(f3, want[2])
+    assert f3.flags.f_contiguous and _maps(f3) and not _maps(small)
+    f3[0, 0] = -1.0  # (writable: a private, copy-on-write mapping)
+    assert f3[0, 0] == -1.0
+
+
+def test_without_a_memfd_the_answer_comes_through_the_pipe_alone():
+    n = parallel.OOB_MIN_BYTES // 8 + 1000
+    r, w = os.pipe()
+    import threading
+
+    th = threading.Thread(target=parallel._answer, args=(_big_and_small, (n,), {}, w, -1))
+    th.start()  # (the whole pickle in the pipe: written beside the read, which empties it)
+    ok, (frame, small, f3) = parallel._read_answer(r)
+    th.join()
+    assert ok and frame.equals(_big_and_small(n)[0]) and not _maps(f3)
+
+
+def _scribble(arr):
+    arr[:] = 7.0
+    return float(arr.sum())
+
+
+@posix_fork
+def test_a_mapped_answer_is_private_to_the_parent(forking):
+    """An answer's mapped arrays are copy-on-write: a child forked later that writes into one changes
+    neither the parent's copy nor anything the parent sees."""
+    n = parallel.OOB_MIN_BYTES // 8 + 1000
+    frame, _small, f3 = parallel.submit(_big_and_small, n).result()
+    assert _maps(f3) or not hasattr(os, "memfd_create")
+    assert parallel.submit(_scribble, f3).result() == 7.0 * f3.size
+    assert np.array_equal(f3, _big_and_small(n)[2])
+
+
 def test_without_enable_nothing_forks():
     parallel.enable(False)
     assert parallel.submit(_pid_and_sum, np.ones(2)).result()[0] == os.getpid()
