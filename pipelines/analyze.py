@@ -404,16 +404,41 @@ def _import_numerics() -> None:
             return
 
 
-def _prepare_master(master: InsLog) -> None:
-    """logtools' alignment's per-master preparation done once (``prepare_master``) before the runs fork;
-    nothing for an alignment put in with ``use_numerics``."""
+def _prepare_master(master: InsLog, prepared: "parallel.Pending | None" = None) -> None:
+    """logtools' alignment's per-master preparation done once (``prepare_master``) before the runs fork, or
+    adopted from ``prepared`` (:func:`_master_preparation` in a child); nothing for an alignment put in with
+    ``use_numerics``."""
     if _numerics.run_alignment is not None:
         return
     try:
-        from logtools.alignment.run import prepare_master
+        from logtools.alignment.run import adopt_master_preparation, prepare_master
     except ImportError:
         return  # (the runs say it)
-    prepare_master(master)
+    if prepared is not None:
+        try:
+            adopt_master_preparation(master, prepared.result())
+        except Exception:  # noqa: BLE001 - prepared here instead (what failed there fails again in the runs)
+            pass
+    prepare_master(master)  # (what was adopted is kept, not made again)
+
+
+def _master_preparation(master: InsLog) -> dict:
+    """``master_preparation`` of logtools' alignment, for a forked child ({} where it cannot be had)."""
+    try:
+        from logtools.alignment.run import master_preparation
+    except ImportError:
+        return {}
+    return master_preparation(master)
+
+
+def _prepare_master_beside(master: InsLog, slave: InsLog) -> "parallel.Pending | None":
+    """The master's alignment preparation started in a forked child during the latency stage, which leaves
+    a core partly idle (the 1 h pair: its 1.2 s of CPU, done here between the stages before), where the runs
+    will fork (the logs' size, ``parallel.FORK_ALIGNMENT_MAX_SAMPLES``) and it is logtools' alignment; else None."""
+    if not (parallel.available() and _numerics.run_alignment is None and (master.has_quat or master.has_vel)
+            and len(master.imu) + len(slave.imu) <= parallel.FORK_ALIGNMENT_MAX_SAMPLES):
+        return None
+    return parallel.submit(_master_preparation, master)
 
 
 class _BoardDecision:
@@ -720,23 +745,36 @@ def same_stream(master: InsLog, slave: InsLog) -> bool:
 def parse_pair(master_arg: str | InsLog, slave_arg: str | InsLog, prog=null_progress,
                meanwhile: Callable[[], None] | None = None) -> tuple[InsLog, InsLog]:
     """Both logs loaded (an InsLog given is taken as it is). Where forking is allowed (the CLI's analyze) and
-    the files are large (``parallel.FORK_PARSE_MIN_INPUT_BYTES``), the master is parsed in a forked child
-    while this process parses the slave, then calls ``meanwhile`` (work of a later stage) before it takes the
-    child's answer (its arrays mapped, not copied: ``parallel.OOB_MIN_BYTES``). A bad master is reported
-    before a bad slave either way."""
+    the files are large (``parallel.FORK_PARSE_MIN_INPUT_BYTES``), the larger file is parsed in a forked child
+    while this process parses the other, then calls ``meanwhile`` (work of a later stage) before it takes the
+    child's answer (its arrays mapped, not copied: ``parallel.OOB_MIN_BYTES``). The larger file there: this
+    process has ``meanwhile`` to do besides (the 1 h pair's 165 MB slave tlog in the child, 2.1 s with its
+    imports, against the 109 MB master MCAP and 0.3 s of imports here). A bad master is reported before a bad
+    slave either way."""
     prog(0.0, "parse master")
     if (isinstance(master_arg, str) and isinstance(slave_arg, str) and parallel.available()
             and (input_bytes("analyze", [master_arg, slave_arg]) or 0) > parallel.FORK_PARSE_MIN_INPUT_BYTES):
-        pending = parallel.submit(load, master_arg)
-        prog(0.08, "parse slave")
+        if (input_bytes("analyze", [master_arg]) or 0) >= (input_bytes("analyze", [slave_arg]) or 0):
+            pending = parallel.submit(load, master_arg)
+            prog(0.08, "parse slave")
+            try:
+                slave = load(slave_arg)
+            except Exception:
+                pending.result()  # (raises the master's error, if it has one)
+                raise
+            if meanwhile is not None:
+                meanwhile()
+            return pending.result(), slave
+        pending = parallel.submit(load, slave_arg)
         try:
-            slave = load(slave_arg)
-        except Exception:
-            pending.result()  # (raises the master's error, if it has one)
+            master = load(master_arg)
+        except BaseException:
+            pending.cancel()
             raise
+        prog(0.08, "parse slave")
         if meanwhile is not None:
             meanwhile()
-        return pending.result(), slave
+        return master, pending.result()
     master = master_arg if isinstance(master_arg, InsLog) else load(master_arg)
     prog(0.08, "parse slave")
     return master, slave_arg if isinstance(slave_arg, InsLog) else load(slave_arg)
@@ -772,8 +810,9 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
     units = scale_findings(master, slave)  # (a unit mix-up: said as a warning, and in a failure's line)
     extra.setdefault("warnings", []).extend({"stage": "parse", "text": u} for u in units)
 
-    # -- latency
+    # -- latency (the master's alignment preparation beside it, where the alignment runs will fork)
     t = time.perf_counter()
+    master_prepared = _prepare_master_beside(master, slave)
     failure: str | None = None
     missing = [role for role, log in (("master", master), ("slave", slave)) if not (log.has_gyro or log.has_quat)]
     if missing:
@@ -851,7 +890,8 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
     if forked:
         # the two runs share nothing but their inputs: the uncompensated one in a forked child (CLI only),
         # the master's series prepared before (the child shares them instead of preparing its own)
-        _prepare_master(master)
+        _prepare_master(master, master_prepared)
+        master_prepared = None
         if run_opts["uncompensated"] is not opts and _numerics.run_alignment is None:
             # --board-errors auto: the compensated run decides the board's states; the uncompensated one
             # follows its decision in the child (the filter with them, if they join, on the child's own
@@ -904,6 +944,8 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
             # there, which is no shortcoming of the analysis
             applies = not (run == "uncompensated" and face is not None and not _overlap_s(master, face) > 0)
             an.align_sections[run] = rp.alignment_skipped(res, opts.filter, opts.match, applies=applies)
+    if master_prepared is not None:  # (the runs did not fork: not wanted)
+        master_prepared.cancel()
     if "logtools.alignment.run" in sys.modules:  # the runs are done: their master series go
         sys.modules["logtools.alignment.run"].forget_master(master)
     parallel.release_freed_memory()

@@ -160,6 +160,41 @@ def test_the_cli_analyze_with_forked_alignment_equals_the_in_process_answer(tmp_
             list(here[key]), rel=1e-12, abs=1e-12)
 
 
+@posix_fork
+def test_the_masters_alignment_preparation_made_in_a_child_is_adopted_as_made_here(forking):
+    """analyze prepares the master's alignment series in a forked child during the latency stage: adopted
+    here they equal this process's own preparation, read-only as its own, and prepare_master keeps them."""
+    from logtools.alignment import run
+    from parsers import load
+
+    from pipelines import analyze
+
+    master = load(str(SAMPLE / "master.mcap"))
+    pending = analyze._prepare_master_beside(master, load(str(SAMPLE / "slave.tlog")))
+    assert pending is not None and pending._pid is not None  # (in a child)
+    there = pending.result()
+    run.forget_master(master)
+    here = run.master_preparation(master)
+    assert set(there) == set(here) and any(isinstance(v, run.MasterSeries) for v in here.values())
+    run.forget_master(master)
+    run.adopt_master_preparation(master, there)
+    for key, v in here.items():
+        got = run._LAST_MASTER[0][1][key]
+        if isinstance(v, run.MasterSeries):
+            for f in dataclasses.fields(v):
+                a, b = getattr(v, f.name), getattr(got, f.name)
+                if isinstance(a, np.ndarray):
+                    assert np.array_equal(a, b, equal_nan=True) and not b.flags.writeable
+                else:
+                    assert a == b
+        else:
+            assert got == v
+    kept = dict(run._LAST_MASTER[0][1])
+    run.prepare_master(master)
+    assert all(run._LAST_MASTER[0][1][k] is kept[k] for k in kept)
+    run.forget_master(master)
+
+
 _WAIT_IMPORTS = """
 import sys
 from pipelines import analyze, parallel
@@ -345,34 +380,38 @@ def test_the_cli_runs_one_blas_thread_and_no_numpy_huge_pages_unless_the_user_ch
 
 
 @posix_fork
-def test_large_inputs_parse_the_master_in_a_child_with_the_same_log(forking, monkeypatch, tmp_path):
-    """Above FORK_PARSE_MIN_INPUT_BYTES the master is parsed in a forked child while the slave is parsed
-    here: the same InsLog as parsed in turn; and with both files bad, the master's error is the one raised
-    (as in turn), whichever parse ends first."""
+def test_large_inputs_parse_the_larger_file_in_a_child_with_the_same_log(forking, monkeypatch, tmp_path):
+    """Above FORK_PARSE_MIN_INPUT_BYTES the larger file is parsed in a forked child while the other is parsed
+    here: the same InsLogs as parsed in turn, whichever side the child has; and with both files bad, the
+    master's error is the one raised (as in turn), whichever parse ends first."""
     from logtools.errors import InputError
     from parsers.registry import load
     from pipelines import analyze
 
     m, s = str(SAMPLE / "master.mcap"), str(SAMPLE / "slave.tlog")
+    assert os.path.getsize(s) > os.path.getsize(m)
     monkeypatch.setattr(parallel, "FORK_PARSE_MIN_INPUT_BYTES", 0)
     calls = []
     monkeypatch.setattr(parallel, "submit", lambda *a, **k: calls.append(a) or parallel.Pending(a[0], a[1:], k))
     waited = []
-    master, slave = analyze.parse_pair(m, s, meanwhile=lambda: waited.append(len(calls)))
-    assert calls and calls[0][1] == m  # forked
-    assert waited == [1]  # the later stage's work done once, while the child parsed the master
-    ref_m, ref_s = load(m), load(s)
-    for got, ref in ((master, ref_m), (slave, ref_s)):
-        assert got.imu.equals(ref.imu) and got.nav.equals(ref.nav) and got.meta == ref.meta
-    bad_m, bad_s = tmp_path / "m.mcap", tmp_path / "s.tlog"
-    bad_m.write_bytes(b"\x00" * 4096)
-    bad_s.write_bytes(b"\x00" * 100)
-    with pytest.raises(InputError) as err:
-        analyze.parse_pair(str(bad_m), str(bad_s), meanwhile=lambda: waited.append("bad"))
-    assert str(bad_m) in str(err.value) and waited == [1]  # (not after a failed parse)
+    ref = {m: load(m), s: load(s)}
+    for first, second in ((m, s), (s, m)):  # (the slave's file the larger, then the master's)
+        calls.clear()
+        master, slave = analyze.parse_pair(first, second, meanwhile=lambda: waited.append(len(calls)))
+        assert len(calls) == 1 and calls[0][1] == s  # the larger file forked
+        for got, want in ((master, ref[first]), (slave, ref[second])):
+            assert got.imu.equals(want.imu) and got.nav.equals(want.nav) and got.meta == want.meta
+    assert waited == [1, 1]  # the later stage's work done once a pair, while the child parsed
+    for m_bytes, s_bytes in ((4096, 100), (100, 4096)):
+        bad_m, bad_s = tmp_path / f"m{m_bytes}.mcap", tmp_path / f"s{s_bytes}.tlog"
+        bad_m.write_bytes(b"\x00" * m_bytes)
+        bad_s.write_bytes(b"\x00" * s_bytes)
+        with pytest.raises(InputError) as err:
+            analyze.parse_pair(str(bad_m), str(bad_s), meanwhile=lambda: waited.append("bad"))
+        assert str(bad_m) in str(err.value) and waited == [1, 1]  # (not after a failed parse)
     parallel.enable(False)  # no fork: nothing to wait for, the later stage imports its own
     analyze.parse_pair(m, s, meanwhile=lambda: waited.append("no fork"))
-    assert waited == [1]
+    assert waited == [1, 1]
 
 
 def test_large_pairs_fix_the_mmap_threshold_and_the_user_setting_wins(monkeypatch):
