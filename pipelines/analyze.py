@@ -404,41 +404,16 @@ def _import_numerics() -> None:
             return
 
 
-def _prepare_master(master: InsLog, prepared: "parallel.Pending | None" = None) -> None:
-    """logtools' alignment's per-master preparation done once (``prepare_master``) before the runs fork, or
-    adopted from ``prepared`` (:func:`_master_preparation` in a child); nothing for an alignment put in with
-    ``use_numerics``."""
+def _prepare_master(master: InsLog) -> None:
+    """logtools' alignment's per-master preparation done once (``prepare_master``) before the runs fork;
+    nothing for an alignment put in with ``use_numerics``."""
     if _numerics.run_alignment is not None:
         return
     try:
-        from logtools.alignment.run import adopt_master_preparation, prepare_master
+        from logtools.alignment.run import prepare_master
     except ImportError:
         return  # (the runs say it)
-    if prepared is not None:
-        try:
-            adopt_master_preparation(master, prepared.result())
-        except Exception:  # noqa: BLE001 - prepared here instead (what failed there fails again in the runs)
-            pass
-    prepare_master(master)  # (what was adopted is kept, not made again)
-
-
-def _master_preparation(master: InsLog) -> dict:
-    """``master_preparation`` of logtools' alignment, for a forked child ({} where it cannot be had)."""
-    try:
-        from logtools.alignment.run import master_preparation
-    except ImportError:
-        return {}
-    return master_preparation(master)
-
-
-def _prepare_master_beside(master: InsLog, slave: InsLog) -> "parallel.Pending | None":
-    """The master's alignment preparation started in a forked child during the latency stage, which leaves
-    a core partly idle (the 1 h pair: its 1.2 s of CPU, done here between the stages before), where the runs
-    will fork (the logs' size, ``parallel.FORK_ALIGNMENT_MAX_SAMPLES``) and it is logtools' alignment; else None."""
-    if not (parallel.available() and _numerics.run_alignment is None and (master.has_quat or master.has_vel)
-            and len(master.imu) + len(slave.imu) <= parallel.FORK_ALIGNMENT_MAX_SAMPLES):
-        return None
-    return parallel.submit(_master_preparation, master)
+    prepare_master(master)
 
 
 class _BoardDecision:
@@ -810,9 +785,8 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
     units = scale_findings(master, slave)  # (a unit mix-up: said as a warning, and in a failure's line)
     extra.setdefault("warnings", []).extend({"stage": "parse", "text": u} for u in units)
 
-    # -- latency (the master's alignment preparation beside it, where the alignment runs will fork)
+    # -- latency
     t = time.perf_counter()
-    master_prepared = _prepare_master_beside(master, slave)
     failure: str | None = None
     missing = [role for role, log in (("master", master), ("slave", slave)) if not (log.has_gyro or log.has_quat)]
     if missing:
@@ -890,8 +864,7 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
     if forked:
         # the two runs share nothing but their inputs: the uncompensated one in a forked child (CLI only),
         # the master's series prepared before (the child shares them instead of preparing its own)
-        _prepare_master(master, master_prepared)
-        master_prepared = None
+        _prepare_master(master)
         if run_opts["uncompensated"] is not opts and _numerics.run_alignment is None:
             # --board-errors auto: the compensated run decides the board's states; the uncompensated one
             # follows its decision in the child (the filter with them, if they join, on the child's own
@@ -944,8 +917,6 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
             # there, which is no shortcoming of the analysis
             applies = not (run == "uncompensated" and face is not None and not _overlap_s(master, face) > 0)
             an.align_sections[run] = rp.alignment_skipped(res, opts.filter, opts.match, applies=applies)
-    if master_prepared is not None:  # (the runs did not fork: not wanted)
-        master_prepared.cancel()
     if "logtools.alignment.run" in sys.modules:  # the runs are done: their master series go
         sys.modules["logtools.alignment.run"].forget_master(master)
     parallel.release_freed_memory()

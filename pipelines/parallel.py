@@ -38,10 +38,10 @@ _PREPARED: dict[str, tuple[int, int, int, int]] = {}
 #: memory of the long logs, whose peak is the constraint
 PREPARED_MAX_INPUT_BYTES = 60_000_000
 
-#: master + slave file bytes above which ``analyze`` parses the master in a forked child while it parses the
-#: slave: on the 1 h pair 1.9-2.2 s against 3.1-3.4 s in turn (the master's InsLog comes back through shared
-#: memory, OOB_MIN_BYTES: its 104 MB through the pipe, pickled, had cost another 0.3 s). Below, a prepared child imports the recording's libraries during the parse already, and
-#: a parse of a fraction of a second would not pay for a second numba set-up (0.5-0.7 s of CPU)
+#: master + slave file bytes above which ``analyze`` parses the larger log in a forked child while it parses
+#: the other: on the 1 h pair 1.8-1.9 s against 3.1-3.4 s in turn (the child's InsLog comes back through shared
+#: memory, OOB_MIN_BYTES). Below, a prepared child imports the recording's libraries during the parse already,
+#: and a parse of a fraction of a second would not pay for a second numba set-up (0.5-0.7 s of CPU)
 FORK_PARSE_MIN_INPUT_BYTES = PREPARED_MAX_INPUT_BYTES
 
 #: master + slave IMU samples up to which ``analyze`` computes the IMU-to-IMU fit in a second forked child
@@ -80,15 +80,27 @@ _OOB_TAG = "tapost-parallel-oob-1"
 _OOB_ALIGN = 64
 
 
+_MEMFDS: set[int] = set()  # the memfds of this process's children not yet answered (a later child closes them)
+
+
 def _memfd() -> int:
     """An anonymous shared-memory file for a child's large arrays (-1 where the system has none: they go
     through the pipe)."""
     if not hasattr(os, "memfd_create"):
         return -1
     try:
-        return os.memfd_create("tapost-answer", getattr(os, "MFD_CLOEXEC", 0))
+        fd = os.memfd_create("tapost-answer", getattr(os, "MFD_CLOEXEC", 0))
     except OSError:
         return -1
+    _MEMFDS.add(fd)
+    return fd
+
+
+def _in_child(own: int) -> None:
+    """In a child just forked: the other children's memfds closed (held here, one would outlive its answer)."""
+    for fd in _MEMFDS - {own}:
+        _close(fd)
+    _MEMFDS.clear()
 
 
 def enable(on: bool = True) -> None:
@@ -189,6 +201,7 @@ class Pending:
             try:
                 os.close(rfd)
                 _close_prepared()  # a prepared child must see its end of file when the parent closes it
+                _in_child(memfd)
                 _answer(self._fn, self._args, self._kwargs, wfd, memfd)
             except BaseException:  # noqa: BLE001
                 code = 1
@@ -308,6 +321,7 @@ def _close(*fds: int) -> None:
     for fd in fds:
         if fd is None or fd < 0:
             continue
+        _MEMFDS.discard(fd)
         try:
             os.close(fd)
         except OSError:
@@ -315,7 +329,7 @@ def _close(*fds: int) -> None:
 
 
 def _close_prepared() -> None:
-    for _pid, w, r, mfd in _PREPARED.values():
+    for _pid, w, r, mfd in list(_PREPARED.values()):
         _close(w, r, mfd)
     _PREPARED.clear()
 
@@ -344,6 +358,7 @@ def prepare(name: str, modules: tuple[str, ...]) -> bool:
             os.close(req_w)
             os.close(res_r)
             _close_prepared()
+            _in_child(memfd)
             for m in modules:
                 importlib.import_module(m)
             with os.fdopen(req_r, "rb") as fh:

@@ -112,6 +112,23 @@ def test_without_a_memfd_the_answer_comes_through_the_pipe_alone():
     assert ok and frame.equals(_big_and_small(n)[0]) and not _maps(f3)
 
 
+def _open_fds():
+    return set(int(x) for x in os.listdir("/proc/self/fd"))
+
+
+@posix_fork
+@pytest.mark.skipif(not os.path.isdir("/proc/self/fd") or not hasattr(os, "memfd_create"), reason="needs /proc, memfd")
+def test_a_child_holds_no_other_childs_memfd_and_the_parent_none_once_answered(forking):
+    """Each child's memfd is closed here once its answer is read; a child forked while another runs does
+    not hold the other's (its pages would outlive the answer)."""
+    before = _open_fds()
+    first = parallel.submit(_big_and_small, 10)
+    second = parallel.submit(_open_fds)
+    assert first._memfd in _open_fds() and first._memfd not in second.result()
+    first.result()
+    assert _open_fds() <= before | {first._rfd}  # (the read end closed by its fdopen)
+
+
 def _scribble(arr):
     arr[:] = 7.0
     return float(arr.sum())
@@ -158,41 +175,6 @@ def test_the_cli_analyze_with_forked_alignment_equals_the_in_process_answer(tmp_
     for key in ("gyro_rpy_deg", "gyro_sigma_deg", "accel_rpy_deg", "accel_sigma_deg"):
         assert here[key] is not None and rep["alignment"]["imu_to_imu"][key] == pytest.approx(
             list(here[key]), rel=1e-12, abs=1e-12)
-
-
-@posix_fork
-def test_the_masters_alignment_preparation_made_in_a_child_is_adopted_as_made_here(forking):
-    """analyze prepares the master's alignment series in a forked child during the latency stage: adopted
-    here they equal this process's own preparation, read-only as its own, and prepare_master keeps them."""
-    from logtools.alignment import run
-    from parsers import load
-
-    from pipelines import analyze
-
-    master = load(str(SAMPLE / "master.mcap"))
-    pending = analyze._prepare_master_beside(master, load(str(SAMPLE / "slave.tlog")))
-    assert pending is not None and pending._pid is not None  # (in a child)
-    there = pending.result()
-    run.forget_master(master)
-    here = run.master_preparation(master)
-    assert set(there) == set(here) and any(isinstance(v, run.MasterSeries) for v in here.values())
-    run.forget_master(master)
-    run.adopt_master_preparation(master, there)
-    for key, v in here.items():
-        got = run._LAST_MASTER[0][1][key]
-        if isinstance(v, run.MasterSeries):
-            for f in dataclasses.fields(v):
-                a, b = getattr(v, f.name), getattr(got, f.name)
-                if isinstance(a, np.ndarray):
-                    assert np.array_equal(a, b, equal_nan=True) and not b.flags.writeable
-                else:
-                    assert a == b
-        else:
-            assert got == v
-    kept = dict(run._LAST_MASTER[0][1])
-    run.prepare_master(master)
-    assert all(run._LAST_MASTER[0][1][k] is kept[k] for k in kept)
-    run.forget_master(master)
 
 
 _WAIT_IMPORTS = """

@@ -542,26 +542,6 @@ def prepare_master(master: InsLog, config: AlignmentConfig = CONFIG) -> None:
         pass
 
 
-def master_preparation(master: InsLog, config: AlignmentConfig = CONFIG) -> dict:
-    """:func:`prepare_master`'s results for ``master`` (key -> value), for a process that prepared them to hand
-    to another: ``analyze`` prepares them in a forked child during the latency stage, and this process adopts
-    them (:func:`adopt_master_preparation`)."""
-    prepare_master(master, config)
-    return dict(_LAST_MASTER[0][1]) if _LAST_MASTER and _LAST_MASTER[0][0]() is master else {}
-
-
-def adopt_master_preparation(master: InsLog, prepared: dict) -> None:
-    """``prepared`` (:func:`master_preparation`'s, made in another process from this same master) kept for
-    ``master``, as :func:`prepare_master` would have made it here: the series' arrays read-only."""
-    for key, value in prepared.items():
-        if isinstance(value, MasterSeries):
-            for f in fields(value):
-                v = getattr(value, f.name)
-                if isinstance(v, np.ndarray):
-                    v.flags.writeable = False
-        _for_master(master, key, lambda v=value: v)
-
-
 def _master_attitude_noise(master: InsLog) -> float | None:
     """The white noise of the master's attitude (rad, :func:`_hf_sigma` of its rotation from the first
     attitude), None with fewer than 9 attitudes; once per master."""
