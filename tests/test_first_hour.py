@@ -331,6 +331,44 @@ def test_ctrl_c_while_the_command_loads_is_one_line(after_s):
     assert p.returncode in (130, -signal.SIGINT), (p.returncode, err)
 
 
+class _Ended(Exception):
+    pass
+
+
+def test_the_command_runs_its_exit_handlers_then_ends_without_the_interpreters_teardown(monkeypatch, capsys):
+    """cli.script (the `tapost` console script): main's exit code, stdout flushed, the exit handlers run (the
+    background compile's start is one), then os._exit: the interpreter's teardown of numba, scipy and pandas
+    (a third of a second) is skipped. With another thread still running it exits as usual instead."""
+    import atexit
+    import threading
+
+    from pipelines import cli
+
+    order = []
+    monkeypatch.setattr(cli, "main", lambda: print("the summary", end="") or 3)
+    monkeypatch.setattr(atexit, "_run_exitfuncs", lambda: order.append("exit handlers"))
+
+    def ended(code):
+        order.append(("os._exit", code))
+        raise _Ended
+
+    monkeypatch.setattr(os, "_exit", ended)
+    with pytest.raises(_Ended):
+        cli.script()
+    assert order == ["exit handlers", ("os._exit", 3)] and capsys.readouterr().out == "the summary"
+    order.clear()
+    gate = threading.Event()
+    worker = threading.Thread(target=gate.wait)
+    worker.start()
+    try:
+        with pytest.raises(SystemExit) as exc:
+            cli.script()
+    finally:
+        gate.set()
+        worker.join()
+    assert exc.value.code == 3 and order == []
+
+
 def test_the_summary_marks_the_methods_that_assume_aligned_axes():
     rep = _report()
     rep["latency"]["methods"] = {
