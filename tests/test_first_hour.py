@@ -353,6 +353,8 @@ def test_the_command_runs_its_exit_handlers_then_ends_without_the_interpreters_t
         raise _Ended
 
     monkeypatch.setattr(os, "_exit", ended)
+    # (this test's process may run threads of its own, a pytest-xdist worker's: the threads script sees are set)
+    monkeypatch.setattr(threading, "enumerate", lambda: [threading.current_thread()])
     with pytest.raises(_Ended):
         cli.script()
     assert order == ["exit handlers", ("os._exit", 3)] and capsys.readouterr().out == "the summary"
@@ -360,6 +362,7 @@ def test_the_command_runs_its_exit_handlers_then_ends_without_the_interpreters_t
     gate = threading.Event()
     worker = threading.Thread(target=gate.wait)
     worker.start()
+    monkeypatch.setattr(threading, "enumerate", lambda: [threading.current_thread(), worker])
     try:
         with pytest.raises(SystemExit) as exc:
             cli.script()
