@@ -174,22 +174,21 @@ def script() -> None:
     import atexit
     import threading
 
+    def flush() -> None:
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):  # (a closed pipe: nothing more can be said on it)
+                pass
+
     code = main()
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            stream.flush()
-        except (OSError, ValueError):  # (a closed pipe: nothing more can be said on it)
-            pass
+    flush()
     run_exit_handlers = getattr(atexit, "_run_exitfuncs", None)
     others = [t for t in threading.enumerate() if t is not threading.current_thread() and not t.daemon]
     if run_exit_handlers is None or others:
         sys.exit(code)
     run_exit_handlers()
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            stream.flush()
-        except (OSError, ValueError):
-            pass
+    flush()  # (what the handlers said)
     os._exit(int(code) & 0xFF)
 
 
