@@ -727,29 +727,27 @@ def parse_pair(master_arg: str | InsLog, slave_arg: str | InsLog, prog=null_prog
     imports, against the 109 MB master MCAP and 0.3 s of imports here). A bad master is reported before a bad
     slave either way."""
     prog(0.0, "parse master")
-    if (isinstance(master_arg, str) and isinstance(slave_arg, str) and parallel.available()
-            and (input_bytes("analyze", [master_arg, slave_arg]) or 0) > parallel.FORK_PARSE_MIN_INPUT_BYTES):
-        if (input_bytes("analyze", [master_arg]) or 0) >= (input_bytes("analyze", [slave_arg]) or 0):
-            pending = parallel.submit(load, master_arg)
-            prog(0.08, "parse slave")
+    if isinstance(master_arg, str) and isinstance(slave_arg, str) and parallel.available():
+        m_bytes, s_bytes = (input_bytes("analyze", [a]) or 0 for a in (master_arg, slave_arg))
+        if m_bytes + s_bytes > parallel.FORK_PARSE_MIN_INPUT_BYTES:
+            master_there = m_bytes >= s_bytes
+            pending = parallel.submit(load, master_arg if master_there else slave_arg)
+            if master_there:
+                prog(0.08, "parse slave")
             try:
-                slave = load(slave_arg)
-            except Exception:
-                pending.result()  # (raises the master's error, if it has one)
+                here = load(slave_arg if master_there else master_arg)
+            except BaseException as exc:
+                if master_there and isinstance(exc, Exception):
+                    pending.result()  # (raises the master's error, if it has one)
+                else:
+                    pending.cancel()
                 raise
+            if not master_there:
+                prog(0.08, "parse slave")
             if meanwhile is not None:
                 meanwhile()
-            return pending.result(), slave
-        pending = parallel.submit(load, slave_arg)
-        try:
-            master = load(master_arg)
-        except BaseException:
-            pending.cancel()
-            raise
-        prog(0.08, "parse slave")
-        if meanwhile is not None:
-            meanwhile()
-        return master, pending.result()
+            there = pending.result()
+            return (there, here) if master_there else (here, there)
     master = master_arg if isinstance(master_arg, InsLog) else load(master_arg)
     prog(0.08, "parse slave")
     return master, slave_arg if isinstance(slave_arg, InsLog) else load(slave_arg)
