@@ -754,8 +754,11 @@ def parse_pair(master_arg: str | InsLog, slave_arg: str | InsLog, prog=null_prog
 
 
 def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOptions | None = None,
-            progress=None) -> Analysis:
+            progress=None, when_aligned: Callable[[Analysis], None] | None = None) -> Analysis:
     """Parse (or take) both logs -> latency -> compensation -> both alignment runs, in memory.
+
+    ``when_aligned(an)`` is called where the IMU-to-IMU fit still runs in a forked child once both alignment
+    runs are in ``an`` (the CLI starts its recording there: ``start_recording``).
 
     Raises InputError (unreadable input, the same stream on both sides: exit 2). A latency the data
     cannot give is not raised: ``Analysis.failure`` says why (the CLI's exit 1)."""
@@ -918,6 +921,8 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
     if "logtools.alignment.run" in sys.modules:  # the runs are done: their master series go
         sys.modules["logtools.alignment.run"].forget_master(master)
     parallel.release_freed_memory()
+    if when_aligned is not None and isinstance(imu_fit, parallel.Pending):
+        when_aligned(an)
     _imu_to_imu_sections(master, an, an.align_sections, extra,
                          imu_fit.result() if isinstance(imu_fit, parallel.Pending) else None)
     parallel.release_freed_memory()
@@ -927,10 +932,29 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
     return an
 
 
-def write_outputs(an: Analysis, out_dir: str, progress=None) -> PairOutcome:
+def start_recording(an: Analysis, out_dir: str):
+    """The recording of ``an`` started now, in the child prepared for it (``parallel.prepare``) or a forked
+    one, its series logged while this process still works (the 1 h pair: while the IMU-to-IMU fit ends, where
+    one core was idle for 0.3-0.5 s); its report comes later, from ``write_outputs(..., recording=...)``.
+    None where it is not wanted or forking is not allowed (write_outputs then does it all)."""
+    opts = an.options
+    if not (opts.recording and an.latency is not None and parallel.available()):
+        return None
+    try:
+        from pipelines.recording import write_recording
+
+        os.makedirs(out_dir, exist_ok=True)
+    except (ImportError, OSError):
+        return None  # (write_outputs meets it again and says so)
+    return parallel.start_prepared_awaiting("recording", write_recording, os.path.join(out_dir, RECORDING), an,
+                                            max_rows=opts.recording_max_rows)
+
+
+def write_outputs(an: Analysis, out_dir: str, progress=None, recording=None) -> PairOutcome:
     """Write an analysis's outputs in ``out_dir``: report.html (unless ``--no-html``), recording.rrd
     (unless ``--no-recording``), then report.json last, so its presence marks a finished analysis. Every
-    file is written atomically. Returns the outcome (report, paths, summary, exit code)."""
+    file is written atomically. Returns the outcome (report, paths, summary, exit code). ``recording``: the
+    recording already started in ``out_dir`` (``start_recording``), sent its report here."""
     opts = an.options
     prog = progress if progress is not None else null_progress
     t_out = time.perf_counter()
@@ -944,18 +968,24 @@ def write_outputs(an: Analysis, out_dir: str, progress=None) -> PairOutcome:
              "recording": os.path.join(out_dir, RECORDING) if opts.recording else None}
     an.skipped_steps = {}
 
-    # -- the recording started first, beside the HTML: in the child prepared for it (small inputs), else in a
-    # forked child where this process may fork (the 1 h pair: 0.9 s, the HTML 0.2 s), else here after the HTML
+    # -- the recording: sent its report where it started already (start_recording: the CLI, logs up to about
+    # 1 h), else started first, beside the HTML: in the child prepared for it (small inputs), else in a forked
+    # child where this process may fork, else here after the HTML
     t = time.perf_counter()
-    recording = None
+    if recording is not None and not (opts.recording and an.latency is not None):
+        recording.abandon()  # (not wanted for this analysis: never the case from the CLI)
+        recording = None
     if opts.recording and an.latency is not None:
         prog(0.9, "recording")
         try:
-            from pipelines.recording import write_recording
-
             rep = an.build_report({**tim, "report": 0.0, "recording": 0.0}, paths)
-            recording = parallel.start_prepared("recording", write_recording, paths["recording"], an, rep,
-                                                max_rows=opts.recording_max_rows)
+            if recording is not None:
+                recording.send(rep)
+            else:
+                from pipelines.recording import write_recording
+
+                recording = parallel.start_prepared("recording", write_recording, paths["recording"], an, rep,
+                                                    max_rows=opts.recording_max_rows)
         except (ImportError, OSError, RuntimeError, ValueError) as exc:
             an.skipped_steps["recording"] = f"{type(exc).__name__}: {exc}"
             paths["recording"] = None
@@ -1029,12 +1059,17 @@ def run(args: argparse.Namespace) -> int:
         size = input_bytes("analyze", [args.master, args.slave])
         if size is not None and size <= parallel.PREPARED_MAX_INPUT_BYTES:
             parallel.prepare("recording", OUTPUT_MODULES["recording"])
+    out_dir = out or "tapost_out"
+    started: list = []  # the recording, started while the IMU-to-IMU fit ends (start_recording)
     try:
-        an = compute(args.master, args.slave, opts, progress=progress)
-        outcome = write_outputs(an, out or "tapost_out", progress)
+        an = compute(args.master, args.slave, opts, progress=progress,
+                     when_aligned=lambda a: started.extend(filter(None, [start_recording(a, out_dir)])))
+        outcome = write_outputs(an, out_dir, progress, recording=started[0] if started else None)
     finally:
         progress.done()
         parallel.release("recording")  # not used (no latency, an error): the child exits
+        for job in started:
+            job.abandon()  # (not sent its report, an error: it ends, its file removed; else nothing)
     print("\n".join(outcome.summary))
     sys.stdout.flush()
     if not an.ok:

@@ -8,7 +8,10 @@ more than one core:
   that stage's call when it is sent (its arguments pickled through a pipe: 4.5 MB, 20 ms for the sample
   pair; so only for small inputs, see ``PREPARED_MAX_INPUT_BYTES``);
 * ``start_prepared``: that call sent now and its answer read later (the recording beside the HTML report),
-  or, without a prepared child, ``submit``.
+  or, without a prepared child, ``submit``;
+* ``submit_awaiting``: a call that starts now and is sent one more object later (``Pending.send``), which it
+  asks for when it needs it (the recording, forked while the IMU-to-IMU fit still runs, and sent the report
+  once the fit is in).
 
 The child sends its result (or its exception) back pickled through a pipe and exits; its large arrays travel
 beside the pickle, through a shared-memory file the parent made before the fork (Linux's memfd), which the
@@ -80,7 +83,9 @@ _OOB_TAG = "tapost-parallel-oob-1"
 _OOB_ALIGN = 64
 
 
-_MEMFDS: set[int] = set()  # the memfds of this process's children not yet answered (a later child closes them)
+#: the memfds of this process's children not yet answered, and the pipes that will send a child its later
+#: object (``submit_awaiting``): a child forked later closes them
+_MEMFDS: set[int] = set()
 
 
 def _memfd() -> int:
@@ -170,16 +175,51 @@ def available() -> bool:
             and os.environ.get("TAPOST_FORK", "1") != "0")
 
 
+_UNSENT = object()
+
+
+class Later:
+    """What a ``submit_awaiting`` call is given as ``later``: ``later()`` returns the object the caller sends
+    (``Pending.send``), waiting for it; raises EOFError where the caller ended without sending one. In a
+    child, a thread reads it (one pickle from ``fh``) from the start, so that the sender never waits for the
+    call to ask (the report of a 1 h pair is larger than a pipe holds)."""
+
+    def __init__(self, fh=None, value: Any = _UNSENT):
+        self._value, self._reader = value, None
+        if fh is not None:
+            import threading
+
+            self._reader = threading.Thread(target=self._read, args=(fh,), daemon=True)
+            self._reader.start()
+
+    def _read(self, fh) -> None:
+        try:
+            self._value = pickle.load(fh)
+        except Exception:  # noqa: BLE001 - nothing sent (the caller ended, or abandoned the call)
+            pass
+
+    def __call__(self) -> Any:
+        if self._reader is not None:
+            self._reader.join()
+            self._reader = None
+        if self._value is _UNSENT:
+            raise EOFError("nothing was sent")
+        return self._value
+
+
 class Pending:
     """A call running in a forked child (``result()`` waits), or done in this process."""
 
-    def __init__(self, fn: Callable, args: tuple, kwargs: dict):
+    def __init__(self, fn: Callable, args: tuple, kwargs: dict, awaiting: bool = False):
         self._fn, self._args, self._kwargs = fn, args, kwargs
         self._pid: int | None = None
         self._rfd: int | None = None
         self._memfd = -1
         self._done = False
         self._value: Any = None
+        self._awaiting = awaiting
+        self._later_w = -1  # (the pipe's end that sends the child its later object)
+        self._sent: Any = _UNSENT
         if available():
             self._start()
 
@@ -188,33 +228,62 @@ class Pending:
             rfd, wfd = os.pipe()
         except OSError:
             return
+        later_r = later_w = -1
+        if self._awaiting:
+            try:
+                later_r, later_w = os.pipe()
+            except OSError:
+                _close(rfd, wfd)
+                return
         memfd = _memfd()
         try:
             sys.stdout.flush()
             sys.stderr.flush()
             pid = _fork()
         except OSError:
-            _close(rfd, wfd, memfd)
+            _close(rfd, wfd, memfd, later_r, later_w)
             return
         if pid == 0:  # the child: compute, send, leave without running the parent's exit handlers
             code = 0
             try:
                 os.close(rfd)
+                _close(later_w)
                 _close_prepared()  # a prepared child must see its end of file when the parent closes it
                 _in_child(memfd)
-                _answer(self._fn, self._args, self._kwargs, wfd, memfd)
+                kwargs = self._kwargs
+                if self._awaiting:
+                    kwargs = {**kwargs, "later": Later(os.fdopen(later_r, "rb"))}
+                _answer(self._fn, self._args, kwargs, wfd, memfd)
             except BaseException:  # noqa: BLE001
                 code = 1
             finally:
                 os._exit(code)
         os.close(wfd)
-        self._pid, self._rfd, self._memfd = pid, rfd, memfd
+        _close(later_r)
+        if later_w >= 0:
+            _MEMFDS.add(later_w)  # (a child forked later closes it: else this child would never see its end)
+        self._pid, self._rfd, self._memfd, self._later_w = pid, rfd, memfd, later_w
+
+    def send(self, value: Any) -> None:
+        """The later object of a ``submit_awaiting`` call (once): to its child, or kept for the call here."""
+        self._sent = value
+        if self._later_w < 0:
+            return
+        _send_later(self._later_w, value)
+        self._later_w = -1
+
+    def _here(self) -> Any:
+        if self._awaiting:
+            return self._fn(*self._args, **self._kwargs, later=Later(value=self._sent))
+        return self._fn(*self._args, **self._kwargs)
 
     def result(self) -> Any:
         if self._done:
             return self._value
         ok, value = None, None
         if self._pid is not None:
+            _close(self._later_w)  # (never sent: the child's later() raises EOFError, and the call runs here)
+            self._later_w = -1
             try:
                 ok, value = _read_answer(self._rfd, memfd=self._memfd)
                 os.waitpid(self._pid, 0)
@@ -223,12 +292,28 @@ class Pending:
             finally:
                 _close(self._memfd)
                 self._memfd = -1
+            if ok is False and isinstance(value, EOFError) and self._awaiting and self._sent is _UNSENT:
+                ok = None  # (the child asked for the later object, which was never sent: the same here)
         if ok is None:  # no fork, or the child died: the same call here
-            ok, value = True, self._fn(*self._args, **self._kwargs)
+            ok, value = True, self._here()
         self._done, self._value = True, value
         if not ok:
             raise value
         return value
+
+    def abandon(self) -> None:
+        """The answer is not wanted, but the child ends on its own (it may have files to tidy): a later object
+        not yet sent never comes (its ``later()`` raises EOFError), its answer is not read."""
+        if self._done:
+            return
+        self._done = True
+        if self._pid is not None:
+            _close(self._later_w, self._rfd, self._memfd)
+            self._later_w = -1
+            try:
+                os.waitpid(self._pid, os.WNOHANG)
+            except OSError:
+                pass
 
     def cancel(self) -> None:
         """The result is not wanted (the stage beside it failed): the child is ended and reaped."""
@@ -240,7 +325,8 @@ class Pending:
                 os.kill(self._pid, signal.SIGKILL)
             except OSError:
                 pass
-            _close(self._rfd, self._memfd)
+            _close(self._rfd, self._memfd, self._later_w)
+            self._later_w = -1
             try:
                 os.waitpid(self._pid, 0)
             except OSError:
@@ -250,6 +336,25 @@ class Pending:
 def submit(fn: Callable, *args, **kwargs) -> Pending:
     """Start ``fn(*args, **kwargs)`` in a forked child where allowed, else later in this process."""
     return Pending(fn, args, kwargs)
+
+
+def _send_later(fd: int, value: Any) -> None:
+    """``value`` pickled to a child's later pipe, which is then closed."""
+    try:
+        payload = pickle.dumps(value, protocol=5)
+        with os.fdopen(fd, "wb", closefd=False) as fh:
+            fh.write(payload)
+    except (OSError, TypeError, AttributeError, pickle.PickleError):
+        pass  # (the child died, or the object does not pickle: the child fails, the call runs here)
+    finally:
+        _close(fd)
+
+
+def submit_awaiting(fn: Callable, *args, **kwargs) -> Pending:
+    """Start ``fn(*args, later=..., **kwargs)`` now as ``submit`` does; ``later()`` in the call waits for the
+    object the caller sends with the Pending's ``send`` (where the call runs in this process, at ``result()``,
+    ``later()`` returns it at once)."""
+    return Pending(fn, args, kwargs, awaiting=True)
 
 
 def _answer(fn: Callable, args: tuple, kwargs: dict, wfd: int, memfd: int = -1) -> None:
@@ -361,10 +466,15 @@ def prepare(name: str, modules: tuple[str, ...]) -> bool:
             _in_child(memfd)
             for m in modules:
                 importlib.import_module(m)
-            with os.fdopen(req_r, "rb") as fh:
-                data = fh.read()
-            if data:
-                _answer(*pickle.loads(data), res_w, memfd)
+            fh = os.fdopen(req_r, "rb")
+            try:
+                fn, args, kwargs, awaiting = pickle.load(fh)
+            except EOFError:  # (released unused)
+                pass
+            else:
+                if awaiting:  # (the later object follows the call on the same pipe)
+                    kwargs = {**kwargs, "later": Later(fh)}
+                _answer(fn, args, kwargs, res_w, memfd)
         except BaseException:  # noqa: BLE001 - an interrupt, a broken pipe: the parent runs the call itself
             code = 1
         finally:
@@ -385,24 +495,53 @@ def call_prepared(name: str, fn: Callable, *args, **kwargs) -> Any:
 
 class _Sent:
     """A call sent to a prepared child (``result()`` waits for its answer), run here instead where the
-    child cannot take it or dies."""
+    child cannot take it or dies. An awaiting one (``start_prepared_awaiting``) keeps the pipe open for
+    ``send``."""
 
-    def __init__(self, entry: tuple[int, int, int, int], fn: Callable, args: tuple, kwargs: dict):
+    def __init__(self, entry: tuple[int, int, int, int], fn: Callable, args: tuple, kwargs: dict,
+                 awaiting: bool = False):
         self._pid, req_w, self._res_r, self._memfd = entry
         self._call = (fn, args, kwargs)
-        self._sent = False
+        self._awaiting, self._value_sent, self._req_w = awaiting, _UNSENT, -1
+        self._sent = self._done = False
         try:
-            payload = pickle.dumps(self._call, protocol=5)
+            payload = pickle.dumps((fn, args, kwargs, awaiting), protocol=5)
             with os.fdopen(req_w, "wb", closefd=False) as fh:
                 fh.write(payload)
             self._sent = True
         except (OSError, TypeError, AttributeError, pickle.PickleError):
             pass  # not picklable, or the child died: the same call here, at result()
         finally:
-            _close(req_w)
+            if self._sent and awaiting:
+                self._req_w = req_w
+                _MEMFDS.add(req_w)  # (a child forked later closes it)
+            else:
+                _close(req_w)
+
+    def send(self, value: Any) -> None:
+        """The later object of an awaiting call (once): to the child, or kept for the call here."""
+        self._value_sent = value
+        if self._req_w >= 0:
+            _send_later(self._req_w, value)
+            self._req_w = -1
+
+    def abandon(self) -> None:
+        """As ``Pending.abandon``: the child ends on its own, its answer not read."""
+        if self._done:
+            return
+        self._done = True
+        _close(self._req_w, self._res_r, self._memfd)
+        self._req_w = self._memfd = -1
+        try:
+            os.waitpid(self._pid, os.WNOHANG)
+        except OSError:
+            pass
 
     def result(self) -> Any:
         ok, value = None, None
+        self._done = True
+        _close(self._req_w)  # (never sent: the child's later() raises EOFError)
+        self._req_w = -1
         try:
             if self._sent:
                 ok, value = _read_answer(self._res_r, closefd=False, memfd=self._memfd)
@@ -415,8 +554,12 @@ class _Sent:
                 os.waitpid(self._pid, 0)
             except OSError:
                 pass
+        if ok is False and isinstance(value, EOFError) and self._awaiting and self._value_sent is _UNSENT:
+            ok = None
         if ok is None:
             fn, args, kwargs = self._call
+            if self._awaiting:
+                kwargs = {**kwargs, "later": Later(value=self._value_sent)}
             return fn(*args, **kwargs)
         if not ok:
             raise value
@@ -431,6 +574,15 @@ def start_prepared(name: str, fn: Callable, *args, **kwargs) -> "Pending | _Sent
     if entry is None:
         return submit(fn, *args, **kwargs)
     return _Sent(entry, fn, args, kwargs)
+
+
+def start_prepared_awaiting(name: str, fn: Callable, *args, **kwargs) -> "Pending | _Sent":
+    """``start_prepared`` for a call that takes ``later`` (``submit_awaiting``): the object given to the
+    answer's ``send`` reaches the call when it asks for it."""
+    entry = _PREPARED.pop(name, None)
+    if entry is None:
+        return submit_awaiting(fn, *args, **kwargs)
+    return _Sent(entry, fn, args, kwargs, awaiting=True)
 
 
 def is_prepared(name: str) -> bool:

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import math
 import os
+from typing import Callable
 
 import numpy as np
 
@@ -91,7 +92,7 @@ def ned_track(log: InsLog) -> tuple[np.ndarray, np.ndarray] | None:
 
 def pair_name(an: Analysis, rep: dict | None = None) -> str:
     """The pair's name: the batch's (report options ``name``), else ``<master stem> vs <slave stem>``."""
-    name = ((rep or {}).get("options") or {}).get("name")
+    name = ((rep or {}).get("options") or {}).get("name") or getattr(getattr(an, "options", None), "name", None)
     if name:
         return str(name)
 
@@ -187,7 +188,8 @@ def _comparisons(an: Analysis) -> list[tuple[str, str, tuple[str, ...], str, obj
 def build(an: Analysis, rep: dict | None = None, *, max_rows: int = MAX_ROWS,
           pose_rate_hz: float = POSE_RATE_HZ, application_id: str = "tapost", save_to: str | None = None):
     """Fill a RecordingStream (not yet saved; with ``save_to``, streamed to that file as it is filled: rerun's
-    encoder then runs in its own thread beside this one). Returns (rec, info) with the downsampling factors."""
+    encoder then runs in its own thread beside this one). Returns (rec, info) with the downsampling factors.
+    ``rep``: the report, or a function that returns it (called once the series are logged)."""
     import rerun as rr
     import rerun.blueprint as rrb
 
@@ -204,10 +206,8 @@ def build(an: Analysis, rep: dict | None = None, *, max_rows: int = MAX_ROWS,
 
 def _fill(rec, rr, rrb, an: Analysis, rep: dict | None, max_rows: int, pose_rate_hz: float) -> dict:
     """Everything :func:`build` logs, into ``rec``; returns the downsampling info."""
-    name = pair_name(an, rep)
+    name = pair_name(an, None if callable(rep) else rep)
     rec.send_recording_name(f"tapost: {name}")
-    props = {k: v for k, v in headline(an, rep).items() if v is not None}
-    rec.send_property("results", rr.AnyValues(**props))
     R, mount_src = an.mounting()
     clock = _Clock(an)
     info: dict = {"max_rows": max_rows, "rule": "block mean by k = ceil(n / max_rows)",
@@ -312,7 +312,12 @@ def _fill(rec, rr, rrb, an: Analysis, rep: dict | None, max_rows: int, pose_rate
                 info["factors"][path] = _send_scalars(rec, rr, path, t, res.residuals[:, i], state_rows,
                                                       clock=clock)
 
-    # -- summary text
+    # -- the report's parts: the headline property and the summary text (last: the report may still be in
+    # the making while the series above are logged, see write_recording)
+    if callable(rep):
+        rep = rep()
+    props = {k: v for k, v in headline(an, rep).items() if v is not None}
+    rec.send_property("results", rr.AnyValues(**props))
     if rep is not None:
         lines = [f"# tapost {rep.get('status', '')}", "",
                  f"master: {rep['master']['path']}", f"slave: {rep['slave']['path']}"]
@@ -355,8 +360,13 @@ def _blueprint(rrb, an: Analysis, comparisons=()):
                          collapse_panels=False)
 
 
-def write_recording(path: str, an: Analysis, rep: dict | None = None, *, max_rows: int = MAX_ROWS) -> dict:
-    """Build and save the recording to ``path`` atomically; returns the downsampling info."""
+def write_recording(path: str, an: Analysis, rep: dict | None = None, *, max_rows: int = MAX_ROWS,
+                    later: Callable[[], dict] | None = None) -> dict:
+    """Build and save the recording to ``path`` atomically; returns the downsampling info. With ``later`` (a
+    ``parallel.submit_awaiting`` call) the report is ``later()``, asked for only once the series are logged:
+    the recording can start before the report exists."""
+    if later is not None:
+        rep = later
     with atomic_path(path) as tmp:
         rec, info = build(an, rep, max_rows=max_rows, save_to=tmp)
         rec.flush(timeout_sec=120.0) if _flush_takes_timeout(rec) else rec.flush()

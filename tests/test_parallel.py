@@ -295,6 +295,65 @@ def test_a_started_call_runs_beside_the_caller_in_the_prepared_child_or_a_forked
     assert parallel.start_prepared("none", _pid_and_sum, np.ones(3)).result() == (os.getpid(), 3.0)
 
 
+def _pid_flag_later(path, later):
+    """Waits for the caller's flag (written after its ``send`` returned), then takes the later object."""
+    pid, seen = _pid_after_flag(path)
+    got = later()
+    return pid, seen, len(got), float(got.sum())
+
+
+def _later_or_marker(path, later):
+    try:
+        later()
+    except EOFError:
+        Path(path).write_text("nothing came")
+        raise
+    return "got it"
+
+
+@posix_fork
+@pytest.mark.parametrize("prepared", [False, True])
+def test_an_awaiting_call_starts_now_and_gets_its_later_object_without_blocking_the_sender(forking, tmp_path,
+                                                                                            prepared):
+    """``start_prepared_awaiting`` (and ``submit_awaiting`` under it): the call runs beside the caller from
+    the start, in the prepared child where there is one, else in a forked one; ``send`` of an object larger
+    than a pipe holds returns before the call asks for it (the call waits for a flag written after send);
+    the call's ``later()`` gives that object."""
+    if prepared:
+        parallel.prepare("rec", ())
+        prepared_pid = parallel._PREPARED["rec"][0]
+    flag = tmp_path / "sent"
+    job = parallel.start_prepared_awaiting("rec", _pid_flag_later, str(flag))
+    big = np.arange(500_000.0)  # 4 MB: 60 times a pipe's buffer
+    job.send(big)
+    flag.write_text("x")
+    pid, seen, n, total = job.result()
+    assert seen and (n, total) == (len(big), float(big.sum()))
+    assert pid == prepared_pid if prepared else pid not in (os.getpid(),)
+    parallel.enable(False)  # without forking: the call runs here at result(), with the object sent
+    flag.unlink()
+    job = parallel.start_prepared_awaiting("rec", _pid_flag_later, str(flag))
+    job.send(np.ones(3))
+    flag.write_text("x")
+    assert job.result() == (os.getpid(), True, 3, 3.0)
+
+
+@posix_fork
+@pytest.mark.parametrize("prepared", [False, True])
+def test_an_abandoned_awaiting_call_ends_on_its_own_told_nothing_comes(forking, tmp_path, prepared):
+    """``abandon`` before ``send``: the child's ``later()`` raises EOFError (a recording removes its temporary
+    file then) and the child leaves; nothing is waited for here."""
+    if prepared:
+        parallel.prepare("rec", ())
+    marker = tmp_path / "marker"
+    job = parallel.start_prepared_awaiting("rec", _later_or_marker, str(marker))
+    pid = job._pid
+    job.abandon()
+    _, status = os.waitpid(pid, 0)
+    assert os.WIFEXITED(status) and marker.read_text() == "nothing came"
+    job.abandon()  # (twice: nothing)
+
+
 @posix_fork
 def test_a_prepared_child_that_died_or_was_released_changes_nothing(forking):
     parallel.prepare("dead", ())
@@ -321,7 +380,7 @@ def test_the_cli_recording_written_by_the_prepared_child_equals_the_in_process_o
     """`tapost analyze` writes recording.rrd in the child that imported rerun during the parse: the same
     entities and rows as write_recording in this process."""
     from pipelines import api
-    from pipelines.recording import read_entities, write_recording
+    from pipelines.recording import read_entities, read_properties, write_recording
 
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
     out = tmp_path / "out"
@@ -334,6 +393,8 @@ def test_the_cli_recording_written_by_the_prepared_child_equals_the_in_process_o
     an = api.analyze(str(SAMPLE / "master.mcap"), str(SAMPLE / "slave.tlog"))
     write_recording(str(tmp_path / "here.rrd"), an, an.build_report(an.timings_s, {}))
     assert read_entities(str(out / "recording.rrd")) == read_entities(str(tmp_path / "here.rrd"))
+    # (the child started before the report existed and logged its headline property last: the same property)
+    assert read_properties(str(out / "recording.rrd")) == read_properties(str(tmp_path / "here.rrd"))
 
 
 def test_the_cli_runs_one_blas_thread_and_no_numpy_huge_pages_unless_the_user_chose(tmp_path):
