@@ -282,7 +282,7 @@ class Pending:
             return self._value
         ok, value = None, None
         if self._pid is not None:
-            _close(self._later_w)  # (never sent: the child's later() raises EOFError, and the call runs here)
+            _close(self._later_w)  # (never sent: the child's later() raises EOFError, raised here)
             self._later_w = -1
             try:
                 ok, value = _read_answer(self._rfd, memfd=self._memfd)
@@ -292,8 +292,6 @@ class Pending:
             finally:
                 _close(self._memfd)
                 self._memfd = -1
-            if ok is False and isinstance(value, EOFError) and self._awaiting and self._sent is _UNSENT:
-                ok = None  # (the child asked for the later object, which was never sent: the same here)
         if ok is None:  # no fork, or the child died: the same call here
             ok, value = True, self._here()
         self._done, self._value = True, value
@@ -540,7 +538,7 @@ class _Sent:
     def result(self) -> Any:
         ok, value = None, None
         self._done = True
-        _close(self._req_w)  # (never sent: the child's later() raises EOFError)
+        _close(self._req_w)  # (never sent: the child's later() raises EOFError, raised here)
         self._req_w = -1
         try:
             if self._sent:
@@ -554,8 +552,6 @@ class _Sent:
                 os.waitpid(self._pid, 0)
             except OSError:
                 pass
-        if ok is False and isinstance(value, EOFError) and self._awaiting and self._value_sent is _UNSENT:
-            ok = None
         if ok is None:
             fn, args, kwargs = self._call
             if self._awaiting:

@@ -306,7 +306,8 @@ def _later_or_marker(path, later):
     try:
         later()
     except EOFError:
-        Path(path).write_text("nothing came")
+        with open(path, "a") as fh:  # (appended: a second run of the call would show)
+            fh.write("nothing came\n")
         raise
     return "got it"
 
@@ -350,8 +351,22 @@ def test_an_abandoned_awaiting_call_ends_on_its_own_told_nothing_comes(forking, 
     pid = job._pid
     job.abandon()
     _, status = os.waitpid(pid, 0)
-    assert os.WIFEXITED(status) and marker.read_text() == "nothing came"
+    assert os.WIFEXITED(status) and marker.read_text() == "nothing came\n"
     job.abandon()  # (twice: nothing)
+
+
+@posix_fork
+@pytest.mark.parametrize("prepared", [False, True])
+def test_an_awaiting_call_never_sent_its_object_raises_eoferror(forking, tmp_path, prepared):
+    """``result()`` without ``send``: the call's ``later()`` raises EOFError, which ``result()`` raises here
+    (the child's marker shows it ran there, not again here)."""
+    if prepared:
+        parallel.prepare("rec", ())
+    marker = tmp_path / "marker"
+    job = parallel.start_prepared_awaiting("rec", _later_or_marker, str(marker))
+    with pytest.raises(EOFError, match="nothing was sent"):
+        job.result()
+    assert marker.read_text() == "nothing came\n"
 
 
 @posix_fork
