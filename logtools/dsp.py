@@ -12,10 +12,14 @@ density) and ``correlate(..., mode="valid", method="fft")``; ``tests/test_dsp.py
 scipy's (bit-equal for the design and the filter, equal to rounding for the others).
 
 The filter's recursion runs as a numba kernel in compiled mode (logtools.jit); in reference mode (the first
-run after installing, before the kernels are compiled) scipy.signal.sosfilt stands in for it (its C loop;
-a Python loop over the samples would cost seconds).
+run after installing, before the kernels are compiled) scipy's own C loop of ``sosfilt`` stands in for it (a
+Python loop over the samples would cost seconds), loaded from its extension module without importing
+scipy.signal (see :func:`_scipy_sosfilt_loop`).
 """
 from __future__ import annotations
+
+import functools
+import os
 
 import numpy as np
 from scipy import fft as sfft
@@ -117,10 +121,46 @@ def _sosfilt_kernel(sos, x, zi):  # pragma: no cover - compiled (scipy's _sosfil
     return out
 
 
+@functools.cache
+def _scipy_sosfilt_loop():
+    """scipy's C loop of ``sosfilt`` (``_sosfilt(sos, x, zi)``, in place on C-ordered (1, n) ``x`` and
+    (1, sections, 2) ``zi``) from its extension module, loaded without running scipy.signal's ``__init__``:
+    importing scipy.signal took 0.8-1.3 s on a 2-core machine (scipy.stats, scipy.interpolate and the
+    docstrings it rewrites), a quarter of the first run after installing, which filters in reference mode.
+    None where scipy has no such module (then scipy.signal.sosfilt itself)."""
+    import importlib.machinery
+    import importlib.util
+    import sys
+
+    name = "scipy.signal._sosfilt"
+    mod = sys.modules.get(name)
+    if mod is None:
+        try:
+            import scipy
+
+            folder = os.path.join(os.path.dirname(scipy.__file__), "signal")
+            path = next((os.path.join(folder, "_sosfilt" + sfx) for sfx in importlib.machinery.EXTENSION_SUFFIXES
+                         if os.path.exists(os.path.join(folder, "_sosfilt" + sfx))), None)
+            if path is None:
+                return None
+            spec = importlib.util.spec_from_file_location(name, path)
+            mod = importlib.util.module_from_spec(spec)
+            spec.loader.exec_module(mod)
+        except Exception:  # noqa: BLE001 - another layout, a loader that refuses: scipy.signal.sosfilt
+            return None
+    return getattr(mod, "_sosfilt", None)
+
+
 def _sosfilt(sos: np.ndarray, x: np.ndarray, zi: np.ndarray) -> np.ndarray:
     if jit.compiled():
         return _sosfilt_kernel(sos, np.ascontiguousarray(x, dtype=float), zi)
-    from scipy.signal import sosfilt  # reference mode: scipy's C loop
+    loop = _scipy_sosfilt_loop()  # reference mode: scipy's C loop, as sosfilt(sos, x, zi=zi) runs it
+    if loop is not None:
+        out = np.array(np.reshape(x, (1, -1)), dtype=float, order="C")  # (copies: filtered in place)
+        state = np.array(np.reshape(zi, (1, len(sos), 2)), dtype=float, order="C")
+        loop(np.asarray(sos, dtype=float), out, state)
+        return out[0]
+    from scipy.signal import sosfilt
 
     return sosfilt(sos, x, zi=zi)[0]
 
