@@ -343,7 +343,8 @@ def _send_later(fd: int, value: Any) -> None:
         with os.fdopen(fd, "wb", closefd=False) as fh:
             fh.write(payload)
     except (OSError, TypeError, AttributeError, pickle.PickleError):
-        pass  # (the child died, or the object does not pickle: the child fails, the call runs here)
+        pass  # (the child died: the call runs here at result(); an object that does not pickle: its later()
+        #       raises EOFError)
     finally:
         _close(fd)
 
