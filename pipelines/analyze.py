@@ -1060,10 +1060,15 @@ def run(args: argparse.Namespace) -> int:
         if size is not None and size <= parallel.PREPARED_MAX_INPUT_BYTES:
             parallel.prepare("recording", OUTPUT_MODULES["recording"])
     out_dir = out or "tapost_out"
-    started: list = []  # the recording, started while the IMU-to-IMU fit ends (start_recording)
+    started: list = []  # the recording, started while the IMU-to-IMU fit ends
+
+    def aligned(a: Analysis) -> None:
+        job = start_recording(a, out_dir)
+        if job is not None:
+            started.append(job)
+
     try:
-        an = compute(args.master, args.slave, opts, progress=progress,
-                     when_aligned=lambda a: started.extend(filter(None, [start_recording(a, out_dir)])))
+        an = compute(args.master, args.slave, opts, progress=progress, when_aligned=aligned)
         outcome = write_outputs(an, out_dir, progress, recording=started[0] if started else None)
     finally:
         progress.done()
