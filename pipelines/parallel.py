@@ -306,12 +306,8 @@ class Pending:
             return
         self._done = True
         if self._pid is not None:
-            _close(self._later_w, self._rfd, self._memfd)
+            _let_go(self._pid, self._later_w, self._rfd, self._memfd)
             self._later_w = -1
-            try:
-                os.waitpid(self._pid, os.WNOHANG)
-            except OSError:
-                pass
 
     def cancel(self) -> None:
         """The result is not wanted (the stage beside it failed): the child is ended and reaped."""
@@ -432,6 +428,16 @@ def _close(*fds: int) -> None:
             pass
 
 
+def _let_go(pid: int, *fds: int) -> None:
+    """A child left to end on its own: this process's ends of its pipes and its memfd closed, the child reaped
+    if it has ended already (else it is when this process ends)."""
+    _close(*fds)
+    try:
+        os.waitpid(pid, os.WNOHANG)
+    except OSError:
+        pass
+
+
 def _close_prepared() -> None:
     for _pid, w, r, mfd in list(_PREPARED.values()):
         _close(w, r, mfd)
@@ -529,12 +535,8 @@ class _Sent:
         if self._done:
             return
         self._done = True
-        _close(self._req_w, self._res_r, self._memfd)
+        _let_go(self._pid, self._req_w, self._res_r, self._memfd)
         self._req_w = self._memfd = -1
-        try:
-            os.waitpid(self._pid, os.WNOHANG)
-        except OSError:
-            pass
 
     def result(self) -> Any:
         ok, value = None, None
@@ -592,9 +594,4 @@ def release(name: str) -> None:
     entry = _PREPARED.pop(name, None)
     if entry is None:
         return
-    pid, req_w, res_r, memfd = entry
-    _close(req_w, res_r, memfd)
-    try:
-        os.waitpid(pid, os.WNOHANG)
-    except OSError:
-        pass
+    _let_go(*entry)
