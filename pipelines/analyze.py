@@ -954,7 +954,8 @@ def write_outputs(an: Analysis, out_dir: str, progress=None, recording=None) -> 
     """Write an analysis's outputs in ``out_dir``: report.html (unless ``--no-html``), recording.rrd
     (unless ``--no-recording``), then report.json last, so its presence marks a finished analysis. Every
     file is written atomically. Returns the outcome (report, paths, summary, exit code). ``recording``: the
-    recording already started in ``out_dir`` (``start_recording``), sent its report here."""
+    recording already started in ``out_dir`` (``start_recording``, which starts one only where this writes
+    one), sent its report here."""
     opts = an.options
     prog = progress if progress is not None else null_progress
     t_out = time.perf_counter()
@@ -972,9 +973,6 @@ def write_outputs(an: Analysis, out_dir: str, progress=None, recording=None) -> 
     # 1 h), else started first, beside the HTML: in the child prepared for it (small inputs), else in a forked
     # child where this process may fork, else here after the HTML
     t = time.perf_counter()
-    if recording is not None and not (opts.recording and an.latency is not None):
-        recording.abandon()  # (not wanted for this analysis: never the case from the CLI)
-        recording = None
     if opts.recording and an.latency is not None:
         prog(0.9, "recording")
         try:
