@@ -508,6 +508,32 @@ def headline_html(rep: dict) -> str:
     return "".join(out)
 
 
+#: report.json's residual_rms keys of the residuals' size, as the summary says them: (label, unit)
+RESIDUAL_LABELS = {"vel_m_s": ("velocity", "m/s"), "att_deg": ("attitude", "deg")}
+
+
+def _convergence_text(a: dict) -> str:
+    """An alignment run's convergence as the headline card says it."""
+    if a.get("converged_s") is not None:
+        return f"converged after {a['converged_s']:.1f} s"
+    if a.get("still_converging") is False:
+        return "settled (above the navigation-grade thresholds)"
+    return "not converged"
+
+
+def _residual_text(rms: dict) -> str:
+    """report.json's residual_rms of a run in words: the residuals' rms per measurement, then the mean
+    normalised innovation squared over its degrees of freedom."""
+    parts = [f"{label} {_fmt(rms[k], '.4g', unit)}" for k, (label, unit) in RESIDUAL_LABELS.items() if k in rms]
+    parts += [f"{_esc(k)} {_fmt(v, '.4g')}" for k, v in rms.items() if k not in RESIDUAL_LABELS
+              and k not in ("nis_mean", "nis_dof")]
+    out = "residual rms " + ", ".join(parts) if parts else "no residuals"
+    if rms.get("nis_mean") is not None:
+        dof = rms.get("nis_dof")
+        out += f"; mean NIS {_fmt(rms['nis_mean'], '.4g')}" + (f" ({dof:g} dof)" if isinstance(dof, (int, float)) else "")
+    return out
+
+
 # ---- page ------------------------------------------------------------------------------------
 CSS = """
 body{font-family:-apple-system,'Segoe UI',Helvetica,Arial,sans-serif;margin:0;color:#1d2733;background:#f4f6f8}
@@ -518,7 +544,7 @@ section{background:#fff;border:1px solid #dde3ea;border-radius:6px;padding:14px 
 h2{font-size:17px;margin:4px 0 10px;color:#1d3557;border-bottom:2px solid #e63946;display:inline-block;padding-bottom:2px}
 table{border-collapse:collapse;font-size:13px;margin:6px 0}
 th,td{border:1px solid #dde3ea;padding:4px 10px;text-align:left;vertical-align:top;overflow-wrap:anywhere}
-th{background:#eef2f6;font-weight:600} td.num{text-align:right;font-family:Menlo,Consolas,monospace}
+th{background:#eef2f6;font-weight:600;overflow-wrap:normal} td.num{text-align:right;font-family:Menlo,Consolas,monospace}
 figure{margin:8px 0} figure svg{display:block}
 .ok{color:#2a9d8f;font-weight:600} .warn{color:#e76f51;font-weight:600} .fail{color:#c1121f;font-weight:600}
 .note{color:#5c6b7a;font-size:12px} ul{margin:4px 0 4px 18px;font-size:13px}
@@ -590,9 +616,8 @@ def _summary_html(rep: dict) -> str:
             how = "estimated" if a.get("lever_arm_sigma_m") is not None else "given"
             t.append(f"<tr><th>&nbsp;&nbsp;lever arm x/y/z ({run}, {how})</th><td class=num>{_vec(a['lever_arm_m'], '.3f')} m</td>"
                      f"<td class=num>{_vec(a.get('lever_arm_sigma_m'), '.3f')}</td></tr>")
-        rr = ", ".join(f"{_esc(k)} {_fmt(v, '.4g')}" for k, v in a.get("residual_rms", {}).items())
         t.append(f"<tr><th>&nbsp;&nbsp;converged / residual rms ({run})</th><td colspan=2>"
-                 f"{_fmt(a.get('converged_s'), '.1f', 's')}; {rr}</td></tr>")
+                 f"{_convergence_text(a)}; {_residual_text(a.get('residual_rms') or {})}</td></tr>")
     t.append("</table>")
     out.append("".join(t))
     return "".join(out)

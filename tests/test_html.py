@@ -164,3 +164,21 @@ def html_escape(s: str) -> str:
     import html
 
     return html.escape(s)
+
+
+def test_summary_says_convergence_and_residuals_in_words():
+    """The summary's "converged / residual rms" row: the headline card's words and the residuals with their
+    units, not report.json's keys (a real DataFlash pair showed "-; vel_m_s 0.05168, att_deg 0.6874, ...")."""
+    from pipelines.html import CSS, _convergence_text, _residual_text
+
+    rms = {"vel_m_s": 0.05168409, "att_deg": 0.68744857, "nis_mean": 65.5587, "nis_dof": 6.0}
+    assert _residual_text(rms) == "residual rms velocity 0.05168 m/s, attitude 0.6874 deg; mean NIS 65.56 (6 dof)"
+    assert _residual_text({"vel_m_s": 0.1}) == "residual rms velocity 0.1 m/s"
+    assert _residual_text({}) == "no residuals"
+    assert _convergence_text({"converged_s": 12.34}) == "converged after 12.3 s"
+    assert _convergence_text({"converged_s": None, "still_converging": False}).startswith("settled")
+    assert _convergence_text({"converged_s": None, "still_converging": True}) == "not converged"
+    # row headers break between words only: with the cells' overflow-wrap:anywhere the browser squeezed the
+    # summary's first column to "select|or", "durati|on" beside long "stamps from" texts
+    th_rule = re.search(r"(?m)^th\{[^}]*\}", CSS).group(0)
+    assert "overflow-wrap:normal" in th_rule
