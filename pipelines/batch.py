@@ -145,9 +145,13 @@ def discover_manifest(manifest: str, out_root: str) -> list[PairJob]:
     base = os.path.dirname(os.path.abspath(manifest))
     try:
         with open(manifest, newline="", encoding="utf-8-sig") as fh:
-            rows = list(csv.DictReader(fh))
-            header = [h.strip().lower() for h in (rows[0].keys() if rows else [])]
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+            reader = csv.DictReader(fh)
+            rows = list(reader)
+            header = [(h or "").strip().lower() for h in (reader.fieldnames or [])]
+    except UnicodeDecodeError:
+        raise InputError("not a manifest CSV (not UTF-8 text): a campaign is a folder of pairs or a manifest CSV "
+                         "master,slave[,options][,name]", manifest) from None
+    except (OSError, csv.Error) as exc:
         raise InputError(f"cannot read manifest: {exc}", manifest) from None
     if not rows:
         raise InputError("manifest has no pairs (header master,slave[,options][,name] then one row per pair)",
@@ -163,8 +167,11 @@ def discover_manifest(manifest: str, out_root: str) -> list[PairJob]:
 
     jobs, seen = [], set()
     for i, row in enumerate(rows, 1):
+        # (fields beyond the header's columns: csv puts them in a list under None; the row's columns are then
+        # shifted, and its name too)
+        extra = row.pop(None, None) or []
         row = {(k or "").strip().lower(): (v or "").strip() for k, v in row.items()}
-        name = _safe_name(row.get("name") or f"pair{i:03d}")
+        name = _safe_name(f"pair{i:03d}" if extra else (row.get("name") or f"pair{i:03d}"))
         if name in seen:
             name = f"{name}_{i}"
         seen.add(name)
@@ -175,6 +182,9 @@ def discover_manifest(manifest: str, out_root: str) -> list[PairJob]:
             opts, problem = (), f"bad options in manifest row {i}: {exc}"
         if not row.get("master") or not row.get("slave"):
             problem = f"manifest row {i} lacks a master or a slave path"
+        if extra:
+            problem = (f"manifest row {i} has {len(row) + len(extra)} fields for the header's {len(row)} columns: "
+                       "quote a field that holds commas (a selector such as \"FILE::imu=IMU,nav=XKF1\")")
         jobs.append(PairJob(name, resolve(row.get("master", "")), resolve(row.get("slave", "")),
                             os.path.join(out_root, name), opts, problem))
     return jobs

@@ -99,6 +99,26 @@ def test_manifest_options_reach_the_analysis(tmp_path):
     assert set(analyze.CLI_KEYS) <= set(vars(ns))
 
 
+def test_manifest_row_with_an_unquoted_comma_is_a_failed_row_not_an_internal_error(tmp_path):
+    """A selector holding commas left unquoted gives its row more fields than the header: that row fails
+    with a reason saying to quote it (csv put the extra fields in a list, and the batch stopped with an
+    AttributeError); the other rows are read as they are."""
+    man = tmp_path / "m.csv"
+    man.write_text("master,slave,options,name\n"
+                   "a.BIN::imu=IMU,nav=XKF1,a.BIN::imu=IMU2,,first\n"
+                   '"a.BIN::imu=IMU,nav=XKF1",a.BIN::imu=IMU2,--no-html,second\n')
+    bad, good = batch.discover(str(man), str(tmp_path / "o"))
+    assert bad.problem.startswith("manifest row 1 has 5 fields for the header's 4 columns: quote a field")
+    assert bad.name == "pair001"
+    assert not good.problem and good.name == "second" and good.options == ("--no-html",)
+    assert good.master.endswith("a.BIN::imu=IMU,nav=XKF1")
+    # a binary file given as the campaign (a log instead of its folder): one line saying what a campaign is
+    binary = tmp_path / "master.mcap"
+    binary.write_bytes(b"\x89MCAP0\r\n" + bytes(range(256)))
+    with pytest.raises(batch.InputError, match="not a manifest CSV \\(not UTF-8 text\\): a campaign is a folder"):
+        batch.discover(str(binary), str(tmp_path / "o"))
+
+
 def test_campaign_processes_and_dask_agree_and_rerun_does_nothing(tmp_path, fake_numerics, monkeypatch, capsys):
     camp = make_campaign(tmp_path)
     before = {str(p): p.stat().st_mtime_ns for p in camp.rglob("*")}
