@@ -15,6 +15,7 @@ import argparse
 import importlib
 import inspect
 import json
+import numbers
 import os
 import sys
 import time
@@ -179,10 +180,23 @@ def read_config(path: str) -> dict:
     try:
         data = json.loads(raw) if raw.lstrip()[:1] in (b"{",) else tomllib.loads(raw.decode("utf-8"))
     except (ValueError, UnicodeDecodeError) as exc:
-        raise InputError(f"config is neither valid TOML nor JSON: {str(exc).splitlines()[0]}", path) from None
+        try:  # (a JSON array starts as a TOML table header does)
+            data = json.loads(raw) if raw.lstrip()[:1] == b"[" else None
+        except ValueError:
+            data = None
+        if data is None:
+            raise InputError(f"config is neither valid TOML nor JSON: {str(exc).splitlines()[0]}", path) from None
+    if not isinstance(data, dict):
+        raise InputError(f"config must hold a table of options (TOML) or a JSON object, not a {type(data).__name__}",
+                         path)
     if isinstance(data.get("analyze"), dict):
         data = {**{k: v for k, v in data.items() if k != "analyze"}, **data["analyze"]}
-    return {str(k).replace("-", "_"): v for k, v in data.items()}
+    config = {str(k).replace("-", "_"): v for k, v in data.items()}
+    try:  # (every value checked here, so that a bad one is said with the file's name)
+        options_from({}, config)
+    except InputError as exc:
+        raise InputError(exc.problem, path) from None
+    return config
 
 
 _CONFIG_KEYS = {"max_lag", "filter", "match", "compensation", "smoother", "no_recording", "recording",
@@ -216,16 +230,14 @@ def options_from(cli: dict, config: dict | None = None) -> tuple[AnalyzeOptions,
     for k in ("filter", "match", "compensation", "latency_method", "flexure", "board_errors"):
         if k in merged:
             kw[k] = str(merged[k])
-    for k in ("smoother", "compare"):
-        if k in merged:
-            kw[k] = bool(merged[k])
-    if "recording" in merged:
-        kw["recording"] = bool(merged["recording"])
-    if merged.get("no_recording"):
+    flags = {k: _flag(k, merged[k]) for k in ("smoother", "compare", "recording", "no_recording", "html", "no_html")
+             if k in merged}
+    for k in ("smoother", "compare", "recording", "html"):
+        if k in flags:
+            kw[k] = flags[k]
+    if flags.get("no_recording"):
         kw["recording"] = False
-    if "html" in merged:
-        kw["html"] = bool(merged["html"])
-    if merged.get("no_html"):
+    if flags.get("no_html"):
         kw["html"] = False
     if kw.get("filter") in FILTERS and FilterKind.parse(kw["filter"]).splits_delay and "compensation" not in kw:
         kw["compensation"] = "split"  # S004: integer-sample lag applied, the residual left to the delay state
@@ -234,11 +246,33 @@ def options_from(cli: dict, config: dict | None = None) -> tuple[AnalyzeOptions,
 
         kw["write_slave"] = parse_kinds(merged["write_slave"])
     if "recording_max_rows" in merged:
-        kw["recording_max_rows"] = int(merged["recording_max_rows"])
+        kw["recording_max_rows"] = _whole_rows("recording_max_rows", merged["recording_max_rows"])
     if "lever_arm" in merged:
         la = merged["lever_arm"]
         kw["lever_arm"] = ",".join(str(x) for x in la) if isinstance(la, (list, tuple)) else str(la)
-    return AnalyzeOptions(**kw), merged.get("out")
+    out = merged.get("out")
+    if out is not None and not isinstance(out, (str, os.PathLike)):
+        raise InputError(f"out takes a folder path, not {out!r}")
+    return AnalyzeOptions(**kw), out
+
+
+def _flag(key: str, value) -> bool:
+    """A switch's value: true or false (TOML, JSON, Python), or 0 or 1; anything else is refused (the string
+    "false" is not taken for true)."""
+    if isinstance(value, (bool, np.bool_)) or (isinstance(value, numbers.Integral) and value in (0, 1)):
+        return bool(value)
+    raise InputError(f"{key} takes true or false, not {value!r}")
+
+
+def _whole_rows(key: str, value) -> int:
+    if not isinstance(value, (bool, float)):
+        try:
+            n = int(value)
+        except (TypeError, ValueError):
+            n = 0
+        if n >= 1:
+            return n
+    raise InputError(f"{key} takes a whole number of rows (at least 1), not {value!r}")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

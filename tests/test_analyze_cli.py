@@ -215,6 +215,42 @@ def test_config_file_toml_and_json(tmp_path, fake_numerics):
     assert main(["analyze", m, s, "--config", str(bad)]) == 2
 
 
+@pytest.mark.parametrize("text, needle", [
+    ('recording_max_rows = "abc"\n', "recording_max_rows takes a whole number of rows (at least 1), not 'abc'"),
+    ("recording_max_rows = -5\n", "recording_max_rows takes a whole number of rows (at least 1), not -5"),
+    ("out = 5\n", "out takes a folder path, not 5"),
+    ('smoother = "false"\n', "smoother takes true or false, not 'false'"),
+    ('[analyze]\nno_html = "yes"\n', "no_html takes true or false, not 'yes'"),
+    ('filter = 3\n', "filter must be one of"),
+    ("[1, 2]", "config must hold a table of options (TOML) or a JSON object, not a list"),
+])
+def test_a_bad_config_value_is_one_line_naming_the_file(tmp_path, capsys, text, needle):
+    """Every value of a config file is checked as the file is read, and a bad one is said with the file's
+    name: a string where a number or a switch belongs was an internal error (ValueError, TypeError), or
+    silently true ("false" as a switch)."""
+    from pipelines import analyze
+
+    m, s = write_fake_pair(tmp_path, duration_s=20)
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(text)
+    with pytest.raises(analyze.InputError) as info:
+        analyze.read_config(str(cfg))
+    assert needle in info.value.problem and info.value.path == str(cfg)
+    assert main(["analyze", m, s, "-o", str(tmp_path / "x"), "--config", str(cfg)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"tapost: {cfg}: ") and needle in err[0], err
+    assert not (tmp_path / "x").exists()
+
+
+def test_config_switches_and_rows_accept_their_types(tmp_path):
+    from pipelines import analyze
+
+    cfg = tmp_path / "c.json"
+    cfg.write_text(json.dumps({"smoother": True, "no_html": 1, "compare": 0, "recording_max_rows": "5000"}))
+    opts, _ = analyze.options_from({}, analyze.read_config(str(cfg)))
+    assert (opts.smoother, opts.html, opts.compare, opts.recording_max_rows) == (True, False, False, 5000)
+
+
 # ---- real numerics ----------------------------------------------------------------------------
 def _real():
     sim = pytest.importorskip("logtools.sim")
