@@ -65,17 +65,31 @@ class ClockShift:
     def from_report(cls, rep: dict) -> ClockShift:
         """From a report.json dict; raises ValueError when it holds no usable latency estimate."""
         lat = rep.get("latency") or {}
+        if not isinstance(lat, dict):
+            raise ValueError("the report's latency section is not an object")
         if lat.get("failed") or lat.get("latency_s") is None:
             raise ValueError(f"the report holds no latency estimate ({lat.get('failed') or 'latency_s is null'})")
+
+        def num(name: str, value) -> float:
+            try:
+                return float(value)
+            except (TypeError, ValueError):
+                raise ValueError(f"the report's {name} {value!r} is not a number") from None
+
         drift = lat.get("drift_ppm")
-        drift = 0.0 if drift is None else float(drift)
-        if lat.get("t_mid_rel_s") is not None and (rep.get("master") or {}).get("t0_ns") is not None:
-            t_ref = int(rep["master"]["t0_ns"]) + int(round(float(lat["t_mid_rel_s"]) * 1e9))
-        elif lat.get("window_s"):
-            t_ref = int(round(0.5 * (float(lat["window_s"][0]) + float(lat["window_s"][1])) * 1e9))
+        drift = 0.0 if drift is None else num("drift_ppm", drift)
+        master = rep.get("master") if isinstance(rep.get("master"), dict) else {}
+        window = lat.get("window_s")
+        if lat.get("t_mid_rel_s") is not None and master.get("t0_ns") is not None:
+            t0 = master["t0_ns"]
+            if isinstance(t0, bool) or not isinstance(t0, int):
+                raise ValueError(f"the report's master.t0_ns {t0!r} is not a whole number of nanoseconds")
+            t_ref = t0 + int(round(num("t_mid_rel_s", lat["t_mid_rel_s"]) * 1e9))
+        elif isinstance(window, (list, tuple)) and len(window) == 2:
+            t_ref = int(round(0.5 * (num("window_s", window[0]) + num("window_s", window[1])) * 1e9))
         else:
             raise ValueError("the report states neither latency.t_mid_rel_s nor latency.window_s")
-        latency = float(lat["latency_s"])
+        latency = num("latency_s", lat["latency_s"])
         # a damaged or hand-edited report: stamps moved by more than any two clocks can differ, or a clock running
         # at another rate altogether, are no latency estimate (and would overflow or divide by zero below)
         if not (np.isfinite(latency) and abs(latency) <= MAX_REPORT_LATENCY_S):

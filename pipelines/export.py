@@ -278,13 +278,14 @@ def warnings_of(entries: list[ExportEntry]) -> list[str]:
 def clock_step_caveat(quality: dict | None) -> str | None:
     """The warning for an export whose latency found a clock step (``quality["clock_step"]``): one line put
     through both sides of the step, so either side's stamps are off by about half the step."""
-    step = (quality or {}).get("clock_step")
-    if not isinstance(step, dict) or step.get("step_s") is None:
+    step = quality.get("clock_step") if isinstance(quality, dict) else None
+    if not isinstance(step, dict) or not isinstance(step.get("step_s"), (int, float)):
         return None
     half = 0.5 * abs(float(step["step_s"])) * 1e3
-    return (f"the latency steps by {float(step['step_s']) * 1e3:+.1f} ms near {float(step.get('t_rel_s', 0.0)):.1f} s "
-            f"into the master log: the export puts one line through both sides, so its stamps are off by about "
-            f"{half:.1f} ms on either side (export each part apart)")
+    t = step.get("t_rel_s")
+    where = f" near {float(t):.1f} s into the master log" if isinstance(t, (int, float)) else ""
+    return (f"the latency steps by {float(step['step_s']) * 1e3:+.1f} ms{where}: the export puts one line through "
+            f"both sides, so its stamps are off by about {half:.1f} ms on either side (export each part apart)")
 
 
 def attach_to_analysis(kinds: tuple[str, ...], out_dir: str, slave: InsLog, master: InsLog, latency,

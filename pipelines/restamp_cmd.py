@@ -14,7 +14,7 @@ import os
 
 from logtools.errors import InputError
 from parsers import load
-from parsers.registry import parse_log_arg
+from parsers.registry import detect, parse_log_arg
 from parsers.restamp import ClockShift
 from pipelines import export
 
@@ -41,6 +41,12 @@ def read_report(path: str) -> dict:
         raise InputError(f"not a JSON report: {exc}", path) from None
     if not isinstance(rep, dict) or not str(rep.get("schema", "")).startswith("tapost.report/"):
         raise InputError("not a tapost report.json (no schema tapost.report/...)", path)
+    # (what restamp reads of a hand-edited or damaged report; the values themselves: ClockShift.from_report)
+    for key, sec in (("latency", rep.get("latency")), ("master", rep.get("master")), ("slave", rep.get("slave")),
+                     ("latency.quality", (rep.get("latency") or {}).get("quality")
+                      if isinstance(rep.get("latency"), dict) else None)):
+        if sec is not None and not isinstance(sec, dict):
+            raise InputError(f"the report's {key} is not an object ({type(sec).__name__})", path)
     return rep
 
 
@@ -58,6 +64,10 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(str(exc), report_path) from None
     path, sel = parse_log_arg(args.slave)
     slave_rep = rep.get("slave") or {}
+    if not sel and slave_rep.get("format"):  # (before the report's selector is tried on another format's file)
+        fmt = detect(path).NAME
+        if fmt != slave_rep["format"]:
+            raise InputError(f"the report's slave is {slave_rep['format']}, this log is {fmt}", path)
     arg = args.slave if sel else (f"{path}::{slave_rep['selector']}" if slave_rep.get("selector") else path)
     slave = load(arg)
     notes = []

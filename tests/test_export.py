@@ -130,6 +130,48 @@ def test_restamp_never_writes_over_the_reports_master(tmp_path, capsys):
     assert "overwrite an input" in capsys.readouterr().err
 
 
+def test_restamp_says_what_is_wrong_with_a_hand_edited_report(tmp_path, capsys):
+    """`tapost restamp` reads a report a person may have edited or a copy may have damaged: a section that is
+    not an object, a value that is not a number, a log of another format than the report's slave. Each is
+    one line naming the file (they were internal errors: AttributeError, TypeError, or the report's tlog
+    selector tried on an MCAP file)."""
+    import copy
+    import shutil
+
+    from pipelines.cli import main
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    for f in ("master.mcap", "slave.tlog"):
+        shutil.copy(os.path.join(root, "sample_logs", f), tmp_path / f)
+    assert main(["analyze", str(tmp_path / "master.mcap"), str(tmp_path / "slave.tlog"), "-o", str(tmp_path / "out"),
+                 "--no-html", "--no-recording"]) == 0
+    good = json.loads((tmp_path / "out" / "report.json").read_text())
+    cases = [
+        (lambda r: r.__setitem__("slave", 5), "the report's slave is not an object (int)"),
+        (lambda r: r.__setitem__("latency", [1]), "the report's latency is not an object (list)"),
+        (lambda r: r["latency"].__setitem__("quality", 5), "the report's latency.quality is not an object (int)"),
+        (lambda r: r["latency"].__setitem__("latency_s", "abc"), "the report's latency_s 'abc' is not a number"),
+        (lambda r: r["latency"].__setitem__("t_mid_rel_s", [2]), "the report's t_mid_rel_s [2] is not a number"),
+        (lambda r: r["master"].__setitem__("t0_ns", "x"), "the report's master.t0_ns 'x' is not a whole number"),
+        (lambda r: (r["latency"].pop("t_mid_rel_s"), r["latency"].__setitem__("window_s", 5)),
+         "the report states neither latency.t_mid_rel_s nor latency.window_s"),
+    ]
+    capsys.readouterr()
+    for i, (edit, needle) in enumerate(cases):
+        rep = copy.deepcopy(good)
+        edit(rep)
+        path = tmp_path / f"r{i}.json"
+        path.write_text(json.dumps(rep))
+        assert main(["restamp", str(tmp_path / "slave.tlog"), "--from", str(path), "-o", str(tmp_path / "x.tlog")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and str(path) in err[0] and needle in err[0], (needle, err)
+    # the master given as the slave: its format is not the report's slave's
+    assert main(["restamp", str(tmp_path / "master.mcap"), "--from", str(tmp_path / "out"), "-o",
+                 str(tmp_path / "x.mcap")]) == 2
+    assert "the report's slave is tlog, this log is mcap" in capsys.readouterr().err
+    assert not (tmp_path / "x.tlog").exists() and not (tmp_path / "x.mcap").exists()
+
+
 def test_parse_kinds():
     assert export.parse_kinds("csv, native,csv") == ("csv", "native")
     assert export.parse_kinds(None) == ()
