@@ -64,10 +64,21 @@ def has_display(environ=None) -> bool:
     return bool(env.get("DISPLAY") or env.get("WAYLAND_DISPLAY"))
 
 
+#: the first bytes of a rerun recording file (RRF0-RRF2 across rerun's versions: the stream header's magic)
+RRD_MAGIC = b"RRF"
+
+
 def recording_path(target: str) -> str:
     path = os.path.join(target, "recording.rrd") if os.path.isdir(target) else target
     if not os.path.isfile(path):
         raise InputError("no recording found (expected a .rrd file or a folder holding recording.rrd)", target)
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(4)
+    except OSError as exc:
+        raise InputError(f"cannot read the recording: {exc.strerror}", path) from None
+    if head[:3] != RRD_MAGIC:
+        raise InputError("not a rerun recording (an .rrd file starts with RRF; tapost writes DIR/recording.rrd)", path)
     return path
 
 

@@ -81,6 +81,18 @@ def test_view_command_rejects_missing(tmp_path, capsys):
     assert "no recording found" in capsys.readouterr().err
 
 
+def test_view_command_rejects_a_file_that_is_no_recording(tmp_path, capsys):
+    """A report or a log given to `tapost view` is said to be no recording (it went on to the display check,
+    or to the viewer, which failed on it)."""
+    from pipelines.cli import main
+
+    for name, data in (("report.json", b'{"schema": "tapost.report/1"}'), ("empty.rrd", b"")):
+        (tmp_path / name).write_bytes(data)
+        assert main(["view", "--web", str(tmp_path / name)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "not a rerun recording" in err[0] and name in err[0], err
+
+
 def test_a_recording_that_fails_while_streamed_to_its_file_leaves_no_file(tmp_path, monkeypatch):
     """The recording is streamed to its temporary file as it is built (rerun's encoder beside the builder);
     an error while building stops the stream and leaves neither the recording nor a temporary file."""
