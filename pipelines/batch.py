@@ -368,7 +368,11 @@ def run_pair(job: PairJob) -> dict:
     done = read_done(job)
     if done is not None:
         return {"row": done["row"], "ran": False}
-    os.makedirs(job.out_dir, exist_ok=True)
+    try:
+        os.makedirs(job.out_dir, exist_ok=True)
+    except OSError as exc:  # (a file in its place, no permission): a failed row, the other pairs go on
+        reason = f"{job.out_dir}: cannot create the pair's output folder: {exc.strerror}"
+        return {"row": rp.json_safe(row_from_report(job, None, "failed", 2, reason)), "ran": True}
     _clean_temps(job.out_dir)
     try:
         os.remove(os.path.join(job.out_dir, DONE))  # stale marker: this pair is being redone
@@ -620,7 +624,10 @@ def run_batch(campaign: str, out_root: str, *, jobs: int = 1, scheduler: str | N
     if no_html:
         pair_jobs = [j if "--no-html" in j.options else dataclasses.replace(j, options=tuple(j.options) + ("--no-html",))
                      for j in pair_jobs]
-    os.makedirs(out_root, exist_ok=True)
+    try:
+        os.makedirs(out_root, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"cannot create the output folder: {exc.strerror}", out_root) from None
     rows: dict[str, dict] = {}
     counts = {"ran": 0, "skipped": 0, "failed": 0}
     total = len(pair_jobs)

@@ -119,6 +119,28 @@ def test_manifest_row_with_an_unquoted_comma_is_a_failed_row_not_an_internal_err
         batch.discover(str(binary), str(tmp_path / "o"))
 
 
+def test_an_output_folder_that_cannot_be_made_is_one_line_or_a_failed_row(tmp_path, fake_numerics, capsys):
+    """-o naming a file: one line and exit 2 (it was an internal error: FileExistsError). A pair whose own
+    folder cannot be made (a file in its place): that pair is a failed row saying so, the campaign's summary
+    is written."""
+    camp = tmp_path / "camp"
+    (camp / "p1").mkdir(parents=True)
+    m, s = write_fake_pair(camp / "p1", duration_s=20)
+    os.replace(m, camp / "p1" / ("master" + Path(m).suffix))
+    os.replace(s, camp / "p1" / ("slave" + Path(s).suffix))
+    blocked = tmp_path / "file"
+    blocked.write_text("x")
+    assert main(["batch", str(camp), "-o", str(blocked)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == f"tapost: {blocked}: cannot create the output folder: File exists"
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "p1").write_text("in the pair's way")
+    assert main(["batch", str(camp), "-o", str(out), "--no-html"]) == 0
+    row = pd.read_csv(out / "summary.csv").set_index("pair").loc["p1"]
+    assert row.status == "failed" and "cannot create the pair's output folder" in row.reason
+
+
 def test_campaign_processes_and_dask_agree_and_rerun_does_nothing(tmp_path, fake_numerics, monkeypatch, capsys):
     camp = make_campaign(tmp_path)
     before = {str(p): p.stat().st_mtime_ns for p in camp.rglob("*")}
