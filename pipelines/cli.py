@@ -7,6 +7,7 @@ Known failures (``TapostError``) become one line on stderr and the error's exit 
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import os
 import signal
@@ -156,12 +157,33 @@ def _main(argv: list[str] | None) -> int:
         return 130
     except BrokenPipeError:
         return 0
+    except OSError as exc:
+        if debug:
+            raise
+        if exc.errno not in SYSTEM_REFUSALS:
+            print(f"tapost: internal error: {type(exc).__name__}: {exc} (rerun with --debug for details)",
+                  file=sys.stderr)
+            return 1
+        # the system refused a file (an output's path taken by a folder, a full or read-only disk, no
+        # permission): what the user can act on, named by the path they know (a rename's target, not its
+        # temporary source)
+        where = exc.filename2 if exc.filename2 is not None else exc.filename
+        print(f"tapost: {where}: {exc.strerror}" if where is not None else f"tapost: {exc.strerror}",
+              file=sys.stderr)
+        return 2
     except Exception as exc:  # a bug: still one line, with a pointer to --debug
         if debug:
             raise
         print(f"tapost: internal error: {type(exc).__name__}: {exc} (rerun with --debug for details)",
               file=sys.stderr)
         return 1
+
+
+#: errno values of an OSError that are the system refusing a file the user named or the place it goes
+#: (said as one line with exit 2), not a bug of tapost's
+SYSTEM_REFUSALS = frozenset(getattr(errno, n) for n in (
+    "EACCES", "EPERM", "ENOSPC", "EDQUOT", "EROFS", "EISDIR", "ENOTDIR", "EEXIST", "ENAMETOOLONG", "ENOENT",
+    "ENOTEMPTY", "EMFILE", "ENFILE", "EFBIG", "EIO", "ELOOP", "EXDEV") if hasattr(errno, n))
 
 
 def script() -> None:

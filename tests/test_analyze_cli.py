@@ -242,6 +242,18 @@ def test_a_bad_config_value_is_one_line_naming_the_file(tmp_path, capsys, text, 
     assert not (tmp_path / "x").exists()
 
 
+def test_an_output_the_system_refuses_is_one_line_naming_it(tmp_path, fake_numerics, capsys):
+    """report.json's place taken by a folder (or a full disk, no permission): one line naming the output as
+    the user knows it (not the temporary file renamed onto it) and exit 2; it was an internal error."""
+    m, s = write_fake_pair(tmp_path, duration_s=20)
+    out = tmp_path / "o"
+    (out / "report.json").mkdir(parents=True)
+    assert main(["analyze", m, s, "-o", str(out), "--no-recording", "--no-html"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == f"tapost: {out / 'report.json'}: Is a directory", err
+    assert not [p for p in out.iterdir() if p.name.endswith(".tmp")]
+
+
 def test_config_switches_and_rows_accept_their_types(tmp_path):
     from pipelines import analyze
 
