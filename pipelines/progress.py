@@ -6,15 +6,19 @@ Redrawing is rate-limited (at most ~10 times a second) so a callback per window 
 """
 from __future__ import annotations
 
+import shutil
 import sys
 import time
 from typing import TextIO
+
+#: the stage's label takes what the terminal's width leaves beside the bar and the percentage, within these
+LABEL_MIN, LABEL_MAX = 28, 60
 
 
 class Progress:
     """Callable ``progress(fraction: float, stage: str)``; ``enabled=None`` means "stderr is a tty"."""
 
-    def __init__(self, stream: TextIO | None = None, enabled: bool | None = None, width: int = 30):
+    def __init__(self, stream: TextIO | None = None, enabled: bool | None = None, width: int | None = None):
         self.stream = stream if stream is not None else sys.stderr
         if enabled is None:
             try:
@@ -22,8 +26,13 @@ class Progress:
             except (AttributeError, ValueError):
                 enabled = False
         self.enabled = enabled
-        self.width = width
+        # the bar, the label and the percentage on one line of the terminal (a line longer than the terminal
+        # wraps, and each redraw then adds a line): the label as wide as the rest leaves, within LABEL_MIN..MAX
+        cols = shutil.get_terminal_size((80, 24)).columns
+        self.label_width = min(max(cols - 1 - 12 - 24, LABEL_MIN), LABEL_MAX)
+        self.width = width if width is not None else min(max(cols - 1 - 12 - self.label_width, 10), 30)
         self._last_draw = 0.0
+        self._line = 0
         self._stage = ""
         self._drawn = False
 
@@ -37,8 +46,11 @@ class Progress:
         self._stage, self._last_draw = stage, now
         f = min(max(float(fraction), 0.0), 1.0) if fraction == fraction else 0.0
         n = int(round(f * self.width))
-        line = f"\r  {stage[:28]:<28} [{'#' * n}{'.' * (self.width - n)}] {f * 100:5.1f}%"
-        self.stream.write(line)
+        w = self.label_width
+        label = stage if len(stage) <= w else stage[:w - 3] + "..."
+        line = f"  {label:<{w}} [{'#' * n}{'.' * (self.width - n)}] {f * 100:5.1f}%"
+        self._line = len(line)
+        self.stream.write("\r" + line)
         self.stream.flush()
         self._drawn = True
 
@@ -50,7 +62,7 @@ class Progress:
     def done(self) -> None:
         """Erase the bar line (call before printing the summary)."""
         if self.enabled and self._drawn:
-            self.stream.write("\r" + " " * (self.width + 48) + "\r")
+            self.stream.write("\r" + " " * self._line + "\r")
             self.stream.flush()
             self._drawn = False
 
@@ -64,8 +76,17 @@ class _Scaled:
         self.parent, self.lo, self.hi, self.stage = parent, lo, hi, stage
 
     def __call__(self, fraction: float, stage: str = "") -> None:
-        label = f"{self.stage}: {stage}" if stage and stage != self.stage else self.stage
+        label = f"{self.stage}: {_without_head(stage, self.stage)}" if stage and stage != self.stage else self.stage
         self.parent(self.lo + (self.hi - self.lo) * float(fraction), label)
+
+
+def _without_head(sub: str, stage: str) -> str:
+    """A sub-step's label without the stage's first word it repeats ("alignment (compensated)" and
+    "alignment filter": "filter"; "latency" and "latency: done": "done")."""
+    head = stage.split(" ", 1)[0].rstrip(":")
+    if head and sub.startswith(head) and len(sub) > len(head) and sub[len(head)] in " :":
+        return sub[len(head):].lstrip(" :") or sub
+    return sub
 
 
 def null_progress(fraction: float, stage: str = "") -> None:

@@ -542,3 +542,33 @@ def test_two_units_on_their_own_boot_clocks_without_overlap_leave_the_status_ok(
     assert rep["alignment"]["uncompensated"].get("not_applicable") is True
     assert rep["status"] == "ok", (rep["status"], rep["skipped"], [w["text"] for w in rep["warnings"]])
     assert rep["alignment"]["compensated"]["mounting_rpy_deg"] == pytest.approx([2.0, -1.0, 45.0], abs=0.05)
+
+
+def test_progress_line_fits_the_terminal_and_says_the_sub_step(monkeypatch):
+    """The bar's line is as wide as the terminal allows, never wider (a wider line wraps and every redraw adds
+    a line), and a sub-step's label drops the stage's word it repeats: a long label was cut at 28 characters
+    ("alignment (compensated): ali")."""
+    import io
+    import os
+
+    from pipelines import progress as pg
+
+    for cols in (60, 80, 120, 300):
+        monkeypatch.setattr(pg.shutil, "get_terminal_size", lambda fallback=(80, 24), c=cols: os.terminal_size((c, 24)))
+        out = io.StringIO()
+        p = pg.Progress(out, enabled=True)
+        sub = p.scaled(0.5, 0.7, "alignment (compensated)")
+        sub(0.0, "alignment: preparing")
+        sub(1.0, "alignment filter")
+        p(1.0, "latency: coarse |w| and rotation-solved cost, and a label longer than any terminal line")
+        lines = out.getvalue().split("\r")[1:]
+        assert lines and all(len(x) <= cols - 1 for x in lines), (cols, lines)
+        if cols >= 80:
+            assert "alignment (compensated): preparing" in lines[0] and "alignment (compensated): filter" in lines[1]
+        assert lines[2].rstrip().endswith("100.0%") and "..." in lines[2]
+        p.done()
+        assert out.getvalue().endswith("\r" + " " * len(lines[2]) + "\r")
+    assert pg._without_head("latency: done", "latency") == "done"
+    assert pg._without_head("latency done", "latency") == "done"
+    assert pg._without_head("latent", "latency") == "latent"
+    assert pg._without_head("alignment", "alignment (x)") == "alignment"
