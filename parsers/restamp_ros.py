@@ -857,7 +857,9 @@ def restamp_rosbag2(src: str, dst: str, shift: ClockShift, *, selector: str | No
     from rosbags.typesys import Stores, get_typestore
 
     check_readable(src)
-    bagdir, meta, files = rosbag2._resolve(src)
+    bagdir, meta, files, meta_damage = rosbag2._resolve(src)
+    if meta_damage is not None:  # (its copy is part of the bag: the export does not invent one)
+        raise InputError(f"{meta_damage}: a ROS 2 bag is exported with its metadata.yaml", bagdir)
     if meta is None:
         raise InputError("no metadata.yaml next to the storage file (restamp the bag folder)", src)
     storage = str(meta.get("storage_identifier") or ("mcap" if files[0].endswith((".mcap", ".mcap.zstd")) else "sqlite3"))

@@ -77,8 +77,10 @@ def sniff(head: bytes, path: str) -> bool:
     return head.startswith(SQLITE_MAGIC) or YAML_KEY in head[:4096]
 
 
-def _resolve(path: str) -> tuple[str, dict | None, list[str]]:
-    """(bag directory, metadata dict or None, storage files)."""
+def _resolve(path: str) -> tuple[str, dict | None, list[str], str | None]:
+    """(bag directory, metadata dict or None, storage files, what is wrong with metadata.yaml or None). A
+    damaged metadata.yaml (unreadable, or no rosbag2 description) beside storage files leaves those files to
+    be read alone: the sqlite3 and mcap storages name their topics and types themselves."""
     if os.path.isdir(path):
         bagdir, meta_path = path, os.path.join(path, "metadata.yaml")
         if not os.path.isfile(meta_path):
@@ -88,20 +90,32 @@ def _resolve(path: str) -> tuple[str, dict | None, list[str]]:
     else:  # a storage file
         bagdir = os.path.dirname(os.path.abspath(path))
         meta_path = os.path.join(bagdir, "metadata.yaml")
-        return bagdir, _read_meta(meta_path) if os.path.isfile(meta_path) else None, [path]
-    meta = _read_meta(meta_path)
+        meta, damage = _read_meta_noted(meta_path) if os.path.isfile(meta_path) else (None, None)
+        return bagdir, meta, [path], damage
+    meta, damage = _read_meta_noted(meta_path)
+    stored = sorted(os.path.join(bagdir, f) for f in os.listdir(bagdir)
+                    if f.endswith((".db3", ".mcap", ".db3.zstd", ".mcap.zstd")))
     if meta is None:
-        raise InputError("metadata.yaml is not a rosbag2 description", meta_path)
-    files = [os.path.join(bagdir, f) for f in meta.get("relative_file_paths") or []]
-    if not files:
-        files = sorted(os.path.join(bagdir, f) for f in os.listdir(bagdir) if f.endswith((".db3", ".mcap", ".db3.zstd", ".mcap.zstd")))
+        if not stored:
+            raise InputError(damage, meta_path)
+        return bagdir, None, stored, damage
+    files = [os.path.join(bagdir, f) for f in meta.get("relative_file_paths") or []] or stored
     missing = [f for f in files if not os.path.isfile(f)]
     if missing:
         raise InputError(f"storage file(s) listed in metadata.yaml are missing: "
                          f"{', '.join(os.path.basename(m) for m in missing)}", bagdir)
     if not files:
         raise InputError("bag directory holds no storage file (.db3 or .mcap)", bagdir)
-    return bagdir, meta, files
+    return bagdir, meta, files, None
+
+
+def _read_meta_noted(meta_path: str) -> tuple[dict | None, str | None]:
+    """(the rosbag2 description, None), or (None, what is wrong with the file)."""
+    try:
+        meta = _read_meta(meta_path)
+    except InputError as exc:
+        return None, exc.problem
+    return (meta, None) if meta is not None else (None, "metadata.yaml is not a rosbag2 description")
 
 
 def _read_meta(meta_path: str) -> dict | None:
@@ -245,9 +259,12 @@ def read_raw(path: str, keep: Callable[[str, str], bool] = rc.keep_supported) ->
     from rosbags.typesys import Stores, get_typestore
 
     check_readable(path)
-    bagdir, meta, files = _resolve(path)
+    bagdir, meta, files, meta_damage = _resolve(path)
     storage = (meta or {}).get("storage_identifier") or ""
     warnings: list[str] = []
+    if meta_damage is not None:
+        warnings.append(f"damaged: {meta_damage}; the storage file(s) read without it "
+                        f"({', '.join(os.path.basename(f) for f in files)})")
     topics: dict[str, rc.RawTopic] = {}
     typestore = get_typestore(Stores.EMPTY)
     mode, cfmt = _compression(meta)
@@ -262,6 +279,8 @@ def read_raw(path: str, keep: Callable[[str, str], bool] = rc.keep_supported) ->
                 _read_storage(_unzstd_file(f, tmp), storage, keep, typestore, warnings, topics)
             except InputError as exc:
                 raise InputError(exc.problem, f) from None
+    if meta is None and mode == "none" and any(t.data and bytes(t.data[0][:4]) == ZSTD_MAGIC for t in topics.values()):
+        mode = "message"  # (no metadata to say so: per-message zstd frames seen in the data)
     if mode == "message":
         _unzstd_messages(topics, warnings)
     missing = {t.msgtype for t in topics.values() if t.msgtype in rc.SUPPORTED and t.data

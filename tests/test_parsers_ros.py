@@ -864,6 +864,32 @@ def test_compressed_rosbag2_reads_as_rosbags_does(written, name):
     assert {f: os.path.getsize(os.path.join(p, f)) for f in os.listdir(p)} == before
 
 
+@pytest.mark.parametrize("name", ["bag_sqlite", "bag_mcap", "bag_sqlite_zfile", "bag_sqlite_zmsg", "bag_mcap_zfile",
+                                  "bag_mcap_zmsg"])
+@pytest.mark.parametrize("damage", [b"\x00" * 40, b"rosbag2_bagfile_information: [\xff\xfe"])
+def test_rosbag2_with_a_damaged_metadata_yaml_is_read_from_its_storage(written, tmp_path, name, damage):
+    """A ROS 2 bag whose metadata.yaml is damaged (zeroed bytes, garbage): its storage files name their topics
+    and types themselves, so the bag is read from them with the damage said (it was refused with
+    'metadata.yaml unreadable'); a per-message compressed bag is recognised by its zstd frames. The export
+    refuses such a bag with one line (it copies metadata.yaml)."""
+    src = written[name]
+    bad = tmp_path / "bad"
+    shutil.copytree(src, bad)
+    meta = bad / "metadata.yaml"
+    meta.write_bytes(damage + meta.read_bytes()[len(damage):])
+    want, got = parsers.load(src), parsers.load(str(bad))
+    np.testing.assert_array_equal(got.imu.to_numpy(), want.imu.to_numpy())
+    np.testing.assert_array_equal(got.nav.to_numpy(), want.nav.to_numpy())
+    assert got.meta.t0_ns == want.meta.t0_ns
+    assert any(w.startswith("damaged: metadata.yaml") and "read without it" in w for w in got.meta.warnings)
+    shift = ClockShift(0.01, 0.0, got.meta.t0_ns)
+    from parsers import restamp_ros
+
+    with pytest.raises(InputError, match="a ROS 2 bag is exported with its metadata.yaml"):
+        restamp_ros.restamp_rosbag2(str(bad), str(tmp_path / "out"), shift)
+    assert not (tmp_path / "out").exists()
+
+
 def test_truncated_compressed_rosbag2_is_one_clear_error(written, tmp_path, capsys):
     src = written["bag_sqlite_zfile"]
     bad = tmp_path / "bad"
