@@ -80,6 +80,81 @@ def footer_start(buf) -> int | None:
     return int(_U64.unpack_from(buf, at + 9)[0])
 
 
+#: how far into a file whose first bytes are not MCAP's magic the start of its records is looked for
+HEAD_SEARCH_BYTES = 1 << 16
+
+
+def records_start(buf, search: int = HEAD_SEARCH_BYTES) -> int | None:
+    """Where the records of a file whose magic is damaged begin: the first Header record within ``search``
+    bytes whose profile and library strings fit it and after which two more top-level records chain (valid
+    opcodes, inside the file). Normally byte 8; elsewhere when bytes were put before it or lost from the
+    start (a transfer's garbage before the file, a cut head). None when no such record is found."""
+    n = len(buf)
+    head = np.frombuffer(bytes(buf[:min(n, search + 9)]), np.uint8)
+    for h in np.flatnonzero(head[:-9] == _OP_HEADER):
+        h = int(h)
+        off, ok = h, True
+        for k in range(3):
+            if off + 9 > n:
+                ok = False
+                break
+            op, ln = _REC.unpack_from(buf, off)
+            if op == 0 or op > 0x0F or off + 9 + ln > n or (k == 0 and not _header_fits(buf, off + 9, ln)):
+                ok = False
+                break
+            off += 9 + ln
+        if ok:
+            return h
+    return None
+
+
+def summary_shift(buf, search: int = HEAD_SEARCH_BYTES) -> int | None:
+    """The shift of a file's records against the offsets its footer gives (bytes put before them: positive;
+    lost from the start: negative), where the start is damaged past its Header record: the shift, within
+    ``search``, at which the summary section's records chain from the footer's summary start exactly up to
+    the footer. None without a footer, or when no such shift (other than 0) is found."""
+    start = footer_start(buf)
+    if start is None:
+        return None
+    n = len(buf)
+    foot = n - len(MAGIC) - 29
+    lo, hi = max(len(MAGIC), start - search), min(foot, start + search)
+    if hi <= lo:
+        return None
+    window = np.frombuffer(bytes(buf[lo:hi]), np.uint8)
+    summary_ops = np.zeros(256, bool)
+    summary_ops[[_OP_SCHEMA, _OP_CHANNEL, _OP_CHUNK_INDEX, 0x0A, 0x0B, 0x0D, 0x0E]] = True
+
+    def reaches_footer(at: int) -> bool:
+        off = at
+        while off + 9 <= foot:
+            op, ln = _REC.unpack_from(buf, off)
+            if not summary_ops[op] or off + 9 + ln > foot:
+                return False
+            off += 9 + ln
+        return off == foot
+
+    if reaches_footer(start):
+        return None  # (the summary where the footer says: no shift)
+    # every record boundary inside the summary chains to the footer: its start is the earliest that does
+    for i in np.flatnonzero(summary_ops[window]):
+        at = lo + int(i)
+        if reaches_footer(at):
+            return at - start
+    return None
+
+
+def _header_fits(buf, at: int, ln: int) -> bool:
+    """The Header record's body ``buf[at:at + ln]``: its profile and library strings, exactly."""
+    if ln < 8 or ln > 1 << 16:
+        return False
+    (a,) = _U32.unpack_from(buf, at)
+    if 4 + a + 4 > ln:
+        return False
+    (b,) = _U32.unpack_from(buf, at + 4 + a)
+    return 8 + a + b == ln
+
+
 def derailed(buf, op: int, nxt: int, starts: list[int], last: int) -> tuple[str, int | None] | None:
     """The top-level walk's rule for a record it cannot follow, shared by the parser and the export: None
     when the record (opcode ``op``, ending at ``nxt``) reads, or is cut by the end of a file without a footer
@@ -733,8 +808,24 @@ def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
         if buf[:len(MAGIC)] != MAGIC:
             if footer_start(buf) is None:
                 raise InputError("not an MCAP file (bad magic)", path)
-            scan.warnings.append("damaged: the file's first 8 bytes are not MCAP's magic (its footer is); read on "
-                                 "from byte 8")
+            h = records_start(buf)
+            if h is None:  # (the Header record damaged too: the summary's shift against the footer's offsets)
+                shift = summary_shift(buf)
+                h = None if shift is None else len(MAGIC) + shift
+            if h is None or h == len(MAGIC):
+                scan.warnings.append("damaged: the file's first 8 bytes are not MCAP's magic (its footer is); "
+                                     "read on from byte 8")
+            else:
+                # bytes put before the records (or lost from the start): the offsets the summary gives count
+                # from a start that is not byte 0 here. A copy shifted so that they line up (damaged files only)
+                shift = h - len(MAGIC)
+                buf = bytes(buf[shift:]) if shift > 0 else b"\0" * -shift + bytes(buf)
+                end = len(buf)
+                what = (f"the file's first {h} bytes are not MCAP's start" if shift > 0 else
+                        f"the file's start is cut ({-shift} bytes fewer than its offsets count)")
+                scan.warnings.append(f"damaged: {what}; its footer is there: read with the summary's offsets moved "
+                                     f"by {shift:+d} bytes (the byte offsets below count as the summary does: the "
+                                     f"file's byte = offset {shift:+d})")
         footer = False
         n_chunks = 0
         for op, at, nxt in summary_definitions(buf):

@@ -572,8 +572,23 @@ def _scan_mcap(path: str) -> _McapScan:
     if bytes(buf[:len(mcap_ros.MAGIC)]) != mcap_ros.MAGIC:
         if mcap_ros.footer_start(buf) is None:
             raise InputError("not an MCAP file (bad magic)", path)
-        sc.damage.append("the file's first 8 bytes are not MCAP's magic (its footer is); read on from byte 8, "
-                         "the output starts with a valid magic")
+        h = mcap_ros.records_start(buf)  # (the parser's rules: where the records begin against the offsets)
+        if h is None:
+            moved = mcap_ros.summary_shift(buf)
+            h = None if moved is None else len(mcap_ros.MAGIC) + moved
+        moved = 0 if h is None else h - len(mcap_ros.MAGIC)
+        if moved < 0:
+            raise InputError(f"damaged: the file's start is cut ({-moved} bytes fewer than its offsets count); "
+                             "the native export rewrites a file whose records are where its offsets say (the "
+                             "CSV and Parquet exports write what the parser read)", path)
+        if moved > 0:  # bytes put before the records: the output is the file without them
+            file = file[moved:]
+            buf = memoryview(file)
+            sc.damage.append(f"the file's first {h} bytes are not MCAP's start; its records, {moved} bytes on, are "
+                             "written without the bytes before them, the output starting with a valid magic")
+        else:
+            sc.damage.append("the file's first 8 bytes are not MCAP's magic (its footer is); read on from byte 8, "
+                             "the output starts with a valid magic")
     sc.file = file
     off, end = len(mcap_ros.MAGIC), len(buf)
     footer = False

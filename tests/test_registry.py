@@ -293,6 +293,46 @@ def test_a_damaged_file_start_is_read_past(tmp_path, fmt, ext):
         registry.detect(str(junk))
 
 
+@pytest.mark.parametrize("how", ["prepended", "prepended over the header", "cut"])
+def test_an_mcap_whose_start_moved_is_read_with_its_summary_offsets_moved(tmp_path, how):
+    """Bytes put before an MCAP's records (a transfer's garbage in front of the file), or lost from its start:
+    every absolute offset the footer and summary give is off by the same amount, and the walk, which resumed
+    at the summary's chunk offsets, read nothing ('no readable messages'). The records' start (its Header
+    record, or the summary section chaining to the footer) gives the shift; the file is read with the
+    offsets moved, saying so. The native export writes the records without the bytes put before them (the
+    mcap library reads every message of it) and refuses a file whose start is cut, in one line."""
+    from mcap.reader import make_reader
+
+    from logtools import sim
+    from parsers import restamp_ros
+    from parsers.restamp import ClockShift
+
+    pair = sim.simulate(sim.scenario_config("vehicle", duration_s=30.0, seed=4))
+    good = tmp_path / "good.mcap"
+    registry.write(str(good), pair.slave, "mcap")
+    raw = good.read_bytes()
+    if how == "prepended":
+        data, moved = b"HTTP/1.1 200 OK\r\n\r\n" * 20 + raw, 380
+    elif how == "prepended over the header":  # (the Header record's own bytes lost under the zeros)
+        data, moved = bytes(199) + raw[20:], 179
+    else:
+        data, moved = bytes(8) + raw[38:], -30
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(data)
+    full, back = registry.load(str(good)), registry.load(str(bad))
+    assert any(f"moved by {moved:+d} bytes" in w for w in back.meta.warnings), back.meta.warnings
+    if how == "cut":  # (the first chunk began in the lost bytes)
+        assert 0.3 * len(full.imu) < len(back.imu) < len(full.imu)
+        with pytest.raises(InputError, match="start is cut"):
+            restamp_ros.restamp_mcap(str(bad), str(tmp_path / "out.mcap"), ClockShift(0.01, 0.0, full.meta.t0_ns))
+        return
+    np.testing.assert_array_equal(back.imu.to_numpy(), full.imu.to_numpy())
+    out = tmp_path / "out.mcap"
+    restamp_ros.restamp_mcap(str(bad), str(out), ClockShift(0.01, 0.0, full.meta.t0_ns))
+    with open(out, "rb") as a, open(good, "rb") as b:
+        assert sum(1 for _ in make_reader(a).iter_messages()) == sum(1 for _ in make_reader(b).iter_messages())
+
+
 def test_inspect_selection_prints_a_note_as_a_note():
     from pipelines.inspect_cmd import format_selection
     lines = format_selection({"selector": "imu=/imu", "clock": "epoch", "duration_s": 1.0, "stamp_source": "header",
