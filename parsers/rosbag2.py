@@ -19,6 +19,7 @@ directory next to ``path`` and renamed into place.
 from __future__ import annotations
 
 import os
+import shutil
 import sqlite3
 import tempfile
 from collections.abc import Callable, Iterator
@@ -35,6 +36,8 @@ NAME = "rosbag2"
 EXTENSIONS = (".db3", ".yaml", ".zstd")
 SQLITE_MAGIC = b"SQLite format 3\x00"
 ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
+#: how far into a storage file whose first bytes are not SQLite's header the header is looked for
+HEAD_SEARCH_BYTES = 1 << 16
 YAML_KEY = b"rosbag2_bagfile_information"
 _BATCH = 2_000
 _RETRY_QUERIES = 4_000  # a damaged batch is bisected down to single rows with at most this many queries
@@ -135,8 +138,25 @@ def _read_sqlite(path: str, keep: Callable[[str, str], bool], typestore, warning
                  topics: dict[str, rc.RawTopic]) -> None:
     check_readable(path)
     with open(path, "rb") as fh:
-        if not fh.read(16).startswith(SQLITE_MAGIC):
+        head = fh.read(HEAD_SEARCH_BYTES)
+    if not head.startswith(SQLITE_MAGIC):
+        k = head.find(SQLITE_MAGIC)
+        if k <= 0:
             raise InputError("storage file is not an SQLite database", path)
+        # bytes put before the database (a transfer's garbage in front of it): SQLite reads a file from its
+        # start, so a copy from the database's own header is read (damaged files only)
+        with tempfile.TemporaryDirectory(prefix="tapost-rosbag2-") as tmp:
+            moved = os.path.join(tmp, os.path.basename(path))
+            with open(path, "rb") as src, open(moved, "wb") as dst:
+                src.seek(k)
+                shutil.copyfileobj(src, dst, 1 << 22)
+            warnings.append(f"damaged: {os.path.basename(path)}: its first {k} bytes are not SQLite's; the "
+                            f"database read from byte {k}")
+            try:
+                _read_sqlite(moved, keep, typestore, warnings, topics)
+            except InputError as exc:
+                raise InputError(exc.problem, path) from None
+        return
     try:
         con = connect_ro(path)
     except sqlite3.Error as exc:

@@ -890,6 +890,22 @@ def test_rosbag2_with_a_damaged_metadata_yaml_is_read_from_its_storage(written, 
     assert not (tmp_path / "out").exists()
 
 
+def test_rosbag2_sqlite_storage_with_bytes_put_before_it_is_read_from_its_header(written, tmp_path):
+    """A .db3 with bytes put before the database (a transfer's garbage in front of it) was refused ('not an
+    SQLite database'); SQLite reads a file from its start, so a copy from the database's own header (found
+    within the first 64 KiB) is read, saying so: the same samples."""
+    src = written["bag_sqlite"]
+    bad = tmp_path / "bad"
+    shutil.copytree(src, bad)
+    db = next(p for p in bad.iterdir() if p.suffix == ".db3")
+    db.write_bytes(b"\x00garbage\xff" * 150 + db.read_bytes())
+    want, got = parsers.load(src), parsers.load(str(bad))
+    np.testing.assert_array_equal(got.imu.to_numpy(), want.imu.to_numpy())
+    np.testing.assert_array_equal(got.nav.to_numpy(), want.nav.to_numpy())
+    assert any(f"its first 1350 bytes are not SQLite's" in w for w in got.meta.warnings), got.meta.warnings
+    assert [p.name for p in bad.iterdir() if "tapost" in p.name] == []
+
+
 def test_truncated_compressed_rosbag2_is_one_clear_error(written, tmp_path, capsys):
     src = written["bag_sqlite_zfile"]
     bad = tmp_path / "bad"
