@@ -617,12 +617,14 @@ def read_streamed(path: str, keep: Callable[[str, str], bool] = rc.keep_supporte
     return _rawlog(path, fmt, _scan_file(path, scan, done))
 
 
-def _summary_records(buf) -> tuple[int, list[tuple[int, int, int]]]:
+def _summary_records(buf, shift: int = 0) -> tuple[int, list[tuple[int, int, int]]]:
     """(summary start, [(opcode, offset, next)] of the summary section's records), found through the footer
-    (up to the first record that does not read); (0, []) without a footer."""
+    (up to the first record that does not read), ``shift`` bytes from where it says (:func:`summary_shift`);
+    (0, []) without a footer."""
     start = footer_start(buf)
     if start is None:
         return 0, []
+    start += shift
     at = len(buf) - len(MAGIC) - 29
     out = []
     off = int(start)
@@ -636,25 +638,27 @@ def _summary_records(buf) -> tuple[int, list[tuple[int, int, int]]]:
     return start, out
 
 
-def summary_definitions(buf) -> list[tuple[int, int, int]]:
+def summary_definitions(buf, shift: int = 0) -> list[tuple[int, int, int]]:
     """(opcode, offset, next) of the schema and channel records in the summary section, found through the
-    footer: every channel stays known when the chunk that defined it is damaged (a flipped byte in the
-    first chunk left a file's later chunks with messages of undefined channels). [] without a footer."""
-    out = [r for r in _summary_records(buf)[1] if r[0] in (_OP_SCHEMA, _OP_CHANNEL)]
+    footer (``shift``: :func:`_summary_records`): every channel stays known when the chunk that defined it is
+    damaged (a flipped byte in the first chunk left a file's later chunks with messages of undefined
+    channels). [] without a footer."""
+    out = [r for r in _summary_records(buf, shift)[1] if r[0] in (_OP_SCHEMA, _OP_CHANNEL)]
     return sorted(out, key=lambda r: r[0] != _OP_SCHEMA)  # schemas first: a channel is judged by its schema
 
 
-def summary_chunk_starts(buf) -> list[int]:
+def summary_chunk_starts(buf, shift: int = 0) -> list[int]:
     """The chunk offsets the summary's chunk index records give (ascending), found through the footer: where
     a damaged data section can be picked up again (a zeroed run of bytes otherwise ended the walk, and the
-    file's later chunks were lost). [] without a footer or chunk indexes."""
-    start, recs = _summary_records(buf)
+    file's later chunks were lost). With ``shift`` (bytes put in or lost inside the file, :func:`summary_shift`)
+    each offset also moved by it: the chunks after the damage are there. [] without a footer or chunk
+    indexes."""
+    start, recs = _summary_records(buf, shift)
     out = []
     for op, off, nxt in recs:
         if op == _OP_CHUNK_INDEX and nxt - off - 9 >= 32:
             (c0,) = _U64.unpack_from(buf, off + 9 + 16)  # message start and end time, then the chunk's offset
-            if len(MAGIC) <= c0 < start:
-                out.append(int(c0))
+            out += [int(c) for c in {c0, c0 + shift} if len(MAGIC) <= c < start]
     return sorted(set(out))
 
 
@@ -828,13 +832,20 @@ def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
                                      f"file's byte = offset {shift:+d})")
         footer = False
         n_chunks = 0
-        for op, at, nxt in summary_definitions(buf):
+        inner = 0  # bytes put in or lost inside the data section: the summary moved from where the footer says
+        if footer_start(buf) is not None and not _summary_records(buf)[1]:
+            inner = summary_shift(buf) or 0
+            if inner:
+                scan.warnings.append(f"damaged: the summary section is {inner:+d} bytes from where the footer says "
+                                     "(bytes put in or lost inside the file): the chunks after the damage are "
+                                     "read at the summary's offsets moved by as much")
+        for op, at, nxt in summary_definitions(buf, inner):
             try:
                 scan.schema(buf, at + 9, nxt) if op == _OP_SCHEMA else scan.channel(buf, at + 9)
             except (_Damage, struct.error, UnicodeDecodeError):
                 pass  # a damaged summary: the definitions come from the data section as before
         scan.provisional = {("schema", k) for k in scan.schemas} | {("channel", k) for k in scan.channels}
-        starts = summary_chunk_starts(buf)  # where the walk picks up again after a damaged stretch
+        starts = summary_chunk_starts(buf, inner)  # where the walk picks up again after a damaged stretch
         last = off
         while off < end:
             if off + 9 > end:
