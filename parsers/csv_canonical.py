@@ -33,10 +33,37 @@ HEADER = (TIME,) + CSV_GYRO + CSV_ACCEL + CSV_QUAT + CSV_VEL + CSV_POS
 EPOCH_THRESHOLD_S = 1e9
 
 
-def sniff(head: bytes, path: str) -> bool:
-    first = head.split(b"\n", 1)[0].strip().lstrip(b"\xef\xbb\xbf").decode("utf-8", "replace")
-    cols = [c.strip() for c in first.split(",")]
+def _is_header(line: bytes) -> bool:
+    text = line.strip().lstrip(b"\xef\xbb\xbf").decode("utf-8", "replace")
+    cols = [c.strip() for c in text.split(",")]
     return bool(cols) and cols[0] == TIME and any(c in HEADER[1:] for c in cols[1:])
+
+
+def sniff(head: bytes, path: str) -> bool:
+    return _is_header(head.split(b"\n", 1)[0])
+
+
+#: how far into a file whose first line is not the canonical header the header line is looked for
+HEADER_SEARCH_BYTES = 1 << 16
+
+
+def header_offset(head: bytes) -> int | None:
+    """Where the canonical header line begins in ``head`` (a file's first bytes): 0 normally; after bytes
+    put before it (a transfer's garbage in front of the file) the first line start that holds it; None."""
+    if _is_header(head.split(b"\n", 1)[0]):
+        return 0
+    key = TIME.encode() + b","
+    at = head.find(key)
+    while at >= 0:  # (the garbage need not end in a line break: the header is where its name begins)
+        if _is_header(head[at:].split(b"\n", 1)[0]):
+            return at
+        at = head.find(key, at + 1)
+    return None
+
+
+def sniff_damaged(head: bytes, path: str) -> bool:
+    """A canonical CSV with bytes before its header line (they are skipped, saying so)."""
+    return bool(header_offset(head))
 
 
 def seconds_text_to_ns(values: pd.Series) -> np.ndarray:
@@ -71,7 +98,12 @@ def ns_to_seconds_text(ns: np.ndarray, decimals: int = 9) -> np.ndarray:
 
 
 def _read_frame(path: str) -> tuple[pd.DataFrame, list[str]]:
-    df, warnings = read_table(path, TIME)
+    with open(path, "rb") as fh:
+        start = header_offset(fh.read(HEADER_SEARCH_BYTES)) or 0
+    df, warnings = read_table(path, TIME, start=start)
+    if start:
+        warnings = [f"damaged: {os.path.basename(path)}: its first {start} bytes are not CSV before the header "
+                    f"line; read from byte {start}"] + warnings
     if TIME not in df.columns:
         raise InputError(f"no '{TIME}' column (canonical CSV header expected)", path)
     return df, warnings

@@ -159,16 +159,20 @@ def delimiter(header: str) -> str:
     return max(counts, key=counts.get)
 
 
-def read_table(path: str, time_col: str) -> tuple[pd.DataFrame, list[str]]:
+def read_table(path: str, time_col: str, start: int = 0) -> tuple[pd.DataFrame, list[str]]:
+    """The CSV at ``path`` from byte ``start`` (its header line: bytes before it skipped), as text columns
+    where the time is, and the warnings of its damaged lines."""
     warns: list[str] = []
     with open(path, "rb") as fh:
+        fh.seek(start)
         first = fh.readline(65536).decode("utf-8", "replace")
     sep = delimiter(first)
-    with _warnings.catch_warnings(record=True) as caught:
+    with _warnings.catch_warnings(record=True) as caught, open(path, "rb") as src:
         _warnings.simplefilter("always")
+        src.seek(start)
         try:
-            df = pd.read_csv(path, sep=sep, dtype={time_col: str}, skipinitialspace=True, on_bad_lines="warn",
-                             encoding_errors="replace")
+            df = pd.read_csv(src if start else path, sep=sep, dtype={time_col: str}, skipinitialspace=True,
+                             on_bad_lines="warn", encoding_errors="replace")
         except pd.errors.EmptyDataError:
             raise InputError("empty CSV (no header)", path) from None
         except pd.errors.ParserError as exc:

@@ -225,13 +225,21 @@ def _rewrite_file(src: str, dst: str, time_col: str, unit: str, shift: ClockShif
 
 
 def restamp_csv(src: str, dst: str, shift: ClockShift, *, selector=None) -> RestampStats:
-    """Canonical CSV: the ``time_s`` column (UNIX or boot seconds)."""
-    from parsers.csv_canonical import TIME
+    """Canonical CSV: the ``time_s`` column (UNIX or boot seconds). Bytes before the header line (the parser
+    skips them: ``csv_canonical.header_offset``) are left out of the output."""
+    from parsers.csv_canonical import TIME, header_offset
 
-    n, bad = _rewrite_file(src, dst, TIME, "s", shift)
+    with open(src, "rb") as fh:
+        raw = fh.read()
+    start = header_offset(raw[:1 << 16]) or 0
+    new, n, bad = restamp_bytes(raw[start:] if start else raw, TIME, "s", shift, src)
+    with atomic_path(dst) as tmp:
+        new.tofile(tmp)
+    damage = (f"the first {start} bytes, before the header line, are not CSV: left out",) if start else ()
+    if bad:
+        damage += (f"{bad} line(s) without a readable time copied unchanged",)
     return RestampStats(path=dst, format="csv", how=HOW, records=n, records_by_type={"rows": n},
-                        time_fields=(TIME,),
-                        damage=(f"{bad} line(s) without a readable time copied unchanged",) if bad else ())
+                        time_fields=(TIME,), damage=damage)
 
 
 def _replace_dir(tmp_dir: str, dst: str) -> None:

@@ -307,6 +307,28 @@ def test_canonical_round_trip_exact_stamps(tmp_path, clock):
     np.testing.assert_allclose(back.lat_lon_alt()[1], log.lat_lon_alt()[1], rtol=1e-15)
 
 
+@pytest.mark.parametrize("garbage", [b"\x89\x00\xffbinary junk without a line break", b"a line\nmore,lines\n"])
+def test_canonical_csv_with_bytes_before_its_header_is_read_from_the_header(tmp_path, garbage):
+    """Bytes put before a canonical CSV's header line (a transfer's garbage, ending in a line break or not):
+    the file was 'unrecognised format'. The header line is found within the first 64 KiB and the file read
+    from there, saying so; the native export writes the file without those bytes."""
+    from parsers.restamp import ClockShift
+    from parsers.restamp_csv import restamp_csv
+
+    log = _canon_log("epoch")
+    good = tmp_path / "good.csv"
+    registry.write(str(good), log, "csv")
+    bad = tmp_path / "bad.csv"
+    bad.write_bytes(garbage * 40 + good.read_bytes())
+    full, back = registry.load(str(good)), registry.load(str(bad))
+    np.testing.assert_array_equal(back.imu.to_numpy(), full.imu.to_numpy())
+    assert back.meta.t0_ns == full.meta.t0_ns
+    assert back.meta.warnings[0].startswith(f"damaged: bad.csv: its first {40 * len(garbage)} bytes are not CSV")
+    out = tmp_path / "out.csv"
+    st = restamp_csv(str(bad), str(out), ClockShift(0.0, 0.0, full.meta.t0_ns))
+    assert out.read_bytes() == good.read_bytes() and st.damage and "left out" in st.damage[0]
+
+
 def test_canonical_edge_cases(tmp_path):
     base = "time_s,gyro_x_rad_s,gyro_y_rad_s,gyro_z_rad_s\n"
     bom = tmp_path / "bom.csv"
