@@ -11,8 +11,12 @@ import sys
 import time
 from typing import TextIO
 
-#: the stage's label takes what the terminal's width leaves beside the bar and the percentage, within these
+#: the stage's label takes what the terminal's width leaves beside the bar and the percentage, within these;
+#: the bar is BAR_PREFERRED wide where the label has room, else narrower (down to BAR_MIN), up to BAR_MAX
 LABEL_MIN, LABEL_MAX = 28, 60
+BAR_MIN, BAR_PREFERRED, BAR_MAX = 10, 24, 30
+#: the line's other characters: two of indent, " [", "] " and "100.0%"
+_FIXED = 12
 
 
 class Progress:
@@ -29,8 +33,9 @@ class Progress:
         # the bar, the label and the percentage on one line of the terminal (a line longer than the terminal
         # wraps, and each redraw then adds a line): the label as wide as the rest leaves, within LABEL_MIN..MAX
         cols = shutil.get_terminal_size((80, 24)).columns
-        self.label_width = min(max(cols - 1 - 12 - 24, LABEL_MIN), LABEL_MAX)
-        self.width = width if width is not None else min(max(cols - 1 - 12 - self.label_width, 10), 30)
+        self.label_width = min(max(cols - 1 - _FIXED - BAR_PREFERRED, LABEL_MIN), LABEL_MAX)
+        self.width = (width if width is not None
+                      else min(max(cols - 1 - _FIXED - self.label_width, BAR_MIN), BAR_MAX))
         self._last_draw = 0.0
         self._line = 0
         self._stage = ""
