@@ -598,6 +598,8 @@ def _run_dask(jobs: list[PairJob], address: str, on_result) -> None:
         client = Client(address, timeout="20s")
     except (OSError, TimeoutError) as exc:
         raise InputError(f"cannot connect to the Dask scheduler: {exc}", address) from None
+    except (ValueError, TypeError) as exc:  # (distributed's parse of the address: "missing port number")
+        raise InputError(f"not a Dask scheduler address ({exc}): give tcp://HOST:PORT", address) from None
     try:
         futs = client.map(run_pair, jobs, pure=False, key=[f"tapost-{j.name}-{fingerprint(j)}" for j in jobs])
         by_key = {f.key: j for f, j in zip(futs, jobs)}

@@ -141,6 +141,19 @@ def test_an_output_folder_that_cannot_be_made_is_one_line_or_a_failed_row(tmp_pa
     assert row.status == "failed" and "cannot create the pair's output folder" in row.reason
 
 
+def test_a_scheduler_address_that_is_no_address_is_one_line(tmp_path, fake_numerics, capsys):
+    """--scheduler bogus (no port) was 'internal error: ValueError: missing port number'."""
+    pytest.importorskip("distributed")
+    camp = tmp_path / "camp"
+    (camp / "p1").mkdir(parents=True)
+    m, s = write_fake_pair(camp / "p1", duration_s=20)
+    os.replace(m, camp / "p1" / ("master" + Path(m).suffix))
+    os.replace(s, camp / "p1" / ("slave" + Path(s).suffix))
+    assert main(["batch", str(camp), "-o", str(tmp_path / "o"), "--scheduler", "bogus"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("tapost: bogus: not a Dask scheduler address") and "tcp://HOST:PORT" in err[-1]
+
+
 def test_campaign_processes_and_dask_agree_and_rerun_does_nothing(tmp_path, fake_numerics, monkeypatch, capsys):
     camp = make_campaign(tmp_path)
     before = {str(p): p.stat().st_mtime_ns for p in camp.rglob("*")}
