@@ -178,6 +178,58 @@ def split_at_clock_steps(t_ns: np.ndarray, label: str, warnings: list[str], shar
     return np.arange(bounds[k], bounds[k + 1])
 
 
+#: a stamp out of line with its neighbours in record order (a corrupt time field: one flipped byte of a
+#: DataFlash TimeUS moved a sample 3.5 s ahead, and the stamps after it were taken for a clock stepping back,
+#: which cost a quarter of the log): the jump at least this many median sampling periods, and the stamps
+#: either side of at most OUTLIER_MAX_SAMPLES such samples a normal step apart (at most their count + 2
+#: periods)
+OUTLIER_MIN_PERIODS = 10.0
+OUTLIER_MAX_SAMPLES = 3
+
+
+def stamp_outliers(t_ns: np.ndarray, steps: np.ndarray | None = None) -> np.ndarray:
+    """True for the samples (record order) whose stamps alone jump away from the stream and back: a run of
+    at most OUTLIER_MAX_SAMPLES samples between two stamps that are a normal step apart, the jump in or out
+    of it OUTLIER_MIN_PERIODS median periods or more, one way or the other. A clock that steps back keeps
+    running from its new value, so it is never one. One comparison pass when no stamp runs back."""
+    t = np.asarray(t_ns, dtype=np.int64)
+    n = len(t)
+    out = np.zeros(n, bool)
+    d = np.diff(t) if steps is None else steps
+    back = np.flatnonzero(d < 0) + 1  # t[c] < t[c - 1]
+    if n < 5 or not len(back):
+        return out
+    pos = d[d > 0]
+    if not len(pos):
+        return out
+    med = float(np.median(pos))
+    jump = OUTLIER_MIN_PERIODS * med
+    for c in back[:10_000]:  # (a stream that runs back this often is reordered, not corrupt: sorted as before)
+        if t[c - 1] - t[c] < jump:
+            continue
+        for m in range(1, OUTLIER_MAX_SAMPLES + 1):
+            a = c - 1 - m  # samples a+1 .. c-1 ahead of the stream (too late), t[a] and t[c] a normal step apart
+            if a >= 0 and 0 < t[c] - t[a] <= (m + 2) * med:
+                out[a + 1:c] = True
+                break
+            b = c - 1 + m  # samples c .. b-1 behind it (too early), t[c - 1] and t[b] a normal step apart
+            if b < n and 0 < t[b] - t[c - 1] <= (m + 2) * med:
+                out[c:b] = True
+                break
+    if out.any():
+        # a sample recorded late with its true stamp (a ROS bag's message that arrived late, a tlog's delayed
+        # packet) fills a hole of the stream where its stamp belongs: kept (sorted in, as before). A corrupt
+        # stamp lands where the stream has no hole (between two samples a period apart): dropped
+        rest = np.sort(t[~out])
+        odd = np.flatnonzero(out)
+        i = np.searchsorted(rest, t[odd])
+        inside = (i > 0) & (i < len(rest))
+        hole = np.zeros(len(odd), bool)
+        hole[inside] = rest[i[inside]] - rest[i[inside] - 1] > 1.5 * med
+        out[odd[hole]] = False
+    return out
+
+
 def clean_stream(name: str, s: Stream, warnings: list[str], clock: dict | None = None) -> Stream:
     """Sort by time, drop non-finite and duplicate stamps; report what was done. A clock step back or reset
     (``clock_steps``) keeps one part of the stream; ``clock`` (shared by the streams of one log) says which
@@ -201,6 +253,14 @@ def clean_stream(name: str, s: Stream, warnings: list[str], clock: dict | None =
                         f"(corrupt data?)")
         t, v = t[~bad], v[~bad]
     d = np.diff(t) if len(t) > 1 else None  # the stamp steps, reused while no sample is dropped
+    if d is not None and np.any(d < 0):
+        odd = stamp_outliers(t, d)
+        if odd.any():
+            warnings.append(f"{name} ({s.source}): {int(odd.sum())} sample(s) whose stamps jump away from their "
+                            "neighbours and back dropped (a corrupt time field?)")
+            t, v = t[~odd], v[~odd]
+            d = np.diff(t) if len(t) > 1 else None
+        del odd
     if d is not None and np.any(d < 0):
         keep_idx = split_at_clock_steps(t, f"{name} ({s.source}): ", warnings, clock)
         if keep_idx is not None:
