@@ -14,7 +14,7 @@ import pandas as pd
 
 from logtools.errors import InputError
 from logtools.inslog import ACCEL, GYRO, POS, QUAT, VEL, ChannelInfo, InsLog, LogMeta
-from parsers.assemble import drop_stray, implausible, split_at_clock_steps
+from parsers.assemble import drop_stray, implausible, split_at_clock_steps, stamp_outliers
 from parsers.atomic import atomic_path
 from parsers.base import Inventory, Selector, StreamInfo, rate_of, stamp_grid_s
 from parsers.csvtable import decimal_text_to_int, non_numeric_text, numeric_block, read_table
@@ -130,6 +130,13 @@ def load(path: str, selector: Selector) -> InsLog:
         raise InputError("no recognisable data columns (gyro/accel/quaternion/velocity/position)", path)
     if len(t_ns) == 0:
         raise InputError("no data rows", path)
+    if np.any(np.diff(t_ns) < 0):  # a corrupt time cell is dropped alone (parsers.assemble.stamp_outliers)
+        odd = stamp_outliers(t_ns)
+        if odd.any():
+            lines = (np.asarray(df.index, dtype=np.int64) + 2)[odd]  # (the header is line 1)
+            warnings.append(f"time_s column: {int(odd.sum())} line(s) whose time jumps away from the lines around "
+                            f"and back dropped (a corrupt time field?; first at line {int(lines[0])})")
+            t_ns, df = t_ns[~odd], df[~odd]
     if np.any(np.diff(t_ns) < 0):  # a clock step back or reset keeps one part (parsers.assemble.clock_steps)
         keep = split_at_clock_steps(t_ns, "time_s column: ", warnings, unit="line",
                                     rows=np.asarray(df.index, dtype=np.int64) + 2)  # (the header is line 1)

@@ -100,6 +100,21 @@ def test_csv_clock_step_back_keeps_one_part(tmp_path):
     assert rep["status"] == "partial" and "slave log's clock steps back" in rep["status_reason"]
 
 
+def test_csv_corrupt_time_cell_is_dropped_alone(tmp_path):
+    """One time cell with a wrong digit (30 s ahead) in a canonical CSV: that line dropped, said with its line
+    number; not a clock step splitting the file."""
+    rng = np.random.default_rng(3)
+    _, slave = make_pair(rng, latency_s=LAT_S, dur_s=60.0, R=random_rotation(rng))
+    t_ns = slave.meta.t0_ns + np.round(slave.t_imu_s() * 1e9).astype(np.int64)
+    bad = t_ns.copy()
+    bad[3000] += 30_000_000_000
+    p = tmp_path / "slave.csv"
+    p.write_text(_csv_text(bad, slave.gyro_rad_s()))
+    log = cc.load(str(p), Selector())
+    assert len(log.imu) == len(t_ns) - 1 and not any(CLOCK_STEP_WORDS in x for x in log.meta.warnings)
+    assert any("1 line(s) whose time jumps away" in x and "first at line 3002" in x for x in log.meta.warnings)
+
+
 def test_reordering_and_stray_stamps_are_no_clock_step():
     """Late samples (single ones, a burst) are sorted as before; a stray stamp is dropped as before."""
     t = np.arange(20_000, dtype=np.int64) * 5_000_000 + T0_NS  # 200 Hz
