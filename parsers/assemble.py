@@ -226,7 +226,9 @@ def stamp_outliers(t_ns: np.ndarray, steps: np.ndarray | None = None) -> np.ndar
         inside = (i > 0) & (i < len(rest))
         hole = np.zeros(len(odd), bool)
         hole[inside] = rest[i[inside]] - rest[i[inside] - 1] > 1.5 * med
-        out[odd[hole]] = False
+        # (a stamp beyond either end of the stream: the stray-stamp rule's, as before; inside it, a corrupt
+        # stamp is what the clock-step rule would take for a step)
+        out[odd[hole | ~inside]] = False
     return out
 
 
