@@ -486,7 +486,8 @@ def headline_html(rep: dict) -> str:
         else:
             conv.append(f"{r}: <span class=warn>not converged</span>")
     main_conv = align.get(run or "compensated") or {}
-    big = ("<span class=ok>converged</span>" if main_conv.get("converged_s") is not None
+    big = ("<span class=warn>skipped</span>" if "skipped" in main_conv or not main_conv
+           else "<span class=ok>converged</span>" if main_conv.get("converged_s") is not None
            else "<span class=ok>settled</span>" if main_conv.get("still_converging") is False
            else "<span class=warn>not converged</span>")
     cells.append(("alignment", big, "; ".join(conv)))

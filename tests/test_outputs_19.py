@@ -332,6 +332,9 @@ def test_html_headline_of_a_damaged_input_and_of_a_failed_latency():
     assert "not determined" in head and "too little motion" in head
     assert "Status <span class=fail>failed</span>" in head
     assert "No quality figures" in page
+    # both alignment runs skipped: the alignment card says so (it said "not converged")
+    card = head.split("<div class=t>alignment</div>")[1].split("</div>")[0]
+    assert "<span class=warn>skipped</span>" in card and "not converged" not in card
 
 
 # ---- tapost inspect ---------------------------------------------------------------------------
