@@ -5,7 +5,9 @@ import contextlib
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+
+from logtools.errors import InputError
 
 
 @contextlib.contextmanager
@@ -41,11 +43,33 @@ def replace_path(tmp: str, dst: str, aside: str) -> None:
         shutil.rmtree(old, ignore_errors=True) if os.path.isdir(old) else os.remove(old)
 
 
+def is_bag_folder(path: str) -> bool:
+    """A ROS 2 bag's folder (its metadata.yaml): what a folder output of that kind may replace."""
+    return os.path.isfile(os.path.join(path, "metadata.yaml"))
+
+
+def check_replaceable(path: str, same_kind: Callable[[str], bool], what: str) -> None:
+    """InputError unless a folder output ``what`` may go to ``path``: nothing there, an empty folder, or a folder
+    ``same_kind`` says is an earlier output of its kind. A file, or a folder of other things, is never replaced
+    by one (`-o` naming a file or an output folder once put a ROS 2 bag in their place)."""
+    if not os.path.lexists(path):
+        return
+    if os.path.islink(path) or not os.path.isdir(path):
+        raise InputError(f"exists and is not a folder: a {what} is one (not replaced; give another output path)",
+                         path)
+    if os.listdir(path) and not same_kind(path):
+        raise InputError(f"exists and holds other files than a {what} (not replaced; give another output path, "
+                         "or remove it)", path)
+
+
 @contextlib.contextmanager
-def atomic_folder(path: str, name: str = "bag") -> Iterator[str]:
+def atomic_folder(path: str, name: str = "bag", same_kind: Callable[[str], bool] | None = None,
+                  what: str = "folder") -> Iterator[str]:
     """Yield a not yet existing path ``name`` inside a temporary folder next to ``path`` (a folder output,
     e.g. a ROS 2 bag, is written there); on success it replaces ``path`` (:func:`replace_path`); the
     temporary folder is removed in any case."""
+    if same_kind is not None:
+        check_replaceable(path, same_kind, what)
     parent = os.path.dirname(os.path.abspath(path)) or "."
     os.makedirs(parent, exist_ok=True)
     tmpdir = tempfile.mkdtemp(prefix="." + os.path.basename(path) + ".", dir=parent)

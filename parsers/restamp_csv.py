@@ -17,7 +17,7 @@ import tempfile
 import numpy as np
 
 from logtools.errors import InputError
-from parsers.atomic import atomic_path
+from parsers.atomic import atomic_path, check_replaceable
 from parsers.base import Selector
 from parsers.csvtable import decimal_text_to_int, delimiter
 from parsers.restamp import ClockShift, RestampStats, kernel_loader
@@ -267,6 +267,9 @@ def restamp_csv_vendor(src: str, dst: str, shift: ClockShift, *, selector=None) 
                             time_fields=(time_col,),
                             damage=(f"{bad} line(s) without a readable time copied unchanged",) if bad else ())
     unit_dir = os.path.dirname(s.table)
+    # (the unit's folder of CSV files; an earlier export of it may be replaced, nothing else)
+    check_replaceable(dst, lambda p: any(f.lower().endswith(".csv") for f in os.listdir(p))
+                      and not any(os.path.isdir(os.path.join(p, f)) for f in os.listdir(p)), "CSV unit folder")
     parent = os.path.dirname(os.path.abspath(dst)) or "."
     os.makedirs(parent, exist_ok=True)
     tmp_dir = tempfile.mkdtemp(prefix="." + os.path.basename(dst) + ".", suffix=".tmp", dir=parent)

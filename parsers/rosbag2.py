@@ -29,7 +29,7 @@ import numpy as np
 from logtools.errors import InputError
 from logtools.inslog import InsLog
 from parsers import ros_common as rc
-from parsers.atomic import atomic_folder
+from parsers.atomic import atomic_folder, is_bag_folder
 from parsers.base import Inventory, Selector, check_readable
 
 NAME = "rosbag2"
@@ -414,7 +414,7 @@ def write(path: str, log: InsLog, *, storage: str = "sqlite3", log_delay_ns: int
         raise InputError(f"rosbag2 compression must be none, file or message, not {compression!r}", path)
     typestore = rc.default_typestore("cdr")
     topics = rc.ros_topics_from_inslog(log, typestore, "cdr")
-    with atomic_folder(path) as tmp:
+    with atomic_folder(path, same_kind=is_bag_folder, what="ROS 2 bag") as tmp:
         w = Writer(tmp, version=9, storage_plugin=plugin)
         if cmode is not None:
             w.set_compression(cmode, CompressionFormat.ZSTD)

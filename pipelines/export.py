@@ -243,7 +243,8 @@ def write_slave(kinds: tuple[str, ...], out_dir: str, slave: InsLog, shift: Cloc
             entries.append(ExportEntry(kind, None, meta.format if kind == "native" else kind, "", failed=str(exc),
                                        seconds=time.perf_counter() - t))
         except OSError as exc:  # the output could not be written (disk full, permissions...)
-            why = f"cannot write: {exc.strerror or exc}" + (f" ({exc.filename})" if exc.filename else "")
+            where = exc.filename2 if exc.filename2 is not None else exc.filename  # (a rename's target: the output)
+            why = f"cannot write: {exc.strerror or exc}" + (f" ({where})" if where else "")
             entries.append(ExportEntry(kind, None, meta.format if kind == "native" else kind, "", failed=why,
                                        seconds=time.perf_counter() - t))
         except (ValueError, IndexError, KeyError, struct.error) as exc:  # a damaged input a writer choked on

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -190,6 +191,33 @@ def test_vendor_sniff_leaves_canonical_csv_and_binary_alone(tmp_path):
 
 # ---- NGIMU -----------------------------------------------------------------------------------
 @needs_ngimu
+def test_a_vendor_unit_folder_export_never_replaces_a_folder_of_other_things(tmp_path):
+    """The native export of a vendor unit folder (NGIMU: sensors.csv, quaternion.csv, ...) is a folder: it
+    replaces an earlier export of it, never a file or a folder of other things (one line, left as it was)."""
+    if not NGIMU.is_dir():
+        pytest.skip("../shared/realdata not present")
+    from parsers.restamp import ClockShift
+    from parsers.restamp_csv import restamp_csv_vendor
+
+    src = str(NGIMU / "blue")
+    shift = ClockShift(0.001, 0.0, 0)
+    other = tmp_path / "out"
+    other.mkdir()
+    (other / "report.json").write_text("{}")
+    with pytest.raises(InputError, match="holds other files than a CSV unit folder"):
+        restamp_csv_vendor(src, str(other), shift)
+    assert sorted(os.listdir(other)) == ["report.json"]
+    note = tmp_path / "notes.txt"
+    note.write_text("keep me")
+    with pytest.raises(InputError, match="exists and is not a folder"):
+        restamp_csv_vendor(src, str(note), shift)
+    assert note.read_text() == "keep me"
+    dst = tmp_path / "blue_shifted"
+    restamp_csv_vendor(src, str(dst), shift)
+    restamp_csv_vendor(src, str(dst), shift)  # (an earlier export is replaced)
+    assert sorted(os.listdir(dst)) == sorted(os.listdir(src))
+
+
 def test_ngimu_session_units_rates_and_paths():
     inv = registry.inspect_log(str(NGIMU))
     assert inv.format == "csv-vendor"

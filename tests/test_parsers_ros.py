@@ -157,6 +157,34 @@ def test_rosbag2_write_replaces_existing_bag(tmp_path):
     assert len(parsers.load(p).imu) == 80
 
 
+def test_a_bag_never_replaces_a_file_or_a_folder_of_other_things(written, tmp_path, capsys):
+    """A ROS 2 bag is a folder, written in place of an earlier bag. `tapost restamp BAG --from DIR -o README.md`
+    replaced the file README.md with a bag folder, and `-o DIR` (the report's own folder) deleted report.json
+    with the rest of it. A file, or a non-empty folder that is no bag, is now refused in one line and left as
+    it was; an empty folder or an earlier bag is written."""
+    from parsers import restamp_ros
+
+    src = written["bag_sqlite"]
+    shift = ClockShift(0.01, 0.0, parsers.load(src).meta.t0_ns)
+    note = tmp_path / "README.md"
+    note.write_text("keep me")
+    other = tmp_path / "out"
+    other.mkdir()
+    (other / "report.json").write_text("{}")
+    for dst in (note, other):
+        with pytest.raises(InputError, match="not replaced"):
+            restamp_ros.restamp_rosbag2(src, str(dst), shift)
+        with pytest.raises(InputError, match="not replaced"):
+            rosbag2.write(str(dst), synthetic_log(50))
+    assert note.read_text() == "keep me" and (other / "report.json").read_text() == "{}"
+    assert sorted(os.listdir(other)) == ["report.json"]
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    restamp_ros.restamp_rosbag2(src, str(empty), shift)
+    restamp_ros.restamp_rosbag2(src, str(empty), shift)  # (an earlier bag is replaced)
+    assert os.path.isfile(empty / "metadata.yaml")
+
+
 def test_log_time_selector(tmp_path, log):
     p = str(tmp_path / "d.mcap")
     mcap_ros.write(p, log, log_delay_ns=5_000_123)
