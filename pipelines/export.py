@@ -189,12 +189,18 @@ def native_path(out_dir: str, fmt: str, src_path: str, kinds: tuple[str, ...]) -
 
 
 def _is_input(dst: str, inputs: tuple[str, ...]) -> str | None:
-    """The input ``dst`` would replace (the same file, also through a link or another spelling), else None."""
+    """The input ``dst`` would replace (the same file, also through a link or another spelling), or hold (a
+    folder output replaces the folder whole: a ROS 2 bag's storage file given as the slave inside the folder
+    the bag export goes to), else None."""
     for src in inputs:
         try:
             if src and os.path.exists(dst) and os.path.samefile(src, dst):
                 return src
-        except OSError:  # an input gone since it was read: nothing to protect
+            if src and os.path.isdir(dst) and os.path.exists(src):
+                inside = os.path.relpath(os.path.realpath(src), os.path.realpath(dst))
+                if inside != os.curdir and not inside.startswith(os.pardir + os.sep) and inside != os.pardir:
+                    return src
+        except (OSError, ValueError):  # an input gone since it was read: nothing to protect
             pass
     return None
 

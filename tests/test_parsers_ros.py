@@ -185,6 +185,26 @@ def test_a_bag_never_replaces_a_file_or_a_folder_of_other_things(written, tmp_pa
     assert os.path.isfile(empty / "metadata.yaml")
 
 
+def test_a_bag_export_never_replaces_the_folder_its_input_is_in(written, tmp_path):
+    """The slave given as the storage file of a bag that sits where the export goes
+    (OUT/slave_on_master_clock/bag.db3, an earlier export read back, with -o OUT): the export replaced that
+    folder whole, input and all. It now fails with 'would overwrite an input', the input's bytes unchanged."""
+    import hashlib
+
+    from pipelines import export
+
+    out = tmp_path / "out"
+    bag = out / export.BASENAME
+    shutil.copytree(written["bag_sqlite"], bag)
+    db = next(p for p in bag.iterdir() if p.suffix == ".db3")
+    before = hashlib.sha256(db.read_bytes()).hexdigest()
+    slave = parsers.load(str(db))
+    (e,) = export.write_slave(("native",), str(out), slave, ClockShift(0.01, 0.0, slave.meta.t0_ns))
+    assert e.failed and "would overwrite an input" in e.failed, e
+    assert hashlib.sha256(db.read_bytes()).hexdigest() == before
+    assert sorted(p.name for p in out.iterdir()) == [export.BASENAME]
+
+
 def test_log_time_selector(tmp_path, log):
     p = str(tmp_path / "d.mcap")
     mcap_ros.write(p, log, log_delay_ns=5_000_123)
