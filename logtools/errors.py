@@ -23,3 +23,9 @@ class AnalysisError(TapostError):
     """The data are readable but cannot support the analysis (no overlap, no motion, NaNs)."""
 
     exit_code = 1
+
+
+def os_error_path(exc: OSError) -> str | None:
+    """The path an OSError is about as the user knows it: a rename's target (the output), not its temporary
+    source; else the one file it names, or None."""
+    return exc.filename2 if exc.filename2 is not None else exc.filename

@@ -14,7 +14,7 @@ import signal
 import sys
 
 from logtools import __version__
-from logtools.errors import TapostError
+from logtools.errors import TapostError, os_error_path
 
 COMMANDS = {
     "inspect": ("pipelines.inspect_cmd", "list a log's channels, rates, durations, clocks, selectors"),
@@ -157,23 +157,16 @@ def _main(argv: list[str] | None) -> int:
         return 130
     except BrokenPipeError:
         return 0
-    except OSError as exc:
+    except Exception as exc:  # a bug (or the system refusing a file): still one line
         if debug:
             raise
-        if exc.errno not in SYSTEM_REFUSALS:
-            print(f"tapost: internal error: {type(exc).__name__}: {exc} (rerun with --debug for details)",
+        if isinstance(exc, OSError) and exc.errno in SYSTEM_REFUSALS:
+            # the system refused a file (an output's path taken by a folder, a full or read-only disk, no
+            # permission): what the user can act on, named by the path they know
+            where = os_error_path(exc)
+            print(f"tapost: {where}: {exc.strerror}" if where is not None else f"tapost: {exc.strerror}",
                   file=sys.stderr)
-            return 1
-        # the system refused a file (an output's path taken by a folder, a full or read-only disk, no
-        # permission): what the user can act on, named by the path they know (a rename's target, not its
-        # temporary source)
-        where = exc.filename2 if exc.filename2 is not None else exc.filename
-        print(f"tapost: {where}: {exc.strerror}" if where is not None else f"tapost: {exc.strerror}",
-              file=sys.stderr)
-        return 2
-    except Exception as exc:  # a bug: still one line, with a pointer to --debug
-        if debug:
-            raise
+            return 2
         print(f"tapost: internal error: {type(exc).__name__}: {exc} (rerun with --debug for details)",
               file=sys.stderr)
         return 1

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from logtools.errors import InputError
+from logtools.errors import InputError, os_error_path
 from logtools.inslog import ACCEL, GYRO, POS, QUAT, VEL, InsLog
 from parsers.atomic import atomic_path
 from parsers.restamp import ClockShift, RestampStats
@@ -249,7 +249,7 @@ def write_slave(kinds: tuple[str, ...], out_dir: str, slave: InsLog, shift: Cloc
             entries.append(ExportEntry(kind, None, meta.format if kind == "native" else kind, "", failed=str(exc),
                                        seconds=time.perf_counter() - t))
         except OSError as exc:  # the output could not be written (disk full, permissions...)
-            where = exc.filename2 if exc.filename2 is not None else exc.filename  # (a rename's target: the output)
+            where = os_error_path(exc)
             why = f"cannot write: {exc.strerror or exc}" + (f" ({where})" if where else "")
             entries.append(ExportEntry(kind, None, meta.format if kind == "native" else kind, "", failed=why,
                                        seconds=time.perf_counter() - t))
