@@ -43,11 +43,6 @@ def replace_path(tmp: str, dst: str, aside: str) -> None:
         shutil.rmtree(old, ignore_errors=True) if os.path.isdir(old) else os.remove(old)
 
 
-def is_bag_folder(path: str) -> bool:
-    """A ROS 2 bag's folder (its metadata.yaml): what a folder output of that kind may replace."""
-    return os.path.isfile(os.path.join(path, "metadata.yaml"))
-
-
 def check_replaceable(path: str, same_kind: Callable[[str], bool], what: str) -> None:
     """InputError unless a folder output ``what`` may go to ``path``: nothing there, an empty folder, or a folder
     ``same_kind`` says is an earlier output of its kind. A file, or a folder of other things, is never replaced

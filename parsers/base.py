@@ -85,6 +85,10 @@ def rate_of(t_s: np.ndarray) -> float:
     return float(1.0 / np.median(d)) if len(d) else 0.0
 
 
+#: how far into a file whose start is damaged, or has bytes put before it (a transfer's garbage in front of
+#: the file), a format's own start is looked for: ULog's messages, MCAP's records, SQLite's header, a canonical
+#: CSV's header line
+DAMAGED_HEAD_SEARCH_BYTES = 1 << 16
 #: stamps (int64 ns, any clock) beyond +-this are no clock's reading: 2**62 ns is 146 years, past any boot
 #: clock and UNIX time up to 2116. It is also the int64 headroom: two stamps inside it differ by less than
 #: 2**63 (their step cannot wrap), and adding a boot -> UTC offset (under EPOCH_MAX_NS) cannot wrap either.

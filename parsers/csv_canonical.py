@@ -16,7 +16,7 @@ from logtools.errors import InputError
 from logtools.inslog import ACCEL, GYRO, POS, QUAT, VEL, ChannelInfo, InsLog, LogMeta
 from parsers.assemble import drop_stray, implausible, split_at_clock_steps, stamp_outliers
 from parsers.atomic import atomic_path
-from parsers.base import Inventory, Selector, StreamInfo, rate_of, stamp_grid_s
+from parsers.base import DAMAGED_HEAD_SEARCH_BYTES, Inventory, Selector, StreamInfo, rate_of, stamp_grid_s
 from parsers.csvtable import decimal_text_to_int, non_numeric_text, numeric_block, read_table
 
 NAME = "csv"
@@ -43,10 +43,6 @@ def sniff(head: bytes, path: str) -> bool:
     return _is_header(head.split(b"\n", 1)[0])
 
 
-#: how far into a file whose first line is not the canonical header the header line is looked for
-HEADER_SEARCH_BYTES = 1 << 16
-
-
 def header_offset(head: bytes) -> int | None:
     """Where the canonical header line begins in ``head`` (a file's first bytes): 0 normally; after bytes
     put before it (a transfer's garbage in front of the file) the first line start that holds it; None."""
@@ -64,6 +60,13 @@ def header_offset(head: bytes) -> int | None:
 def sniff_damaged(head: bytes, path: str) -> bool:
     """A canonical CSV with bytes before its header line (they are skipped, saying so)."""
     return bool(header_offset(head))
+
+
+def header_start(path: str) -> int:
+    """The byte the canonical CSV at ``path`` starts at: its header line's (0, or past bytes put before it
+    within DAMAGED_HEAD_SEARCH_BYTES); 0 where none is found (the reader then says what is missing)."""
+    with open(path, "rb") as fh:
+        return header_offset(fh.read(DAMAGED_HEAD_SEARCH_BYTES)) or 0
 
 
 def seconds_text_to_ns(values: pd.Series) -> np.ndarray:
@@ -98,8 +101,7 @@ def ns_to_seconds_text(ns: np.ndarray, decimals: int = 9) -> np.ndarray:
 
 
 def _read_frame(path: str) -> tuple[pd.DataFrame, list[str]]:
-    with open(path, "rb") as fh:
-        start = header_offset(fh.read(HEADER_SEARCH_BYTES)) or 0
+    start = header_start(path)
     df, warnings = read_table(path, TIME, start=start)
     if start:
         warnings = [f"damaged: {os.path.basename(path)}: its first {start} bytes are not CSV before the header "

@@ -26,7 +26,7 @@ from logtools.errors import InputError
 from logtools.inslog import InsLog
 from parsers import ros_common as rc
 from parsers.atomic import atomic_path
-from parsers.base import Inventory, Selector, check_readable
+from parsers.base import DAMAGED_HEAD_SEARCH_BYTES, Inventory, Selector, check_readable
 
 NAME = "mcap"
 EXTENSIONS = (".mcap",)
@@ -80,11 +80,7 @@ def footer_start(buf) -> int | None:
     return int(_U64.unpack_from(buf, at + 9)[0])
 
 
-#: how far into a file whose first bytes are not MCAP's magic the start of its records is looked for
-HEAD_SEARCH_BYTES = 1 << 16
-
-
-def records_start(buf, search: int = HEAD_SEARCH_BYTES) -> int | None:
+def records_start(buf, search: int = DAMAGED_HEAD_SEARCH_BYTES) -> int | None:
     """Where the records of a file whose magic is damaged begin: the first Header record within ``search``
     bytes whose profile and library strings fit it and after which two more top-level records chain (valid
     opcodes, inside the file). Normally byte 8; elsewhere when bytes were put before it or lost from the
@@ -108,7 +104,18 @@ def records_start(buf, search: int = HEAD_SEARCH_BYTES) -> int | None:
     return None
 
 
-def summary_shift(buf, search: int = HEAD_SEARCH_BYTES) -> int | None:
+def records_shift(buf) -> int:
+    """How far the records of a file whose magic is damaged are from where its footer and summary count them
+    (bytes put before them: positive; lost from the start: negative; 0 when they are in place or no shift is
+    found): from its Header record (:func:`records_start`), or where that is damaged too, from the summary
+    section's chain to the footer (:func:`summary_shift`). The parser and the export judge a file alike."""
+    h = records_start(buf)
+    if h is not None:
+        return h - len(MAGIC)
+    return summary_shift(buf) or 0
+
+
+def summary_shift(buf, search: int = DAMAGED_HEAD_SEARCH_BYTES) -> int | None:
     """The shift of a file's records against the offsets its footer gives (bytes put before them: positive;
     lost from the start: negative), where the start is damaged past its Header record: the shift, within
     ``search``, at which the summary section's records chain from the footer's summary start exactly up to
@@ -812,17 +819,14 @@ def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
         if buf[:len(MAGIC)] != MAGIC:
             if footer_start(buf) is None:
                 raise InputError("not an MCAP file (bad magic)", path)
-            h = records_start(buf)
-            if h is None:  # (the Header record damaged too: the summary's shift against the footer's offsets)
-                shift = summary_shift(buf)
-                h = None if shift is None else len(MAGIC) + shift
-            if h is None or h == len(MAGIC):
+            shift = records_shift(buf)
+            h = len(MAGIC) + shift
+            if not shift:
                 scan.warnings.append("damaged: the file's first 8 bytes are not MCAP's magic (its footer is); "
                                      "read on from byte 8")
             else:
                 # bytes put before the records (or lost from the start): the offsets the summary gives count
                 # from a start that is not byte 0 here. A copy shifted so that they line up (damaged files only)
-                shift = h - len(MAGIC)
                 buf = bytes(buf[shift:]) if shift > 0 else b"\0" * -shift + bytes(buf)
                 end = len(buf)
                 what = (f"the file's first {h} bytes are not MCAP's start" if shift > 0 else

@@ -215,8 +215,12 @@ def restamp_bytes(raw: bytes, time_col: str, unit: str, shift: ClockShift, path:
     return out[:head_end + n], int(ok.sum()), int((~ok & ~blank).sum())
 
 
-def _rewrite_file(src: str, dst: str, time_col: str, unit: str, shift: ClockShift) -> tuple[int, int]:
+def _rewrite_file(src: str, dst: str, time_col: str, unit: str, shift: ClockShift, start: int = 0
+                  ) -> tuple[int, int]:
+    """``src`` from byte ``start`` (its header line) restamped into ``dst``: (data lines rewritten, damaged
+    lines kept as they were)."""
     with open(src, "rb") as fh:
+        fh.seek(start)
         raw = fh.read()
     new, n, bad = restamp_bytes(raw, time_col, unit, shift, src)
     with atomic_path(dst) as tmp:
@@ -227,19 +231,22 @@ def _rewrite_file(src: str, dst: str, time_col: str, unit: str, shift: ClockShif
 def restamp_csv(src: str, dst: str, shift: ClockShift, *, selector=None) -> RestampStats:
     """Canonical CSV: the ``time_s`` column (UNIX or boot seconds). Bytes before the header line (the parser
     skips them: ``csv_canonical.header_offset``) are left out of the output."""
-    from parsers.csv_canonical import TIME, header_offset
+    from parsers.csv_canonical import TIME, header_start
 
-    with open(src, "rb") as fh:
-        raw = fh.read()
-    start = header_offset(raw[:1 << 16]) or 0
-    new, n, bad = restamp_bytes(raw[start:] if start else raw, TIME, "s", shift, src)
-    with atomic_path(dst) as tmp:
-        new.tofile(tmp)
+    start = header_start(src)
+    n, bad = _rewrite_file(src, dst, TIME, "s", shift, start)
     damage = (f"the first {start} bytes, before the header line, are not CSV: left out",) if start else ()
     if bad:
         damage += (f"{bad} line(s) without a readable time copied unchanged",)
     return RestampStats(path=dst, format="csv", how=HOW, records=n, records_by_type={"rows": n},
                         time_fields=(TIME,), damage=damage)
+
+
+def _is_csv_unit_folder(path: str) -> bool:
+    """A vendor unit's folder of CSV files (no subfolders): what its folder export may replace."""
+    names = os.listdir(path)
+    return any(f.lower().endswith(".csv") for f in names) and not any(
+        os.path.isdir(os.path.join(path, f)) for f in names)
 
 
 def _replace_dir(tmp_dir: str, dst: str) -> None:
@@ -267,9 +274,7 @@ def restamp_csv_vendor(src: str, dst: str, shift: ClockShift, *, selector=None) 
                             time_fields=(time_col,),
                             damage=(f"{bad} line(s) without a readable time copied unchanged",) if bad else ())
     unit_dir = os.path.dirname(s.table)
-    # (the unit's folder of CSV files; an earlier export of it may be replaced, nothing else)
-    check_replaceable(dst, lambda p: any(f.lower().endswith(".csv") for f in os.listdir(p))
-                      and not any(os.path.isdir(os.path.join(p, f)) for f in os.listdir(p)), "CSV unit folder")
+    check_replaceable(dst, _is_csv_unit_folder, "CSV unit folder")  # (an earlier export of it, nothing else)
     parent = os.path.dirname(os.path.abspath(dst)) or "."
     os.makedirs(parent, exist_ok=True)
     tmp_dir = tempfile.mkdtemp(prefix="." + os.path.basename(dst) + ".", suffix=".tmp", dir=parent)

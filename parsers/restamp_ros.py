@@ -46,7 +46,7 @@ from logtools.errors import InputError
 from parsers import mcap_ros, rosbag1, rosbag2
 from parsers import ros_containers as rcw
 from parsers import ros_common as rc
-from parsers.atomic import atomic_folder, atomic_path, check_replaceable, is_bag_folder
+from parsers.atomic import atomic_folder, atomic_path, check_replaceable
 from parsers.base import Selector, check_readable
 from parsers.restamp import ClockShift, RestampStats, get_bytes, put_bytes
 
@@ -572,11 +572,8 @@ def _scan_mcap(path: str) -> _McapScan:
     if bytes(buf[:len(mcap_ros.MAGIC)]) != mcap_ros.MAGIC:
         if mcap_ros.footer_start(buf) is None:
             raise InputError("not an MCAP file (bad magic)", path)
-        h = mcap_ros.records_start(buf)  # (the parser's rules: where the records begin against the offsets)
-        if h is None:
-            moved = mcap_ros.summary_shift(buf)
-            h = None if moved is None else len(mcap_ros.MAGIC) + moved
-        moved = 0 if h is None else h - len(mcap_ros.MAGIC)
+        moved = mcap_ros.records_shift(buf)  # (the parser's rule: where the records are against the offsets)
+        h = len(mcap_ros.MAGIC) + moved
         if moved < 0:
             raise InputError(f"damaged: the file's start is cut ({-moved} bytes fewer than its offsets count); "
                              "the native export rewrites a file whose records are where its offsets say (the "
@@ -872,7 +869,7 @@ def restamp_rosbag2(src: str, dst: str, shift: ClockShift, *, selector: str | No
     from rosbags.typesys import Stores, get_typestore
 
     check_readable(src)
-    check_replaceable(dst, is_bag_folder, "ROS 2 bag")  # (before the work: the same check as the write's)
+    check_replaceable(dst, rosbag2.is_bag_folder, "ROS 2 bag")  # (before the work: the same check as the write's)
     bagdir, meta, files, meta_damage = rosbag2._resolve(src)
     if meta_damage is not None:  # (its copy is part of the bag: the export does not invent one)
         raise InputError(f"{meta_damage}: a ROS 2 bag is exported with its metadata.yaml", bagdir)
@@ -931,7 +928,7 @@ def restamp_rosbag2(src: str, dst: str, shift: ClockShift, *, selector: str | No
     if far is not None and far.any():
         notes.append(f"{int(far.sum())} message(s) with a damaged record time (more than a day from the others') "
                      "not in the output")
-    with atomic_folder(dst, same_kind=is_bag_folder, what="ROS 2 bag") as tmp:
+    with atomic_folder(dst, same_kind=rosbag2.is_bag_folder, what="ROS 2 bag") as tmp:
         if storage == "mcap" and mode != "message" and all(p.scan is not None for p in parts):
             _write_ros2_mcap(tmp, meta, mode, parts, streams, msgs, new_log, in_place=msgs.buf is packed)
             how = ("mcap storage files by tapost's vectorised MCAP writer (schemas, channels, metadata as the "
@@ -1020,7 +1017,7 @@ def _restamp_sqlite_in_place(f: str, bagdir: str, meta: dict, dst: str, shift: C
     files_meta = [{"path": name, "starting_time": {"nanoseconds_since_epoch": int(new_log.min()) if n else 0},
                    "duration": {"nanoseconds": int(new_log.max() - new_log.min()) if n else 0}, "message_count": n}]
     info = _bag_info(meta, files_meta, streams, out, new_log)
-    with atomic_folder(dst, same_kind=is_bag_folder, what="ROS 2 bag") as tmp:
+    with atomic_folder(dst, same_kind=rosbag2.is_bag_folder, what="ROS 2 bag") as tmp:
         os.makedirs(tmp)
         rebuilt = rsq.write(w, new_log, os.path.join(tmp, name), info)
         _write_bag_info(tmp, info)

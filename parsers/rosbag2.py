@@ -29,15 +29,13 @@ import numpy as np
 from logtools.errors import InputError
 from logtools.inslog import InsLog
 from parsers import ros_common as rc
-from parsers.atomic import atomic_folder, is_bag_folder
-from parsers.base import Inventory, Selector, check_readable
+from parsers.atomic import atomic_folder
+from parsers.base import DAMAGED_HEAD_SEARCH_BYTES, Inventory, Selector, check_readable
 
 NAME = "rosbag2"
 EXTENSIONS = (".db3", ".yaml", ".zstd")
 SQLITE_MAGIC = b"SQLite format 3\x00"
 ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
-#: how far into a storage file whose first bytes are not SQLite's header the header is looked for
-HEAD_SEARCH_BYTES = 1 << 16
 YAML_KEY = b"rosbag2_bagfile_information"
 _BATCH = 2_000
 _RETRY_QUERIES = 4_000  # a damaged batch is bisected down to single rows with at most this many queries
@@ -72,9 +70,14 @@ def message_rows(con, max_id: int, lost: list[tuple[int, int]]) -> Iterator[list
         yield from read(a, a + _BATCH)
 
 
+def is_bag_folder(path: str) -> bool:
+    """A ROS 2 bag's folder: one holding its metadata.yaml (what a bag written or exported may replace)."""
+    return os.path.isfile(os.path.join(path, "metadata.yaml"))
+
+
 def sniff(head: bytes, path: str) -> bool:
     if os.path.isdir(path):
-        return os.path.isfile(os.path.join(path, "metadata.yaml"))
+        return is_bag_folder(path)
     if path.endswith((".db3.zstd", ".mcap.zstd")) and head.startswith(ZSTD_MAGIC):
         return True  # one file-compressed storage file
     return head.startswith(SQLITE_MAGIC) or YAML_KEY in head[:4096]
@@ -138,7 +141,7 @@ def _read_sqlite(path: str, keep: Callable[[str, str], bool], typestore, warning
                  topics: dict[str, rc.RawTopic]) -> None:
     check_readable(path)
     with open(path, "rb") as fh:
-        head = fh.read(HEAD_SEARCH_BYTES)
+        head = fh.read(DAMAGED_HEAD_SEARCH_BYTES)
     if not head.startswith(SQLITE_MAGIC):
         k = head.find(SQLITE_MAGIC)
         if k <= 0:

@@ -39,7 +39,7 @@ from logtools.errors import InputError
 from logtools.inslog import InsLog
 from parsers.assemble import ClockOffset, Stream, build_inslog
 from parsers.atomic import atomic_path
-from parsers.base import (EPOCH_MAX_NS, STAMP_LIMIT_NS, Inventory, Selector, StreamInfo, check_readable,
+from parsers.base import (DAMAGED_HEAD_SEARCH_BYTES, EPOCH_MAX_NS, STAMP_LIMIT_NS, Inventory, Selector, StreamInfo, check_readable,
                           consensus_offset, counts_to_ns, offset_sigma_s)
 
 NAME = "ulog"
@@ -84,8 +84,6 @@ def sniff(head: bytes, path: str) -> bool:
     return head[:7] == MAGIC
 
 
-#: bytes past the 16-byte header searched for the first intact message of a ULog whose first bytes are damaged
-DAMAGED_HEAD_SEARCH_BYTES = 1 << 16
 #: consecutive plausible message headers (a format definition among them) that mark the messages' start there
 DAMAGED_HEAD_CHAIN = 8
 _FORMAT_TEXT = re.compile(rb"[A-Za-z_][A-Za-z0-9_]*:[a-z]")
