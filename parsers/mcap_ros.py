@@ -151,6 +151,16 @@ def summary_shift(buf, search: int = DAMAGED_HEAD_SEARCH_BYTES) -> int | None:
     return None
 
 
+def inner_shift(buf) -> int:
+    """Bytes put in (positive) or lost (negative) inside a file's data section: the summary section moved by as
+    much from where its footer says (:func:`summary_shift`), the chunks after the damage with it. 0 when the
+    summary is where the footer says, the file has no footer or no such shift is found. The parser and the
+    export judge a file alike."""
+    if footer_start(buf) is None or _summary_records(buf)[1]:
+        return 0
+    return summary_shift(buf) or 0
+
+
 def _header_fits(buf, at: int, ln: int) -> bool:
     """The Header record's body ``buf[at:at + ln]``: its profile and library strings, exactly."""
     if ln < 8 or ln > 1 << 16:
@@ -836,13 +846,11 @@ def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
                                      f"file's byte = offset {shift:+d})")
         footer = False
         n_chunks = 0
-        inner = 0  # bytes put in or lost inside the data section: the summary moved from where the footer says
-        if footer_start(buf) is not None and not _summary_records(buf)[1]:
-            inner = summary_shift(buf) or 0
-            if inner:
-                scan.warnings.append(f"damaged: the summary section is {inner:+d} bytes from where the footer says "
-                                     "(bytes put in or lost inside the file): the chunks after the damage are "
-                                     "read at the summary's offsets moved by as much")
+        inner = inner_shift(buf)
+        if inner:
+            scan.warnings.append(f"damaged: the summary section is {inner:+d} bytes from where the footer says "
+                                 "(bytes put in or lost inside the file): the chunks after the damage are "
+                                 "read at the summary's offsets moved by as much")
         for op, at, nxt in summary_definitions(buf, inner):
             try:
                 scan.schema(buf, at + 9, nxt) if op == _OP_SCHEMA else scan.channel(buf, at + 9)

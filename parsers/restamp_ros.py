@@ -589,13 +589,18 @@ def _scan_mcap(path: str) -> _McapScan:
     sc.file = file
     off, end = len(mcap_ros.MAGIC), len(buf)
     footer = False
-    for op, at, _nxt in mcap_ros.summary_definitions(buf):  # channels known even if their chunk is damaged
+    inner = mcap_ros.inner_shift(buf)  # (bytes put in or lost inside: the parser's rule)
+    if inner:
+        sc.damage.append(f"the summary section is {inner:+d} bytes from where the footer says (bytes put in or "
+                         "lost inside the file): the chunks after the damage read at the summary's offsets moved by "
+                         "as much")
+    for op, at, _nxt in mcap_ros.summary_definitions(buf, inner):  # channels known even if their chunk is damaged
         try:
             (sc.schema if op == _OP["schema"] else sc.channel)(buf, at + 9)
         except (mcap_ros._Damage, struct.error, UnicodeDecodeError):
             pass
     # zstd chunks decompressed into one buffer (the messages' buffer of the export: not held twice)
-    starts = mcap_ros.summary_chunk_starts(buf)  # where the walk picks up again after a damaged stretch
+    starts = mcap_ros.summary_chunk_starts(buf, inner)  # where the walk picks up again after a damaged stretch
     sc.arena = mcap_ros.chunk_arena(buf, off, starts=starts)
     last = off
     with mcap_ros.chunk_prefetch(buf, off, sc.arena, starts) as chunks:  # decompression and CRC ahead, in threads

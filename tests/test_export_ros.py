@@ -400,6 +400,29 @@ def test_damaged_mcap_chunk_is_named(big, tmp_path, case):
     assert sum(map(len, _library_messages(str(tmp_path / "flip_out.mcap"), "mcap").values())) == st.records
 
 
+@pytest.mark.parametrize("change", [777, -777])
+def test_mcap_with_bytes_put_in_or_lost_inside_exports_what_the_parser_reads(big, tmp_path, change):
+    """777 bytes put in (or lost) at 30 % of an MCAP move every offset after them, the summary's too. The
+    parser finds the summary by its chain to the footer and reads the chunks after the damage at their moved
+    offsets; the export used the footer's offsets only and stopped at the damage ("rest of file not read":
+    7382 of 22518 IMU samples of a simulated multirotor written). It now writes what the parser reads."""
+    raw = open(big["mcap"], "rb").read()
+    k = int(0.3 * len(raw))
+    bad = str(tmp_path / "moved.mcap")
+    open(bad, "wb").write(raw[:k] + os.urandom(change) + raw[k:] if change > 0 else raw[:k] + raw[k - change:])
+    parsed = parsers.load(bad)
+    dst = str(tmp_path / "moved_out.mcap")
+    shift = _shift_for(big["log"])
+    st = rr.restamp_mcap(bad, dst, shift)
+    assert any(f"the summary section is {change:+d} bytes from where the footer says" in d for d in st.damage)
+    assert not any("rest of file not read" in d for d in st.damage), st.damage
+    back = parsers.load(dst)
+    assert len(back.imu) == len(parsed.imu) > 0.5 * len(big["log"].imu)  # (the damaged chunk's rest lost)
+    assert parsed.imu.index[-1] == big["log"].imu.index[-1]  # (the last chunk read, and written: below)
+    np.testing.assert_array_equal(_t_ns(back, back.imu), shift.to_master_ns(_t_ns(parsed, parsed.imu)))
+    assert sum(map(len, _library_messages(dst, "mcap").values())) == st.records  # complete and indexed
+
+
 def test_zstd_chunks_are_inflated_into_the_messages_buffer(big, tmp_path, monkeypatch):
     """A zstd MCAP's chunks are decompressed straight into one buffer, which is the messages' buffer the
     export patches (no second copy of the decompressed file); the output is byte for byte the one of the
