@@ -14,7 +14,7 @@ import pandas as pd
 
 from logtools.errors import InputError
 from logtools.inslog import ACCEL, GYRO, POS, QUAT, VEL, ChannelInfo, InsLog, LogMeta
-from parsers.assemble import drop_stray, implausible, split_at_clock_steps, stamp_outliers
+from parsers.assemble import drop_stray, implausible, repeated_samples, split_at_clock_steps, stamp_outliers
 from parsers.atomic import atomic_path
 from parsers.base import DAMAGED_HEAD_SEARCH_BYTES, Inventory, Selector, StreamInfo, rate_of, stamp_grid_s
 from parsers.csvtable import decimal_text_to_int, non_numeric_text, numeric_block, read_table
@@ -132,6 +132,13 @@ def load(path: str, selector: Selector) -> InsLog:
         raise InputError("no recognisable data columns (gyro/accel/quaternion/velocity/position)", path)
     if len(t_ns) == 0:
         raise InputError("no data rows", path)
+    if np.any(np.diff(t_ns) < 0):  # lines repeating earlier ones (parsers.assemble.repeated_samples): dropped
+        again = repeated_samples(t_ns, pd.util.hash_pandas_object(df.drop(columns=TIME), index=False).to_numpy())
+        if again.any():
+            lines = (np.asarray(df.index, dtype=np.int64) + 2)[again]  # (the header is line 1)
+            warnings.append(f"{int(again.sum())} line(s) repeating earlier ones exactly (a stretch of the file "
+                            f"written twice?) dropped (first at line {int(lines[0])})")
+            t_ns, df = t_ns[~again], df[~again]
     if np.any(np.diff(t_ns) < 0):  # a corrupt time cell is dropped alone (parsers.assemble.stamp_outliers)
         odd = stamp_outliers(t_ns)
         if odd.any():

@@ -181,3 +181,52 @@ def test_an_export_through_a_clock_step_says_so():
     text = export.clock_step_caveat(q)
     assert text is not None and "+20.2 ms near 60.0 s" in text and "about 10.1 ms on either side" in text
     assert export.clock_step_caveat({"clock_step": None}) is None and export.clock_step_caveat(None) is None
+
+
+def test_a_stretch_recorded_twice_is_dropped_not_taken_for_a_clock_step():
+    """A stretch of records written twice (a logger's buffer flushed again, a telemetry block resent): the
+    stamps run back by the stretch's length and on again, and the clock-step rule kept one part of the log (a
+    simulated tlog with 0.66 s of its bytes repeated kept 3652 of 6000 IMU samples). Samples that repeat an
+    earlier one exactly, stamp and values, are dropped alone and said; a reset onto stamps already used, with
+    other values, is still a clock step."""
+    from parsers.assemble import repeated_samples
+
+    rng = np.random.default_rng(5)
+    t = np.arange(8000, dtype=np.int64) * 5_000_000 + T0_NS  # 200 Hz
+    v = rng.standard_normal((len(t), 3))
+    idx = np.concatenate([np.arange(3000), np.arange(2870, 8000)])  # samples 2870..2999 recorded twice
+    warns: list[str] = []
+    out = clean_stream("gyro", Stream(t[idx], v[idx], "IMU"), warns)
+    np.testing.assert_array_equal(out.t_ns, t)
+    np.testing.assert_array_equal(out.values, v)
+    assert any("130 sample(s) repeating earlier ones exactly" in w for w in warns), warns
+    assert not any(CLOCK_STEP_WORDS in w for w in warns)
+    assert np.flatnonzero(repeated_samples(t[idx], v[idx])).tolist() == list(range(3000, 3130))
+    other = v[idx].copy()
+    other[3000:] += 1.0  # the same stamps again, other values: a clock reset, not a repeat
+    assert not repeated_samples(t[idx], other).any()
+    warns = []
+    clean_stream("gyro", Stream(t[idx], other, "IMU"), warns)
+    assert any(CLOCK_STEP_WORDS in w for w in warns)
+    assert not repeated_samples(t, v).any()  # (stamps that never run back: one comparison pass)
+
+
+@pytest.mark.parametrize("fmt", ["tlog", "csv"])
+def test_a_log_file_with_a_stretch_of_bytes_repeated_reads_whole(tmp_path, fmt):
+    """The same as the format sees it: a tlog's bytes (its frames resynchronised after the cut copy) or a
+    canonical CSV's lines repeated in place; every sample read once, none lost to a clock step."""
+    from logtools import sim
+    from parsers import registry
+
+    pair = sim.simulate(sim.scenario_config("multirotor", duration_s=30.0, seed=3))
+    good = tmp_path / f"good.{fmt}"
+    registry.write(str(good), pair.slave, fmt)
+    raw = good.read_bytes()
+    a, b = int(0.40 * len(raw)), int(0.42 * len(raw))
+    bad = tmp_path / f"bad.{fmt}"
+    bad.write_bytes(raw[:b] + raw[a:b] + raw[b:])
+    full, back = registry.load(str(good)), registry.load(str(bad))
+    assert not any(CLOCK_STEP_WORDS in w for w in back.meta.warnings), back.meta.warnings
+    assert any("repeating earlier ones exactly" in w for w in back.meta.warnings)
+    assert len(full.imu) - 2 <= len(back.imu) <= len(full.imu)  # (the frame cut by the copy's ends: its CRC)
+    assert len(full.nav) - 2 <= len(back.nav) <= len(full.nav)
