@@ -302,22 +302,19 @@ def clean_stream(name: str, s: Stream, warnings: list[str], clock: dict | None =
                         f"(corrupt data?)")
         t, v = t[~bad], v[~bad]
     d = np.diff(t) if len(t) > 1 else None  # the stamp steps, reused while no sample is dropped
-    if d is not None and np.any(d < 0):
-        again = repeated_samples(t, v)
-        if again.any():
-            warnings.append(f"{name} ({s.source}): {int(again.sum())} sample(s) repeating earlier ones exactly "
-                            "(stamp and values: a stretch of the log recorded twice?) dropped")
-            t, v = t[~again], v[~again]
+    # samples whose stamps run back for another reason than the clock: dropped alone, before the clock-step rule
+    for find, what in ((lambda: repeated_samples(t, v), "repeating earlier ones exactly (stamp and values: a "
+                        "stretch of the log recorded twice?) dropped"),
+                       (lambda: stamp_outliers(t, d), "whose stamps jump away from their neighbours and back "
+                        "dropped (a corrupt time field?)")):
+        if d is None or not np.any(d < 0):
+            break
+        drop = find()
+        if drop.any():
+            warnings.append(f"{name} ({s.source}): {int(drop.sum())} sample(s) {what}")
+            t, v = t[~drop], v[~drop]
             d = np.diff(t) if len(t) > 1 else None
-        del again
-    if d is not None and np.any(d < 0):
-        odd = stamp_outliers(t, d)
-        if odd.any():
-            warnings.append(f"{name} ({s.source}): {int(odd.sum())} sample(s) whose stamps jump away from their "
-                            "neighbours and back dropped (a corrupt time field?)")
-            t, v = t[~odd], v[~odd]
-            d = np.diff(t) if len(t) > 1 else None
-        del odd
+        del drop
     if d is not None and np.any(d < 0):
         keep_idx = split_at_clock_steps(t, f"{name} ({s.source}): ", warnings, clock)
         if keep_idx is not None:
