@@ -134,6 +134,39 @@ def config_from_args(args: argparse.Namespace):
     return cfg.noiseless() if args.noiseless else cfg
 
 
+def _as_written(truth, role: str, log, path: str, fmt: str):
+    """(truth, note): ``truth`` for the stamps of ``path`` as a reader sees them. A log simulated on UNIX time
+    that its format can only put on UNIX time through records it does not hold (a DataFlash log without GPS
+    records: a slave without nav) is written on its time since boot; truth.json then gives the latency
+    with that clock's offset in it (as for ``--slave-clock boot``), measured on the file read back."""
+    import numpy as np
+
+    from parsers import registry
+
+    if log.meta.clock != "epoch" or not len(log.imu):
+        return truth, ""
+    back = registry.load(path)
+    if back.meta.clock == "epoch" or not len(back.imu):
+        return truth, ""
+    n = min(len(back.imu), len(log.imu))
+    t_sim = log.meta.t0_ns + np.round(log.t_imu_s()[:n] * 1e9).astype(np.int64)
+    t_back = back.meta.t0_ns + np.round(back.t_imu_s()[:n] * 1e9).astype(np.int64)
+    off = int(np.round(np.median((t_back - t_sim).astype(float))))  # (the format's stamp resolution: < 1 us)
+    if role == "slave":
+        truth = dataclasses.replace(truth, latency_s=truth.latency_s + off * 1e-9,
+                                    clock_offset_s=truth.clock_offset_s + off * 1e-9,
+                                    clock_offset_ns=truth.clock_offset_ns + off, slave_clock=back.meta.clock,
+                                    slave_t0_ns=int(truth.slave_t0_ns + off))
+    else:
+        truth = dataclasses.replace(truth, latency_s=truth.latency_s - off * 1e-9,
+                                    clock_offset_s=truth.clock_offset_s - off * 1e-9,
+                                    clock_offset_ns=truth.clock_offset_ns - off, master_clock=back.meta.clock,
+                                    master_t0_ns=int(truth.master_t0_ns + off))
+    return truth, (f"the {role} was simulated on UNIX time, but a {fmt} log without GPS records holds time since "
+                   f"boot only: {os.path.basename(path)} is on its boot clock, and truth.json's latency includes "
+                   f"that clock's offset ({off * 1e-9:+.6f} s)")
+
+
 def run(args: argparse.Namespace) -> int:
     from logtools import sim
     from parsers import registry
@@ -161,7 +194,12 @@ def run(args: argparse.Namespace) -> int:
         except OSError as exc:
             raise InputError(f"cannot write: {exc.strerror or exc}", path) from None
         paths[role] = path
-    truth = pair.truth.to_dict()
+    truth_obj = pair.truth
+    for role, log in (("master", pair.master), ("slave", pair.slave)):
+        truth_obj, said = _as_written(truth_obj, role, log, paths[role], fmts[role])
+        if said:
+            print(f"note: {said}")
+    truth = truth_obj.to_dict()
     truth["files"] = {"master": os.path.basename(paths["master"]), "slave": os.path.basename(paths["slave"]),
                       "master_format": fmts["master"], "slave_format": fmts["slave"]}
     tpath = os.path.join(args.out, "truth.json")

@@ -366,6 +366,35 @@ def test_cli_simulate_writes_logs_and_truth(tmp_path, capsys):
     assert np.allclose(m.lat_lon_alt()[1], ref.master.lat_lon_alt()[1], rtol=0, atol=1e-12)
 
 
+def test_cli_simulate_truth_follows_a_slave_file_written_on_its_boot_clock(tmp_path, capsys):
+    """A DataFlash slave without nav has no GPS records, the only way that format puts its stamps on UNIX
+    time: it is written on its time since boot. truth.json said the latency on UNIX time (0.0213 s) while the
+    file read back was 1.7e9 s away; it now gives the latency with that clock's offset in it (as for
+    --slave-clock boot), and the analysis of the pair recovers it."""
+    from parsers import load
+    from pipelines.api import analyze
+    from pipelines.cli import main
+
+    out = tmp_path / "sim"
+    rc = main(["simulate", "aircraft", "-o", str(out), "--duration", "60", "--latency", "0.0213", "--drift",
+               "12", "--slave-format", "dataflash", "--no-slave-nav", "--slave-clock", "epoch"])
+    said = capsys.readouterr().out
+    assert rc == 0 and "slave.bin is on its boot clock" in said
+    truth = json.loads((out / "truth.json").read_text())
+    s = load(str(out / "slave.bin"))
+    assert s.meta.clock == "boot" and truth["clocks"]["slave"] == "boot"
+    assert truth["latency_excl_clock_offset_s"] == 0.0213
+    assert truth["latency_s"] == pytest.approx(0.0213 + truth["clock_offset_s"], abs=1e-9)
+    assert truth["clock_offset_s"] == pytest.approx(s.meta.t0_ns * 1e-9 - 1.7e9 - 0.0213, abs=0.01)
+    lat = analyze(str(out / "master.mcap"), str(out / "slave.bin")).latency
+    assert abs(lat.latency_s - truth["latency_s"]) < max(4 * lat.sigma_s, 1e-4)
+    # (a format that keeps UNIX time: the truth as simulated)
+    rc = main(["simulate", "aircraft", "-o", str(tmp_path / "t"), "--duration", "20", "--latency", "0.0213",
+               "--slave-format", "tlog", "--no-slave-nav"])
+    assert rc == 0 and "boot clock" not in capsys.readouterr().out
+    assert json.loads((tmp_path / "t" / "truth.json").read_text())["latency_s"] == 0.0213
+
+
 @pytest.mark.parametrize("argv,msg", [
     (["--mount", "1,2"], "--mount needs 3"),
     (["--lever-arm", "a,b,c"], "--lever-arm needs 3"),
