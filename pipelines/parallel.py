@@ -83,9 +83,10 @@ _OOB_TAG = "tapost-parallel-oob-1"
 _OOB_ALIGN = 64
 
 
-#: the memfds of this process's children not yet answered, and the pipes that will send a child its later
-#: object (``submit_awaiting``): a child forked later closes them
-_MEMFDS: set[int] = set()
+#: the descriptors a child forked later closes (held there, one would keep another child's channel open):
+#: the memfds of this process's children not yet answered, the pipes that will send a child its later object
+#: (``submit_awaiting``) and a prepared child's request pipe
+_CHILDREN_FDS: set[int] = set()
 
 
 def _memfd() -> int:
@@ -97,15 +98,16 @@ def _memfd() -> int:
         fd = os.memfd_create("tapost-answer", getattr(os, "MFD_CLOEXEC", 0))
     except OSError:
         return -1
-    _MEMFDS.add(fd)
+    _CHILDREN_FDS.add(fd)
     return fd
 
 
 def _in_child(own: int) -> None:
-    """In a child just forked: the other children's memfds closed (held here, one would outlive its answer)."""
-    for fd in _MEMFDS - {own}:
+    """In a child just forked: the other children's descriptors closed (held here, a memfd would outlive its
+    answer, a pipe would never see its end)."""
+    for fd in _CHILDREN_FDS - {own}:
         _close(fd)
-    _MEMFDS.clear()
+    _CHILDREN_FDS.clear()
 
 
 def enable(on: bool = True) -> None:
@@ -261,7 +263,7 @@ class Pending:
         os.close(wfd)
         _close(later_r)
         if later_w >= 0:
-            _MEMFDS.add(later_w)  # (a child forked later closes it: else this child would never see its end)
+            _CHILDREN_FDS.add(later_w)  # (a child forked later closes it: else this child would never see its end)
         self._pid, self._rfd, self._memfd, self._later_w = pid, rfd, memfd, later_w
 
     def send(self, value: Any) -> None:
@@ -421,7 +423,7 @@ def _close(*fds: int) -> None:
     for fd in fds:
         if fd is None or fd < 0:
             continue
-        _MEMFDS.discard(fd)
+        _CHILDREN_FDS.discard(fd)
         try:
             os.close(fd)
         except OSError:
@@ -519,7 +521,7 @@ class _Sent:
         finally:
             if self._sent and awaiting:
                 self._req_w = req_w
-                _MEMFDS.add(req_w)  # (a child forked later closes it)
+                _CHILDREN_FDS.add(req_w)  # (a child forked later closes it)
             else:
                 _close(req_w)
 
