@@ -145,7 +145,10 @@ def _as_written(truth, role: str, log, path: str, fmt: str):
 
     if log.meta.clock != "epoch" or not len(log.imu):
         return truth, ""
-    back = registry.load(path)
+    try:
+        back = registry.load(path)
+    except InputError:  # (not readable as a whole: the truth as simulated; analyze says what is wrong)
+        return truth, ""
     if back.meta.clock == "epoch" or not len(back.imu):
         return truth, ""
     n = min(len(back.imu), len(log.imu))
@@ -162,9 +165,10 @@ def _as_written(truth, role: str, log, path: str, fmt: str):
                                     clock_offset_s=truth.clock_offset_s - off * 1e-9,
                                     clock_offset_ns=truth.clock_offset_ns - off, master_clock=back.meta.clock,
                                     master_t0_ns=int(truth.master_t0_ns + off))
-    return truth, (f"the {role} was simulated on UNIX time, but a {fmt} log without GPS records holds time since "
-                   f"boot only: {os.path.basename(path)} is on its boot clock, and truth.json's latency includes "
-                   f"that clock's offset ({off * 1e-9:+.6f} s)")
+    return truth, (f"the {role} was simulated on UNIX time, but {os.path.basename(path)} is on its boot clock "
+                   f"(a {fmt} log puts its stamps on UNIX time only through records this one does not hold, such "
+                   f"as DataFlash's GPS records without nav): truth.json's latency includes that clock's offset "
+                   f"({off * 1e-9:+.6f} s)")
 
 
 def run(args: argparse.Namespace) -> int:
