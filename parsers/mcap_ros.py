@@ -39,7 +39,9 @@ _REC = struct.Struct("<BQ")
 _U16 = struct.Struct("<H")
 _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
-_ENCODINGS = {"cdr": "cdr", "ros1": "ros1"}
+_ENCODINGS = {"cdr": "cdr", "ros1": "ros1", "json": "json"}
+#: the message encodings read: ROS 2 CDR, ROS 1, and JSON with the ROS message's fields (ros_common.json_decode)
+READ_ENCODINGS = ("cdr", "ros1", "json")
 
 
 def sniff(head: bytes, path: str) -> bool:
@@ -412,7 +414,7 @@ class _Scan:
         self.kept[cid] = kept
         self.data[cid] = [] if kept and not self.stream else None
         self.decoders[cid] = _decoder(topic, msgtype, enc, self.schemas.get(sid)) if kept and self.stream else None
-        if kept and self.stream and self.decoders[cid] is None and _ENCODINGS.get(enc, enc) in ("cdr", "ros1"):
+        if kept and self.stream and self.decoders[cid] is None and _ENCODINGS.get(enc, enc) in READ_ENCODINGS:
             raise rc.NotStreamable(f"{topic}: kept, but not a type decoded while reading")
 
     def records(self, buf, start: int, end: int, where: str, *, cut_ok: bool = False) -> None:
@@ -949,7 +951,7 @@ def _rawlog(path: str, fmt: str, scan: _Scan) -> rc.RawLog:
                                      "using the built-in one")
         if keep:
             encodings.add(encoding)
-        if encoding not in ("cdr", "ros1"):
+        if encoding not in READ_ENCODINGS:
             keep = False
             if msgtype in rc.SUPPORTED:
                 scan.warnings.append(f"{topic}: message encoding {enc!r} not supported; topic ignored")
@@ -975,7 +977,7 @@ def _rawlog(path: str, fmt: str, scan: _Scan) -> rc.RawLog:
                 old.data.extend(raw.data)
             continue
         topics[topic] = raw
-    for enc in encodings:  # types without a definition in the file: the built-in ones (loaded only then)
+    for enc in encodings - {"json"}:  # types without a definition in the file: the built-in ones (loaded only then)
         missing = {t.msgtype for t in topics.values() if t.encoding == enc and t.msgtype in rc.SUPPORTED
                    and t.msgtype not in typestore.fielddefs}
         if missing:

@@ -37,6 +37,8 @@ from __future__ import annotations
 import dataclasses
 import os
 import sqlite3
+import json
+import re
 import struct
 import tempfile
 
@@ -54,6 +56,38 @@ HEADER = "std_msgs/msg/Header"
 #: a topic whose header stamps are this far from the unit's clock is on another clock
 _SAME_CLOCK_NS = 10_000_000_000
 _FIRST, _NESTED, _NONE = "first", "nested", "none"
+#: an MCAP channel of JSON-encoded ROS-shaped messages of a type tapost reads (its header.stamp in the text)
+_JSON = "json"
+#: a JSON message's stamp object and its two numbers (ros_common.JSON_ALIASES' names): the digits are
+#: replaced, every other byte of the text kept
+_JSON_STAMP = re.compile(rb'"stamp"\s*:\s*\{[^{}]*\}')
+_JSON_SEC = re.compile(rb'("(?:sec|secs)"\s*:\s*)(-?\d+)')
+_JSON_NSEC = re.compile(rb'("(?:nanosec|nsec|nsecs)"\s*:\s*)(-?\d+)')
+
+
+def _json_stamp_ns(payload: bytes) -> int:
+    """The header stamp (ns) of a JSON-encoded message as the parser reads it; 0 where it has none."""
+    try:
+        msg = json.loads(payload)
+        sec, nsec = rc.json_getpath(msg, "header.stamp.sec"), rc.json_getpath(msg, "header.stamp.nanosec")
+        return int(sec) * 1_000_000_000 + int(nsec)
+    except (ValueError, KeyError, IndexError, TypeError, UnicodeDecodeError):
+        return 0
+
+
+def _json_restamped(payload: bytes, new_ns: int) -> bytes | None:
+    """The message's text with its header stamp's two numbers replaced by ``new_ns`` (every other byte kept);
+    None where the text holds no single stamp object whose numbers are the header's."""
+    sec, nsec = divmod(int(new_ns), 1_000_000_000)
+    m = _JSON_STAMP.search(payload)
+    if m is None or _JSON_STAMP.search(payload, m.end()) is not None:
+        return None
+    obj, n1 = _JSON_SEC.subn(lambda g: g.group(1) + str(sec).encode(), m.group(0))
+    obj, n2 = _JSON_NSEC.subn(lambda g: g.group(1) + str(nsec).encode(), obj)
+    out = payload[:m.start()] + obj + payload[m.end():]
+    if n1 != 1 or n2 != 1 or _json_stamp_ns(out) != new_ns:
+        return None
+    return out
 
 
 # ---- message types: where the Headers are --------------------------------------------------------
@@ -146,7 +180,7 @@ def _unit(streams: list[_Stream], msgs: _Msgs, typestore, selector: str | None, 
     mode = (sel.get("time") or "header").lower()
     topics: dict[str, rc.RawTopic] = {}
     for k, s in enumerate(streams):
-        if s.msgtype in rc.SUPPORTED and s.encoding in ("ros1", "cdr") and s.topic not in topics:
+        if s.msgtype in rc.SUPPORTED and s.encoding in ("ros1", "cdr", "json") and s.topic not in topics:
             idx = np.flatnonzero(msgs.conn == k)
             topics[s.topic] = rc.RawTopic(s.topic, s.msgtype, s.encoding, msgs.log_ns[idx],
                                           [msgs.payload(i) for i in idx[:20].tolist()])
@@ -188,6 +222,12 @@ def _apply(streams: list[_Stream], msgs: _Msgs, typestore, shift: ClockShift, se
             le_v[be] = raw[be].view(">u4").astype(np.int64)
         stamp[idx] = le_v[:, 0] * 1_000_000_000 + le_v[:, 1]
         first[k] = (idx, be)
+    texts: dict[int, np.ndarray] = {}  # JSON-encoded streams: message index (their stamps read from the text)
+    for k, s in enumerate(streams):
+        if s.kind == _JSON:
+            idx = np.flatnonzero(msgs.conn == k)
+            stamp[idx] = [_json_stamp_ns(msgs.payload(i)) for i in idx.tolist()]
+            texts[k] = idx
     log = msgs.log_ns
     wild = np.zeros(n, bool)  # a header stamp far from its record's time: a damaged stamp, written unchanged
     if mode == "log":
@@ -197,7 +237,7 @@ def _apply(streams: list[_Stream], msgs: _Msgs, typestore, shift: ClockShift, se
         have = is_unit & (stamp != 0)
         ref = int(np.median(stamp[have] - log[have])) if have.any() else 0
         t_an = log + ref
-        for idx, _be in first.values():
+        for idx in [idx for idx, _be in first.values()] + list(texts.values()):
             h = idx[stamp[idx] != 0]
             if len(h) and abs(int(np.median(stamp[h] - log[h])) - ref) < _SAME_CLOCK_NS:
                 # (as the reader's stray-stamp policy, parsers.assemble: a stamp a day away from where its
@@ -231,6 +271,25 @@ def _apply(streams: list[_Stream], msgs: _Msgs, typestore, shift: ClockShift, se
             vals[be] = sn[be].astype(">u4").view(np.uint8).reshape(-1, 8)
         put_bytes(buf, msgs.starts[idx] + 4, vals)
     grown: dict[int, bytes] = {}
+    for k, idx in texts.items():  # the stamp's digits replaced in the text (a longer number: repacked below)
+        bad = 0
+        for i in idx.tolist():
+            if stamp[i] == 0 or wild[i]:
+                continue
+            new_ns = int(stamp[i]) - int(delta[i])
+            if new_ns < 0:
+                raise InputError(f"{streams[k].topic}: the shift would make header stamps negative (message {i})",
+                                 path)
+            out = _json_restamped(msgs.payload(i), new_ns)
+            if out is None:
+                bad += 1
+            elif len(out) == msgs.lens[i]:
+                buf[msgs.starts[i]:msgs.starts[i] + len(out)] = np.frombuffer(out, np.uint8)
+            else:
+                grown[i] = out
+        if bad:
+            notes.append(f"{streams[k].topic} (JSON): {bad} messages without one readable header stamp object; "
+                         "written with their text unchanged (record times shifted)")
     for k, s in enumerate(streams):
         if s.kind == _NESTED and s.encoding in ("ros1", "cdr"):
             bad = 0
@@ -670,7 +729,9 @@ def _mcap_streams(sc: _McapScan, typestore) -> tuple[list[int], list[_Stream]]:
         msgtype = rc.normalize_msgtype(name) if name else ""
         if senc in ("ros2msg", "ros1msg", "ros2idl"):
             _registered(typestore, msgtype, text.decode("utf-8", "replace"), "idl" if senc == "ros2idl" else "msg")
-        streams.append(_Stream(topic, msgtype, enc, _header_kind(typestore, msgtype) if enc in ("cdr", "ros1") else _NONE))
+        kind = (_header_kind(typestore, msgtype) if enc in ("cdr", "ros1") else
+                _JSON if enc == "json" and msgtype in rc.SUPPORTED else _NONE)
+        streams.append(_Stream(topic, msgtype, enc, kind))
     return cids, streams
 
 
@@ -741,7 +802,8 @@ def restamp_mcap(src: str, dst: str, shift: ClockShift, *, selector: str | None 
                        layout=layout if msgs.buf is msgs0.buf else None)
     return RestampStats(path=dst, format="mcap", how="tapost's vectorised MCAP writer (chunk compression kept, "
                         "CRCs, message indexes and summary rebuilt); Header stamps patched in the payload "
-                        "bytes (nested Headers through rosbags (de)serialisation)",
+                        "bytes (nested Headers through rosbags (de)serialisation; JSON-encoded messages: the "
+                        "stamp's digits in the text)",
                         records=len(new_log), records_by_type=_counts(streams, msgs.conn),
                         time_fields=("log_time", "publish_time", "header.stamp"),
                         damage=tuple(sc.damage) + tuple(notes))

@@ -112,7 +112,7 @@ class RawTopic:
 
     name: str
     msgtype: str  # normalised, e.g. sensor_msgs/msg/Imu
-    encoding: str  # "cdr" or "ros1"
+    encoding: str  # "cdr", "ros1" or "json" (MCAP's JSON-encoded ROS-shaped messages)
     log_ns: list[int] = field(default_factory=list)
     data: list[bytes] = field(default_factory=list)
     #: the topic decoded while it was read (:class:`StreamDecoder`): then ``log_ns`` is an int64 array and
@@ -311,9 +311,53 @@ class Decoded:
     n_slow: int
 
 
+#: ROS time's field names as JSON encoders of ROS messages write them: ROS 2 (sec, nanosec), Foxglove's
+#: (sec, nsec), ROS 1's rosbridge (secs, nsecs)
+JSON_ALIASES = {"sec": ("sec", "secs"), "nanosec": ("nanosec", "nsec", "nsecs")}
+
+
+def json_getpath(msg, path: str):
+    """:func:`_getpath` in a JSON-decoded message (dicts and lists; ROS time under any of JSON_ALIASES);
+    KeyError, IndexError or TypeError where the message lacks the field."""
+    for part in path.split("."):
+        if part.isdigit():
+            msg = msg[int(part)]
+            continue
+        for name in JSON_ALIASES.get(part, (part,)):
+            if name in msg:
+                msg = msg[name]
+                break
+        else:
+            raise KeyError(part)
+    return msg
+
+
+def json_decode(raw: RawTopic, paths: dict[str, str], index=None) -> dict[str, np.ndarray]:
+    """Columns ``paths`` of JSON-encoded messages (MCAP ``message_encoding: json``, ROS-shaped fields),
+    message by message; a field a message lacks (or a message that is no JSON: damaged) is NaN."""
+    import json
+
+    idx = range(raw.count) if index is None else index
+    cols: dict[str, list] = {k: [] for k in paths}
+    for i in idx:
+        try:
+            msg = json.loads(bytes(raw.data[i]))
+        except (ValueError, UnicodeDecodeError):
+            msg = None
+        for k, p in paths.items():
+            try:
+                v = json_getpath(msg, p)
+                cols[k].append(float(v) if v is not None else math.nan)
+            except (KeyError, IndexError, TypeError, ValueError):
+                cols[k].append(math.nan)
+    return {k: np.asarray(v, dtype=float) for k, v in cols.items()}
+
+
 def library_decode(typestore, raw: RawTopic, paths: dict[str, str], index=None) -> dict[str, np.ndarray]:
     """Reference decode with the rosbags deserialiser, message by message. A message the library
-    cannot decode (damaged) gives NaN in every column."""
+    cannot decode (damaged) gives NaN in every column. JSON-encoded messages: :func:`json_decode`."""
+    if raw.encoding == "json":
+        return json_decode(raw, paths, index)
     idx = range(raw.count) if index is None else index
     deser = typestore.deserialize_cdr if raw.encoding == "cdr" else typestore.deserialize_ros1
     cols: dict[str, list] = {k: [] for k in paths}
@@ -386,6 +430,8 @@ def decode_topic(typestore, raw: RawTopic, paths: dict[str, str], *, fast: bool 
         return Decoded(out, 0, 0)
     if len(raw.data) != n:
         raise InputError(f"topic {raw.name}: message content was not read")
+    if raw.encoding == "json":  # (text: no fixed layout; every message through the JSON decoder)
+        return Decoded(json_decode(raw, paths), n, 0)
     lens = np.fromiter(map(len, raw.data), dtype=np.int64, count=n)
     slow_idx: list[np.ndarray] = []
     n_fast = 0
@@ -669,6 +715,10 @@ class TopicData:
 
 def _frame_id(typestore, raw: RawTopic) -> str:
     try:
+        if raw.encoding == "json":
+            import json
+
+            return str(json_getpath(json.loads(bytes(raw.data[0])), "header.frame_id"))
         deser = typestore.deserialize_cdr if raw.encoding == "cdr" else typestore.deserialize_ros1
         return str(deser(raw.data[0], raw.msgtype).header.frame_id)
     except Exception:
