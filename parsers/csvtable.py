@@ -16,12 +16,16 @@ from logtools.errors import InputError
 def _decimal_to_ns(chars, scale_pow10):  # pragma: no cover - compiled
     """Fixed-width ASCII decimals (rows of ``chars``, NUL padded) -> int64 value * 10**scale_pow10,
     exactly (digits beyond the scale are truncated), and a validity mask. At most 18 significant
-    digits before the scale point fit int64."""
+    digits before the scale point fit int64. A decimal exponent (``5e-05``, ``1.7000000001e+09``: what
+    float formatting writes, pandas' ``to_csv`` for values below 1e-4) is taken exactly as well: the
+    number's significant digits (as many as int64 holds: 18-19) scaled by it (truncated below the scale,
+    as without one)."""
     n, w = chars.shape
     limit = np.int64(9223372036854775807)
     for _ in range(scale_pow10):
         limit //= 10
     limit -= 1
+    top = np.int64(922337203685477580)  # (a value that can still be multiplied by 10 within int64)
     out = np.zeros(n, np.int64)
     ok = np.zeros(n, np.bool_)
     for i in range(n):
@@ -38,21 +42,51 @@ def _decimal_to_ns(chars, scale_pow10):  # pragma: no cover - compiled
         ndig = 0
         seen_dot = False
         good = True
+        whole_over = False  # the whole part beyond int64 once scaled (without an exponent: invalid)
+        mant = np.int64(0)  # the significant digits, as many as int64 holds (for an exponent)
+        nsig = 0
+        shift = 0  # the mantissa's own power of ten
+        has_exp = False
+        exp_neg = False
+        exp = 0
+        ndig_exp = 0
         while j < w and chars[i, j] != 0 and chars[i, j] != 32:
-            c = chars[i, j]
-            if c == 46 and not seen_dot:
+            c = np.int64(chars[i, j])
+            if has_exp:
+                if 48 <= c <= 57:
+                    exp = min(exp * 10 + (c - 48), 1000)
+                    ndig_exp += 1
+                else:
+                    good = False
+            elif c == 46 and not seen_dot:
                 seen_dot = True
             elif 48 <= c <= 57:
                 ndig += 1
+                d = c - 48
+                if nsig > 0 or d != 0:
+                    if mant < top or (mant == top and d <= 7):  # (int64: 19 digits up to 9.22e18)
+                        mant = mant * 10 + d
+                        nsig += 1
+                        if seen_dot:
+                            shift -= 1
+                    elif not seen_dot:
+                        shift += 1
+                elif seen_dot:
+                    shift -= 1
                 if seen_dot:
                     if nfrac < scale_pow10:
-                        frac = frac * 10 + (c - 48)
+                        frac = frac * 10 + d
                         nfrac += 1
-                else:
-                    whole = whole * 10 + (c - 48)
+                elif not whole_over:
+                    whole = whole * 10 + d
                     if whole > limit:  # would overflow int64 once scaled
-                        good = False
+                        whole_over = True
                         whole = 0
+            elif (c == 101 or c == 69) and ndig > 0:  # e, E: the exponent, its sign, then digits
+                has_exp = True
+                if j + 1 < w and (chars[i, j + 1] == 45 or chars[i, j + 1] == 43):
+                    exp_neg = chars[i, j + 1] == 45
+                    j += 1
             else:
                 good = False
             j += 1
@@ -60,7 +94,27 @@ def _decimal_to_ns(chars, scale_pow10):  # pragma: no cover - compiled
             j += 1
         if j < w and chars[i, j] != 0:
             good = False
-        if good and ndig > 0:
+        if not good or ndig == 0:
+            continue
+        if has_exp:
+            if ndig_exp == 0:
+                continue
+            p = scale_pow10 + shift + (-exp if exp_neg else exp)
+            v = mant
+            while p > 0 and v > 0:
+                if v > top:
+                    good = False
+                    break
+                v *= 10
+                p -= 1
+            while p < 0 and v > 0:
+                v //= 10
+                p += 1
+            if not good:
+                continue
+        else:
+            if whole_over:
+                continue
             v = whole
             for _ in range(scale_pow10):
                 v *= 10
@@ -68,8 +122,8 @@ def _decimal_to_ns(chars, scale_pow10):  # pragma: no cover - compiled
             for _ in range(scale_pow10 - nfrac):
                 f *= 10
             v += f
-            out[i] = -v if neg else v
-            ok[i] = True
+        out[i] = -v if neg else v
+        ok[i] = True
     return out, ok
 
 

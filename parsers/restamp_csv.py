@@ -15,6 +15,7 @@ import shutil
 import tempfile
 
 import numpy as np
+import pandas as pd
 
 from logtools.errors import InputError
 from parsers.atomic import atomic_path, check_replaceable
@@ -189,6 +190,24 @@ def _emit(buf, ls, le, cs, ce, ok, new, p, out):  # pragma: no cover - compiled
 _kernel = kernel_loader(globals())  # the numba kernels above, compiled (and cached) on first use
 
 
+def _with_exponents(raw: bytes, cs: np.ndarray, ce: np.ndarray, p: int, ns: np.ndarray, ok: np.ndarray) -> None:
+    """The time cells ``_parse`` (plain decimals, the fast scan) did not read that hold an exponent (``5e-05``:
+    a float writer's small values) read by the readers' own scan (``csvtable.decimal_text_to_int``), into
+    ``ns`` and ``ok``: the export rewrites every time its reader reads (as plain decimals)."""
+    idx = np.flatnonzero(~ok & (cs >= 0))
+    if not len(idx):
+        return
+    cells = [raw[a:b].strip(b' "\r') for a, b in zip(cs[idx].tolist(), ce[idx].tolist())]
+    has_exp = np.asarray([(b"e" in c or b"E" in c) for c in cells])
+    if not has_exp.any():
+        return
+    idx = idx[has_exp]
+    text = pd.Series([c.decode("ascii", "replace") for c, e in zip(cells, has_exp) if e])
+    v, good, _ = decimal_text_to_int(text, p)
+    ns[idx[good]] = v[good]
+    ok[idx[good]] = True
+
+
 def restamp_bytes(raw: bytes, time_col: str, unit: str, shift: ClockShift, path: str) -> tuple[np.ndarray, int, int]:
     """(new file bytes, data lines rewritten, damaged lines kept as they were)."""
     if unit not in _POW10:
@@ -204,6 +223,7 @@ def restamp_bytes(raw: bytes, time_col: str, unit: str, shift: ClockShift, path:
     k = cols.index(time_col)
     ls, le, cs, ce = _kernel("_cells")(buf, k, ord(sep))
     ns, ok = _kernel("_parse")(buf, cs, ce, p)
+    _with_exponents(raw, cs, ce, p, ns, ok)
     blank = le <= ls
     # a value in the unit times 10**p is nanoseconds exactly (s: p=9, ms: 6, us: 3, ns: 0)
     new = ns.copy()

@@ -623,3 +623,83 @@ def test_an_isolated_gyro_spike_is_dropped_a_real_shock_is_kept():
         pair = sim.simulate(sim.scenario_config(scen, duration_s=60.0, seed=5))
         for u in (pair.master, pair.slave):
             assert not impulsive("gyro", u.gyro_rad_s()).any() and not impulsive("accel", u.accel_m_s2()).any()
+
+
+def _decimal_reference(text: str) -> int | None:
+    from decimal import ROUND_DOWN, Decimal, InvalidOperation
+
+    try:
+        x = Decimal(text.strip())
+    except InvalidOperation:
+        return None
+    if not x.is_finite():
+        return None
+    q = int((x * 10 ** 9).to_integral_value(rounding=ROUND_DOWN))
+    return q if abs(q) < 2 ** 63 else None
+
+
+def test_time_text_with_an_exponent_is_read_exactly():
+    """``5e-05`` (pandas' to_csv for a time below 1e-4), ``1.700000000123456789e+09``: decimal text with an
+    exponent is read exactly as the number it writes (truncated below the ns, as decimals are), in the plain
+    and the compiled scan; text that is no number stays invalid. Before, such a time was "not a decimal
+    number" and its row was dropped (a file of them: refused)."""
+    import random
+
+    from parsers import csvtable
+
+    cases = ["5e-05", "1e-4", "-2.5E+3", "1.700000000123456789e+09", "1.7e9", ".5e-3", "1.5e-9", "0e5", "1e-10",
+             "12345678901234567890e-10", "1700000000.123456789", "-0.000000001", "+4.", "  3.25  ",
+             "1e", "e5", "1e+", "1.2e3.4", "1e5e5", "9e18", "abc", ""]
+    rng = random.Random(3)
+    for _ in range(3000):
+        x = rng.choice([rng.uniform(-1e3, 1e3), rng.uniform(0, 2e9), rng.uniform(-1e-3, 1e-3)])
+        cases.append(rng.choice([repr(x), f"{x:.6e}", f"{x:.12e}", f"{x:.9f}", f"{x:.3f}"]))
+    chars = csvtable._text_bytes(pd.Series(cases))
+    scans = [csvtable._decimal_to_ns]
+    try:
+        import numba
+
+        scans.append(numba.njit(csvtable._decimal_to_ns))
+    except ImportError:
+        pass
+    want = [_decimal_reference(t) for t in cases]
+    for scan in scans:
+        with np.errstate(over="ignore"):
+            ns, ok = scan(chars, 9)
+        got = [int(v) if o else None for v, o in zip(ns, ok)]
+        assert got == want
+
+
+def test_canonical_csv_written_by_pandas_with_small_times_reads_every_row(tmp_path):
+    """pandas' to_csv writes a float time below 1e-4 as 5e-05; that row was dropped as damaged."""
+    t = np.concatenate([[0.0, 2.5e-5, 5e-5, 7.5e-5], np.arange(1e-4, 20.0, 0.005)])
+    rng = np.random.default_rng(4)
+    df = pd.DataFrame({"time_s": t, **{f"gyro_{c}_rad_s": rng.normal(size=len(t)) for c in "xyz"}})
+    path = tmp_path / "slave.csv"
+    df.to_csv(path, index=False)
+    assert "\n5e-05," in path.read_text()
+    log = registry.load(str(path))
+    assert len(log.imu) == len(t) and not log.meta.warnings
+    np.testing.assert_array_equal(np.round(log.t_imu_s() * 1e9).astype(np.int64)[:4], [0, 25_000, 50_000, 75_000])
+
+
+def test_native_export_of_a_csv_with_exponent_times_rewrites_every_time(tmp_path):
+    """The native CSV export reads the time cells with its own fast scan; a time written as 5e-05 was "a line
+    without a readable time, copied unchanged" (its time left on the slave's clock). Every time the reader
+    reads is now rewritten (as plain decimals)."""
+    from parsers.restamp import ClockShift
+    from pipelines import export
+
+    t = np.concatenate([[0.0, 2.5e-5, 5e-5, 7.5e-5], np.arange(1e-4, 5.0, 0.005)])
+    df = pd.DataFrame({"time_s": t, **{f"gyro_{c}_rad_s": np.sin(t * (i + 1)) for i, c in enumerate("xyz")}})
+    src, dst = tmp_path / "slave.csv", tmp_path / "out.csv"
+    df.to_csv(src, index=False)
+    a = registry.load(str(src))
+    shift = ClockShift(0.01, 5.0, a.meta.t0_ns)
+    st = export.write_native(str(src), str(dst), "csv", shift, a.meta.selector)
+    assert not st.damage and st.records == len(t)
+    b = registry.load(str(dst))
+    ta = a.meta.t0_ns + np.round(a.t_imu_s() * 1e9).astype(np.int64)
+    tb = b.meta.t0_ns + np.round(b.t_imu_s() * 1e9).astype(np.int64)
+    np.testing.assert_array_equal(tb, shift.to_master_ns(ta))
+    assert dst.read_text().split("\n", 5)[2].split(",")[0] == "-0.009974950"  # (5e-05 on the master's clock)
