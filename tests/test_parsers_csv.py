@@ -703,3 +703,33 @@ def test_native_export_of_a_csv_with_exponent_times_rewrites_every_time(tmp_path
     tb = b.meta.t0_ns + np.round(b.t_imu_s() * 1e9).astype(np.int64)
     np.testing.assert_array_equal(tb, shift.to_master_ns(ta))
     assert dst.read_text().split("\n", 5)[2].split(",")[0] == "-0.009974950"  # (5e-05 on the master's clock)
+
+
+def test_canonical_csv_with_each_group_in_rows_of_its_own_keeps_every_group(tmp_path):
+    """A writer that puts the IMU's samples and the navigation's in rows of their own (the other group's cells
+    empty), the navigation's at the same stamps as IMU rows: those rows were dropped as duplicate stamps and
+    the navigation lost whole (0 of 3000 rows, no attitude, no velocity for the alignment). Rows sharing a
+    stamp are one row now, each cell the first one given; rows that really repeat a stamp with other values
+    are still duplicates (the first kept, said)."""
+    from logtools import sim
+
+    s = sim.simulate(sim.scenario_config("aircraft", duration_s=20.0, seed=5)).slave
+    t0 = s.meta.t0_ns * 1e-9
+    imu = s.imu.reset_index(drop=True)
+    imu.insert(0, "time_s", t0 + s.imu.index.to_numpy())
+    nav = s.nav.rename(columns={"quat_w": "qw", "quat_x": "qx", "quat_y": "qy", "quat_z": "qz"}).reset_index(drop=True)
+    nav.insert(0, "time_s", t0 + s.nav.index.to_numpy())
+    df = pd.concat([imu, nav], ignore_index=True).sort_values("time_s", kind="stable")
+    path = tmp_path / "rows.csv"
+    df.to_csv(path, index=False, float_format="%.10f")
+    log = registry.load(str(path))
+    assert (len(log.imu), len(log.nav)) == (len(s.imu), len(s.nav)) and not log.meta.warnings
+    np.testing.assert_allclose(log.vel_ned_m_s()[1], s.vel_ned_m_s()[1], atol=1e-9)
+    np.testing.assert_allclose(log.gyro_rad_s(), s.gyro_rad_s(), atol=1e-9)
+    # two rows at one stamp with different gyro values: a duplicate, the first kept
+    text = path.read_text().splitlines()
+    row = text[5].split(",")
+    row[1] = "0.5"
+    path.write_text("\n".join(text[:6] + [",".join(row)] + text[6:]) + "\n")
+    log = registry.load(str(path))
+    assert "1 duplicate time stamps dropped" in log.meta.warnings and len(log.imu) == len(s.imu)
