@@ -283,10 +283,8 @@ def _apply(streams: list[_Stream], msgs: _Msgs, typestore, shift: ClockShift, se
             out = _json_restamped(msgs.payload(i), new_ns)
             if out is None:
                 bad += 1
-            elif len(out) == msgs.lens[i]:
-                buf[msgs.starts[i]:msgs.starts[i] + len(out)] = np.frombuffer(out, np.uint8)
             else:
-                grown[i] = out
+                _new_payload(msgs, i, out, grown)
         if bad:
             notes.append(f"{streams[k].topic} (JSON): {bad} messages without one readable header stamp object; "
                          "written with their text unchanged (record times shifted)")
@@ -308,10 +306,7 @@ def _apply(streams: list[_Stream], msgs: _Msgs, typestore, shift: ClockShift, se
                 except Exception:
                     bad += 1
                     continue
-                if len(out) == msgs.lens[i]:
-                    buf[msgs.starts[i]:msgs.starts[i] + len(out)] = np.frombuffer(out, np.uint8)
-                else:
-                    grown[i] = out
+                _new_payload(msgs, i, out, grown)
             if bad:
                 notes.append(f"{s.topic} ({s.msgtype}): {bad} messages do not deserialise; written with "
                              "their header stamps unchanged")
@@ -321,6 +316,15 @@ def _apply(streams: list[_Stream], msgs: _Msgs, typestore, shift: ClockShift, se
         parts = [grown[i] if i in grown else msgs.payload(i) for i in range(n)]
         msgs = _pack(msgs.conn, msgs.log_ns, parts)
     return new_log, msgs, notes
+
+
+def _new_payload(msgs: _Msgs, i: int, out: bytes, grown: dict[int, bytes]) -> None:
+    """Message ``i``'s payload replaced by ``out``: in place where it has the same length, else kept in
+    ``grown`` for the repack (a re-serialised message padded otherwise, a JSON stamp with more digits)."""
+    if len(out) == msgs.lens[i]:
+        msgs.buf[msgs.starts[i]:msgs.starts[i] + len(out)] = np.frombuffer(out, np.uint8)
+    else:
+        grown[i] = out
 
 
 #: a record time this far outside the central 98 % of a file's record times is a damaged value
