@@ -111,20 +111,28 @@ def _read_frame(path: str) -> tuple[pd.DataFrame, list[str]]:
     return df, warnings
 
 
-def _merge_same_stamp(t_ns: np.ndarray, df: pd.DataFrame, dup: np.ndarray) -> tuple[np.ndarray, pd.DataFrame, int]:
+def _merge_same_stamp(t_ns: np.ndarray, df: pd.DataFrame, dup: np.ndarray) -> tuple[np.ndarray, pd.DataFrame, list[str]]:
     """Rows sharing a time stamp (``dup``: a row's stamp is the row's before it; sorted) as one row: each cell
     the first one given. A writer that puts each column group in rows of its own (the IMU's rows with the
-    navigation cells empty, the navigation's at the same stamps with the IMU's empty) loses nothing; the
-    navigation rows were dropped as duplicates. Returns the stamps, the rows and how many rows repeated a stamp
-    with a value of their own that differs from the one kept (true duplicates: the first kept, said)."""
+    navigation cells empty, the navigation's at the same stamps with the IMU's empty) loses nothing: its
+    navigation rows were dropped as duplicates. Returns the stamps, the rows, and the warnings on the later
+    rows that added nothing: a row repeating an earlier one, and one with a value of its own that differs
+    from the one kept (the first kept)."""
     run = np.cumsum(~dup) - 1  # each row's stamp group
     merged = df.groupby(run, sort=False).first()  # (per column, the first cell given)
     merged.index = df.index[~dup]  # (the first row's line number)
     later = np.flatnonzero(dup)
     mine, kept = df.iloc[later].to_numpy(), merged.iloc[run[later]].to_numpy()
+    first = df.iloc[np.flatnonzero(~dup)[run[later]]].to_numpy()  # (each group's first row)
     given = pd.notna(mine)
-    clash = int((given & (mine != kept)).any(axis=1).sum())
-    return t_ns[~dup], merged, clash
+    clash = (given & (mine != kept)).any(axis=1)
+    again = ~clash & ~(given & pd.isna(first)).any(axis=1)  # (only cells the first row gave, the same)
+    said = []
+    if again.any():
+        said.append(f"{int(again.sum())} duplicate row(s) (the stamp and cells of an earlier row) dropped")
+    if clash.any():
+        said.append(f"{int(clash.sum())} duplicate time stamps dropped")
+    return t_ns[~dup], merged, said
 
 
 def load(path: str, selector: Selector) -> InsLog:
@@ -174,9 +182,8 @@ def load(path: str, selector: Selector) -> InsLog:
     df = df.iloc[order]
     dup = np.concatenate([[False], np.diff(t_ns) == 0])
     if dup.any():
-        t_ns, df, clash = _merge_same_stamp(t_ns, df, dup)
-        if clash:
-            warnings.append(f"{clash} duplicate time stamps dropped")
+        t_ns, df, said = _merge_same_stamp(t_ns, df, dup)
+        warnings.extend(said)
     keep = drop_stray(t_ns, "time_s column: ", warnings)
     t_ns, df = t_ns[keep], df[keep]
     t0_ns = int(t_ns[0])

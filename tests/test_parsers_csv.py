@@ -733,3 +733,8 @@ def test_canonical_csv_with_each_group_in_rows_of_its_own_keeps_every_group(tmp_
     path.write_text("\n".join(text[:6] + [",".join(row)] + text[6:]) + "\n")
     log = registry.load(str(path))
     assert "1 duplicate time stamps dropped" in log.meta.warnings and len(log.imu) == len(s.imu)
+    # a row written twice, the same cells: dropped and said
+    text = path.read_text().splitlines()
+    path.write_text("\n".join(text[:9] + [text[8]] + text[9:]) + "\n")
+    log = registry.load(str(path))
+    assert "1 duplicate row(s) (the stamp and cells of an earlier row) dropped" in log.meta.warnings
