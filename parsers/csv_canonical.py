@@ -123,10 +123,11 @@ def _merge_same_stamp(t_ns: np.ndarray, df: pd.DataFrame, dup: np.ndarray) -> tu
     merged.index = df.index[~dup]  # (the first row's line number)
     later = np.flatnonzero(dup)
     mine, kept = df.iloc[later].to_numpy(), merged.iloc[run[later]].to_numpy()
-    first = df.iloc[np.flatnonzero(~dup)[run[later]]].to_numpy()  # (each group's first row)
+    notna = df.notna()
+    before = notna.groupby(run).cummax().groupby(run).shift(1, fill_value=False)  # (a cell given by a row above)
     given = pd.notna(mine)
     clash = (given & (mine != kept)).any(axis=1)
-    again = ~clash & ~(given & pd.isna(first)).any(axis=1)  # (only cells the first row gave, the same)
+    again = ~clash & ~(given & ~before.iloc[later].to_numpy()).any(axis=1)  # (only cells given above, the same)
     said = []
     if again.any():
         said.append(f"{int(again.sum())} duplicate row(s) (the stamp and cells of an earlier row) dropped")
