@@ -232,7 +232,7 @@ def stamp_outliers(t_ns: np.ndarray, steps: np.ndarray | None = None) -> np.ndar
     return out
 
 
-def repeated_samples(t_ns: np.ndarray, values: np.ndarray, cfg: ClockStepConfig = CLOCK_STEP) -> np.ndarray:
+def repeated_samples(t_ns: np.ndarray, values, cfg: ClockStepConfig = CLOCK_STEP) -> np.ndarray:
     """True for the samples (record order) of a stretch of the log recorded twice (a logger's buffer flushed
     again, a telemetry link's resent block): a run of consecutive samples repeating a run of consecutive
     earlier ones exactly, stamps and values (NaN equal to NaN), the values changing along it. Its stamps run
@@ -240,8 +240,8 @@ def repeated_samples(t_ns: np.ndarray, values: np.ndarray, cfg: ClockStepConfig 
     one part (a tlog with 0.66 s of records repeated lost 39 % of its samples). A stretch whose values do not
     change (a unit at rest, quantised) cannot be told from a clock reset onto the same stamps: left to that
     rule, as is a single sample. Looked for only where the stamps run back by a clock step's ``min_back_s``;
-    ``values`` (n, k) of any dtype whose equal rows are the same sample (a CSV's lines: their cells' hashes).
-    One comparison pass otherwise."""
+    ``values`` (n, k) of any dtype whose equal rows are the same sample (a CSV's lines: their cells' hashes),
+    or a function that makes them (called only then). One comparison pass otherwise."""
     t = np.asarray(t_ns, dtype=np.int64)
     n = len(t)
     out = np.zeros(n, bool)
@@ -255,7 +255,7 @@ def repeated_samples(t_ns: np.ndarray, values: np.ndarray, cfg: ClockStepConfig 
         return out
     first = np.maximum.accumulate(np.where(new_stamp, np.arange(n), 0))  # each stamp's first sample (sorted)
     rows, firsts = order[again], order[first[again]]  # (a repeat comes later in record order than its first)
-    v = np.asarray(values).reshape(n, -1)
+    v = np.asarray(values() if callable(values) else values).reshape(n, -1)
 
     def equal(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         same = a == b

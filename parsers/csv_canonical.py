@@ -111,7 +111,8 @@ def _read_frame(path: str) -> tuple[pd.DataFrame, list[str]]:
     return df, warnings
 
 
-def _merge_same_stamp(t_ns: np.ndarray, df: pd.DataFrame, dup: np.ndarray) -> tuple[np.ndarray, pd.DataFrame, list[str]]:
+def _merge_same_stamp(t_ns: np.ndarray, df: pd.DataFrame, dup: np.ndarray
+                      ) -> tuple[np.ndarray, pd.DataFrame, list[str]]:
     """Rows sharing a time stamp (``dup``: a row's stamp is the row's before it; sorted) as one row: each cell
     the first one given. A writer that puts each column group in rows of its own (the IMU's rows with the
     navigation cells empty, the navigation's at the same stamps with the IMU's empty) loses nothing: its
@@ -158,7 +159,8 @@ def load(path: str, selector: Selector) -> InsLog:
     if len(t_ns) == 0:
         raise InputError("no data rows", path)
     if np.any(np.diff(t_ns) < 0):  # lines repeating earlier ones (parsers.assemble.repeated_samples): dropped
-        again = repeated_samples(t_ns, pd.util.hash_pandas_object(df.drop(columns=TIME), index=False).to_numpy())
+        cells = (lambda: pd.util.hash_pandas_object(df.drop(columns=TIME), index=False).to_numpy())
+        again = repeated_samples(t_ns, cells)
         if again.any():
             lines = (np.asarray(df.index, dtype=np.int64) + 2)[again]  # (the header is line 1)
             warnings.append(f"{int(again.sum())} line(s) repeating earlier ones exactly (a stretch of the file "
