@@ -740,6 +740,10 @@ def topic_data(rawlog: RawLog, name: str, time_mode: str, warnings: list[str],
     cols = dec.columns
     log_ns = np.asarray(raw.log_ns, dtype=np.int64)
     bad = np.isnan(cols["sec"]) | np.isnan(cols["nsec"])
+    headless = raw.encoding == "json" and raw.count and bad.all()  # (JSON objects without a header)
+    if headless:
+        cols["sec"], cols["nsec"] = np.zeros(raw.count), np.zeros(raw.count)
+        bad = np.zeros(raw.count, bool)
     if bad.any():
         warnings.append(f"{name}: {int(bad.sum())} of {raw.count} messages undecodable (damaged); dropped")
         cols = {k: v[~bad] for k, v in cols.items()}
@@ -748,7 +752,8 @@ def topic_data(rawlog: RawLog, name: str, time_mode: str, warnings: list[str],
     if time_mode == "log":
         t_ns, src = log_ns, "log time"
     elif raw.count and not np.any(stamp_ns):
-        warnings.append(f"{name}: header stamps are all zero; log time used instead")
+        warnings.append(f"{name}: " + ("its JSON messages have no header stamp" if headless else
+                                       "header stamps are all zero") + "; log time used instead")
         t_ns, src = log_ns, "log time"
     else:
         t_ns, src = stamp_ns, "header.stamp"

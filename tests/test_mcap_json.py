@@ -108,3 +108,38 @@ def test_json_mcap_native_export_rewrites_only_the_stamps(cdr, tmp_path):
     ta, tb = texts(src), texts(dst)
     assert {k: len(v) for k, v in ta.items()} == {k: len(v) for k, v in tb.items()}
     assert all(sorted(ta[k]) == sorted(tb[k]) for k in ta)
+
+
+def test_json_mcap_without_headers_is_read_on_its_record_times(cdr, tmp_path):
+    """JSON objects without a header (a writer that leaves the time to the MCAP record): every message was
+    "undecodable (damaged)" and the topic empty. Read on the record times, said; the native export shifts
+    those (the text has no stamp to rewrite)."""
+    from mcap.reader import make_reader
+    from mcap.writer import CompressionType, Writer
+
+    with_hdr = str(tmp_path / "json.mcap")
+    _json_mcap(cdr, with_hdr, "nanosec")
+    src = str(tmp_path / "bare.mcap")
+    with open(with_hdr, "rb") as f, open(src, "wb") as out:
+        w = Writer(out, compression=CompressionType.ZSTD)
+        w.start()
+        schemas, channels = {}, {}
+        for schema, channel, msg in make_reader(f).iter_messages():
+            if channel.id not in channels:
+                if schema.name not in schemas:
+                    schemas[schema.name] = w.register_schema(schema.name, "jsonschema", b"{}")
+                channels[channel.id] = w.register_channel(channel.topic, "json", schemas[schema.name])
+            obj = json.loads(msg.data)
+            obj.pop("header")
+            w.add_message(channels[channel.id], msg.log_time, json.dumps(obj).encode(), msg.publish_time,
+                          msg.sequence)
+        w.finish()
+    a, ref = registry.load(src), registry.load(with_hdr)
+    assert (len(a.imu), len(a.nav)) == (len(ref.imu), len(ref.nav))
+    assert any("its JSON messages have no header stamp; log time used instead" in w for w in a.meta.warnings)
+    np.testing.assert_array_equal(a.imu.to_numpy(), ref.imu.to_numpy())
+    shift = ClockShift(0.0417, 15.0, a.meta.t0_ns + 15_000_000_000)
+    dst = str(tmp_path / "out.mcap")
+    export.write_native(src, dst, "mcap", shift, a.meta.selector)
+    b = registry.load(dst)
+    np.testing.assert_array_equal(_stamps_ns(b, b.imu), shift.to_master_ns(_stamps_ns(a, a.imu)))
