@@ -31,7 +31,7 @@ def _as_json(obj, nsec_name: str):
     return obj
 
 
-def _json_mcap(src: str, dst: str, nsec_name: str, indent: int | None = None) -> None:
+def _json_mcap(src: str, dst: str, nsec_name: str, indent: int | None = None, header: bool = True) -> None:
     from mcap.reader import make_reader
     from mcap.writer import CompressionType, Writer
     from rosbags.typesys import Stores, get_typestore
@@ -46,7 +46,10 @@ def _json_mcap(src: str, dst: str, nsec_name: str, indent: int | None = None) ->
                 if schema.name not in schemas:
                     schemas[schema.name] = w.register_schema(schema.name, "jsonschema", b"{}")
                 channels[channel.id] = w.register_channel(channel.topic, "json", schemas[schema.name])
-            text = json.dumps(_as_json(store.deserialize_cdr(msg.data, schema.name), nsec_name), indent=indent)
+            obj = _as_json(store.deserialize_cdr(msg.data, schema.name), nsec_name)
+            if not header:
+                obj.pop("header")
+            text = json.dumps(obj, indent=indent)
             w.add_message(channels[channel.id], msg.log_time, text.encode(), msg.publish_time, msg.sequence)
         w.finish()
 
@@ -114,26 +117,9 @@ def test_json_mcap_without_headers_is_read_on_its_record_times(cdr, tmp_path):
     """JSON objects without a header (a writer that leaves the time to the MCAP record): every message was
     "undecodable (damaged)" and the topic empty. Read on the record times, said; the native export shifts
     those (the text has no stamp to rewrite)."""
-    from mcap.reader import make_reader
-    from mcap.writer import CompressionType, Writer
-
-    with_hdr = str(tmp_path / "json.mcap")
+    with_hdr, src = str(tmp_path / "json.mcap"), str(tmp_path / "bare.mcap")
     _json_mcap(cdr, with_hdr, "nanosec")
-    src = str(tmp_path / "bare.mcap")
-    with open(with_hdr, "rb") as f, open(src, "wb") as out:
-        w = Writer(out, compression=CompressionType.ZSTD)
-        w.start()
-        schemas, channels = {}, {}
-        for schema, channel, msg in make_reader(f).iter_messages():
-            if channel.id not in channels:
-                if schema.name not in schemas:
-                    schemas[schema.name] = w.register_schema(schema.name, "jsonschema", b"{}")
-                channels[channel.id] = w.register_channel(channel.topic, "json", schemas[schema.name])
-            obj = json.loads(msg.data)
-            obj.pop("header")
-            w.add_message(channels[channel.id], msg.log_time, json.dumps(obj).encode(), msg.publish_time,
-                          msg.sequence)
-        w.finish()
+    _json_mcap(cdr, src, "nanosec", header=False)
     a, ref = registry.load(src), registry.load(with_hdr)
     assert (len(a.imu), len(a.nav)) == (len(ref.imu), len(ref.nav))
     assert any("its JSON messages have no header stamp; log time used instead" in w for w in a.meta.warnings)
