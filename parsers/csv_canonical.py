@@ -124,8 +124,7 @@ def _merge_same_stamp(t_ns: np.ndarray, df: pd.DataFrame, dup: np.ndarray
     merged.index = df.index[~dup]  # (the first row's line number)
     later = np.flatnonzero(dup)
     mine, kept = df.iloc[later].to_numpy(), merged.iloc[run[later]].to_numpy()
-    notna = df.notna()
-    before = notna.groupby(run).cummax().groupby(run).shift(1, fill_value=False)  # (a cell given by a row above)
+    before = df.notna().groupby(run).cummax().groupby(run).shift(1, fill_value=False)  # (a cell given above)
     given = pd.notna(mine)
     clash = (given & (mine != kept)).any(axis=1)
     again = ~clash & ~(given & ~before.iloc[later].to_numpy()).any(axis=1)  # (only cells given above, the same)
@@ -158,21 +157,21 @@ def load(path: str, selector: Selector) -> InsLog:
         raise InputError("no recognisable data columns (gyro/accel/quaternion/velocity/position)", path)
     if len(t_ns) == 0:
         raise InputError("no data rows", path)
-    if np.any(np.diff(t_ns) < 0):  # lines repeating earlier ones (parsers.assemble.repeated_samples): dropped
-        cells = (lambda: pd.util.hash_pandas_object(df.drop(columns=TIME), index=False).to_numpy())
-        again = repeated_samples(t_ns, cells)
-        if again.any():
-            lines = (np.asarray(df.index, dtype=np.int64) + 2)[again]  # (the header is line 1)
-            warnings.append(f"{int(again.sum())} line(s) repeating earlier ones exactly (a stretch of the file "
-                            f"written twice?) dropped (first at line {int(lines[0])})")
-            t_ns, df = t_ns[~again], df[~again]
-    if np.any(np.diff(t_ns) < 0):  # a corrupt time cell is dropped alone (parsers.assemble.stamp_outliers)
-        odd = stamp_outliers(t_ns)
-        if odd.any():
-            lines = (np.asarray(df.index, dtype=np.int64) + 2)[odd]  # (the header is line 1)
-            warnings.append(f"time_s column: {int(odd.sum())} line(s) whose time jumps away from the lines around "
-                            f"and back dropped (a corrupt time field?; first at line {int(lines[0])})")
-            t_ns, df = t_ns[~odd], df[~odd]
+    # lines whose times run back for another reason than the clock, dropped alone before the clock-step rule:
+    # a stretch written twice (parsers.assemble.repeated_samples: the lines' cells compared by hash) and a
+    # corrupt time cell (parsers.assemble.stamp_outliers)
+    cells = (lambda: pd.util.hash_pandas_object(df.drop(columns=TIME), index=False).to_numpy())
+    for find, said in ((lambda: repeated_samples(t_ns, cells), "{n} line(s) repeating earlier ones exactly (a "
+                        "stretch of the file written twice?) dropped (first at line {line})"),
+                       (lambda: stamp_outliers(t_ns), "time_s column: {n} line(s) whose time jumps away from the "
+                        "lines around and back dropped (a corrupt time field?; first at line {line})")):
+        if not np.any(np.diff(t_ns) < 0):
+            break
+        drop = find()
+        if drop.any():
+            lines = (np.asarray(df.index, dtype=np.int64) + 2)[drop]  # (the header is line 1)
+            warnings.append(said.format(n=int(drop.sum()), line=int(lines[0])))
+            t_ns, df = t_ns[~drop], df[~drop]
     if np.any(np.diff(t_ns) < 0):  # a clock step back or reset keeps one part (parsers.assemble.clock_steps)
         keep = split_at_clock_steps(t_ns, "time_s column: ", warnings, unit="line",
                                     rows=np.asarray(df.index, dtype=np.int64) + 2)  # (the header is line 1)

@@ -35,10 +35,10 @@ the analysis clock (record time + the median header-minus-record offset of the u
 from __future__ import annotations
 
 import dataclasses
-import os
-import sqlite3
 import json
+import os
 import re
+import sqlite3
 import struct
 import tempfile
 
@@ -180,7 +180,7 @@ def _unit(streams: list[_Stream], msgs: _Msgs, typestore, selector: str | None, 
     mode = (sel.get("time") or "header").lower()
     topics: dict[str, rc.RawTopic] = {}
     for k, s in enumerate(streams):
-        if s.msgtype in rc.SUPPORTED and s.encoding in ("ros1", "cdr", "json") and s.topic not in topics:
+        if s.msgtype in rc.SUPPORTED and s.encoding in mcap_ros.READ_ENCODINGS and s.topic not in topics:
             idx = np.flatnonzero(msgs.conn == k)
             topics[s.topic] = rc.RawTopic(s.topic, s.msgtype, s.encoding, msgs.log_ns[idx],
                                           [msgs.payload(i) for i in idx[:20].tolist()])

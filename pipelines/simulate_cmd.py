@@ -155,16 +155,12 @@ def _as_written(truth, role: str, log, path: str, fmt: str):
     t_sim = log.meta.t0_ns + np.round(log.t_imu_s()[:n] * 1e9).astype(np.int64)
     t_back = back.meta.t0_ns + np.round(back.t_imu_s()[:n] * 1e9).astype(np.int64)
     off = int(np.round(np.median((t_back - t_sim).astype(float))))  # (the format's stamp resolution: < 1 us)
-    if role == "slave":
-        truth = dataclasses.replace(truth, latency_s=truth.latency_s + off * 1e-9,
-                                    clock_offset_s=truth.clock_offset_s + off * 1e-9,
-                                    clock_offset_ns=truth.clock_offset_ns + off, slave_clock=back.meta.clock,
-                                    slave_t0_ns=int(truth.slave_t0_ns + off))
-    else:
-        truth = dataclasses.replace(truth, latency_s=truth.latency_s - off * 1e-9,
-                                    clock_offset_s=truth.clock_offset_s - off * 1e-9,
-                                    clock_offset_ns=truth.clock_offset_ns - off, master_clock=back.meta.clock,
-                                    master_t0_ns=int(truth.master_t0_ns + off))
+    sign = 1 if role == "slave" else -1  # (latency = slave stamp - master stamp)
+    truth = dataclasses.replace(truth, latency_s=truth.latency_s + sign * off * 1e-9,
+                                clock_offset_s=truth.clock_offset_s + sign * off * 1e-9,
+                                clock_offset_ns=truth.clock_offset_ns + sign * off,
+                                **{f"{role}_clock": back.meta.clock,
+                                   f"{role}_t0_ns": int(getattr(truth, f"{role}_t0_ns") + off)})
     return truth, (f"the {role} was simulated on UNIX time, but {os.path.basename(path)} is on its boot clock "
                    f"(a {fmt} log puts its stamps on UNIX time only through records this one does not hold, such "
                    f"as DataFlash's GPS records without nav): truth.json's latency includes that clock's offset "
