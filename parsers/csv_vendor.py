@@ -4,7 +4,8 @@ Three ways to get a column map, tried in this order:
 
 1. ``PATH::map=FILE.json`` or a sidecar ``PATH.map.json`` next to the CSV: a JSON object
    ``{column: [canonical_name, unit], ...}``; canonical names are ``time``, ``gyro_x|y|z``,
-   ``accel_x|y|z``, ``quat_w|x|y|z``, ``vel_n|e|d``, ``lat``, ``lon``, ``alt``. Optional keys:
+   ``accel_x|y|z``, ``quat_w|x|y|z`` (or ``roll``, ``pitch``, ``yaw``), ``vel_n|e|d``, ``lat``, ``lon``, ``alt``.
+   Optional keys:
    ``"_body_frame": "FRD"|"FLU"|"ZUP"``, ``"_nav_frame": "NED"|"ENU"|"NWU"``,
    ``"_quat": "body_to_nav"|"nav_to_body"`` (defaults FRD, NED, body_to_nav).
 2. The NGIMU profile (x-io Technologies NGIMU logs: ``sensors.csv`` with ``Time (s)``,
@@ -12,12 +13,18 @@ Three ways to get a column map, tried in this order:
    next to it). A directory holding ``sensors.csv`` is one log; a session directory whose
    sub-directories hold ``sensors.csv`` is several units (selector ``unit=NAME``).
 3. The header alone, when every needed column names its quantity, axis and unit unambiguously
-   (``Gyro X (deg/s)``, ``gyro_x [rad/s]``, ``accel_z_m_s2``, ``wx (dps)``, ``timestamp (us)``...).
-   Anything else is an InputError naming the columns found and how to write a map.
+   (``Gyro X (deg/s)``, ``gyro_x [rad/s]``, ``accel_z_m_s2``, ``wx (dps)``, ``timestamp (us)``, the
+   ASL/EuRoC dataset's ``#timestamp [ns]``, ``w_RS_S_x [rad s^-1]``, ``a_RS_S_x [m s^-2]``...).
+   Anything else is an InputError naming the columns found and how to write a map. A position or Euler
+   angle group found in part (``Altitude (m)`` alone, ``Heading (deg)`` alone) is left out with a warning.
+
+Attitude as Euler angles (``Roll (deg)``, ``Pitch (deg)``, ``Yaw (deg)``; ``Heading`` and ``Azimuth`` are the
+yaw): the Z-Y-X (yaw, pitch, roll) angles of the body -> nav rotation in the file's frames (FRD/NED unless a
+map says otherwise: the aerospace roll, pitch and heading). A file with a quaternion too: the quaternion.
 
 Units understood (header ``(unit)``/``[unit]`` or a snake-case suffix): rad/s, deg/s, dps, mrad/s,
 deg/h; m/s^2, m/s2, m/s², g, mg, ug; s, ms, us, ns; m/s, km/h, cm/s, mm/s, kn; deg, rad, degE7;
-m, cm, mm, ft.
+m, cm, mm, ft; negative powers written out too (``rad s^-1``, ``m s^-2``, ``m·s⁻²``).
 
 Frames. Generic CSVs without a stated frame are taken as FRD/NED (said in the warnings).
 
@@ -45,7 +52,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from logtools.conventions import DEG, G0_M_S2, quat_conj, quat_from_dcm, quat_mul
+from logtools.conventions import DEG, G0_M_S2, quat_conj, quat_from_dcm, quat_from_euler, quat_mul
 from logtools.errors import InputError
 from logtools.inslog import InsLog
 from parsers import csv_canonical
@@ -58,14 +65,18 @@ NAME = "csv-vendor"
 EXTENSIONS = (".csv", ".txt")
 
 CANONICAL = ("time", "gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z",
-             "quat_w", "quat_x", "quat_y", "quat_z", "vel_n", "vel_e", "vel_d", "lat", "lon", "alt")
+             "quat_w", "quat_x", "quat_y", "quat_z", "roll", "pitch", "yaw", "vel_n", "vel_e", "vel_d",
+             "lat", "lon", "alt")
 GROUPS = {"gyro": ("gyro_x", "gyro_y", "gyro_z"), "accel": ("accel_x", "accel_y", "accel_z"),
-          "quat": ("quat_w", "quat_x", "quat_y", "quat_z"), "vel": ("vel_n", "vel_e", "vel_d"),
-          "pos": ("lat", "lon", "alt")}
+          "quat": ("quat_w", "quat_x", "quat_y", "quat_z"), "euler": ("roll", "pitch", "yaw"),
+          "vel": ("vel_n", "vel_e", "vel_d"), "pos": ("lat", "lon", "alt")}
+#: groups a header may give in part without being refused (an altitude or a heading column next to an IMU's):
+#: the part is left out, with a warning
+OPTIONAL_PARTS = ("euler", "pos")
 #: quantity of each canonical name (decides which units are acceptable)
 QUANTITY = {"time": "time", **{c: "rate" for c in GROUPS["gyro"]}, **{c: "accel" for c in GROUPS["accel"]},
-            **{c: "unitless" for c in GROUPS["quat"]}, **{c: "speed" for c in GROUPS["vel"]},
-            "lat": "angle", "lon": "angle", "alt": "length"}
+            **{c: "unitless" for c in GROUPS["quat"]}, **{c: "angle" for c in GROUPS["euler"]},
+            **{c: "speed" for c in GROUPS["vel"]}, "lat": "angle", "lon": "angle", "alt": "length"}
 #: unit text (normalised) -> (quantity, factor to SI; time in ns; angles in degrees)
 UNITS: dict[str, tuple[str, float]] = {
     "s": ("time", 1e9), "sec": ("time", 1e9), "ms": ("time", 1e6), "us": ("time", 1e3), "ns": ("time", 1.0),
@@ -105,6 +116,7 @@ class ColumnMap:
     origin: str = "header"
     frame_stated: bool = False
     ignored: tuple[str, ...] = field(default_factory=tuple)
+    notes: tuple[str, ...] = ()  # warnings: columns that look like a group but are left out, and why
 
     def column_for(self, canonical: str) -> str | None:
         return next((c for c, (n, _) in self.columns.items() if n == canonical), None)
@@ -116,15 +128,24 @@ class ColumnMap:
 _UNIT_RE = re.compile(r"^(?P<name>.*?)\s*[\(\[](?P<unit>[^\)\]]*)[\)\]]\s*$")
 _AXIS = {"x": "x", "y": "y", "z": "z"}
 _GYRO_WORDS = {"gyro", "gyroscope", "gyr", "omega", "angular", "angularrate", "angularvelocity", "rate"}
-_ACC_WORDS = {"accel", "accelerometer", "acc", "specificforce"}
+_ACC_WORDS = {"accel", "accelerometer", "acc", "acceleration", "specificforce"}
 _QUAT_WORDS = {"quat", "quaternion", "q", "orientation"}
 _VEL_WORDS = {"vel", "velocity", "v", "speed"}
 _NOT_RAW = {"linear", "earth", "filtered", "bias", "std", "sigma", "var", "cov", "error", "err", "mag",
-            "magnetometer", "raw", "setpoint", "sp", "cmd", "target"}
+            "magnetometer", "magnetic", "raw", "setpoint", "sp", "cmd", "target", "gravity"}
+_EULER_NAMES = {"roll": "roll", "pitch": "pitch", "yaw": "yaw", "heading": "yaw", "trueheading": "yaw",
+                "azimuth": "yaw"}
+#: a unit's first letter naming its quantity, as the ASL/EuRoC headers do (``w_RS_S_x [rad s^-1]``, ``a_RS_S_x
+#: [m s^-2]``): read so only with a unit of that quantity
+_LETTER_QUANTITY = {"w": ("rate", "gyro"), "omega": ("rate", "gyro"), "a": ("accel", "accel")}
+#: written-out negative powers of seconds -> a slash (``rad s^-1`` -> ``rad/s``, ``m.s-2`` -> ``m/s^2``)
+_PER_S = re.compile(r"\s*[.·*]?\s*s\s*\^?\s*-\s*([12])$")
 
 
 def norm_unit(text: str) -> str:
-    u = text.strip().lower().replace("²", "^2").replace("°", "deg").replace("µ", "u").replace("μ", "u")
+    u = text.strip().lower().replace("⁻¹", "^-1").replace("⁻²", "^-2")
+    u = u.replace("²", "^2").replace("°", "deg").replace("µ", "u").replace("μ", "u")
+    u = _PER_S.sub(lambda m: "/s" if m.group(1) == "1" else "/s^2", u)
     u = u.replace(" ", "").replace("sec", "s") if u not in ("sec",) else u
     u = u.replace("degrees", "deg").replace("degree", "deg").replace("rads", "rad")
     return {"deg/s": "deg/s", "rad/s": "rad/s", "s": "s"}.get(u, u)
@@ -147,12 +168,14 @@ def split_name_unit(col: str) -> tuple[list[str], str | None]:
     return toks, None
 
 
-def classify(tokens: list[str], quat_file: bool = False) -> str | None:
-    """Canonical name a column's name tokens stand for, or None."""
+def classify(tokens: list[str], quat_file: bool = False, unit: str | None = None) -> str | None:
+    """Canonical name a column's name tokens (and unit, where given) stand for, or None."""
     if not tokens or set(tokens) & _NOT_RAW:
         return None
     t = tokens
     joined = "".join(t)
+    if joined in _EULER_NAMES:
+        return _EULER_NAMES[joined]
     if joined in ("time", "timestamp", "t", "stamp", "timeus", "times", "sampletime"):
         return "time"
     if joined in ("lat", "latitude"):
@@ -171,7 +194,11 @@ def classify(tokens: list[str], quat_file: bool = False) -> str | None:
             if axis.startswith(pre) and len(axis) == len(pre) + 1:
                 head, axis = [kind], axis[len(pre):]
                 break
-    words = set(head)
+    words = set(head) | {"".join(head)}  # ('Specific Force X': 'specificforce')
+    if head and head[0] in _LETTER_QUANTITY and axis in _AXIS and unit is not None:
+        quantity, kind = _LETTER_QUANTITY[head[0]]
+        if UNITS.get(unit, ("?",))[0] == quantity:
+            return f"{kind}_{axis}"
     if words & _GYRO_WORDS or head == ["gyro"]:
         return f"gyro_{axis}" if axis in _AXIS else None
     if words & _ACC_WORDS or head == ["accel"]:
@@ -195,13 +222,19 @@ def map_from_header(columns: list[str], *, quat_file: bool = False) -> ColumnMap
     no_unit: list[str] = []
     bad_unit: list[str] = []
     ignored = []
+    left_out: list[str] = []  # why columns of an optional group are not used
     for col in columns:
         toks, unit = split_name_unit(col)
-        target = classify(toks, quat_file=quat_file)
+        target = classify(toks, quat_file=quat_file, unit=unit)
         if target is None:
             ignored.append(col)
             continue
         q = QUANTITY[target]
+        if target in GROUPS["euler"] and UNITS.get(unit or "?", ("?",))[0] != q:
+            # (names like 'Heading' are also used for other things: without an angle unit, not an attitude)
+            ignored.append(col)
+            left_out.append(f"{col!r} (no angle unit)")
+            continue
         if unit is None:
             if q == "unitless":
                 unit = ""
@@ -213,6 +246,18 @@ def map_from_header(columns: list[str], *, quat_file: bool = False) -> ColumnMap
             continue
         found[col] = (target, unit)
         by_target.setdefault(target, []).append(col)
+    for g in OPTIONAL_PARTS:  # in part or twice (yaw and heading): left out, said
+        names = GROUPS[g]
+        cols = [c for n in names for c in by_target.get(n, [])]
+        if cols and (not all(n in by_target for n in names) or len(cols) > len(names)):
+            twice = [n for n in names if len(by_target.get(n, [])) > 1]
+            left_out.append(f"{', '.join(map(repr, cols))} (" + (f"{'/'.join(twice)} in more than one column"
+                            if twice else f"no complete {'/'.join(names)} group") + ")")
+            ignored.extend(cols)
+            for c in cols:
+                found.pop(c)
+            for n in names:
+                by_target.pop(n, None)
     dup = {t: cs for t, cs in by_target.items() if len(cs) > 1}
     if dup:
         t, cs = next(iter(dup.items()))
@@ -229,7 +274,8 @@ def map_from_header(columns: list[str], *, quat_file: bool = False) -> ColumnMap
         raise MapError(f"incomplete column group(s): {', '.join(partial)}")
     if not complete:
         raise MapError("no complete gyro/accel/quaternion/velocity/position column group")
-    return ColumnMap(found, ignored=tuple(ignored))
+    notes = (f"column(s) not used: {'; '.join(left_out)}",) if left_out else ()
+    return ColumnMap(found, ignored=tuple(ignored), notes=notes)
 
 
 def load_map_file(map_path: str, csv_path: str) -> ColumnMap:
@@ -272,7 +318,7 @@ def _ngimu_map(columns: list[str]) -> ColumnMap | None:
         return None
     cmap = map_from_header(columns)
     return ColumnMap(cmap.columns, body_frame="ZUP", nav_frame="NWU", quat="nav_to_body", origin="NGIMU profile",
-                     frame_stated=True, ignored=cmap.ignored)
+                     frame_stated=True, ignored=cmap.ignored, notes=cmap.notes)
 
 
 # ============================================================================================
@@ -373,8 +419,8 @@ def column_map_for(src: _Source, selector: Selector) -> ColumnMap:
         shown = ", ".join(repr(printable(c)) for c in columns[:10]) + (", ..." if len(columns) > 10 else "")
         raise InputError(
             f"cannot map CSV columns unambiguously ({printable(why, 200)}); columns found: {shown}; write a column map "
-            f"JSON {{column: [canonical_name, unit]}} (names: time, gyro_x.., accel_x.., quat_w.., vel_n.., "
-            f"lat, lon, alt) and pass PATH::map=FILE.json or save it as "
+            f"JSON {{column: [canonical_name, unit]}} (names: time, gyro_x.., accel_x.., quat_w.. or roll/pitch/yaw, "
+            f"vel_n.., lat, lon, alt) and pass PATH::map=FILE.json or save it as "
             f"{os.path.basename(src.table)}.map.json", src.table) from None
 
 
@@ -404,7 +450,8 @@ def _rotate_rows(m: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.stack([m[i, 0] * v[:, 0] + m[i, 1] * v[:, 1] + m[i, 2] * v[:, 2] for i in range(3)], axis=1)
 
 
-def _convert_frames(cmap: ColumnMap, groups: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+def _convert_frames(cmap: ColumnMap, groups: dict[str, np.ndarray], quat: str | None = None) -> dict[str, np.ndarray]:
+    """The groups in FRD/NED; ``quat``: how the quaternion is given (the map's unless said)."""
     b = BODY_FRAMES[cmap.body_frame]
     a = NAV_FRAMES[cmap.nav_frame]
     out = dict(groups)
@@ -415,7 +462,7 @@ def _convert_frames(cmap: ColumnMap, groups: dict[str, np.ndarray]) -> dict[str,
         out["vel"] = _rotate_rows(a, out["vel"])
     if "quat" in out:
         q = out["quat"]
-        if cmap.quat == "nav_to_body":
+        if (quat or cmap.quat) == "nav_to_body":
             q = quat_conj(q)
         if cmap.body_frame != "FRD" or cmap.nav_frame != "NED":
             # R_ned_frd = A R B^T  <=>  q_ned_frd = q(A) q q(B)^-1 (A, B proper rotations): a constant
@@ -466,7 +513,16 @@ def _streams_from_table(path: str, cmap: ColumnMap, groups_wanted: tuple[str, ..
     if n_bad:
         warns.append(f"{os.path.basename(path)}: {n_bad} row(s) with unparseable or missing values dropped "
                      f"(damaged or truncated file?)" + (f"; {non_numeric_text(non_numeric)}" if non_numeric else ""))
-    groups = _convert_frames(cmap, groups)
+    quat_given = cmap.quat
+    if "euler" in groups:  # roll, pitch, yaw (degrees here): the body -> nav rotation's Z-Y-X angles
+        rpy, ok = groups.pop("euler"), masks.pop("euler")
+        if "quat" in groups:
+            warns.append(f"{os.path.basename(path)}: attitude from the quaternion columns; the roll/pitch/yaw "
+                         "columns not used")
+        else:
+            groups["quat"], masks["quat"] = quat_from_euler(np.where(ok[:, None], rpy, 0.0) * DEG), ok
+            quat_given = "body_to_nav"
+    groups = _convert_frames(cmap, groups, quat_given)
     # stamps written with a fixed number of decimals are that coarse (the grid the data shows is found
     # later, parsers.assemble)
     streams = {g: Stream(t_ns[masks[g]], v[masks[g]], f"{os.path.basename(path)}:{g}", res)
@@ -509,6 +565,7 @@ def load(path: str, selector: Selector) -> InsLog:
     src = _resolve(path, selector)
     cmap = column_map_for(src, selector)
     warns: list[str] = []
+    warns.extend(cmap.notes)
     streams = _streams_from_table(src.table, cmap, tuple(GROUPS), warns)
     stamp = _time_note(cmap, src.table)
     if src.quat_table is not None and "quat" not in streams:

@@ -48,6 +48,13 @@ F_M_S2 = np.c_[0.1 * T, -0.2 * np.ones_like(T), -G0_M_S2 + 0.05 * np.sin(T)]
       "accel_z_m_s2"], 1e6, 1 / DEG, 1.0),
     (["Time (s)", "GyroX (rad/s)", "GyroY (rad/s)", "GyroZ (rad/s)", "AccX (m/s^2)", "AccY (m/s^2)",
       "AccZ (m/s^2)", "Temperature (degC)"], 1.0, 1.0, 1.0),
+    (["Time (s)", "Angular Rate X (deg/s)", "Angular Rate Y (deg/s)", "Angular Rate Z (deg/s)",
+      "Acceleration X (m·s⁻²)", "Acceleration Y (m·s⁻²)", "Acceleration Z (m·s⁻²)"], 1.0, 1 / DEG, 1.0),
+    (["Time (ms)", "Gyro X (rad/s)", "Gyro Y (rad/s)", "Gyro Z (rad/s)", "Specific Force X (g)",
+      "Specific Force Y (g)", "Specific Force Z (g)"], 1e3, 1.0, 1 / G0_M_S2),
+    # the ASL/EuRoC dataset layout (and Kalibr's with units): w_ and a_ with SI units written as powers
+    (["#timestamp [ns]", "w_RS_S_x [rad s^-1]", "w_RS_S_y [rad s^-1]", "w_RS_S_z [rad s^-1]",
+      "a_RS_S_x [m s^-2]", "a_RS_S_y [m s^-2]", "a_RS_S_z [m s^-2]"], 1e9, 1.0, 1.0),
 ])
 def test_vendor_units_from_header(tmp_path, header, t_scale, w_scale, f_scale):
     t = T * t_scale
@@ -63,6 +70,59 @@ def test_vendor_units_from_header(tmp_path, header, t_scale, w_scale, f_scale):
     np.testing.assert_allclose(log.accel_m_s2(), F_M_S2, rtol=1e-9, atol=1e-9)
     assert log.meta.clock == "boot"
     assert any("FRD" in w for w in log.meta.warnings)  # the frame assumption is said, never silent
+
+
+def _euler_csv(tmp_path: Path, header: list[str], rpy_deg: np.ndarray, name: str = "ins.csv") -> Path:
+    text = ",".join(header) + "\n" + "\n".join(
+        ",".join(["%.3f" % t] + ["%.12g" % v for v in (*w, *r)]) for t, w, r in zip(T, W_RAD_S, rpy_deg)) + "\n"
+    return _write(tmp_path / name, text)
+
+
+def test_vendor_attitude_as_euler_angles(tmp_path):
+    """Roll, pitch, yaw (heading) columns: the Z-Y-X angles of the body -> nav rotation, FRD/NED by default;
+    in a map's stated frames (FLU/ENU) the same angles of that rotation, converted like a quaternion."""
+    rpy = np.c_[20 * np.sin(T), -10 + 5 * T, (350 + 30 * T) % 360]  # a heading on 0..360, through north
+    q_ned_frd = quat_from_euler(np.radians(rpy))
+    hdr = ["Time (s)", "Gyro X (rad/s)", "Gyro Y (rad/s)", "Gyro Z (rad/s)", "Roll (deg)", "Pitch (deg)",
+           "Heading (deg)"]
+    log = registry.load(str(_euler_csv(tmp_path, hdr, rpy)))
+    _, q = log.quat_wxyz()
+    np.testing.assert_allclose(q * np.sign(np.sum(q * q_ned_frd, axis=1))[:, None], q_ned_frd, atol=1e-9)
+    np.testing.assert_allclose(log.gyro_rad_s(), W_RAD_S, atol=1e-9)
+    # the same attitude as a ROS-style device gives its roll/pitch/yaw (FLU body in ENU), through a map
+    from logtools.conventions import euler_from_quat, quat_ned_frd_to_enu_flu
+    rpy_enu = np.degrees(euler_from_quat(quat_ned_frd_to_enu_flu(q_ned_frd)))
+    p = _euler_csv(tmp_path, ["t", "gx", "gy", "gz", "r", "p", "y"], rpy_enu, "ros.csv")
+    (tmp_path / "ros.csv.map.json").write_text(json.dumps(
+        {"t": ["time", "s"], "gx": ["gyro_x", "rad/s"], "gy": ["gyro_y", "rad/s"], "gz": ["gyro_z", "rad/s"],
+         "r": ["roll", "deg"], "p": ["pitch", "deg"], "y": ["yaw", "deg"], "_body_frame": "FLU", "_nav_frame": "ENU",
+         "_quat": "nav_to_body"}))  # (a quaternion's convention: it does not apply to the angles)
+    _, q = registry.load(str(p)).quat_wxyz()
+    np.testing.assert_allclose(q * np.sign(np.sum(q * q_ned_frd, axis=1))[:, None], q_ned_frd, atol=1e-9)
+    # a quaternion and angles in one file: the quaternion, the angles said to be left out
+    both = _table(["Time (s)", "Quaternion W", "Quaternion X", "Quaternion Y", "Quaternion Z", "Roll (deg)",
+                   "Pitch (deg)", "Yaw (deg)"], [T, *q_ned_frd.T, *(rpy + 5).T], fmt="%.12g")
+    log = registry.load(str(_write(tmp_path / "both.csv", both)))
+    _, q = log.quat_wxyz()
+    np.testing.assert_allclose(q * np.sign(np.sum(q * q_ned_frd, axis=1))[:, None], q_ned_frd, atol=1e-9)
+    assert any("roll/pitch/yaw columns not used" in w for w in log.meta.warnings)
+
+
+def test_vendor_partial_attitude_or_position_columns_are_left_out_and_said(tmp_path):
+    """An IMU CSV with an altitude or a heading column alone, or a yaw and a heading, still reads (its IMU);
+    the columns left out are named in a warning. A part of an IMU group is still refused (a misnamed axis)."""
+    rpy = np.c_[T, T, T]
+    for hdr, named in ((["Time (s)", "Gyro X (rad/s)", "Gyro Y (rad/s)", "Gyro Z (rad/s)", "Altitude (m)",
+                         "Heading (deg)", "Course (deg)"], ("'Altitude (m)'", "'Heading (deg)'")),
+                       (["Time (s)", "Gyro X (rad/s)", "Gyro Y (rad/s)", "Gyro Z (rad/s)", "Pitch (deg)",
+                         "Yaw (deg)", "Heading (deg)"], ("yaw in more than one column",)),
+                       (["Time (s)", "Gyro X (rad/s)", "Gyro Y (rad/s)", "Gyro Z (rad/s)", "Roll", "Pitch",
+                         "Yaw"], ("'Roll' (no angle unit)",))):
+        log = registry.load(str(_euler_csv(tmp_path, hdr, rpy)))
+        np.testing.assert_allclose(log.gyro_rad_s(), W_RAD_S, atol=1e-9)
+        assert "att" not in log.meta.channels and "pos" not in log.meta.channels
+        said = [w for w in log.meta.warnings if "not used" in w]
+        assert len(said) == 1 and all(n in said[0] for n in named), log.meta.warnings
 
 
 def test_vendor_tab_and_semicolon_delimited(tmp_path):
