@@ -13,14 +13,16 @@ import pandas as pd
 from logtools.errors import InputError
 
 
-def _decimal_to_ns(chars, scale_pow10):  # pragma: no cover - compiled
-    """Fixed-width ASCII decimals (rows of ``chars``, NUL padded) -> int64 value * 10**scale_pow10,
-    exactly (digits beyond the scale are truncated), and a validity mask. At most 18 significant
-    digits before the scale point fit int64. A decimal exponent (``5e-05``, ``1.7000000001e+09``: what
-    float formatting writes, pandas' ``to_csv`` for values below 1e-4) is taken exactly as well: the
-    number's significant digits (as many as int64 holds: 18-19) scaled by it (truncated below the scale,
-    as without one)."""
-    n, w = chars.shape
+def _decimal_cells(buf, starts, ends, scale_pow10):  # pragma: no cover - compiled
+    """Decimal text in cells ``buf[starts[i]:ends[i]]`` (bytes; a cell ends at a NUL; spaces and quotes
+    around the number, and a CR after it, are allowed; ``starts[i] < 0``: no cell) -> int64 value *
+    10**scale_pow10, exactly (digits beyond the scale are truncated), and a validity mask. At most 18
+    significant digits before the scale point fit int64. A decimal exponent (``5e-05``,
+    ``1.7000000001e+09``: what float formatting writes, pandas' ``to_csv`` for values below 1e-4) is taken
+    exactly as well: the number's significant digits (as many as int64 holds: 18-19) scaled by it
+    (truncated below the scale, as without one). The one scan of time text: the readers' columns and the
+    native CSV export's cells."""
+    n = starts.shape[0]
     limit = np.int64(9223372036854775807)
     for _ in range(scale_pow10):
         limit //= 10
@@ -29,12 +31,19 @@ def _decimal_to_ns(chars, scale_pow10):  # pragma: no cover - compiled
     out = np.zeros(n, np.int64)
     ok = np.zeros(n, np.bool_)
     for i in range(n):
-        j = 0
-        while j < w and chars[i, j] == 32:
+        j = starts[i]
+        if j < 0:
+            continue
+        w = j
+        while w < ends[i] and buf[w] != 0:  # (the cell ends at a NUL: the padding of a column's text)
+            w += 1
+        while j < w and (buf[j] == 32 or buf[j] == 34):
             j += 1
+        while w > j and (buf[w - 1] == 32 or buf[w - 1] == 34 or buf[w - 1] == 13):
+            w -= 1
         neg = False
-        if j < w and (chars[i, j] == 45 or chars[i, j] == 43):
-            neg = chars[i, j] == 45
+        if j < w and (buf[j] == 45 or buf[j] == 43):
+            neg = buf[j] == 45
             j += 1
         whole = np.int64(0)
         frac = np.int64(0)
@@ -50,8 +59,8 @@ def _decimal_to_ns(chars, scale_pow10):  # pragma: no cover - compiled
         exp_neg = False
         exp = 0
         ndig_exp = 0
-        while j < w and chars[i, j] != 0 and chars[i, j] != 32:
-            c = np.int64(chars[i, j])
+        while j < w:
+            c = np.int64(buf[j])
             if has_exp:
                 if 48 <= c <= 57:
                     exp = min(exp * 10 + (c - 48), 1000)
@@ -84,16 +93,12 @@ def _decimal_to_ns(chars, scale_pow10):  # pragma: no cover - compiled
                         whole = 0
             elif (c == 101 or c == 69) and ndig > 0:  # e, E: the exponent, its sign, then digits
                 has_exp = True
-                if j + 1 < w and (chars[i, j + 1] == 45 or chars[i, j + 1] == 43):
-                    exp_neg = chars[i, j + 1] == 45
+                if j + 1 < w and (buf[j + 1] == 45 or buf[j + 1] == 43):
+                    exp_neg = buf[j + 1] == 45
                     j += 1
             else:
                 good = False
             j += 1
-        while j < w and chars[i, j] == 32:
-            j += 1
-        if j < w and chars[i, j] != 0:
-            good = False
         if not good or ndig == 0:
             continue
         if has_exp:
@@ -127,24 +132,26 @@ def _decimal_to_ns(chars, scale_pow10):  # pragma: no cover - compiled
     return out, ok
 
 
-_DECIMAL_TO_NS = []
+_DECIMAL_CELLS = []
 
 
-def _decimal_kernel():
-    """``_decimal_to_ns`` compiled with numba on first use (cached on disk) when this process runs compiled
-    kernels (logtools.jit), the plain function otherwise."""
-    if not _DECIMAL_TO_NS:
+def decimal_cells_to_int(buf: np.ndarray, starts: np.ndarray, ends: np.ndarray, scale_pow10: int
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """(int64 value * 10**scale_pow10, valid mask) of the decimal text in cells ``buf[starts[i]:ends[i]]``
+    (``_decimal_cells``: compiled with numba on first use, cached on disk, when this process runs compiled
+    kernels (logtools.jit); the plain function otherwise)."""
+    if not _DECIMAL_CELLS:
         from logtools import jit
 
         if jit.compiled():
-            _DECIMAL_TO_NS.append(jit.njit(_decimal_to_ns))
+            _DECIMAL_CELLS.append(jit.njit(_decimal_cells, nogil=True))
         else:  # plain Python over numpy scalars: the overflow guard's wrap-around warns there
-            def quiet(chars, scale_pow10):
+            def quiet(buf, starts, ends, scale_pow10):
                 with np.errstate(over="ignore"):
-                    return _decimal_to_ns(chars, scale_pow10)
+                    return _decimal_cells(buf, starts, ends, scale_pow10)
 
-            _DECIMAL_TO_NS.append(quiet)
-    return _DECIMAL_TO_NS[0]
+            _DECIMAL_CELLS.append(quiet)
+    return _DECIMAL_CELLS[0](buf, np.asarray(starts, np.int64), np.asarray(ends, np.int64), scale_pow10)
 
 
 def _text_bytes(text: pd.Series) -> np.ndarray:
@@ -163,7 +170,8 @@ def decimal_text_to_int(text: pd.Series, scale_pow10: int) -> tuple[np.ndarray, 
     The last is the number of decimals every valid value is written with when it is the same for all
     (a writer's fixed format, ``%.3f``: the values' resolution is 10**-decimals), else None."""
     raw = _text_bytes(text)
-    ns, ok = _decimal_kernel()(raw, scale_pow10)
+    starts = np.arange(len(raw), dtype=np.int64) * raw.shape[1]
+    ns, ok = decimal_cells_to_int(raw.reshape(-1), starts, starts + raw.shape[1], scale_pow10)
     return ns, ok, _fixed_decimals(raw[ok])
 
 

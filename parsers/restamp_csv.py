@@ -15,12 +15,11 @@ import shutil
 import tempfile
 
 import numpy as np
-import pandas as pd
 
 from logtools.errors import InputError
 from parsers.atomic import atomic_path, check_replaceable
 from parsers.base import Selector
-from parsers.csvtable import decimal_text_to_int, delimiter
+from parsers.csvtable import decimal_cells_to_int, delimiter
 from parsers.restamp import ClockShift, RestampStats, kernel_loader
 
 HOW = "text rewrite of the time column (every other cell's text kept)"
@@ -69,63 +68,6 @@ def _cells(buf, k, sep):  # pragma: no cover - compiled
         m += 1
         pos += 1
     return ls[:m], le[:m], cs[:m], ce[:m]
-
-
-def _parse(buf, cs, ce, p):  # pragma: no cover - compiled
-    """Decimal text -> value * 10**p (int64) exactly; spaces and quotes around it allowed."""
-    m = cs.shape[0]
-    out = np.zeros(m, np.int64)
-    ok = np.zeros(m, np.bool_)
-    for i in range(m):
-        a = cs[i]
-        b = ce[i]
-        if a < 0:
-            continue
-        while a < b and (buf[a] == 32 or buf[a] == 34):
-            a += 1
-        while b > a and (buf[b - 1] == 32 or buf[b - 1] == 34 or buf[b - 1] == 13):
-            b -= 1
-        if a >= b:
-            continue
-        neg = False
-        if buf[a] == 45 or buf[a] == 43:
-            neg = buf[a] == 45
-            a += 1
-        whole = np.int64(0)
-        frac = np.int64(0)
-        nf = 0
-        nd = 0
-        dot = False
-        good = True
-        for j in range(a, b):
-            c = buf[j]
-            if c == 46 and not dot:
-                dot = True
-            elif 48 <= c <= 57:
-                nd += 1
-                if dot:
-                    if nf < p:
-                        frac = frac * 10 + (c - 48)
-                        nf += 1
-                else:
-                    whole = whole * 10 + (c - 48)
-            else:
-                good = False
-                break
-        if not good or nd == 0 or nd - nf > 18:
-            continue
-        while nf < p:
-            frac *= 10
-            nf += 1
-        scale = np.int64(1)
-        for _ in range(p):
-            scale *= 10
-        if whole > np.int64(9223372036854775807) // scale - 1:  # would overflow int64
-            continue
-        v = whole * scale + frac
-        out[i] = -v if neg else v
-        ok[i] = True
-    return out, ok
 
 
 def _emit(buf, ls, le, cs, ce, ok, new, p, out):  # pragma: no cover - compiled
@@ -190,24 +132,6 @@ def _emit(buf, ls, le, cs, ce, ok, new, p, out):  # pragma: no cover - compiled
 _kernel = kernel_loader(globals())  # the numba kernels above, compiled (and cached) on first use
 
 
-def _with_exponents(raw: bytes, cs: np.ndarray, ce: np.ndarray, p: int, ns: np.ndarray, ok: np.ndarray) -> None:
-    """The time cells ``_parse`` (plain decimals, the fast scan) did not read that hold an exponent (``5e-05``:
-    a float writer's small values) read by the readers' own scan (``csvtable.decimal_text_to_int``), into
-    ``ns`` and ``ok``: the export rewrites every time its reader reads (as plain decimals)."""
-    idx = np.flatnonzero(~ok & (cs >= 0))
-    if not len(idx):
-        return
-    cells = [raw[a:b].strip(b' "\r') for a, b in zip(cs[idx].tolist(), ce[idx].tolist())]
-    has_exp = np.asarray([(b"e" in c or b"E" in c) for c in cells])
-    if not has_exp.any():
-        return
-    idx = idx[has_exp]
-    text = pd.Series([c.decode("ascii", "replace") for c, e in zip(cells, has_exp) if e])
-    v, good, _ = decimal_text_to_int(text, p)
-    ns[idx[good]] = v[good]
-    ok[idx[good]] = True
-
-
 def restamp_bytes(raw: bytes, time_col: str, unit: str, shift: ClockShift, path: str) -> tuple[np.ndarray, int, int]:
     """(new file bytes, data lines rewritten, damaged lines kept as they were)."""
     if unit not in _POW10:
@@ -222,8 +146,7 @@ def restamp_bytes(raw: bytes, time_col: str, unit: str, shift: ClockShift, path:
         raise InputError(f"native CSV export: no time column {time_col!r} in the header", path)
     k = cols.index(time_col)
     ls, le, cs, ce = _kernel("_cells")(buf, k, ord(sep))
-    ns, ok = _kernel("_parse")(buf, cs, ce, p)
-    _with_exponents(raw, cs, ce, p, ns, ok)
+    ns, ok = decimal_cells_to_int(buf, cs, ce, p)  # (the readers' scan: the export rewrites every time they read)
     blank = le <= ls
     # a value in the unit times 10**p is nanoseconds exactly (s: p=9, ms: 6, us: 3, ns: 0)
     new = ns.copy()

@@ -715,19 +715,25 @@ def test_time_text_with_an_exponent_is_read_exactly():
         x = rng.choice([rng.uniform(-1e3, 1e3), rng.uniform(0, 2e9), rng.uniform(-1e-3, 1e-3)])
         cases.append(rng.choice([repr(x), f"{x:.6e}", f"{x:.12e}", f"{x:.9f}", f"{x:.3f}"]))
     chars = csvtable._text_bytes(pd.Series(cases))
-    scans = [csvtable._decimal_to_ns]
+    starts = np.arange(len(chars), dtype=np.int64) * chars.shape[1]
+    scans = [csvtable._decimal_cells]
     try:
         import numba
 
-        scans.append(numba.njit(csvtable._decimal_to_ns))
+        scans.append(numba.njit(csvtable._decimal_cells))
     except ImportError:
         pass
     want = [_decimal_reference(t) for t in cases]
     for scan in scans:
         with np.errstate(over="ignore"):
-            ns, ok = scan(chars, 9)
+            ns, ok = scan(chars.reshape(-1), starts, starts + chars.shape[1], 9)
         got = [int(v) if o else None for v, o in zip(ns, ok)]
         assert got == want
+    # the same scan over cells of a file's bytes (the native CSV export's): quotes and a CR around them
+    raw = "".join(f'"{c}"\r\n' if i % 2 else f"{c}\n" for i, c in enumerate(cases)).encode()
+    ends = np.flatnonzero(np.frombuffer(raw, np.uint8) == 10)
+    ns, ok = csvtable.decimal_cells_to_int(np.frombuffer(raw, np.uint8), np.r_[0, ends[:-1] + 1], ends, 9)
+    assert [int(v) if o else None for v, o in zip(ns, ok)] == want
 
 
 def test_canonical_csv_written_by_pandas_with_small_times_reads_every_row(tmp_path):
