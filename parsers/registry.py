@@ -85,7 +85,19 @@ def detect(path: str) -> ModuleType:
             continue
     if os.path.isdir(path):
         raise InputError("directory holds no recognised log (no metadata.yaml, no sensors.csv)", path)
-    raise InputError("unrecognised format (not MCAP, ROS bag, ULog, DataFlash, tlog or CSV)", path)
+    raise InputError("unrecognised format (not MCAP, ROS bag, ULog, DataFlash, tlog or CSV)" + _named_like(path), path)
+
+
+def _named_like(path: str) -> str:
+    """What the file's name suggests, where its content is not that format (a damaged start, mostly)."""
+    ext = os.path.splitext(path)[1]
+    named = [m for m in formats() if ext and ext.lower() in (e.lower() for e in m.EXTENSIONS)]
+    if not named:
+        return ""
+    if all(m.NAME.startswith("csv") for m in named):
+        return ("; named like a CSV, but its first line is no header of named columns (damaged?): a CSV is "
+                "read through its header (time_s,... or names with units)")
+    return f"; named like {named[0].NAME}, but its first bytes are not (damaged, or another format?)"
 
 
 def load(arg: str) -> InsLog:

@@ -289,8 +289,23 @@ def test_a_damaged_file_start_is_read_past(tmp_path, fmt, ext):
     assert any("damaged" in w for w in back.meta.warnings), back.meta.warnings
     junk = tmp_path / f"junk{ext}"
     junk.write_bytes(bytes(64) + b"no log here" * 100)
-    with pytest.raises(InputError, match="unrecognised format"):
+    with pytest.raises(InputError, match="unrecognised format") as e:
         registry.detect(str(junk))
+    assert f"named like {registry.detect(str(good)).NAME}" in str(e.value)  # (what the name suggests, said)
+
+
+def test_a_csv_whose_header_line_is_damaged_is_said_to_be_one():
+    """A CSV is read through its header: with the first line garbled the file is no format, and the line
+    says the name is a CSV's and why it was not read as one."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        p = os.path.join(d, "slave.csv")
+        with open(p, "wb") as fh:
+            fh.write(b"\xb8\xf4v\xbc\t\xf7mQ (m/s),Latitude (deg)\n" + b"1.0,2.0,3.0\n" * 50)
+        with pytest.raises(InputError, match="unrecognised format") as e:
+            registry.detect(p)
+        assert "named like a CSV" in str(e.value) and "header" in str(e.value) and "\n" not in str(e.value)
 
 
 @pytest.mark.parametrize("how", ["prepended", "prepended over the header", "cut"])
