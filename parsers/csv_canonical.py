@@ -12,6 +12,7 @@ import os
 import numpy as np
 import pandas as pd
 
+from logtools.conventions import quat_from_euler
 from logtools.errors import InputError
 from logtools.inslog import ACCEL, GYRO, POS, QUAT, VEL, ChannelInfo, InsLog, LogMeta
 from parsers.assemble import drop_stray, implausible, repeated_samples, split_at_clock_steps, stamp_outliers
@@ -29,6 +30,9 @@ CSV_QUAT = ("qw", "qx", "qy", "qz")
 CSV_VEL = VEL
 CSV_POS = POS
 HEADER = (TIME,) + CSV_GYRO + CSV_ACCEL + CSV_QUAT + CSV_VEL + CSV_POS
+#: read too, not written: the attitude as the body -> NED rotation's Z-Y-X angles (aerospace roll, pitch,
+#: heading) where a CSV gives no quaternion (a hand-made file's habit); with one, the quaternion is used
+CSV_EULER = ("roll_deg", "pitch_deg", "yaw_deg")
 #: epoch stamps are larger than this (2001-09-09); boot-relative stamps are smaller
 EPOCH_THRESHOLD_S = 1e9
 
@@ -148,11 +152,16 @@ def load(path: str, selector: Selector) -> InsLog:
     if not ok_t.all():
         warnings.append(f"{int((~ok_t).sum())} row(s) whose time is not a decimal number dropped (damaged lines?)")
         t_ns, df = t_ns[ok_t], df[ok_t]
-    groups = {"gyro": CSV_GYRO, "accel": CSV_ACCEL, "quat": CSV_QUAT, "vel": CSV_VEL, "pos": CSV_POS}
+    groups = {"gyro": CSV_GYRO, "accel": CSV_ACCEL, "quat": CSV_QUAT, "euler": CSV_EULER, "vel": CSV_VEL,
+              "pos": CSV_POS}
     present = {g: cols for g, cols in groups.items() if all(c in df.columns for c in cols)}
     partial = [g for g, cols in groups.items() if g not in present and any(c in df.columns for c in cols)]
     if partial:
         warnings.append(f"incomplete column group(s) ignored: {', '.join(partial)}")
+    other = [str(c) for c in df.columns if c not in HEADER and c not in CSV_EULER]
+    if other:
+        warnings.append(f"note: column(s) not read (not the canonical CSV's): {', '.join(other[:8])}"
+                        + (" ..." if len(other) > 8 else ""))
     if not present:
         raise InputError("no recognisable data columns (gyro/accel/quaternion/velocity/position)", path)
     if len(t_ns) == 0:
@@ -204,6 +213,16 @@ def load(path: str, selector: Selector) -> InsLog:
 
     non_numeric: dict[str, int] = {}
     blocks = {g: block(g) for g in present}
+    if "euler" in blocks:
+        rpy = blocks.pop("euler")
+        present.pop("euler")
+        if "quat" in blocks:
+            warnings.append("note: roll_deg/pitch_deg/yaw_deg not used: the quaternion columns give the attitude")
+        else:
+            ok = np.isfinite(rpy).all(axis=1)
+            blocks["quat"] = np.full((len(rpy), 4), np.nan)
+            blocks["quat"][ok] = quat_from_euler(np.radians(rpy[ok]))
+            present["quat"] = CSV_EULER
     if non_numeric:
         warnings.append(f"{os.path.basename(path)}: {non_numeric_text(non_numeric)} read as missing values "
                         "(damaged file?)")

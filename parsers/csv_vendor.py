@@ -116,7 +116,7 @@ class ColumnMap:
     origin: str = "header"
     frame_stated: bool = False
     ignored: tuple[str, ...] = field(default_factory=tuple)
-    notes: tuple[str, ...] = ()  # warnings: columns that look like a group but are left out, and why
+    notes: tuple[str, ...] = ()  # "note: ..." lines: columns that look like a group but are left out, and why
 
     def column_for(self, canonical: str) -> str | None:
         return next((c for c, (n, _) in self.columns.items() if n == canonical), None)
@@ -274,7 +274,7 @@ def map_from_header(columns: list[str], *, quat_file: bool = False) -> ColumnMap
         raise MapError(f"incomplete column group(s): {', '.join(partial)}")
     if not complete:
         raise MapError("no complete gyro/accel/quaternion/velocity/position column group")
-    notes = (f"column(s) not used: {'; '.join(left_out)}",) if left_out else ()
+    notes = (f"note: column(s) not used: {'; '.join(left_out)}",) if left_out else ()
     return ColumnMap(found, ignored=tuple(ignored), notes=notes)
 
 

@@ -108,6 +108,21 @@ def test_vendor_attitude_as_euler_angles(tmp_path):
     assert any("roll/pitch/yaw columns not used" in w for w in log.meta.warnings)
 
 
+def test_canonical_csv_reads_euler_columns_and_notes_the_columns_it_does_not_read(tmp_path):
+    """A canonical CSV made by hand may carry the attitude as roll_deg/pitch_deg/yaw_deg (read as in the
+    vendor CSVs: Z-Y-X, FRD/NED) and other columns (a temperature): those are named in a note, not silently
+    dropped."""
+    rpy = np.c_[20 * np.sin(T), -10 + 5 * T, (350 + 30 * T) % 360]
+    text = _table(["time_s", "gyro_x_rad_s", "gyro_y_rad_s", "gyro_z_rad_s", "roll_deg", "pitch_deg", "yaw_deg",
+                   "temp_c"], [T, *W_RAD_S.T, *rpy.T, np.full(len(T), 21.0)])
+    log = registry.load(str(_write(tmp_path / "hand.csv", text)))
+    assert log.meta.format == "csv"
+    q_ned_frd = quat_from_euler(np.radians(rpy))
+    _, q = log.quat_wxyz()
+    np.testing.assert_allclose(q * np.sign(np.sum(q * q_ned_frd, axis=1))[:, None], q_ned_frd, atol=1e-8)
+    assert [w for w in log.meta.warnings] == ["note: column(s) not read (not the canonical CSV's): temp_c"]
+
+
 def test_vendor_partial_attitude_or_position_columns_are_left_out_and_said(tmp_path):
     """An IMU CSV with an altitude or a heading column alone, or a yaw and a heading, still reads (its IMU);
     the columns left out are named in a warning. A part of an IMU group is still refused (a misnamed axis)."""
