@@ -566,6 +566,23 @@ def _status_cls(status: str) -> str:
     return {"ok": "ok", "partial": "warn"}.get(status, "fail")
 
 
+def _method_caveat(name: str, me: dict, lat: dict) -> str:
+    """What a reader must know beside a comparison method's figure: the seeds' methods assume the units'
+    axes aligned (a mounting rotation makes their figure meaningless), and their sigma is their grid's
+    resolution, not an uncertainty: a figure that differs from the headline by more than 3 combined sigma
+    is said to."""
+    if name == lat.get("method"):
+        return ""
+    said = []
+    if "axes assumed aligned" in str(me.get("note", "")):
+        said.append("axes assumed aligned")
+    ls, ss, L, S = me.get("latency_s"), me.get("sigma_s"), lat.get("latency_s"), lat.get("sigma_s")
+    if all(isinstance(x, (int, float)) and math.isfinite(x) for x in (ls, ss, L, S)):
+        if abs(ls - L) > 3.0 * math.hypot(ss, S):
+            said.append(f"differs from {lat.get('method')} by {(ls - L) * 1e3:+.3f} ms")
+    return f" ({'; '.join(said)})" if said else ""
+
+
 def _summary_html(rep: dict) -> str:
     m, s, lat = rep["master"], rep["slave"], rep["latency"]
     rows = ["<table><tr><th></th><th>master</th><th>slave</th></tr>"]
@@ -592,7 +609,8 @@ def _summary_html(rep: dict) -> str:
                  f"[{_fmt(w[0], '.3f')}, {_fmt(w[1], '.3f')}] s</td></tr>")
         for name, me in lat.get("methods", {}).items():
             ls, ss = me.get("latency_s"), me.get("sigma_s")
-            t.append(f"<tr><th>&nbsp;&nbsp;method {_esc(name)}</th><td class=num>{_fmt(None if ls is None else ls * 1e3, '+.3f', 'ms')}</td>"
+            t.append(f"<tr><th title='{_esc(me.get('note') or '')}'>&nbsp;&nbsp;method {_esc(name)}"
+                     f"{_esc(_method_caveat(name, me, lat))}</th><td class=num>{_fmt(None if ls is None else ls * 1e3, '+.3f', 'ms')}</td>"
                      f"<td class=num>{_fmt(None if ss is None else ss * 1e3, '.3f', 'ms')}</td></tr>")
         vf = (lat.get("quality") or {}).get("velocity_fit")
         if isinstance(vf, dict):  # the velocity-matched estimate, and what became of it
