@@ -35,6 +35,7 @@ MAGIC = b"\x89MCAP0\r\n"
 _OP_HEADER, _OP_FOOTER, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK = 1, 2, 3, 4, 5, 6
 _OP_DATA_END = 15
 _OP_CHUNK_INDEX = 8
+_OP_MESSAGE_INDEX = 7
 _REC = struct.Struct("<BQ")
 _U16 = struct.Struct("<H")
 _U32 = struct.Struct("<I")
@@ -193,15 +194,17 @@ class _Damage(Exception):
 
 
 class _BadCrc(_Damage):
-    """An uncompressed chunk whose records do not give its CRC: a damaged byte somewhere in them. Its records
-    (``content``) are still walked, and their messages kept as unverified, the way the formats without a
-    checksum are read (the value limits and the spike check drop the impossible ones). A compressed chunk
-    that decompresses to other bytes is plain damage: zstd's copies from wrong offsets repeat whole records
-    with old times from the damaged byte on (read, they gave a 25 s latency), so it is dropped."""
+    """A chunk whose records do not give its CRC: a damaged byte somewhere in them. An uncompressed chunk's
+    records (``content``) are still walked, and their messages kept as unverified, the way the formats without
+    a checksum are read (the value limits and the spike check drop the impossible ones). A compressed chunk
+    that decompresses to other bytes (``compressed``) is worse: from the damaged byte on, zstd's copies from
+    wrong offsets repeat whole records with old times (read, they gave a 25 s latency). Its records are kept
+    only as far as they agree with the chunk's message index (:func:`index_checked_prefix`), else dropped."""
 
-    def __init__(self, text: str, content):
+    def __init__(self, text: str, content, compressed: bool = False):
         super().__init__(text)
         self.content = content
+        self.compressed = compressed
 
 
 class _Undecodable(_Damage):
@@ -719,9 +722,7 @@ def inflate_chunk(buf, off: int, nxt: int) -> bytes:
     if len(content) != usize:
         raise _Damage(f"chunk at byte {off}: size {len(content)} != {usize}")
     if crc and zlib.crc32(content) != crc:
-        if comp == "":
-            raise _BadCrc(f"chunk at byte {off}: CRC mismatch", content)
-        raise _Damage(f"chunk at byte {off}: CRC mismatch")
+        raise _BadCrc(f"chunk at byte {off}: CRC mismatch", content, compressed=comp != "")
     return content
 
 
@@ -749,8 +750,77 @@ def inflate_chunk_into(buf, off: int, nxt: int, out: np.ndarray) -> np.ndarray:
     if n != usize or extra:
         raise _Damage(f"chunk at byte {off}: size {n + len(extra)}{'+' if extra else ''} != {usize}")
     if crc and zlib.crc32(out) != crc:
-        raise _Damage(f"chunk at byte {off}: CRC mismatch")  # (zstd: dropped, see _BadCrc)
+        raise _BadCrc(f"chunk at byte {off}: CRC mismatch", out, compressed=True)
     return out
+
+
+def _message_index(buf, nxt: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The message index records right after the chunk record that ends at ``nxt``: (record offsets in the
+    chunk's records, channels, log times), sorted by offset; None where there is none or it does not read."""
+    offs, chans, times = [], [], []
+    end = len(buf)
+    try:
+        while nxt + 9 <= end:
+            op, ln = _REC.unpack_from(buf, nxt)
+            if op != _OP_MESSAGE_INDEX or nxt + 9 + ln > end or ln < 6:
+                break
+            (c,) = _U16.unpack_from(buf, nxt + 9)
+            (n,) = _U32.unpack_from(buf, nxt + 11)
+            if n % 16 or 6 + n > ln:
+                return None
+            pairs = np.frombuffer(buf, "<u8", n // 8, nxt + 15).reshape(-1, 2)
+            times.append(pairs[:, 0].astype(np.int64))
+            offs.append(pairs[:, 1].astype(np.int64))
+            chans.append(np.full(len(pairs), c, np.int64))
+            nxt += 9 + ln
+    except (struct.error, ValueError):
+        return None
+    if not offs:
+        return None
+    o, c, t = np.concatenate(offs), np.concatenate(chans), np.concatenate(times)
+    order = np.argsort(o, kind="stable")
+    return o[order], c[order], t[order]
+
+
+def index_checked_prefix(buf, nxt: int, content) -> tuple[int, int, int] | None:
+    """How much of a compressed chunk's ``content`` that failed its CRC can be read: its records as far as
+    each message record lies at an offset the chunk's message index (the records right after the chunk, at
+    ``nxt``) lists, with the channel and log time listed there; the record just before the first one that
+    does not is dropped too (the damage may begin in its bytes). Returns (bytes of ``content`` to walk,
+    messages in them, messages the index lists), or None without a readable message index (then the chunk
+    is dropped). A damaged byte that changed only message data, no record's framing, leaves every record
+    in agreement: those are kept, unverified, as an uncompressed chunk's are."""
+    index = _message_index(buf, nxt)
+    if index is None:
+        return None
+    offs, chans, times = index
+    arr = np.frombuffer(content, np.uint8)
+    m, cid, t, s, _e, _k, _oop, _ooff, _onxt, err, eoff = _walk_kernel()(arr, 0, len(arr))
+    rec = s[:m] - 31  # (a message record's header: opcode 1, length 8, channel 2, sequence 4, two times 16)
+    pos = np.minimum(np.searchsorted(offs, rec), len(offs) - 1)
+    ok = (offs[pos] == rec) & (chans[pos] == cid[:m]) & (times[pos] == t[:m])
+    bad = int(np.argmin(ok)) if not ok.all() else m  # (the first message that disagrees; m: a broken record)
+    if bad == m and not err:
+        return len(arr), m, len(offs)
+    keep = max(bad - 1, 0)  # (the message before the break dropped with it)
+    return (int(rec[keep]) if keep < m else 0), keep, len(offs)
+
+
+def crc_damage_content(exc: _BadCrc, buf, nxt: int):
+    """(the part of a chunk that failed its CRC that is read, what was kept in words), the readers' and the
+    native export's one rule; :class:`_Damage` when none of it is (a compressed chunk without a readable
+    message index)."""
+    if not exc.compressed:
+        return exc.content, "its messages kept, unverified"
+    cut = index_checked_prefix(buf, nxt, exc.content)
+    if cut is None:
+        raise _Damage(f"{exc} (compressed, and no message index to tell its sound records)")
+    n_bytes, kept, listed = cut
+    if n_bytes == len(exc.content):
+        return exc.content, (f"its {kept} messages all where its message index lists them ({listed}): kept, "
+                             "unverified (the damage is in message data)")
+    return exc.content[:n_bytes], (f"its first {kept} of {listed} messages, up to where its records stop "
+                                   "agreeing with its message index, kept, unverified; the rest dropped")
 
 
 def chunk_records(buf, off: int, starts: list[int] | None = None) -> Iterator[tuple[int, int]]:
@@ -897,9 +967,9 @@ def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
                         scan.warnings.append(f"damaged: {exc}; the {got} complete messages before the damage kept")
                         content = b""
                     except _BadCrc as exc:  # a damaged byte somewhere in it: read, its messages unverified
-                        content = exc.content
-                        scan.warnings.append(f"damaged: {exc}; its messages kept, unverified (impossible values "
-                                             "and isolated spikes are dropped)")
+                        content, said = crc_damage_content(exc, buf, nxt)
+                        scan.warnings.append(f"damaged: {exc}; {said} (impossible values and isolated spikes "
+                                             "are dropped)")
                     # a damaged record: the sound records around it kept (records() adds none of a broken walk)
                     places, skipped, first = walk_resyncing(scan.records, content, len(content),
                                                             f"chunk at byte {off}", scan.channels,

@@ -597,10 +597,10 @@ class _McapScan:
             self.damage.append(f"damaged: {exc}; the {got} complete messages before the damage kept, the rest "
                                "of the chunk not in the output")
             return
-        except mcap_ros._BadCrc as exc:  # as the parser reads it: its messages kept, unverified
-            content = exc.content
-            self.damage.append(f"damaged: {exc}; its messages written as they decompressed (unverified), the "
-                               "chunk's CRC computed anew")
+        except mcap_ros._BadCrc as exc:  # as the parser reads it (the part it keeps: unverified)
+            content, said = mcap_ros.crc_damage_content(exc, buf, nxt)
+            self.damage.append(f"damaged: {exc}; {said}, written as they decompressed, the chunk's CRC computed "
+                               "anew")
         n = len(self.cid)
         try:  # a damaged record: the sound records around it kept, as the parser keeps them
             places, skipped, first = mcap_ros.walk_resyncing(
