@@ -25,7 +25,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 CASES = [("tlog", "s.tlog", {}), ("dataflash", "s.bin", {}), ("ulog", "s.ulg", {}), ("csv", "s.csv", {}),
-         ("mcap", "s.mcap", {}), ("rosbag1", "s.bag", {}), ("rosbag2", "b2sql", {"storage": "sqlite3"}),
+         ("mcap", "s.mcap", {}), ("rosbag1", "s.bag", {}), ("rosbag1", "s_lz4.bag", {"compression": "lz4"}),
+         ("rosbag2", "b2sql", {"storage": "sqlite3"}),
          ("rosbag2", "b2mcap", {"storage": "mcap"})]
 
 

@@ -209,7 +209,7 @@ class _BadCrc(_Damage):
 
 class _Undecodable(_Damage):
     """A chunk whose compressed records stop decompressing part way (a flipped or zeroed byte): what
-    decompresses before the damage can still be walked (:func:`inflate_prefix`)."""
+    decompresses before the damage can still be walked (:func:`ros_common.inflate_prefix`)."""
 
 
 def _string(buf, off: int) -> tuple[str, int]:
@@ -578,31 +578,6 @@ def walk_resyncing(records, buf, end: int, where: str, channels,
             pos = nxt
 
 
-def inflate_prefix(comp: str, data) -> bytes:
-    """What of a chunk's compressed records decompresses, up to the end of ``data`` (a cut chunk) or the
-    first damaged block (fed in 16 KiB steps: the blocks before it come out); b"" for another compression.
-    Not CRC-checked: the records walk of it is the check on its structure."""
-    if comp == "":
-        return bytes(data)
-    if comp == "zstd":
-        import zstandard
-
-        dec = zstandard.ZstdDecompressor().decompressobj()
-    elif comp == "lz4":
-        import lz4.frame
-
-        dec = lz4.frame.LZ4FrameDecompressor()
-    else:
-        return b""
-    out = []
-    for i in range(0, len(data), 1 << 14):
-        try:
-            out.append(dec.decompress(bytes(data[i:i + (1 << 14)])))
-        except Exception:  # the damaged block: what came before it is kept
-            break
-    return b"".join(out)
-
-
 def _partial_chunk(scan: _Scan, buf: bytes, off: int, end: int) -> int:
     """The complete messages of a chunk cut by the end of the file (a recording killed while writing
     its last chunk) or damaged part way: what of its compressed data is there, decompressed as far as it
@@ -610,7 +585,7 @@ def _partial_chunk(scan: _Scan, buf: bytes, off: int, end: int) -> int:
     added."""
     try:
         comp, o = _string(buf, off + 9 + 28)
-        content = inflate_prefix(comp, buf[o + 8:end])
+        content = rc.inflate_prefix(comp, buf[o + 8:end])
     except Exception:  # a header cut too, or data that does not decompress at all: nothing to recover
         return 0
     before = scan.n_messages()

@@ -616,11 +616,11 @@ class _McapScan:
                                "bytes not in the output")
 
     def partial_chunk(self, buf, off: int, end: int) -> int:
-        """The complete messages of a cut or part-way damaged chunk (:func:`mcap_ros.inflate_prefix`)."""
+        """The complete messages of a cut or part-way damaged chunk (:func:`ros_common.inflate_prefix`)."""
         n = len(self.cid)
         try:
             comp, o = mcap_ros._string(buf, off + 9 + 28)
-            content = mcap_ros.inflate_prefix(comp, buf[o + 8:end])
+            content = rc.inflate_prefix(comp, buf[o + 8:end])
             return self.records(content, 0, len(content), f"partial chunk at byte {off}", cut_ok=True)
         except Exception:
             del self.cid[n:], self.log[n:], self.blocks[n:], self.whole[n:]

@@ -1415,3 +1415,34 @@ __all__ = [
     "encode_messages", "to_inslog", "to_inventory", "ros_topics_from_inslog", "merged_order",
     "normalize_msgtype", "register_msgdef", "default_typestore", "keep_supported", "plan_unit",
 ]
+
+
+# ---- damaged compressed chunks (MCAP, ROS 1 bags) ----------------------------------------------------
+def inflate_prefix(comp: str, data) -> bytes:
+    """What of a chunk's compressed records decompresses, up to the end of ``data`` (a cut chunk) or the
+    first damaged block (fed in 16 KiB steps: the blocks before it come out); b"" for another compression.
+    ``comp``: MCAP's names ("" uncompressed, "zstd", "lz4") or a ROS 1 bag's ("none", "bz2", "lz4"). Not
+    checked: the records walk of it is the check on its structure."""
+    if comp in ("", "none"):
+        return bytes(data)
+    if comp == "zstd":
+        import zstandard
+
+        dec = zstandard.ZstdDecompressor().decompressobj()
+    elif comp == "lz4":
+        import lz4.frame
+
+        dec = lz4.frame.LZ4FrameDecompressor()
+    elif comp == "bz2":
+        import bz2
+
+        dec = bz2.BZ2Decompressor()
+    else:
+        return b""
+    out = []
+    for i in range(0, len(data), 1 << 14):
+        try:
+            out.append(dec.decompress(bytes(data[i:i + (1 << 14)])))
+        except Exception:  # the damaged block: what came before it is kept
+            break
+    return b"".join(out)

@@ -352,8 +352,14 @@ class _Scan:
                 raise _Damage(f"chunk at byte {where}: unsupported compression {comp!r}")
         except _Damage:
             raise
-        except Exception as exc:
-            raise _Damage(f"chunk at byte {where} cannot be decompressed ({type(exc).__name__})") from None
+        except Exception as exc:  # what decompresses before the damaged block is walked (bz2: 900 kB blocks)
+            why = f"chunk at byte {where} cannot be decompressed ({type(exc).__name__})"
+            content = rc.inflate_prefix(comp, buf[d0:d1])
+            if not content:
+                raise _Damage(why) from None
+            self.warnings.append(f"damaged: {why}; read as far as it decompresses ({len(content)} of {size} "
+                                 "bytes), the rest of the chunk lost")
+            size = len(content)
         if comp != "none":
             c0, c1 = 0, len(content)
         if c1 - c0 != size:

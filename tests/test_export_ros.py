@@ -806,3 +806,34 @@ def test_clock_shift_beyond_int64_is_a_clear_error_not_a_runtime_warning():
             ClockShift(float("nan"), 0.0, 0).shift_ns(np.int64(5))
         np.testing.assert_array_equal(ClockShift(1.5, 0.0, 0).shift_ns(np.arange(3, dtype=np.int64)),
                                       [1_500_000_000] * 3)
+
+
+def test_a_compressed_bag_chunk_damaged_part_way_keeps_what_decompresses(tmp_path):
+    """An lz4 chunk of a ROS 1 bag that stops decompressing part way (64 zeroed bytes at 70 % of its data)
+    was lost whole ('cannot be decompressed': about 1500 of 12000 IMU samples). What decompresses before the
+    damaged block is now walked, as an MCAP chunk's is; the native export writes the same messages."""
+    import struct
+
+    p = str(tmp_path / "z.bag")
+    registry.write(p, synthetic_log(12000, rate_hz=200.0), "rosbag1", compression="lz4")
+    data = bytearray(open(p, "rb").read())
+    off, chunks = len(rosbag1.MAGIC), []
+    while off < len(data):  # the top-level records: (header, data) pairs
+        (hlen,) = struct.unpack_from("<I", data, off)
+        (dlen,) = struct.unpack_from("<I", data, off + 4 + hlen)
+        if b"op=\x05" in data[off + 4:off + 4 + hlen]:
+            chunks.append((off, off + 8 + hlen, off + 8 + hlen + dlen))
+        off += 8 + hlen + dlen
+    at, d0, d1 = chunks[1]
+    i = d0 + int(0.7 * (d1 - d0))
+    data[i:i + 64] = bytes(64)
+    bad = str(tmp_path / "bad.bag")
+    open(bad, "wb").write(bytes(data))
+    a = parsers.load(bad)
+    said = [w for w in a.meta.warnings if f"chunk at byte {at} cannot be decompressed" in w]
+    assert said and "read as far as it decompresses" in said[0]
+    assert 0.9 * 12000 < len(a.imu) < 12000
+    st = rr.restamp_rosbag1(bad, str(tmp_path / "out.bag"), _shift_for(a))
+    assert any("read as far as it decompresses" in d for d in st.damage)
+    b = parsers.load(str(tmp_path / "out.bag"))
+    np.testing.assert_array_equal(_t_ns(b, b.imu), _shift_for(a).to_master_ns(_t_ns(a, a.imu)))
