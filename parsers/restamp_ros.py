@@ -942,46 +942,57 @@ def restamp_rosbag2(src: str, dst: str, shift: ClockShift, *, selector: str | No
     check_readable(src)
     check_replaceable(dst, rosbag2.is_bag_folder, "ROS 2 bag")  # (before the work: the same check as the write's)
     bagdir, meta, files, meta_damage = rosbag2._resolve(src)
-    if meta_damage is not None:  # (its copy is part of the bag: the export does not invent one)
-        raise InputError(f"{meta_damage}: a ROS 2 bag is exported with its metadata.yaml", bagdir)
+    damage: list[str] = []
+    if meta_damage is not None:  # the storage files name their topics and types: the parser reads them alone
+        if not os.path.isdir(src):
+            raise InputError(f"{meta_damage}: restamp the bag folder", src)
+        meta = {"compression_mode": "FILE", "compression_format": "zstd"} if all(
+            f.endswith(".zstd") for f in files) else {}
+        damage.append(f"damaged: {meta_damage}; not copied: the output's metadata.yaml is rosbags' writer's, made "
+                      "from the messages read (QoS profiles and custom data of the input are lost)")
     if meta is None:
         raise InputError("no metadata.yaml next to the storage file (restamp the bag folder)", src)
     storage = str(meta.get("storage_identifier") or ("mcap" if files[0].endswith((".mcap", ".mcap.zstd")) else "sqlite3"))
     mode, cfmt = rosbag2._compression(meta)
     if mode in ("file", "message") and cfmt != "zstd":
         raise InputError(f"compression format {cfmt!r} not supported (zstd is)", bagdir)
-    if storage == "sqlite3" and mode == "none" and len(files) == 1:
+    if storage == "sqlite3" and mode == "none" and len(files) == 1 and meta_damage is None:
         done = _restamp_sqlite_in_place(files[0], bagdir, meta, dst, shift, selector)
         if done is not None:
             return done
     conns = None
     opened = None  # why rosbags' reader could not open the bag, where tapost's scan listed its connections
-    if storage == "sqlite3" and len(files) == 1 and mode != "file":  # (rosbags' reader counts every row first,
-        from parsers import restamp_sqlite  # which a damaged page stops)
+    if meta_damage is None:  # (else rosbags' reader, which reads metadata.yaml, cannot: the storage files say)
+        if storage == "sqlite3" and len(files) == 1 and mode != "file":  # (rosbags' reader counts every row
+            from parsers import restamp_sqlite  # first, which a damaged page stops)
 
-        conns = restamp_sqlite.connections(files[0])
-    try:
-        if not conns:
-            with Reader(bagdir) as rd:
-                conns = list(rd.connections)
-    except Exception as exc:
-        why = f"{type(exc).__name__}: {exc}".strip().rstrip(":")
-        why = " ".join(why.split())[:200]  # (one line)
-        if storage != "mcap" or mode == "file":
-            raise InputError(f"damaged: {storage} storage unreadable by rosbags ({why})", bagdir) from None
-        conns = _mcap_connections(files, bagdir, why)  # (our own scan reads past the damage)
-        opened = why
+            conns = restamp_sqlite.connections(files[0])
+        try:
+            if not conns:
+                with Reader(bagdir) as rd:
+                    conns = list(rd.connections)
+        except Exception as exc:
+            why = f"{type(exc).__name__}: {exc}".strip().rstrip(":")
+            why = " ".join(why.split())[:200]  # (one line)
+            if storage != "mcap" or mode == "file":
+                raise InputError(f"damaged: {storage} storage unreadable by rosbags ({why})", bagdir) from None
+            conns = _mcap_connections(files, bagdir, why)  # (our own scan reads past the damage)
+            opened = why
     typestore = get_typestore(Stores.EMPTY)
-    streams, by_key = _ros2_streams(conns, typestore)
-    damage: list[str] = []
     if opened is not None:
         damage.append(f"damaged: rosbags' reader cannot open the bag ({opened}); its connections taken from "
                       "tapost's scan of the mcap storage")
     parts: list[_Part] = []
     with tempfile.TemporaryDirectory(prefix="tapost-restamp-") as tmpd:
-        for f in files:
-            g = rosbag2._unzstd_file(f, tmpd) if (mode == "file" or f.endswith(".zstd")) else f
+        plain = [rosbag2._unzstd_file(f, tmpd) if (mode == "file" or f.endswith(".zstd")) else f for f in files]
+        if conns is None:
+            conns = _storage_connections(plain, storage, bagdir, meta_damage or "")
+        streams, by_key = _ros2_streams(conns, typestore)
+        for f, g in zip(files, plain):
             parts.append(_read_ros2_part(f, g, storage, by_key, damage))
+    if meta_damage is not None and mode == "none" and any(  # (per-message compression told by its frames, as
+            len(p.msgs.log_ns) and bytes(p.msgs.payload(0)[:4]) == rosbag2.ZSTD_MAGIC for p in parts):  # read)
+        mode = "message"
     if mode == "message":
         for part in parts:
             _unzstd_part(part, damage)
@@ -1000,7 +1011,7 @@ def restamp_rosbag2(src: str, dst: str, shift: ClockShift, *, selector: str | No
         notes.append(f"{int(far.sum())} message(s) with a damaged record time (more than a day from the others') "
                      "not in the output")
     with atomic_folder(dst, same_kind=rosbag2.is_bag_folder, what="ROS 2 bag") as tmp:
-        if storage == "mcap" and mode != "message" and all(p.scan is not None for p in parts):
+        if storage == "mcap" and mode != "message" and all(p.scan is not None for p in parts) and meta_damage is None:
             _write_ros2_mcap(tmp, meta, mode, parts, streams, msgs, new_log, in_place=msgs.buf is packed)
             how = ("mcap storage files by tapost's vectorised MCAP writer (schemas, channels, metadata as the "
                    "input's), metadata.yaml times and counts updated")
@@ -1013,6 +1024,26 @@ def restamp_rosbag2(src: str, dst: str, shift: ClockShift, *, selector: str | No
                         time_fields=("messages.timestamp" if storage != "mcap" else "log_time", "header.stamp",
                                      "metadata.yaml starting_time/duration"),
                         damage=tuple(damage) + tuple(notes))
+
+
+def _storage_connections(files: list[str], storage: str, bagdir: str, why: str) -> list:
+    """The connections of a ROS 2 bag from its (uncompressed) storage files alone, each (topic, type) once:
+    for a bag whose metadata.yaml is damaged (``why``)."""
+    if storage == "mcap":
+        return _mcap_connections(files, bagdir, why)
+    from rosbags.interfaces import Connection
+
+    from parsers import restamp_sqlite
+
+    out, seen = [], set()
+    for f in files:
+        for c in restamp_sqlite.connections(f) or []:
+            if (c.topic, c.msgtype) not in seen:
+                seen.add((c.topic, c.msgtype))
+                out.append(Connection(len(out) + 1, c.topic, c.msgtype, c.msgdef, c.digest, 0, c.ext, None))
+    if not out:
+        raise InputError(f"damaged: {why}, and the sqlite3 storage lists no topic either", bagdir)
+    return out
 
 
 def _mcap_connections(files: list[str], bagdir: str, why: str) -> list:
