@@ -16,7 +16,7 @@ Three ways to get a column map, tried in this order:
    (``Gyro X (deg/s)``, ``gyro_x [rad/s]``, ``accel_z_m_s2``, ``wx (dps)``, ``timestamp (us)``, the
    ASL/EuRoC dataset's ``#timestamp [ns]``, ``w_RS_S_x [rad s^-1]``, ``a_RS_S_x [m s^-2]``...).
    Anything else is an InputError naming the columns found and how to write a map. A position or Euler
-   angle group found in part (``Altitude (m)`` alone, ``Heading (deg)`` alone) is left out with a warning.
+   angle group found in part (``Altitude (m)`` alone, ``Heading (deg)`` alone) is left out, said in a note.
 
 Attitude as Euler angles (``Roll (deg)``, ``Pitch (deg)``, ``Yaw (deg)``; ``Heading`` and ``Azimuth`` are the
 yaw): the Z-Y-X (yaw, pitch, roll) angles of the body -> nav rotation in the file's frames (FRD/NED unless a
@@ -71,7 +71,7 @@ GROUPS = {"gyro": ("gyro_x", "gyro_y", "gyro_z"), "accel": ("accel_x", "accel_y"
           "quat": ("quat_w", "quat_x", "quat_y", "quat_z"), "euler": ("roll", "pitch", "yaw"),
           "vel": ("vel_n", "vel_e", "vel_d"), "pos": ("lat", "lon", "alt")}
 #: groups a header may give in part without being refused (an altitude or a heading column next to an IMU's):
-#: the part is left out, with a warning
+#: the part is left out, said in a note
 OPTIONAL_PARTS = ("euler", "pos")
 #: quantity of each canonical name (decides which units are acceptable)
 QUANTITY = {"time": "time", **{c: "rate" for c in GROUPS["gyro"]}, **{c: "accel" for c in GROUPS["accel"]},

@@ -750,7 +750,7 @@ def _message_index(buf, nxt: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] |
             nxt += 9 + ln
     except (struct.error, ValueError):
         return None
-    if not offs:
+    if not offs or not sum(map(len, offs)):
         return None
     o, c, t = np.concatenate(offs), np.concatenate(chans), np.concatenate(times)
     order = np.argsort(o, kind="stable")

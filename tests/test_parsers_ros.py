@@ -650,6 +650,8 @@ def test_a_compressed_chunk_failing_its_crc_is_read_as_far_as_its_message_index_
     m2, *_ = mcap_ros._walk_kernel()(np.frombuffer(bytes(repeated[:rec[j - 1]]), np.uint8), 0, rec[j - 1])
     assert m2 == j - 1
     assert mcap_ros.index_checked_prefix(data, off, content) is None  # (at ``off``: a chunk, no message index)
+    empty = b"\x07" + struct.pack("<Q", 6) + struct.pack("<HI", 1, 0)  # (a message index listing nothing)
+    assert mcap_ros.index_checked_prefix(empty, 0, content) is None
     bad = mcap_ros._BadCrc("chunk: CRC mismatch", bytes(repeated), compressed=True)
     kept, said = mcap_ros.crc_damage_content(bad, data, nxt)
     assert len(kept) == rec[j - 1] and f"first {j - 1} of {m} messages" in said
