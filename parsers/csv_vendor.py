@@ -22,7 +22,8 @@ Attitude as Euler angles (``Roll (deg)``, ``Pitch (deg)``, ``Yaw (deg)``; ``Head
 yaw): the Z-Y-X (yaw, pitch, roll) angles of the body -> nav rotation in the file's frames (FRD/NED unless a
 map says otherwise: the aerospace roll, pitch and heading). A file with a quaternion too: the quaternion.
 
-Units understood (header ``(unit)``/``[unit]`` or a snake-case suffix): rad/s, deg/s, dps, mrad/s,
+Units understood (header ``(unit)``/``[unit]``, a snake-case suffix, or a units row: the line under a header
+of bare names giving each column's unit, ``s,deg/s,...``): rad/s, deg/s, dps, mrad/s,
 deg/h; m/s^2, m/s2, m/s², g, mg, ug; s, ms, us, ns; m/s, km/h, cm/s, mm/s, kn; deg, rad, degE7;
 m, cm, mm, ft; negative powers written out too (``rad s^-1``, ``m s^-2``, ``m·s⁻²``).
 
@@ -117,6 +118,7 @@ class ColumnMap:
     frame_stated: bool = False
     ignored: tuple[str, ...] = field(default_factory=tuple)
     notes: tuple[str, ...] = ()  # "note: ..." lines: columns that look like a group but are left out, and why
+    units_row: bool = False  # the line after the header gives the columns' units (skipped as data)
 
     def column_for(self, canonical: str) -> str | None:
         return next((c for c, (n, _) in self.columns.items() if n == canonical), None)
@@ -331,6 +333,25 @@ def _header_of(path: str) -> list[str]:
     return [c.strip().strip('"') for c in text.split(_delimiter(text))]
 
 
+def _units_of(path: str, columns: list[str]) -> list[str] | None:
+    """The units of a header's columns given on the next line (``Time,GyroX,...`` then ``s,deg/s,...``: a
+    logger's habit), or None where that line is data (or anything but units)."""
+    with open(path, "rb") as fh:
+        fh.readline(65536)
+        line = fh.readline(65536)
+    text = line.decode("utf-8", "replace").strip()
+    cells = [c.strip().strip('"').strip() for c in text.split(_delimiter(columns and ",".join(columns) or text))]
+    if len(cells) != len(columns):
+        return None
+    units = []
+    for c in cells:
+        u = c[1:-1] if len(c) >= 2 and c[0] + c[-1] in ("()", "[]") else c
+        if u and not (norm_unit(u) in UNITS and re.search(r"[A-Za-z/°²µ]", u) or u in ("-", "1")):
+            return None  # a number, or text that is no unit
+        units.append(u)
+    return units if any(UNITS.get(norm_unit(u), ("unitless",))[0] != "unitless" for u in units) else None
+
+
 def _looks_like_csv_header(head: bytes) -> bool:
     first = head.split(b"\n", 1)[0].lstrip(b"\xef\xbb\xbf").rstrip(b"\r")
     if not first or len(first) > 8000:
@@ -415,7 +436,19 @@ def column_map_for(src: _Source, selector: Selector) -> ColumnMap:
         return ng
     try:
         return map_from_header(columns)
-    except MapError as why:
+    except MapError as first:
+        why = first
+        units = _units_of(src.table, columns)
+        if units is not None:  # names on the header line, units on the next
+            named = [f"{c} ({u})" if u else c for c, u in zip(columns, units)]
+            try:
+                m = map_from_header(named)
+            except MapError as second:
+                why = second
+            else:
+                back = dict(zip(named, columns))
+                return ColumnMap({back[c]: v for c, v in m.columns.items()}, origin="header and units row",
+                                 ignored=tuple(back[c] for c in m.ignored), notes=m.notes, units_row=True)
         shown = ", ".join(repr(printable(c)) for c in columns[:10]) + (", ..." if len(columns) > 10 else "")
         raise InputError(
             f"cannot map CSV columns unambiguously ({printable(why, 200)}); columns found: {shown}; write a column map "
@@ -478,7 +511,7 @@ def _convert_frames(cmap: ColumnMap, groups: dict[str, np.ndarray], quat: str | 
 def _streams_from_table(path: str, cmap: ColumnMap, groups_wanted: tuple[str, ...],
                         warns: list[str]) -> dict[str, Stream]:
     time_col = cmap.column_for("time")
-    df, w = _read_table(path, time_col)
+    df, w = _read_table(path, time_col, units_row=cmap.units_row)
     warns.extend(w)
     if time_col not in df.columns:
         raise InputError(f"no column {time_col!r} in CSV", path)

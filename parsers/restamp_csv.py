@@ -132,8 +132,10 @@ def _emit(buf, ls, le, cs, ce, ok, new, p, out):  # pragma: no cover - compiled
 _kernel = kernel_loader(globals())  # the numba kernels above, compiled (and cached) on first use
 
 
-def restamp_bytes(raw: bytes, time_col: str, unit: str, shift: ClockShift, path: str) -> tuple[np.ndarray, int, int]:
-    """(new file bytes, data lines rewritten, damaged lines kept as they were)."""
+def restamp_bytes(raw: bytes, time_col: str, unit: str, shift: ClockShift, path: str, units_row: bool = False
+                  ) -> tuple[np.ndarray, int, int]:
+    """(new file bytes, data lines rewritten, damaged lines kept as they were); ``units_row``: the line after
+    the header (the columns' units) is copied as the header is."""
     if unit not in _POW10:
         raise InputError(f"native CSV export: time unit {unit!r} not supported", path)
     p = _POW10[unit]
@@ -145,27 +147,30 @@ def restamp_bytes(raw: bytes, time_col: str, unit: str, shift: ClockShift, path:
     if time_col not in cols:
         raise InputError(f"native CSV export: no time column {time_col!r} in the header", path)
     k = cols.index(time_col)
-    ls, le, cs, ce = _kernel("_cells")(buf, k, ord(sep))
-    ns, ok = decimal_cells_to_int(buf, cs, ce, p)  # (the readers' scan: the export rewrites every time they read)
+    base = nl + 1 if units_row and nl >= 0 else 0  # (the kernel skips the first line of what it is given)
+    body = buf[base:]
+    ls, le, cs, ce = _kernel("_cells")(body, k, ord(sep))
+    ns, ok = decimal_cells_to_int(body, cs, ce, p)  # (the readers' scan: the export rewrites every time they read)
     blank = le <= ls
     # a value in the unit times 10**p is nanoseconds exactly (s: p=9, ms: 6, us: 3, ns: 0)
     new = ns.copy()
     new[ok] = shift.to_master_ns(ns[ok])
-    head_end = len(raw) if nl < 0 else nl + 1
+    last = raw.find(b"\n", base) if base else nl  # (the last header line's end)
+    head_end = len(raw) if last < 0 else last + 1
     out = np.empty(len(raw) + 24 * len(ls) + 1, dtype=np.uint8)
     out[:head_end] = buf[:head_end]
-    n = _kernel("_emit")(buf, ls, le, cs, ce, ok, new, p, out[head_end:])
+    n = _kernel("_emit")(body, ls, le, cs, ce, ok, new, p, out[head_end:])
     return out[:head_end + n], int(ok.sum()), int((~ok & ~blank).sum())
 
 
-def _rewrite_file(src: str, dst: str, time_col: str, unit: str, shift: ClockShift, start: int = 0
-                  ) -> tuple[int, int]:
+def _rewrite_file(src: str, dst: str, time_col: str, unit: str, shift: ClockShift, start: int = 0,
+                  units_row: bool = False) -> tuple[int, int]:
     """``src`` from byte ``start`` (its header line) restamped into ``dst``: (data lines rewritten, damaged
     lines kept as they were)."""
     with open(src, "rb") as fh:
         fh.seek(start)
         raw = fh.read()
-    new, n, bad = restamp_bytes(raw, time_col, unit, shift, src)
+    new, n, bad = restamp_bytes(raw, time_col, unit, shift, src, units_row)
     with atomic_path(dst) as tmp:
         new.tofile(tmp)
     return n, bad
@@ -212,7 +217,7 @@ def restamp_csv_vendor(src: str, dst: str, shift: ClockShift, *, selector=None) 
     time_col = cmap.column_for("time")
     unit = cmap.columns[time_col][1]
     if not os.path.isdir(src):
-        n, bad = _rewrite_file(src, dst, time_col, unit, shift)
+        n, bad = _rewrite_file(src, dst, time_col, unit, shift, units_row=cmap.units_row)
         return RestampStats(path=dst, format="csv-vendor", how=HOW, records=n, records_by_type={"rows": n},
                             time_fields=(time_col,),
                             damage=(f"{bad} line(s) without a readable time copied unchanged",) if bad else ())

@@ -123,6 +123,38 @@ def test_canonical_csv_reads_euler_columns_and_notes_the_columns_it_does_not_rea
     assert [w for w in log.meta.warnings] == ["note: column(s) not read (not the canonical CSV's): temp_c"]
 
 
+def test_vendor_csv_with_a_units_row_under_its_header(tmp_path):
+    """Names on the header line and units on the next (``Time,GyroX,...`` / ``s,deg/s,...``: a logger's
+    habit) were refused ('no unit'). The units row now completes the names; it is not data, and the native
+    export copies it as it copies the header (its time cell is no damaged line)."""
+    rpy = np.c_[20 * np.sin(T), -10 + 5 * T, (350 + 30 * T) % 360]
+    text = ("Time,GyroX,GyroY,GyroZ,AccX,AccY,AccZ,Roll,Pitch,Yaw\n" + "s,deg/s,deg/s,deg/s,g,g,g,deg,deg,deg\n"
+            + "".join(",".join(["%.3f" % (1.7e9 + t)] + ["%.12g" % v for v in (*w, *f, *r)]) + "\n"
+                      for t, w, f, r in zip(T, np.degrees(W_RAD_S), F_M_S2 / G0_M_S2, rpy)))
+    p = _write(tmp_path / "logger.csv", text)
+    log = registry.load(str(p))
+    assert len(log.imu) == len(T) and "units row" in log.meta.stamp_source
+    np.testing.assert_allclose(log.gyro_rad_s(), W_RAD_S, atol=1e-9)
+    np.testing.assert_allclose(log.accel_m_s2(), F_M_S2, atol=1e-9)
+    _, q = log.quat_wxyz()
+    q_ned_frd = quat_from_euler(np.radians(rpy))
+    np.testing.assert_allclose(q * np.sign(np.sum(q * q_ned_frd, axis=1))[:, None], q_ned_frd, atol=1e-8)
+    from parsers.restamp import ClockShift
+    from parsers.restamp_csv import restamp_csv_vendor
+
+    shift = ClockShift(0.25, 0.0, log.meta.t0_ns)
+    st = restamp_csv_vendor(str(p), str(tmp_path / "out.csv"), shift)
+    assert st.records == len(T) and not st.damage
+    out = (tmp_path / "out.csv").read_text().splitlines()
+    assert out[:2] == text.splitlines()[:2]
+    back = registry.load(str(tmp_path / "out.csv"))
+    np.testing.assert_array_equal(back.meta.t0_ns + np.round(back.t_imu_s() * 1e9).astype(np.int64),
+                                  shift.to_master_ns(log.meta.t0_ns + np.round(log.t_imu_s() * 1e9).astype(np.int64)))
+    # a second line of numbers is data, not units: such a header stays unmappable, said as before
+    with pytest.raises(InputError, match="no unit"):
+        registry.load(str(_write(tmp_path / "plain.csv", "t,gx,gy,gz\n0.0,1,2,3\n0.01,1,2,3\n")))
+
+
 def test_vendor_partial_attitude_or_position_columns_are_left_out_and_said(tmp_path):
     """An IMU CSV with an altitude or a heading column alone, or a yaw and a heading, still reads (its IMU);
     the columns left out are named in a warning. A part of an IMU group is still refused (a misnamed axis)."""
