@@ -57,7 +57,7 @@ from logtools.conventions import DEG, G0_M_S2, quat_conj, quat_from_dcm, quat_fr
 from logtools.errors import InputError
 from logtools.inslog import InsLog
 from parsers import csv_canonical
-from parsers.assemble import Stream, build_inslog
+from parsers.assemble import Stream, build_inslog, repeated_samples
 from parsers.base import Inventory, Selector, StreamInfo
 from parsers.csvtable import decimal_text_to_int, delimiter as _delimiter, non_numeric_text, numeric_block, printable
 from parsers.csvtable import read_table as _read_table
@@ -521,6 +521,19 @@ def _streams_from_table(path: str, cmap: ColumnMap, groups_wanted: tuple[str, ..
     groups: dict[str, np.ndarray] = {}
     masks: dict[str, np.ndarray] = {}
     damaged = ~ok_t
+    # a stretch of the file written twice, judged by whole lines as the canonical reader does: judged group by
+    # group (parsers.assemble), a group whose values do not change along it (an accelerometer at rest,
+    # quantised) is no repeat there, and the clock-step rule kept part of it alone
+    valid = np.flatnonzero(ok_t)
+    fresh = ok_t.copy()
+    if len(valid) > 2 and np.any(np.diff(t_ns[valid]) < 0):
+        rep = repeated_samples(t_ns[valid], lambda: pd.util.hash_pandas_object(
+            df.iloc[valid].drop(columns=time_col), index=False).to_numpy())
+        if rep.any():
+            line = int(df.index[valid[rep][0]]) + 2 + int(cmap.units_row)  # (the header is line 1)
+            warns.append(f"{os.path.basename(path)}: {int(rep.sum())} line(s) repeating earlier ones exactly (a "
+                         f"stretch of the file written twice?) dropped (first at line {line})")
+            fresh[valid[rep]] = False
     non_numeric: dict[str, int] = {}
     for g in groups_wanted:
         cols = [cmap.column_for(n) for n in GROUPS[g]]
@@ -539,7 +552,7 @@ def _streams_from_table(path: str, cmap: ColumnMap, groups_wanted: tuple[str, ..
         fin = np.isfinite(vals)
         damaged |= fin.any(axis=1) & ~fin.all(axis=1)  # a group cut short
         groups[g] = vals
-        masks[g] = ok_t & fin.all(axis=1)
+        masks[g] = fresh & fin.all(axis=1)
     if not groups:
         raise InputError("no complete gyro/accel/quaternion/velocity/position column group mapped", path)
     n_bad = int(damaged.sum())

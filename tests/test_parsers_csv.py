@@ -155,6 +155,22 @@ def test_vendor_csv_with_a_units_row_under_its_header(tmp_path):
         registry.load(str(_write(tmp_path / "plain.csv", "t,gx,gy,gz\n0.0,1,2,3\n0.01,1,2,3\n")))
 
 
+def test_vendor_csv_stretch_written_twice_is_dropped_by_lines_even_where_a_group_is_constant(tmp_path):
+    """A stretch of a vendor CSV's lines written twice, with the accelerometer at rest (its cells the same
+    on every line): judged group by group the accelerometer's repeat, its values not changing, was left to
+    the clock-step rule, which kept one part alone (the IMU kept 150 of its 200 samples).
+    Judged by whole lines, as the canonical reader does, the repeat is dropped and every sample kept."""
+    rows = [",".join(["%.3f" % t] + ["%.9f" % v for v in w] + ["0.01", "0.02", "-1.0"]) for t, w in zip(T, W_RAD_S)]
+    rows = rows[:150] + rows[100:150] + rows[150:]  # lines 100..149 written again
+    p = _write(tmp_path / "rest.csv", "Time (s),Gyro X (rad/s),Gyro Y (rad/s),Gyro Z (rad/s),Acc X (g),Acc Y (g),"
+                                      "Acc Z (g)\n" + "\n".join(rows) + "\n")
+    log = registry.load(str(p))
+    assert len(log.imu) == len(T)
+    np.testing.assert_allclose(log.gyro_rad_s(), W_RAD_S, atol=1e-9)
+    said = [w for w in log.meta.warnings if "repeating earlier ones" in w]
+    assert len(said) == 1 and "50 line(s)" in said[0] and "line 152" in said[0]
+
+
 def test_vendor_partial_attitude_or_position_columns_are_left_out_and_said(tmp_path):
     """An IMU CSV with an altitude or a heading column alone, or a yaw and a heading, still reads (its IMU);
     the columns left out are named in a warning. A part of an IMU group is still refused (a misnamed axis)."""
