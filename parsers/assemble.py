@@ -5,7 +5,7 @@ duplicate stamps, reports gaps/resets/non-monotonic stamps as warnings and picks
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pandas as pd
@@ -277,6 +277,36 @@ def repeated_samples(t_ns: np.ndarray, values, cfg: ClockStepConfig = CLOCK_STEP
     for a, b in zip(a_s[(b_s - a_s >= 2) & (moved > 0)].tolist(), b_s[(b_s - a_s >= 2) & (moved > 0)].tolist()):
         out[rows[a:b]] = True
     return out
+
+
+def _drop_joint_repeats(streams: dict[str, Stream | None], warnings: list[str],
+                        cfg: ClockStepConfig = CLOCK_STEP) -> None:
+    """Streams made from the same records (the same stamps: a MAVLink HIGHRES_IMU's gyro and accel, an
+    Odometry's attitude and velocity) judged together for a stretch recorded twice (:func:`repeated_samples`
+    over their values side by side), its samples dropped from each, in ``streams``. Judged one by one, a
+    stream whose values do not change along the stretch (an accelerometer at rest, quantised) is no repeat,
+    and the clock-step rule kept one part of it alone, while the others kept the whole log."""
+    keys = [k for k, s in streams.items() if s is not None and len(s.t_ns) >= 3]
+    back = -int(round(cfg.min_back_s * 1e9))
+    seen: set[str] = set()
+    for i, k in enumerate(keys):
+        s = streams[k]
+        if k in seen or not np.any(np.diff(np.asarray(s.t_ns, np.int64)) < back):
+            continue
+        group = [k] + [j for j in keys[i + 1:] if j not in seen and len(streams[j].t_ns) == len(s.t_ns)
+                       and (streams[j].t_ns is s.t_ns or np.array_equal(streams[j].t_ns, s.t_ns))]
+        seen.update(group)
+        if len(group) < 2:
+            continue
+        n = len(s.t_ns)
+        rep = repeated_samples(s.t_ns, lambda: np.concatenate(
+            [np.asarray(streams[j].values, float).reshape(n, -1) for j in group], axis=1), cfg)
+        if rep.any():
+            warnings.append(f"{'+'.join(group)} ({s.source}): {int(rep.sum())} sample(s) repeating earlier ones "
+                            "exactly (stamp and values: a stretch of the log recorded twice?) dropped")
+            for j in group:
+                streams[j] = replace(streams[j], t_ns=np.asarray(streams[j].t_ns)[~rep],
+                                     values=np.asarray(streams[j].values)[~rep])
 
 
 def clean_stream(name: str, s: Stream, warnings: list[str], clock: dict | None = None) -> Stream:
@@ -561,6 +591,7 @@ def assemble_inslog(streams: dict[str, Stream | None], *, path: str, fmt: str, s
     for none), taking them out of the dict as it goes: a stream's arrays go as soon as its columns are in
     the frame (a caller that keeps no other reference holds each sample about once)."""
     warns = list(warnings)
+    _drop_joint_repeats(streams, warns)
     cleaned: dict[str, Stream] = {}
     step_part: dict = {}  # the part of the log kept at a clock step (the first stream with one decides)
     for k in ("gyro", "accel", "quat", "vel", "pos"):
