@@ -211,21 +211,28 @@ def test_a_stretch_recorded_twice_is_dropped_not_taken_for_a_clock_step():
     assert not repeated_samples(t, v).any()  # (stamps that never run back: one comparison pass)
 
 
+def _read_with_a_stretch_repeated(tmp_path, log, fmt: str):
+    """(the log written in ``fmt`` and read back, the same file with 2 % of its bytes repeated in place at 40 %
+    and read back)."""
+    from parsers import registry
+
+    good = tmp_path / f"good.{fmt}"
+    registry.write(str(good), log, fmt)
+    raw = good.read_bytes()
+    a, b = int(0.40 * len(raw)), int(0.42 * len(raw))
+    bad = tmp_path / f"bad.{fmt}"
+    bad.write_bytes(raw[:b] + raw[a:b] + raw[b:])
+    return registry.load(str(good)), registry.load(str(bad))
+
+
 @pytest.mark.parametrize("fmt", ["tlog", "csv"])
 def test_a_log_file_with_a_stretch_of_bytes_repeated_reads_whole(tmp_path, fmt):
     """The same as the format sees it: a tlog's bytes (its frames resynchronised after the cut copy) or a
     canonical CSV's lines repeated in place; every sample read once, none lost to a clock step."""
     from logtools import sim
-    from parsers import registry
 
     pair = sim.simulate(sim.scenario_config("multirotor", duration_s=30.0, seed=3))
-    good = tmp_path / f"good.{fmt}"
-    registry.write(str(good), pair.slave, fmt)
-    raw = good.read_bytes()
-    a, b = int(0.40 * len(raw)), int(0.42 * len(raw))
-    bad = tmp_path / f"bad.{fmt}"
-    bad.write_bytes(raw[:b] + raw[a:b] + raw[b:])
-    full, back = registry.load(str(good)), registry.load(str(bad))
+    full, back = _read_with_a_stretch_repeated(tmp_path, pair.slave, fmt)
     assert not any(CLOCK_STEP_WORDS in w for w in back.meta.warnings), back.meta.warnings
     assert any("repeating earlier ones exactly" in w for w in back.meta.warnings)
     assert len(full.imu) - 2 <= len(back.imu) <= len(full.imu)  # (the frame cut by the copy's ends: its CRC)
@@ -240,19 +247,12 @@ def test_a_stretch_recorded_twice_with_a_constant_accelerometer_is_dropped_from_
     a tlog and a ULog, 3604 in a DataFlash log). Judged side by side with the gyro, the stretch is a repeat
     for both."""
     from logtools import sim
-    from parsers import registry
 
     pair = sim.simulate(sim.scenario_config("multirotor", duration_s=30.0, seed=3))
     imu = pair.slave.imu.copy()
     imu[["accel_x_m_s2", "accel_y_m_s2", "accel_z_m_s2"]] = [0.0, 0.0, -9.81]
     slave = type(pair.slave)(imu=imu, nav=pair.slave.nav, meta=pair.slave.meta)
-    good = tmp_path / f"good.{fmt}"
-    registry.write(str(good), slave, fmt)
-    raw = good.read_bytes()
-    a, b = int(0.40 * len(raw)), int(0.42 * len(raw))
-    bad = tmp_path / f"bad.{fmt}"
-    bad.write_bytes(raw[:b] + raw[a:b] + raw[b:])
-    full, back = registry.load(str(good)), registry.load(str(bad))
+    full, back = _read_with_a_stretch_repeated(tmp_path, slave, fmt)
     assert not any(CLOCK_STEP_WORDS in w for w in back.meta.warnings), back.meta.warnings
     assert any(w.startswith("gyro+accel") and "repeating earlier ones exactly" in w for w in back.meta.warnings)
     assert len(full.imu) - 2 <= len(back.imu) <= len(full.imu)
