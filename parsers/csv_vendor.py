@@ -337,10 +337,10 @@ def _units_of(path: str, columns: list[str]) -> list[str] | None:
     """The units of a header's columns given on the next line (``Time,GyroX,...`` then ``s,deg/s,...``: a
     logger's habit), or None where that line is data (or anything but units)."""
     with open(path, "rb") as fh:
-        fh.readline(65536)
+        head = fh.readline(65536).lstrip(b"\xef\xbb\xbf").decode("utf-8", "replace")
         line = fh.readline(65536)
     text = line.decode("utf-8", "replace").strip()
-    cells = [c.strip().strip('"').strip() for c in text.split(_delimiter(columns and ",".join(columns) or text))]
+    cells = [c.strip().strip('"').strip() for c in text.split(_delimiter(head))]
     if len(cells) != len(columns):
         return None
     units = []

@@ -150,6 +150,8 @@ def test_vendor_csv_with_a_units_row_under_its_header(tmp_path):
     back = registry.load(str(tmp_path / "out.csv"))
     np.testing.assert_array_equal(back.meta.t0_ns + np.round(back.t_imu_s() * 1e9).astype(np.int64),
                                   shift.to_master_ns(log.meta.t0_ns + np.round(log.t_imu_s() * 1e9).astype(np.int64)))
+    semi = _write(tmp_path / "semi.csv", "\n".join(line.replace(",", ";") for line in text.splitlines()) + "\n")
+    np.testing.assert_array_equal(registry.load(str(semi)).gyro_rad_s(), log.gyro_rad_s())  # (any delimiter)
     # a second line of numbers is data, not units: such a header stays unmappable, said as before
     with pytest.raises(InputError, match="no unit"):
         registry.load(str(_write(tmp_path / "plain.csv", "t,gx,gy,gz\n0.0,1,2,3\n0.01,1,2,3\n")))
