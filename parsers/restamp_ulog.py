@@ -40,46 +40,16 @@ def _is_time_field(name: str, base: np.dtype) -> bool:
         or last == "time_utc_usec"
 
 
-#: a ULog sync message: size 8, type 'S', pyulog's SYNC_BYTES (PX4 and this repository's writer log one
-#: every second or so; readers resynchronise there after damage)
-_SYNC_MESSAGE = b"\x08\x00S" + b"\x2f\x73\x13\x20\x25\x0c\xbb\x12"
-
-
 def _walk_resyncing(buf: np.ndarray, damage: list[str], byte_shift: int = 0
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(offsets, sizes, types) of every message the chain of headers reaches, resuming after an
-    implausible header at the next sync message (where pyulog, which reads a damaged ULog, resumes too).
-    Bytes no message covers are copied unchanged; each such place is named in ``damage``, at the input file's
-    offsets (``byte_shift`` added: a repaired header's, :func:`parsers.ulog.repaired_head`)."""
+    """(offsets, sizes, types) of every message the reader reaches (:func:`parsers.ulog.walk_resyncing`: after
+    damage, where the headers chain again); bytes no message covers are copied unchanged, each such place
+    named in ``damage`` at the input file's offsets (``byte_shift`` added: a repaired header's)."""
     from parsers import ulog as ul
 
-    walk = ul.kernel("_walk")
-    parts = []
-    start, raw = 16, None
-    while True:
-        offsets, sizes, types, end, status = walk(buf, start, ul._KNOWN_TYPES, ul._MAX_MSG_SIZE)
-        parts.append((offsets, sizes, types))
-        end = int(end)
-        if status == 0:
-            break
-        if status == 1:
-            damage.append(f"damaged ULog: truncated last message at byte {end + byte_shift} of "
-                          f"{len(buf) + byte_shift}; the "
-                          f"{len(buf) - end} byte(s) from there copied unchanged")
-            break
-        raw = raw if raw is not None else buf.tobytes()
-        nxt = raw.find(_SYNC_MESSAGE, end + 1)
-        if nxt < 0:
-            damage.append(f"damaged ULog: implausible message header at byte {end + byte_shift} of "
-                          f"{len(buf) + byte_shift} and no sync "
-                          f"message after it; the {len(buf) - end} byte(s) from there copied unchanged (their "
-                          "time fields not rewritten)")
-            break
-        damage.append(f"damaged ULog: implausible message header at byte {end + byte_shift}; bytes "
-                      f"{end + byte_shift}-{nxt - 1 + byte_shift} copied "
-                      "unchanged, rewriting resumed at the next sync message")
-        start = nxt
-    return tuple(np.concatenate([p[k] for p in parts]) for k in range(3))  # (one part per walk, at least one)
+    offsets, sizes, types, notes, _status = ul.walk_resyncing(buf, byte_shift)
+    damage.extend(f"damaged ULog: {n}; those bytes copied unchanged" for n in notes if not n.startswith("zero-filled"))
+    return offsets, sizes, types
 
 
 def restamp_ulog(src: str, dst: str, shift: ClockShift, *, selector=None) -> RestampStats:

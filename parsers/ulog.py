@@ -14,8 +14,10 @@ Reading: pyulog is the reference implementation (tolerant of damage: skips bad m
 Clean files take a fast path: one compiled walk over the 3-byte message headers, then each wanted
 topic's payloads are gathered into pyulog's own structured dtype (built by pyulog's classes from the
 file's format messages) -- the same arrays pyulog returns, message for message, at a fraction of the
-cost. Any sign of damage (bad header, truncated tail, payload size mismatch, appended data, removed
-subscriptions) sends the file to pyulog and the damage is reported as a warning.
+cost. Damage in the middle (an implausible message header) or a truncated tail is read past by the same
+walk (:func:`walk_resyncing`: on where the headers chain again), as the native export rewrites it; what it
+cannot judge (appended data, removed subscriptions, data of unknown ids in an undamaged walk) sends the
+file to pyulog. The damage is reported as a warning.
 
 Selector keys: ``imu=`` (``sensor_combined`` | ``sensor_gyro[i]`` (pairs ``sensor_accel[i]``) |
 ``vehicle_imu[i]`` (delta angle / delta velocity over dt) | ``vehicle_angular_velocity[i]`` (pairs
@@ -175,6 +177,32 @@ def _walk(buf, start, known, max_size):  # pragma: no cover - compiled
     return offsets, sizes, types, end, status
 
 
+def _chain_at(buf, start, known, max_size, dsize, chain):  # pragma: no cover - compiled
+    """The first offset from ``start`` on where ``chain`` message headers follow one another plausibly (known
+    type, size 1..max_size inside the file; a data message of a subscribed id with that subscription's size,
+    ``dsize[msg_id]``), or where fewer do and end exactly at the file's end; -1 where there is none."""
+    n = buf.shape[0]
+    for at in range(start, n - 2):
+        pos = at
+        k = 0
+        while k < chain and pos + 3 <= n:
+            size = np.int64(buf[pos]) | (np.int64(buf[pos + 1]) << 8)
+            typ = buf[pos + 2]
+            if size == 0 or size > max_size or not known[typ] or pos + 3 + size > n:
+                break
+            if typ == 68:  # 'D': msg_id, then the topic's fields
+                if size < 2:
+                    break
+                mid = np.int64(buf[pos + 3]) | (np.int64(buf[pos + 4]) << 8)
+                if dsize[mid] != size:
+                    break
+            k += 1
+            pos += 3 + size
+        if k >= chain or (k > 0 and pos == n):
+            return at
+    return -1
+
+
 def _gather(buf, offsets, skip, itemsize):  # pragma: no cover - compiled
     """Copy ``itemsize`` bytes from ``buf[offsets[i] + skip]`` for every i into one contiguous array."""
     out = np.empty(offsets.shape[0] * itemsize, np.uint8)
@@ -219,12 +247,71 @@ def kernel(name: str):
 
         if jit.compiled():
             fn = jit.njit(globals()[name])
-        elif name == "_walk":
-            fn = lambda buf, *a: _walk(memoryview(buf), *a)  # noqa: E731
+        elif name in ("_walk", "_chain_at"):
+            fn = (lambda f: lambda buf, *a: f(memoryview(buf), *a))(globals()[name])
         else:
             fn = {"_gather": _gather_np, "_scatter": _scatter_np}[name]
         _COMPILED[name] = fn
     return fn
+
+
+#: consecutive plausible message headers (data messages of subscribed ids, of their size) after damage in the
+#: middle of a ULog that mark where its messages resume (pyulog resumes at the next sync message, logged
+#: about once a second: what lies before it was lost)
+RESYNC_CHAIN = 8
+
+
+def walk_resyncing(buf: np.ndarray, byte_shift: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str], int]:
+    """(offsets, sizes, types) of the messages the chain of headers reaches from byte 16, going on past damage:
+    after an implausible header, at the first offset where RESYNC_CHAIN headers chain plausibly
+    (:func:`_chain_at`; a data message must be of an id subscribed before the damage, with its size). The
+    message just before each break is left out (its size may be what was damaged); a zero-filled tail and a
+    truncated last message end the walk. Also what was done, in words at the file's offsets (``byte_shift``
+    added), and the walk's last status (0 clean end, 1 truncated, 2 stopped at damage). One rule for the
+    reader and the native export: the export keeps the file's structure, so reading it back resumes at the same
+    places."""
+    from pyulog import ULog
+
+    walk, chain_at = kernel("_walk"), kernel("_chain_at")
+    parts, notes = [], []
+    formats: dict[str, object] = {}
+    dsize = np.full(1 << 16, -1, np.int64)
+    header = ULog._MessageHeader()
+    start = 16
+    while True:
+        offsets, sizes, types, end, status = walk(buf, start, _KNOWN_TYPES, _MAX_MSG_SIZE)
+        end = int(end)
+        for i in np.flatnonzero((types == _T_FORMAT) | (types == _T_ADD)).tolist():  # (what a data message may be)
+            o, sz = int(offsets[i]), int(sizes[i])
+            header.msg_size, header.msg_type = sz, int(types[i])
+            try:
+                if types[i] == _T_FORMAT:
+                    fmt = ULog.MessageFormat(buf[o + 3:o + 3 + sz].tobytes(), header)
+                    formats[fmt.name] = fmt
+                else:
+                    add = ULog._MessageAddLogged(buf[o + 3:o + 3 + sz].tobytes(), header, formats)
+                    dsize[add.msg_id] = add.dtype.itemsize + 2
+            except (KeyError, ValueError, IndexError, struct.error, UnicodeDecodeError):
+                pass  # (the reader judges its definitions itself)
+        if status != 2 or not buf[end:].any():
+            parts.append((offsets, sizes, types))
+            if status == 1:
+                notes.append(f"truncated last message at byte {end + byte_shift} of {len(buf) + byte_shift}")
+            elif status == 2:
+                notes.append(f"zero-filled tail: the last {len(buf) - end} bytes (from byte {end + byte_shift}) hold "
+                             "no messages (a preallocated file, or cut by a power loss)")
+            return (*(np.concatenate([p[k] for p in parts]) for k in range(3)), notes, status)
+        at = int(chain_at(buf, end + 1, _KNOWN_TYPES, _MAX_MSG_SIZE, dsize, RESYNC_CHAIN))
+        keep = max(len(offsets) - 1, 0)  # (the message before the break left out)
+        parts.append((offsets[:keep], sizes[:keep], types[:keep]))
+        cut = int(offsets[keep]) if keep < len(offsets) else end
+        if at < 0:
+            notes.append(f"implausible message header at byte {end + byte_shift}; no messages follow (bytes "
+                         f"{cut + byte_shift}-{len(buf) - 1 + byte_shift} not read)")
+            return (*(np.concatenate([p[k] for p in parts]) for k in range(3)), notes, 2)
+        notes.append(f"implausible message header at byte {end + byte_shift}; bytes {cut + byte_shift}-"
+                     f"{at - 1 + byte_shift} skipped, the messages resume at byte {at + byte_shift}")
+        start = at
 
 
 class _Fallback(Exception):
@@ -236,17 +323,12 @@ def _read_fast(path: str, buf: np.ndarray, names: set[str] | None, byte_shift: i
     (a damaged header's repair, :func:`repaired_head`: the resume offset less the new header's 16 bytes)."""
     from pyulog import ULog
 
-    offsets, sizes, types, end, status = kernel("_walk")(buf, 16, _KNOWN_TYPES, _MAX_MSG_SIZE)
-    warns = []
-    if status == 2 and not buf[int(end):].any():
-        # nothing but zero bytes after the last message: a file preallocated by the logger (or an SD card's
-        # zeroed blocks after a power loss). pyulog would resync through them byte by byte (about 0.7 s/MB)
-        # to find nothing; every message before them is intact
-        warns.append(f"zero-filled tail: the last {len(buf) - int(end)} bytes (from byte {int(end) + byte_shift}) hold "
-                     "no messages (a preallocated file, or cut by a power loss)")
-    elif status != 0:
-        what = "truncated last message" if status == 1 else "implausible message header"
-        raise _Fallback(f"{what} at byte {int(end) + byte_shift} of {len(buf) + byte_shift}")
+    # damage in the middle: read on where the headers chain again (pyulog, byte by byte to the next sync
+    # message, lost about a second at each place); a zero-filled tail (a file preallocated by the logger, an SD
+    # card's zeroed blocks after a power loss) ends the messages, every one before it intact
+    offsets, sizes, types, notes, _status = walk_resyncing(buf, byte_shift)
+    warns = [n if n.startswith("zero-filled") else f"damaged ULog: {n}" for n in notes]
+    damaged = any(not n.startswith("zero-filled") for n in notes)
     formats: dict[str, object] = {}
     subs: dict[int, object] = {}
     sub_at: dict[int, int] = {}  # file offset of each subscription
@@ -284,6 +366,15 @@ def _read_fast(path: str, buf: np.ndarray, names: set[str] | None, byte_shift: i
     data_idx = np.flatnonzero(types == _T_DATA)
     d_off = offsets[data_idx]
     ids = buf[d_off + 3].astype(np.int64) | (buf[d_off + 4].astype(np.int64) << 8)
+    if damaged:  # data messages read from damaged bytes (of no subscription, or not of its size): left out
+        want = np.full(1 << 16, -1, np.int64)
+        for msg_id, add in subs.items():
+            want[msg_id] = add.dtype.itemsize + 2
+        odd = want[ids] != sizes[data_idx]
+        if odd.any():
+            warns.append(f"damaged ULog: {int(odd.sum())} data message(s) of no subscription or of a wrong size "
+                         "(read from damaged bytes) left out")
+            data_idx, d_off, ids = data_idx[~odd], d_off[~odd], ids[~odd]
     unknown = np.setdiff1d(np.unique(ids), np.fromiter(subs.keys(), np.int64, len(subs)))
     if len(unknown):
         raise _Fallback(f"data for unsubscribed message id(s) {unknown[:5].tolist()}")

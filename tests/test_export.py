@@ -575,9 +575,11 @@ def test_csv_and_parquet_exports_hold_the_table_exactly(pair, tmp_path):
 
 
 def test_ulog_damaged_header_in_the_middle_rewrites_the_rest_after_the_next_sync(slaves, pair, tmp_path):
-    """A message header damaged in the middle of a ULog: the export resumes at the next sync message
-    (where pyulog, which reads such a file, resumes too). Before, everything after the damage was copied
-    with its old stamps: half the exported log on the slave's clock."""
+    """A message header damaged in the middle of a ULog: the export resumes where the headers chain again, as
+    tapost's reader does (``ulog.walk_resyncing``; it resumed at the next sync message, as pyulog does, and
+    lost the second before it). Before that, everything after the damage was copied with its old stamps: half
+    the exported log on the slave's clock. Read by tapost or by pyulog, the output has the input's samples,
+    each on the master's clock."""
     from parsers import restamp_ulog
     from parsers import ulog as ul
 
@@ -590,7 +592,12 @@ def test_ulog_damaged_header_in_the_middle_rewrites_the_rest_after_the_next_sync
     sh = shift_of(pair)
     st = restamp_ulog.restamp_ulog(str(src), str(dst), sh)
     assert dst.stat().st_size == src.stat().st_size
-    assert any("resumed at the next sync message" in d for d in st.damage)
+    assert any("the messages resume at byte" in d for d in st.damage)
+    a, b = registry.load(str(src)), registry.load(str(dst))
+    assert len(a.imu) == len(b.imu) >= len(pair.slave.imu) - 2  # (the damaged message, the one before it)
+    t_b = b.meta.t0_ns + np.round(b.t_imu_s() * 1e9).astype(np.int64)
+    t_a = sh.to_master_ns(a.meta.t0_ns + np.round(a.t_imu_s() * 1e9).astype(np.int64))
+    assert np.abs(t_b - t_a).max() <= 500  # (ULog stamps are whole microseconds)
     from pyulog import ULog
 
     def stamps(path):  # sensor_combined's raw timestamps (boot us), as pyulog reads the damaged file
