@@ -272,7 +272,7 @@ def walk_resyncing(buf: np.ndarray, byte_shift: int = 0) -> tuple[np.ndarray, np
     places."""
     from pyulog import ULog
 
-    walk, chain_at = kernel("_walk"), kernel("_chain_at")
+    walk = kernel("_walk")
     parts, notes = [], []
     formats: dict[str, object] = {}
     dsize = np.full(1 << 16, -1, np.int64)
@@ -281,18 +281,19 @@ def walk_resyncing(buf: np.ndarray, byte_shift: int = 0) -> tuple[np.ndarray, np
     while True:
         offsets, sizes, types, end, status = walk(buf, start, _KNOWN_TYPES, _MAX_MSG_SIZE)
         end = int(end)
-        for i in np.flatnonzero((types == _T_FORMAT) | (types == _T_ADD)).tolist():  # (what a data message may be)
-            o, sz = int(offsets[i]), int(sizes[i])
-            header.msg_size, header.msg_type = sz, int(types[i])
-            try:
-                if types[i] == _T_FORMAT:
-                    fmt = ULog.MessageFormat(buf[o + 3:o + 3 + sz].tobytes(), header)
-                    formats[fmt.name] = fmt
-                else:
-                    add = ULog._MessageAddLogged(buf[o + 3:o + 3 + sz].tobytes(), header, formats)
-                    dsize[add.msg_id] = add.dtype.itemsize + 2
-            except (KeyError, ValueError, IndexError, struct.error, UnicodeDecodeError):
-                pass  # (the reader judges its definitions itself)
+        if status == 2 and buf[end:].any():  # (damage: what a data message after it may be, from the definitions)
+            for i in np.flatnonzero((types == _T_FORMAT) | (types == _T_ADD)).tolist():
+                o, sz = int(offsets[i]), int(sizes[i])
+                header.msg_size, header.msg_type = sz, int(types[i])
+                try:
+                    if types[i] == _T_FORMAT:
+                        fmt = ULog.MessageFormat(buf[o + 3:o + 3 + sz].tobytes(), header)
+                        formats[fmt.name] = fmt
+                    else:
+                        add = ULog._MessageAddLogged(buf[o + 3:o + 3 + sz].tobytes(), header, formats)
+                        dsize[add.msg_id] = add.dtype.itemsize + 2
+                except (KeyError, ValueError, IndexError, struct.error, UnicodeDecodeError):
+                    pass  # (the reader judges its definitions itself)
         if status != 2 or not buf[end:].any():
             parts.append((offsets, sizes, types))
             if status == 1:
@@ -301,7 +302,7 @@ def walk_resyncing(buf: np.ndarray, byte_shift: int = 0) -> tuple[np.ndarray, np
                 notes.append(f"zero-filled tail: the last {len(buf) - end} bytes (from byte {end + byte_shift}) hold "
                              "no messages (a preallocated file, or cut by a power loss)")
             return (*(np.concatenate([p[k] for p in parts]) for k in range(3)), notes, status)
-        at = int(chain_at(buf, end + 1, _KNOWN_TYPES, _MAX_MSG_SIZE, dsize, RESYNC_CHAIN))
+        at = int(kernel("_chain_at")(buf, end + 1, _KNOWN_TYPES, _MAX_MSG_SIZE, dsize, RESYNC_CHAIN))
         keep = max(len(offsets) - 1, 0)  # (the message before the break left out)
         parts.append((offsets[:keep], sizes[:keep], types[:keep]))
         cut = int(offsets[keep]) if keep < len(offsets) else end
