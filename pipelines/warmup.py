@@ -67,6 +67,14 @@ def warm(quiet: bool = False) -> float:
             for f in sorted(os.listdir(paths["rosbag2"])):
                 if f.endswith(".db3"):
                     restamp_sqlite.recover(os.path.join(paths["rosbag2"], f))
+        if "ulog" in paths:  # the resync past damage in the middle of a ULog (parsers.ulog.walk_resyncing)
+            import numpy as np
+
+            from parsers import ulog
+
+            buf = np.fromfile(paths["ulog"], np.uint8)
+            ulog.kernel("_chain_at")(buf, 16, ulog._KNOWN_TYPES, ulog._MAX_MSG_SIZE, np.full(1 << 16, -1, np.int64),
+                                     ulog.RESYNC_CHAIN)
         t = time.perf_counter()
         opts = analyze.options_from({k: None for k in analyze.CLI_KEYS})[0]
         analyze.compute(paths["mcap"], paths["tlog"], opts)
