@@ -16,8 +16,8 @@ topic's payloads are gathered into pyulog's own structured dtype (built by pyulo
 file's format messages) -- the same arrays pyulog returns, message for message, at a fraction of the
 cost. Damage in the middle (an implausible message header) or a truncated tail is read past by the same
 walk (:func:`walk_resyncing`: on where the headers chain again), as the native export rewrites it; what it
-cannot judge (appended data, removed subscriptions, data of unknown ids in an undamaged walk) sends the
-file to pyulog. The damage is reported as a warning.
+cannot judge (appended data, removed subscriptions, data before its subscription) sends the file to
+pyulog; a data message of no subscription or of a wrong size is left out alone. The damage is reported as a warning.
 
 Selector keys: ``imu=`` (``sensor_combined`` | ``sensor_gyro[i]`` (pairs ``sensor_accel[i]``) |
 ``vehicle_imu[i]`` (delta angle / delta velocity over dt) | ``vehicle_angular_velocity[i]`` (pairs
@@ -329,7 +329,6 @@ def _read_fast(path: str, buf: np.ndarray, names: set[str] | None, byte_shift: i
     # card's zeroed blocks after a power loss) ends the messages, every one before it intact
     offsets, sizes, types, notes, _status = walk_resyncing(buf, byte_shift)
     warns = [n if n.startswith("zero-filled") else f"damaged ULog: {n}" for n in notes]
-    damaged = any(not n.startswith("zero-filled") for n in notes)
     formats: dict[str, object] = {}
     subs: dict[int, object] = {}
     sub_at: dict[int, int] = {}  # file offset of each subscription
@@ -367,18 +366,18 @@ def _read_fast(path: str, buf: np.ndarray, names: set[str] | None, byte_shift: i
     data_idx = np.flatnonzero(types == _T_DATA)
     d_off = offsets[data_idx]
     ids = buf[d_off + 3].astype(np.int64) | (buf[d_off + 4].astype(np.int64) << 8)
-    if damaged:  # data messages read from damaged bytes (of no subscription, or not of its size): left out
-        want = np.full(1 << 16, -1, np.int64)
-        for msg_id, add in subs.items():
-            want[msg_id] = add.dtype.itemsize + 2
-        odd = want[ids] != sizes[data_idx]
-        if odd.any():
-            warns.append(f"damaged ULog: {int(odd.sum())} data message(s) of no subscription or of a wrong size "
-                         "(read from damaged bytes) left out")
-            data_idx, d_off, ids = data_idx[~odd], d_off[~odd], ids[~odd]
-    unknown = np.setdiff1d(np.unique(ids), np.fromiter(subs.keys(), np.int64, len(subs)))
-    if len(unknown):
-        raise _Fallback(f"data for unsubscribed message id(s) {unknown[:5].tolist()}")
+    # data messages of no subscription or not of its size: damaged bytes (a flipped id byte; read past a break)
+    # or a writer's fault, left out alone (pyulog, which read such a file, resynchronised to the next sync
+    # message); the native export copies them as they are, so its output reads the same
+    want = np.full(1 << 16, -1, np.int64)
+    for msg_id, add in subs.items():
+        want[msg_id] = add.dtype.itemsize + 2
+    odd = want[ids] != sizes[data_idx]
+    if odd.any():
+        bad_ids = np.unique(ids[odd])
+        warns.append(f"damaged ULog: {int(odd.sum())} data message(s) of no subscription or of a wrong size left "
+                     f"out (message id(s) {', '.join(map(str, bad_ids[:5].tolist()))})")
+        data_idx, d_off, ids = data_idx[~odd], d_off[~odd], ids[~odd]
     topics: dict[TopicKey, dict[str, np.ndarray]] = {}
     for msg_id, add in subs.items():
         if names is not None and add.message_name not in names:
@@ -389,8 +388,6 @@ def _read_fast(path: str, buf: np.ndarray, names: set[str] | None, byte_shift: i
         itemsize = add.dtype.itemsize
         if d_off[mine][0] < sub_at[msg_id]:
             raise _Fallback(f"data for {add.message_name} before its subscription")
-        if np.any(sizes[data_idx[mine]] - 2 != itemsize):
-            raise _Fallback(f"payload size mismatch in {add.message_name}")
         arr = kernel("_gather")(buf, d_off[mine], 5, itemsize).view(add.dtype)
         topics[(add.message_name, int(add.multi_id))] = {n: arr[n] for n in arr.dtype.names}
     n_drop = int(np.sum(types == _T_DROPOUT))

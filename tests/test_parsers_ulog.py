@@ -550,3 +550,30 @@ def test_the_gps_utc_offset_carries_its_spread_as_a_sigma(tmp_path):
     off, _src, _w, problem, sigma = ul._utc_offset(topics)
     assert problem == "" and off is not None
     assert sigma == pytest.approx(3e-3, rel=0.2)
+
+
+def test_a_data_message_of_no_subscription_is_left_out_alone(tmp_path, sim_pair):
+    """One data message whose id byte a damage changed to an id nothing subscribed: the whole file went to
+    pyulog, which resumes at the next sync message. The fast reader now leaves out that message alone, says
+    so, and keeps every other sample; the native export copies it as it is, so its output reads the same."""
+    from parsers import restamp_ulog
+    from parsers.restamp import ClockShift
+
+    p = tmp_path / "good.ulg"
+    ulog.write(str(p), sim_pair.slave)
+    buf = np.fromfile(p, np.uint8)
+    offsets, _sizes, types, _end, _status = ulog.kernel("_walk")(buf, 16, ulog._KNOWN_TYPES, ulog._MAX_MSG_SIZE)
+    data = offsets[types == ulog._T_DATA]
+    bad = buf.copy()
+    bad[data[len(data) // 2] + 4] ^= 0x7F  # (the id's high byte: an id nothing subscribed)
+    q = tmp_path / "bad.ulg"
+    bad.tofile(q)
+    topics = ulog.read_topics(str(q))
+    assert topics.engine == "fast"
+    assert any("1 data message(s) of no subscription" in w for w in topics.warnings)
+    full, back = ulog.load(str(p), Selector()), ulog.load(str(q), Selector())
+    assert len(full.imu) - 1 <= len(back.imu) <= len(full.imu) and len(full.nav) - 1 <= len(back.nav)
+    sh = ClockShift(0.02, 0.0, back.meta.t0_ns)
+    restamp_ulog.restamp_ulog(str(q), str(tmp_path / "out.ulg"), sh)
+    out = ulog.load(str(tmp_path / "out.ulg"), Selector())
+    assert (len(out.imu), len(out.nav)) == (len(back.imu), len(back.nav))
