@@ -195,6 +195,41 @@ def _unit(streams: list[_Stream], msgs: _Msgs, typestore, selector: str | None, 
     return unit, plan.time_mode
 
 
+def _first_header_stamps(buf: np.ndarray, starts: np.ndarray, encoding: str) -> tuple[np.ndarray, np.ndarray]:
+    """(header stamps, ns; big-endian mask) of Header-first messages (payloads of 12 bytes or more) at
+    ``starts``: the stamp's sec and nanosec at bytes 4..12 (after ROS 1's seq, after CDR's encapsulation, whose
+    second byte 0 says big endian)."""
+    raw = get_bytes(buf, starts + 4, 8)
+    be = (buf[starts + 1] == 0) if encoding == "cdr" else np.zeros(len(starts), bool)  # CDR 00 00: big endian
+    le_v = raw.view("<u4").astype(np.int64)
+    if be.any():
+        le_v[be] = raw[be].view(">u4").astype(np.int64)
+    return le_v[:, 0] * 1_000_000_000 + le_v[:, 1], be
+
+
+def _far_repaired(streams: list[_Stream], msgs: _Msgs, far: np.ndarray) -> np.ndarray:
+    """Of the messages whose record time a damaged byte put far from the others (``far``), those with a sound
+    header stamp: their record time set anew from it, in ``msgs.log_ns`` (the stamp less its stream's usual
+    stamp - record time), as the parser, which reads header stamps, reads them. Returns their mask."""
+    fixed = np.zeros(len(far), bool)
+    for k, s in enumerate(streams):
+        if s.kind != _FIRST or s.encoding not in ("ros1", "cdr"):
+            continue
+        idx = np.flatnonzero((msgs.conn == k) & (msgs.lens >= 12))
+        if not len(idx) or not far[idx].any():
+            continue
+        stamp, _be = _first_header_stamps(msgs.buf, msgs.starts[idx], s.encoding)
+        good = ~far[idx] & (stamp != 0)
+        if good.sum() < 10:
+            continue
+        lo, hi = np.percentile(stamp[good], [1.0, 99.0])
+        bad = far[idx] & (stamp >= lo - _FAR_NS) & (stamp <= hi + _FAR_NS)
+        off = int(np.median(stamp[good] - msgs.log_ns[idx[good]]))
+        msgs.log_ns[idx[bad]] = stamp[bad] - off
+        fixed[idx[bad]] = True
+    return fixed
+
+
 def _apply(streams: list[_Stream], msgs: _Msgs, typestore, shift: ClockShift, selector: str | None,
            path: str) -> tuple[np.ndarray, _Msgs, list[str]]:
     """New record times; the payloads restamped (in ``msgs.buf``, in place); notes on what was left."""
@@ -214,13 +249,7 @@ def _apply(streams: list[_Stream], msgs: _Msgs, typestore, shift: ClockShift, se
             idx = idx[ok]
         if not len(idx):
             continue
-        pos = msgs.starts[idx]
-        raw = get_bytes(buf, pos + 4, 8)
-        be = (buf[pos + 1] == 0) if s.encoding == "cdr" else np.zeros(len(idx), bool)  # CDR 00 00: big endian
-        le_v = raw.view("<u4").astype(np.int64)
-        if be.any():
-            le_v[be] = raw[be].view(">u4").astype(np.int64)
-        stamp[idx] = le_v[:, 0] * 1_000_000_000 + le_v[:, 1]
+        stamp[idx], be = _first_header_stamps(buf, msgs.starts[idx], s.encoding)
         first[k] = (idx, be)
     texts: dict[int, np.ndarray] = {}  # JSON-encoded streams: message index (their stamps read from the text)
     for k, s in enumerate(streams):
@@ -481,12 +510,17 @@ def restamp_rosbag1(src: str, dst: str, shift: ClockShift, *, selector: str | No
         _registered(typestore, msgtype, msgdef, "msg")
         streams.append(_Stream(topic, msgtype, "ros1", _header_kind(typestore, msgtype)))
     msgs = scan.messages(cids)
-    far = _far_times(msgs.log_ns)  # a record the resynchronised walk read from damaged bytes
+    far = _far_times(msgs.log_ns)  # a record time a damaged byte moved (or a record read from damaged bytes)
+    fixed = _far_repaired(streams, msgs, far) if far.any() else far
+    far &= ~fixed
     if far.any():
         msgs = msgs.take(~far)
     msgs = msgs.take(np.argsort(msgs.log_ns, kind="stable"))  # the bag's time order
     span = float(msgs.log_ns[-1] - msgs.log_ns[0]) * 1e-9 if len(msgs.log_ns) else None
     new_log, msgs, notes = _apply(streams, msgs, typestore, shift, selector, src)
+    if fixed.any():
+        notes.append(f"{int(fixed.sum())} record time(s) more than a day from the others' (damaged) set anew from "
+                     "their header stamps")
     if far.any():
         notes.append(f"{int(far.sum())} message(s) with a damaged record time (more than a day from the others') "
                      "not in the output")
@@ -1003,6 +1037,11 @@ def restamp_rosbag2(src: str, dst: str, shift: ClockShift, *, selector: str | No
     far = None
     if not (storage == "mcap" and mode != "message"):  # (the mcap writer keeps its parts' records aligned)
         far = _far_times(msgs.log_ns)  # a row timestamp a damaged byte moved by more than a day
+        fixed = _far_repaired(streams, msgs, far) if far.any() else far
+        far &= ~fixed
+        if fixed.any():
+            damage.append(f"{int(fixed.sum())} row timestamp(s) more than a day from the others' (damaged) set anew "
+                          "from their header stamps")
         if far.any():
             msgs = msgs.take(~far)
     packed = msgs.buf
