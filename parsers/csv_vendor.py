@@ -260,6 +260,16 @@ def map_from_header(columns: list[str], *, quat_file: bool = False) -> ColumnMap
                 found.pop(c)
             for n in names:
                 by_target.pop(n, None)
+    for t, cs in list(by_target.items()):  # an accelerometer's column beside an 'Acceleration' one (an INS
+        if len(cs) > 1 and t in GROUPS["accel"]:  # export's kinematic acceleration): the accelerometer's
+            plain = [c for c in cs if "acceleration" not in split_name_unit(c)[0]]
+            if len(plain) == 1:
+                left_out.append(f"{', '.join(repr(c) for c in cs if c not in plain)} (beside {plain[0]!r})")
+                for c in cs:
+                    if c not in plain:
+                        ignored.append(c)
+                        found.pop(c)
+                by_target[t] = plain
     dup = {t: cs for t, cs in by_target.items() if len(cs) > 1}
     if dup:
         t, cs = next(iter(dup.items()))

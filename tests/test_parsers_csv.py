@@ -123,6 +123,18 @@ def test_canonical_csv_reads_euler_columns_and_notes_the_columns_it_does_not_rea
     assert [w for w in log.meta.warnings] == ["note: column(s) not read (not the canonical CSV's): temp_c"]
 
 
+def test_vendor_acceleration_columns_beside_accelerometer_columns_are_left_out(tmp_path):
+    """An INS export with the accelerometer's specific force and a kinematic 'Acceleration' group: since
+    'Acceleration X' reads as an accelerometer column, the header was ambiguous (refused); the
+    accelerometer's columns are taken and the others named in a note."""
+    rows = [",".join(["%.3f" % t] + ["%.9f" % v for v in (*w, *f, *(f * 0.0))]) for t, w, f in zip(T, W_RAD_S, F_M_S2)]
+    hdr = ("Time (s),Gyro X (rad/s),Gyro Y (rad/s),Gyro Z (rad/s),Accelerometer X (m/s^2),Accelerometer Y (m/s^2),"
+           "Accelerometer Z (m/s^2),Acceleration X (m/s^2),Acceleration Y (m/s^2),Acceleration Z (m/s^2)")
+    log = registry.load(str(_write(tmp_path / "ins.csv", hdr + "\n" + "\n".join(rows) + "\n")))
+    np.testing.assert_allclose(log.accel_m_s2(), F_M_S2, atol=1e-9)
+    assert any("'Acceleration X (m/s^2)' (beside 'Accelerometer X (m/s^2)')" in w for w in log.meta.warnings)
+
+
 def test_vendor_csv_with_a_units_row_under_its_header(tmp_path):
     """Names on the header line and units on the next (``Time,GyroX,...`` / ``s,deg/s,...``: a logger's
     habit) were refused ('no unit'). The units row now completes the names; it is not data, and the native
