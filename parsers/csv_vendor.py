@@ -248,7 +248,16 @@ def map_from_header(columns: list[str], *, quat_file: bool = False) -> ColumnMap
             continue
         found[col] = (target, unit)
         by_target.setdefault(target, []).append(col)
-    for g in OPTIONAL_PARTS:  # in part or twice (yaw and heading): left out, said
+    yaws = by_target.get("yaw", [])
+    named_yaw = [c for c in yaws if "".join(split_name_unit(c)[0]) == "yaw"]
+    if len(yaws) > 1 and len(named_yaw) == 1:  # 'Yaw' beside a 'Heading' (a compass's, a track's): the yaw
+        left_out.append(f"{', '.join(repr(c) for c in yaws if c not in named_yaw)} (beside {named_yaw[0]!r})")
+        for c in yaws:
+            if c not in named_yaw:
+                ignored.append(c)
+                found.pop(c)
+        by_target["yaw"] = named_yaw
+    for g in OPTIONAL_PARTS:  # in part or twice: left out, said
         names = GROUPS[g]
         cols = [c for n in names for c in by_target.get(n, [])]
         if cols and (not all(n in by_target for n in names) or len(cols) > len(names)):

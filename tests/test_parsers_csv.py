@@ -123,6 +123,21 @@ def test_canonical_csv_reads_euler_columns_and_notes_the_columns_it_does_not_rea
     assert [w for w in log.meta.warnings] == ["note: column(s) not read (not the canonical CSV's): temp_c"]
 
 
+def test_vendor_yaw_beside_a_heading_is_the_attitude_s_yaw(tmp_path):
+    """Roll, pitch, yaw and a heading (a compass's): the yaw column is the attitude's, the heading named in a
+    note (both were left out as 'yaw in more than one column', the file read without attitude)."""
+    rpy = np.c_[20 * np.sin(T), -10 + 5 * T, (350 + 30 * T) % 360]
+    hdr = ["Time (s)", "Gyro X (rad/s)", "Gyro Y (rad/s)", "Gyro Z (rad/s)", "Roll (deg)", "Pitch (deg)",
+           "Yaw (deg)"]
+    text = ",".join(hdr + ["Heading (deg)"]) + "\n" + "\n".join(
+        ",".join(["%.3f" % t] + ["%.12g" % v for v in (*w, *r, (r[2] + 7.0) % 360)]) for t, w, r in zip(T, W_RAD_S, rpy)) + "\n"
+    log = registry.load(str(_write(tmp_path / "ahrs.csv", text)))
+    q_ned_frd = quat_from_euler(np.radians(rpy))
+    _, q = log.quat_wxyz()
+    np.testing.assert_allclose(q * np.sign(np.sum(q * q_ned_frd, axis=1))[:, None], q_ned_frd, atol=1e-8)
+    assert any("'Heading (deg)' (beside 'Yaw (deg)')" in w for w in log.meta.warnings)
+
+
 def test_vendor_acceleration_columns_beside_accelerometer_columns_are_left_out(tmp_path):
     """An INS export with the accelerometer's specific force and a kinematic 'Acceleration' group: since
     'Acceleration X' reads as an accelerometer column, the header was ambiguous (refused); the
@@ -192,7 +207,7 @@ def test_vendor_partial_attitude_or_position_columns_are_left_out_and_said(tmp_p
     for hdr, named in ((["Time (s)", "Gyro X (rad/s)", "Gyro Y (rad/s)", "Gyro Z (rad/s)", "Altitude (m)",
                          "Heading (deg)", "Course (deg)"], ("'Altitude (m)'", "'Heading (deg)'")),
                        (["Time (s)", "Gyro X (rad/s)", "Gyro Y (rad/s)", "Gyro Z (rad/s)", "Pitch (deg)",
-                         "Yaw (deg)", "Heading (deg)"], ("yaw in more than one column",)),
+                         "Heading (deg)", "Azimuth (deg)"], ("yaw in more than one column",)),
                        (["Time (s)", "Gyro X (rad/s)", "Gyro Y (rad/s)", "Gyro Z (rad/s)", "Roll", "Pitch",
                          "Yaw"], ("'Roll' (no angle unit)",))):
         log = registry.load(str(_euler_csv(tmp_path, hdr, rpy)))
