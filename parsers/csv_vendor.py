@@ -48,7 +48,7 @@ from __future__ import annotations
 import json
 import os
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pandas as pd
@@ -119,6 +119,7 @@ class ColumnMap:
     ignored: tuple[str, ...] = field(default_factory=tuple)
     notes: tuple[str, ...] = ()  # "note: ..." lines: columns that look like a group but are left out, and why
     units_row: bool = False  # the line after the header gives the columns' units (skipped as data)
+    decimal: str = "."  # the decimal mark: "," in a CSV saved in a comma-decimal locale (cells split by ';' or tab)
 
     def column_for(self, canonical: str) -> str | None:
         return next((c for c, (n, _) in self.columns.items() if n == canonical), None)
@@ -371,6 +372,27 @@ def _units_of(path: str, columns: list[str]) -> list[str] | None:
     return units if any(UNITS.get(norm_unit(u), ("unitless",))[0] != "unitless" for u in units) else None
 
 
+_COMMA_NUMBER = re.compile(r"^\s*\"?[-+]?\d+,\d+(?:[eE][-+]?\d+)?\"?\s*$")
+_POINT_NUMBER = re.compile(r"^\s*\"?[-+]?(?:\d+\.\d*|\.\d+)(?:[eE][-+]?\d+)?\"?\s*$")
+
+
+def _decimal_mark(path: str, skip: int, sample: int = 50) -> str:
+    """"," where the data lines (after ``skip`` header lines) of a CSV whose cells are split by ';' or a tab
+    write their numbers with decimal commas (a spreadsheet saved in a comma-decimal locale), else "."."""
+    with open(path, "rb") as fh:
+        head = fh.readline(65536).lstrip(b"\xef\xbb\xbf").decode("utf-8", "replace")
+        sep = _delimiter(head)
+        if sep == ",":
+            return "."
+        for _ in range(skip - 1):
+            fh.readline(65536)
+        lines = [fh.readline(65536).decode("utf-8", "replace") for _ in range(sample)]
+    cells = [c for line in lines for c in line.strip().split(sep) if c.strip()]
+    comma = sum(bool(_COMMA_NUMBER.match(c)) for c in cells)
+    point = sum(bool(_POINT_NUMBER.match(c)) for c in cells)
+    return "," if comma > point else "."
+
+
 def _looks_like_csv_header(head: bytes) -> bool:
     first = head.split(b"\n", 1)[0].lstrip(b"\xef\xbb\xbf").rstrip(b"\r")
     if not first or len(first) > 8000:
@@ -439,6 +461,12 @@ def _resolve(path: str, selector: Selector) -> _Source:
 
 
 def column_map_for(src: _Source, selector: Selector) -> ColumnMap:
+    cmap = _column_map(src, selector)
+    mark = _decimal_mark(src.table, 2 if cmap.units_row else 1)
+    return cmap if mark == cmap.decimal else replace(cmap, decimal=mark)
+
+
+def _column_map(src: _Source, selector: Selector) -> ColumnMap:
     columns = _header_of(src.table)
     map_file = selector.get("map")
     if map_file is None and os.path.isfile(src.table + ".map.json"):
@@ -530,7 +558,9 @@ def _convert_frames(cmap: ColumnMap, groups: dict[str, np.ndarray], quat: str | 
 def _streams_from_table(path: str, cmap: ColumnMap, groups_wanted: tuple[str, ...],
                         warns: list[str]) -> dict[str, Stream]:
     time_col = cmap.column_for("time")
-    df, w = _read_table(path, time_col, units_row=cmap.units_row)
+    df, w = _read_table(path, time_col, units_row=cmap.units_row, decimal=cmap.decimal)
+    if cmap.decimal == "," and time_col in df.columns:  # (the exact scan of the time text takes a point)
+        df[time_col] = df[time_col].str.replace(",", ".", regex=False)
     warns.extend(w)
     if time_col not in df.columns:
         raise InputError(f"no column {time_col!r} in CSV", path)

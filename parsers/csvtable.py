@@ -221,10 +221,11 @@ def delimiter(header: str) -> str:
     return max(counts, key=counts.get)
 
 
-def read_table(path: str, time_col: str, start: int = 0, units_row: bool = False) -> tuple[pd.DataFrame, list[str]]:
+def read_table(path: str, time_col: str, start: int = 0, units_row: bool = False, decimal: str = "."
+               ) -> tuple[pd.DataFrame, list[str]]:
     """The CSV at ``path`` from byte ``start`` (its header line: bytes before it skipped), as text columns
     where the time is, and the warnings of its damaged lines; ``units_row``: the line after the header gives
-    units, not data (skipped)."""
+    units, not data (skipped); ``decimal``: the numbers' decimal mark."""
     warns: list[str] = []
     with open(path, "rb") as fh:
         fh.seek(start)
@@ -235,7 +236,7 @@ def read_table(path: str, time_col: str, start: int = 0, units_row: bool = False
         src.seek(start)
         try:
             df = pd.read_csv(src if start else path, sep=sep, dtype={time_col: str}, skipinitialspace=True,
-                             on_bad_lines="warn", encoding_errors="replace", skiprows=[1] if units_row else None)
+                             on_bad_lines="warn", encoding_errors="replace", skiprows=[1] if units_row else None, decimal=decimal)
         except pd.errors.EmptyDataError:
             raise InputError("empty CSV (no header)", path) from None
         except pd.errors.ParserError as exc:

@@ -216,6 +216,9 @@ def restamp_csv_vendor(src: str, dst: str, shift: ClockShift, *, selector=None) 
     cmap = cv.column_map_for(s, sel)
     time_col = cmap.column_for("time")
     unit = cmap.columns[time_col][1]
+    if cmap.decimal != ".":
+        raise InputError("native CSV export: the numbers are written with decimal commas; the time column is "
+                         "rewritten in decimal-point CSVs only (use the csv or parquet export)", src)
     if not os.path.isdir(src):
         n, bad = _rewrite_file(src, dst, time_col, unit, shift, units_row=cmap.units_row)
         return RestampStats(path=dst, format="csv-vendor", how=HOW, records=n, records_by_type={"rows": n},

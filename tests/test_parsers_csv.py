@@ -150,6 +150,24 @@ def test_vendor_acceleration_columns_beside_accelerometer_columns_are_left_out(t
     assert any("'Acceleration X (m/s^2)' (beside 'Accelerometer X (m/s^2)')" in w for w in log.meta.warnings)
 
 
+def test_vendor_csv_saved_with_decimal_commas_is_read(tmp_path):
+    """A spreadsheet saved in a comma-decimal locale splits its cells with ';' and writes '1700000000,005':
+    such a CSV was refused ("the numbers are written with decimal commas"). It is read, the time exactly;
+    the native export, which rewrites decimal-point text only, refuses it with one line."""
+    rows = [";".join(["%.9f" % (1.7e9 + t)] + ["%.9f" % v for v in w]).replace(".", ",") for t, w in zip(T, W_RAD_S)]
+    p = _write(tmp_path / "excel.csv", "Time (s);Gyro X (rad/s);Gyro Y (rad/s);Gyro Z (rad/s)\n" + "\n".join(rows) + "\n")
+    log = registry.load(str(p))
+    assert log.meta.t0_ns == 1_700_000_000_000_000_000
+    np.testing.assert_allclose(log.t_imu_s(), T, atol=1e-6)  # (the file's own %.9f of a float sum)
+    np.testing.assert_allclose(log.gyro_rad_s(), W_RAD_S, atol=1e-9)
+    from parsers.restamp import ClockShift
+    from parsers.restamp_csv import restamp_csv_vendor
+
+    with pytest.raises(InputError, match="decimal commas") as e:
+        restamp_csv_vendor(str(p), str(tmp_path / "out.csv"), ClockShift(0.1, 0.0, log.meta.t0_ns))
+    assert "\n" not in str(e.value) and not (tmp_path / "out.csv").exists()
+
+
 def test_vendor_csv_with_a_units_row_under_its_header(tmp_path):
     """Names on the header line and units on the next (``Time,GyroX,...`` / ``s,deg/s,...``: a logger's
     habit) were refused ('no unit'). The units row now completes the names; it is not data, and the native
@@ -649,13 +667,16 @@ def test_binary_junk_column_names_give_one_printable_line(tmp_path, capsys):
 
 @pytest.mark.parametrize("habit", ["decimal_comma", "datetime"])
 def test_an_unreadable_vendor_csv_names_the_export_habit(tmp_path, capsys, habit):
-    """A spreadsheet saved in a comma-decimal locale (semicolons, '0,1') or a time column of ISO date-times:
-    no row reads, and the one line says why instead of only '0 valid times'."""
+    """Decimal commas in cells that commas also split (each number quoted: '"0,1"') or a time column of ISO
+    date-times: no row reads, and the one line says why instead of only '0 valid times'. (Decimal commas
+    in cells split by semicolons are read: test_vendor_csv_saved_with_decimal_commas_is_read.)"""
     from pipelines.cli import main
 
     hdr = "Time (s);Gyro X (deg/s);Gyro Y (deg/s);Gyro Z (deg/s);Accel X (g);Accel Y (g);Accel Z (g)"
     if habit == "decimal_comma":
-        rows = "".join(f"{t:.3f};0.1;0.2;0.3;0;0;1\n".replace(".", ",") for t in T)
+        hdr = hdr.replace(";", ",")
+        rows = "".join(",".join(f'"{v}"' for v in (f"{t:.3f}", "0.1", "0.2", "0.3", "0", "0", "1")).replace(".", ",")
+                       + "\n" for t in T)
     else:
         rows = "".join(f"2024-05-01T12:00:{t:06.3f}Z;0.1;0.2;0.3;0;0;1\n" for t in T)
     p = tmp_path / "unit.csv"
