@@ -13,15 +13,15 @@ import pandas as pd
 from logtools.errors import InputError
 
 
-def _decimal_cells(buf, starts, ends, scale_pow10):  # pragma: no cover - compiled
+def _decimal_cells(buf, starts, ends, scale_pow10, point):  # pragma: no cover - compiled
     """Decimal text in cells ``buf[starts[i]:ends[i]]`` (bytes; a cell ends at a NUL; spaces and quotes
     around the number, and a CR after it, are allowed; ``starts[i] < 0``: no cell) -> int64 value *
     10**scale_pow10, exactly (digits beyond the scale are truncated), and a validity mask. At most 18
     significant digits before the scale point fit int64. A decimal exponent (``5e-05``,
     ``1.7000000001e+09``: what float formatting writes, pandas' ``to_csv`` for values below 1e-4) is taken
     exactly as well: the number's significant digits (as many as int64 holds: 18-19) scaled by it
-    (truncated below the scale, as without one). The one scan of time text: the readers' columns and the
-    native CSV export's cells."""
+    (truncated below the scale, as without one). ``point``: the decimal mark's byte (46 '.', 44 ','). The one
+    scan of time text: the readers' columns and the native CSV export's cells."""
     n = starts.shape[0]
     limit = np.int64(9223372036854775807)
     for _ in range(scale_pow10):
@@ -67,7 +67,7 @@ def _decimal_cells(buf, starts, ends, scale_pow10):  # pragma: no cover - compil
                     ndig_exp += 1
                 else:
                     good = False
-            elif c == 46 and not seen_dot:
+            elif c == point and not seen_dot:
                 seen_dot = True
             elif 48 <= c <= 57:
                 ndig += 1
@@ -135,8 +135,8 @@ def _decimal_cells(buf, starts, ends, scale_pow10):  # pragma: no cover - compil
 _DECIMAL_CELLS = []
 
 
-def decimal_cells_to_int(buf: np.ndarray, starts: np.ndarray, ends: np.ndarray, scale_pow10: int
-                         ) -> tuple[np.ndarray, np.ndarray]:
+def decimal_cells_to_int(buf: np.ndarray, starts: np.ndarray, ends: np.ndarray, scale_pow10: int,
+                         decimal: str = ".") -> tuple[np.ndarray, np.ndarray]:
     """(int64 value * 10**scale_pow10, valid mask) of the decimal text in cells ``buf[starts[i]:ends[i]]``
     (``_decimal_cells``: compiled with numba on first use, cached on disk, when this process runs compiled
     kernels (logtools.jit); the plain function otherwise)."""
@@ -146,12 +146,13 @@ def decimal_cells_to_int(buf: np.ndarray, starts: np.ndarray, ends: np.ndarray, 
         if jit.compiled():
             _DECIMAL_CELLS.append(jit.njit(_decimal_cells, nogil=True))
         else:  # plain Python over numpy scalars: the overflow guard's wrap-around warns there
-            def quiet(buf, starts, ends, scale_pow10):
+            def quiet(buf, starts, ends, scale_pow10, point):
                 with np.errstate(over="ignore"):
-                    return _decimal_cells(buf, starts, ends, scale_pow10)
+                    return _decimal_cells(buf, starts, ends, scale_pow10, point)
 
             _DECIMAL_CELLS.append(quiet)
-    return _DECIMAL_CELLS[0](buf, np.asarray(starts, np.int64), np.asarray(ends, np.int64), scale_pow10)
+    return _DECIMAL_CELLS[0](buf, np.asarray(starts, np.int64), np.asarray(ends, np.int64), scale_pow10,
+                             ord(decimal))
 
 
 def _text_bytes(text: pd.Series) -> np.ndarray:

@@ -70,9 +70,10 @@ def _cells(buf, k, sep):  # pragma: no cover - compiled
     return ls[:m], le[:m], cs[:m], ce[:m]
 
 
-def _emit(buf, ls, le, cs, ce, ok, new, p, out):  # pragma: no cover - compiled
+def _emit(buf, ls, le, cs, ce, ok, new, p, out, point):  # pragma: no cover - compiled
     """Copy the data lines into ``out``, the time cell of each ``ok`` line replaced by ``new`` with
-    ``p`` decimals (the cell's surrounding spaces/quotes kept). Returns the bytes written."""
+    ``p`` decimals after the mark ``point`` (46 '.', 44 ','; the cell's surrounding spaces/quotes kept).
+    Returns the bytes written."""
     o = 0
     digits = np.empty(24, np.uint8)
     scale = np.int64(1)
@@ -112,7 +113,7 @@ def _emit(buf, ls, le, cs, ce, ok, new, p, out):  # pragma: no cover - compiled
                 out[o] = digits[nd - 1 - j]
                 o += 1
             if p > 0:
-                out[o] = 46
+                out[o] = point
                 o += 1
                 for j in range(p):
                     digits[p - 1 - j] = 48 + f % 10
@@ -132,10 +133,11 @@ def _emit(buf, ls, le, cs, ce, ok, new, p, out):  # pragma: no cover - compiled
 _kernel = kernel_loader(globals())  # the numba kernels above, compiled (and cached) on first use
 
 
-def restamp_bytes(raw: bytes, time_col: str, unit: str, shift: ClockShift, path: str, units_row: bool = False
-                  ) -> tuple[np.ndarray, int, int]:
+def restamp_bytes(raw: bytes, time_col: str, unit: str, shift: ClockShift, path: str, units_row: bool = False,
+                  decimal: str = ".") -> tuple[np.ndarray, int, int]:
     """(new file bytes, data lines rewritten, damaged lines kept as they were); ``units_row``: the line after
-    the header (the columns' units) is copied as the header is."""
+    the header (the columns' units) is copied as the header is; ``decimal``: the numbers' decimal mark (a
+    comma-decimal CSV's time is written back with a comma)."""
     if unit not in _POW10:
         raise InputError(f"native CSV export: time unit {unit!r} not supported", path)
     p = _POW10[unit]
@@ -150,7 +152,7 @@ def restamp_bytes(raw: bytes, time_col: str, unit: str, shift: ClockShift, path:
     base = nl + 1 if units_row and nl >= 0 else 0  # (the kernel skips the first line of what it is given)
     body = buf[base:]
     ls, le, cs, ce = _kernel("_cells")(body, k, ord(sep))
-    ns, ok = decimal_cells_to_int(body, cs, ce, p)  # (the readers' scan: the export rewrites every time they read)
+    ns, ok = decimal_cells_to_int(body, cs, ce, p, decimal)  # (the readers' scan: every time they read)
     blank = le <= ls
     # a value in the unit times 10**p is nanoseconds exactly (s: p=9, ms: 6, us: 3, ns: 0)
     new = ns.copy()
@@ -159,18 +161,18 @@ def restamp_bytes(raw: bytes, time_col: str, unit: str, shift: ClockShift, path:
     head_end = len(raw) if last < 0 else last + 1
     out = np.empty(len(raw) + 24 * len(ls) + 1, dtype=np.uint8)
     out[:head_end] = buf[:head_end]
-    n = _kernel("_emit")(body, ls, le, cs, ce, ok, new, p, out[head_end:])
+    n = _kernel("_emit")(body, ls, le, cs, ce, ok, new, p, out[head_end:], ord(decimal))
     return out[:head_end + n], int(ok.sum()), int((~ok & ~blank).sum())
 
 
 def _rewrite_file(src: str, dst: str, time_col: str, unit: str, shift: ClockShift, start: int = 0,
-                  units_row: bool = False) -> tuple[int, int]:
+                  units_row: bool = False, decimal: str = ".") -> tuple[int, int]:
     """``src`` from byte ``start`` (its header line) restamped into ``dst``: (data lines rewritten, damaged
     lines kept as they were)."""
     with open(src, "rb") as fh:
         fh.seek(start)
         raw = fh.read()
-    new, n, bad = restamp_bytes(raw, time_col, unit, shift, src, units_row)
+    new, n, bad = restamp_bytes(raw, time_col, unit, shift, src, units_row, decimal)
     with atomic_path(dst) as tmp:
         new.tofile(tmp)
     return n, bad
@@ -216,11 +218,8 @@ def restamp_csv_vendor(src: str, dst: str, shift: ClockShift, *, selector=None) 
     cmap = cv.column_map_for(s, sel)
     time_col = cmap.column_for("time")
     unit = cmap.columns[time_col][1]
-    if cmap.decimal != ".":
-        raise InputError("native CSV export: the numbers are written with decimal commas; the time column is "
-                         "rewritten in decimal-point CSVs only (use the csv or parquet export)", src)
     if not os.path.isdir(src):
-        n, bad = _rewrite_file(src, dst, time_col, unit, shift, units_row=cmap.units_row)
+        n, bad = _rewrite_file(src, dst, time_col, unit, shift, units_row=cmap.units_row, decimal=cmap.decimal)
         return RestampStats(path=dst, format="csv-vendor", how=HOW, records=n, records_by_type={"rows": n},
                             time_fields=(time_col,),
                             damage=(f"{bad} line(s) without a readable time copied unchanged",) if bad else ())

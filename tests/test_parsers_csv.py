@@ -152,8 +152,8 @@ def test_vendor_acceleration_columns_beside_accelerometer_columns_are_left_out(t
 
 def test_vendor_csv_saved_with_decimal_commas_is_read(tmp_path):
     """A spreadsheet saved in a comma-decimal locale splits its cells with ';' and writes '1700000000,005':
-    such a CSV was refused ("the numbers are written with decimal commas"). It is read, the time exactly;
-    the native export, which rewrites decimal-point text only, refuses it with one line."""
+    such a CSV was refused ("the numbers are written with decimal commas"). It is read, the time exactly,
+    and the native export writes the new times with decimal commas too, every other cell as it was."""
     rows = [";".join(["%.9f" % (1.7e9 + t)] + ["%.9f" % v for v in w]).replace(".", ",") for t, w in zip(T, W_RAD_S)]
     p = _write(tmp_path / "excel.csv", "Time (s);Gyro X (rad/s);Gyro Y (rad/s);Gyro Z (rad/s)\n" + "\n".join(rows) + "\n")
     log = registry.load(str(p))
@@ -163,9 +163,14 @@ def test_vendor_csv_saved_with_decimal_commas_is_read(tmp_path):
     from parsers.restamp import ClockShift
     from parsers.restamp_csv import restamp_csv_vendor
 
-    with pytest.raises(InputError, match="decimal commas") as e:
-        restamp_csv_vendor(str(p), str(tmp_path / "out.csv"), ClockShift(0.1, 0.0, log.meta.t0_ns))
-    assert "\n" not in str(e.value) and not (tmp_path / "out.csv").exists()
+    sh = ClockShift(0.1, 0.0, log.meta.t0_ns)
+    st = restamp_csv_vendor(str(p), str(tmp_path / "out.csv"), sh)
+    assert st.records == len(T) and not st.damage
+    out = (tmp_path / "out.csv").read_text().splitlines()
+    assert out[1].startswith("1699999999,9") and out[1].split(";")[1:] == rows[0].split(";")[1:]
+    back = registry.load(str(tmp_path / "out.csv"))
+    np.testing.assert_array_equal(back.meta.t0_ns + np.round(back.t_imu_s() * 1e9).astype(np.int64),
+                                  sh.to_master_ns(log.meta.t0_ns + np.round(log.t_imu_s() * 1e9).astype(np.int64)))
 
 
 def test_vendor_csv_with_a_units_row_under_its_header(tmp_path):
@@ -839,7 +844,7 @@ def test_time_text_with_an_exponent_is_read_exactly():
     want = [_decimal_reference(t) for t in cases]
     for scan in scans:
         with np.errstate(over="ignore"):
-            ns, ok = scan(chars.reshape(-1), starts, starts + chars.shape[1], 9)
+            ns, ok = scan(chars.reshape(-1), starts, starts + chars.shape[1], 9, ord("."))
         got = [int(v) if o else None for v, o in zip(ns, ok)]
         assert got == want
     # the same scan over cells of a file's bytes (the native CSV export's): quotes and a CR around them
