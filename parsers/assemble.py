@@ -406,10 +406,13 @@ CHECK_ROWS = 1 << 18
 #: goes on as if it were not there), is a corrupt value, not motion: a flipped exponent bit gave a -97 rad/s
 #: gyro sample inside LIMITS, and the latency fit chose a 25 s lag to avoid it. 10 rad/s (573 deg/s) in one
 #: sample and back is no rigid vehicle's rotation. Specific force is left alone up to 1000 m/s^2 (100 g): a
-#: crash is one sample of 12-14 g at 25 Hz in both IMUs of ArduCopter log0036, a real event.
-SPIKE_FLOOR = {"gyro": 10.0, "accel": 1000.0}
+#: crash is one sample of 12-14 g at 25 Hz in both IMUs of ArduCopter log0036, a real event. A velocity
+#: 50 m/s from both neighbours, which agree, is no vehicle's either (10 g over a 5 Hz GPS's 0.2 s is 20 m/s,
+#: and it would not come back): a damaged MCAP chunk kept unverified gave one east velocity of -4e-225 m/s
+#: among 148 m/s, and the velocity-matched alignment ingested it and did not converge.
+SPIKE_FLOOR = {"gyro": 10.0, "accel": 1000.0, "vel": 50.0}
 SPIKE_BACK = 0.25
-SPIKE_UNIT = {"gyro": "rad/s", "accel": "m/s^2"}
+SPIKE_UNIT = {"gyro": "rad/s", "accel": "m/s^2", "vel": "m/s"}
 SPIKE_SIGMAS = 20.0
 
 
