@@ -279,6 +279,21 @@ def repeated_samples(t_ns: np.ndarray, values, cfg: ClockStepConfig = CLOCK_STEP
     return out
 
 
+#: what the drop of a stretch recorded twice says, of samples and of a CSV's lines
+REPEATED_SAMPLES_SAID = ("repeating earlier ones exactly (stamp and values: a stretch of the log recorded twice?) "
+                         "dropped")
+REPEATED_LINES_SAID = ("{n} line(s) repeating earlier ones exactly (a stretch of the file written twice?) dropped "
+                       "(first at line {line})")
+
+
+def repeated_lines(t_ns: np.ndarray, df: pd.DataFrame, time_col: str) -> np.ndarray:
+    """:func:`repeated_samples` of a CSV's lines (rows of ``df``, ``t_ns`` their times), their data cells
+    compared by hash: a column that does not change along the stretch (an accelerometer at rest) goes with
+    its line, where judged alone it would leave the stretch to the clock-step rule."""
+    return repeated_samples(t_ns, lambda: pd.util.hash_pandas_object(df.drop(columns=time_col),
+                                                                     index=False).to_numpy())
+
+
 def _drop_joint_repeats(streams: dict[str, Stream | None], warnings: list[str],
                         cfg: ClockStepConfig = CLOCK_STEP) -> None:
     """Streams made from the same records (the same stamps: a MAVLink HIGHRES_IMU's gyro and accel, an
@@ -302,8 +317,7 @@ def _drop_joint_repeats(streams: dict[str, Stream | None], warnings: list[str],
         rep = repeated_samples(s.t_ns, lambda: np.concatenate(
             [np.asarray(streams[j].values, float).reshape(n, -1) for j in group], axis=1), cfg)
         if rep.any():
-            warnings.append(f"{'+'.join(group)} ({s.source}): {int(rep.sum())} sample(s) repeating earlier ones "
-                            "exactly (stamp and values: a stretch of the log recorded twice?) dropped")
+            warnings.append(f"{'+'.join(group)} ({s.source}): {int(rep.sum())} sample(s) {REPEATED_SAMPLES_SAID}")
             for j in group:
                 streams[j] = replace(streams[j], t_ns=np.asarray(streams[j].t_ns)[~rep],
                                      values=np.asarray(streams[j].values)[~rep])
@@ -333,8 +347,7 @@ def clean_stream(name: str, s: Stream, warnings: list[str], clock: dict | None =
         t, v = t[~bad], v[~bad]
     d = np.diff(t) if len(t) > 1 else None  # the stamp steps, reused while no sample is dropped
     # samples whose stamps run back for another reason than the clock: dropped alone, before the clock-step rule
-    for find, what in ((lambda: repeated_samples(t, v), "repeating earlier ones exactly (stamp and values: a "
-                        "stretch of the log recorded twice?) dropped"),
+    for find, what in ((lambda: repeated_samples(t, v), REPEATED_SAMPLES_SAID),
                        (lambda: stamp_outliers(t, d), "whose stamps jump away from their neighbours and back "
                         "dropped (a corrupt time field?)")):
         if d is None or not np.any(d < 0):

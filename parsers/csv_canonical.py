@@ -15,7 +15,8 @@ import pandas as pd
 from logtools.conventions import quat_from_euler
 from logtools.errors import InputError
 from logtools.inslog import ACCEL, GYRO, POS, QUAT, VEL, ChannelInfo, InsLog, LogMeta
-from parsers.assemble import drop_stray, implausible, repeated_samples, split_at_clock_steps, stamp_outliers
+from parsers.assemble import (REPEATED_LINES_SAID, drop_stray, implausible, repeated_lines, split_at_clock_steps,
+                              stamp_outliers)
 from parsers.atomic import atomic_path
 from parsers.base import DAMAGED_HEAD_SEARCH_BYTES, Inventory, Selector, StreamInfo, rate_of, stamp_grid_s
 from parsers.csvtable import decimal_text_to_int, non_numeric_text, numeric_block, read_table
@@ -167,11 +168,9 @@ def load(path: str, selector: Selector) -> InsLog:
     if len(t_ns) == 0:
         raise InputError("no data rows", path)
     # lines whose times run back for another reason than the clock, dropped alone before the clock-step rule:
-    # a stretch written twice (parsers.assemble.repeated_samples: the lines' cells compared by hash) and a
+    # a stretch written twice (parsers.assemble.repeated_lines: the lines' cells compared by hash) and a
     # corrupt time cell (parsers.assemble.stamp_outliers)
-    cells = (lambda: pd.util.hash_pandas_object(df.drop(columns=TIME), index=False).to_numpy())
-    for find, said in ((lambda: repeated_samples(t_ns, cells), "{n} line(s) repeating earlier ones exactly (a "
-                        "stretch of the file written twice?) dropped (first at line {line})"),
+    for find, said in ((lambda: repeated_lines(t_ns, df, TIME), REPEATED_LINES_SAID),
                        (lambda: stamp_outliers(t_ns), "time_s column: {n} line(s) whose time jumps away from the "
                         "lines around and back dropped (a corrupt time field?; first at line {line})")):
         if not np.any(np.diff(t_ns) < 0):

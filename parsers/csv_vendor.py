@@ -57,7 +57,7 @@ from logtools.conventions import DEG, G0_M_S2, quat_conj, quat_from_dcm, quat_fr
 from logtools.errors import InputError
 from logtools.inslog import InsLog
 from parsers import csv_canonical
-from parsers.assemble import Stream, build_inslog, repeated_samples
+from parsers.assemble import REPEATED_LINES_SAID, Stream, build_inslog, repeated_lines
 from parsers.base import Inventory, Selector, StreamInfo
 from parsers.csvtable import decimal_text_to_int, delimiter as _delimiter, non_numeric_text, numeric_block, printable
 from parsers.csvtable import read_table as _read_table
@@ -249,15 +249,23 @@ def map_from_header(columns: list[str], *, quat_file: bool = False) -> ColumnMap
             continue
         found[col] = (target, unit)
         by_target.setdefault(target, []).append(col)
-    yaws = by_target.get("yaw", [])
-    named_yaw = [c for c in yaws if "".join(split_name_unit(c)[0]) == "yaw"]
-    if len(yaws) > 1 and len(named_yaw) == 1:  # 'Yaw' beside a 'Heading' (a compass's, a track's): the yaw
-        left_out.append(f"{', '.join(repr(c) for c in yaws if c not in named_yaw)} (beside {named_yaw[0]!r})")
-        for c in yaws:
-            if c not in named_yaw:
-                ignored.append(c)
-                found.pop(c)
-        by_target["yaw"] = named_yaw
+    def prefer(targets, named) -> None:
+        """Where a target has several columns and exactly one whose name tokens ``named`` says, that one: the
+        others left out, said."""
+        for t in targets:
+            cs = by_target.get(t, [])
+            keep = [c for c in cs if named(split_name_unit(c)[0])]
+            if len(cs) > 1 and len(keep) == 1:
+                left_out.append(f"{', '.join(repr(c) for c in cs if c not in keep)} (beside {keep[0]!r})")
+                for c in cs:
+                    if c not in keep:
+                        ignored.append(c)
+                        found.pop(c)
+                by_target[t] = keep
+
+    prefer(("yaw",), lambda toks: "".join(toks) == "yaw")  # 'Yaw' beside a 'Heading' (a compass's): the yaw
+    # an accelerometer's column beside an 'Acceleration' one (an INS export's kinematic acceleration)
+    prefer(GROUPS["accel"], lambda toks: "acceleration" not in toks)
     for g in OPTIONAL_PARTS:  # in part or twice: left out, said
         names = GROUPS[g]
         cols = [c for n in names for c in by_target.get(n, [])]
@@ -270,16 +278,6 @@ def map_from_header(columns: list[str], *, quat_file: bool = False) -> ColumnMap
                 found.pop(c)
             for n in names:
                 by_target.pop(n, None)
-    for t, cs in list(by_target.items()):  # an accelerometer's column beside an 'Acceleration' one (an INS
-        if len(cs) > 1 and t in GROUPS["accel"]:  # export's kinematic acceleration): the accelerometer's
-            plain = [c for c in cs if "acceleration" not in split_name_unit(c)[0]]
-            if len(plain) == 1:
-                left_out.append(f"{', '.join(repr(c) for c in cs if c not in plain)} (beside {plain[0]!r})")
-                for c in cs:
-                    if c not in plain:
-                        ignored.append(c)
-                        found.pop(c)
-                by_target[t] = plain
     dup = {t: cs for t, cs in by_target.items() if len(cs) > 1}
     if dup:
         t, cs = next(iter(dup.items()))
@@ -510,11 +508,14 @@ _ABSURD = 1e300
 _SCALE_POW10 = {"s": 9, "sec": 9, "ms": 6, "us": 3, "ns": 0}
 
 
-def time_to_ns(text: pd.Series, unit: str) -> tuple[np.ndarray, np.ndarray, float]:
+def time_to_ns(text: pd.Series, unit: str, decimal: str = ".") -> tuple[np.ndarray, np.ndarray, float]:
     """Time column text -> (int64 ns, valid mask, resolution s), from the decimal text exactly (no float
-    rounding). The resolution is that of a fixed number of decimals (``%.3f`` seconds: 1 ms), else 0."""
-    ns, ok, dec = decimal_text_to_int(text, _SCALE_POW10[unit])
-    if len(ok) and not ok.any():  # e.g. scientific notation: float64 is all the text offers
+    rounding; ``decimal``: the decimal mark). The resolution is that of a fixed number of decimals (``%.3f``
+    seconds: 1 ms), else 0."""
+    ns, ok, dec = decimal_text_to_int(text, _SCALE_POW10[unit], decimal)
+    if len(ok) and not ok.any():  # text no decimal scan reads: float64 is all it offers
+        if decimal != ".":
+            text = text.str.replace(decimal, ".", regex=False)
         v = pd.to_numeric(text, errors="coerce").to_numpy(float) * UNITS[unit][1]
         ok = np.isfinite(v) & (np.abs(v) < 9e18)
         ns = np.where(ok, np.round(np.where(ok, v, 0.0)), 0).astype(np.int64)
@@ -559,14 +560,12 @@ def _streams_from_table(path: str, cmap: ColumnMap, groups_wanted: tuple[str, ..
                         warns: list[str]) -> dict[str, Stream]:
     time_col = cmap.column_for("time")
     df, w = _read_table(path, time_col, units_row=cmap.units_row, decimal=cmap.decimal)
-    if cmap.decimal == "," and time_col in df.columns:  # (the exact scan of the time text takes a point)
-        df[time_col] = df[time_col].str.replace(",", ".", regex=False)
     warns.extend(w)
     if time_col not in df.columns:
         raise InputError(f"no column {time_col!r} in CSV", path)
     if len(df) == 0:
         raise InputError("no data rows", path)
-    t_ns, ok_t, res = time_to_ns(df[time_col], cmap.columns[time_col][1])
+    t_ns, ok_t, res = time_to_ns(df[time_col], cmap.columns[time_col][1], cmap.decimal)
     groups: dict[str, np.ndarray] = {}
     masks: dict[str, np.ndarray] = {}
     damaged = ~ok_t
@@ -576,12 +575,10 @@ def _streams_from_table(path: str, cmap: ColumnMap, groups_wanted: tuple[str, ..
     valid = np.flatnonzero(ok_t)
     fresh = ok_t.copy()
     if len(valid) > 2 and np.any(np.diff(t_ns[valid]) < 0):
-        rep = repeated_samples(t_ns[valid], lambda: pd.util.hash_pandas_object(
-            df.iloc[valid].drop(columns=time_col), index=False).to_numpy())
+        rep = repeated_lines(t_ns[valid], df.iloc[valid], time_col)
         if rep.any():
             line = int(df.index[valid[rep][0]]) + 2 + int(cmap.units_row)  # (the header is line 1)
-            warns.append(f"{os.path.basename(path)}: {int(rep.sum())} line(s) repeating earlier ones exactly (a "
-                         f"stretch of the file written twice?) dropped (first at line {line})")
+            warns.append(f"{os.path.basename(path)}: " + REPEATED_LINES_SAID.format(n=int(rep.sum()), line=line))
             fresh[valid[rep]] = False
     non_numeric: dict[str, int] = {}
     for g in groups_wanted:

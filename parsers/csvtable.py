@@ -166,23 +166,25 @@ def _text_bytes(text: pd.Series) -> np.ndarray:
     return np.frombuffer(chars.tobytes(), np.uint8).reshape(len(t), width) if len(t) else np.zeros((0, 1), np.uint8)
 
 
-def decimal_text_to_int(text: pd.Series, scale_pow10: int) -> tuple[np.ndarray, np.ndarray, int | None]:
+def decimal_text_to_int(text: pd.Series, scale_pow10: int, decimal: str = "."
+                        ) -> tuple[np.ndarray, np.ndarray, int | None]:
     """Decimal numbers as text -> (int64 value * 10**scale_pow10, valid mask, fixed decimals), exactly.
     The last is the number of decimals every valid value is written with when it is the same for all
-    (a writer's fixed format, ``%.3f``: the values' resolution is 10**-decimals), else None."""
+    (a writer's fixed format, ``%.3f``: the values' resolution is 10**-decimals), else None. ``decimal``: the
+    decimal mark ("," in a CSV saved in a comma-decimal locale)."""
     raw = _text_bytes(text)
     starts = np.arange(len(raw), dtype=np.int64) * raw.shape[1]
-    ns, ok = decimal_cells_to_int(raw.reshape(-1), starts, starts + raw.shape[1], scale_pow10)
-    return ns, ok, _fixed_decimals(raw[ok])
+    ns, ok = decimal_cells_to_int(raw.reshape(-1), starts, starts + raw.shape[1], scale_pow10, decimal)
+    return ns, ok, _fixed_decimals(raw[ok], decimal)
 
 
-def _fixed_decimals(raw: np.ndarray) -> int | None:
+def _fixed_decimals(raw: np.ndarray, decimal: str = ".") -> int | None:
     """The common number of decimals of text rows (None: they differ, or exponents)."""
     if len(raw) == 0 or np.any((raw == ord("e")) | (raw == ord("E"))):
         return None
     body = (raw != 0) & (raw != ord(" "))
     last = raw.shape[1] - 1 - np.argmax(body[:, ::-1], axis=1)  # last non-blank character
-    dot = raw == ord(".")
+    dot = raw == ord(decimal)
     pos = np.where(dot.any(axis=1), np.argmax(dot, axis=1), last)
     dec = last - pos
     return int(dec[0]) if np.all(dec == dec[0]) else None
@@ -237,7 +239,8 @@ def read_table(path: str, time_col: str, start: int = 0, units_row: bool = False
         src.seek(start)
         try:
             df = pd.read_csv(src if start else path, sep=sep, dtype={time_col: str}, skipinitialspace=True,
-                             on_bad_lines="warn", encoding_errors="replace", skiprows=[1] if units_row else None, decimal=decimal)
+                             on_bad_lines="warn", encoding_errors="replace", skiprows=[1] if units_row else None,
+                             decimal=decimal)
         except pd.errors.EmptyDataError:
             raise InputError("empty CSV (no header)", path) from None
         except pd.errors.ParserError as exc:
