@@ -207,6 +207,26 @@ def _first_header_stamps(buf: np.ndarray, starts: np.ndarray, encoding: str) -> 
     return le_v[:, 0] * 1_000_000_000 + le_v[:, 1], be
 
 
+def _without_far(streams: list[_Stream], msgs: _Msgs, what: str) -> tuple[_Msgs, list[str]]:
+    """``msgs`` less the messages whose record time (``what``: the format's name for it) a damaged byte put
+    more than a day from the others' (:func:`_far_times`; they cannot be shifted), but for those with a sound
+    header stamp, whose record time is set anew from it (:func:`_far_repaired`); and what was done, said."""
+    far = _far_times(msgs.log_ns)
+    said: list[str] = []
+    if not far.any():
+        return msgs, said
+    fixed = _far_repaired(streams, msgs, far)
+    far &= ~fixed
+    if fixed.any():
+        said.append(f"{int(fixed.sum())} {what}(s) more than a day from the others' (damaged) set anew from their "
+                    "header stamps")
+    if far.any():
+        msgs = msgs.take(~far)
+        said.append(f"{int(far.sum())} message(s) with a damaged record time (more than a day from the others') "
+                    "not in the output")
+    return msgs, said
+
+
 def _far_repaired(streams: list[_Stream], msgs: _Msgs, far: np.ndarray) -> np.ndarray:
     """Of the messages whose record time a damaged byte put far from the others (``far``), those with a sound
     header stamp: their record time set anew from it, in ``msgs.log_ns`` (the stamp less its stream's usual
@@ -510,20 +530,12 @@ def restamp_rosbag1(src: str, dst: str, shift: ClockShift, *, selector: str | No
         _registered(typestore, msgtype, msgdef, "msg")
         streams.append(_Stream(topic, msgtype, "ros1", _header_kind(typestore, msgtype)))
     msgs = scan.messages(cids)
-    far = _far_times(msgs.log_ns)  # a record time a damaged byte moved (or a record read from damaged bytes)
-    fixed = _far_repaired(streams, msgs, far) if far.any() else far
-    far &= ~fixed
-    if far.any():
-        msgs = msgs.take(~far)
+    # (a record time a damaged byte moved, or a record the resynchronised walk read from damaged bytes)
+    msgs, far_said = _without_far(streams, msgs, "record time")
     msgs = msgs.take(np.argsort(msgs.log_ns, kind="stable"))  # the bag's time order
     span = float(msgs.log_ns[-1] - msgs.log_ns[0]) * 1e-9 if len(msgs.log_ns) else None
     new_log, msgs, notes = _apply(streams, msgs, typestore, shift, selector, src)
-    if fixed.any():
-        notes.append(f"{int(fixed.sum())} record time(s) more than a day from the others' (damaged) set anew from "
-                     "their header stamps")
-    if far.any():
-        notes.append(f"{int(far.sum())} message(s) with a damaged record time (more than a day from the others') "
-                     "not in the output")
+    notes.extend(far_said)
     if not any("truncated" in w for w in scan.warnings):
         cut = rosbag1.index_past_end(scan.index_pos, scan.size, span)
         if cut:
@@ -1034,21 +1046,12 @@ def restamp_rosbag2(src: str, dst: str, shift: ClockShift, *, selector: str | No
     declared = int(meta.get("message_count") or 0)
     if declared and len(msgs.log_ns) < declared:
         damage.append(f"read {len(msgs.log_ns)} of the {declared} messages metadata.yaml declares")
-    far = None
+    far_said: list[str] = []
     if not (storage == "mcap" and mode != "message"):  # (the mcap writer keeps its parts' records aligned)
-        far = _far_times(msgs.log_ns)  # a row timestamp a damaged byte moved by more than a day
-        fixed = _far_repaired(streams, msgs, far) if far.any() else far
-        far &= ~fixed
-        if fixed.any():
-            damage.append(f"{int(fixed.sum())} row timestamp(s) more than a day from the others' (damaged) set anew "
-                          "from their header stamps")
-        if far.any():
-            msgs = msgs.take(~far)
+        msgs, far_said = _without_far(streams, msgs, "row timestamp")  # (moved by a damaged byte)
     packed = msgs.buf
     new_log, msgs, notes = _apply(streams, msgs, typestore, shift, selector, bagdir)
-    if far is not None and far.any():
-        notes.append(f"{int(far.sum())} message(s) with a damaged record time (more than a day from the others') "
-                     "not in the output")
+    notes.extend(far_said)
     with atomic_folder(dst, same_kind=rosbag2.is_bag_folder, what="ROS 2 bag") as tmp:
         if storage == "mcap" and mode != "message" and all(p.scan is not None for p in parts) and meta_damage is None:
             _write_ros2_mcap(tmp, meta, mode, parts, streams, msgs, new_log, in_place=msgs.buf is packed)
