@@ -47,14 +47,12 @@ def _walk_resyncing(buf: np.ndarray, damage: list[str], byte_shift: int = 0
     named in ``damage`` at the input file's offsets (``byte_shift`` added: a repaired header's)."""
     from parsers import ulog as ul
 
-    offsets, sizes, types, notes, _status = ul.walk_resyncing(buf, byte_shift)
-    damage.extend(f"damaged ULog: {n}; those bytes copied unchanged" for n in notes if not n.startswith("zero-filled"))
+    offsets, sizes, types, said, _tail = ul.walk_resyncing(buf, byte_shift)
+    damage.extend(f"damaged ULog: {n}; those bytes copied unchanged" for n in said)
     return offsets, sizes, types
 
 
 def restamp_ulog(src: str, dst: str, shift: ClockShift, *, selector=None) -> RestampStats:
-    from pyulog import ULog
-
     from parsers import ulog as ul
 
     sel = selector if isinstance(selector, Selector) else Selector.parse(str(selector or ""))
@@ -70,23 +68,10 @@ def restamp_ulog(src: str, dst: str, shift: ClockShift, *, selector=None) -> Res
     if len(buf) < 16 or buf[:7].tobytes() != ul.MAGIC:
         raise InputError("not a ULog file (bad magic bytes)", src)
     offsets, sizes, types = _walk_resyncing(buf, damage, byte_shift)
-    header = ULog._MessageHeader()
-    formats: dict[str, object] = {}
-    subs: dict[int, object] = {}
-    for i in np.flatnonzero((types == ul._T_FORMAT) | (types == ul._T_ADD)).tolist():
-        o, s = int(offsets[i]), int(sizes[i])
-        header.msg_size, header.msg_type = s, int(types[i])
-        data = buf[o + 3:o + 3 + s].tobytes()
-        try:
-            if types[i] == ul._T_FORMAT:
-                fmt = ULog.MessageFormat(data, header)
-                formats[fmt.name] = fmt
-            else:
-                add = ULog._MessageAddLogged(data, header, formats)
-                subs.setdefault(add.msg_id, add)
-        except (KeyError, ValueError, IndexError, UnicodeDecodeError) as exc:
-            damage.append(f"unreadable definition at byte {o + byte_shift} ({type(exc).__name__}): its data copied "
-                          "unchanged")
+    subs, unreadable = ul.definitions(buf, offsets, sizes, types,
+                                      errors=(KeyError, ValueError, IndexError, UnicodeDecodeError))
+    for o, err in unreadable:
+        damage.append(f"unreadable definition at byte {o + byte_shift} ({err}): its data copied unchanged")
     data_idx = np.flatnonzero(types == ul._T_DATA)
     d_off = offsets[data_idx]
     d_size = sizes[data_idx]

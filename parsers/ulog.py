@@ -41,8 +41,8 @@ from logtools.errors import InputError
 from logtools.inslog import InsLog
 from parsers.assemble import ClockOffset, Stream, build_inslog
 from parsers.atomic import atomic_path
-from parsers.base import (DAMAGED_HEAD_SEARCH_BYTES, EPOCH_MAX_NS, STAMP_LIMIT_NS, Inventory, Selector, StreamInfo, check_readable,
-                          consensus_offset, counts_to_ns, offset_sigma_s)
+from parsers.base import (DAMAGED_HEAD_SEARCH_BYTES, EPOCH_MAX_NS, STAMP_LIMIT_NS, Inventory, Selector, StreamInfo,
+                          check_readable, consensus_offset, counts_to_ns, offset_sigma_s)
 
 NAME = "ulog"
 EXTENSIONS = (".ulg",)
@@ -261,57 +261,76 @@ def kernel(name: str):
 RESYNC_CHAIN = 8
 
 
-def walk_resyncing(buf: np.ndarray, byte_shift: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str], int]:
+def definitions(buf: np.ndarray, offsets: np.ndarray, sizes: np.ndarray, types: np.ndarray,
+                errors: tuple[type[Exception], ...] = (KeyError, ValueError, IndexError, struct.error,
+                                                       UnicodeDecodeError)
+                ) -> tuple[dict[int, object], list[tuple[int, str]]]:
+    """The subscriptions (message id -> pyulog's ``_MessageAddLogged``, the first of an id) that the format and
+    subscription messages among (offsets, sizes, types) define, read with pyulog's classes, and (offset, error
+    name) of those that do not read (``errors``)."""
+    from pyulog import ULog
+
+    header = ULog._MessageHeader()
+    formats: dict[str, object] = {}
+    subs: dict[int, object] = {}
+    unreadable: list[tuple[int, str]] = []
+    for i in np.flatnonzero((types == _T_FORMAT) | (types == _T_ADD)).tolist():
+        o, sz = int(offsets[i]), int(sizes[i])
+        header.msg_size, header.msg_type = sz, int(types[i])
+        data = buf[o + 3:o + 3 + sz].tobytes()
+        try:
+            if types[i] == _T_FORMAT:
+                fmt = ULog.MessageFormat(data, header)
+                formats[fmt.name] = fmt
+            else:
+                add = ULog._MessageAddLogged(data, header, formats)
+                subs.setdefault(add.msg_id, add)
+        except errors as exc:
+            unreadable.append((o, type(exc).__name__))
+    return subs, unreadable
+
+
+def walk_resyncing(buf: np.ndarray, byte_shift: int = 0
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str], str | None]:
     """(offsets, sizes, types) of the messages the chain of headers reaches from byte 16, going on past damage:
     after an implausible header, at the first offset where RESYNC_CHAIN headers chain plausibly
     (:func:`_chain_at`; a data message must be of an id subscribed before the damage, with its size). The
     message just before each break is left out (its size may be what was damaged); a zero-filled tail and a
-    truncated last message end the walk. Also what was done, in words at the file's offsets (``byte_shift``
-    added), and the walk's last status (0 clean end, 1 truncated, 2 stopped at damage). One rule for the
-    reader and the native export: the export keeps the file's structure, so reading it back resumes at the same
+    truncated last message end the walk. Also the damage, in words at the file's offsets (``byte_shift``
+    added), and the zero-filled tail's note (or None: no damage, the file ended so). One rule for the reader
+    and the native export: the export keeps the file's structure, so reading it back resumes at the same
     places."""
-    from pyulog import ULog
-
     walk = kernel("_walk")
-    parts, notes = [], []
-    formats: dict[str, object] = {}
-    dsize = np.full(1 << 16, -1, np.int64)
-    header = ULog._MessageHeader()
+    parts, walked, damage = [], [], []  # (walked: each walk's messages, the one before its break among them)
     start = 16
     while True:
         offsets, sizes, types, end, status = walk(buf, start, _KNOWN_TYPES, _MAX_MSG_SIZE)
         end = int(end)
-        if status == 2 and buf[end:].any():  # (damage: what a data message after it may be, from the definitions)
-            for i in np.flatnonzero((types == _T_FORMAT) | (types == _T_ADD)).tolist():
-                o, sz = int(offsets[i]), int(sizes[i])
-                header.msg_size, header.msg_type = sz, int(types[i])
-                try:
-                    if types[i] == _T_FORMAT:
-                        fmt = ULog.MessageFormat(buf[o + 3:o + 3 + sz].tobytes(), header)
-                        formats[fmt.name] = fmt
-                    else:
-                        add = ULog._MessageAddLogged(buf[o + 3:o + 3 + sz].tobytes(), header, formats)
-                        dsize[add.msg_id] = add.dtype.itemsize + 2
-                except (KeyError, ValueError, IndexError, struct.error, UnicodeDecodeError):
-                    pass  # (the reader judges its definitions itself)
-        if status != 2 or not buf[end:].any():
+        broken = status == 2 and bool(buf[end:].any())  # (else nothing but zero bytes follow)
+        if not broken:
             parts.append((offsets, sizes, types))
+            tail = None
             if status == 1:
-                notes.append(f"truncated last message at byte {end + byte_shift} of {len(buf) + byte_shift}")
+                damage.append(f"truncated last message at byte {end + byte_shift} of {len(buf) + byte_shift}")
             elif status == 2:
-                notes.append(f"zero-filled tail: the last {len(buf) - end} bytes (from byte {end + byte_shift}) hold "
-                             "no messages (a preallocated file, or cut by a power loss)")
-            return (*(np.concatenate([p[k] for p in parts]) for k in range(3)), notes, status)
+                tail = (f"zero-filled tail: the last {len(buf) - end} bytes (from byte {end + byte_shift}) hold no "
+                        "messages (a preallocated file, or cut by a power loss)")
+            return (*(np.concatenate([p[k] for p in parts]) for k in range(3)), damage, tail)
+        # what a data message after the damage may be: the subscriptions before it
+        walked.append((offsets, sizes, types))
+        dsize = np.full(1 << 16, -1, np.int64)
+        for msg_id, add in definitions(buf, *(np.concatenate([p[k] for p in walked]) for k in range(3)))[0].items():
+            dsize[msg_id] = add.dtype.itemsize + 2
         at = int(kernel("_chain_at")(buf, end + 1, _KNOWN_TYPES, _MAX_MSG_SIZE, dsize, RESYNC_CHAIN))
         keep = max(len(offsets) - 1, 0)  # (the message before the break left out)
         parts.append((offsets[:keep], sizes[:keep], types[:keep]))
         cut = int(offsets[keep]) if keep < len(offsets) else end
         if at < 0:
-            notes.append(f"implausible message header at byte {end + byte_shift}; no messages follow (bytes "
-                         f"{cut + byte_shift}-{len(buf) - 1 + byte_shift} not read)")
-            return (*(np.concatenate([p[k] for p in parts]) for k in range(3)), notes, 2)
-        notes.append(f"implausible message header at byte {end + byte_shift}; bytes {cut + byte_shift}-"
-                     f"{at - 1 + byte_shift} skipped, the messages resume at byte {at + byte_shift}")
+            damage.append(f"implausible message header at byte {end + byte_shift}; no messages follow (bytes "
+                          f"{cut + byte_shift}-{len(buf) - 1 + byte_shift} not read)")
+            return (*(np.concatenate([p[k] for p in parts]) for k in range(3)), damage, None)
+        damage.append(f"implausible message header at byte {end + byte_shift}; bytes {cut + byte_shift}-"
+                      f"{at - 1 + byte_shift} skipped, the messages resume at byte {at + byte_shift}")
         start = at
 
 
@@ -327,8 +346,8 @@ def _read_fast(path: str, buf: np.ndarray, names: set[str] | None, byte_shift: i
     # damage in the middle: read on where the headers chain again (pyulog, byte by byte to the next sync
     # message, lost about a second at each place); a zero-filled tail (a file preallocated by the logger, an SD
     # card's zeroed blocks after a power loss) ends the messages, every one before it intact
-    offsets, sizes, types, notes, _status = walk_resyncing(buf, byte_shift)
-    warns = [n if n.startswith("zero-filled") else f"damaged ULog: {n}" for n in notes]
+    offsets, sizes, types, damage, tail = walk_resyncing(buf, byte_shift)
+    warns = [f"damaged ULog: {n}" for n in damage] + ([tail] if tail else [])
     formats: dict[str, object] = {}
     subs: dict[int, object] = {}
     sub_at: dict[int, int] = {}  # file offset of each subscription
