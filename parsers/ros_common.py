@@ -1409,14 +1409,6 @@ def merged_order(topics: list[OutTopic], log_delay_ns: int = 0) -> list[tuple[in
     return list(zip(t[order].tolist(), ti[order].tolist(), mi[order].tolist()))
 
 
-__all__ = [
-    "IMU", "ODOM", "TWIST", "TWIST_COV", "VEC3", "FIX", "QUAT_STAMPED", "POSE", "POSE_COV", "KIND",
-    "FIELDS", "RawTopic", "RawLog", "Layout", "build_layout", "decode_topic", "library_decode",
-    "encode_messages", "to_inslog", "to_inventory", "ros_topics_from_inslog", "merged_order",
-    "normalize_msgtype", "register_msgdef", "default_typestore", "keep_supported", "plan_unit",
-]
-
-
 # ---- damaged compressed chunks (MCAP, ROS 1 bags) ----------------------------------------------------
 def inflate_prefix(comp: str, data) -> bytes:
     """What of a chunk's compressed records decompresses, up to the end of ``data`` (a cut chunk) or the
@@ -1446,3 +1438,11 @@ def inflate_prefix(comp: str, data) -> bytes:
         except Exception:  # the damaged block: what came before it is kept
             break
     return b"".join(out)
+
+
+__all__ = [
+    "IMU", "ODOM", "TWIST", "TWIST_COV", "VEC3", "FIX", "QUAT_STAMPED", "POSE", "POSE_COV", "KIND",
+    "FIELDS", "RawTopic", "RawLog", "Layout", "build_layout", "decode_topic", "library_decode",
+    "encode_messages", "to_inslog", "to_inventory", "ros_topics_from_inslog", "merged_order",
+    "normalize_msgtype", "register_msgdef", "default_typestore", "keep_supported", "plan_unit",
+]
