@@ -20,9 +20,12 @@ JUMP_MEDIAN_FACTOR = 10.0
 
 
 def output_validity(t: np.ndarray, quat: np.ndarray | None, vel: np.ndarray | None = None,
-                    rate_at_mid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                    rate_at_mid: np.ndarray | None = None, gap: np.ndarray | None = None
+                    ) -> tuple[np.ndarray, np.ndarray]:
     """(valid mask over the samples, reset times). ``quat`` (n, 4) wxyz, ``vel`` (n, 3), either may be None;
-    ``rate_at_mid`` (n-1,): |angular rate| (rad/s) at the intervals' middles, when known."""
+    ``rate_at_mid`` (n-1,): |angular rate| (rad/s) at the intervals' middles, when known. ``gap`` (n-1,):
+    the intervals over which samples are missing; without a rate, the increment over one is no jump for
+    being larger than its neighbours (it spans more time: a 5 s gap read as two resets)."""
     n = len(t)
     valid = np.ones(n, bool)
     rows = [a for a in (quat, vel) if a is not None]
@@ -44,6 +47,8 @@ def output_validity(t: np.ndarray, quat: np.ndarray | None, vel: np.ndarray | No
         else:
             d = np.abs(np.diff(np.concatenate([[0.0], dq])))  # jump in the increment size
             d = d[1:] if len(d) > len(dq) else d
+            if gap is not None and gap.any():  # (an increment over a gap, and the next one back to normal)
+                d[gap | np.concatenate([[False], gap[:-1]])] = 0.0
         moving = valid[:-1] & valid[1:]
         med = float(np.median(d[moving])) if moving.any() else 0.0
         jump = moving & (d > max(JUMP_MIN_RAD, JUMP_MEDIAN_FACTOR * med))

@@ -244,3 +244,14 @@ def test_wahba_recovers_a_known_rotation_and_never_a_reflection():
     assert np.allclose(np.linalg.det(Rb), 1.0)
     assert median_step_s(np.array([0.0, 0.01, 0.02, 0.05])) == 0.01
     assert median_step_s(np.array([1.0]), default=1.0) == 1.0
+
+
+def test_typical_step_of_a_bursty_stream_is_its_long_step_and_of_a_regular_one_its_median():
+    from logtools.conventions import median_step_s, typical_step_s
+    burst = np.sort(np.concatenate([np.arange(100) * 0.47, np.arange(100) * 0.47 + 0.009]))  # a tlog's AHRS2
+    assert median_step_s(burst) == pytest.approx(0.009)
+    assert typical_step_s(burst) == pytest.approx(0.461)
+    t = np.arange(0.0, 60.0, 0.005)
+    gap = t[(t < 20.0) | (t > 25.0)]  # a 5 s dropout in 200 Hz
+    assert typical_step_s(gap) == pytest.approx(0.005)
+    assert typical_step_s(np.array([1.0])) == 0.0

@@ -211,7 +211,9 @@ class AlignmentConfig:
     #: of the sparser stream's stamps (one EKF output); else each is a stream of its own (ATT 10 Hz, GPS 5 Hz:
     #: tests/test_alignment.py, every selector inspect offers for the real logs)
     nav_shared_stamps: float = 0.9
-    #: ... and a step of the interpolated stream beyond this many of its median steps is a gap (dropped)
+    #: ... and a step of the master's navigation stamps beyond this many of its typical steps
+    #: (conventions.typical_step_s) is a gap: no measurement across it (run._nav_gaps), and the samples of
+    #: the sparser stream inside a gap of the denser one are dropped
     nav_gap_steps: float = 3.0
     #: prior sigma of an estimated lever arm (per axis, m)
     lever_arm_sigma_m: float = 1.0

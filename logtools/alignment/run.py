@@ -25,7 +25,7 @@ import numpy as np
 
 from logtools.conventions import (ARCMIN, ARCSEC, DEG, DEG_PER_H, G0_M_S2, MG, UG, dcm_from_euler, dcm_from_quat,
                                   euler_from_dcm, median_step_s, quat_from_dcm, quat_make_continuous, quat_mul,
-                                  rotvec_from_quat, quat_conj, wahba)
+                                  rotvec_from_quat, quat_conj, typical_step_s, wahba)
 from logtools import earth
 from logtools.dsp import as_trapezoid_integrates
 from logtools.errors import AnalysisError
@@ -175,6 +175,7 @@ def _prepare(master: InsLog, slave: InsLog, kind: FilterKind, match: str, opts: 
     ms = _master_series_cached(master, config)
     win = _delay_window(kind, opts, config, master, ms, t_imu, gyro, notes)
     t_imu, gyro, accel, span_s = _overlap(master, ms, t_imu, gyro, accel, win, src)
+    _note_master_gaps(ms, t_imu[0] - win.tau0_s, t_imu[-1] - win.tau0_s, config, notes)
     rates = _rates_on_grid(master, ms, t_imu, gyro, win.tau0_s, config)  # (the coarse mounting's and the seed's)
     if opts.mounting_guess_rpy_deg is not None:
         coarse = CoarseMounting(dcm_from_euler(np.radians(np.asarray(opts.mounting_guess_rpy_deg, float))), True)
@@ -355,6 +356,19 @@ def _overlap(master: InsLog, ms: MasterSeries, t_imu: np.ndarray, gyro: np.ndarr
         raise AnalysisError(f"{src}: too few slave IMU samples in the overlap ({len(t_imu)})")
     _check_motion(gyro, accel, src)
     return t_imu, gyro, accel, float(t_b - t_a)
+
+
+def _note_master_gaps(ms: MasterSeries, t_a: float, t_b: float, config: AlignmentConfig, notes: list[str]) -> None:
+    """A note of the gaps in the master's navigation output (:func:`_nav_gaps`) that reach into [t_a, t_b]
+    (the overlap, master time): the filter has no measurement across them."""
+    t = ms.t_s
+    gap = _nav_gaps(t, config)
+    k = np.nonzero(gap & (t[1:] > t_a) & (t[:-1] < t_b))[0]
+    if len(k):
+        d = t[k + 1] - t[k]
+        notes.append(f"the master's navigation output has {len(k)} gap(s) in the overlap ({float(d.sum()):.2f} s "
+                     f"in all, longest {float(d.max()):.2f} s, {float(t[k[np.argmax(d)]]):.1f} s into the log): "
+                     "no updates across them")
 
 
 def _epochs(t_imu: np.ndarray, gyro: np.ndarray, accel: np.ndarray, dt_upd: float, overlap_s: float,
@@ -606,6 +620,7 @@ def _master_series(master: InsLog, config: AlignmentConfig = CONFIG) -> MasterSe
     t = t[ok]
     if len(t) < 3:
         raise AnalysisError(f"{src}: the master has fewer than 3 finite navigation samples")
+    gap = _nav_gaps(t, config)
     if quat is not None:
         quat = quat[ok]
         # body rate relative to NED in the master frame (lever arm): from the master's gyro when it has
@@ -615,12 +630,26 @@ def _master_series(master: InsLog, config: AlignmentConfig = CONFIG) -> MasterSe
         if master.has_gyro:
             w, w_t = _gyro_rate_nm(master, t, quat)
         if w is None:
-            w = _rate_from_attitude(t, quat, config)
+            w = _rate_from_attitude(t, quat, config, gap)
     if master.has_vel:
         vel = v[ok]
-        acc = _derivative(t, vel, span_s=0.1)
-    valid, resets = _master_quality(master, t, quat, vel)
+        acc = _derivative(t, vel, span_s=0.1, gap=gap)
+    valid, resets = _master_quality(master, t, quat, vel, gap)
+    # across a gap the motion is unknown: no measurement from the interpolation over it (the samples that
+    # bound it go with it: the filter reads both samples around an instant)
+    valid[:-1] &= ~gap
+    valid[1:] &= ~gap
     return MasterSeries(t, quat, vel, acc, w, valid, resets, w_t_s=w_t)
+
+
+def _nav_gaps(t: np.ndarray, config: AlignmentConfig = CONFIG) -> np.ndarray:
+    """(K-1,) True at the steps of the master's navigation stamps ``t`` longer than config.nav_gap_steps of
+    its typical steps (``typical_step_s``: telemetry's bursts are no gaps): samples missing (a dropout, a
+    log cut out). Linearly interpolated across such a gap, the attitude and velocity are measurements of a
+    motion the master never output: a 5 s gap in a simulated aircraft's 200 Hz master took the mounting's
+    sigma from 0.01-0.03 to 0.45-0.68 arcmin, its pitch 3.7 arcmin off (tests/test_alignment.py, the
+    master-gap test)."""
+    return np.diff(t) > config.nav_gap_steps * typical_step_s(t)
 
 
 def _gyro_rate_nm(master: InsLog, t: np.ndarray, quat: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
@@ -673,9 +702,9 @@ def _nav_common_stamps(tq: np.ndarray, q: np.ndarray, tv: np.ndarray, v: np.ndar
     Where they share (nearly) all stamps (one EKF output), the shared stamps. Else the sparser stream's
     stamps inside the other's span, the denser interpolated at them (the attitude by normalised linear
     interpolation of sign-continuous quaternions, the velocity linearly; samples in a gap of the
-    interpolated stream dropped): each measurement used once, at its own instant, at the sparser rate
-    (the filter's update rate follows it), the interpolation's small error left to the measurement noise
-    the filter estimates from its residuals."""
+    interpolated stream, :func:`_nav_gaps`, dropped): each measurement used once, at its own instant, at
+    the sparser rate (the filter's update rate follows it), the interpolation's small error left to the
+    measurement noise the filter estimates from its residuals."""
     t_shared = np.intersect1d(tq, tv)
     if len(t_shared) >= config.nav_shared_stamps * min(len(np.unique(tq)), len(np.unique(tv))):
         return t_shared, q[np.searchsorted(tq, t_shared)], v[np.searchsorted(tv, t_shared)]
@@ -694,15 +723,15 @@ def _nav_common_stamps(tq: np.ndarray, q: np.ndarray, tv: np.ndarray, v: np.ndar
         t = tq[(tq >= tv[0]) & (tq <= tv[-1])]
         src_t, src_y = tv, v
     j = np.clip(np.searchsorted(src_t, t), 1, len(src_t) - 1)
-    keep = (src_t[j] - src_t[j - 1]) <= config.nav_gap_steps * median_step_s(src_t)
-    t = t[keep]
+    t = t[~_nav_gaps(src_t, config)[j - 1]]
     y = _interp_cols(t, src_t, src_y)
     if len(tv) <= len(tq):
         return t, y / np.linalg.norm(y, axis=1, keepdims=True), v[np.searchsorted(tv, t)]
     return t, q[np.searchsorted(tq, t)], y
 
 
-def _rate_from_attitude(t: np.ndarray, quat: np.ndarray, config: AlignmentConfig = CONFIG) -> np.ndarray:
+def _rate_from_attitude(t: np.ndarray, quat: np.ndarray, config: AlignmentConfig = CONFIG,
+                        gap: np.ndarray | None = None) -> np.ndarray:
     """Body rate relative to NED (master frame) from the attitude, central differences over +- h.
 
     h is the longest span (at most config.lever_rate_max_half_span_s: the fewer the samples differenced, the noisier
@@ -710,14 +739,13 @@ def _rate_from_attitude(t: np.ndarray, quat: np.ndarray, config: AlignmentConfig
     attenuation of the motion stays below config.lever_rate_attenuation at its rate-weighted mean frequency (the
     difference quotient's gain is sin(2 pi f h) / (2 pi f h)). A fixed +- 0.05 s took 2-6 % off a
     multirotor's 1-2 Hz rates: with a 2.9 m lever arm and flexure states its mounting came out 2.5 arcmin
-    off at a sigma of 0.37 arcmin; +- one 100 Hz sample: 0.6 arcmin."""
+    off at a sigma of 0.37 arcmin; +- one 100 Hz sample: 0.6 arcmin. ``gap`` (:func:`_nav_gaps`): no
+    difference reaches across one."""
     dt_med = median_step_s(t)
     half_max, atten = config.lever_rate_max_half_span_s, config.lever_rate_attenuation
 
     def diff_rate(y: np.ndarray, half_s: float, rot: bool) -> np.ndarray:
-        kk = max(int(round(half_s / dt_med)), 1)
-        i0 = np.clip(np.arange(len(t)) - kk, 0, len(t) - 1)
-        i1 = np.clip(np.arange(len(t)) + kk, 0, len(t) - 1)
+        i0, i1 = _span_indices(len(t), max(int(round(half_s / dt_med)), 1), gap)
         span = np.maximum(t[i1] - t[i0], 1e-9)[:, None]
         return (rotvec_from_quat(quat_mul(quat_conj(y[i0]), y[i1])) if rot else y[i1] - y[i0]) / span
 
@@ -732,17 +760,17 @@ def _rate_from_attitude(t: np.ndarray, quat: np.ndarray, config: AlignmentConfig
     return diff_rate(quat, h, True)
 
 
-def _master_quality(master: InsLog, t: np.ndarray, quat: np.ndarray | None, vel: np.ndarray | None
-                    ) -> tuple[np.ndarray, np.ndarray]:
+def _master_quality(master: InsLog, t: np.ndarray, quat: np.ndarray | None, vel: np.ndarray | None,
+                    gap: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(valid mask, reset times) of the master's output (``logtools.navcheck``), its attitude increments
-    checked against its own gyro where it logs one."""
+    checked against its own gyro where it logs one; ``gap``: its gaps (:func:`_nav_gaps`)."""
     rate = None
     if quat is not None and len(t) > 3 and master.has_gyro:
         tg, g = master.t_imu_s(), master.gyro_rad_s()
         okg = np.isfinite(g).all(1)
         mid = 0.5 * (t[:-1] + t[1:])
         rate = np.linalg.norm(_interp_cols(mid, tg[okg], g[okg]), axis=1)
-    return output_validity(t, quat, vel, rate)
+    return output_validity(t, quat, vel, rate, gap)
 
 
 def _interp_cols(t: np.ndarray, tp: np.ndarray, yp: np.ndarray) -> np.ndarray:
@@ -750,13 +778,23 @@ def _interp_cols(t: np.ndarray, tp: np.ndarray, yp: np.ndarray) -> np.ndarray:
     return np.stack([np.interp(t, tp, yp[:, i]) for i in range(yp.shape[1])], -1)
 
 
-def _derivative(t: np.ndarray, y: np.ndarray, span_s: float) -> np.ndarray:
-    """Central difference over ~span_s (noise-tolerant), one-sided at the ends."""
-    dt = median_step_s(t)
-    k = max(int(round(0.5 * span_s / dt)), 1)
-    n = len(t)
-    i0 = np.clip(np.arange(n) - k, 0, n - 1)
-    i1 = np.clip(np.arange(n) + k, 0, n - 1)
+def _span_indices(n: int, k: int, gap: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(i - k, i + k) for the samples i of a series of n, clipped to its ends and, where ``gap`` (n-1,) marks
+    steps that are gaps, to the stretch between gaps that holds i."""
+    idx = np.arange(n)
+    if gap is None or not gap.any():
+        return np.clip(idx - k, 0, n - 1), np.clip(idx + k, 0, n - 1)
+    cut = np.nonzero(gap)[0]
+    stretch = np.concatenate([[0], np.cumsum(gap)])
+    first = np.concatenate([[0], cut + 1])[stretch]
+    last = np.concatenate([cut, [n - 1]])[stretch]
+    return np.maximum(idx - k, first), np.minimum(idx + k, last)
+
+
+def _derivative(t: np.ndarray, y: np.ndarray, span_s: float, gap: np.ndarray | None = None) -> np.ndarray:
+    """Central difference over ~span_s (noise-tolerant), one-sided at the ends and at gaps (``gap``: the
+    steps that are gaps, :func:`_nav_gaps`)."""
+    i0, i1 = _span_indices(len(t), max(int(round(0.5 * span_s / median_step_s(t))), 1), gap)
     return by_rows(lambda j0, j1: (y[j1] - y[j0]) / np.maximum(t[j1] - t[j0], 1e-9)[:, None], i0, i1)
 
 
@@ -1278,7 +1316,7 @@ def _result(run: FilterRun, lay: StateLayout, st: FilterSettings, sig0: np.ndarr
     if run.n_reinit:
         notes.append(f"the master's attitude jumped {run.n_reinit} time(s) (EKF reset): slave attitude restarted")
     if run.n_skipped:
-        notes.append(f"{run.n_skipped} of {ne} updates skipped: the master's output was frozen or jumping")
+        notes.append(f"{run.n_skipped} of {ne} updates skipped: the master's output was frozen, jumping or missing")
     # histories, decimated to at most max_history_rows (the last epoch kept)
     names, cols, sigs = _histories(run, lay, mnt.hist_deg, mnt.sig_e)
     step = max(int(np.ceil(ne / int(opts.max_history_rows))), 1)
