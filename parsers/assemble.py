@@ -395,12 +395,9 @@ def clean_stream(name: str, s: Stream, warnings: list[str], clock: dict | None =
         del spike
     if len(t) > 2:
         d = np.diff(t) if d is None else d
-        med = np.median(d)
-        big = d > GAP_FACTOR * med
-        if big.any():
-            warnings.append(
-                f"{name} ({s.source}): {int(big.sum())} gap(s) in stamps, longest {d.max() * 1e-9:.3f} s")
-        del big
+        said = gap_warning(f"{name} ({s.source})", d)
+        if said:
+            warnings.append(said)
     # the stamps' resolution: the format's (tlog time_boot_ms), or the grid the stamps show they are on
     return Stream(t, v, s.source, max(s.stamp_resolution_s, stamp_grid_s(t, steps=d if len(t) > 2 else None)),
                   s.clock_sigma_s, s.clock_offset_ns)
@@ -473,6 +470,17 @@ def implausible(name: str, values: np.ndarray) -> np.ndarray:
     if name == "pos" and v.ndim == 2 and v.shape[1] >= 3:
         return (v[:, 0] > 90.0) | (v[:, 1] > 360.0) | (v[:, 2] > 1.0e6)
     return np.zeros(len(v), dtype=bool)
+
+
+def gap_warning(label: str, steps_ns: np.ndarray) -> str | None:
+    """``label: N gap(s) in stamps, longest X s`` where steps of a stream's stamps (ns) exceed GAP_FACTOR
+    median steps; None where none does."""
+    if len(steps_ns) < 2:
+        return None
+    big = steps_ns > GAP_FACTOR * np.median(steps_ns)
+    if not big.any():
+        return None
+    return f"{label}: {int(big.sum())} gap(s) in stamps, longest {steps_ns.max() * 1e-9:.3f} s"
 
 
 def drop_stray(t_ns: np.ndarray, label: str, warnings: list[str], steps: np.ndarray | None = None) -> np.ndarray:

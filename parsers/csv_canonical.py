@@ -15,8 +15,8 @@ import pandas as pd
 from logtools.conventions import quat_from_euler
 from logtools.errors import InputError
 from logtools.inslog import ACCEL, GYRO, POS, QUAT, VEL, ChannelInfo, InsLog, LogMeta
-from parsers.assemble import (REPEATED_LINES_SAID, drop_stray, implausible, repeated_lines, split_at_clock_steps,
-                              stamp_outliers)
+from parsers.assemble import (REPEATED_LINES_SAID, drop_stray, gap_warning, implausible, repeated_lines,
+                              split_at_clock_steps, stamp_outliers)
 from parsers.atomic import atomic_path
 from parsers.base import DAMAGED_HEAD_SEARCH_BYTES, Inventory, Selector, StreamInfo, rate_of, stamp_grid_s
 from parsers.csvtable import decimal_text_to_int, non_numeric_text, numeric_block, read_table
@@ -258,6 +258,10 @@ def load(path: str, selector: Selector) -> InsLog:
         channels["nav"] = ChannelInfo(rate_of(t_s[nav_mask]), int(nav_mask.sum()), "csv", resolution(nav_mask))
     if not kw:
         raise InputError("no complete data rows", path)
+    for name, mask in (("imu", imu_mask), ("nav", nav_mask)):
+        said = gap_warning(f"{name} (csv)", np.diff(t_ns[mask])) if mask.sum() > 2 else None
+        if said:
+            warnings.append(said)
     meta = LogMeta(source_path=path, format=NAME, selector=str(selector), clock=clock, t0_ns=t0_ns,
                    stamp_source="csv time_s column", channels=channels, warnings=tuple(warnings))
     return InsLog.from_arrays(meta, **kw)

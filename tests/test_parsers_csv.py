@@ -946,3 +946,37 @@ def test_an_isolated_velocity_spike_is_dropped_a_real_manoeuvre_is_kept():
         for u in (pair.master, pair.slave):
             if u.has_vel:
                 assert not impulsive("vel", u.vel_ned_m_s()[1]).any()
+
+
+def test_gaps_in_a_canonical_csvs_imu_or_navigation_rows_are_said(tmp_path):
+    """Every other reader says where a stream's stamps have gaps (``gyro (IMU): 1 gap(s) in stamps``); the
+    canonical CSV said nothing of 5 s without navigation rows, and the alignment then read the attitude and
+    velocity interpolated across them."""
+    from logtools import sim
+
+    s = sim.simulate(sim.scenario_config("aircraft", duration_s=20.0, seed=5)).slave
+    path = tmp_path / "s.csv"
+    csv_canonical.write(str(path), s)
+    header, *rows = path.read_text().splitlines()
+    assert header.split(",")[1:7] == ["gyro_x_rad_s", "gyro_y_rad_s", "gyro_z_rad_s",
+                                      "accel_x_m_s2", "accel_y_m_s2", "accel_z_m_s2"]
+    assert not registry.load(str(path)).meta.warnings
+    cells = [r.split(",") for r in rows]
+    inside = np.array([float(c[0]) for c in cells]) - s.meta.t0_ns * 1e-9
+    inside = (inside > 8.0) & (inside < 13.0)
+
+    def cleared(cols: slice) -> list[str]:  # that group's cells empty from 8 to 13 s
+        out = []
+        for c, cut in zip(cells, inside):
+            c = list(c)
+            if cut:
+                c[cols] = [""] * len(c[cols])
+            out.append(",".join(c))
+        return out
+
+    for name, cols in (("imu", slice(1, 7)), ("nav", slice(7, None))):
+        path.write_text("\n".join([header] + cleared(cols)) + "\n")
+        w = registry.load(str(path)).meta.warnings
+        assert len(w) == 1 and w[0].startswith(f"{name} (csv): 1 gap(s) in stamps, longest 5.0"), w
+    path.write_text("\n".join([header] + [r for r, cut in zip(rows, inside) if not cut]) + "\n")
+    assert {w.split(":")[0] for w in registry.load(str(path)).meta.warnings} == {"imu (csv)", "nav (csv)"}
