@@ -379,7 +379,10 @@ def test_a_prepared_child_that_died_or_was_released_changes_nothing(forking):
     pid = parallel._PREPARED["unused"][0]
     parallel.release("unused")
     assert "unused" not in parallel._PREPARED
-    _, status = os.waitpid(pid, 0)  # it saw its end of file and left on its own
+    try:
+        _, status = os.waitpid(pid, 0)  # it saw its end of file and left on its own
+    except ChildProcessError:  # ... so quickly that release() reaped it already (a race seen under load)
+        return
     assert os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0
 
 
