@@ -24,8 +24,9 @@ def output_validity(t: np.ndarray, quat: np.ndarray | None, vel: np.ndarray | No
                     ) -> tuple[np.ndarray, np.ndarray]:
     """(valid mask over the samples, reset times). ``quat`` (n, 4) wxyz, ``vel`` (n, 3), either may be None;
     ``rate_at_mid`` (n-1,): |angular rate| (rad/s) at the intervals' middles, when known. ``gap`` (n-1,):
-    the intervals over which samples are missing; without a rate, the increment over one is no jump for
-    being larger than its neighbours (it spans more time: a 5 s gap read as two resets)."""
+    the intervals over which samples are missing: the increment over one is not judged (it spans more time
+    than its neighbours, and the rate at its middle says nothing of the motion over it: a 5 s gap read as
+    two resets, a 15 s gap in a turning car as one); the caller may judge it by the unit's gyro."""
     n = len(t)
     valid = np.ones(n, bool)
     rows = [a for a in (quat, vel) if a is not None]
@@ -44,6 +45,8 @@ def output_validity(t: np.ndarray, quat: np.ndarray | None, vel: np.ndarray | No
                      quat[:-1], quat[1:])
         if rate_at_mid is not None:
             d = np.abs(dq - rate_at_mid * np.diff(t))
+            if gap is not None:
+                d[gap] = 0.0
         else:
             d = np.abs(np.diff(np.concatenate([[0.0], dq])))  # jump in the increment size
             d = d[1:] if len(d) > len(dq) else d

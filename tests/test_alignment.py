@@ -1060,28 +1060,52 @@ def test_a_lateral_accelerometer_bias_does_not_turn_a_cars_mounting():
     assert abs(yaw[0] - yaw[1]) < 0.2, yaw
 
 
-@pytest.mark.parametrize("nav_only", [False, True])
-def test_a_gap_in_the_masters_navigation_gives_no_measurements_across_it(nav_only):
-    """A master whose navigation output stops for 5 s (its IMU running on): the attitude and velocity
-    interpolated linearly across the gap were measurements of a motion the master never output: the
-    aircraft's mounting sigma went from 0.01-0.03 to 0.45-0.68 arcmin, its pitch 3.7 arcmin off (8 sigma;
-    through the CLI with its 21 ms latency uncompensated, 0.55 to 24-40 arcmin). No update across
-    a gap now, and the mounting comes out as from the whole log. ``nav_only``: a master that logs only
-    its navigation output (its rate from its attitude, differenced within the stretches between gaps);
-    its attitude increment over the gap, larger than its neighbours, was read as two EKF resets."""
-    p = sim.simulate(sim.scenario_config("aircraft", seed=11, duration_s=60.0, latency_s=0.0, drift_ppm=0.0))
+@pytest.mark.parametrize("scenario,cut", [("aircraft", "nav"), ("aircraft", "nav-only master"),
+                                          ("vehicle", "nav"), ("vehicle", "nav+imu"), ("multirotor", "nav+imu")])
+def test_a_gap_in_the_master_gives_no_measurements_across_it(scenario, cut):
+    """A master whose output stops for 15 s of 90 (its navigation; with "nav+imu" its IMU too; a "nav-only
+    master" logs no IMU). Before: the attitude and velocity interpolated linearly across the gap were
+    measurements of a motion the master never output (the aircraft's mounting sigma 0.01-0.03 -> 0.45-0.68
+    arcmin, its pitch 3.7 arcmin off: 8 sigma); the rates interpolated across it went into the coarse
+    mounting and the gyro-bias seed (thousands of deg/h); the attitude's change over the gap, judged
+    against the rate at its middle, was an EKF reset, and the slave's attitude restarted from the master
+    interpolated inside the gap (a car's mounting 18-73 arcmin off at sigmas of 1.5-2.9, a multirotor's
+    24-45 at 2.7-4.4); a nav-only master's increment over the gap was two resets. Now: no update across a
+    gap, no rate from inside one, and the mounting comes out as from the whole log."""
+    p = sim.simulate(sim.scenario_config(scenario, seed=11, duration_s=90.0, latency_s=0.0, drift_ppm=0.0))
     m, s = p.master, p.slave.rebased(p.master.meta.t0_ns)
-    if nav_only:
+    if cut == "nav-only master":
         m = type(m)(imu=m.imu.iloc[:0], nav=m.nav, meta=m.meta)
-    t = m.nav.index.to_numpy()
-    cut = type(m)(imu=m.imu, nav=m.nav[(t < 20.0) | (t > 25.0)], meta=m.meta)
-    whole, gap = run_alignment(m, s), run_alignment(cut, s)
+    t, ti = m.nav.index.to_numpy(), m.imu.index.to_numpy()
+    imu = m.imu[(ti < 20.0) | (ti > 35.0)] if cut == "nav+imu" else m.imu
+    gapped = type(m)(imu=imu, nav=m.nav[(t < 20.0) | (t > 35.0)], meta=m.meta)
+    whole, gap = run_alignment(m, s), run_alignment(gapped, s)
     assert any("1 gap(s) in the overlap" in n for n in gap.notes), gap.notes
     assert not any("jumped" in n for n in gap.notes), gap.notes
     sig_w, sig_g = (np.asarray(r.mounting_sigma_deg) * 60.0 for r in (whole, gap))
     assert np.all(sig_g < 1.5 * sig_w), (sig_g, sig_w)
     err = _err_arcmin(gap, p.truth)
     assert np.all(np.abs(err) < 3.0 * sig_g + 0.05), (err, sig_g)
+
+
+def test_a_master_that_resets_inside_a_gap_of_its_output_restarts_the_slave_after_it():
+    """The master's attitude turns by 30 deg in yaw while its navigation output is missing (an EKF yaw reset
+    inside a 15 s gap), its gyro logging through: its gyro integrated over the gap disagrees with the
+    attitude's change, a reset, and the slave's attitude restarts at the gap's end from the master's
+    output there; roll and pitch of the mounting stay right (the yaw after the reset is the new master's).
+    Attitude matching: the reset leaves the master's velocity as it was, at odds with its new heading, which
+    moves a car's velocity-matched roll by 4 arcmin with or without a gap."""
+    from logtools.conventions import quat_from_euler, quat_mul
+
+    p = sim.simulate(sim.scenario_config("vehicle", seed=11, duration_s=90.0, latency_s=0.0, drift_ppm=0.0))
+    m, s = p.master, p.slave.rebased(p.master.meta.t0_ns)
+    nav = m.nav[(m.nav.index < 20.0) | (m.nav.index > 35.0)].copy()
+    qc = ["quat_w", "quat_x", "quat_y", "quat_z"]
+    late = nav.index.to_numpy() > 35.0
+    nav.loc[late, qc] = quat_mul(quat_from_euler(np.radians([0.0, 0.0, 30.0])), nav.loc[late, qc].to_numpy())
+    res = run_alignment(type(m)(imu=m.imu, nav=nav, meta=m.meta), s, match="att")
+    assert any("jumped 1 time" in n for n in res.notes), res.notes
+    assert np.all(np.abs(_err_arcmin(res, p.truth)[:2]) < 1.0), _err_arcmin(res, p.truth)
 
 
 def test_a_bursty_masters_regular_steps_are_no_gaps():

@@ -215,6 +215,12 @@ class AlignmentConfig:
     #: (conventions.typical_step_s) is a gap: no measurement across it (run._nav_gaps), and the samples of
     #: the sparser stream inside a gap of the denser one are dropped
     nav_gap_steps: float = 3.0
+    #: over such a gap the master's attitude change is checked against its gyro integrated across it: beyond
+    #: gap_reset_min_deg (navcheck's jump floor) plus gap_reset_scale of the rotation turned (a consumer
+    #: gyro's scale-factor error, 0.5-2 %, with room) it reset while its output was missing, and the slave's
+    #: attitude restarts from it at the gap's end
+    gap_reset_min_deg: float = 2.0
+    gap_reset_scale: float = 0.05
     #: prior sigma of an estimated lever arm (per axis, m)
     lever_arm_sigma_m: float = 1.0
     #: an estimated lever arm beyond this many prior sigmas gets a note (absorbing an uncompensated delay?)

@@ -385,7 +385,7 @@ def _epochs(t_imu: np.ndarray, gyro: np.ndarray, accel: np.ndarray, dt_upd: floa
     # the master after each one (the mounting, biases and their covariance carry on)
     stamps = t_imu[idx[0]:idx[-1] + 1]
     steps = np.diff(stamps)
-    gap_s = max(config.imu_gap_s, config.imu_gap_periods * median_step_s(stamps))
+    gap_s = _imu_gap_s(stamps, config)
     seg_max = np.maximum.reduceat(steps, starts)
     restart = np.concatenate([[False], seg_max > gap_s])
     if restart.any():
@@ -634,7 +634,7 @@ def _master_series(master: InsLog, config: AlignmentConfig = CONFIG) -> MasterSe
     if master.has_vel:
         vel = v[ok]
         acc = _derivative(t, vel, span_s=0.1, gap=gap)
-    valid, resets = _master_quality(master, t, quat, vel, gap)
+    valid, resets = _master_quality(master, t, quat, vel, gap, config)
     # across a gap the motion is unknown: no measurement from the interpolation over it (the samples that
     # bound it go with it: the filter reads both samples around an instant)
     valid[:-1] &= ~gap
@@ -688,10 +688,8 @@ def _lever_rate_as_integrated(ms: MasterSeries, t_imu: np.ndarray, config: Align
     if ms.w_nm_m is None or ms.w_t_s is None or len(t_imu) < 2:
         return ms
     tw = ms.w_t_s
-    step = median_step_s(tw)
-    gap = max(config.imu_gap_s, config.imu_gap_periods * step)
-    up = int(np.ceil(config.lever_rate_grid_hz * step - 1e-9))
-    t_w, w = as_trapezoid_integrates(tw, ms.w_nm_m, 1.0 / median_step_s(t_imu), gap, upsample=up)
+    up = int(np.ceil(config.lever_rate_grid_hz * median_step_s(tw) - 1e-9))
+    t_w, w = as_trapezoid_integrates(tw, ms.w_nm_m, 1.0 / median_step_s(t_imu), _imu_gap_s(tw, config), upsample=up)
     return replace(ms, w_nm_m=w, w_t_s=t_w)
 
 
@@ -761,16 +759,45 @@ def _rate_from_attitude(t: np.ndarray, quat: np.ndarray, config: AlignmentConfig
 
 
 def _master_quality(master: InsLog, t: np.ndarray, quat: np.ndarray | None, vel: np.ndarray | None,
-                    gap: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                    gap: np.ndarray | None = None, config: AlignmentConfig = CONFIG
+                    ) -> tuple[np.ndarray, np.ndarray]:
     """(valid mask, reset times) of the master's output (``logtools.navcheck``), its attitude increments
-    checked against its own gyro where it logs one; ``gap``: its gaps (:func:`_nav_gaps`)."""
+    checked against its own gyro where it logs one; ``gap``: its gaps (:func:`_nav_gaps`), over which the
+    attitude's change is checked against the gyro integrated across the gap (:func:`_resets_across_gaps`)."""
     rate = None
     if quat is not None and len(t) > 3 and master.has_gyro:
-        tg, g = master.t_imu_s(), master.gyro_rad_s()
-        okg = np.isfinite(g).all(1)
-        mid = 0.5 * (t[:-1] + t[1:])
-        rate = np.linalg.norm(_interp_cols(mid, tg[okg], g[okg]), axis=1)
-    return output_validity(t, quat, vel, rate, gap)
+        tg, g = finite_increasing(master.t_imu_s(), master.gyro_rad_s())
+        if len(tg) >= 2:
+            rate = np.linalg.norm(_interp_cols(0.5 * (t[:-1] + t[1:]), tg, g), axis=1)
+    valid, resets = output_validity(t, quat, vel, rate, gap)
+    if rate is not None and gap is not None and gap.any():
+        resets = np.sort(np.concatenate([resets, _resets_across_gaps(t, quat, gap, tg, g, config)]))
+    return valid, resets
+
+
+def _resets_across_gaps(t: np.ndarray, quat: np.ndarray, gap: np.ndarray, tg: np.ndarray, g: np.ndarray,
+                        config: AlignmentConfig) -> np.ndarray:
+    """The ends of the gaps in the master's navigation over which its attitude changed otherwise than its gyro
+    turned (an EKF reset while its output was missing): its gyro integrated over the gap, where no gap in the
+    gyro interrupts it, against the attitude's change, beyond config.gap_reset_min_deg plus
+    config.gap_reset_scale of the rotation. At the gap's end, where the master's output is back: the slave's
+    attitude restarts from it there, not from an attitude interpolated inside the gap."""
+    out = []
+    imu_gap = _imu_gap_s(tg, config)
+    for k in np.flatnonzero(gap):
+        i0, i1 = np.searchsorted(tg, [t[k], t[k + 1]])
+        if i1 - i0 < 2 or tg[i0] - t[k] > imu_gap or t[k + 1] - tg[i1 - 1] > imu_gap:
+            continue
+        if np.any(np.diff(tg[i0:i1]) > imu_gap):
+            continue
+        rv, _, _ = body_increments(tg[i0:i1], g[i0:i1], np.zeros((i1 - i0, 3)))
+        dq = compose_segments(rv, np.zeros_like(rv), np.array([0]), np.array([len(rv)]))[0]
+        turned = float(np.linalg.norm(rotvec_from_quat(dq)[0]))
+        q_gyro = quat_mul(quat[k:k + 1], dq)  # the attitude at the gap's end the gyro says (earth rate aside)
+        off = float(np.linalg.norm(rotvec_from_quat(quat_mul(quat_conj(q_gyro), quat[k + 1:k + 2]))[0]))
+        if off > np.radians(config.gap_reset_min_deg) + config.gap_reset_scale * turned:
+            out.append(t[k + 1])
+    return np.asarray(out, float)
 
 
 def _interp_cols(t: np.ndarray, tp: np.ndarray, yp: np.ndarray) -> np.ndarray:
@@ -818,17 +845,40 @@ class RateGrid:
 
 def _rates_on_grid(master: InsLog, ms: MasterSeries, t_imu: np.ndarray, gyro: np.ndarray, tau0: float,
                    config: AlignmentConfig = CONFIG) -> RateGrid:
+    """The grid's times inside a gap of either unit's rates are left out: interpolated across one, a rate is
+    a straight line where the other unit turned (a vehicle whose master's IMU and navigation stopped for
+    15 s of 90: the coarse mounting degrees off, the filter's mounting 18-73 arcmin off at sigmas of 1.5-2.9,
+    tests/test_alignment.py, the master-gap test)."""
     grid = np.arange(t_imu[0], t_imu[-1], config.rate_grid_s)
-    w_m, n_master = None, 0
+    gap = _in_gap(grid, t_imu, np.diff(t_imu) > _imu_gap_s(t_imu, config))
+    w_m, n_master, tm = None, 0, None
     if master.has_gyro:
-        tm = master.t_imu_s()
-        gm = master.gyro_rad_s()
+        tm, gm = master.t_imu_s(), master.gyro_rad_s()
         okm = np.isfinite(gm).all(1)
         n_master = int(okm.sum())
-        w_m = _interp_cols(grid - tau0, tm[okm], gm[okm])
+        tm, gm = tm[okm], gm[okm]
+        if len(tm) >= 2:
+            gap |= _in_gap(grid - tau0, tm, np.diff(tm) > _imu_gap_s(tm, config))
+    elif ms.w_nm_m is not None:  # (the attitude's rate, at the navigation stamps)
+        gap |= _in_gap(grid - tau0, ms.t_s, _nav_gaps(ms.t_s, config))
+    grid = grid[~gap]
+    if tm is not None:
+        w_m = _interp_cols(grid - tau0, tm, gm)
     elif ms.w_nm_m is not None:
         w_m = _interp_cols(grid - tau0, ms.w_stamps_s, ms.w_nm_m)
     return RateGrid(grid, _interp_cols(grid, t_imu, gyro), w_m, master.has_gyro, n_master)
+
+
+def _imu_gap_s(stamps: np.ndarray, config: AlignmentConfig = CONFIG) -> float:
+    """A step of IMU stamps beyond this is a gap (config.imu_gap_s, config.imu_gap_periods)."""
+    return max(config.imu_gap_s, config.imu_gap_periods * median_step_s(stamps))
+
+
+def _in_gap(t: np.ndarray, stamps: np.ndarray, gap_steps: np.ndarray) -> np.ndarray:
+    """True at the times ``t`` that fall inside a step of ``stamps`` marked in ``gap_steps`` (len - 1)."""
+    if len(stamps) < 2:
+        return np.zeros(len(t), bool)
+    return gap_steps[np.clip(np.searchsorted(stamps, t), 1, len(stamps) - 1) - 1]
 
 
 def _coarse_mounting(master: InsLog, slave: InsLog, ms: MasterSeries, rates: RateGrid, t_imu: np.ndarray,
