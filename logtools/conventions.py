@@ -308,7 +308,12 @@ def typical_step_s(t_s: np.ndarray) -> float:
     bursty one's longer step: telemetry that delivers two messages 9 ms apart every 0.47 s (a tlog's AHRS2)
     has a median step of 9 ms, and every one of its regular steps would look like a gap of 50 of them.
     0.0 with fewer than two stamps."""
-    d = np.sort(np.diff(np.asarray(t_s, dtype=float)))
+    return typical_step(np.diff(np.asarray(t_s, dtype=float)))
+
+
+def typical_step(steps: np.ndarray) -> float:
+    """:func:`typical_step_s` of the steps themselves (any unit); 0.0 without any."""
+    d = np.sort(np.asarray(steps, dtype=float))
     if len(d) == 0:
         return 0.0
     c = np.cumsum(d)

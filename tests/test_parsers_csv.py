@@ -980,3 +980,4 @@ def test_gaps_in_a_canonical_csvs_imu_or_navigation_rows_are_said(tmp_path):
         assert len(w) == 1 and w[0].startswith(f"{name} (csv): 1 gap(s) in stamps, longest 5.0"), w
     path.write_text("\n".join([header] + [r for r, cut in zip(rows, inside) if not cut]) + "\n")
     assert {w.split(":")[0] for w in registry.load(str(path)).meta.warnings} == {"imu (csv)", "nav (csv)"}
+
