@@ -12,11 +12,21 @@ from __future__ import annotations
 
 import numpy as np
 
-from logtools.conventions import DEG, quat_conj, quat_mul, rotvec_from_quat
+from logtools.conventions import DEG, quat_conj, quat_mul, rotvec_from_quat, typical_step_s
 from logtools.rows import by_rows
 
 JUMP_MIN_RAD = 2.0 * DEG
 JUMP_MEDIAN_FACTOR = 10.0
+#: a step of a unit's navigation stamps beyond this many of its typical steps is a gap (samples missing): the
+#: output across it is no measurement and its increment no rate (AlignmentConfig.nav_gap_steps)
+NAV_GAP_STEPS = 3.0
+
+
+def nav_gaps(t: np.ndarray, steps: float = NAV_GAP_STEPS) -> np.ndarray:
+    """(n-1,) True at the steps of sorted navigation stamps ``t`` longer than ``steps`` of their typical
+    step (``conventions.typical_step_s``: the length-weighted median step, so that telemetry's bursts are
+    no gaps)."""
+    return np.diff(t) > steps * typical_step_s(t)
 
 
 def output_validity(t: np.ndarray, quat: np.ndarray | None, vel: np.ndarray | None = None,

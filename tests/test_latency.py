@@ -240,6 +240,12 @@ def test_attitude_only_slave_uses_rate_from_quaternions():
     res = estimate(master, slave, compare=False)
     assert res.quality["rate_source"]["slave"] == "attitude"
     assert abs(res.latency_s - 0.05) < 0.5e-3
+    # a 3 s gap in the attitude: its increment over the gap is no rate (left out, not one NaN sample) and no
+    # EKF reset (it read as three intervals "frozen or at a reset" and made a NaN warning besides)
+    keep = (tf[sel] < 20.0) | (tf[sel] > 23.0)
+    t_g, w_g = rate_from_attitude(tf[sel][keep], q[sel][keep], drop_invalid=True)
+    assert np.isfinite(w_g).all() and len(t_g) == keep.sum() - 2
+    assert np.diff(t_g).max() > 3.0
 
 
 def test_compare_stores_every_method_and_baseline_named():

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from enum import Enum
 
 from logtools.errors import AnalysisError
+from logtools.navcheck import NAV_GAP_STEPS
 
 #: what the master is matched on (velocity, attitude or both)
 MATCHES = ("vel", "att", "vel+att")
@@ -214,7 +215,7 @@ class AlignmentConfig:
     #: ... and a step of the master's navigation stamps beyond this many of its typical steps
     #: (conventions.typical_step_s) is a gap: no measurement across it (run._nav_gaps), and the samples of
     #: the sparser stream inside a gap of the denser one are dropped
-    nav_gap_steps: float = 3.0
+    nav_gap_steps: float = NAV_GAP_STEPS
     #: over such a gap the master's attitude change is checked against its gyro integrated across it: beyond
     #: gap_reset_min_deg (navcheck's jump floor) plus gap_reset_scale of the rotation turned (a consumer
     #: gyro's scale-factor error, 0.5-2 %, with room) it reset while its output was missing, and the slave's

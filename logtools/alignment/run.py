@@ -25,12 +25,12 @@ import numpy as np
 
 from logtools.conventions import (ARCMIN, ARCSEC, DEG, DEG_PER_H, G0_M_S2, MG, UG, dcm_from_euler, dcm_from_quat,
                                   euler_from_dcm, median_step_s, quat_from_dcm, quat_make_continuous, quat_mul,
-                                  rotvec_from_quat, quat_conj, typical_step_s, wahba)
+                                  rotvec_from_quat, quat_conj, wahba)
 from logtools import earth
 from logtools.dsp import as_trapezoid_integrates
 from logtools.errors import AnalysisError
 from logtools.inslog import InsLog
-from logtools.navcheck import output_validity
+from logtools.navcheck import nav_gaps, output_validity
 from logtools.rows import by_rows
 from logtools.results import AlignmentResult
 from logtools.strapdown import body_increments, compose_segments
@@ -649,7 +649,7 @@ def _nav_gaps(t: np.ndarray, config: AlignmentConfig = CONFIG) -> np.ndarray:
     motion the master never output: a 5 s gap in a simulated aircraft's 200 Hz master took the mounting's
     sigma from 0.01-0.03 to 0.45-0.68 arcmin, its pitch 3.7 arcmin off (tests/test_alignment.py, the
     master-gap test)."""
-    return np.diff(t) > config.nav_gap_steps * typical_step_s(t)
+    return nav_gaps(t, config.nav_gap_steps)
 
 
 def _gyro_rate_nm(master: InsLog, t: np.ndarray, quat: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:

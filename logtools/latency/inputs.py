@@ -10,7 +10,7 @@ from logtools import earth
 from logtools.conventions import dcm_from_quat, quat_conj, quat_make_continuous, quat_mul, rotvec_from_quat
 from logtools.errors import AnalysisError
 from logtools.inslog import InsLog
-from logtools.navcheck import output_validity
+from logtools.navcheck import nav_gaps, output_validity
 from logtools.resample import (Interpolant, UniformSeries, band_limited_factor, interpolant, lowpass,
                                to_uniform, to_uniform_band_limited)
 
@@ -23,7 +23,7 @@ def rate_from_attitude(t_s: np.ndarray, quat_wxyz: np.ndarray, *, drop_invalid: 
     rate relative to the navigation frame; earth and transport rates, a few deg/h, are left out).
     ``drop_invalid``: NaN for the intervals that touch a frozen sample or a reset (``logtools.navcheck``:
     an EKF not yet running logs the identity; a board's first 19 s of it and a 169 deg yaw reset made a
-    rate fit's cost 0.88 of the motion).
+    rate fit's cost 0.88 of the motion). The intervals over a gap (``navcheck.nav_gaps``) are left out.
     """
     t = np.asarray(t_s, dtype=float)
     q = np.asarray(quat_wxyz, dtype=float)
@@ -37,10 +37,12 @@ def rate_from_attitude(t_s: np.ndarray, quat_wxyz: np.ndarray, *, drop_invalid: 
         return np.zeros(0), np.zeros((0, 3))
     dq = quat_mul(quat_conj(q[:-1]), q[1:])
     w = rotvec_from_quat(dq) / np.diff(t)[:, None]
+    gap = nav_gaps(t)
     if drop_invalid:
-        valid, _ = output_validity(t, q)
+        valid, _ = output_validity(t, q, gap=gap)
         w[~(valid[:-1] & valid[1:])] = np.nan
-    return 0.5 * (t[:-1] + t[1:]), w
+    # an increment over a gap is no rate at any instant: left out (the series has a gap there)
+    return 0.5 * (t[:-1] + t[1:])[~gap], w[~gap]
 
 
 def unit_rate(log: InsLog, role: str) -> tuple[np.ndarray, np.ndarray, str]:
