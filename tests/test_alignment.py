@@ -1116,3 +1116,15 @@ def test_a_bursty_masters_regular_steps_are_no_gaps():
     assert not _nav_gaps(burst).any()
     dropout = np.concatenate([burst[:50], burst[60:] + 3.0])
     assert np.flatnonzero(_nav_gaps(dropout)).tolist() == [49]
+
+
+def test_a_master_imu_that_covers_little_of_the_overlap_gives_no_rates_from_outside_it():
+    """Rates interpolated beyond the master IMU's last sample are its last value held, no data: the coarse
+    fit reads none (and with no stretch of both units' rates it says so and starts from the slave's own
+    attitude); the navigation output still aligns the pair."""
+    p = sim.simulate(sim.scenario_config("aircraft", seed=3, duration_s=40.0, latency_s=0.0, drift_ppm=0.0))
+    m, s = p.master, p.slave.rebased(p.master.meta.t0_ns)
+    res = run_alignment(type(m)(imu=m.imu.iloc[:2], nav=m.nav, meta=m.meta), s)
+    assert any("no stretch where both units' rates are logged" in n for n in res.notes), res.notes
+    err = _err_arcmin(res, p.truth)
+    assert np.all(np.abs(err) < 3.0 * np.asarray(res.mounting_sigma_deg) * 60.0 + 0.05), err

@@ -857,13 +857,12 @@ def _rates_on_grid(master: InsLog, ms: MasterSeries, t_imu: np.ndarray, gyro: np
         okm = np.isfinite(gm).all(1)
         n_master = int(okm.sum())
         tm, gm = tm[okm], gm[okm]
-        if len(tm) >= 2:
-            gap |= _in_gap(grid - tau0, tm, np.diff(tm) > _imu_gap_s(tm, config))
+        gap |= _in_gap(grid - tau0, tm, np.diff(tm) > _imu_gap_s(tm, config) if len(tm) >= 2 else np.zeros(0, bool))
     elif ms.w_nm_m is not None:  # (the attitude's rate, at the navigation stamps)
         gap |= _in_gap(grid - tau0, ms.t_s, _nav_gaps(ms.t_s, config))
     grid = grid[~gap]
     if tm is not None:
-        w_m = _interp_cols(grid - tau0, tm, gm)
+        w_m = _interp_cols(grid - tau0, tm, gm) if len(grid) else np.zeros((0, 3))
     elif ms.w_nm_m is not None:
         w_m = _interp_cols(grid - tau0, ms.w_stamps_s, ms.w_nm_m)
     return RateGrid(grid, _interp_cols(grid, t_imu, gyro), w_m, master.has_gyro, n_master)
@@ -875,10 +874,12 @@ def _imu_gap_s(stamps: np.ndarray, config: AlignmentConfig = CONFIG) -> float:
 
 
 def _in_gap(t: np.ndarray, stamps: np.ndarray, gap_steps: np.ndarray) -> np.ndarray:
-    """True at the times ``t`` that fall inside a step of ``stamps`` marked in ``gap_steps`` (len - 1)."""
+    """True at the times ``t`` that fall inside a step of ``stamps`` marked in ``gap_steps`` (len - 1) or
+    outside the stamps' span (where an interpolation holds the end value)."""
     if len(stamps) < 2:
-        return np.zeros(len(t), bool)
-    return gap_steps[np.clip(np.searchsorted(stamps, t), 1, len(stamps) - 1) - 1]
+        return np.ones(len(t), bool)
+    return (gap_steps[np.clip(np.searchsorted(stamps, t), 1, len(stamps) - 1) - 1]
+            | (t < stamps[0]) | (t > stamps[-1]))
 
 
 def _coarse_mounting(master: InsLog, slave: InsLog, ms: MasterSeries, rates: RateGrid, t_imu: np.ndarray,
@@ -892,7 +893,7 @@ def _coarse_mounting(master: InsLog, slave: InsLog, ms: MasterSeries, rates: Rat
     grid, w_m = rates.t_s, rates.w_m
     weak = None  # a joint rate + specific-force start that is only weakly determined
 
-    if w_m is not None:
+    if w_m is not None and len(grid) > 2:
         w_s = rates.w_s
         # remove slow parts (biases, earth rate) so the fit sees the motion
         w_s = w_s - w_s.mean(0)
@@ -927,8 +928,10 @@ def _coarse_mounting(master: InsLog, slave: InsLog, ms: MasterSeries, rates: Rat
                     return CoarseMounting(r, True, why + "; rates and specific forces together instead", cov, d_f)
                 weak = CoarseMounting(r, False, why + "; rates and specific forces together, weakly determined "
                                       "(wider prior)", cov, d_f)
-    else:
+    elif w_m is None:
         why = "coarse mounting: the master has no angular rate or attitude"
+    else:
+        why = "coarse mounting: no stretch where both units' rates are logged (gaps)"
     if slave.has_quat and ms.quat is not None:
         ts, qs = slave.quat_wxyz()
         qm = _interp_cols(ts - tau0, ms.t_s, ms.quat)
