@@ -862,3 +862,23 @@ def test_a_damaged_record_time_is_set_anew_from_the_header_stamp(tmp_path):
     b = parsers.load(str(tmp_path / "out.bag"))
     assert (len(b.imu), len(b.nav)) == (len(a.imu), len(a.nav))
     np.testing.assert_array_equal(_t_ns(b, b.imu), sh.to_master_ns(_t_ns(a, a.imu)))
+
+
+@pytest.mark.parametrize("name", ["xn.mcap", "x.bag"])
+def test_a_damaged_message_definition_is_restamped_by_the_built_in_one_the_reader_uses(slaves, name, tmp_path):
+    """The reader decodes a topic whose stored definition is unusable by rosbags' built-in one (and says
+    so); the export kept such payloads unchanged, so the exported /fix stamps stayed on the slave's clock
+    while its other topics moved (a bit-flipped MCAP's export read back 763 navigation rows for 382)."""
+    data = Path(slaves[name]).read_bytes()
+    assert b"float64 latitude" in data
+    src = tmp_path / ("bad_" + name)
+    src.write_bytes(data.replace(b"float64 latitude", b"float64 lat{tude"))  # (same length: offsets kept)
+    a = parsers.load(str(src))
+    assert any("/fix: message definition of sensor_msgs/msg/NavSatFix unusable" in w for w in a.meta.warnings)
+    shift = _shift_for(a)
+    dst = str(tmp_path / ("out_" + name))
+    st = RESTAMP[name.endswith(".mcap") and "mcap" or "rosbag1"](str(src), dst, shift)
+    assert not any("no definition" in n for n in st.damage), st.damage
+    b = parsers.load(dst)
+    np.testing.assert_array_equal(_t_ns(b, b.nav), shift.to_master_ns(_t_ns(a, a.nav)))
+    np.testing.assert_array_equal(b.nav.to_numpy(), a.nav.to_numpy())
