@@ -1128,3 +1128,16 @@ def test_a_master_imu_that_covers_little_of_the_overlap_gives_no_rates_from_outs
     assert any("no stretch where both units' rates are logged" in n for n in res.notes), res.notes
     err = _err_arcmin(res, p.truth)
     assert np.all(np.abs(err) < 3.0 * np.asarray(res.mounting_sigma_deg) * 60.0 + 0.05), err
+
+
+def test_the_delay_states_coarse_start_reads_no_rate_from_inside_a_gap():
+    """kf-delay starts its delay state from the lag that best matches the two units' rate magnitudes; with
+    the master stopped for 15 s of a car's 90 the rates interpolated across the gap moved that start to
+    +122 ms for a true +80."""
+    p = sim.simulate(sim.scenario_config("vehicle", seed=11, duration_s=90.0, latency_s=0.08, drift_ppm=0.0))
+    m, s = p.master, p.slave.rebased(p.master.meta.t0_ns)
+    t, ti = m.nav.index.to_numpy(), m.imu.index.to_numpy()
+    gapped = type(m)(imu=m.imu[(ti < 20.0) | (ti > 35.0)], nav=m.nav[(t < 20.0) | (t > 35.0)], meta=m.meta)
+    res = run_alignment(gapped, s, filter="kf-delay")
+    assert "delay state started at +80 ms (angular-rate magnitudes)" in res.notes, res.notes
+    assert abs(res.delay_s - 0.08) < 3.0 * res.delay_sigma_s + 1e-4

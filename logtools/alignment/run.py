@@ -326,7 +326,7 @@ def _delay_window(kind: FilterKind, opts: AlignmentOptions, config: AlignmentCon
     if delay_mode and not kind.splits_delay and opts.delay_s is None:
         # start the delay state near the answer: the EKF's linearisation in the delay holds over a
         # fraction of the motion's period only (S004), so a coarse start keeps it from diverging
-        tau0, why = _coarse_delay(master, ms, t_imu, gyro, float(opts.delay_max_s))
+        tau0, why = _coarse_delay(master, ms, t_imu, gyro, float(opts.delay_max_s), config)
         notes.append(why)
     dt_upd = 1.0 / update_hz
     if kind.splits_delay:
@@ -1059,27 +1059,38 @@ def _master_specific_force(master: InsLog, ms: MasterSeries, t: np.ndarray) -> n
     return np.einsum("kji,kj->ki", dcm_from_quat(q / np.linalg.norm(q, axis=1, keepdims=True)), f_n)
 
 
-def _coarse_delay(master: InsLog, ms: MasterSeries, t_imu: np.ndarray, gyro: np.ndarray, max_s: float
-                  ) -> tuple[float, str]:
+def _coarse_delay(master: InsLog, ms: MasterSeries, t_imu: np.ndarray, gyro: np.ndarray, max_s: float,
+                  config: AlignmentConfig = CONFIG) -> tuple[float, str]:
     """(tau0, note): the lag (slave stamp - master stamp) minimising the mismatch of the angular-rate
-    MAGNITUDES (independent of the mounting), coarse (10 ms) then fine (1 ms)."""
+    MAGNITUDES (independent of the mounting), coarse (10 ms) then fine (1 ms); times inside a gap of
+    either unit's rates left out (a car's master stopped for 15 s of 90: 122 ms for 80)."""
     if master.has_gyro:
         tm, gm = master.t_imu_s(), master.gyro_rad_s()
         okm = np.isfinite(gm).all(1)
         tm, wm = tm[okm], np.linalg.norm(gm[okm], axis=1)
+        gap_m = np.diff(tm) > _imu_gap_s(tm, config) if len(tm) >= 2 else np.zeros(0, bool)
     elif ms.w_nm_m is not None:
         tm, wm = ms.w_stamps_s, np.linalg.norm(ms.w_nm_m, axis=1)
+        gap_m = _nav_gaps(tm, config)
     else:
         return 0.0, "delay state started at 0 (the master has no angular rate or attitude)"
     ws = np.linalg.norm(gyro, axis=1)
     lo, hi = max(t_imu[0], tm[0] + max_s), min(t_imu[-1], tm[-1] - max_s)
     if hi - lo < 2.0 or np.std(ws) < 1e-3:
         return 0.0, "delay state started at 0 (too little motion or overlap for a coarse delay)"
+    gap_s = np.diff(t_imu) > _imu_gap_s(t_imu, config)
 
     def cost(lags: np.ndarray, step: float) -> np.ndarray:
         grid = np.arange(lo, hi, step)
         s_w = np.interp(grid, t_imu, ws)
-        return np.array([np.mean((s_w - np.interp(grid - lag, tm, wm)) ** 2) for lag in lags])
+        if not (gap_m.any() or gap_s.any()):
+            return np.array([np.mean((s_w - np.interp(grid - lag, tm, wm)) ** 2) for lag in lags])
+        out_s = _in_gap(grid, t_imu, gap_s)
+
+        def one(lag: float) -> float:
+            ok = ~(out_s | _in_gap(grid - lag, tm, gap_m))
+            return float(np.mean((s_w[ok] - np.interp(grid[ok] - lag, tm, wm)) ** 2)) if ok.any() else np.inf
+        return np.array([one(lag) for lag in lags])
 
     lags = np.arange(-max_s, max_s + 1e-9, 0.01)
     best = lags[int(np.argmin(cost(lags, 0.01)))]
