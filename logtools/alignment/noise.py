@@ -46,6 +46,27 @@ def d3_sigma(d3: np.ndarray) -> float:
     return float(np.max(mad_sigma(d3)) / np.sqrt(20.0))
 
 
+def d3_at(t: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Third differences of ``y`` (n, k) sampled at sorted stamps ``t`` that need not be uniform: the third
+    divided difference of each four consecutive samples (zero for any quadratic motion), scaled so that white
+    noise of sigma s gives variance 20 s^2 as :func:`d3_sigma` expects (the uniform case's y0 - 3 y1 + 3 y2 -
+    y3, up to sign). Windows with repeated stamps are left out."""
+    t = np.asarray(t, float)
+    if len(t) < 4:
+        return np.zeros((0,) + y.shape[1:])
+    w = np.stack([t[i:len(t) - 3 + i] for i in range(4)], -1)  # (n-3, 4) the windows' stamps
+    c = np.ones_like(w)
+    for i in range(4):
+        for j in range(4):
+            if i != j:
+                c[:, i] *= w[:, i] - w[:, j]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        c = 1.0 / c
+        c *= np.sqrt(20.0 / np.sum(c * c, axis=1, keepdims=True))
+    ok = np.isfinite(c).all(axis=1)
+    return sum(c[ok, i, None] * y[i:len(t) - 3 + i][ok] for i in range(4))
+
+
 def _d3(x: np.ndarray) -> np.ndarray:
     return np.diff(x, n=3, axis=0)
 

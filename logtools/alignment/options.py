@@ -222,6 +222,11 @@ class AlignmentConfig:
     #: attitude restarts from it at the gap's end
     gap_reset_min_deg: float = 2.0
     gap_reset_scale: float = 0.05
+    #: a master whose navigation stamps' typical step (conventions.typical_step_s) is beyond this many of
+    #: their median step comes in bursts (receive-time stamps, pairs of messages): its noise is measured from
+    #: third divided differences at its stamps (run._nav_noise); a regular stream's (ratio about 1, also
+    #: with jitter or gaps) from plain third differences as before
+    bursty_step_ratio: float = 1.5
     #: prior sigma of an estimated lever arm (per axis, m)
     lever_arm_sigma_m: float = 1.0
     #: an estimated lever arm beyond this many prior sigmas gets a note (absorbing an uncompensated delay?)
