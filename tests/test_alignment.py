@@ -1060,6 +1060,14 @@ def test_a_lateral_accelerometer_bias_does_not_turn_a_cars_mounting():
     assert abs(yaw[0] - yaw[1]) < 0.2, yaw
 
 
+def _as_precise_and_right(res, ref, truth, slack_arcmin: float) -> None:
+    """``res``'s mounting sigmas within 1.5 x ``ref``'s, and its error within 3 of them (+ slack, arcmin)."""
+    sig, sig_ref = (np.asarray(r.mounting_sigma_deg) * 60.0 for r in (res, ref))
+    assert np.all(sig < 1.5 * sig_ref), (sig, sig_ref)
+    err = _err_arcmin(res, truth)
+    assert np.all(np.abs(err) < 3.0 * sig + slack_arcmin), (err, sig)
+
+
 @pytest.mark.parametrize("scenario,cut", [("aircraft", "nav"), ("aircraft", "nav-only master"),
                                           ("vehicle", "nav"), ("vehicle", "nav+imu"), ("multirotor", "nav+imu")])
 def test_a_gap_in_the_master_gives_no_measurements_across_it(scenario, cut):
@@ -1082,10 +1090,7 @@ def test_a_gap_in_the_master_gives_no_measurements_across_it(scenario, cut):
     whole, gap = run_alignment(m, s), run_alignment(gapped, s)
     assert any("1 gap(s) in the overlap" in n for n in gap.notes), gap.notes
     assert not any("jumped" in n for n in gap.notes), gap.notes
-    sig_w, sig_g = (np.asarray(r.mounting_sigma_deg) * 60.0 for r in (whole, gap))
-    assert np.all(sig_g < 1.5 * sig_w), (sig_g, sig_w)
-    err = _err_arcmin(gap, p.truth)
-    assert np.all(np.abs(err) < 3.0 * sig_g + 0.05), (err, sig_g)
+    _as_precise_and_right(gap, whole, p.truth, 0.05)
 
 
 def test_a_master_that_resets_inside_a_gap_of_its_output_restarts_the_slave_after_it():
@@ -1156,10 +1161,7 @@ def test_a_master_slower_than_the_update_rate_is_read_at_its_own_instants():
     plain = run_alignment(type(m)(imu=m.imu, nav=m.nav[k % 100 == 0], meta=m.meta), s)
     pairs = run_alignment(type(m)(imu=m.imu, nav=m.nav[(k % 100 == 0) | (k % 100 == 2)], meta=m.meta), s)
     assert not any("re-estimated" in n for n in pairs.notes), pairs.notes
-    sig_p, sig_2 = (np.asarray(r.mounting_sigma_deg) * 60.0 for r in (pairs, plain))
-    assert np.all(sig_p < 1.5 * sig_2), (sig_p, sig_2)
-    err = _err_arcmin(pairs, p.truth)
-    assert np.all(np.abs(err) < 3.0 * sig_p + 0.02), (err, sig_p)
+    _as_precise_and_right(pairs, plain, p.truth, 0.02)
 
 
 def test_third_divided_differences_at_irregular_stamps_cancel_a_quadratic_and_scale_like_uniform_ones():
