@@ -6,7 +6,8 @@ master's measurements).
   its last output); no sensor-driven solution repeats itself exactly while it runs;
 * jump (reset): an attitude increment between two samples that differs in size from what the angular
   rate allows (``rate_at_mid``, where the unit has a gyro) or from its neighbours' increments, by more than
-  max(2 deg, 10 x the median difference).
+  max(2 deg, 10 x the median difference); without a rate, also by more than an angular acceleration of 20
+  deg/s^2 could change it over the step (slow outputs).
 """
 from __future__ import annotations
 
@@ -17,6 +18,10 @@ from logtools.rows import by_rows
 
 JUMP_MIN_RAD = 2.0 * DEG
 JUMP_MEDIAN_FACTOR = 10.0
+#: without a rate, consecutive increments of a unit sampled every dt differ by up to about its angular
+#: acceleration x dt^2 by motion alone: above 20 deg/s^2 x dt^2 a change is a jump, where that exceeds
+#: JUMP_MIN_RAD (steps beyond 0.32 s: an aircraft's S-turns at 1 Hz were 6 resets in 60 s)
+JUMP_ACCEL_RAD_S2 = 20.0 * DEG
 #: a step of a unit's navigation stamps beyond this many of its typical steps is a gap (samples missing): the
 #: output across it is no measurement and its increment no rate (AlignmentConfig.nav_gap_steps)
 NAV_GAP_STEPS = 3.0
@@ -57,14 +62,16 @@ def output_validity(t: np.ndarray, quat: np.ndarray | None, vel: np.ndarray | No
             d = np.abs(dq - rate_at_mid * np.diff(t))
             if gap is not None:
                 d[gap] = 0.0
+            floor = JUMP_MIN_RAD
         else:
             d = np.abs(np.diff(np.concatenate([[0.0], dq])))  # jump in the increment size
             d = d[1:] if len(d) > len(dq) else d
             if gap is not None and gap.any():  # (an increment over a gap, and the next one back to normal)
                 d[gap | np.concatenate([[False], gap[:-1]])] = 0.0
+            floor = np.maximum(JUMP_MIN_RAD, JUMP_ACCEL_RAD_S2 * np.diff(t) ** 2)
         moving = valid[:-1] & valid[1:]
         med = float(np.median(d[moving])) if moving.any() else 0.0
-        jump = moving & (d > max(JUMP_MIN_RAD, JUMP_MEDIAN_FACTOR * med))
+        jump = moving & (d > np.maximum(floor, JUMP_MEDIAN_FACTOR * med))
         if jump.any():
             k = np.nonzero(jump)[0]
             resets = 0.5 * (t[k] + t[k + 1])

@@ -1218,3 +1218,24 @@ def test_a_bursty_masters_long_steps_are_no_ekf_resets():
     assert not any("jumped" in n or "updates skipped" in n for n in res.notes), res.notes
     err, sig = _err_arcmin(res, p.truth), np.asarray(res.mounting_sigma_deg) * 60.0
     assert np.all(np.abs(err) < 3.0 * sig), (err, sig)
+
+
+def test_a_slow_nav_only_masters_turns_are_no_ekf_resets_a_real_reset_is():
+    """Without a gyro, a reset is an attitude increment unlike its neighbours; at 1 Hz an aircraft's
+    S-turns change consecutive increments by several degrees (6 "resets" in 60 s, 8 of 59 updates skipped).
+    The threshold now grows with what an angular acceleration of 20 deg/s^2 does over the step; a 30 deg yaw
+    reset is still found."""
+    from logtools.conventions import quat_from_euler, quat_mul
+
+    p = sim.simulate(sim.scenario_config("aircraft", seed=3, duration_s=60.0, latency_s=0.0, drift_ppm=0.0,
+                                         master_nav_rate_hz=10.0))
+    m, s = p.master, p.slave.rebased(p.master.meta.t0_ns)
+    nav = m.nav[np.arange(len(m.nav)) % 10 == 0]
+    res = run_alignment(type(m)(imu=m.imu.iloc[:0], nav=nav, meta=m.meta), s, match="att")
+    assert not any("jumped" in n for n in res.notes), res.notes
+    qc = ["quat_w", "quat_x", "quat_y", "quat_z"]
+    nav = nav.copy()
+    late = nav.index.to_numpy() > 30.0
+    nav.loc[late, qc] = quat_mul(quat_from_euler(np.radians([0.0, 0.0, 30.0])), nav.loc[late, qc].to_numpy())
+    res = run_alignment(type(m)(imu=m.imu.iloc[:0], nav=nav, meta=m.meta), s, match="att")
+    assert any("jumped" in n for n in res.notes), res.notes
