@@ -370,8 +370,12 @@ class _Scan:
         self.warnings: list[str] = []
         #: schema and channel ids defined by the summary section (read first): a definition in the data
         #: section (inside a CRC-checked chunk) replaces one of these that differs, while none of its
-        #: messages was read (a damaged summary gave a channel the encoding 'cd\ufffd')
+        #: messages was read (a damaged summary gave a channel the encoding 'cd\ufffd') ...
         self.provisional: set[tuple[str, int]] = set()
+        #: ... but not from a chunk that failed its CRC (walked while this is set): there the damaged byte
+        #: may be in the definition (a NavSatFix schema with a flipped byte made /fix an unknown topic, where
+        #: the summary's, and the export, had it right)
+        self.unverified = False
 
     def n_messages(self) -> int:
         return sum(self.counts.values())
@@ -384,8 +388,8 @@ class _Scan:
         if o + 4 + n > end:
             raise _Damage("schema data runs past its record")
         new = (name, enc, bytes(buf[o + 4:o + 4 + n]))
-        if ("schema", sid) in self.provisional and self.schemas.get(sid) != new and not any(
-                c_sid == sid and self.counts.get(c, 0) for c, (_t, c_sid, _e) in self.channels.items()):
+        read = any(c_sid == sid and self.counts.get(c, 0) for c, (_t, c_sid, _e) in self.channels.items())
+        if ("schema", sid) in self.provisional and not self.unverified and self.schemas.get(sid) != new and not read:
             self.provisional.discard(("schema", sid))
             self.schemas[sid] = new
             for c, (t, c_sid, e) in list(self.channels.items()):  # its channels set up again with it
@@ -400,8 +404,8 @@ class _Scan:
         topic, o = _string(buf, off + 4)
         enc, o = _string(buf, o)
         if cid in self.channels:
-            if (("channel", cid) in self.provisional and self.channels[cid] != (topic, sid, enc)
-                    and not self.counts.get(cid, 0)):
+            if (("channel", cid) in self.provisional and not self.unverified
+                    and self.channels[cid] != (topic, sid, enc) and not self.counts.get(cid, 0)):
                 self.provisional.discard(("channel", cid))
                 del self.channels[cid]
                 self._define(cid, topic, sid, enc)
@@ -589,10 +593,13 @@ def _partial_chunk(scan: _Scan, buf: bytes, off: int, end: int) -> int:
     except Exception:  # a header cut too, or data that does not decompress at all: nothing to recover
         return 0
     before = scan.n_messages()
+    scan.unverified = True  # (no CRC over it: the summary's definitions stand)
     try:
         scan.records(content, 0, len(content), f"partial chunk at byte {off}", cut_ok=True)
     except (_Damage, struct.error, UnicodeDecodeError):
         return 0
+    finally:
+        scan.unverified = False
     return scan.n_messages() - before
 
 
@@ -945,10 +952,14 @@ def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
                         content, said = crc_damage_content(exc, buf, nxt)
                         scan.warnings.append(f"damaged: {exc}; {said} (impossible values and isolated spikes "
                                              "are dropped)")
+                        scan.unverified = True
                     # a damaged record: the sound records around it kept (records() adds none of a broken walk)
-                    places, skipped, first = walk_resyncing(scan.records, content, len(content),
-                                                            f"chunk at byte {off}", scan.channels,
-                                                            struct.unpack_from("<QQ", buf, off + 9))
+                    try:
+                        places, skipped, first = walk_resyncing(scan.records, content, len(content),
+                                                                f"chunk at byte {off}", scan.channels,
+                                                                struct.unpack_from("<QQ", buf, off + 9))
+                    finally:
+                        scan.unverified = False
                     if places:
                         scan.warnings.append(f"damaged: chunk at byte {off}: {places} damaged place(s) (first at "
                                              f"byte {first} of its records), {skipped} bytes skipped to the next "

@@ -1295,3 +1295,21 @@ def test_an_attitude_published_as_an_imu_is_the_units_attitude(tmp_path):
     _assert_heading_north_turning_left(parsers.load(p))
     inv = registry.inspect_log(p)
     assert any("att=/attitude" in s and "imu=/imu" in s for s in inv.selectors), inv.selectors
+
+
+def test_a_definition_in_a_chunk_that_failed_its_crc_does_not_replace_the_summarys(tmp_path):
+    """A schema record inside a chunk whose CRC fails (or inside the part of a damaged chunk that still
+    decompressed) may carry the damaged byte: /fix's type name garbled there made /fix an unknown topic,
+    where the summary section (and the native export, which reads the summary's) had it right."""
+    log = synthetic_log(200)
+    path = tmp_path / "x.mcap"
+    registry.write(str(path), log, "mcap", compression="none")
+    data = path.read_bytes()
+    name = b"sensor_msgs/msg/NavSatFix"
+    first = data.index(name)
+    assert data.index(name, first + 1) > first  # (the summary's copy, after the data section's)
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(data[:first] + b"sensor_msgs/msg/NavSatFiX" + data[first + len(name):])
+    got = registry.load(str(bad))
+    assert any("CRC mismatch" in w for w in got.meta.warnings), got.meta.warnings
+    assert got.has_pos and len(got.nav) == len(registry.load(str(path)).nav)
