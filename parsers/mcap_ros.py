@@ -495,12 +495,10 @@ def _decoder(topic: str, msgtype: str, enc: str, schema: tuple[str, str, bytes] 
             rc.register_msgdef(store, msgtype, text.decode("utf-8", "replace"), "idl" if senc == "ros2idl" else "msg")
         except Exception:  # noqa: BLE001 - _rawlog says so; the built-in definitions then
             pass
-    if msgtype not in store.fielddefs:
-        base = rc.default_typestore(encoding)
-        try:
-            store.register({k: base.fielddefs[k] for k in _closure(base, {msgtype}) if k not in store.fielddefs})
-        except Exception:  # noqa: BLE001 - no layout then: every message kept for the end
-            pass
+    try:
+        register_builtin(store, {msgtype}, encoding)
+    except Exception:  # noqa: BLE001 - no layout then: every message kept for the end
+        pass
     return rc.StreamDecoder(topic, msgtype, encoding, store)
 
 
@@ -1034,15 +1032,11 @@ def _rawlog(path: str, fmt: str, scan: _Scan) -> rc.RawLog:
             continue
         topics[topic] = raw
     for enc in encodings - {"json"}:  # types without a definition in the file: the built-in ones (loaded only then)
-        missing = {t.msgtype for t in topics.values() if t.encoding == enc and t.msgtype in rc.SUPPORTED
-                   and t.msgtype not in typestore.fielddefs}
-        if missing:
-            base = rc.default_typestore(enc)
-            need = _closure(base, missing)
-            try:
-                typestore.register({k: base.fielddefs[k] for k in need if k not in typestore.fielddefs})
-            except Exception as exc:
-                scan.warnings.append(f"built-in message definitions not usable: {exc}")
+        try:
+            register_builtin(typestore, {t.msgtype for t in topics.values()
+                                         if t.encoding == enc and t.msgtype in rc.SUPPORTED}, enc)
+        except Exception as exc:
+            scan.warnings.append(f"built-in message definitions not usable: {exc}")
     for topic, dec in streamed.items():  # the rest of each streamed topic, with the final definitions
         topics[topic].decoded, topics[topic].data = dec.finish(typestore)
     return rc.RawLog(path=path, fmt=fmt, topics=topics, typestore=typestore, warnings=scan.warnings)
@@ -1063,6 +1057,20 @@ def _closure(store, names: set[str]) -> set[str]:
             elif nt in (3, 4) and int(detail[0][0]) == 2:
                 todo.append(detail[0][1])
     return out
+
+
+def register_builtin(typestore, msgtypes, encoding: str, base=None):
+    """rosbags' built-in definitions (ROS 1 Noetic for ``encoding`` "ros1", else ROS 2 Humble) of those
+    ``msgtypes`` ``typestore`` has no definition of, and of the types they use, registered in it (none it
+    has replaced): a file that stores no definition, or a damaged one, is decoded by the built-in ones.
+    Returns the built-in store (``base``: one loaded before, passed again: loading it costs)."""
+    missing = {m for m in msgtypes if m not in typestore.fielddefs}
+    if not missing:
+        return base
+    if base is None:
+        base = rc.default_typestore(encoding)
+    typestore.register({k: base.fielddefs[k] for k in _closure(base, missing) if k not in typestore.fielddefs})
+    return base
 
 
 def _read_for_decode(path: str) -> rc.RawLog:

@@ -525,11 +525,11 @@ def restamp_rosbag1(src: str, dst: str, shift: ClockShift, *, selector: str | No
     typestore = get_typestore(Stores.EMPTY)
     cids = sorted(scan.conns)
     streams = []
-    base: dict = {}
+    base = None
     for cid in cids:
         topic, msgtype, msgdef = scan.conns[cid]
         _registered(typestore, msgtype, msgdef, "msg")
-        _builtin_if_missing(typestore, msgtype, "ros1", base)  # (a damaged definition: as the reader)
+        base = mcap_ros.register_builtin(typestore, {msgtype}, "ros1", base)  # (a damaged definition: as the reader)
         streams.append(_Stream(topic, msgtype, "ros1", _header_kind(typestore, msgtype)))
     msgs = scan.messages(cids)
     # (a record time a damaged byte moved, or a record the resynchronised walk read from damaged bytes)
@@ -772,31 +772,18 @@ def _scan_mcap(path: str) -> _McapScan:
     return sc
 
 
-def _builtin_if_missing(typestore, msgtype: str, encoding: str, base: dict) -> None:
-    """``msgtype`` and the types it uses registered from rosbags' built-in store (ROS 1 Noetic or ROS 2
-    Humble by ``encoding``) where the file gave no usable definition (an old bag stores none; a damaged
-    schema record), as the readers decode it; ``base`` caches the built-in stores."""
-    if msgtype in typestore.fielddefs or encoding not in ("cdr", "ros1"):
-        return
-    if encoding not in base:
-        base[encoding] = rc.default_typestore(encoding)
-    store = base[encoding]
-    if msgtype in store.fielddefs:
-        typestore.register({k: store.fielddefs[k] for k in mcap_ros._closure(store, {msgtype})
-                            if k not in typestore.fielddefs})
-
-
 def _mcap_streams(sc: _McapScan, typestore) -> tuple[list[int], list[_Stream]]:
     cids = sorted(sc.channels)
     streams = []
-    base: dict = {}
+    bases: dict = {}  # (the built-in stores by encoding)
     for c in cids:
         topic, enc, sid, _meta = sc.channels[c]
         name, senc, text = sc.schemas.get(sid, ("", "", b""))
         msgtype = rc.normalize_msgtype(name) if name else ""
         if senc in ("ros2msg", "ros1msg", "ros2idl"):
             _registered(typestore, msgtype, text.decode("utf-8", "replace"), "idl" if senc == "ros2idl" else "msg")
-        _builtin_if_missing(typestore, msgtype, enc, base)  # (as the readers decode such a message)
+        if enc in ("cdr", "ros1"):  # (as the readers decode such a message)
+            bases[enc] = mcap_ros.register_builtin(typestore, {msgtype}, enc, bases.get(enc))
         kind = (_header_kind(typestore, msgtype) if enc in ("cdr", "ros1") else
                 _JSON if enc == "json" and msgtype in rc.SUPPORTED else _NONE)
         streams.append(_Stream(topic, msgtype, enc, kind))
@@ -927,13 +914,13 @@ class _Part:
 
 
 def _ros2_streams(conns, typestore) -> tuple[list[_Stream], dict[tuple[str, str], int]]:
-    base: dict = {}
+    base = None
     streams: list[_Stream] = []
     by_key: dict[tuple[str, str], int] = {}
     for c in conns:
         fmt = "idl" if c.msgdef.format.name == "IDL" else "msg"
         _registered(typestore, c.msgtype, c.msgdef.data, fmt)
-        _builtin_if_missing(typestore, c.msgtype, "cdr", base)  # (old bags store no definitions)
+        base = mcap_ros.register_builtin(typestore, {c.msgtype}, "cdr", base)  # (old bags store no definitions)
         enc = c.ext.serialization_format
         by_key[(c.topic, c.msgtype)] = len(streams)
         streams.append(_Stream(c.topic, c.msgtype, enc, _header_kind(typestore, c.msgtype) if enc == "cdr" else _NONE))

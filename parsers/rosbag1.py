@@ -625,11 +625,10 @@ def _register_type(typestore, topic: str, msgtype: str, msgdef: str, warnings: l
             rc.register_msgdef(typestore, msgtype, msgdef, "msg")
         except Exception as exc:
             warnings.append(f"{topic}: message definition of {msgtype} unusable ({type(exc).__name__})")
-    if msgtype not in typestore.fielddefs and msgtype in rc.SUPPORTED:
-        base = rc.default_typestore("ros1")
-        from parsers.mcap_ros import _closure
+    if msgtype in rc.SUPPORTED:
+        from parsers.mcap_ros import register_builtin
 
-        typestore.register({k: base.fielddefs[k] for k in _closure(base, {msgtype}) if k not in typestore.fielddefs})
+        register_builtin(typestore, {msgtype}, "ros1")
 
 
 def _rawlog_streamed(path: str, fmt: str, scan: _StreamScan) -> rc.RawLog:

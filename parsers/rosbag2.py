@@ -306,14 +306,9 @@ def read_raw(path: str, keep: Callable[[str, str], bool] = rc.keep_supported) ->
         mode = "message"  # (no metadata to say so: per-message zstd frames seen in the data)
     if mode == "message":
         _unzstd_messages(topics, warnings)
-    missing = {t.msgtype for t in topics.values() if t.msgtype in rc.SUPPORTED and t.data
-               and t.msgtype not in typestore.fielddefs}
-    if missing:
-        base = rc.default_typestore("cdr")
-        from parsers import mcap_ros
+    from parsers.mcap_ros import register_builtin
 
-        typestore.register({k: base.fielddefs[k] for k in mcap_ros._closure(base, missing)
-                            if k not in typestore.fielddefs})
+    register_builtin(typestore, {t.msgtype for t in topics.values() if t.msgtype in rc.SUPPORTED and t.data}, "cdr")
     if meta is not None:
         declared = int(meta.get("message_count") or 0)
         have = sum(t.count for t in topics.values())
