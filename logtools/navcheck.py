@@ -16,7 +16,8 @@ import numpy as np
 from logtools.conventions import DEG, quat_conj, quat_mul, rotvec_from_quat, typical_step_s
 from logtools.rows import by_rows
 
-JUMP_MIN_RAD = 2.0 * DEG
+JUMP_MIN_DEG = 2.0
+JUMP_MIN_RAD = JUMP_MIN_DEG * DEG
 JUMP_MEDIAN_FACTOR = 10.0
 #: without a rate, consecutive increments of a unit sampled every dt differ by up to about its angular
 #: acceleration x dt^2 by motion alone: above 20 deg/s^2 x dt^2 a change is a jump, where that exceeds

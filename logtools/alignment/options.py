@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from enum import Enum
 
 from logtools.errors import AnalysisError
-from logtools.navcheck import NAV_GAP_STEPS
+from logtools.navcheck import JUMP_MIN_DEG, NAV_GAP_STEPS
 
 #: what the master is matched on (velocity, attitude or both)
 MATCHES = ("vel", "att", "vel+att")
@@ -220,7 +220,7 @@ class AlignmentConfig:
     #: gap_reset_min_deg (navcheck's jump floor) plus gap_reset_scale of the rotation turned (a consumer
     #: gyro's scale-factor error, 0.5-2 %, with room) it reset while its output was missing, and the slave's
     #: attitude restarts from it at the gap's end
-    gap_reset_min_deg: float = 2.0
+    gap_reset_min_deg: float = JUMP_MIN_DEG
     gap_reset_scale: float = 0.05
     #: a master whose navigation stamps' typical step (conventions.typical_step_s) is beyond this many of
     #: their median step comes in bursts (receive-time stamps, pairs of messages): its noise is measured from

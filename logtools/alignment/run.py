@@ -896,14 +896,14 @@ def _rates_on_grid(master: InsLog, ms: MasterSeries, t_imu: np.ndarray, gyro: np
     15 s of 90: a gyro-bias seed of -200/-140/13 deg/h for a true 1/-1/1, the filter's yaw 0.24 arcmin off at
     a sigma of 0.013; tests/test_alignment.py, the master-gap test)."""
     grid = np.arange(t_imu[0], t_imu[-1], config.rate_grid_s)
-    gap = _in_gap(grid, t_imu, np.diff(t_imu) > _imu_gap_s(t_imu, config))
+    gap = _in_gap(grid, t_imu, _imu_gaps(t_imu, config))
     w_m, n_master, tm = None, 0, None
     if master.has_gyro:
         tm, gm = master.t_imu_s(), master.gyro_rad_s()
         okm = np.isfinite(gm).all(1)
         n_master = int(okm.sum())
         tm, gm = tm[okm], gm[okm]
-        gap |= _in_gap(grid - tau0, tm, np.diff(tm) > _imu_gap_s(tm, config) if len(tm) >= 2 else np.zeros(0, bool))
+        gap |= _in_gap(grid - tau0, tm, _imu_gaps(tm, config))
     elif ms.w_nm_m is not None:  # (the attitude's rate, at the navigation stamps)
         gap |= _in_gap(grid - tau0, ms.t_s, _nav_gaps(ms.t_s, config))
     grid = grid[~gap]
@@ -917,6 +917,11 @@ def _rates_on_grid(master: InsLog, ms: MasterSeries, t_imu: np.ndarray, gyro: np
 def _imu_gap_s(stamps: np.ndarray, config: AlignmentConfig = CONFIG) -> float:
     """A step of IMU stamps beyond this is a gap (config.imu_gap_s, config.imu_gap_periods)."""
     return max(config.imu_gap_s, config.imu_gap_periods * median_step_s(stamps))
+
+
+def _imu_gaps(stamps: np.ndarray, config: AlignmentConfig = CONFIG) -> np.ndarray:
+    """(n-1,) True at the steps of IMU stamps beyond :func:`_imu_gap_s`; empty with fewer than two stamps."""
+    return np.diff(stamps) > _imu_gap_s(stamps, config) if len(stamps) >= 2 else np.zeros(0, bool)
 
 
 def _in_gap(t: np.ndarray, stamps: np.ndarray, gap_steps: np.ndarray) -> np.ndarray:
@@ -1114,7 +1119,7 @@ def _coarse_delay(master: InsLog, ms: MasterSeries, t_imu: np.ndarray, gyro: np.
         tm, gm = master.t_imu_s(), master.gyro_rad_s()
         okm = np.isfinite(gm).all(1)
         tm, wm = tm[okm], np.linalg.norm(gm[okm], axis=1)
-        gap_m = np.diff(tm) > _imu_gap_s(tm, config) if len(tm) >= 2 else np.zeros(0, bool)
+        gap_m = _imu_gaps(tm, config)
     elif ms.w_nm_m is not None:
         tm, wm = ms.w_stamps_s, np.linalg.norm(ms.w_nm_m, axis=1)
         gap_m = _nav_gaps(tm, config)
@@ -1124,7 +1129,7 @@ def _coarse_delay(master: InsLog, ms: MasterSeries, t_imu: np.ndarray, gyro: np.
     lo, hi = max(t_imu[0], tm[0] + max_s), min(t_imu[-1], tm[-1] - max_s)
     if hi - lo < 2.0 or np.std(ws) < 1e-3:
         return 0.0, "delay state started at 0 (too little motion or overlap for a coarse delay)"
-    gap_s = np.diff(t_imu) > _imu_gap_s(t_imu, config)
+    gap_s = _imu_gaps(t_imu, config)
 
     def cost(lags: np.ndarray, step: float) -> np.ndarray:
         grid = np.arange(lo, hi, step)
