@@ -38,6 +38,7 @@ import dataclasses
 import json
 import os
 import re
+import shutil
 import sqlite3
 import struct
 import tempfile
@@ -1003,6 +1004,10 @@ def restamp_rosbag2(src: str, dst: str, shift: ClockShift, *, selector: str | No
     mode, cfmt = rosbag2._compression(meta)
     if mode in ("file", "message") and cfmt != "zstd":
         raise InputError(f"compression format {cfmt!r} not supported (zstd is)", bagdir)
+    if storage == "sqlite3" and mode != "file":
+        starts = {f: rosbag2.sqlite_start(f) for f in files if f.endswith(".db3")}
+        if any(k > 0 for k in starts.values()):
+            return _restamp_from_databases(src, bagdir, files, starts, dst, shift, selector)
     if storage == "sqlite3" and mode == "none" and len(files) == 1 and meta_damage is None:
         done = _restamp_sqlite_in_place(files[0], bagdir, meta, dst, shift, selector)
         if done is not None:
@@ -1067,6 +1072,34 @@ def restamp_rosbag2(src: str, dst: str, shift: ClockShift, *, selector: str | No
                         time_fields=("messages.timestamp" if storage != "mcap" else "log_time", "header.stamp",
                                      "metadata.yaml starting_time/duration"),
                         damage=tuple(damage) + tuple(notes))
+
+
+def _restamp_from_databases(src: str, bagdir: str, files: list[str], starts: dict[str, int], dst: str,
+                            shift: ClockShift, selector: str | None) -> RestampStats:
+    """A sqlite3 bag some of whose .db3 files have bytes put before their database (``starts``:
+    rosbag2.sqlite_start of each): restamped from a copy of the bag whose storage files start at their
+    databases, as the parser reads them; the prefixes named in the damage."""
+    with tempfile.TemporaryDirectory(prefix="tapost-restamp-") as tmpd:
+        bag = os.path.join(tmpd, "bag")
+        os.makedirs(bag)
+        meta_path = os.path.join(bagdir, "metadata.yaml")
+        if os.path.isfile(meta_path):
+            shutil.copyfile(meta_path, os.path.join(bag, "metadata.yaml"))
+        damage = []
+        for f in files:
+            rel = os.path.relpath(f, bagdir)
+            os.makedirs(os.path.dirname(os.path.join(bag, rel)), exist_ok=True)
+            k = starts.get(f, 0)
+            if k > 0:
+                rosbag2.database_copy(f, k, bag, rel)
+                damage.append(rosbag2.prefix_damage(f, k))
+            else:
+                os.symlink(os.path.abspath(f), os.path.join(bag, rel))
+        try:
+            st = restamp_rosbag2(bag, dst, shift, selector=selector)
+        except InputError as exc:
+            raise InputError(exc.problem, src) from None
+    return dataclasses.replace(st, damage=tuple(damage) + st.damage)
 
 
 def _storage_connections(files: list[str], storage: str, bagdir: str, why: str) -> list:

@@ -140,21 +140,15 @@ def _read_meta(meta_path: str) -> dict | None:
 def _read_sqlite(path: str, keep: Callable[[str, str], bool], typestore, warnings: list[str],
                  topics: dict[str, rc.RawTopic]) -> None:
     check_readable(path)
-    with open(path, "rb") as fh:
-        head = fh.read(DAMAGED_HEAD_SEARCH_BYTES)
-    if not head.startswith(SQLITE_MAGIC):
-        k = head.find(SQLITE_MAGIC)
-        if k <= 0:
+    k = sqlite_start(path)
+    if k != 0:
+        if k < 0:
             raise InputError("storage file is not an SQLite database", path)
         # bytes put before the database (a transfer's garbage in front of it): SQLite reads a file from its
         # start, so a copy from the database's own header is read (damaged files only)
         with tempfile.TemporaryDirectory(prefix="tapost-rosbag2-") as tmp:
-            moved = os.path.join(tmp, os.path.basename(path))
-            with open(path, "rb") as src, open(moved, "wb") as dst:
-                src.seek(k)
-                shutil.copyfileobj(src, dst, 1 << 22)
-            warnings.append(f"damaged: {os.path.basename(path)}: its first {k} bytes are not SQLite's; the "
-                            f"database read from byte {k}")
+            moved = database_copy(path, k, tmp)
+            warnings.append(prefix_damage(path, k))
             try:
                 _read_sqlite(moved, keep, typestore, warnings, topics)
             except InputError as exc:
@@ -192,6 +186,33 @@ def _read_sqlite(path: str, keep: Callable[[str, str], bool], typestore, warning
         _read_messages(con, path, by_id, keep_ids, warnings)
     finally:
         con.close()
+
+
+def sqlite_start(path: str) -> int:
+    """Where the SQLite database of the storage file ``path`` starts: 0 at its first byte; k > 0 where k bytes
+    were put before it (its header found within DAMAGED_HEAD_SEARCH_BYTES); -1 where no header is found."""
+    with open(path, "rb") as fh:
+        head = fh.read(DAMAGED_HEAD_SEARCH_BYTES)
+    if head.startswith(SQLITE_MAGIC):
+        return 0
+    k = head.find(SQLITE_MAGIC)
+    return k if k > 0 else -1
+
+
+def database_copy(path: str, start: int, folder: str, name: str | None = None) -> str:
+    """A copy of ``path`` from byte ``start`` on (its database: :func:`sqlite_start`) in ``folder``, under
+    ``name`` (default the file's own); its path."""
+    moved = os.path.join(folder, name or os.path.basename(path))
+    with open(path, "rb") as src, open(moved, "wb") as dst:
+        src.seek(start)
+        shutil.copyfileobj(src, dst, 1 << 22)
+    return moved
+
+
+def prefix_damage(path: str, start: int) -> str:
+    """The damage of a storage file whose database starts at byte ``start`` (:func:`sqlite_start`)."""
+    return (f"damaged: {os.path.basename(path)}: its first {start} bytes are not SQLite's; the database read "
+            f"from byte {start}")
 
 
 def connect_ro(path: str) -> sqlite3.Connection:

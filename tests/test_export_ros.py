@@ -617,6 +617,34 @@ def test_truncated_sqlite_bag_exports_what_its_whole_pages_hold(big, tmp_path):
         assert sum(1 for _ in rd.messages()) == st.records
 
 
+def test_sqlite_bag_with_bytes_put_before_its_database_exports_what_the_parse_reads(big, tmp_path):
+    """A .db3 with bytes put before the database (a transfer's garbage in front of it) is read from its own
+    header (tests/test_parsers_ros.py); its export stopped at 'file is not a database' (damage fuzz). The
+    database from its header on is restamped, the prefix named: every row, the parse's samples on the
+    master's clock, and the input untouched."""
+    import shutil
+
+    from rosbags.highlevel import AnyReader
+
+    src = tmp_path / "bag"
+    shutil.copytree(big["rosbag2"], src)
+    db = src / "bag.db3"
+    db.write_bytes(b"\x00garbage\xff" * 150 + db.read_bytes())
+    before = _digest(str(src))
+    shift = _shift_for(big["log"])
+    st = rr.restamp_rosbag2(str(src), str(tmp_path / "out"), shift)
+    assert _digest(str(src)) == before
+    assert any("first 1350 bytes are not SQLite's" in d for d in st.damage), st.damage
+    assert st.records == len(_rows(os.path.join(big["rosbag2"], "bag.db3")))
+    with AnyReader([tmp_path / "out"]) as rd:
+        assert sum(1 for _ in rd.messages()) == st.records
+    a, b = parsers.load(str(src)), parsers.load(str(tmp_path / "out"))
+    assert not any("SQLite" in w for w in b.meta.warnings)  # (a sound bag)
+    np.testing.assert_array_equal(b.imu.to_numpy(), a.imu.to_numpy())
+    np.testing.assert_array_equal(_t_ns(b, b.imu), shift.to_master_ns(_t_ns(a, a.imu)))
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []  # (no temporary left)
+
+
 def test_sqlite_in_place_rebuilds_the_index_when_the_shift_reorders(tmp_path, slave):
     """Record times 1 us apart, header stamps 5 ms apart, 2000 ppm of drift: each message's shift grows by
     10 us, so the shifted record times run backwards and the index on them is rebuilt (by SQLite)."""
