@@ -90,7 +90,13 @@ UNITS: dict[str, tuple[str, float]] = {
     "deg": ("angle", 1.0), "rad": ("angle", 180.0 / np.pi), "dege7": ("angle", 1e-7),
     "m": ("length", 1.0), "cm": ("length", 0.01), "mm": ("length", 1e-3), "ft": ("length", 0.3048),
     "": ("unitless", 1.0), "-": ("unitless", 1.0), "1": ("unitless", 1.0),
+    **{u: ("time", 1.0) for u in ("datetime", "date-time", "date/time", "iso", "iso8601")},
 }
+#: the "units" of a time column of ISO 8601 date-time text (``Time (ISO 8601)``, or a unitless time column
+#: whose first cells are date-times: :func:`_datetime_named`), read by :func:`datetime_text_to_ns`
+DATETIME_UNITS = frozenset({"datetime", "date-time", "date/time", "iso", "iso8601"})
+#: the unit a time column found to hold date-time text is mapped with
+DATETIME = "datetime"
 #: snake-case unit suffixes (token tuples at the end of a name) -> unit text
 SUFFIX_UNITS = {("rad", "s"): "rad/s", ("deg", "s"): "deg/s", ("dps",): "dps", ("m", "s2"): "m/s^2",
                 ("m", "s", "2"): "m/s^2", ("mps2",): "m/s^2", ("mg",): "mg", ("g",): "g", ("m", "s"): "m/s",
@@ -179,7 +185,8 @@ def classify(tokens: list[str], quat_file: bool = False, unit: str | None = None
     joined = "".join(t)
     if joined in _EULER_NAMES:
         return _EULER_NAMES[joined]
-    if joined in ("time", "timestamp", "t", "stamp", "timeus", "times", "sampletime"):
+    if joined in ("time", "timestamp", "t", "stamp", "timeus", "times", "sampletime", "utctime", "timeutc",
+                  "datetime", "utc", "utctimestamp", "timestamputc"):
         return "time"
     if joined in ("lat", "latitude"):
         return "lat"
@@ -494,6 +501,16 @@ def _column_map(src: _Source, selector: Selector) -> ColumnMap:
                 back = dict(zip(named, columns))
                 return ColumnMap({back[c]: v for c, v in m.columns.items()}, origin="header and units row",
                                  ignored=tuple(back[c] for c in m.ignored), notes=m.notes, units_row=True)
+        dated = _datetime_named(src.table, columns)
+        if dated is not None:  # a time column without a unit whose cells are date-times
+            try:
+                m = map_from_header(dated)
+            except MapError as third:
+                why = third
+            else:
+                back = dict(zip(dated, columns))
+                return ColumnMap({back[c]: v for c, v in m.columns.items()}, origin="header and date-time cells",
+                                 ignored=tuple(back[c] for c in m.ignored), notes=m.notes)
         shown = ", ".join(repr(printable(c)) for c in columns[:10]) + (", ..." if len(columns) > 10 else "")
         raise InputError(
             f"cannot map CSV columns unambiguously ({printable(why, 200)}); columns found: {shown}; write a column map "
@@ -502,16 +519,69 @@ def _column_map(src: _Source, selector: Selector) -> ColumnMap:
             f"{os.path.basename(src.table)}.map.json", src.table) from None
 
 
+def _datetime_named(path: str, columns: list[str], sample: int = 20) -> list[str] | None:
+    """The header with ``(datetime)`` after each time column that has no unit and whose first ``sample`` data
+    cells are mostly ISO 8601 date-times (``Timestamp``, ``UTC Time``: a logger's or pandas' export); None
+    where there is none."""
+    with open(path, "rb") as fh:
+        head = fh.readline(65536).lstrip(b"\xef\xbb\xbf").decode("utf-8", "replace")
+        lines = [fh.readline(65536).decode("utf-8", "replace") for _ in range(sample)]
+    sep = _delimiter(head)
+    rows = [[c.strip().strip('"') for c in line.strip().split(sep)] for line in lines if line.strip()]
+    out, found = list(columns), False
+    for k, col in enumerate(columns):
+        toks, unit = split_name_unit(col)
+        if unit is not None or classify(toks) != "time":
+            continue
+        cells = [r[k] for r in rows if len(r) > k]
+        if cells and sum(bool(_DATETIME.match(c)) for c in cells) > len(cells) // 2:
+            out[k], found = f"{col} ({DATETIME})", True
+    return out if found else None
+
+
 #: a value beyond this magnitude in a data column is no reading (damaged digits: ``1e300``, ``inf``)
 _ABSURD = 1e300
 
 _SCALE_POW10 = {"s": 9, "sec": 9, "ms": 6, "us": 3, "ns": 0}
 
 
-def time_to_ns(text: pd.Series, unit: str, decimal: str = ".") -> tuple[np.ndarray, np.ndarray, float]:
+_ZONE = re.compile(r"(?:Z|[+-]\d{2}:?\d{2})$")
+_FRACTION = re.compile(r":\d{2}[.,](\d+)")
+
+
+def datetime_text_to_ns(text: pd.Series) -> tuple[np.ndarray, np.ndarray, float, bool]:
+    """ISO 8601 date-time text (``2024-05-01T12:00:00.125Z``, ``2024-05-01 12:00:00.125``, with an offset
+    ``+02:00``) -> (int64 ns since the UNIX epoch, UTC; valid mask; resolution s: that of a fixed number of
+    fractional digits, else 0; True where some text gives no time zone: taken as UTC)."""
+    s = text.astype(str).str.strip().str.strip('"')
+    dt = pd.to_datetime(s, format="ISO8601", utc=True, errors="coerce")
+    ok = dt.notna().to_numpy() & s.str.match(_DATETIME).fillna(False).to_numpy(bool)
+    ns = np.where(ok, dt.dt.tz_localize(None).to_numpy("datetime64[ns]").view(np.int64), 0)
+    good = s[ok]
+    if not len(good):
+        return ns, ok, 0.0, False
+    first = str(good.iloc[0])
+    lengths = good.str.len().to_numpy()
+    if np.all(lengths == lengths[0]):  # fixed-width text: the first cell's fraction and zone are every cell's
+        m = _FRACTION.search(first)
+        res = 10.0 ** -(len(m.group(1)) if m else 0)
+        naive = _ZONE.search(first) is None
+    else:
+        res, naive = 0.0, not bool(good.str.contains(_ZONE).all())
+    return ns, ok, res, naive
+
+
+def time_to_ns(text: pd.Series, unit: str, decimal: str = ".", warns: list[str] | None = None,
+               what: str = "") -> tuple[np.ndarray, np.ndarray, float]:
     """Time column text -> (int64 ns, valid mask, resolution s), from the decimal text exactly (no float
     rounding; ``decimal``: the decimal mark). The resolution is that of a fixed number of decimals (``%.3f``
-    seconds: 1 ms), else 0."""
+    seconds: 1 ms), else 0. A date-time unit (DATETIME_UNITS): :func:`datetime_text_to_ns`, a note in
+    ``warns`` (naming ``what``) where the text gives no time zone."""
+    if unit in DATETIME_UNITS:
+        ns, ok, res, naive = datetime_text_to_ns(text)
+        if naive and warns is not None:
+            warns.append(f"{what}: date-times without a time zone taken as UTC")
+        return ns, ok, res
     ns, ok, dec = decimal_text_to_int(text, _SCALE_POW10[unit], decimal)
     if len(ok) and not ok.any():  # text no decimal scan reads: float64 is all it offers
         if decimal != ".":
@@ -565,7 +635,8 @@ def _streams_from_table(path: str, cmap: ColumnMap, groups_wanted: tuple[str, ..
         raise InputError(f"no column {time_col!r} in CSV", path)
     if len(df) == 0:
         raise InputError("no data rows", path)
-    t_ns, ok_t, res = time_to_ns(df[time_col], cmap.columns[time_col][1], cmap.decimal)
+    t_ns, ok_t, res = time_to_ns(df[time_col], cmap.columns[time_col][1], cmap.decimal, warns,
+                                 f"{os.path.basename(path)} column {time_col!r}")
     groups: dict[str, np.ndarray] = {}
     masks: dict[str, np.ndarray] = {}
     damaged = ~ok_t
@@ -637,7 +708,8 @@ def _why_no_rows(df: pd.DataFrame, time_col: str, sample: int = 200) -> str:
     times = [str(x) for x in head[time_col].dropna().tolist()] if time_col in head.columns else []
     if times and sum(bool(_DATETIME.match(x)) for x in times) > len(times) // 2:
         return (f": the time column {printable(time_col)!r} holds date-time text (e.g. {printable(times[0])!r}), "
-                "not a number: write it as seconds (or ms, us, ns as its header says)")
+                "not a number of the unit its header says: give the column the unit '(ISO 8601)' (or none) "
+                "to read the date-times, or write it as seconds")
     if cells and sum(bool(_DECIMAL_COMMA.match(x)) for x in cells) > len(cells) // 2:
         return (f": the numbers are written with decimal commas (e.g. {printable(cells[0])!r}): save the CSV "
                 "with decimal points")

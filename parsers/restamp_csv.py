@@ -130,7 +130,78 @@ def _emit(buf, ls, le, cs, ce, ok, new, p, out, point):  # pragma: no cover - co
     return o
 
 
+def _emit_cells(buf, ls, le, cs, ce, ok, cells, lens, out):  # pragma: no cover - compiled
+    """:func:`_emit` with each ``ok`` line's time cell replaced by ``cells[i, :lens[i]]`` (text made
+    beforehand: a date-time's); the cell's surrounding spaces/quotes kept. Returns the bytes written."""
+    o = 0
+    for i in range(ls.shape[0]):
+        if not ok[i]:
+            for j in range(ls[i], le[i]):
+                out[o] = buf[j]
+                o += 1
+        else:
+            a = cs[i]
+            b = ce[i]
+            while a < b and (buf[a] == 32 or buf[a] == 34):
+                a += 1
+            while b > a and (buf[b - 1] == 32 or buf[b - 1] == 34 or buf[b - 1] == 13):
+                b -= 1
+            for j in range(ls[i], a):
+                out[o] = buf[j]
+                o += 1
+            for j in range(lens[i]):
+                out[o] = cells[i, j]
+                o += 1
+            for j in range(b, le[i]):
+                out[o] = buf[j]
+                o += 1
+        if le[i] < buf.shape[0]:
+            out[o] = 10
+            o += 1
+    return o
+
+
 _kernel = kernel_loader(globals())  # the numba kernels above, compiled (and cached) on first use
+
+#: a date-time cell's zone: "Z" or an offset from UTC
+_ZONE_TEXT = r"(Z|[+-]\d{2}:?\d{2})$"
+
+
+def _cell_text(body: np.ndarray, cs: np.ndarray, ce: np.ndarray) -> "pd.Series":
+    """The time cells' text (n lines: ``body[cs[i]:ce[i]]``), one fixed-width array made at once."""
+    import pandas as pd
+
+    n = len(cs)
+    width = int(min(max(int((ce - cs).max()) if n else 1, 1), 64))
+    idx = cs[:, None] + np.arange(width)
+    inside = idx < ce[:, None]
+    mat = np.where(inside, body[np.clip(idx, 0, max(len(body) - 1, 0))] if len(body) else 32, 32).astype(np.uint8)
+    text = np.char.decode(np.ascontiguousarray(mat).view(f"S{width}").ravel(), "latin-1")
+    return pd.Series(text, dtype=object)
+
+
+def _datetime_cells(text, ok: np.ndarray, utc_ns: np.ndarray, new_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The new time cells of date-time text ``text`` (read as ``utc_ns``; ``ok``: those read) at ``new_ns``,
+    written as each was: its date/time separator, its zone (``Z``, an offset: the local time at that
+    offset, or none: UTC), nanoseconds in full. (n, width) uint8 rows and their lengths."""
+    import pandas as pd
+
+    s = text.str.strip().str.strip('"')
+    zone = s.str.extract(_ZONE_TEXT, expand=False).fillna("")
+    offset = np.zeros(len(s), np.int64)
+    has_off = (zone.str.len() > 1).to_numpy() & ok
+    if has_off.any():  # the offset each cell's local time has from UTC (daylight saving may change it)
+        local = pd.to_datetime(s[has_off].str.replace(_ZONE_TEXT, "", regex=True), format="ISO8601", errors="coerce")
+        offset[has_off] = local.to_numpy("datetime64[ns]").view(np.int64) - utc_ns[has_off]
+    out = np.datetime_as_string((new_ns + offset).view("datetime64[ns]"), unit="ns")
+    space = (s.str.slice(10, 11) == " ").to_numpy()
+    if space.any():
+        out = np.where(space, np.char.replace(out, "T", " "), out)
+    cells = np.char.add(out, zone.to_numpy(str))
+    lens = np.char.str_len(cells).astype(np.int64)
+    width = int(lens.max()) if len(lens) else 1
+    enc = np.char.encode(cells, "ascii").astype(f"S{width}")
+    return np.ascontiguousarray(enc).view(np.uint8).reshape(len(cells), width), lens
 
 
 def restamp_bytes(raw: bytes, time_col: str, unit: str, shift: ClockShift, path: str, units_row: bool = False,
@@ -138,9 +209,12 @@ def restamp_bytes(raw: bytes, time_col: str, unit: str, shift: ClockShift, path:
     """(new file bytes, data lines rewritten, damaged lines kept as they were); ``units_row``: the line after
     the header (the columns' units) is copied as the header is; ``decimal``: the numbers' decimal mark (a
     comma-decimal CSV's time is written back with a comma)."""
-    if unit not in _POW10:
+    from parsers.csv_vendor import DATETIME_UNITS, datetime_text_to_ns
+
+    dated = unit in DATETIME_UNITS
+    if unit not in _POW10 and not dated:
         raise InputError(f"native CSV export: time unit {unit!r} not supported", path)
-    p = _POW10[unit]
+    p = _POW10.get(unit, 0)
     buf = np.frombuffer(raw, dtype=np.uint8)
     nl = raw.find(b"\n")
     head = (raw if nl < 0 else raw[:nl]).decode("utf-8", "replace")
@@ -152,16 +226,27 @@ def restamp_bytes(raw: bytes, time_col: str, unit: str, shift: ClockShift, path:
     base = nl + 1 if units_row and nl >= 0 else 0  # (the kernel skips the first line of what it is given)
     body = buf[base:]
     ls, le, cs, ce = _kernel("_cells")(body, k, ord(sep))
-    ns, ok = decimal_cells_to_int(body, cs, ce, p, decimal)  # (the readers' scan: every time they read)
+    if dated:  # ISO 8601 text: read as the parser reads it (csv_vendor.datetime_text_to_ns)
+        text = _cell_text(body, cs, ce)
+        ns, ok, _res, _naive = datetime_text_to_ns(text)
+        ok &= cs >= 0
+    else:
+        ns, ok = decimal_cells_to_int(body, cs, ce, p, decimal)  # (the readers' scan: every time they read)
     blank = le <= ls
     # a value in the unit times 10**p is nanoseconds exactly (s: p=9, ms: 6, us: 3, ns: 0)
     new = ns.copy()
     new[ok] = shift.to_master_ns(ns[ok])
     last = raw.find(b"\n", base) if base else nl  # (the last header line's end)
     head_end = len(raw) if last < 0 else last + 1
-    out = np.empty(len(raw) + 24 * len(ls) + 1, dtype=np.uint8)
-    out[:head_end] = buf[:head_end]
-    n = _kernel("_emit")(body, ls, le, cs, ce, ok, new, p, out[head_end:], ord(decimal))
+    if dated:
+        cells, lens = _datetime_cells(text, ok, ns, new)
+        out = np.empty(len(raw) + int(lens.sum()) + len(ls) + 1, dtype=np.uint8)
+        out[:head_end] = buf[:head_end]
+        n = _kernel("_emit_cells")(body, ls, le, cs, ce, ok, cells, lens, out[head_end:])
+    else:
+        out = np.empty(len(raw) + 24 * len(ls) + 1, dtype=np.uint8)
+        out[:head_end] = buf[:head_end]
+        n = _kernel("_emit")(body, ls, le, cs, ce, ok, new, p, out[head_end:], ord(decimal))
     return out[:head_end + n], int(ok.sum()), int((~ok & ~blank).sum())
 
 

@@ -347,6 +347,51 @@ def test_vendor_csv_folder(tmp_path):
     assert abs(reread.meta.t0_ns - (-1_500_000)) == 0
 
 
+def test_vendor_csv_of_iso_date_times_is_restamped_in_its_own_writing(tmp_path):
+    """A time column of ISO 8601 date-times (the parser reads them: tests/test_parsers_csv.py): each cell
+    written back as it was written (its date/time separator, its zone: Z, an offset as local time at that
+    offset, none), nanoseconds in full; a damaged line and every other cell's text kept; read back, the
+    stamps are the shifted ones to the nanosecond."""
+    from parsers.restamp_csv import restamp_csv_vendor
+
+    t0 = pd.Timestamp("2024-05-01T12:00:00", tz="UTC")
+    n = 400
+    utc = [t0 + pd.Timedelta(milliseconds=5 * i) for i in range(n)]
+    text = []
+    for i, x in enumerate(utc):  # three writings in one column
+        if i % 3 == 0:
+            text.append(x.strftime("%Y-%m-%dT%H:%M:%S.%f")[:-3] + "Z")
+        elif i % 3 == 1:
+            text.append((x + pd.Timedelta(hours=2)).strftime("%Y-%m-%dT%H:%M:%S.%f")[:-3] + "+02:00")
+        else:
+            text.append(x.strftime("%Y-%m-%d %H:%M:%S.%f"))
+    k = np.arange(n)
+    rows = [f"{c},{np.sin(i / 30):.6f},0.25,-0.125,0.5,0.0,-9.80665" for c, i in zip(text, k)]
+    rows[7] = "garbled,0.1,0.2,0.3,0.0,0.0,-9.8"
+    src = tmp_path / "unit.csv"
+    src.write_text("UTC Time,Gyro X (rad/s),Gyro Y (rad/s),Gyro Z (rad/s),Accel X (m/s^2),Accel Y (m/s^2),"
+                   "Accel Z (m/s^2)\n" + "\n".join(rows) + "\n")
+    h = sha(src)
+    a = registry.load(str(src))
+    sh = ClockShift(0.0123456789, 87.5, a.meta.t0_ns + 1_000_000_000)
+    st = restamp_csv_vendor(str(src), str(tmp_path / "out.csv"), sh)
+    assert sha(src) == h and st.records == n - 1 and "1 line(s)" in st.damage[0]
+    out = (tmp_path / "out.csv").read_text().splitlines()
+    assert out[0] == src.read_text().splitlines()[0] and out[8] == rows[7]  # (header, damaged line: as they were)
+    for i in (0, 1, 2):  # each cell in its own writing, nanoseconds in full
+        cell, rest = out[1 + i].split(",", 1)
+        assert rest == rows[i].split(",", 1)[1]
+        want = sh.to_master_ns(np.array([utc[i].value]))[0] + (7_200_000_000_000 if i == 1 else 0)
+        iso = str(np.datetime_as_string(np.int64(want).view("datetime64[ns]"), unit="ns"))  # (local time)
+        assert cell == {0: iso + "Z", 1: iso + "+02:00", 2: iso.replace("T", " ")}[i]
+        assert len(iso.split(".")[1]) == 9
+    b = registry.load(str(tmp_path / "out.csv"))
+    ta = a.meta.t0_ns + np.round(a.t_imu_s() * 1e9).astype(np.int64)
+    tb = b.meta.t0_ns + np.round(b.t_imu_s() * 1e9).astype(np.int64)
+    np.testing.assert_array_equal(tb, sh.to_master_ns(ta))
+    np.testing.assert_array_equal(b.imu.to_numpy(), a.imu.to_numpy())
+
+
 # ---- damage, atomicity, the CLI ----------------------------------------------------------------
 @pytest.mark.parametrize("fmt", ["tlog", "dataflash", "ulog"])
 def test_damaged_input_written_whole_and_named(slaves, pair, tmp_path, fmt):

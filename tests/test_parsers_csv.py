@@ -670,6 +670,35 @@ def test_binary_junk_column_names_give_one_printable_line(tmp_path, capsys):
     assert err.rstrip("\n").isprintable() and "quaternion.csv" in err and "Traceback" not in err
 
 
+def test_vendor_csv_time_column_of_iso_date_times_is_read_on_utc(tmp_path):
+    """A time column of ISO 8601 date-times: unitless (pandas' ``to_csv`` of a DatetimeIndex, a logger's
+    'UTC Time') or with '(ISO 8601)' as its unit. Read as UTC to the nanosecond (an offset converted; text
+    without a zone taken as UTC, said), on the epoch clock, the fraction's digits the stamps' resolution.
+    Before, no column map could be made ('no time column with a unit')."""
+    t0 = pd.Timestamp("2024-05-01 12:00:00")
+    idx = pd.date_range(t0, periods=len(T), freq="10ms")
+    data = {f"gyro_{a} (rad/s)": W_RAD_S[:, i] for i, a in enumerate("xyz")}
+    data.update({f"accel_{a} (m/s^2)": F_M_S2[:, i] for i, a in enumerate("xyz")})
+    df = pd.DataFrame(data, index=pd.Index(idx, name="timestamp"))
+    df.to_csv(tmp_path / "pandas.csv")  # '2024-05-01 12:00:00.010', no zone
+    got = registry.load(str(tmp_path / "pandas.csv"))
+    assert got.meta.clock == "epoch" and got.meta.t0_ns == t0.value
+    np.testing.assert_array_equal(got.meta.t0_ns + np.round(got.t_imu_s() * 1e9).astype(np.int64),
+                                  idx.as_unit("ns").asi8)
+    np.testing.assert_allclose(got.gyro_rad_s(), W_RAD_S, atol=1e-12)
+    assert got.meta.channels["gyro"].stamp_resolution_s == pytest.approx(1e-3)
+    assert any("without a time zone taken as UTC" in w for w in got.meta.warnings), got.meta.warnings
+    # the same instants written with an offset (local time 2 h ahead) under a stated unit: the same stamps
+    local = [(x + pd.Timedelta(hours=2)).strftime("%Y-%m-%dT%H:%M:%S.%f") + "+02:00" for x in idx]
+    p = tmp_path / "offset.csv"
+    p.write_text("Time (ISO 8601)," + ",".join(data) + "\n" + "".join(
+        f"{c}," + ",".join(repr(float(v)) for v in row) + "\n" for c, row in zip(local, np.column_stack(list(data.values())))))
+    off = registry.load(str(p))
+    assert off.meta.t0_ns == t0.value and not any("time zone" in w for w in off.meta.warnings)
+    np.testing.assert_array_equal(off.t_imu_s(), got.t_imu_s())
+    np.testing.assert_array_equal(off.imu.to_numpy(), got.imu.to_numpy())
+
+
 @pytest.mark.parametrize("habit", ["decimal_comma", "datetime"])
 def test_an_unreadable_vendor_csv_names_the_export_habit(tmp_path, capsys, habit):
     """Decimal commas in cells that commas also split (each number quoted: '"0,1"') or a time column of ISO
