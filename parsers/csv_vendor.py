@@ -1,6 +1,6 @@
 """Vendor CSVs (anything that is not the canonical tapost CSV) through a column map with units.
 
-Three ways to get a column map, tried in this order:
+Four ways to get a column map, tried in this order:
 
 1. ``PATH::map=FILE.json`` or a sidecar ``PATH.map.json`` next to the CSV: a JSON object
    ``{column: [canonical_name, unit], ...}``; canonical names are ``time``, ``gyro_x|y|z``,
@@ -12,9 +12,17 @@ Three ways to get a column map, tried in this order:
    ``Gyroscope X (deg/s)``, ``Accelerometer X (g)``..., plus ``quaternion.csv`` ``Time (s),W,X,Y,Z``
    next to it). A directory holding ``sensors.csv`` is one log; a session directory whose
    sub-directories hold ``sensors.csv`` is several units (selector ``unit=NAME``).
-3. The header alone, when every needed column names its quantity, axis and unit unambiguously
+3. A sensor_msgs/Imu topic exported from a ROS bag by ROS users' tools (``rostopic echo -p``:
+   ``%time,field.header.stamp,...,field.angular_velocity.x``; PlotJuggler: ``__time,/imu/angular_velocity/x``;
+   bagpy: ``Time,...,angular_velocity.x``): no units in the header, ROS's conventions give them (SI, REP 103:
+   FLU body, ENU world, the orientation body -> world). The time is the header stamp where the file has it
+   (rostopic's, integer ns), else the receive time; rostopic's other time column is restamped with it by the
+   native export (``ColumnMap.also_time``). An orientation the IMU does not give (covariance -1, zeros) is
+   left out.
+4. The header alone, when every needed column names its quantity, axis and unit unambiguously
    (``Gyro X (deg/s)``, ``gyro_x [rad/s]``, ``accel_z_m_s2``, ``wx (dps)``, ``timestamp (us)``, the
-   ASL/EuRoC dataset's ``#timestamp [ns]``, ``w_RS_S_x [rad s^-1]``, ``a_RS_S_x [m s^-2]``...).
+   ASL/EuRoC dataset's ``#timestamp [ns]``, ``w_RS_S_x [rad s^-1]``, ``a_RS_S_x [m s^-2]``...); a time
+   column without a unit whose cells are ISO 8601 date-times (pandas' ``to_csv``) is read as UTC.
    Anything else is an InputError naming the columns found and how to write a map. A position or Euler
    angle group found in part (``Altitude (m)`` alone, ``Heading (deg)`` alone) is left out, said in a note.
 
@@ -24,7 +32,8 @@ map says otherwise: the aerospace roll, pitch and heading). A file with a quater
 
 Units understood (header ``(unit)``/``[unit]``, a snake-case suffix, or a units row: the line under a header
 of bare names giving each column's unit, ``s,deg/s,...``): rad/s, deg/s, dps, mrad/s,
-deg/h; m/s^2, m/s2, m/s², g, mg, ug; s, ms, us, ns; m/s, km/h, cm/s, mm/s, kn; deg, rad, degE7;
+deg/h; m/s^2, m/s2, m/s², g, mg, ug; s, ms, us, ns, ISO 8601 (date-time text); m/s, km/h, cm/s, mm/s, kn;
+deg, rad, degE7;
 m, cm, mm, ft; negative powers written out too (``rad s^-1``, ``m s^-2``, ``m·s⁻²``).
 
 Frames. Generic CSVs without a stated frame are taken as FRD/NED (said in the warnings).
@@ -126,6 +135,9 @@ class ColumnMap:
     notes: tuple[str, ...] = ()  # "note: ..." lines: columns that look like a group but are left out, and why
     units_row: bool = False  # the line after the header gives the columns' units (skipped as data)
     decimal: str = "."  # the decimal mark: "," in a CSV saved in a comma-decimal locale (cells split by ';' or tab)
+    #: other columns of stamps on the same clock (column, unit), not read but restamped by the native export
+    #: with the time column (a ROS export's receive time beside its header stamp)
+    also_time: tuple[tuple[str, str], ...] = ()
 
     def column_for(self, canonical: str) -> str | None:
         return next((c for c, (n, _) in self.columns.items() if n == canonical), None)
@@ -348,6 +360,82 @@ def _ngimu_map(columns: list[str]) -> ColumnMap | None:
                      frame_stated=True, ignored=cmap.ignored, notes=cmap.notes)
 
 
+#: ROS message fields as CSV exports of bags name them (``rostopic echo -p``: ``field.angular_velocity.x``;
+#: PlotJuggler: ``/imu/angular_velocity/x``; bagpy: ``angular_velocity.x``): sensor_msgs/Imu's rates,
+#: specific forces and orientation, in SI units and REP 103's frames (body FLU, world ENU) by convention
+_ROS_GROUPS = {"angular_velocity": "gyro", "linear_acceleration": "accel", "orientation": "quat"}
+#: such a column's name: the field's own spelling, after a '.' or '/' (or nothing) and before the axis
+_ROS_FIELD = re.compile(r"(?:^|[./])(?P<field>angular_velocity|linear_acceleration)[./](?P<axis>[xyz])$"
+                        r"|(?:^|[./])(?P<q>orientation)[./](?P<qaxis>[xyzw])$")
+#: their time columns, the first present wanted: the header stamp (``rostopic echo -p`` writes integer ns),
+#: then the receive time (rostopic's ``%time``, ns; PlotJuggler's ``__time`` and bagpy's ``Time``, seconds)
+_ROS_TIMES = (("field.header.stamp", "ns"), ("%time", "ns"), ("__time", "s"), ("Time", "s"))
+
+
+def _ros_fields_map(path: str, columns: list[str], sample: int = 20) -> ColumnMap | None:
+    """The column map of a CSV exported from a ROS bag's sensor_msgs/Imu topic (:data:`_ROS_GROUPS`,
+    :data:`_ROS_TIMES`), whose columns carry no units; None where the header is not one (no rates); an
+    InputError for the fields of several topics in one file."""
+    found: dict[str, tuple[str, str]] = {}
+    for col in columns:
+        m = _ROS_FIELD.search(col.strip())
+        if m is None:
+            continue
+        kind = _ROS_GROUPS[m.group("field") or m.group("q")]
+        name = f"{kind}_{m.group('axis') or m.group('qaxis')}"
+        if name in (v[0] for v in found.values()):  # two topics' fields (PlotJuggler's export of many series)
+            other = next(c for c, v in found.items() if v[0] == name)
+            topics = ", ".join(repr(c[:len(c) - len(_ROS_FIELD.search(c.strip()).group(0))] or "(none)")
+                               for c in (other, col))
+            raise InputError(f"ROS message fields of more than one topic ({topics}): export one topic per file, "
+                             f"or name the columns to read in a column map ({os.path.basename(path)}.map.json)", path)
+        found[col] = (name, {"gyro": "rad/s", "accel": "m/s^2", "quat": ""}[kind])
+    names = {v[0] for v in found.values()}
+    if not {"gyro_x", "gyro_y", "gyro_z"} <= names:
+        return None
+    if not {"accel_x", "accel_y", "accel_z"} <= names:
+        found = {c: v for c, v in found.items() if not v[0].startswith("accel_")}
+    notes: list[str] = []
+    with open(path, "rb") as fh:
+        fh.readline(65536)
+        lines = [fh.readline(65536).decode("utf-8", "replace") for _ in range(sample)]
+    sep = _delimiter(",".join(columns))
+    rows = [[c.strip().strip('"') for c in line.strip().split(sep)] for line in lines if line.strip()]
+
+    def first(col: str) -> list[float]:
+        k = columns.index(col)
+        out = []
+        for r in rows:
+            try:
+                out.append(float(r[k]))
+            except (IndexError, ValueError):
+                pass
+        return out
+
+    quat = [c for c, v in found.items() if v[0].startswith("quat_")]
+    if quat:
+        cov = next((c for c in columns if re.search(r"(?:^|[./])orientation_covariance[./]?0$", c.strip())), None)
+        unset = (cov is not None and any(v == -1.0 for v in first(cov))) or all(
+            v == 0.0 for c in quat for v in first(c))
+        if len(quat) != 4 or unset:
+            for c in quat:
+                found.pop(c)
+            if unset:
+                notes.append("note: the orientation columns not used: the IMU gives none (covariance -1 or zeros)")
+    times = [(c, u) for c, u in _ROS_TIMES if c in columns]
+    if not times:
+        return None
+    col, unit = times[0]
+    if len(times) > 1 and col == "field.header.stamp" and all(v == 0.0 for v in first(col)):
+        notes.append("note: header stamps unset (0): the receive time %time read")
+        col, unit = times[1]
+    found[col] = ("time", unit)
+    also = tuple((c, u) for c, u in times if c != col and c in ("field.header.stamp", "%time"))
+    return ColumnMap(found, body_frame="FLU", nav_frame="ENU", quat="body_to_nav",
+                     origin="ROS message fields (SI units, REP 103 frames: FLU body, ENU world)", frame_stated=True,
+                     ignored=tuple(c for c in columns if c not in found), notes=tuple(notes), also_time=also)
+
+
 # ============================================================================================
 # files and directories
 # ============================================================================================
@@ -486,6 +574,9 @@ def _column_map(src: _Source, selector: Selector) -> ColumnMap:
     ng = _ngimu_map(columns)
     if ng is not None:
         return ng
+    ros = _ros_fields_map(src.table, columns)
+    if ros is not None:
+        return ros
     try:
         return map_from_header(columns)
     except MapError as first:

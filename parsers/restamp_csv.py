@@ -2,7 +2,9 @@
 
 A text-level rewrite: every line is copied as it is except its time cell, which is replaced by the
 master-clock time in the column's own unit at full precision (nanoseconds: 9 decimals of a second, 6 of
-a millisecond, 3 of a microsecond). Other columns keep their exact text (no float re-formatting), the
+a millisecond, 3 of a microsecond; an ISO 8601 date-time written as the cell was, its zone kept, with 9
+fractional digits), and any other time column of the same clock the column map names (a ROS export's
+receive time beside its header stamp). Other columns keep their exact text (no float re-formatting), the
 header and line endings are kept, and a line whose time cell is not a decimal number (a damaged line)
 is copied unchanged and counted in ``damage``. A vendor session folder (NGIMU: ``sensors.csv``,
 ``quaternion.csv``...) is written as a folder: every CSV of the unit whose header has the same time
@@ -251,13 +253,16 @@ def restamp_bytes(raw: bytes, time_col: str, unit: str, shift: ClockShift, path:
 
 
 def _rewrite_file(src: str, dst: str, time_col: str, unit: str, shift: ClockShift, start: int = 0,
-                  units_row: bool = False, decimal: str = ".") -> tuple[int, int]:
+                  units_row: bool = False, decimal: str = ".", also: tuple[tuple[str, str], ...] = ()
+                  ) -> tuple[int, int]:
     """``src`` from byte ``start`` (its header line) restamped into ``dst``: (data lines rewritten, damaged
-    lines kept as they were)."""
+    lines kept as they were); ``also``: more time columns (column, unit) rewritten the same way."""
     with open(src, "rb") as fh:
         fh.seek(start)
         raw = fh.read()
     new, n, bad = restamp_bytes(raw, time_col, unit, shift, src, units_row, decimal)
+    for col, u in also:  # (each column's stamps shifted at their own instants)
+        new = restamp_bytes(new.tobytes(), col, u, shift, src, units_row, decimal)[0]
     with atomic_path(dst) as tmp:
         new.tofile(tmp)
     return n, bad
@@ -304,9 +309,10 @@ def restamp_csv_vendor(src: str, dst: str, shift: ClockShift, *, selector=None) 
     time_col = cmap.column_for("time")
     unit = cmap.columns[time_col][1]
     if not os.path.isdir(src):
-        n, bad = _rewrite_file(src, dst, time_col, unit, shift, units_row=cmap.units_row, decimal=cmap.decimal)
+        n, bad = _rewrite_file(src, dst, time_col, unit, shift, units_row=cmap.units_row, decimal=cmap.decimal,
+                               also=cmap.also_time)
         return RestampStats(path=dst, format="csv-vendor", how=HOW, records=n, records_by_type={"rows": n},
-                            time_fields=(time_col,),
+                            time_fields=(time_col,) + tuple(c for c, _u in cmap.also_time),
                             damage=(f"{bad} line(s) without a readable time copied unchanged",) if bad else ())
     unit_dir = os.path.dirname(s.table)
     check_replaceable(dst, _is_csv_unit_folder, "CSV unit folder")  # (an earlier export of it, nothing else)

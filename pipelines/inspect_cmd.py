@@ -76,8 +76,8 @@ def format_inventory(inv: Inventory, *, fields: bool = False) -> list[str]:
         out.append("  selectors (use as PATH::SELECTOR):")
         for sel in inv.selectors:
             out.append(f"    {inv.path}::{sel}" if sel else f"    {inv.path}   (no selector needed)")
-    for warning in inv.warnings:
-        out.append(f"  warning: {warning}")
+    for warning in inv.warnings:  # (a note riding in the warnings with its "note:" prefix is said as one)
+        out.append(f"  {warning}" if warning.startswith("note:") else f"  warning: {warning}")
     for n in inv.notes:
         out.append(f"  note: {n}")
     return out

@@ -699,6 +699,92 @@ def test_vendor_csv_time_column_of_iso_date_times_is_read_on_utc(tmp_path):
     np.testing.assert_array_equal(off.imu.to_numpy(), got.imu.to_numpy())
 
 
+def _rostopic_csv(bag: str, out: Path, style: str) -> None:
+    """The /imu topic of ``bag`` as ROS users export it: ``rostopic echo -p`` (``%time`` and
+    ``field.header.stamp`` in integer ns, ``field.angular_velocity.x``...) or PlotJuggler (``__time`` in s,
+    ``/imu/angular_velocity/x``...); numbers printed as Python prints them (repr: the float exactly)."""
+    from rosbags.highlevel import AnyReader
+
+    rows = []
+    with AnyReader([Path(bag)]) as r:
+        for con, t_rec, raw in r.messages(connections=[c for c in r.connections if c.topic == "/imu"]):
+            m = r.deserialize(raw, con.msgtype)
+            st = m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
+            o, w, a = m.orientation, m.angular_velocity, m.linear_acceleration
+            rows.append((t_rec, st, [o.x, o.y, o.z, o.w], [w.x, w.y, w.z], [a.x, a.y, a.z]))
+    if style == "rostopic":
+        head = ("%time,field.header.seq,field.header.stamp,field.header.frame_id,field.orientation.x,"
+                "field.orientation.y,field.orientation.z,field.orientation.w,field.orientation_covariance0,"
+                "field.angular_velocity.x,field.angular_velocity.y,field.angular_velocity.z,"
+                "field.linear_acceleration.x,field.linear_acceleration.y,field.linear_acceleration.z")
+        lines = [f"{tr},{i},{st},imu_link," + ",".join(map(repr, o)) + ",0.0," + ",".join(map(repr, w + a))
+                 for i, (tr, st, o, w, a) in enumerate(rows)]
+    else:
+        head = ("__time,/imu/angular_velocity/x,/imu/angular_velocity/y,/imu/angular_velocity/z,"
+                "/imu/linear_acceleration/x,/imu/linear_acceleration/y,/imu/linear_acceleration/z,"
+                "/imu/orientation/x,/imu/orientation/y,/imu/orientation/z,/imu/orientation/w")
+        lines = [f"{st // 1_000_000_000}.{st % 1_000_000_000:09d}," + ",".join(map(repr, w + a + o))
+                 for tr, st, o, w, a in rows]
+    out.write_text(head + "\n" + "\n".join(lines) + "\n")
+
+
+@pytest.mark.parametrize("style", ["rostopic", "plotjuggler"])
+def test_ros_bag_exported_to_csv_reads_as_the_bag(tmp_path, style):
+    """sensor_msgs/Imu exported from a bag to CSV by ROS users' tools (``rostopic echo -p``, PlotJuggler):
+    no units in the header, which ROS's conventions give (SI, REP 103: FLU body, ENU world). Read as the bag
+    itself reads: the same stamps (the header stamp), rates, specific forces and attitude in FRD/NED. Before,
+    'no time column with a unit'."""
+    from tests.test_parsers_ros import synthetic_log
+
+    bag = str(tmp_path / "x.bag")
+    registry.write(bag, synthetic_log(300), "rosbag1", log_delay_ns=3_210_987)  # (receive = stamp + 3.2 ms)
+    want = registry.load(bag)
+    _rostopic_csv(bag, tmp_path / "imu.csv", style)
+    got = registry.load(str(tmp_path / "imu.csv"))
+    assert got.meta.t0_ns == want.meta.t0_ns and got.meta.clock == "epoch"
+    np.testing.assert_array_equal(got.t_imu_s(), want.t_imu_s())
+    np.testing.assert_allclose(got.gyro_rad_s(), want.gyro_rad_s(), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(got.accel_m_s2(), want.accel_m_s2(), rtol=0, atol=1e-12)
+    tq, q = got.quat_wxyz()
+    tw, qw = want.quat_wxyz()
+    keep = np.isin(tw, tq)  # (the bag's attitude also at its velocity's stamps: the nav stream's union)
+    np.testing.assert_allclose(np.abs(np.sum(q * qw[keep], axis=1)), 1.0, atol=1e-12)
+    assert not any("axes taken" in w for w in got.meta.warnings)  # (the frames are stated by the convention)
+    if style == "plotjuggler":  # two topics' series in one file: which is the unit? Said, not guessed
+        lines = (tmp_path / "imu.csv").read_text().splitlines()
+        cols = [c for c in lines[0].split(",") if "angular_velocity" in c]
+        two = tmp_path / "two.csv"
+        two.write_text(lines[0] + "," + ",".join(c.replace("/imu/", "/imu2/") for c in cols) + "\n" + "".join(
+            f"{ln},0.1,0.2,0.3\n" for ln in lines[1:]))
+        with pytest.raises(InputError, match="more than one topic .*'/imu', '/imu2'"):
+            registry.load(str(two))
+
+
+def test_ros_csv_export_restamps_the_header_stamp_and_the_receive_time(tmp_path):
+    """A ``rostopic echo -p`` CSV's two time columns (the header stamp read, ``%time`` beside it) are both put
+    on the master's clock by the native export, each to the nanosecond; every other cell's text kept."""
+    import pandas as pd
+    from parsers.restamp import ClockShift
+    from parsers.restamp_csv import restamp_csv_vendor
+    from tests.test_parsers_ros import synthetic_log
+
+    bag = str(tmp_path / "x.bag")
+    registry.write(bag, synthetic_log(300), "rosbag1", log_delay_ns=3_210_987)
+    src = tmp_path / "imu.csv"
+    _rostopic_csv(bag, src, "rostopic")
+    a = registry.load(str(src))
+    sh = ClockShift(0.0123456789, 87.5, a.meta.t0_ns + 1_000_000_000)
+    st = restamp_csv_vendor(str(src), str(tmp_path / "out.csv"), sh)
+    assert st.records == len(a.imu)
+    x = pd.read_csv(src, dtype=str, keep_default_na=False)
+    y = pd.read_csv(tmp_path / "out.csv", dtype=str, keep_default_na=False)
+    pd.testing.assert_frame_equal(x.drop(columns=["%time", "field.header.stamp"]),
+                                  y.drop(columns=["%time", "field.header.stamp"]))
+    for c in ("%time", "field.header.stamp"):
+        np.testing.assert_array_equal(y[c].astype(np.int64).to_numpy(), sh.to_master_ns(x[c].astype(np.int64).to_numpy()))
+    assert "%time" in st.time_fields
+
+
 @pytest.mark.parametrize("habit", ["decimal_comma", "datetime"])
 def test_an_unreadable_vendor_csv_names_the_export_habit(tmp_path, capsys, habit):
     """Decimal commas in cells that commas also split (each number quoted: '"0,1"') or a time column of ISO
