@@ -25,6 +25,7 @@ from parsers.csvtable import decimal_cells_to_int, delimiter
 from parsers.restamp import ClockShift, RestampStats, kernel_loader
 
 HOW = "text rewrite of the time column (every other cell's text kept)"
+_UNREAD = np.iinfo(np.int64).min
 _POW10 = {"s": 9, "sec": 9, "ms": 6, "us": 3, "ns": 0}
 
 
@@ -207,10 +208,14 @@ def _datetime_cells(text, ok: np.ndarray, utc_ns: np.ndarray, new_ns: np.ndarray
 
 
 def restamp_bytes(raw: bytes, time_col: str, unit: str, shift: ClockShift, path: str, units_row: bool = False,
-                  decimal: str = ".") -> tuple[np.ndarray, int, int]:
-    """(new file bytes, data lines rewritten, damaged lines kept as they were); ``units_row``: the line after
-    the header (the columns' units) is copied as the header is; ``decimal``: the numbers' decimal mark (a
-    comma-decimal CSV's time is written back with a comma)."""
+                  decimal: str = ".", moved: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, int, int, np.ndarray]:
+    """(new file bytes, data lines rewritten, damaged lines kept as they were, each data line's shift in ns:
+    master-clock time minus its time, int64 with the minimum int64 where the line's time was not read);
+    ``units_row``: the line after the header (the columns' units) is copied as the header is; ``decimal``:
+    the numbers' decimal mark (a comma-decimal CSV's time is written back with a comma). ``moved``: the
+    shifts of another time column's pass over the same lines, applied instead of the shift at this column's
+    own times (every time field of a line moved by the same amount, whatever clock it is on)."""
     from parsers.csv_vendor import DATETIME_UNITS, datetime_text_to_ns
 
     dated = unit in DATETIME_UNITS
@@ -237,7 +242,13 @@ def restamp_bytes(raw: bytes, time_col: str, unit: str, shift: ClockShift, path:
     blank = le <= ls
     # a value in the unit times 10**p is nanoseconds exactly (s: p=9, ms: 6, us: 3, ns: 0)
     new = ns.copy()
-    new[ok] = shift.to_master_ns(ns[ok])
+    if moved is None:
+        new[ok] = shift.to_master_ns(ns[ok])
+    else:  # (a line whose other time was not read keeps this one as it is: counted with the damaged lines)
+        ok &= moved != _UNREAD
+        new[ok] = ns[ok] + moved[ok]
+    shifts = np.full(len(ns), _UNREAD, np.int64)
+    shifts[ok] = new[ok] - ns[ok]
     last = raw.find(b"\n", base) if base else nl  # (the last header line's end)
     head_end = len(raw) if last < 0 else last + 1
     if dated:
@@ -249,7 +260,7 @@ def restamp_bytes(raw: bytes, time_col: str, unit: str, shift: ClockShift, path:
         out = np.empty(len(raw) + 24 * len(ls) + 1, dtype=np.uint8)
         out[:head_end] = buf[:head_end]
         n = _kernel("_emit")(body, ls, le, cs, ce, ok, new, p, out[head_end:], ord(decimal))
-    return out[:head_end + n], int(ok.sum()), int((~ok & ~blank).sum())
+    return out[:head_end + n], int(ok.sum()), int((~ok & ~blank).sum()), shifts
 
 
 def _rewrite_file(src: str, dst: str, time_col: str, unit: str, shift: ClockShift, start: int = 0,
@@ -260,9 +271,9 @@ def _rewrite_file(src: str, dst: str, time_col: str, unit: str, shift: ClockShif
     with open(src, "rb") as fh:
         fh.seek(start)
         raw = fh.read()
-    new, n, bad = restamp_bytes(raw, time_col, unit, shift, src, units_row, decimal)
-    for col, u in also:  # (each column's stamps shifted at their own instants)
-        new = restamp_bytes(new.tobytes(), col, u, shift, src, units_row, decimal)[0]
+    new, n, bad, shifts = restamp_bytes(raw, time_col, unit, shift, src, units_row, decimal)
+    for col, u in also:  # (moved by each line's shift: a column on another clock too)
+        new = restamp_bytes(new.tobytes(), col, u, shift, src, units_row, decimal, moved=shifts)[0]
     with atomic_path(dst) as tmp:
         new.tofile(tmp)
     return n, bad

@@ -762,7 +762,10 @@ def test_ros_bag_exported_to_csv_reads_as_the_bag(tmp_path, style):
 
 def test_ros_csv_export_restamps_the_header_stamp_and_the_receive_time(tmp_path):
     """A ``rostopic echo -p`` CSV's two time columns (the header stamp read, ``%time`` beside it) are both put
-    on the master's clock by the native export, each to the nanosecond; every other cell's text kept."""
+    on the master's clock by the native export: the stamp to the nanosecond, ``%time`` moved by its line's
+    shift (every time field of a message by the same amount, as the bag export does), also where it is on
+    another clock (a bag recorded in simulated time: its stamps from 0, the receive times wall time); every
+    other cell's text kept."""
     import pandas as pd
     from parsers.restamp import ClockShift
     from parsers.restamp_csv import restamp_csv_vendor
@@ -772,6 +775,9 @@ def test_ros_csv_export_restamps_the_header_stamp_and_the_receive_time(tmp_path)
     registry.write(bag, synthetic_log(300), "rosbag1", log_delay_ns=3_210_987)
     src = tmp_path / "imu.csv"
     _rostopic_csv(bag, src, "rostopic")
+    x = pd.read_csv(src, dtype=str, keep_default_na=False)
+    x["field.header.stamp"] = (x["field.header.stamp"].astype(np.int64) - 1_699_999_000_000_000_000).astype(str)
+    x.to_csv(src, index=False)  # (stamps on a simulated clock: 1000 s from its start)
     a = registry.load(str(src))
     sh = ClockShift(0.0123456789, 87.5, a.meta.t0_ns + 1_000_000_000)
     st = restamp_csv_vendor(str(src), str(tmp_path / "out.csv"), sh)
@@ -780,8 +786,10 @@ def test_ros_csv_export_restamps_the_header_stamp_and_the_receive_time(tmp_path)
     y = pd.read_csv(tmp_path / "out.csv", dtype=str, keep_default_na=False)
     pd.testing.assert_frame_equal(x.drop(columns=["%time", "field.header.stamp"]),
                                   y.drop(columns=["%time", "field.header.stamp"]))
-    for c in ("%time", "field.header.stamp"):
-        np.testing.assert_array_equal(y[c].astype(np.int64).to_numpy(), sh.to_master_ns(x[c].astype(np.int64).to_numpy()))
+    stamp_a, stamp_b = (d["field.header.stamp"].astype(np.int64).to_numpy() for d in (x, y))
+    np.testing.assert_array_equal(stamp_b, sh.to_master_ns(stamp_a))
+    np.testing.assert_array_equal(y["%time"].astype(np.int64).to_numpy() - x["%time"].astype(np.int64).to_numpy(),
+                                  stamp_b - stamp_a)
     assert "%time" in st.time_fields
 
 
