@@ -1,6 +1,6 @@
 """Vendor CSVs (anything that is not the canonical tapost CSV) through a column map with units.
 
-Four ways to get a column map, tried in this order:
+Five ways to get a column map, tried in this order:
 
 1. ``PATH::map=FILE.json`` or a sidecar ``PATH.map.json`` next to the CSV: a JSON object
    ``{column: [canonical_name, unit], ...}``; canonical names are ``time``, ``gyro_x|y|z``,
@@ -19,7 +19,10 @@ Four ways to get a column map, tried in this order:
    (rostopic's, integer ns), else the receive time; rostopic's other time column is restamped with it by the
    native export (``ColumnMap.also_time``). An orientation the IMU does not give (covariance -1, zeros) is
    left out.
-4. The header alone, when every needed column names its quantity, axis and unit unambiguously
+4. One ArduPilot DataFlash message type dumped by pymavlink's ``mavlogdump.py --format csv --types IMU``
+   (``timestamp,TimeUS,GyrX,...``): ArduPilot's field names in their logged units (:data:`_AP_FIELDS`),
+   FRD/NED; the time mavlogdump's ``timestamp`` (pymavlink's UNIX mapping) or, without one, ``TimeUS``.
+5. The header alone, when every needed column names its quantity, axis and unit unambiguously
    (``Gyro X (deg/s)``, ``gyro_x [rad/s]``, ``accel_z_m_s2``, ``wx (dps)``, ``timestamp (us)``, the
    ASL/EuRoC dataset's ``#timestamp [ns]``, ``w_RS_S_x [rad s^-1]``, ``a_RS_S_x [m s^-2]``...); a time
    column without a unit whose cells are ISO 8601 date-times (pandas' ``to_csv``) is read as UTC.
@@ -436,6 +439,56 @@ def _ros_fields_map(path: str, columns: list[str], sample: int = 20) -> ColumnMa
                      ignored=tuple(c for c in columns if c not in found), notes=tuple(notes), also_time=also)
 
 
+#: ArduPilot DataFlash messages dumped to CSV by pymavlink's ``mavlogdump.py --format csv --types IMU`` (the
+#: ArduPilot wiki's way to a spreadsheet): their fields' own names, in the units ArduPilot logs them in (IMU's
+#: GyrX rad/s and AccX m/s/s, ATT's and XKF1's Roll/Pitch/Yaw deg, XKF1's VN/VE/VD m/s, POS's Lat/Lng deg and
+#: Alt m), body FRD, navigation NED
+_AP_FIELDS = {"GyrX": ("gyro_x", "rad/s"), "GyrY": ("gyro_y", "rad/s"), "GyrZ": ("gyro_z", "rad/s"),
+              "AccX": ("accel_x", "m/s^2"), "AccY": ("accel_y", "m/s^2"), "AccZ": ("accel_z", "m/s^2"),
+              "Roll": ("roll", "deg"), "Pitch": ("pitch", "deg"), "Yaw": ("yaw", "deg"),
+              "VN": ("vel_n", "m/s"), "VE": ("vel_e", "m/s"), "VD": ("vel_d", "m/s"),
+              "Lat": ("lat", "deg"), "Lng": ("lon", "deg"), "Alt": ("alt", "m")}
+#: the instance fields of multi-instance messages (IMU's I, an EKF core's C): one instance per file
+_AP_INSTANCE = ("I", "C")
+
+
+def _ardupilot_map(path: str, columns: list[str], sample: int = 40) -> ColumnMap | None:
+    """The column map of a mavlogdump CSV of one ArduPilot DataFlash message type (:data:`_AP_FIELDS`): the
+    time mavlogdump's ``timestamp`` (UNIX seconds where pymavlink put the log on GPS time), else ``TimeUS``
+    (microseconds since boot), the other restamped with it by the native export; None where the header is not
+    one; an InputError for several instances (IMU's I, an EKF core's C) interleaved in one file."""
+    if "TimeUS" not in columns or "timestamp" not in columns:
+        return None
+    found = {c: _AP_FIELDS[c] for c in columns if c in _AP_FIELDS}
+    names = {v[0] for v in found.values()}
+    complete = [g for g, ns in GROUPS.items() if set(ns) <= names]
+    if not complete:
+        return None
+    found = {c: v for c, v in found.items() if any(v[0] in GROUPS[g] for g in complete)}
+    with open(path, "rb") as fh:
+        fh.readline(65536)
+        lines = [fh.readline(65536).decode("utf-8", "replace") for _ in range(sample)]
+    rows = [line.strip().split(",") for line in lines if line.strip()]
+    for inst in _AP_INSTANCE:
+        if inst in columns:
+            k = columns.index(inst)
+            seen = sorted({r[k] for r in rows if len(r) > k})
+            if len(seen) > 1:
+                raise InputError(f"the CSV interleaves instances {inst} = {', '.join(seen)} of one message type: "
+                                 f"dump one (mavlogdump.py --condition \"IMU.{inst}=={seen[0]}\", the message's "
+                                 "name in place of IMU)", path)
+    k = columns.index("timestamp")
+    try:
+        unix = bool(rows) and float(rows[0][k]) > csv_canonical.EPOCH_THRESHOLD_S
+    except (IndexError, ValueError):
+        unix = False
+    time, other = (("timestamp", "s"), ("TimeUS", "us")) if unix else (("TimeUS", "us"), ("timestamp", "s"))
+    found[time[0]] = ("time", time[1])
+    return ColumnMap(found, body_frame="FRD", nav_frame="NED", quat="body_to_nav",
+                     origin="ArduPilot DataFlash fields (mavlogdump CSV: their own units, FRD/NED)", frame_stated=True,
+                     ignored=tuple(c for c in columns if c not in found), also_time=(other,))
+
+
 # ============================================================================================
 # files and directories
 # ============================================================================================
@@ -574,9 +627,9 @@ def _column_map(src: _Source, selector: Selector) -> ColumnMap:
     ng = _ngimu_map(columns)
     if ng is not None:
         return ng
-    ros = _ros_fields_map(src.table, columns)
-    if ros is not None:
-        return ros
+    known = _ros_fields_map(src.table, columns) or _ardupilot_map(src.table, columns)
+    if known is not None:
+        return known
     try:
         return map_from_header(columns)
     except MapError as first:

@@ -793,6 +793,55 @@ def test_ros_csv_export_restamps_the_header_stamp_and_the_receive_time(tmp_path)
     assert "%time" in st.time_fields
 
 
+def _mavlogdump(log: str, types: str) -> str:
+    """pymavlink's own ``mavlogdump.py --format csv --types TYPES LOG`` (the ArduPilot wiki's way to a CSV)."""
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", "pymavlink.tools.mavlogdump", "--format", "csv", "--types", types,
+                        log], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-500:]
+    return r.stdout
+
+
+def test_mavlogdump_csv_of_a_dataflash_message_reads_as_the_log(tmp_path):
+    """A DataFlash log's IMU dumped to CSV by pymavlink's mavlogdump (``timestamp,TimeUS,GyrX,...``: no units,
+    ArduPilot's fields' own) reads as the log: the same samples in rad/s and m/s^2, FRD; on UNIX time by
+    mavlogdump's ``timestamp`` (pymavlink's GPS mapping: a constant offset from tapost's own); the native export
+    moves TimeUS by each line's shift. Interleaved instances are one clear error. Before: 'no unit for column(s)
+    timestamp, GyrX'."""
+    import pandas as pd
+    from parsers.restamp import ClockShift
+    from parsers.restamp_csv import restamp_csv_vendor
+    from tests.test_parsers_ros import synthetic_log
+
+    log = str(tmp_path / "x.bin")
+    registry.write(log, synthetic_log(400), "dataflash")
+    src = tmp_path / "imu.csv"
+    src.write_text(_mavlogdump(log, "IMU"))
+    want, got = registry.load(log), registry.load(str(src))
+    assert got.meta.clock == "epoch" and len(got.imu) == len(want.imu) == 400
+    np.testing.assert_array_equal(got.gyro_rad_s(), want.gyro_rad_s())
+    np.testing.assert_array_equal(got.accel_m_s2(), want.accel_m_s2())
+    d = (got.meta.t0_ns + np.round(got.t_imu_s() * 1e9)) - (want.meta.t0_ns + np.round(want.t_imu_s() * 1e9))
+    assert np.ptp(d) < 1000 and abs(np.median(d)) < 0.01e9  # (pymavlink's offset; its float64 stamps: < 1 us)
+    assert not any("axes taken" in w for w in got.meta.warnings)
+    sh = ClockShift(0.0123456789, 87.5, got.meta.t0_ns + 1_000_000_000)
+    restamp_csv_vendor(str(src), str(tmp_path / "out.csv"), sh)
+    x = pd.read_csv(src, dtype=str)
+    y = pd.read_csv(tmp_path / "out.csv", dtype=str)
+    moved_s = (y["timestamp"].astype(float) - x["timestamp"].astype(float)).to_numpy()
+    moved_us = (y["TimeUS"].astype(float) - x["TimeUS"].astype(float)).to_numpy()
+    np.testing.assert_allclose(moved_us * 1e-6, moved_s, atol=2e-6)  # (the same shift on both clocks)
+    assert abs(np.median(moved_s) + 0.0123456789) < 1e-3
+    # two IMU instances interleaved in one dump (a newer log's IMU with its I field)
+    lines = src.read_text().splitlines()
+    two = tmp_path / "two.csv"
+    two.write_text(lines[0] + ",I\n" + "".join(f"{ln},{i % 2}\n" for i, ln in enumerate(lines[1:])))
+    with pytest.raises(InputError, match="interleaves instances I = 0, 1"):
+        registry.load(str(two))
+
+
 @pytest.mark.parametrize("habit", ["decimal_comma", "datetime"])
 def test_an_unreadable_vendor_csv_names_the_export_habit(tmp_path, capsys, habit):
     """Decimal commas in cells that commas also split (each number quoted: '"0,1"') or a time column of ISO
