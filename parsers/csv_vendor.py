@@ -71,7 +71,8 @@ from logtools.inslog import InsLog
 from parsers import csv_canonical
 from parsers.assemble import REPEATED_LINES_SAID, Stream, build_inslog, repeated_lines
 from parsers.base import Inventory, Selector, StreamInfo
-from parsers.csvtable import decimal_text_to_int, delimiter as _delimiter, non_numeric_text, numeric_block, printable
+from parsers.csvtable import datetime_text_to_ns, decimal_text_to_int, delimiter as _delimiter, non_numeric_text
+from parsers.csvtable import numeric_block, printable
 from parsers.csvtable import read_table as _read_table
 
 NAME = "csv-vendor"
@@ -687,32 +688,6 @@ def _datetime_named(path: str, columns: list[str], sample: int = 20) -> list[str
 _ABSURD = 1e300
 
 _SCALE_POW10 = {"s": 9, "sec": 9, "ms": 6, "us": 3, "ns": 0}
-
-
-_ZONE = re.compile(r"(?:Z|[+-]\d{2}:?\d{2})$")
-_FRACTION = re.compile(r":\d{2}[.,](\d+)")
-
-
-def datetime_text_to_ns(text: pd.Series) -> tuple[np.ndarray, np.ndarray, float, bool]:
-    """ISO 8601 date-time text (``2024-05-01T12:00:00.125Z``, ``2024-05-01 12:00:00.125``, with an offset
-    ``+02:00``) -> (int64 ns since the UNIX epoch, UTC; valid mask; resolution s: that of a fixed number of
-    fractional digits, else 0; True where some text gives no time zone: taken as UTC)."""
-    s = text.astype(str).str.strip().str.strip('"')
-    dt = pd.to_datetime(s, format="ISO8601", utc=True, errors="coerce")
-    ok = dt.notna().to_numpy() & s.str.match(_DATETIME).fillna(False).to_numpy(bool)
-    ns = np.where(ok, dt.dt.tz_localize(None).to_numpy("datetime64[ns]").view(np.int64), 0)
-    good = s[ok]
-    if not len(good):
-        return ns, ok, 0.0, False
-    first = str(good.iloc[0])
-    lengths = good.str.len().to_numpy()
-    if np.all(lengths == lengths[0]):  # fixed-width text: the first cell's fraction and zone are every cell's
-        m = _FRACTION.search(first)
-        res = 10.0 ** -(len(m.group(1)) if m else 0)
-        naive = _ZONE.search(first) is None
-    else:
-        res, naive = 0.0, not bool(good.str.contains(_ZONE).all())
-    return ns, ok, res, naive
 
 
 def time_to_ns(text: pd.Series, unit: str, decimal: str = ".", warns: list[str] | None = None,

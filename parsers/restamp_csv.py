@@ -21,7 +21,7 @@ import numpy as np
 from logtools.errors import InputError
 from parsers.atomic import atomic_path, check_replaceable
 from parsers.base import Selector
-from parsers.csvtable import decimal_cells_to_int, delimiter
+from parsers.csvtable import decimal_cells_to_int, delimiter, iso_cells_to_ns
 from parsers.restamp import ClockShift, RestampStats, kernel_loader
 
 HOW = "text rewrite of the time column (every other cell's text kept)"
@@ -133,10 +133,15 @@ def _emit(buf, ls, le, cs, ce, ok, new, p, out, point):  # pragma: no cover - co
     return o
 
 
-def _emit_cells(buf, ls, le, cs, ce, ok, cells, lens, out):  # pragma: no cover - compiled
-    """:func:`_emit` with each ``ok`` line's time cell replaced by ``cells[i, :lens[i]]`` (text made
-    beforehand: a date-time's); the cell's surrounding spaces/quotes kept. Returns the bytes written."""
+def _emit_iso(buf, ls, le, cs, ce, ok, new, off, sep, zone, out):  # pragma: no cover - compiled
+    """:func:`_emit` for ISO 8601 date-time cells (csvtable._iso_cells): each ``ok`` line's cell written as
+    ``new`` (ns, UTC) at the cell's own offset ``off`` (s) from UTC, with its separator ``sep``, nine
+    fractional digits and its zone text as it was (from ``zone`` to the cell's end); the cell's surrounding
+    spaces/quotes kept. Returns the bytes written."""
     o = 0
+    fields = np.zeros(6, np.int64)
+    widths = np.array([4, 2, 2, 2, 2, 2], np.int64)
+    marks = np.array([45, 45, 84, 58, 58, 46], np.uint8)  # - - T : : .
     for i in range(ls.shape[0]):
         if not ok[i]:
             for j in range(ls[i], le[i]):
@@ -152,8 +157,39 @@ def _emit_cells(buf, ls, le, cs, ce, ok, cells, lens, out):  # pragma: no cover 
             for j in range(ls[i], a):
                 out[o] = buf[j]
                 o += 1
-            for j in range(lens[i]):
-                out[o] = cells[i, j]
+            t = new[i] + off[i] * np.int64(1_000_000_000)
+            sub = t % np.int64(1_000_000_000)
+            secs = (t - sub) // np.int64(1_000_000_000)
+            sod = secs % 86400
+            z = (secs - sod) // 86400 + 719468  # civil date from days (H. Hinnant's algorithm)
+            era = (z if z >= 0 else z - 146096) // 146097
+            doe = z - era * 146097
+            yoe = (doe - doe // 1460 + doe // 36524 - doe // 146096) // 365
+            y = yoe + era * 400
+            doy = doe - (365 * yoe + yoe // 4 - yoe // 100)
+            mp = (5 * doy + 2) // 153
+            d = doy - (153 * mp + 2) // 5 + 1
+            m = mp + (3 if mp < 10 else -9)
+            if m <= 2:
+                y += 1
+            fields[0], fields[1], fields[2] = y, m, d
+            fields[3], fields[4], fields[5] = sod // 3600, (sod // 60) % 60, sod % 60
+            marks[2] = sep[i]
+            for f in range(6):
+                v = fields[f]
+                for k in range(widths[f] - 1, -1, -1):
+                    out[o + k] = 48 + v % 10
+                    v //= 10
+                o += widths[f]
+                out[o] = marks[f]
+                o += 1
+            v = sub
+            for k in range(8, -1, -1):
+                out[o + k] = 48 + v % 10
+                v //= 10
+            o += 9
+            for j in range(zone[i], b):
+                out[o] = buf[j]
                 o += 1
             for j in range(b, le[i]):
                 out[o] = buf[j]
@@ -166,47 +202,6 @@ def _emit_cells(buf, ls, le, cs, ce, ok, cells, lens, out):  # pragma: no cover 
 
 _kernel = kernel_loader(globals())  # the numba kernels above, compiled (and cached) on first use
 
-#: a date-time cell's zone: "Z" or an offset from UTC
-_ZONE_TEXT = r"(Z|[+-]\d{2}:?\d{2})$"
-
-
-def _cell_text(body: np.ndarray, cs: np.ndarray, ce: np.ndarray) -> "pd.Series":
-    """The time cells' text (n lines: ``body[cs[i]:ce[i]]``), one fixed-width array made at once."""
-    import pandas as pd
-
-    n = len(cs)
-    width = int(min(max(int((ce - cs).max()) if n else 1, 1), 64))
-    idx = cs[:, None] + np.arange(width)
-    inside = idx < ce[:, None]
-    mat = np.where(inside, body[np.clip(idx, 0, max(len(body) - 1, 0))] if len(body) else 32, 32).astype(np.uint8)
-    text = np.char.decode(np.ascontiguousarray(mat).view(f"S{width}").ravel(), "latin-1")
-    return pd.Series(text, dtype=object)
-
-
-def _datetime_cells(text, ok: np.ndarray, utc_ns: np.ndarray, new_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The new time cells of date-time text ``text`` (read as ``utc_ns``; ``ok``: those read) at ``new_ns``,
-    written as each was: its date/time separator, its zone (``Z``, an offset: the local time at that
-    offset, or none: UTC), nanoseconds in full. (n, width) uint8 rows and their lengths."""
-    import pandas as pd
-
-    s = text.str.strip().str.strip('"')
-    zone = s.str.extract(_ZONE_TEXT, expand=False).fillna("")
-    offset = np.zeros(len(s), np.int64)
-    has_off = (zone.str.len() > 1).to_numpy() & ok
-    if has_off.any():  # the offset each cell's local time has from UTC (daylight saving may change it)
-        local = pd.to_datetime(s[has_off].str.replace(_ZONE_TEXT, "", regex=True), format="ISO8601", errors="coerce")
-        offset[has_off] = local.to_numpy("datetime64[ns]").view(np.int64) - utc_ns[has_off]
-    out = np.datetime_as_string((new_ns + offset).view("datetime64[ns]"), unit="ns")
-    space = (s.str.slice(10, 11) == " ").to_numpy()
-    if space.any():
-        out = np.where(space, np.char.replace(out, "T", " "), out)
-    cells = np.char.add(out, zone.to_numpy(str))
-    lens = np.char.str_len(cells).astype(np.int64)
-    width = int(lens.max()) if len(lens) else 1
-    enc = np.char.encode(cells, "ascii").astype(f"S{width}")
-    return np.ascontiguousarray(enc).view(np.uint8).reshape(len(cells), width), lens
-
-
 def restamp_bytes(raw: bytes, time_col: str, unit: str, shift: ClockShift, path: str, units_row: bool = False,
                   decimal: str = ".", moved: np.ndarray | None = None
                   ) -> tuple[np.ndarray, int, int, np.ndarray]:
@@ -216,7 +211,7 @@ def restamp_bytes(raw: bytes, time_col: str, unit: str, shift: ClockShift, path:
     the numbers' decimal mark (a comma-decimal CSV's time is written back with a comma). ``moved``: the
     shifts of another time column's pass over the same lines, applied instead of the shift at this column's
     own times (every time field of a line moved by the same amount, whatever clock it is on)."""
-    from parsers.csv_vendor import DATETIME_UNITS, datetime_text_to_ns
+    from parsers.csv_vendor import DATETIME_UNITS
 
     dated = unit in DATETIME_UNITS
     if unit not in _POW10 and not dated:
@@ -233,10 +228,8 @@ def restamp_bytes(raw: bytes, time_col: str, unit: str, shift: ClockShift, path:
     base = nl + 1 if units_row and nl >= 0 else 0  # (the kernel skips the first line of what it is given)
     body = buf[base:]
     ls, le, cs, ce = _kernel("_cells")(body, k, ord(sep))
-    if dated:  # ISO 8601 text: read as the parser reads it (csv_vendor.datetime_text_to_ns)
-        text = _cell_text(body, cs, ce)
-        ns, ok, _res, _naive = datetime_text_to_ns(text)
-        ok &= cs >= 0
+    if dated:  # ISO 8601 text: the readers' scan (csvtable.iso_cells_to_ns)
+        ns, ok, off, dsep, _nfrac, zone, _zkind = iso_cells_to_ns(body, cs, ce)
     else:
         ns, ok = decimal_cells_to_int(body, cs, ce, p, decimal)  # (the readers' scan: every time they read)
     blank = le <= ls
@@ -251,11 +244,10 @@ def restamp_bytes(raw: bytes, time_col: str, unit: str, shift: ClockShift, path:
     shifts[ok] = new[ok] - ns[ok]
     last = raw.find(b"\n", base) if base else nl  # (the last header line's end)
     head_end = len(raw) if last < 0 else last + 1
-    if dated:
-        cells, lens = _datetime_cells(text, ok, ns, new)
-        out = np.empty(len(raw) + int(lens.sum()) + len(ls) + 1, dtype=np.uint8)
+    if dated:  # (a cell grows by 13 bytes at most: 'YYYY-MM-DDTHH:MM' -> seconds and nine fractional digits)
+        out = np.empty(len(raw) + 16 * len(ls) + 1, dtype=np.uint8)
         out[:head_end] = buf[:head_end]
-        n = _kernel("_emit_cells")(body, ls, le, cs, ce, ok, cells, lens, out[head_end:])
+        n = _kernel("_emit_iso")(body, ls, le, cs, ce, ok, new, off, dsep, zone, out[head_end:])
     else:
         out = np.empty(len(raw) + 24 * len(ls) + 1, dtype=np.uint8)
         out[:head_end] = buf[:head_end]
