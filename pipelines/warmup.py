@@ -8,7 +8,7 @@ image:
     python -m pipelines.warmup          # about 1 min on 2 cores; prints what it compiles
 
 It simulates a 30-second pair, writes it in the formats whose readers or native exports have kernels
-(MCAP, ROS 1 bag, tlog, DataFlash, ULog, CSV, ROS 2 bag), reads each back, exports each on a shifted
+(MCAP, ROS 1 bag, tlog, DataFlash, ULog, CSV, ROS 2 bag, a vendor CSV of ISO date-times), reads each back, exports each on a shifted
 clock, and runs the whole analysis on the MCAP/tlog pair, so every kernel compiles with the argument types a real run
 passes.
 """
@@ -61,6 +61,23 @@ def warm(quiet: bool = False) -> float:
             export.write_native(path, os.path.join(d, f"shifted_{fmt}" + (f".{ext}" if ext else "")), fmt, shift,
                                 got.meta.selector)
             _say(quiet, f"  {fmt} native export: {time.perf_counter() - t:.1f} s")
+        # a vendor CSV of ISO 8601 date-times: their scan and their writer (parsers.csvtable._iso_cells,
+        # parsers.restamp_csv._emit_iso)
+        import numpy as np
+
+        iso = os.path.join(d, "iso.csv")
+        sl = pair.slave
+        t_ns = sl.meta.t0_ns + np.round(sl.t_imu_s() * 1e9).astype(np.int64)
+        cells = np.datetime_as_string(t_ns.view("datetime64[ns]"), unit="ns")
+        cols = np.column_stack([sl.gyro_rad_s(), sl.accel_m_s2()])
+        with open(iso, "w") as fh:
+            fh.write("Time (ISO 8601),Gyro X (rad/s),Gyro Y (rad/s),Gyro Z (rad/s),Accel X (m/s^2),Accel Y (m/s^2),"
+                     "Accel Z (m/s^2)\n")
+            fh.writelines(f"{c}Z," + ",".join(repr(float(v)) for v in row) + "\n" for c, row in zip(cells, cols))
+        got = load(iso)
+        export.write_native(iso, os.path.join(d, "shifted_iso.csv"), got.meta.format,
+                            ClockShift(0.01, 20.0, got.meta.t0_ns), got.meta.selector)
+        _say(quiet, "  vendor CSV of ISO date-times: read and exported")
         if "rosbag2" in paths:  # the page scan that reads a damaged .db3 (parsers.restamp_sqlite.recover)
             from parsers import restamp_sqlite
 
