@@ -139,8 +139,8 @@ class ColumnMap:
     notes: tuple[str, ...] = ()  # "note: ..." lines: columns that look like a group but are left out, and why
     units_row: bool = False  # the line after the header gives the columns' units (skipped as data)
     decimal: str = "."  # the decimal mark: "," in a CSV saved in a comma-decimal locale (cells split by ';' or tab)
-    #: other columns of stamps on the same clock (column, unit), not read but restamped by the native export
-    #: with the time column (a ROS export's receive time beside its header stamp)
+    #: other columns stamping the same rows (column, unit; a ROS export's receive time beside its header stamp,
+    #: a DataFlash dump's TimeUS beside its UNIX time): not read, moved by the native export by each row's shift
     also_time: tuple[tuple[str, str], ...] = ()
 
     def column_for(self, canonical: str) -> str | None:
@@ -636,26 +636,21 @@ def _column_map(src: _Source, selector: Selector) -> ColumnMap:
     except MapError as first:
         why = first
         units = _units_of(src.table, columns)
-        if units is not None:  # names on the header line, units on the next
-            named = [f"{c} ({u})" if u else c for c, u in zip(columns, units)]
+        # names on the header line, units on the next; a time column without a unit whose cells are date-times
+        for named, origin in (([f"{c} ({u})" if u else c for c, u in zip(columns, units)] if units else None,
+                               "header and units row"),
+                              (_datetime_named(src.table, columns), "header and date-time cells")):
+            if named is None:
+                continue
             try:
                 m = map_from_header(named)
-            except MapError as second:
-                why = second
+            except MapError as again:
+                why = again
             else:
                 back = dict(zip(named, columns))
-                return ColumnMap({back[c]: v for c, v in m.columns.items()}, origin="header and units row",
-                                 ignored=tuple(back[c] for c in m.ignored), notes=m.notes, units_row=True)
-        dated = _datetime_named(src.table, columns)
-        if dated is not None:  # a time column without a unit whose cells are date-times
-            try:
-                m = map_from_header(dated)
-            except MapError as third:
-                why = third
-            else:
-                back = dict(zip(dated, columns))
-                return ColumnMap({back[c]: v for c, v in m.columns.items()}, origin="header and date-time cells",
-                                 ignored=tuple(back[c] for c in m.ignored), notes=m.notes)
+                return ColumnMap({back[c]: v for c, v in m.columns.items()}, origin=origin,
+                                 ignored=tuple(back[c] for c in m.ignored), notes=m.notes,
+                                 units_row=origin == "header and units row")
         shown = ", ".join(repr(printable(c)) for c in columns[:10]) + (", ..." if len(columns) > 10 else "")
         raise InputError(
             f"cannot map CSV columns unambiguously ({printable(why, 200)}); columns found: {shown}; write a column map "
