@@ -1,6 +1,6 @@
 """Vendor CSVs (anything that is not the canonical tapost CSV) through a column map with units.
 
-Five ways to get a column map, tried in this order:
+Six ways to get a column map, tried in this order:
 
 1. ``PATH::map=FILE.json`` or a sidecar ``PATH.map.json`` next to the CSV: a JSON object
    ``{column: [canonical_name, unit], ...}``; canonical names are ``time``, ``gyro_x|y|z``,
@@ -22,7 +22,10 @@ Five ways to get a column map, tried in this order:
 4. One ArduPilot DataFlash message type dumped by pymavlink's ``mavlogdump.py --format csv --types IMU``
    (``timestamp,TimeUS,GyrX,...``): ArduPilot's field names in their logged units (:data:`_AP_FIELDS`),
    FRD/NED; the time mavlogdump's ``timestamp`` (pymavlink's UNIX mapping) or, without one, ``TimeUS``.
-5. The header alone, when every needed column names its quantity, axis and unit unambiguously
+5. A PX4 topic written by pyulog's ``ulog2csv`` (``timestamp,gyro_rad[0],...,accelerometer_m_s2[0]``,
+   ``q[0..3]``, vehicle_local_position's ``vx,vy,vz``): PX4's units, FRD/NED, microseconds since boot; the
+   accelerometer of sensor_combined at its ``accelerometer_timestamp_relative`` (``ColumnMap.group_time``).
+6. The header alone, when every needed column names its quantity, axis and unit unambiguously
    (``Gyro X (deg/s)``, ``gyro_x [rad/s]``, ``accel_z_m_s2``, ``wx (dps)``, ``timestamp (us)``, the
    ASL/EuRoC dataset's ``#timestamp [ns]``, ``w_RS_S_x [rad s^-1]``, ``a_RS_S_x [m s^-2]``...); a time
    column without a unit whose cells are ISO 8601 date-times (pandas' ``to_csv``) is read as UTC.
@@ -142,6 +145,9 @@ class ColumnMap:
     #: other columns stamping the same rows (column, unit; a ROS export's receive time beside its header stamp,
     #: a DataFlash dump's TimeUS beside its UNIX time): not read, moved by the native export by each row's shift
     also_time: tuple[tuple[str, str], ...] = ()
+    #: groups sampled at an offset from their row's time, given in a column: (group, column, unit, the value that
+    #: marks no sample); PX4's sensor_combined accelerometer (accelerometer_timestamp_relative, us)
+    group_time: tuple[tuple[str, str, str, int], ...] = ()
 
     def column_for(self, canonical: str) -> str | None:
         return next((c for c, (n, _) in self.columns.items() if n == canonical), None)
@@ -490,6 +496,44 @@ def _ardupilot_map(path: str, columns: list[str], sample: int = 40) -> ColumnMap
                      ignored=tuple(c for c in columns if c not in found), also_time=(other,))
 
 
+#: PX4 topics written to CSV by pyulog's ``ulog2csv`` (one file per topic: ``LOG_sensor_combined_0.csv``...),
+#: named as PX4's message definitions name their fields, in their units (rad/s, m/s^2; the attitude
+#: quaternion w, x, y, z from FRD body to NED; vehicle_local_position's velocity NED, m/s; vehicle_global_position
+#: deg and m), ``timestamp`` in microseconds since boot. The field that tells each topic apart from other CSVs
+_PX4_TOPICS = (
+    ("gyro_rad[0]", {**{f"gyro_rad[{i}]": (f"gyro_{a}", "rad/s") for i, a in enumerate("xyz")},
+                     **{f"accelerometer_m_s2[{i}]": (f"accel_{a}", "m/s^2") for i, a in enumerate("xyz")}}),
+    ("q[0]", {f"q[{i}]": (f"quat_{a}", "") for i, a in enumerate("wxyz")}),
+    ("v_xy_valid", {"vx": ("vel_n", "m/s"), "vy": ("vel_e", "m/s"), "vz": ("vel_d", "m/s")}),
+    ("eph", {"lat": ("lat", "deg"), "lon": ("lon", "deg"), "alt": ("alt", "m")}),
+)
+
+
+def _px4_map(columns: list[str]) -> ColumnMap | None:
+    """The column map of a PX4 topic written by pyulog's ``ulog2csv`` (:data:`_PX4_TOPICS`); None where the
+    header is not one. sensor_combined's accelerometer at its own stamps (``accelerometer_timestamp_relative``,
+    as tapost's ULog reader takes it)."""
+    if "timestamp" not in columns:
+        return None
+    found: dict[str, tuple[str, str]] = {}
+    for mark, fields in _PX4_TOPICS:
+        if mark in columns:
+            found.update({c: v for c, v in fields.items() if c in columns})
+    names = {v[0] for v in found.values()}
+    complete = [g for g, ns in GROUPS.items() if set(ns) <= names]
+    if not complete:
+        return None
+    found = {c: v for c, v in found.items() if any(v[0] in GROUPS[g] for g in complete)}
+    found["timestamp"] = ("time", "us")
+    from parsers.ulog import RELATIVE_TIMESTAMP_INVALID
+
+    rel = (("accel", "accelerometer_timestamp_relative", "us", RELATIVE_TIMESTAMP_INVALID),) if (
+        "accel" in complete and "accelerometer_timestamp_relative" in columns) else ()
+    return ColumnMap(found, body_frame="FRD", nav_frame="NED", quat="body_to_nav",
+                     origin="PX4 topic fields (ulog2csv: PX4's units, FRD/NED)", frame_stated=True,
+                     ignored=tuple(c for c in columns if c not in found), group_time=rel)
+
+
 # ============================================================================================
 # files and directories
 # ============================================================================================
@@ -628,7 +672,7 @@ def _column_map(src: _Source, selector: Selector) -> ColumnMap:
     ng = _ngimu_map(columns)
     if ng is not None:
         return ng
-    known = _ros_fields_map(src.table, columns) or _ardupilot_map(src.table, columns)
+    known = _ros_fields_map(src.table, columns) or _ardupilot_map(src.table, columns) or _px4_map(columns)
     if known is not None:
         return known
     try:
@@ -802,7 +846,17 @@ def _streams_from_table(path: str, cmap: ColumnMap, groups_wanted: tuple[str, ..
     groups = _convert_frames(cmap, groups, quat_given)
     # stamps written with a fixed number of decimals are that coarse (the grid the data shows is found
     # later, parsers.assemble)
-    streams = {g: Stream(t_ns[masks[g]], v[masks[g]], f"{os.path.basename(path)}:{g}", res)
+    stamps = {g: t_ns for g in groups}
+    for g, col, unit, none in cmap.group_time:  # (a group sampled at an offset from its row's time)
+        if g in groups and col in df.columns:
+            rel, ok_rel, _ = time_to_ns(df[col], unit, cmap.decimal)
+            ok_rel &= rel != none * round(UNITS[unit][1])
+            if (masks[g] & ~ok_rel).any():
+                warns.append(f"{os.path.basename(path)}: {int((masks[g] & ~ok_rel).sum())} {g} sample(s) without "
+                             f"a valid {col} left out")
+            masks[g] &= ok_rel
+            stamps[g] = t_ns + rel
+    streams = {g: Stream(stamps[g][masks[g]], v[masks[g]], f"{os.path.basename(path)}:{g}", res)
                for g, v in groups.items() if masks[g].any()}
     if not streams:
         raise InputError(f"no row with a valid time and complete values ({int(ok_t.sum())} valid times "

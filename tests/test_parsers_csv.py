@@ -842,6 +842,45 @@ def test_mavlogdump_csv_of_a_dataflash_message_reads_as_the_log(tmp_path):
         registry.load(str(two))
 
 
+def test_ulog2csv_topics_read_as_the_ulog(tmp_path):
+    """PX4 topics written to CSV by pyulog's own ``ulog2csv`` (``timestamp,gyro_rad[0],...``; no units, PX4's
+    field names) read as the ULog does: sensor_combined's rates and specific forces (the accelerometer at its
+    ``accelerometer_timestamp_relative``, PX4's invalid marker left out), vehicle_attitude's quaternion,
+    FRD/NED, microseconds since boot. Before: 'no time column with a unit'."""
+    import pandas as pd
+    from pyulog.ulog2csv import convert_ulog2csv
+    from tests.test_parsers_ros import synthetic_log
+
+    ulg = str(tmp_path / "x.ulg")
+    registry.write(ulg, synthetic_log(400), "ulog")
+    convert_ulog2csv(ulg, "sensor_combined,vehicle_attitude", str(tmp_path), ",", None, None)
+    imu_csv, att_csv = (next(tmp_path.glob(f"x_{t}_0.csv")) for t in ("sensor_combined", "vehicle_attitude"))
+    want, got, att = registry.load(ulg), registry.load(str(imu_csv)), registry.load(str(att_csv))
+    assert got.meta.clock == "boot"  # (the ULog's own reading puts it on UTC by its GPS time: one offset)
+    def ns(log, t):
+        return log.meta.t0_ns + np.round(t * 1e9).astype(np.int64)
+
+    offset = ns(got, got.t_imu_s()) - ns(want, want.t_imu_s())
+    assert np.ptp(offset) == 0
+    np.testing.assert_allclose(got.gyro_rad_s(), want.gyro_rad_s(), rtol=1e-6, atol=1e-7)  # (float32 as printed)
+    np.testing.assert_allclose(got.accel_m_s2(), want.accel_m_s2(), rtol=1e-6, atol=1e-6)
+    (tq, q), (ta, qa) = want.quat_wxyz(), att.quat_wxyz()
+    np.testing.assert_array_equal(ns(att, ta), ns(want, tq) + offset[0])
+    np.testing.assert_allclose(np.abs(np.sum(q * qa, axis=1)), 1.0, atol=1e-6)
+    assert not any("axes taken" in w for w in got.meta.warnings)
+    # the accelerometer sampled 1 ms after its row's time, one row without a sample (PX4's marker)
+    df = pd.read_csv(imu_csv, dtype=str)
+    df["accelerometer_timestamp_relative"] = "1000"
+    df.loc[5, "accelerometer_timestamp_relative"] = str(0x7FFFFFFF)
+    df.to_csv(tmp_path / "rel.csv", index=False)
+    rel = registry.load(str(tmp_path / "rel.csv"))
+    assert any("1 accel sample(s) without a valid accelerometer_timestamp_relative" in w for w in rel.meta.warnings)
+    t_row = got.meta.t0_ns + np.round(got.t_imu_s() * 1e9).astype(np.int64)
+    ch = rel.meta.channels["accel"]
+    assert ch.count == len(t_row) - 1  # (its stamps: the rows' + 1 ms, interpolated onto the gyro's by assembly)
+    assert any("accel interpolated onto gyro stamps" in w for w in rel.meta.warnings)
+
+
 @pytest.mark.parametrize("habit", ["decimal_comma", "datetime"])
 def test_an_unreadable_vendor_csv_names_the_export_habit(tmp_path, capsys, habit):
     """Decimal commas in cells that commas also split (each number quoted: '"0,1"') or a time column of ISO
