@@ -21,7 +21,9 @@ Six ways to get a column map, tried in this order:
    left out.
 4. One ArduPilot DataFlash message type dumped by pymavlink's ``mavlogdump.py --format csv --types IMU``
    (``timestamp,TimeUS,GyrX,...``): ArduPilot's field names in their logged units (:data:`_AP_FIELDS`),
-   FRD/NED; the time mavlogdump's ``timestamp`` (pymavlink's UNIX mapping) or, without one, ``TimeUS``.
+   FRD/NED; the time mavlogdump's ``timestamp`` (pymavlink's UNIX mapping) or, without one, ``TimeUS``. One
+   MAVLink message type dumped from a tlog the same way (``timestamp,HIGHRES_IMU.time_usec,...``): the tlog
+   reader's units, the message's own time (:func:`_mavlink_dump_map`).
 5. A PX4 topic written by pyulog's ``ulog2csv`` (``timestamp,gyro_rad[0],...,accelerometer_m_s2[0]``,
    ``q[0..3]``, vehicle_local_position's ``vx,vy,vz``): PX4's units, FRD/NED, microseconds since boot; the
    accelerometer of sensor_combined at its ``accelerometer_timestamp_relative`` (``ColumnMap.group_time``).
@@ -496,6 +498,47 @@ def _ardupilot_map(path: str, columns: list[str], sample: int = 40) -> ColumnMap
                      ignored=tuple(c for c in columns if c not in found), also_time=(other,))
 
 
+def _mavlink_dump_map(columns: list[str]) -> ColumnMap | None:
+    """The column map of one MAVLink message type dumped from a tlog by ``mavlogdump.py --format csv --types
+    HIGHRES_IMU`` (``timestamp,HIGHRES_IMU.time_usec,HIGHRES_IMU.xacc,...``): the message's fields in the
+    units the tlog reader takes them in (:mod:`parsers.mavlink_tlog`: its IMU scales, ATTITUDE's radians,
+    GLOBAL_POSITION_INT's degE7, mm and cm/s), NED/FRD; the time the message's own (``time_usec``: UNIX time
+    above 1e15 us, else since boot; ``time_boot_ms``), the receive ``timestamp`` moved with it by the export.
+    None where the header is not one message's dump (a dump of several types interleaves their rows)."""
+    from parsers import mavlink_tlog as mt
+
+    if not columns or columns[0] != "timestamp" or len(columns) < 3:
+        return None
+    types = {c.split(".", 1)[0] for c in columns[1:] if "." in c}
+    if len(types) != 1 or any("." not in c for c in columns[1:]):
+        return None
+    msg = types.pop()
+    fields: dict[str, tuple[str, str]] = {}
+    if msg in mt.IMU_SCALE:
+        g, a = mt.IMU_SCALE[msg]
+        gu = {1.0: "rad/s", mt.MRAD_TO_RAD: "mrad/s"}[g]
+        au = {1.0: "m/s^2", mt.MG_TO_M_S2: "mg"}[a]
+        fields = {**{f"{x}gyro": (f"gyro_{x}", gu) for x in "xyz"}, **{f"{x}acc": (f"accel_{x}", au) for x in "xyz"}}
+    elif msg == "ATTITUDE":
+        fields = {f: (f, "rad") for f in ("roll", "pitch", "yaw")}
+    elif msg == "ATTITUDE_QUATERNION":
+        fields = {f"q{i + 1}": (f"quat_{x}", "") for i, x in enumerate("wxyz")}
+    elif msg == "GLOBAL_POSITION_INT":
+        fields = {"lat": ("lat", "dege7"), "lon": ("lon", "dege7"), "alt": ("alt", "mm"),
+                  **{f"v{x}": (f"vel_{n}", "cm/s") for x, n in zip("xyz", "ned")}}
+    elif msg == "LOCAL_POSITION_NED":
+        fields = {f"v{x}": (f"vel_{n}", "m/s") for x, n in zip("xyz", "ned")}
+    found = {f"{msg}.{f}": v for f, v in fields.items() if f"{msg}.{f}" in columns}
+    time = next(((f"{msg}.{f}", u) for f, u in (("time_usec", "us"), ("time_boot_ms", "ms"))
+                 if f"{msg}.{f}" in columns), None)
+    if not found or time is None:
+        return None
+    found[time[0]] = ("time", time[1])
+    return ColumnMap(found, body_frame="FRD", nav_frame="NED", quat="body_to_nav",
+                     origin=f"MAVLink {msg} fields (mavlogdump CSV: the message's units, FRD/NED)", frame_stated=True,
+                     ignored=tuple(c for c in columns if c not in found), also_time=(("timestamp", "s"),))
+
+
 #: PX4 topics written to CSV by pyulog's ``ulog2csv`` (one file per topic: ``LOG_sensor_combined_0.csv``...),
 #: named as PX4's message definitions name their fields, in their units (rad/s, m/s^2; the attitude
 #: quaternion w, x, y, z from FRD body to NED; vehicle_local_position's velocity NED, m/s; vehicle_global_position
@@ -672,7 +715,8 @@ def _column_map(src: _Source, selector: Selector) -> ColumnMap:
     ng = _ngimu_map(columns)
     if ng is not None:
         return ng
-    known = _ros_fields_map(src.table, columns) or _ardupilot_map(src.table, columns) or _px4_map(columns)
+    known = (_ros_fields_map(src.table, columns) or _ardupilot_map(src.table, columns)
+             or _mavlink_dump_map(columns) or _px4_map(columns))
     if known is not None:
         return known
     try:

@@ -389,13 +389,19 @@ def read_table(path: str, time_col: str, start: int = 0, units_row: bool = False
         _warnings.simplefilter("always")
         src.seek(start)
         try:
+            # index_col=False: lines with more cells than the header (a delimiter after the last value, as
+            # many loggers write) keep their columns; pandas would take the extra cells' count of first
+            # columns as the index and shift every column by it, time into the index, silently
             df = pd.read_csv(src if start else path, sep=sep, dtype={time_col: str}, skipinitialspace=True,
                              on_bad_lines="warn", encoding_errors="replace", skiprows=[1] if units_row else None,
-                             decimal=decimal)
+                             decimal=decimal, index_col=False)
         except pd.errors.EmptyDataError:
             raise InputError("empty CSV (no header)", path) from None
         except pd.errors.ParserError as exc:
             raise InputError(f"malformed CSV: {str(exc).splitlines()[0]}", path) from None
+    if any("does not match length of data" in str(w.message) for w in caught):
+        warns.append(f"{os.path.basename(path)}: its lines hold more cells than the header names columns: the cells "
+                     "beyond the header's columns are not read")
     bad = [w for w in caught if "Skipping line" in str(w.message) or "expected" in str(w.message)]
     if bad:
         n = sum(str(w.message).count("Skipping line") or 1 for w in bad)

@@ -842,6 +842,60 @@ def test_mavlogdump_csv_of_a_dataflash_message_reads_as_the_log(tmp_path):
         registry.load(str(two))
 
 
+@pytest.mark.parametrize("msg,sel", [("HIGHRES_IMU", "imu=HIGHRES_IMU"), ("ATTITUDE_QUATERNION", "att=ATTITUDE_QUATERNION"),
+                                     ("GLOBAL_POSITION_INT", "vel=GLOBAL_POSITION_INT")])
+def test_mavlogdump_csv_of_a_tlog_message_reads_as_the_tlog(tmp_path, msg, sel):
+    """One MAVLink message type dumped from a tlog by mavlogdump (``timestamp,HIGHRES_IMU.time_usec,...``, the
+    type before every field, no units) reads as the tlog reader reads that message: its units, its own time
+    field (UNIX time_usec here), FRD/NED."""
+    from tests.test_parsers_ros import synthetic_log
+
+    tlog = str(tmp_path / "x.tlog")
+    registry.write(tlog, synthetic_log(300), "tlog")
+    src = tmp_path / f"{msg}.csv"
+    src.write_text(_mavlogdump(tlog, msg))
+    got = registry.load(str(src))
+    want = registry.load(f"{tlog}::{sel}")
+    if msg == "HIGHRES_IMU":
+        np.testing.assert_array_equal(got.meta.t0_ns + np.round(got.t_imu_s() * 1e9).astype(np.int64),
+                                      want.meta.t0_ns + np.round(want.t_imu_s() * 1e9).astype(np.int64))
+        np.testing.assert_allclose(got.gyro_rad_s(), want.gyro_rad_s(), rtol=1e-7, atol=1e-9)
+        np.testing.assert_allclose(got.accel_m_s2(), want.accel_m_s2(), rtol=1e-7, atol=1e-9)
+    elif msg == "ATTITUDE_QUATERNION":
+        (tg, qg), (tw, qw) = got.quat_wxyz(), want.quat_wxyz()
+        assert len(tg) == len(tw)
+        np.testing.assert_allclose(np.abs(np.sum(qg * qw, axis=1)), 1.0, atol=1e-6)
+    else:
+        (tg, vg), (tw, vw) = got.vel_ned_m_s(), want.vel_ned_m_s()
+        np.testing.assert_allclose(vg, vw, atol=1e-9)
+    # (time_usec is UNIX time here; time_boot_ms since boot: the tlog reader puts it on UNIX by SYSTEM_TIME)
+    assert got.meta.clock == ("epoch" if msg == "HIGHRES_IMU" else "boot")
+    assert not any("axes taken" in w for w in got.meta.warnings)
+
+
+@pytest.mark.parametrize("kind", ["canonical", "vendor"])
+def test_a_delimiter_after_each_lines_last_value_shifts_no_column(tmp_path, kind):
+    """Lines that end with a delimiter (many loggers write ``v1,v2,v3,``): one cell more than the header.
+    pandas took the first column as the index and shifted every column left by one (the time became the gyro's
+    x, silently: 'rows not in time order: sorted'); read as the same lines without it. Lines with more cells
+    than the header (mavlogdump's unquoted arrays, ``[0.0, 0.0]``) keep their columns, said."""
+    t = 1_700_000_000 + np.arange(200) * 0.01 if kind == "canonical" else np.arange(200) * 0.01
+    head = ("time_s,gyro_x_rad_s,gyro_y_rad_s,gyro_z_rad_s" if kind == "canonical"
+            else "Time (s),Gyro X (rad/s),Gyro Y (rad/s),Gyro Z (rad/s)")
+    rows = [f"{x:.2f},{np.sin(x):.6f},0.25,-0.125" for x in t]
+    clean, trailing, extra = (tmp_path / f"{n}.csv" for n in ("clean", "trailing", "extra"))
+    clean.write_text(head + "\n" + "\n".join(rows) + "\n")
+    trailing.write_text(head + "\n" + "".join(r + ",\n" for r in rows))
+    extra.write_text(head + "\n" + "".join(r + ",[0.0, 0.0]\n" for r in rows))
+    want = registry.load(str(clean))
+    for f in (trailing, extra):
+        got = registry.load(str(f))
+        np.testing.assert_array_equal(got.t_imu_s(), want.t_imu_s())
+        np.testing.assert_array_equal(got.gyro_rad_s(), want.gyro_rad_s())
+        assert not any("sorted" in w or "dropped" in w for w in got.meta.warnings), got.meta.warnings
+    assert any("more cells than the header" in w for w in registry.load(str(extra)).meta.warnings)
+
+
 def test_ulog2csv_topics_read_as_the_ulog(tmp_path):
     """PX4 topics written to CSV by pyulog's own ``ulog2csv`` (``timestamp,gyro_rad[0],...``; no units, PX4's
     field names) read as the ULog does: sensor_combined's rates and specific forces (the accelerometer at its
