@@ -44,6 +44,9 @@ deg/h; m/s^2, m/s2, m/s², g, mg, ug; s, ms, us, ns, ISO 8601 (date-time text); 
 deg, rad, degE7;
 m, cm, mm, ft; negative powers written out too (``rad s^-1``, ``m s^-2``, ``m·s⁻²``).
 
+Comment lines before the header (``// ...``, Xsens MT Manager's export) are skipped; a ``// Coordinate system:
+ENU|NED|NWU`` line among them states the frames (:data:`_PREAMBLE_FRAMES`).
+
 Frames. Generic CSVs without a stated frame are taken as FRD/NED (said in the warnings).
 
 NGIMU conventions, settled here and nowhere else. x-io's AHRS code (the Fusion library's
@@ -75,7 +78,7 @@ from logtools.errors import InputError
 from logtools.inslog import InsLog
 from parsers import csv_canonical
 from parsers.assemble import REPEATED_LINES_SAID, Stream, build_inslog, repeated_lines
-from parsers.base import Inventory, Selector, StreamInfo
+from parsers.base import DAMAGED_HEAD_SEARCH_BYTES, Inventory, Selector, StreamInfo
 from parsers.csvtable import datetime_text_to_ns, decimal_text_to_int, delimiter as _delimiter, non_numeric_text
 from parsers.csvtable import numeric_block, printable
 from parsers.csvtable import read_table as _read_table
@@ -408,9 +411,7 @@ def _ros_fields_map(path: str, columns: list[str], sample: int = 20) -> ColumnMa
     if not {"accel_x", "accel_y", "accel_z"} <= names:
         found = {c: v for c, v in found.items() if not v[0].startswith("accel_")}
     notes: list[str] = []
-    with open(path, "rb") as fh:
-        fh.readline(65536)
-        lines = [fh.readline(65536).decode("utf-8", "replace") for _ in range(sample)]
+    lines = _head_lines(path, sample)[1:]
     sep = _delimiter(",".join(columns))
     rows = [[c.strip().strip('"') for c in line.strip().split(sep)] for line in lines if line.strip()]
 
@@ -474,10 +475,7 @@ def _ardupilot_map(path: str, columns: list[str], sample: int = 40) -> ColumnMap
     if not complete:
         return None
     found = {c: v for c, v in found.items() if any(v[0] in GROUPS[g] for g in complete)}
-    with open(path, "rb") as fh:
-        fh.readline(65536)
-        lines = [fh.readline(65536).decode("utf-8", "replace") for _ in range(sample)]
-    rows = [line.strip().split(",") for line in lines if line.strip()]
+    rows = [line.strip().split(",") for line in _head_lines(path, sample)[1:] if line.strip()]
     for inst in _AP_INSTANCE:
         if inst in columns:
             k = columns.index(inst)
@@ -580,20 +578,49 @@ def _px4_map(columns: list[str]) -> ColumnMap | None:
 # ============================================================================================
 # files and directories
 # ============================================================================================
-def _header_of(path: str) -> list[str]:
+#: comment lines a vendor CSV may carry before its header (Xsens MT Manager's export: ``// General
+#: information:`` ... ``// Coordinate system: ENU``): skipped by the readers, kept by the native export. (Not
+#: '%' nor '#': rostopic's header starts with ``%time``, the EuRoC dataset's with ``#timestamp``)
+_PREAMBLE_MARKS = (b"//",)
+
+
+def _skip_preamble(head: bytes) -> int:
+    """The byte offset of the header line in ``head`` (a file's first bytes): after the comment lines
+    (:data:`_PREAMBLE_MARKS`) before it; 0 without any."""
+    off = 0
+    while True:
+        end = head.find(b"\n", off)
+        if end < 0 or not head[off:end].lstrip(b"\xef\xbb\xbf").lstrip().startswith(_PREAMBLE_MARKS):
+            return off
+        off = end + 1
+
+
+def header_offset(path: str) -> int:
+    """The byte offset of a vendor CSV's header line (:func:`_skip_preamble`)."""
     with open(path, "rb") as fh:
-        line = fh.readline(65536)
-    text = line.lstrip(b"\xef\xbb\xbf").decode("utf-8", "replace").strip()
+        return _skip_preamble(fh.read(DAMAGED_HEAD_SEARCH_BYTES))
+
+
+def _head_lines(path: str, n: int) -> list[str]:
+    """The header line (its BOM left out) and the ``n`` lines after it, as text."""
+    start = header_offset(path)
+    with open(path, "rb") as fh:
+        fh.seek(start)
+        lines = [fh.readline(65536) for _ in range(n + 1)]
+    return [lines[0].lstrip(b"\xef\xbb\xbf").decode("utf-8", "replace")] + [
+        ln.decode("utf-8", "replace") for ln in lines[1:]]
+
+
+def _header_of(path: str) -> list[str]:
+    text = _head_lines(path, 0)[0].strip()
     return [c.strip().strip('"') for c in text.split(_delimiter(text))]
 
 
 def _units_of(path: str, columns: list[str]) -> list[str] | None:
     """The units of a header's columns given on the next line (``Time,GyroX,...`` then ``s,deg/s,...``: a
     logger's habit), or None where that line is data (or anything but units)."""
-    with open(path, "rb") as fh:
-        head = fh.readline(65536).lstrip(b"\xef\xbb\xbf").decode("utf-8", "replace")
-        line = fh.readline(65536)
-    text = line.decode("utf-8", "replace").strip()
+    head, line = _head_lines(path, 1)
+    text = line.strip()
     cells = [c.strip().strip('"').strip() for c in text.split(_delimiter(head))]
     if len(cells) != len(columns):
         return None
@@ -613,14 +640,11 @@ _POINT_NUMBER = re.compile(r"^\s*\"?[-+]?(?:\d+\.\d*|\.\d+)(?:[eE][-+]?\d+)?\"?\
 def _decimal_mark(path: str, skip: int, sample: int = 50) -> str:
     """"," where the data lines (after ``skip`` header lines) of a CSV whose cells are split by ';' or a tab
     write their numbers with decimal commas (a spreadsheet saved in a comma-decimal locale), else "."."""
-    with open(path, "rb") as fh:
-        head = fh.readline(65536).lstrip(b"\xef\xbb\xbf").decode("utf-8", "replace")
-        sep = _delimiter(head)
-        if sep == ",":
-            return "."
-        for _ in range(skip - 1):
-            fh.readline(65536)
-        lines = [fh.readline(65536).decode("utf-8", "replace") for _ in range(sample)]
+    head = _head_lines(path, 0)[0]
+    sep = _delimiter(head)
+    if sep == ",":
+        return "."
+    lines = _head_lines(path, skip - 1 + sample)[skip:]
     cells = [c for line in lines for c in line.strip().split(sep) if c.strip()]
     comma = sum(bool(_COMMA_NUMBER.match(c)) for c in cells)
     point = sum(bool(_POINT_NUMBER.match(c)) for c in cells)
@@ -657,7 +681,7 @@ def sniff(head: bytes, path: str) -> bool:
         return os.path.isfile(os.path.join(path, NGIMU_SENSORS)) or bool(_unit_dirs(path))
     if csv_canonical.sniff(head, path):
         return False
-    return _looks_like_csv_header(head)
+    return _looks_like_csv_header(head[_skip_preamble(head):])
 
 
 @dataclass(frozen=True)
@@ -694,10 +718,25 @@ def _resolve(path: str, selector: Selector) -> _Source:
     return _Source(table, quat_table, unit)
 
 
+#: a preamble line stating the data's frames (Xsens MT Manager: ``// Coordinate system: ENU``; its sensor
+#: frame is the case's x forward, z up in ENU and NWU, and turned to z down in NED): (body, navigation)
+_STATED_FRAMES = re.compile(rb"^\s*//\s*coordinate system\s*:\s*(ENU|NED|NWU)\s*$", re.IGNORECASE | re.MULTILINE)
+_PREAMBLE_FRAMES = {"ENU": ("FLU", "ENU"), "NED": ("FRD", "NED"), "NWU": ("FLU", "NWU")}
+
+
 def column_map_for(src: _Source, selector: Selector) -> ColumnMap:
     cmap = _column_map(src, selector)
     mark = _decimal_mark(src.table, 2 if cmap.units_row else 1)
-    return cmap if mark == cmap.decimal else replace(cmap, decimal=mark)
+    if mark != cmap.decimal:
+        cmap = replace(cmap, decimal=mark)
+    if not cmap.frame_stated and (start := header_offset(src.table)):
+        with open(src.table, "rb") as fh:
+            m = _STATED_FRAMES.search(fh.read(start))
+        if m is not None:  # (the preamble says the frames: no guess, no warning)
+            body, nav = _PREAMBLE_FRAMES[m.group(1).decode().upper()]
+            cmap = replace(cmap, body_frame=body, nav_frame=nav, frame_stated=True,
+                           origin=cmap.origin + f"; frames {body}/{nav} from its '{m.group(0).decode().strip()}'")
+    return cmap
 
 
 def _column_map(src: _Source, selector: Selector) -> ColumnMap:
@@ -751,9 +790,7 @@ def _datetime_named(path: str, columns: list[str], sample: int = 20) -> list[str
     """The header with ``(datetime)`` after each time column that has no unit and whose first ``sample`` data
     cells are mostly ISO 8601 date-times (``Timestamp``, ``UTC Time``: a logger's or pandas' export); None
     where there is none."""
-    with open(path, "rb") as fh:
-        head = fh.readline(65536).lstrip(b"\xef\xbb\xbf").decode("utf-8", "replace")
-        lines = [fh.readline(65536).decode("utf-8", "replace") for _ in range(sample)]
+    head, *lines = _head_lines(path, sample)
     sep = _delimiter(head)
     rows = [[c.strip().strip('"') for c in line.strip().split(sep)] for line in lines if line.strip()]
     out, found = list(columns), False
@@ -831,7 +868,7 @@ def _convert_frames(cmap: ColumnMap, groups: dict[str, np.ndarray], quat: str | 
 def _streams_from_table(path: str, cmap: ColumnMap, groups_wanted: tuple[str, ...],
                         warns: list[str]) -> dict[str, Stream]:
     time_col = cmap.column_for("time")
-    df, w = _read_table(path, time_col, units_row=cmap.units_row, decimal=cmap.decimal)
+    df, w = _read_table(path, time_col, header_offset(path), units_row=cmap.units_row, decimal=cmap.decimal)
     warns.extend(w)
     if time_col not in df.columns:
         raise InputError(f"no column {time_col!r} in CSV", path)

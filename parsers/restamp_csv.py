@@ -256,18 +256,20 @@ def restamp_bytes(raw: bytes, time_col: str, unit: str, shift: ClockShift, path:
 
 
 def _rewrite_file(src: str, dst: str, time_col: str, unit: str, shift: ClockShift, start: int = 0,
-                  units_row: bool = False, decimal: str = ".", also: tuple[tuple[str, str], ...] = ()
-                  ) -> tuple[int, int]:
-    """``src`` from byte ``start`` (its header line) restamped into ``dst``: (data lines rewritten, damaged
-    lines kept as they were); ``also``: more time columns (column, unit) rewritten the same way."""
+                  units_row: bool = False, decimal: str = ".", also: tuple[tuple[str, str], ...] = (),
+                  preamble: int = 0) -> tuple[int, int]:
+    """``src`` from byte ``start`` restamped into ``dst``: (data lines rewritten, damaged lines kept as they
+    were); ``also``: more time columns (column, unit) rewritten the same way; ``preamble``: bytes after
+    ``start`` before the header line (comment lines) copied as they are."""
     with open(src, "rb") as fh:
         fh.seek(start)
         raw = fh.read()
-    new, n, bad, shifts = restamp_bytes(raw, time_col, unit, shift, src, units_row, decimal)
+    new, n, bad, shifts = restamp_bytes(raw[preamble:], time_col, unit, shift, src, units_row, decimal)
     for col, u in also:  # (moved by each line's shift: a column on another clock too)
         new = restamp_bytes(new.tobytes(), col, u, shift, src, units_row, decimal, moved=shifts)[0]
-    with atomic_path(dst) as tmp:
-        new.tofile(tmp)
+    with atomic_path(dst) as tmp, open(tmp, "wb") as out:
+        out.write(raw[:preamble])
+        new.tofile(out)
     return n, bad
 
 
@@ -313,7 +315,7 @@ def restamp_csv_vendor(src: str, dst: str, shift: ClockShift, *, selector=None) 
     unit = cmap.columns[time_col][1]
     if not os.path.isdir(src):
         n, bad = _rewrite_file(src, dst, time_col, unit, shift, units_row=cmap.units_row, decimal=cmap.decimal,
-                               also=cmap.also_time)
+                               also=cmap.also_time, preamble=cv.header_offset(src))
         return RestampStats(path=dst, format="csv-vendor", how=HOW, records=n, records_by_type={"rows": n},
                             time_fields=(time_col,) + tuple(c for c, _u in cmap.also_time),
                             damage=(f"{bad} line(s) without a readable time copied unchanged",) if bad else ())
@@ -331,7 +333,7 @@ def restamp_csv_vendor(src: str, dst: str, shift: ClockShift, *, selector=None) 
                 continue
             header = cv._header_of(a) if name.lower().endswith(".csv") else []
             if time_col in header:
-                n, bad = _rewrite_file(a, b, time_col, unit, shift)
+                n, bad = _rewrite_file(a, b, time_col, unit, shift, preamble=cv.header_offset(a))
                 by_file[name] = n
                 if bad:
                     damage.append(f"{name}: {bad} line(s) without a readable time copied unchanged")

@@ -896,6 +896,37 @@ def test_a_delimiter_after_each_lines_last_value_shifts_no_column(tmp_path, kind
     assert any("more cells than the header" in w for w in registry.load(str(extra)).meta.warnings)
 
 
+def test_vendor_csv_with_comment_lines_before_its_header(tmp_path):
+    """Comment lines before the header (Xsens MT Manager's export: ``// General information:`` ...
+    ``// Coordinate system: ENU``, a BOM first) were read as the header ('first line is no header').
+    Skipped: the samples of the same file without them; the stated coordinate system gives the frames (ENU:
+    FLU body; no 'axes taken' warning); the native export keeps the lines byte for byte."""
+    from parsers.restamp import ClockShift
+    from parsers.restamp_csv import restamp_csv_vendor
+
+    head = "Time (s)\tGyro X (rad/s)\tGyro Y (rad/s)\tGyro Z (rad/s)\tAcc X (m/s^2)\tAcc Y (m/s^2)\tAcc Z (m/s^2)\n"
+    rows = "".join(f"{1.7e9 + x:.3f}\t{np.sin(x):.6f}\t0.25\t-0.125\t0.5\t0.0\t-9.8\n" for x in T)
+    pre = "\ufeff// General information:\n//  MT Manager version: 2022.2.0\n// Coordinate system: ENU\n"
+    clean, xsens = tmp_path / "clean.csv", tmp_path / "xsens.csv"
+    clean.write_text(head + rows)
+    xsens.write_text(pre + head + rows, encoding="utf-8")
+    want, got = registry.load(str(clean)), registry.load(str(xsens))
+    np.testing.assert_array_equal(got.t_imu_s(), want.t_imu_s())
+    flu = np.array([1.0, -1.0, -1.0])  # (FLU -> FRD)
+    np.testing.assert_array_equal(got.gyro_rad_s(), want.gyro_rad_s() * flu)
+    np.testing.assert_array_equal(got.accel_m_s2(), want.accel_m_s2() * flu)
+    assert not any("axes taken" in w for w in got.meta.warnings)
+    assert any("axes taken" in w for w in want.meta.warnings)
+    sh = ClockShift(0.0123456789, 87.5, got.meta.t0_ns + 1_000_000_000)
+    restamp_csv_vendor(str(xsens), str(tmp_path / "out.csv"), sh)
+    out = (tmp_path / "out.csv").read_bytes()
+    assert out.startswith(pre.encode("utf-8") + head.encode())
+    back = registry.load(str(tmp_path / "out.csv"))
+    ns = got.meta.t0_ns + np.round(got.t_imu_s() * 1e9).astype(np.int64)
+    np.testing.assert_array_equal(back.meta.t0_ns + np.round(back.t_imu_s() * 1e9).astype(np.int64),
+                                  sh.to_master_ns(ns))
+
+
 def test_ulog2csv_topics_read_as_the_ulog(tmp_path):
     """PX4 topics written to CSV by pyulog's own ``ulog2csv`` (``timestamp,gyro_rad[0],...``; no units, PX4's
     field names) read as the ULog does: sensor_combined's rates and specific forces (the accelerometer at its
