@@ -95,6 +95,10 @@ def _named_like(path: str) -> str:
     if not named:
         return ""
     if all(m.NAME.startswith("csv") for m in named):
+        with open(path, "rb") as fh:
+            bom = fh.read(2)
+        if bom in (b"\xff\xfe", b"\xfe\xff"):  # (Excel's "Unicode text", some Windows loggers)
+            return "; a CSV in UTF-16 text: save it as UTF-8 (or ASCII) and read that"
         return ("; named like a CSV, but its first line is no header of named columns (damaged?): a CSV is "
                 "read through its header (time_s,... or names with units)")
     return f"; named like {named[0].NAME}, but its first bytes are not (damaged, or another format?)"

@@ -927,6 +927,19 @@ def test_vendor_csv_with_comment_lines_before_its_header(tmp_path):
                                   sh.to_master_ns(ns))
 
 
+def test_a_utf16_csv_is_named_as_such(tmp_path, capsys):
+    """A CSV saved as UTF-16 text (Excel's "Unicode text"): one line that says so and what to do, not
+    'damaged?'."""
+    from pipelines.cli import main
+
+    p = tmp_path / "unit.csv"
+    p.write_text("Time (s),Gyro X (rad/s),Gyro Y (rad/s),Gyro Z (rad/s)\n" + "".join(
+        f"{t:.2f},0.1,0.2,0.3\n" for t in T), encoding="utf-16")
+    assert main(["inspect", str(p)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "UTF-16 text: save it as UTF-8" in err and "damaged" not in err
+
+
 def test_ulog2csv_topics_read_as_the_ulog(tmp_path):
     """PX4 topics written to CSV by pyulog's own ``ulog2csv`` (``timestamp,gyro_rad[0],...``; no units, PX4's
     field names) read as the ULog does: sensor_combined's rates and specific forces (the accelerometer at its
