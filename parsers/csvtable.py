@@ -132,27 +132,33 @@ def _decimal_cells(buf, starts, ends, scale_pow10, point):  # pragma: no cover -
     return out, ok
 
 
-_DECIMAL_CELLS = []
+_KERNELS: dict = {}
+
+
+def _cells_kernel(fn):
+    """The cell scan ``fn`` compiled with numba on first use (cached on disk) when this process runs compiled
+    kernels (logtools.jit); the plain function otherwise, with numpy's overflow warnings off (plain Python
+    over numpy scalars: the overflow guards' wrap-around warns there)."""
+    kernel = _KERNELS.get(fn.__name__)
+    if kernel is None:
+        from logtools import jit
+
+        if jit.compiled():
+            kernel = jit.njit(fn, nogil=True)
+        else:
+            def kernel(*args, _fn=fn):
+                with np.errstate(over="ignore"):
+                    return _fn(*args)
+        _KERNELS[fn.__name__] = kernel
+    return kernel
 
 
 def decimal_cells_to_int(buf: np.ndarray, starts: np.ndarray, ends: np.ndarray, scale_pow10: int,
                          decimal: str = ".") -> tuple[np.ndarray, np.ndarray]:
     """(int64 value * 10**scale_pow10, valid mask) of the decimal text in cells ``buf[starts[i]:ends[i]]``
-    (``_decimal_cells``: compiled with numba on first use, cached on disk, when this process runs compiled
-    kernels (logtools.jit); the plain function otherwise)."""
-    if not _DECIMAL_CELLS:
-        from logtools import jit
-
-        if jit.compiled():
-            _DECIMAL_CELLS.append(jit.njit(_decimal_cells, nogil=True))
-        else:  # plain Python over numpy scalars: the overflow guard's wrap-around warns there
-            def quiet(buf, starts, ends, scale_pow10, point):
-                with np.errstate(over="ignore"):
-                    return _decimal_cells(buf, starts, ends, scale_pow10, point)
-
-            _DECIMAL_CELLS.append(quiet)
-    return _DECIMAL_CELLS[0](buf, np.asarray(starts, np.int64), np.asarray(ends, np.int64), scale_pow10,
-                             ord(decimal))
+    (:func:`_decimal_cells`, :func:`_cells_kernel`)."""
+    return _cells_kernel(_decimal_cells)(buf, np.asarray(starts, np.int64), np.asarray(ends, np.int64),
+                                         scale_pow10, ord(decimal))
 
 
 def _iso_cells(buf, starts, ends):  # pragma: no cover - compiled
@@ -278,17 +284,9 @@ def _iso_cells(buf, starts, ends):  # pragma: no cover - compiled
     return out, ok, off, sep, nfrac, zone, zkind
 
 
-_ISO_CELLS: list = []
-
-
 def iso_cells_to_ns(buf: np.ndarray, starts: np.ndarray, ends: np.ndarray):
-    """:func:`_iso_cells` (compiled with numba on first use, cached on disk, when this process runs compiled
-    kernels; the plain function otherwise)."""
-    if not _ISO_CELLS:
-        from logtools import jit
-
-        _ISO_CELLS.append(jit.njit(_iso_cells, nogil=True) if jit.compiled() else _iso_cells)
-    return _ISO_CELLS[0](buf, np.asarray(starts, np.int64), np.asarray(ends, np.int64))
+    """:func:`_iso_cells` (:func:`_cells_kernel`)."""
+    return _cells_kernel(_iso_cells)(buf, np.asarray(starts, np.int64), np.asarray(ends, np.int64))
 
 
 def datetime_text_to_ns(text: pd.Series) -> tuple[np.ndarray, np.ndarray, float, bool]:

@@ -73,72 +73,18 @@ def _cells(buf, k, sep):  # pragma: no cover - compiled
     return ls[:m], le[:m], cs[:m], ce[:m]
 
 
-def _emit(buf, ls, le, cs, ce, ok, new, p, out, point):  # pragma: no cover - compiled
-    """Copy the data lines into ``out``, the time cell of each ``ok`` line replaced by ``new`` with
-    ``p`` decimals after the mark ``point`` (46 '.', 44 ','; the cell's surrounding spaces/quotes kept).
-    Returns the bytes written."""
+def _emit(buf, ls, le, cs, ce, ok, new, p, point, off, sep, zone, out):  # pragma: no cover - compiled
+    """Copy the data lines into ``out``, the time cell of each ``ok`` line replaced by ``new`` (the cell's
+    surrounding spaces/quotes kept). A decimal number with ``p`` decimals after the mark ``point`` (46 '.',
+    44 ','), or, where ``off`` has a value per line, an ISO 8601 date-time (csvtable._iso_cells; ``new`` in
+    ns, UTC): at the cell's own offset ``off`` (s) from UTC, with its separator ``sep``, nine fractional
+    digits and its zone text as it was (from ``zone`` to the cell's end). Returns the bytes written."""
+    iso = off.shape[0] > 0
     o = 0
     digits = np.empty(24, np.uint8)
     scale = np.int64(1)
     for _ in range(p):
         scale *= 10
-    for i in range(ls.shape[0]):
-        if not ok[i]:
-            for j in range(ls[i], le[i]):
-                out[o] = buf[j]
-                o += 1
-        else:
-            a = cs[i]
-            b = ce[i]
-            while a < b and (buf[a] == 32 or buf[a] == 34):
-                a += 1
-            while b > a and (buf[b - 1] == 32 or buf[b - 1] == 34 or buf[b - 1] == 13):
-                b -= 1
-            for j in range(ls[i], a):
-                out[o] = buf[j]
-                o += 1
-            v = new[i]
-            if v < 0:
-                out[o] = 45
-                o += 1
-                v = -v
-            w = v // scale
-            f = v % scale
-            nd = 0
-            if w == 0:
-                digits[0] = 48
-                nd = 1
-            while w > 0:
-                digits[nd] = 48 + w % 10
-                w //= 10
-                nd += 1
-            for j in range(nd):
-                out[o] = digits[nd - 1 - j]
-                o += 1
-            if p > 0:
-                out[o] = point
-                o += 1
-                for j in range(p):
-                    digits[p - 1 - j] = 48 + f % 10
-                    f //= 10
-                for j in range(p):
-                    out[o] = digits[j]
-                    o += 1
-            for j in range(b, le[i]):
-                out[o] = buf[j]
-                o += 1
-        if le[i] < buf.shape[0]:
-            out[o] = 10
-            o += 1
-    return o
-
-
-def _emit_iso(buf, ls, le, cs, ce, ok, new, off, sep, zone, out):  # pragma: no cover - compiled
-    """:func:`_emit` for ISO 8601 date-time cells (csvtable._iso_cells): each ``ok`` line's cell written as
-    ``new`` (ns, UTC) at the cell's own offset ``off`` (s) from UTC, with its separator ``sep``, nine
-    fractional digits and its zone text as it was (from ``zone`` to the cell's end); the cell's surrounding
-    spaces/quotes kept. Returns the bytes written."""
-    o = 0
     fields = np.zeros(6, np.int64)
     widths = np.array([4, 2, 2, 2, 2, 2], np.int64)
     marks = np.array([45, 45, 84, 58, 58, 46], np.uint8)  # - - T : : .
@@ -157,40 +103,69 @@ def _emit_iso(buf, ls, le, cs, ce, ok, new, off, sep, zone, out):  # pragma: no 
             for j in range(ls[i], a):
                 out[o] = buf[j]
                 o += 1
-            t = new[i] + off[i] * np.int64(1_000_000_000)
-            sub = t % np.int64(1_000_000_000)
-            secs = (t - sub) // np.int64(1_000_000_000)
-            sod = secs % 86400
-            z = (secs - sod) // 86400 + 719468  # civil date from days (H. Hinnant's algorithm)
-            era = (z if z >= 0 else z - 146096) // 146097
-            doe = z - era * 146097
-            yoe = (doe - doe // 1460 + doe // 36524 - doe // 146096) // 365
-            y = yoe + era * 400
-            doy = doe - (365 * yoe + yoe // 4 - yoe // 100)
-            mp = (5 * doy + 2) // 153
-            d = doy - (153 * mp + 2) // 5 + 1
-            m = mp + (3 if mp < 10 else -9)
-            if m <= 2:
-                y += 1
-            fields[0], fields[1], fields[2] = y, m, d
-            fields[3], fields[4], fields[5] = sod // 3600, (sod // 60) % 60, sod % 60
-            marks[2] = sep[i]
-            for f in range(6):
-                v = fields[f]
-                for k in range(widths[f] - 1, -1, -1):
+            if iso:
+                t = new[i] + off[i] * np.int64(1_000_000_000)
+                sub = t % np.int64(1_000_000_000)
+                secs = (t - sub) // np.int64(1_000_000_000)
+                sod = secs % 86400
+                z = (secs - sod) // 86400 + 719468  # civil date from days (H. Hinnant's algorithm)
+                era = (z if z >= 0 else z - 146096) // 146097
+                doe = z - era * 146097
+                yoe = (doe - doe // 1460 + doe // 36524 - doe // 146096) // 365
+                y = yoe + era * 400
+                doy = doe - (365 * yoe + yoe // 4 - yoe // 100)
+                mp = (5 * doy + 2) // 153
+                d = doy - (153 * mp + 2) // 5 + 1
+                m = mp + (3 if mp < 10 else -9)
+                if m <= 2:
+                    y += 1
+                fields[0], fields[1], fields[2] = y, m, d
+                fields[3], fields[4], fields[5] = sod // 3600, (sod // 60) % 60, sod % 60
+                marks[2] = sep[i]
+                for f in range(6):
+                    v = fields[f]
+                    for k in range(widths[f] - 1, -1, -1):
+                        out[o + k] = 48 + v % 10
+                        v //= 10
+                    o += widths[f]
+                    out[o] = marks[f]
+                    o += 1
+                v = sub
+                for k in range(8, -1, -1):
                     out[o + k] = 48 + v % 10
                     v //= 10
-                o += widths[f]
-                out[o] = marks[f]
-                o += 1
-            v = sub
-            for k in range(8, -1, -1):
-                out[o + k] = 48 + v % 10
-                v //= 10
-            o += 9
-            for j in range(zone[i], b):
-                out[o] = buf[j]
-                o += 1
+                o += 9
+                for j in range(zone[i], b):
+                    out[o] = buf[j]
+                    o += 1
+            else:
+                v = new[i]
+                if v < 0:
+                    out[o] = 45
+                    o += 1
+                    v = -v
+                w = v // scale
+                f = v % scale
+                nd = 0
+                if w == 0:
+                    digits[0] = 48
+                    nd = 1
+                while w > 0:
+                    digits[nd] = 48 + w % 10
+                    w //= 10
+                    nd += 1
+                for j in range(nd):
+                    out[o] = digits[nd - 1 - j]
+                    o += 1
+                if p > 0:
+                    out[o] = point
+                    o += 1
+                    for j in range(p):
+                        digits[p - 1 - j] = 48 + f % 10
+                        f //= 10
+                    for j in range(p):
+                        out[o] = digits[j]
+                        o += 1
             for j in range(b, le[i]):
                 out[o] = buf[j]
                 o += 1
@@ -201,6 +176,7 @@ def _emit_iso(buf, ls, le, cs, ce, ok, new, off, sep, zone, out):  # pragma: no 
 
 
 _kernel = kernel_loader(globals())  # the numba kernels above, compiled (and cached) on first use
+
 
 def restamp_bytes(raw: bytes, time_col: str, unit: str, shift: ClockShift, path: str, units_row: bool = False,
                   decimal: str = ".", moved: np.ndarray | None = None
@@ -232,6 +208,7 @@ def restamp_bytes(raw: bytes, time_col: str, unit: str, shift: ClockShift, path:
         ns, ok, off, dsep, _nfrac, zone, _zkind = iso_cells_to_ns(body, cs, ce)
     else:
         ns, ok = decimal_cells_to_int(body, cs, ce, p, decimal)  # (the readers' scan: every time they read)
+        off, dsep, zone = np.zeros(0, np.int64), np.zeros(0, np.uint8), np.zeros(0, np.int64)  # (no date-times)
     blank = le <= ls
     # a value in the unit times 10**p is nanoseconds exactly (s: p=9, ms: 6, us: 3, ns: 0)
     new = ns.copy()
@@ -244,14 +221,11 @@ def restamp_bytes(raw: bytes, time_col: str, unit: str, shift: ClockShift, path:
     shifts[ok] = new[ok] - ns[ok]
     last = raw.find(b"\n", base) if base else nl  # (the last header line's end)
     head_end = len(raw) if last < 0 else last + 1
-    if dated:  # (a cell grows by 13 bytes at most: 'YYYY-MM-DDTHH:MM' -> seconds and nine fractional digits)
-        out = np.empty(len(raw) + 16 * len(ls) + 1, dtype=np.uint8)
-        out[:head_end] = buf[:head_end]
-        n = _kernel("_emit_iso")(body, ls, le, cs, ce, ok, new, off, dsep, zone, out[head_end:])
-    else:
-        out = np.empty(len(raw) + 24 * len(ls) + 1, dtype=np.uint8)
-        out[:head_end] = buf[:head_end]
-        n = _kernel("_emit")(body, ls, le, cs, ce, ok, new, p, out[head_end:], ord(decimal))
+    # (a cell grows by at most 24 bytes: a number's digits; a date-time's 13, 'YYYY-MM-DDTHH:MM' given seconds
+    # and nine fractional digits)
+    out = np.empty(len(raw) + 24 * len(ls) + 1, dtype=np.uint8)
+    out[:head_end] = buf[:head_end]
+    n = _kernel("_emit")(body, ls, le, cs, ce, ok, new, p, ord(decimal), off, dsep, zone, out[head_end:])
     return out[:head_end + n], int(ok.sum()), int((~ok & ~blank).sum()), shifts
 
 

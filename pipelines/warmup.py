@@ -62,7 +62,7 @@ def warm(quiet: bool = False) -> float:
                                 got.meta.selector)
             _say(quiet, f"  {fmt} native export: {time.perf_counter() - t:.1f} s")
         # a vendor CSV of ISO 8601 date-times: their scan and their writer (parsers.csvtable._iso_cells,
-        # parsers.restamp_csv._emit_iso)
+        # parsers.restamp_csv._emit)
         import numpy as np
 
         iso = os.path.join(d, "iso.csv")
