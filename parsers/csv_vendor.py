@@ -375,6 +375,22 @@ def _ngimu_map(columns: list[str]) -> ColumnMap | None:
                      frame_stated=True, ignored=cmap.ignored, notes=cmap.notes)
 
 
+def _complete_groups(found: dict[str, tuple[str, str]]) -> dict[str, tuple[str, str]]:
+    """``found`` (column -> (canonical name, unit)) without the columns of groups it has in part (empty where
+    no group is complete)."""
+    names = {v[0] for v in found.values()}
+    complete = [g for g, ns in GROUPS.items() if set(ns) <= names]
+    return {c: v for c, v in found.items() if any(v[0] in GROUPS[g] for g in complete)}
+
+
+def _format_map(found: dict[str, tuple[str, str]], columns: list[str], frames: tuple[str, str], origin: str,
+                **more) -> ColumnMap:
+    """The column map of a CSV a log format's own tool wrote (its columns' units and frames known by the
+    format's conventions): every other column ignored, the frames (body, navigation) stated."""
+    return ColumnMap(found, body_frame=frames[0], nav_frame=frames[1], quat="body_to_nav", origin=origin,
+                     frame_stated=True, ignored=tuple(c for c in columns if c not in found), **more)
+
+
 #: ROS message fields as CSV exports of bags name them (``rostopic echo -p``: ``field.angular_velocity.x``;
 #: PlotJuggler: ``/imu/angular_velocity/x``; bagpy: ``angular_velocity.x``): sensor_msgs/Imu's rates,
 #: specific forces and orientation, in SI units and REP 103's frames (body FLU, world ENU) by convention
@@ -411,9 +427,7 @@ def _ros_fields_map(path: str, columns: list[str], sample: int = 20) -> ColumnMa
     if not {"accel_x", "accel_y", "accel_z"} <= names:
         found = {c: v for c, v in found.items() if not v[0].startswith("accel_")}
     notes: list[str] = []
-    lines = _head_lines(path, sample)[1:]
-    sep = _delimiter(",".join(columns))
-    rows = [[c.strip().strip('"') for c in line.strip().split(sep)] for line in lines if line.strip()]
+    rows = _first_rows(path, sample)
 
     def first(col: str) -> list[float]:
         k = columns.index(col)
@@ -444,9 +458,9 @@ def _ros_fields_map(path: str, columns: list[str], sample: int = 20) -> ColumnMa
         col, unit = times[1]
     found[col] = ("time", unit)
     also = tuple((c, u) for c, u in times if c != col and c in ("field.header.stamp", "%time"))
-    return ColumnMap(found, body_frame="FLU", nav_frame="ENU", quat="body_to_nav",
-                     origin="ROS message fields (SI units, REP 103 frames: FLU body, ENU world)", frame_stated=True,
-                     ignored=tuple(c for c in columns if c not in found), notes=tuple(notes), also_time=also)
+    return _format_map(found, columns, ("FLU", "ENU"),
+                       "ROS message fields (SI units, REP 103 frames: FLU body, ENU world)", notes=tuple(notes),
+                       also_time=also)
 
 
 #: ArduPilot DataFlash messages dumped to CSV by pymavlink's ``mavlogdump.py --format csv --types IMU`` (the
@@ -469,13 +483,10 @@ def _ardupilot_map(path: str, columns: list[str], sample: int = 40) -> ColumnMap
     one; an InputError for several instances (IMU's I, an EKF core's C) interleaved in one file."""
     if "TimeUS" not in columns or "timestamp" not in columns:
         return None
-    found = {c: _AP_FIELDS[c] for c in columns if c in _AP_FIELDS}
-    names = {v[0] for v in found.values()}
-    complete = [g for g, ns in GROUPS.items() if set(ns) <= names]
-    if not complete:
+    found = _complete_groups({c: _AP_FIELDS[c] for c in columns if c in _AP_FIELDS})
+    if not found:
         return None
-    found = {c: v for c, v in found.items() if any(v[0] in GROUPS[g] for g in complete)}
-    rows = [line.strip().split(",") for line in _head_lines(path, sample)[1:] if line.strip()]
+    rows = _first_rows(path, sample)
     for inst in _AP_INSTANCE:
         if inst in columns:
             k = columns.index(inst)
@@ -491,9 +502,8 @@ def _ardupilot_map(path: str, columns: list[str], sample: int = 40) -> ColumnMap
         unix = False
     time, other = (("timestamp", "s"), ("TimeUS", "us")) if unix else (("TimeUS", "us"), ("timestamp", "s"))
     found[time[0]] = ("time", time[1])
-    return ColumnMap(found, body_frame="FRD", nav_frame="NED", quat="body_to_nav",
-                     origin="ArduPilot DataFlash fields (mavlogdump CSV: their own units, FRD/NED)", frame_stated=True,
-                     ignored=tuple(c for c in columns if c not in found), also_time=(other,))
+    return _format_map(found, columns, ("FRD", "NED"),
+                       "ArduPilot DataFlash fields (mavlogdump CSV: their own units, FRD/NED)", also_time=(other,))
 
 
 def _mavlink_dump_map(columns: list[str]) -> ColumnMap | None:
@@ -532,9 +542,9 @@ def _mavlink_dump_map(columns: list[str]) -> ColumnMap | None:
     if not found or time is None:
         return None
     found[time[0]] = ("time", time[1])
-    return ColumnMap(found, body_frame="FRD", nav_frame="NED", quat="body_to_nav",
-                     origin=f"MAVLink {msg} fields (mavlogdump CSV: the message's units, FRD/NED)", frame_stated=True,
-                     ignored=tuple(c for c in columns if c not in found), also_time=(("timestamp", "s"),))
+    return _format_map(found, columns, ("FRD", "NED"),
+                       f"MAVLink {msg} fields (mavlogdump CSV: the message's units, FRD/NED)",
+                       also_time=(("timestamp", "s"),))
 
 
 #: PX4 topics written to CSV by pyulog's ``ulog2csv`` (one file per topic: ``LOG_sensor_combined_0.csv``...),
@@ -560,19 +570,16 @@ def _px4_map(columns: list[str]) -> ColumnMap | None:
     for mark, fields in _PX4_TOPICS:
         if mark in columns:
             found.update({c: v for c, v in fields.items() if c in columns})
-    names = {v[0] for v in found.values()}
-    complete = [g for g, ns in GROUPS.items() if set(ns) <= names]
-    if not complete:
+    found = _complete_groups(found)
+    if not found:
         return None
-    found = {c: v for c, v in found.items() if any(v[0] in GROUPS[g] for g in complete)}
     found["timestamp"] = ("time", "us")
     from parsers.ulog import RELATIVE_TIMESTAMP_INVALID
 
     rel = (("accel", "accelerometer_timestamp_relative", "us", RELATIVE_TIMESTAMP_INVALID),) if (
-        "accel" in complete and "accelerometer_timestamp_relative" in columns) else ()
-    return ColumnMap(found, body_frame="FRD", nav_frame="NED", quat="body_to_nav",
-                     origin="PX4 topic fields (ulog2csv: PX4's units, FRD/NED)", frame_stated=True,
-                     ignored=tuple(c for c in columns if c not in found), group_time=rel)
+        "accel_x" in (v[0] for v in found.values()) and "accelerometer_timestamp_relative" in columns) else ()
+    return _format_map(found, columns, ("FRD", "NED"), "PX4 topic fields (ulog2csv: PX4's units, FRD/NED)",
+                       group_time=rel)
 
 
 # ============================================================================================
@@ -611,6 +618,13 @@ def _head_lines(path: str, n: int) -> list[str]:
         ln.decode("utf-8", "replace") for ln in lines[1:]]
 
 
+def _first_rows(path: str, n: int) -> list[list[str]]:
+    """The cells of the first ``n`` data lines (after the header), split as the header is, unquoted."""
+    head, *lines = _head_lines(path, n)
+    sep = _delimiter(head)
+    return [[c.strip().strip('"') for c in line.strip().split(sep)] for line in lines if line.strip()]
+
+
 def _header_of(path: str) -> list[str]:
     text = _head_lines(path, 0)[0].strip()
     return [c.strip().strip('"') for c in text.split(_delimiter(text))]
@@ -640,11 +654,11 @@ _POINT_NUMBER = re.compile(r"^\s*\"?[-+]?(?:\d+\.\d*|\.\d+)(?:[eE][-+]?\d+)?\"?\
 def _decimal_mark(path: str, skip: int, sample: int = 50) -> str:
     """"," where the data lines (after ``skip`` header lines) of a CSV whose cells are split by ';' or a tab
     write their numbers with decimal commas (a spreadsheet saved in a comma-decimal locale), else "."."""
-    head = _head_lines(path, 0)[0]
-    sep = _delimiter(head)
+    lines = _head_lines(path, skip - 1 + sample)
+    sep = _delimiter(lines[0])
     if sep == ",":
         return "."
-    lines = _head_lines(path, skip - 1 + sample)[skip:]
+    lines = lines[skip:]
     cells = [c for line in lines for c in line.strip().split(sep) if c.strip()]
     comma = sum(bool(_COMMA_NUMBER.match(c)) for c in cells)
     point = sum(bool(_POINT_NUMBER.match(c)) for c in cells)
@@ -790,9 +804,7 @@ def _datetime_named(path: str, columns: list[str], sample: int = 20) -> list[str
     """The header with ``(datetime)`` after each time column that has no unit and whose first ``sample`` data
     cells are mostly ISO 8601 date-times (``Timestamp``, ``UTC Time``: a logger's or pandas' export); None
     where there is none."""
-    head, *lines = _head_lines(path, sample)
-    sep = _delimiter(head)
-    rows = [[c.strip().strip('"') for c in line.strip().split(sep)] for line in lines if line.strip()]
+    rows = _first_rows(path, sample)
     out, found = list(columns), False
     for k, col in enumerate(columns):
         toks, unit = split_name_unit(col)
