@@ -236,6 +236,9 @@ class MasterSeries:
     #: between two navigation samples is in the slave's velocity through the lever arm, and rates
     #: interpolated from the navigation rate do not have it)
     w_t_s: np.ndarray | None = None
+    #: (K-1,) True at the steps of ``t_s`` that are gaps in the master's output (run._nav_gaps: no measurement
+    #: across them), worked out once by run._master_series
+    gap: np.ndarray | None = None
 
     @property
     def w_stamps_s(self) -> np.ndarray:

@@ -175,7 +175,7 @@ def _prepare(master: InsLog, slave: InsLog, kind: FilterKind, match: str, opts: 
     ms = _master_series_cached(master, config)
     win = _delay_window(kind, opts, config, master, ms, t_imu, gyro, notes)
     t_imu, gyro, accel, span_s = _overlap(master, ms, t_imu, gyro, accel, win, src)
-    _note_master_gaps(ms, t_imu[0] - win.tau0_s, t_imu[-1] - win.tau0_s, config, notes)
+    _note_master_gaps(ms, t_imu[0] - win.tau0_s, t_imu[-1] - win.tau0_s, notes)
     rates = _rates_on_grid(master, ms, t_imu, gyro, win.tau0_s, config)  # (the coarse mounting's and the seed's)
     if opts.mounting_guess_rpy_deg is not None:
         coarse = CoarseMounting(dcm_from_euler(np.radians(np.asarray(opts.mounting_guess_rpy_deg, float))), True)
@@ -195,7 +195,7 @@ def _prepare(master: InsLog, slave: InsLog, kind: FilterKind, match: str, opts: 
     # the filter's gyro-bias states carry what is left of the bias after the seed: the slave's increments are
     # taken with the seed removed (the bias states are linear, so this is the filter started from the seed)
     ep = _epochs(t_imu, gyro - seed.b_rad_s if seed.applied else gyro, accel, win.dt_upd_s, span_s, config, src,
-                 notes, ms.t_s + win.tau0_s if win.paced else None, _nav_gaps(ms.t_s, config) if win.paced else None)
+                 notes, ms.t_s + win.tau0_s if win.paced else None, ms.gap if win.paced else None)
     ms_lever = _lever_rate_as_integrated(ms, t_imu, config)
     q0, v0, lever0 = _initial_state(master, slave, ms_lever, ep.t_s[0], win.tau0_s, r0, opts, src, notes)
     llh0 = _initial_position(master, slave, ep.t_s[0], opts, notes)
@@ -362,11 +362,10 @@ def _overlap(master: InsLog, ms: MasterSeries, t_imu: np.ndarray, gyro: np.ndarr
     return t_imu, gyro, accel, float(t_b - t_a)
 
 
-def _note_master_gaps(ms: MasterSeries, t_a: float, t_b: float, config: AlignmentConfig, notes: list[str]) -> None:
+def _note_master_gaps(ms: MasterSeries, t_a: float, t_b: float, notes: list[str]) -> None:
     """A note of the gaps in the master's navigation output (:func:`_nav_gaps`) that reach into [t_a, t_b]
     (the overlap, master time): the filter has no measurement across them."""
-    t = ms.t_s
-    gap = _nav_gaps(t, config)
+    t, gap = ms.t_s, ms.gap
     k = np.nonzero(gap & (t[1:] > t_a) & (t[:-1] < t_b))[0]
     if len(k):
         d = t[k + 1] - t[k]
@@ -685,7 +684,7 @@ def _master_series(master: InsLog, config: AlignmentConfig = CONFIG) -> MasterSe
     # bound it go with it: the filter reads both samples around an instant)
     valid[:-1] &= ~gap
     valid[1:] &= ~gap
-    return MasterSeries(t, quat, vel, acc, w, valid, resets, w_t_s=w_t)
+    return MasterSeries(t, quat, vel, acc, w, valid, resets, w_t_s=w_t, gap=gap)
 
 
 def _nav_gaps(t: np.ndarray, config: AlignmentConfig = CONFIG) -> np.ndarray:
@@ -905,7 +904,7 @@ def _rates_on_grid(master: InsLog, ms: MasterSeries, t_imu: np.ndarray, gyro: np
         tm, gm = tm[okm], gm[okm]
         gap |= _in_gap(grid - tau0, tm, _imu_gaps(tm, config))
     elif ms.w_nm_m is not None:  # (the attitude's rate, at the navigation stamps)
-        gap |= _in_gap(grid - tau0, ms.t_s, _nav_gaps(ms.t_s, config))
+        gap |= _in_gap(grid - tau0, ms.t_s, ms.gap)
     grid = grid[~gap]
     if tm is not None:
         w_m = _interp_cols(grid - tau0, tm, gm) if len(grid) else np.zeros((0, 3))
