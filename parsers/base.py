@@ -89,6 +89,9 @@ def rate_of(t_s: np.ndarray) -> float:
 #: the file), a format's own start is looked for: ULog's messages, MCAP's records, SQLite's header, a canonical
 #: CSV's header line
 DAMAGED_HEAD_SEARCH_BYTES = 1 << 16
+#: what is read to look over that window: the window and what a start needs after it (a header line, the
+#: records that must chain), so that format detection and the readers judge a file's start alike
+DAMAGED_HEAD_READ_BYTES = DAMAGED_HEAD_SEARCH_BYTES + (1 << 13)
 #: stamps (int64 ns, any clock) beyond +-this are no clock's reading: 2**62 ns is 146 years, past any boot
 #: clock and UNIX time up to 2116. It is also the int64 headroom: two stamps inside it differ by less than
 #: 2**63 (their step cannot wrap), and adding a boot -> UTC offset (under EPOCH_MAX_NS) cannot wrap either.

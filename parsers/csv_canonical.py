@@ -18,7 +18,8 @@ from logtools.inslog import ACCEL, GYRO, POS, QUAT, VEL, ChannelInfo, InsLog, Lo
 from parsers.assemble import (REPEATED_LINES_SAID, drop_stray, gap_warning, implausible, repeated_lines,
                               split_at_clock_steps, stamp_outliers)
 from parsers.atomic import atomic_path
-from parsers.base import DAMAGED_HEAD_SEARCH_BYTES, Inventory, Selector, StreamInfo, rate_of, stamp_grid_s
+from parsers.base import (DAMAGED_HEAD_READ_BYTES, DAMAGED_HEAD_SEARCH_BYTES, Inventory, Selector, StreamInfo, rate_of,
+                          stamp_grid_s)
 from parsers.csvtable import decimal_text_to_int, non_numeric_text, numeric_block, read_table
 
 NAME = "csv"
@@ -50,15 +51,16 @@ def sniff(head: bytes, path: str) -> bool:
 
 def header_offset(head: bytes) -> int | None:
     """Where the canonical header line begins in ``head`` (a file's first bytes): 0 normally; after bytes
-    put before it (a transfer's garbage in front of the file) the first line start that holds it; None."""
+    put before it (a transfer's garbage in front of the file, up to DAMAGED_HEAD_SEARCH_BYTES) the first line
+    start that holds it; None."""
     if _is_header(head.split(b"\n", 1)[0]):
         return 0
     key = TIME.encode() + b","
-    at = head.find(key)
+    at = head.find(key, 0, DAMAGED_HEAD_SEARCH_BYTES + len(key))
     while at >= 0:  # (the garbage need not end in a line break: the header is where its name begins)
         if _is_header(head[at:].split(b"\n", 1)[0]):
             return at
-        at = head.find(key, at + 1)
+        at = head.find(key, at + 1, DAMAGED_HEAD_SEARCH_BYTES + len(key))
     return None
 
 
@@ -69,9 +71,10 @@ def sniff_damaged(head: bytes, path: str) -> bool:
 
 def header_start(path: str) -> int:
     """The byte the canonical CSV at ``path`` starts at: its header line's (0, or past bytes put before it
-    within DAMAGED_HEAD_SEARCH_BYTES); 0 where none is found (the reader then says what is missing)."""
+    within DAMAGED_HEAD_READ_BYTES, as format detection reads it); 0 where none is found (the reader then says
+    what is missing)."""
     with open(path, "rb") as fh:
-        return header_offset(fh.read(DAMAGED_HEAD_SEARCH_BYTES)) or 0
+        return header_offset(fh.read(DAMAGED_HEAD_READ_BYTES)) or 0
 
 
 def seconds_text_to_ns(values: pd.Series) -> np.ndarray:

@@ -42,8 +42,8 @@ from logtools.conventions import DEG, quat_from_euler
 from logtools.errors import InputError
 from logtools.inslog import InsLog
 from parsers.assemble import ClockOffset, Stream, build_inslog, implausible
-from parsers.base import (EPOCH_MAX_NS, STAMP_LIMIT_NS, Inventory, Selector, StreamInfo, check_readable,
-                          consensus_offset, counts_to_ns, offset_sigma_s, rate_of)
+from parsers.base import (DAMAGED_HEAD_SEARCH_BYTES, EPOCH_MAX_NS, STAMP_LIMIT_NS, Inventory, Selector, StreamInfo,
+                          check_readable, consensus_offset, counts_to_ns, offset_sigma_s, rate_of)
 from parsers.mavlink_common import GPS_EPOCH_UNIX_S, gather_rows, gps_to_unix_ns, scatter_rows, walk_dataflash
 
 NAME = "dataflash"
@@ -162,13 +162,14 @@ def sniff(head: bytes, path: str) -> bool:
 
 
 def sniff_damaged(head: bytes, path: str) -> bool:
-    """A DataFlash log whose first bytes are damaged: an FMT record (89 bytes) followed by another record in
-    the first 4 KiB (the walk skips the bytes before it, and says so)."""
-    i = head.find(b"\xa3\x95\x80", 0, 4096)
+    """A DataFlash log whose first bytes are damaged, or with bytes put before it: an FMT record (89 bytes)
+    followed by another record, from an offset up to DAMAGED_HEAD_SEARCH_BYTES (the walk skips the bytes before
+    it, and says so)."""
+    i = head.find(b"\xa3\x95\x80", 0, DAMAGED_HEAD_SEARCH_BYTES + 3)
     while i >= 0:
         if head[i + 89:i + 91] == bytes([HEAD1, HEAD2]):
             return True
-        i = head.find(b"\xa3\x95\x80", i + 1, 4096)
+        i = head.find(b"\xa3\x95\x80", i + 1, DAMAGED_HEAD_SEARCH_BYTES + 3)
     return False
 
 

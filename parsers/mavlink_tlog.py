@@ -47,7 +47,8 @@ from logtools.errors import InputError
 from logtools.inslog import InsLog
 from parsers.assemble import Stream, assemble_inslog
 from parsers.atomic import atomic_path
-from parsers.base import Inventory, Selector, StreamInfo, check_readable, rate_of, release_free_memory
+from parsers.base import (DAMAGED_HEAD_SEARCH_BYTES, Inventory, Selector, StreamInfo, check_readable, rate_of,
+                          release_free_memory)
 from parsers.mavlink_common import (dtype_from_struct, gather_rows, index_tlog_frames, records_view,
                                     scatter_rows, walk_tlog, x25_crc_block)
 
@@ -394,11 +395,19 @@ def sniff(head: bytes, path: str) -> bool:
     return good >= 4 or (good >= 1 and i >= n)
 
 
+#: the largest tlog record: the 8-byte receive stamp and a MAVLink 2 frame with a 255-byte payload and a signature
+_MAX_RECORD_BYTES = 8 + 12 + 255 + 13
+
+
 def sniff_damaged(head: bytes, path: str) -> bool:
-    """A tlog whose first bytes are damaged: records chain (as :func:`sniff` wants them) from an offset in
-    the first 4 KiB (the walk skips the bytes before, and says so)."""
-    return any(sniff(head[i:], path) for i in range(1, max(1, min(len(head) - 64, 4096)))
-               if head[i + 8] in (0xFE, 0xFD))
+    """A tlog whose first bytes are damaged, or with bytes put before it: four records chain (as :func:`sniff`
+    wants them) from an offset up to DAMAGED_HEAD_SEARCH_BYTES (the walk skips the bytes before, and says so).
+    Only offsets with room for four records after them: one record running past the end of the bytes read is
+    enough for :func:`sniff` at a file's start, and random bytes held such a "record" near their end."""
+    last = min(len(head) - 4 * _MAX_RECORD_BYTES, DAMAGED_HEAD_SEARCH_BYTES)
+    buf = np.frombuffer(head, np.uint8)[9:max(last + 9, 9)]
+    magic = np.flatnonzero((buf == 0xFE) | (buf == 0xFD)) + 1
+    return any(sniff(head[i:], path) for i in magic.tolist())
 
 
 # ---- streams and clocks ------------------------------------------------------------------------

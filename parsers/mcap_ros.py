@@ -83,11 +83,12 @@ def footer_start(buf) -> int | None:
     return int(_U64.unpack_from(buf, at + 9)[0])
 
 
-def records_start(buf, search: int = DAMAGED_HEAD_SEARCH_BYTES) -> int | None:
-    """Where the records of a file whose magic is damaged begin: the first Header record within ``search``
-    bytes whose profile and library strings fit it and after which two more top-level records chain (valid
-    opcodes, inside the file). Normally byte 8; elsewhere when bytes were put before it or lost from the
-    start (a transfer's garbage before the file, a cut head). None when no such record is found."""
+def records_start(buf, search: int = DAMAGED_HEAD_SEARCH_BYTES + len(MAGIC) + 1) -> int | None:
+    """Where the records of a file whose magic is damaged begin: the first Header record before byte ``search``
+    (bytes put before the file: up to DAMAGED_HEAD_SEARCH_BYTES, then its magic) whose profile and library
+    strings fit it and after which two more top-level records chain (valid opcodes, inside the file). Normally
+    byte 8; elsewhere when bytes were put before it or lost from the start (a transfer's garbage before the
+    file, a cut head). None when no such record is found."""
     n = len(buf)
     head = np.frombuffer(bytes(buf[:min(n, search + 9)]), np.uint8)
     for h in np.flatnonzero(head[:-9] == _OP_HEADER):

@@ -7,7 +7,7 @@ from types import ModuleType
 
 from logtools.errors import InputError
 from logtools.inslog import InsLog
-from parsers.base import Inventory, Selector, check_readable, release_free_memory
+from parsers.base import DAMAGED_HEAD_READ_BYTES, Inventory, Selector, check_readable, release_free_memory
 
 #: format modules, most specific sniffers first. Each has NAME, sniff, load, inventory (and may
 #: have write). A module that is not present (yet) is simply skipped.
@@ -76,22 +76,34 @@ def detect(path: str) -> ModuleType:
                 return mod
         except OSError:
             continue
-    for mod in formats():  # a file whose first bytes are damaged: the formats that can read on past them
-        sniff_damaged = getattr(mod, "sniff_damaged", None)
-        try:
-            if sniff_damaged is not None and not os.path.isdir(path) and sniff_damaged(head, path):
-                return mod
-        except OSError:
-            continue
+    if not os.path.isdir(path):
+        # a file whose first bytes are damaged, or that has bytes put before it: the formats that can read on
+        # past them, each looking for its own start over the same window (base.DAMAGED_HEAD_READ_BYTES); the
+        # formats the file is named like first
+        with open(path, "rb") as fh:
+            head = fh.read(DAMAGED_HEAD_READ_BYTES)
+        named = _named_formats(path)
+        for mod in sorted(formats(), key=lambda m: m not in named):
+            sniff_damaged = getattr(mod, "sniff_damaged", None)
+            try:
+                if sniff_damaged is not None and sniff_damaged(head, path):
+                    return mod
+            except OSError:
+                continue
     if os.path.isdir(path):
         raise InputError("directory holds no recognised log (no metadata.yaml, no sensors.csv)", path)
     raise InputError("unrecognised format (not MCAP, ROS bag, ULog, DataFlash, tlog or CSV)" + _named_like(path), path)
 
 
+def _named_formats(path: str) -> list[ModuleType]:
+    """The format modules whose file extensions the name of ``path`` has."""
+    ext = os.path.splitext(path)[1]
+    return [m for m in formats() if ext and ext.lower() in (e.lower() for e in m.EXTENSIONS)]
+
+
 def _named_like(path: str) -> str:
     """What the file's name suggests, where its content is not that format (a damaged start, mostly)."""
-    ext = os.path.splitext(path)[1]
-    named = [m for m in formats() if ext and ext.lower() in (e.lower() for e in m.EXTENSIONS)]
+    named = _named_formats(path)
     if not named:
         return ""
     if all(m.NAME.startswith("csv") for m in named):

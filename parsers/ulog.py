@@ -91,14 +91,14 @@ DAMAGED_HEAD_CHAIN = 8
 _FORMAT_TEXT = re.compile(rb"[A-Za-z_][A-Za-z0-9_]*:[a-z]")
 
 
-def body_start(buf) -> int | None:
+def body_start(buf, search: int = DAMAGED_HEAD_SEARCH_BYTES) -> int | None:
     """Where the messages of a ULog whose header is damaged resume: the first offset from 16 on (within
-    DAMAGED_HEAD_SEARCH_BYTES) from which DAMAGED_HEAD_CHAIN message headers follow one another plausibly (known
+    ``search`` bytes) from which DAMAGED_HEAD_CHAIN message headers follow one another plausibly (known
     type, size 1..10000, inside the file) and one of them is a format definition ("F", its text ``name:type
     ...``). None where there is no such offset: not a ULog's messages."""
     b = memoryview(buf).cast("B") if not isinstance(buf, (bytes, bytearray)) else buf
     n = len(b)
-    for at in range(16, min(n - 3, 16 + DAMAGED_HEAD_SEARCH_BYTES)):
+    for at in range(16, min(n - 3, 16 + search)):
         pos, chain, fmt = at, 0, False
         while chain < DAMAGED_HEAD_CHAIN and pos + 3 <= n:
             size, typ = b[pos] | (b[pos + 1] << 8), b[pos + 2]
@@ -109,6 +109,19 @@ def body_start(buf) -> int | None:
             pos += 3 + size
         if chain >= DAMAGED_HEAD_CHAIN and fmt:
             return at
+    return None
+
+
+def magic_start(buf) -> int | None:
+    """Where a ULog with bytes put before it (a transfer's garbage in front of the file) starts: the first
+    offset within DAMAGED_HEAD_SEARCH_BYTES that holds its magic, a 16-byte header, and then messages that chain
+    as :func:`body_start` wants them. None where there is none."""
+    b = bytes(buf[:DAMAGED_HEAD_SEARCH_BYTES + len(MAGIC)])
+    at = b.find(MAGIC, 1)
+    while at >= 0:
+        if body_start(buf[at:at + 16 + 4 * _MAX_MSG_SIZE], search=1) == 16:
+            return at
+        at = b.find(MAGIC, at + 1)
     return None
 
 
@@ -124,7 +137,7 @@ def repaired_head(buf: np.ndarray) -> tuple[np.ndarray, int] | None:
 def sniff_damaged(head: bytes, path: str) -> bool:
     """A ULog whose first bytes (its magic among them) are damaged: its messages resume within the first bytes
     read (:func:`body_start`)."""
-    return len(head) > 16 and head[:7] != MAGIC and body_start(head) is not None
+    return len(head) > 16 and head[:7] != MAGIC and (magic_start(head) is not None or body_start(head) is not None)
 
 
 # ============================================================================================
@@ -456,7 +469,11 @@ def read_topics(path: str, names: set[str] | None = None, *, engine: str = "auto
     if len(buf) < 16:
         raise InputError(f"truncated ULog: {len(buf)} bytes, header needs 16", path)
     head_note, byte_shift = None, 0
-    if buf[:7].tobytes() != MAGIC:
+    at = magic_start(buf) if buf[:7].tobytes() != MAGIC else None
+    if at is not None:  # bytes put before the file: read from its header on
+        buf, byte_shift = buf[at:], at
+        head_note = f"damaged: the first {at} bytes are not ULog (bytes put before its header); read from byte {at}"
+    elif buf[:7].tobytes() != MAGIC:
         # a damaged header: the messages read from where they resume, behind a header made anew (in memory;
         # the file is not touched). What lay before them (the flag bits, the first definitions) is lost
         repaired = repaired_head(buf)

@@ -294,6 +294,44 @@ def test_a_damaged_file_start_is_read_past(tmp_path, fmt, ext):
     assert f"named like {registry.detect(str(good)).NAME}" in str(e.value)  # (what the name suggests, said)
 
 
+@pytest.mark.parametrize("fmt,ext", [("tlog", ".tlog"), ("dataflash", ".bin"), ("ulog", ".ulg"), ("mcap", ".mcap"),
+                                     ("rosbag1", ".bag"), ("csv", ".csv")])
+def test_bytes_put_before_a_file_are_skipped_within_the_search_window(tmp_path, fmt, ext):
+    """Random bytes put before a log (a transfer's garbage in front of the file), 5 KiB and the whole search
+    window (base.DAMAGED_HEAD_SEARCH_BYTES): every format finds its own start within the window, as its reader
+    and its native export do (tlog and DataFlash detection looked at the first 4 KiB only, ROS 1 at the first
+    8 KiB, and a ULog was read from its messages behind a header made anew, its start time lost): every
+    sample read, the damage said. Beyond the window: one clear error naming what the file is named like."""
+    from logtools import sim
+    from parsers.base import DAMAGED_HEAD_SEARCH_BYTES
+    from parsers.restamp import ClockShift
+    from pipelines import export
+
+    pair = sim.simulate(sim.scenario_config("vehicle", duration_s=20.0, seed=4))
+    good = tmp_path / f"good{ext}"
+    registry.write(str(good), pair.slave, fmt)
+    full = registry.load(str(good))
+    rng = np.random.default_rng(7)
+    for n in (5000, DAMAGED_HEAD_SEARCH_BYTES):
+        bad = tmp_path / f"bad{n}{ext}"
+        bad.write_bytes(rng.integers(0, 256, n, dtype=np.uint8).tobytes() + good.read_bytes())
+        assert registry.detect(str(bad)).NAME == registry.detect(str(good)).NAME
+        back = registry.load(str(bad))
+        assert len(back.imu) == len(full.imu) and len(back.nav) == len(full.nav)
+        np.testing.assert_array_equal(back.t_imu_s() + (back.meta.t0_ns - full.meta.t0_ns) * 1e-9, full.t_imu_s())
+        assert any("damaged" in w for w in back.meta.warnings), back.meta.warnings
+        out = tmp_path / f"out{n}{ext}"
+        st = export.write_native(str(bad), str(out), registry.detect(str(bad)).NAME,
+                                 ClockShift(0.01, 0.0, full.meta.t0_ns), back.meta.selector)
+        assert len(registry.load(str(out)).imu) == len(full.imu), st
+    beyond = tmp_path / f"beyond{ext}"
+    beyond.write_bytes(rng.integers(0, 256, DAMAGED_HEAD_SEARCH_BYTES + 4096, dtype=np.uint8).tobytes()
+                       + good.read_bytes())
+    with pytest.raises(InputError) as e:
+        registry.load(str(beyond))
+    assert "beyond" in str(e.value) and "\n" not in str(e.value)
+
+
 def test_a_csv_whose_header_line_is_damaged_is_said_to_be_one():
     """A CSV is read through its header: with the first line garbled the file is no format, and the line
     says the name is a CSV's and why it was not read as one."""
