@@ -877,9 +877,12 @@ def _sqlite_rows(path: str, damage: list[str]) -> tuple[dict[int, tuple[str, str
     max_id, why = rosbag2.max_message_id(con)
     lost_ids: list[tuple[int, int]] | None = None if max_id is None else []
     rows: list[tuple] = []
+    gaps: list[tuple[int, int]] = []
     try:  # (the export keeps every row: all of them are written)
         if max_id is not None:
-            rows = [r for batch in rosbag2.message_rows(con, max_id, lost_ids) for r in batch]
+            rows = [r for batch in rosbag2.message_rows(con, max_id, lost_ids, gaps) for r in batch]
+            lost_ids, why_gaps = rosbag2.unreached(con, max_id, lost_ids, gaps)
+            why = why or why_gaps
     finally:
         con.close()
     if lost_ids is None or lost_ids:  # what SQLite cannot reach, looked for page by page
