@@ -29,6 +29,7 @@ what is done and exits 130; the next run completes the rest.
 from __future__ import annotations
 
 import argparse
+import collections
 import concurrent.futures as cf
 import csv
 import dataclasses
@@ -45,6 +46,7 @@ import signal
 import sys
 import threading
 import time
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict, dataclass, replace
 
 from logtools.errors import InputError, TapostError
@@ -552,7 +554,10 @@ class _SigintLatch:
 
 def _run_local(jobs: list[PairJob], n: int, on_result, latch: _SigintLatch | None = None) -> None:
     """Serial (n = 1, in this process) or ``n`` worker processes, at most ``n`` pairs in flight so
-    that an interrupt stops at once: the running pairs finish their (atomic) writes, no new one starts."""
+    that an interrupt stops at once: the running pairs finish their (atomic) writes, no new one starts.
+    A worker that dies (a crash in a native library on a pair's input, the kernel's out-of-memory killer)
+    breaks its pool: the pairs then in flight run again one at a time in a pool of their own (the one that
+    kills its worker again is a failed row), and the rest go on in a new pool."""
     check = latch.check if latch is not None else (lambda: None)
     if n <= 1:
         for j in jobs:
@@ -561,20 +566,29 @@ def _run_local(jobs: list[PairJob], n: int, on_result, latch: _SigintLatch | Non
         check()
         return
     ctx = mp.get_context(os.environ.get("TAPOST_MP_START", "spawn"))
-    todo = iter(jobs)
+    todo = collections.deque(jobs)
+    while todo:
+        for j in _run_pool(todo, n, ctx, on_result, check):  # (in flight when a worker died)
+            on_result(j, _run_alone(j, ctx))
+            check()
+
+
+def _run_pool(todo: collections.deque, n: int, ctx, on_result, check) -> list[PairJob]:
+    """The pairs of ``todo`` (taken from it) in a pool of ``n`` workers until it is done or broken; the pairs
+    in flight when a worker died (their results unknown), or []."""
     inflight: dict = {}
     with cf.ProcessPoolExecutor(max_workers=n, mp_context=ctx, initializer=_ignore_sigint) as ex:
         def fill() -> None:
-            while len(inflight) < n:
-                j = next(todo, None)
-                if j is None:
-                    return
+            while len(inflight) < n and todo:
+                j = todo.popleft()
                 inflight[ex.submit(run_pair, j)] = j
 
         try:
             fill()
             while inflight:
                 done, _ = cf.wait(list(inflight), return_when=cf.FIRST_COMPLETED)
+                if any(isinstance(f.exception(), BrokenProcessPool) for f in done):
+                    return list(inflight.values())
                 for f in done:
                     j = inflight.pop(f)
                     on_result(j, _result_or_failure(j, f))
@@ -587,6 +601,18 @@ def _run_local(jobs: list[PairJob], n: int, on_result, latch: _SigintLatch | Non
                 j = inflight.pop(f)
                 on_result(j, _result_or_failure(j, f))
             raise
+    return []
+
+
+def _run_alone(job: PairJob, ctx) -> dict:
+    """One pair in a worker of its own: its result, or a failed row where that worker dies too."""
+    with cf.ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=_ignore_sigint) as ex:
+        fut = ex.submit(run_pair, job)
+        if isinstance(fut.exception(), BrokenProcessPool):
+            reason = ("the process analysing this pair died (a crash in a native library or compiled code on its "
+                      "input, or the system's out-of-memory killer); the other pairs ran")
+            return {"row": row_from_report(job, None, "failed", 1, reason), "ran": True}
+        return _result_or_failure(job, fut)
 
 
 def _run_dask(jobs: list[PairJob], address: str, on_result) -> None:

@@ -311,3 +311,31 @@ def _writable(fmt: str) -> bool:
         return hasattr(format_by_name(fmt), "write")
     except Exception:
         return False
+
+
+def _crashing_run_pair(job):
+    """A stand-in run_pair whose worker dies on pair p1 (module level: the pool pickles it by name)."""
+    if job.name == "p1":
+        import faulthandler
+
+        faulthandler.disable()  # (no dump of this deliberate crash in the test's output)
+        os.kill(os.getpid(), signal.SIGSEGV)
+    time.sleep(0.2)
+    return {"row": {"pair": job.name, "status": "ok"}, "ran": True}
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="fork start method and SIGSEGV: POSIX")
+def test_a_pair_that_kills_its_worker_fails_alone(tmp_path, monkeypatch):
+    """A worker process that dies (a crash in a native library on one pair's input: a compiled .db3 walk
+    did, before its bounds checks) broke the whole process pool: the pairs in flight beside it failed
+    ("BrokenProcessPool"), the ones after it never ran, and the batch ended in an exception. Now the pairs
+    in flight run again one at a time: the one that kills its worker again is a failed row that says so,
+    every other pair runs."""
+    monkeypatch.setenv("TAPOST_MP_START", "fork")
+    jobs = [batch.PairJob(f"p{i}", "m", "s", str(tmp_path / f"p{i}")) for i in range(6)]
+    monkeypatch.setattr(batch, "run_pair", _crashing_run_pair)
+    got = {}
+    batch._run_local(jobs, 2, lambda j, r: got.setdefault(j.name, r["row"]))
+    assert sorted(got) == [j.name for j in jobs]
+    assert got["p1"]["status"] == "failed" and "died" in got["p1"]["reason"]
+    assert all(got[n]["status"] == "ok" for n in got if n != "p1")
