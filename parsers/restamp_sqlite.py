@@ -398,62 +398,68 @@ def walk(path: str) -> Walk | None:
     return Walk(buf, rowid, topic, ts_off, data_off, data_len, idx_rowid, idx_ts)
 
 
-def _page_headers(buf: np.ndarray, size: int, page_size: int, usable: int) -> np.ndarray:
-    """(size,) bool: True at each offset where a b-tree page header could start (type 2, 5, 10 or 13; first
+#: at most this many places where two pages running are no b-tree pages are searched for a new page grid
+#: (:func:`_page_grid`; a bag of large messages has long runs of overflow pages, each searched once)
+_GRID_SEARCHES = 256
+
+
+def _page_headers(buf: np.ndarray, offs: np.ndarray, size: int, usable: int) -> np.ndarray:
+    """Whether a b-tree page header could start at each offset of ``offs`` (type 2, 5, 10 or 13; first
     freeblock, cell count, cell content start and fragmented bytes inside a page; the first cell pointer in
     the content area). Random bytes pass at about one offset in 10^9."""
-    b = buf[:size].astype(np.int64)
-    m = size - 14
-    if m <= 0:
-        return np.zeros(size, bool)
-    typ = b[:m]
-    be16 = lambda k: (b[k:k + m] << 8) | b[k + 1:k + 1 + m]  # noqa: E731
-    free, ncell, start = be16(1), be16(3), be16(5)
+    offs = np.asarray(offs, np.int64)
+    inside = (offs >= 0) & (offs + 14 <= size)
+    h = buf[offs[inside][:, None] + np.arange(14)].astype(np.int32)
+    typ, frag = h[:, 0], h[:, 7]
+    free, ncell, start = (h[:, 1] << 8) | h[:, 2], (h[:, 3] << 8) | h[:, 4], (h[:, 5] << 8) | h[:, 6]
     start = np.where(start == 0, 65536, start)
-    hdr = np.where((typ == 2) | (typ == 5), 12, 8)
-    ptr0 = np.where(hdr == 12, be16(12), be16(8))  # (the first cell pointer, after the header)
-    ok = (typ == 2) | (typ == 5) | (typ == 10) | (typ == 13)
+    interior = (typ == 2) | (typ == 5)
+    hdr = np.where(interior, 12, 8)
+    ptr0 = np.where(interior, (h[:, 12] << 8) | h[:, 13], (h[:, 8] << 8) | h[:, 9])
+    ok = interior | (typ == 10) | (typ == 13)
     ok &= (free == 0) | ((free >= 8) & (free < usable))
-    ok &= (ncell >= 1) & (hdr + 2 * ncell <= start) & (start <= usable) & (b[7:7 + m] <= 60)
+    ok &= (ncell >= 1) & (hdr + 2 * ncell <= start) & (start <= usable) & (frag <= 60)
     ok &= (ptr0 >= start) & (ptr0 < usable)
-    out = np.zeros(size, bool)
-    out[:m] = ok
+    out = np.zeros(len(offs), bool)
+    out[np.flatnonzero(inside)] = ok
     return out
 
 
 def _page_grid(buf: np.ndarray, size: int, page_size: int, usable: int) -> tuple[np.ndarray, int, list[str]] | None:
     """``buf`` with its pages put back on the page grid where bytes were lost from inside the file or put in
     (a cut or an insertion moves every later page off the grid, and a page scan at multiples of the page size
-    then finds nothing after it: an 8-byte cut in the first 2 % of a bag lost 99 % of its rows). Page by page:
-    where no page header is at the grid (moved by the shift found so far) for two pages running, the nearest
-    offset within one page either way from which three page headers follow at the page size is the new shift.
-    Returns (the bytes on the grid, their page count, what was said); None where nothing moved."""
-    ok = _page_headers(buf, size, page_size, usable)
+    then finds nothing after it: an 8-byte cut at 2 % of a bag lost 99 % of its rows). Where two pages
+    running have no page header at the grid (moved by the shift found so far), the nearest offset within one
+    page either way from which three page headers follow at the page size gives the new shift; where there is
+    none (overflow or free pages, or damage), the walk goes on at the next page that has one. Returns (the
+    bytes on the grid, their page count, what was said); None where nothing moved."""
     n_pages = size // page_size
-
-    def at(o: int) -> bool:
-        return 0 <= o < size and bool(ok[o])
-
     shift, shifts, said = 0, [], []
     pg = 2  # (page 1 holds the database header)
-    while pg <= n_pages:
+    for _ in range(_GRID_SEARCHES):
+        pages = np.arange(pg, n_pages + 1)
+        good = _page_headers(buf, (pages - 1) * page_size + shift, size, usable)
+        two_bad = np.flatnonzero(~good[:-1] & ~good[1:])
+        if not len(two_bad):
+            break
+        k = int(two_bad[0])
+        pg = int(pages[k])
         base = (pg - 1) * page_size + shift
-        if at(base) or at(base + page_size):
-            pg += 1
-            continue
-        lo, hi = max(base - page_size, 0), min(base + page_size, size - 2 * page_size)
-        cand = [o for o in np.flatnonzero(ok[lo:hi + 1]).tolist()
-                if at(lo + o + page_size) and at(lo + o + 2 * page_size)]
-        if not cand:
-            pg += 1
-            continue
-        new = min((lo + o for o in cand), key=lambda o: abs(o - base)) - (pg - 1) * page_size
-        if new != shift:
+        offs = np.arange(max(base - page_size, 0), min(base + page_size, size) + 1)
+        c = offs[_page_headers(buf, offs, size, usable)]
+        c = c[_page_headers(buf, c + page_size, size, usable) & _page_headers(buf, c + 2 * page_size, size, usable)]
+        if len(c):
+            new = int(c[np.argmin(np.abs(c - base))]) - (pg - 1) * page_size
             shifts.append((pg, new))
             said.append(f"pages from {pg} on are {new:+d} bytes off the page grid (bytes "
                         f"{'lost' if new < 0 else 'put in'} before them): read back on it")
             shift = new
-        pg += 1
+            pg += 1
+        else:
+            nxt = np.flatnonzero(good[k:])
+            if not len(nxt):
+                break
+            pg = int(pages[k + nxt[0]])
     if not shifts:
         return None
     out_pages = n_pages + max(0, -min(s for _, s in shifts)) // page_size + 1
