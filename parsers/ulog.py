@@ -135,8 +135,8 @@ def repaired_head(buf: np.ndarray) -> tuple[np.ndarray, int] | None:
 
 
 def sniff_damaged(head: bytes, path: str) -> bool:
-    """A ULog whose first bytes (its magic among them) are damaged: its messages resume within the first bytes
-    read (:func:`body_start`)."""
+    """A ULog with bytes put before it (its magic and header further on: :func:`magic_start`), or whose first
+    bytes (its magic among them) are damaged (its messages resume within the first bytes read: :func:`body_start`)."""
     return len(head) > 16 and head[:7] != MAGIC and (magic_start(head) is not None or body_start(head) is not None)
 
 
