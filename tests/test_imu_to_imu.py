@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from logtools.alignment.imu_to_imu import consistency, imu_to_imu
+from logtools.alignment.imu_to_imu import ImuToImu, consistency, imu_to_imu
 from logtools.conventions import dcm_from_euler, dcm_from_quat, skew
 from logtools.inslog import InsLog, LogMeta
 
@@ -653,3 +653,21 @@ def test_a_lever_arm_whose_regressors_are_all_noise_is_not_determined():
     assert np.all(np.isinf(np.diag(cov_lev)[:3])) and np.all(np.isfinite(np.diag(cov)))
     _, _, _, cov_ok, *_ = fit_rotation(u, v, k, k_noise_cov=0.01 * noise)
     assert np.all(np.isfinite(np.diag(cov_ok)[:3]))
+
+
+def test_a_marginal_disagreement_is_said_to_be_one():
+    """Beyond consistency_z (3) but within consistency_marginal_z (4) combined sigmas the views disagree
+    marginally and the causes are possible, not likely: random simulated pairs whose triads are one rotation
+    reached z 3.0 and 3.3 (2 of 72: the tails of the accelerometer triad's sigma) and were told "likely the
+    slave's accelerometer triad is not its gyro triad". Beyond 4: likely, as before. ``agrees`` is False in both."""
+    from logtools.alignment.imu_to_imu import TriadRotation
+
+    def triad(rpy, sig):
+        return TriadRotation(tuple(rpy), (sig,) * 3, 10000, 0.01, 0.01)
+
+    g = triad((0.0, 0.0, 0.0), 0.01)
+    for off, word in ((0.045, "possibly"), (0.08, "likely")):  # z = off / sqrt(0.01^2 + 0.01^2): 3.2 and 5.7
+        out = consistency(None, None, ImuToImu(g, triad((0.0, 0.0, off), 0.01)))
+        assert out["agrees"] is False and out["warning"] == out["note"]
+        assert f": {word} the slave's accelerometer triad is not its gyro triad" in out["note"], out["note"]
+        assert ("marginally" in out["note"]) is (word == "possibly")
