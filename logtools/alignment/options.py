@@ -106,8 +106,8 @@ class AlignmentOptions:
     lat_deg: float | None = None  # when neither log has a position (default 45 deg)
     mounting_guess_rpy_deg: tuple[float, float, float] | None = None  # skip the coarse step
     max_history_rows: int = 2000
-    #: when the first pass's mean NIS exceeds 3 x its dof, rerun with the measurement noise taken from the
-    #: residual RMS
+    #: when the first pass's mean NIS exceeds 3 x its dof (or is below AlignmentConfig.recalibrate_low_nis_frac
+    #: of it), rerun with the measurement noise taken from the residual RMS
     recalibrate_noise: bool = True
 
     def __post_init__(self):
@@ -180,6 +180,15 @@ class AlignmentConfig:
     #: from the mounting and would only blur it). See :func:`accepts_flexure_model`.
     flex_model_min_beta_1_s: float = 0.2
     flex_model_max_deg: float = 1.0
+    #: the first pass's mean NIS below this fraction of its dof: the measurement noise taken from the master's
+    #: third differences is far above the residuals (a master whose navigation output comes at 1-2 Hz, where
+    #: those differences measure the motion: mean NIS 0.0007-0.008 of its dof on simulated multirotors, whose
+    #: mountings came out "not determined" 0.02 deg from the truth), and the pass is rerun with the noise taken
+    #: from the residual RMS, as beyond 3 x dof the other way. Board states alone put it near 0.08 of its dof.
+    recalibrate_low_nis_frac: float = 0.01
+    #: the measurement noise's floors (a navigation output's own noise is no smaller)
+    r_att_floor_arcsec: float = 1.0
+    r_vel_floor_m_s: float = 5e-4
     #: re-estimated measurement noise beyond these: a note that the filter did not follow the data (no
     #: navigation output is that noisy)
     implausible_r_vel_m_s: float = 1.0

@@ -481,15 +481,17 @@ def _filter_passes(prob: _Problem, inp: AlignInputs, src: str, progress: Callabl
     if lay.flex_ang is not None:
         notes.append(f"flexure states (seed 000 eq 8): sigma {_fmt3(np.degrees(sig0[lay.flex_ang]))} deg, "
                      f"beta {settings.flex_beta:.3g} 1/s")
-    recal = _recalibrated(run, lay, settings, opts) if opts.recalibrate_noise else None
+    recal = _recalibrated(run, lay, settings, opts, cfg) if opts.recalibrate_noise else None
     if recal is not None:
         # the residuals are far larger than the noise model says (real data: vibration, EKF smoothing,
-        # flexure): rerun with the measurement noise taken from the first pass's residuals
+        # flexure), or far smaller (a master's navigation at 1-2 Hz, whose third differences measure the
+        # motion): rerun with the measurement noise taken from the first pass's residuals
         nis0 = _mean_nis(run)
         settings = recal
         run = run_filter(inp, settings, progress=None, compiled=cfg.compiled_kf)
+        ratio = nis0 / lay.n_meas
         notes.append(f"measurement noise re-estimated from the residuals (first pass NIS/dof "
-                     f"{nis0 / lay.n_meas:.1f}): velocity {settings.r_vel_m_s:.3g} m/s, attitude "
+                     f"{f'{ratio:.1f}' if ratio >= 0.1 else f'{ratio:.2g}'}): velocity {settings.r_vel_m_s:.3g} m/s, attitude "
                      f"{settings.r_att_rad / DEG:.3g} deg")
         if settings.r_vel_m_s > cfg.implausible_r_vel_m_s or settings.r_att_rad > cfg.implausible_r_att_deg * DEG:
             notes.append(DID_NOT_FOLLOW + ": the filter did not follow the data (a wrong "
@@ -1279,13 +1281,13 @@ def _settings(kind: FilterKind, lay: StateLayout, master: InsLog, noise: SlaveNo
     if opts.r_att_arcsec is not None:
         r_att = float(opts.r_att_arcsec) * ARCSEC
     elif (att_noise := _master_attitude_noise(master, config)) is not None:
-        r_att = max(att_noise, 1.0 * ARCSEC)
+        r_att = max(att_noise, config.r_att_floor_arcsec * ARCSEC)
     else:
         r_att = 10.0 * ARCSEC
     if opts.r_vel_m_s is not None:
         r_vel = float(opts.r_vel_m_s)
     elif (vel_noise := _master_velocity_noise(master, config)) is not None:
-        r_vel = max(vel_noise, 5e-4)
+        r_vel = max(vel_noise, config.r_vel_floor_m_s)
     else:
         r_vel = 0.01
     n = lay.n
@@ -1354,23 +1356,31 @@ def _mean_nis(run: FilterRun) -> float:
     return float(np.mean(v[len(v) // 10:])) if len(v) else float("nan")
 
 
-def _recalibrated(run: FilterRun, lay: StateLayout, st: FilterSettings, opts: AlignmentOptions
-                  ) -> FilterSettings | None:
-    """Settings with the measurement noise from the residual RMS when the mean NIS exceeds 3 x dof
-    (and the user did not fix the noise)."""
+def _recalibrated(run: FilterRun, lay: StateLayout, st: FilterSettings, opts: AlignmentOptions,
+                  config: AlignmentConfig = CONFIG) -> FilterSettings | None:
+    """Settings with the measurement noise from the residual RMS when the mean NIS exceeds 3 x dof (raised
+    to it), or is below config.recalibrate_low_nis_frac of it (lowered to it, not below the floors); where the
+    user did not fix the noise."""
     nis = _mean_nis(run)
-    if not (nis > 3.0 * lay.n_meas):
+    high = nis > 3.0 * lay.n_meas
+    if not (high or nis < config.recalibrate_low_nis_frac * lay.n_meas):
         return None
     e = run.innov[np.isfinite(run.innov).all(1)]
     e = e[len(e) // 10:]
+    if not len(e):
+        return None
     r_vel, r_att = st.r_vel_m_s, st.r_att_rad
+
+    def moved(r: float, rms: float, floor: float) -> float:
+        return max(r, rms) if high else min(r, max(rms, floor))
+
     col = 0
     if lay.uses_vel:
         if opts.r_vel_m_s is None:
-            r_vel = max(r_vel, float(np.sqrt(np.mean(e[:, :3] ** 2))))
+            r_vel = moved(r_vel, float(np.sqrt(np.mean(e[:, :3] ** 2))), config.r_vel_floor_m_s)
         col = 3
     if lay.uses_att and opts.r_att_arcsec is None:
-        r_att = max(r_att, float(np.sqrt(np.mean(e[:, col:col + 3] ** 2))))
+        r_att = moved(r_att, float(np.sqrt(np.mean(e[:, col:col + 3] ** 2))), config.r_att_floor_arcsec * ARCSEC)
     if r_vel == st.r_vel_m_s and r_att == st.r_att_rad:
         return None
     return replace(st, r_vel_m_s=r_vel, r_att_rad=r_att)
