@@ -490,9 +490,9 @@ def _filter_passes(prob: _Problem, inp: AlignInputs, src: str, progress: Callabl
         settings = recal
         run = run_filter(inp, settings, progress=None, compiled=cfg.compiled_kf)
         ratio = nis0 / lay.n_meas
-        notes.append(f"measurement noise re-estimated from the residuals (first pass NIS/dof "
-                     f"{f'{ratio:.1f}' if ratio >= 0.1 else f'{ratio:.2g}'}): velocity {settings.r_vel_m_s:.3g} m/s, attitude "
-                     f"{settings.r_att_rad / DEG:.3g} deg")
+        ratio_text = f"{ratio:.1f}" if ratio >= 0.1 else f"{ratio:.2g}"
+        notes.append(f"measurement noise re-estimated from the residuals (first pass NIS/dof {ratio_text}): "
+                     f"velocity {settings.r_vel_m_s:.3g} m/s, attitude {settings.r_att_rad / DEG:.3g} deg")
         if settings.r_vel_m_s > cfg.implausible_r_vel_m_s or settings.r_att_rad > cfg.implausible_r_att_deg * DEG:
             notes.append(DID_NOT_FOLLOW + ": the filter did not follow the data (a wrong "
                          "start, an uncompensated delay or reset, other units); the mounting is doubtful")
