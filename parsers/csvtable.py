@@ -13,6 +13,19 @@ import pandas as pd
 from logtools.errors import InputError
 
 
+def _cell_text(buf, j, end):  # pragma: no cover - compiled
+    """The text of the cell ``buf[j:end]`` as the cell scans read it: up to a NUL (the padding of a column's
+    text), without the spaces and quotes around it and a CR at its end: (its first byte, its end)."""
+    w = j
+    while w < end and buf[w] != 0:
+        w += 1
+    while j < w and (buf[j] == 32 or buf[j] == 34):
+        j += 1
+    while w > j and (buf[w - 1] == 32 or buf[w - 1] == 34 or buf[w - 1] == 13):
+        w -= 1
+    return j, w
+
+
 def _decimal_cells(buf, starts, ends, scale_pow10, point):  # pragma: no cover - compiled
     """Decimal text in cells ``buf[starts[i]:ends[i]]`` (bytes; a cell ends at a NUL; spaces and quotes
     around the number, and a CR after it, are allowed; ``starts[i] < 0``: no cell) -> int64 value *
@@ -34,13 +47,7 @@ def _decimal_cells(buf, starts, ends, scale_pow10, point):  # pragma: no cover -
         j = starts[i]
         if j < 0:
             continue
-        w = j
-        while w < ends[i] and buf[w] != 0:  # (the cell ends at a NUL: the padding of a column's text)
-            w += 1
-        while j < w and (buf[j] == 32 or buf[j] == 34):
-            j += 1
-        while w > j and (buf[w - 1] == 32 or buf[w - 1] == 34 or buf[w - 1] == 13):
-            w -= 1
+        j, w = _cell_text(buf, j, ends[i])
         neg = False
         if j < w and (buf[j] == 45 or buf[j] == 43):
             neg = buf[j] == 45
@@ -144,6 +151,8 @@ def _cells_kernel(fn):
         from logtools import jit
 
         if jit.compiled():
+            if not hasattr(_cell_text, "py_func"):  # (the scans' helper compiled first: they call it natively)
+                globals()["_cell_text"] = jit.njit(_cell_text, nogil=True)
             kernel = jit.njit(fn, nogil=True)
         else:
             def kernel(*args, _fn=fn):
@@ -181,13 +190,7 @@ def _iso_cells(buf, starts, ends):  # pragma: no cover - compiled
         j = starts[i]
         if j < 0:
             continue
-        w = j
-        while w < ends[i] and buf[w] != 0:
-            w += 1
-        while j < w and (buf[j] == 32 or buf[j] == 34):
-            j += 1
-        while w > j and (buf[w - 1] == 32 or buf[w - 1] == 34 or buf[w - 1] == 13):
-            w -= 1
+        j, w = _cell_text(buf, j, ends[i])
         # the fields' digits at their fixed places: year, month, day, hour, minute, second (-1: not digits)
         vals = np.full(6, -1, np.int64)
         for f in range(6):
