@@ -346,6 +346,15 @@ def _pages(buf: np.ndarray, size: int) -> tuple[int, int] | None:
     return page_size, page_size - int(buf[20])
 
 
+def _read_padded(path: str) -> tuple[np.ndarray, int]:
+    """The file's bytes followed by 32 zeros (a damaged cell's varints never read beyond them), and its size."""
+    size = os.path.getsize(path)
+    buf = np.zeros(size + 32, np.uint8)
+    with open(path, "rb") as fh:
+        fh.readinto(memoryview(buf)[:size])
+    return buf, size
+
+
 def walk(path: str) -> Walk | None:
     """The table and index of a rosbag2 .db3 walked at the byte level, or None where this does not apply
     (any layout the kernels do not expect: the caller then re-inserts the rows)."""
@@ -363,10 +372,7 @@ def walk(path: str) -> Walk | None:
         return None
     if cols != "id,topic_id,timestamp,data" or "messages" not in roots or indexes not in ([], ["timestamp_idx"]):
         return None
-    size = os.path.getsize(path)
-    padded = np.zeros(size + 32, np.uint8)  # zeros past the end: a damaged cell's varints never read beyond it
-    with open(path, "rb") as fh:
-        fh.readinto(memoryview(padded)[:size])
+    padded, size = _read_padded(path)
     buf = padded[:size]
     geometry = _pages(buf, len(buf))
     if geometry is None or len(buf) % geometry[0] or buf[18] != 1 or buf[19] != 1:  # (18/19 = 2: WAL mode)
@@ -499,10 +505,7 @@ def recover(path: str) -> Recovered | None:
     """The ``messages`` rows of a rosbag2 .db3 that SQLite cannot read whole (a truncated copy: its b-tree's
     interior pages, written late, are among the pages lost), found page by page (``_scan_leaves``); a row
     held twice (a freed page's stale copy) is kept once. None when the file is no SQLite database."""
-    size = os.path.getsize(path)
-    buf = np.zeros(size + 32, np.uint8)  # zeros past the end: a damaged cell's varints never read beyond it
-    with open(path, "rb") as fh:
-        fh.readinto(memoryview(buf)[:size])
+    buf, size = _read_padded(path)
     geometry = _pages(buf, size)
     if geometry is None or geometry[0] & (geometry[0] - 1):
         return None
