@@ -29,6 +29,7 @@ nav-referenced mounting of the transfer alignment and names the likely cause whe
 from __future__ import annotations
 
 import copy
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -209,14 +210,15 @@ def finite_increasing(t: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndar
     return t[keep], y[keep]
 
 
-def _interp_at(t: np.ndarray, tp: np.ndarray, yp: np.ndarray, gap_steps: float, points: int = 2
-               ) -> tuple[np.ndarray, np.ndarray]:
+def _interp_at(t: np.ndarray, tp: np.ndarray, yp: np.ndarray, gap_steps: float, points: int = 2,
+               step: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """yp (n, k) at t, linearly, or with ``points`` 4 by the four-point (cubic Lagrange) interpolation on tp's
     own stamps (linear where the four samples would straddle a gap or an end); and the mask of t inside tp's
     span (its first and last stamps included) and not inside a gap of tp (a t on a sample of tp is that
     sample: inside). Half-way between two samples a vibration at a tenth of the rate keeps 0.951 of its
-    amplitude linearly, 0.996 with four points."""
-    step = median_step_s(tp, default=np.inf)
+    amplitude linearly, 0.996 with four points. Each row of the answer depends on its own t alone (blocks of
+    t give the same rows); ``step``: tp's median step where already known (``median_step_s(tp)``)."""
+    step = median_step_s(tp, default=np.inf) if step is None else step
     jj = np.clip(np.searchsorted(tp, t, side="right"), 1, len(tp) - 1)  # t in [tp[jj-1], tp[jj]]
     inside = (t >= tp[0]) & (t <= tp[-1])
     inside &= ((tp[jj] - tp[jj - 1]) <= gap_steps * step) | (t == tp[jj - 1]) | (t == tp[jj])
@@ -325,6 +327,9 @@ def _common(t_m: np.ndarray, y_m: np.ndarray, t_s: np.ndarray, y_s: np.ndarray, 
         ym, ok = _interp_at(t, t_m, y_m, gap_steps)
     return t[ok], ym[ok], ys[ok]
 
+
+#: :func:`_one_triad`'s answer where the two units have too few common samples (no retry helps)
+TOO_FEW_COMMON = "too few common IMU samples of the two units"
 
 # ---- the estimate ----------------------------------------------------------------------------------
 #: lags of the scores' autocorrelation taken one by one while looking for its first zero crossing; a
@@ -533,6 +538,17 @@ def _residual(u_m: np.ndarray, v_s: np.ndarray, r_mat: np.ndarray, k_lever: np.n
     return np.subtract(v_s, e, out=e)
 
 
+def _cost(u_m: np.ndarray, v_s: np.ndarray, r_mat: np.ndarray, k_lever: np.ndarray | None,
+          lev: np.ndarray | None) -> float:
+    """sum |v - R (u + K r)|^2, block by block (no whole residual: 4 h of 200 Hz are 69 MB of it)."""
+    tot = 0.0
+    for a in range(0, len(u_m), BLOCK_ROWS):
+        b = slice(a, a + BLOCK_ROWS)
+        e = _residual(u_m[b], v_s[b], r_mat, None if k_lever is None else k_lever[b], lev)
+        tot += float(np.einsum("ij,ij->", e, e))
+    return tot
+
+
 def _white_noise_var(x: np.ndarray, cfg: ImuToImuConfig = DEFAULT) -> np.ndarray:
     """Each column's white-noise variance (n, k) -> (k,), from its third differences (the motion, smooth at
     the IMU's rate, cancels; 20 = 1 + 9 + 9 + 1 for white noise), robust (MAD); a long series in blocks
@@ -617,9 +633,7 @@ def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = 
     for r_mat in (wahba(v_s.T @ u_m)[0], *starts):
         lev = np.zeros(k_lever.shape[2]) if k_lever is not None else None
         r_mat, lev = _gauss_newton(mom, r_mat, lev, iterations)
-        e = _residual(u_m, v_s, r_mat, k_lever, lev)
-        cost = float(np.einsum("ij,ij->", e, e))  # (no squared copy)
-        del e
+        cost = _cost(u_m, v_s, r_mat, k_lever, lev)
         if best is None or cost < best[0]:
             best = (cost, r_mat, lev)
     _, r_mat, lev = best
@@ -635,7 +649,6 @@ def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = 
             mp.ktk = np.einsum("iliq->lq", mp.kk)
             sols.append(_gauss_newton(mp, r_mat, lev.copy(), iterations)[0])
         d_noise = rotvec_from_dcm(sols[0] @ sols[1].T) / 2.0
-    e = _residual(u_m, v_s, r_mat, k_lever, lev)
     # the sandwich's bread without the master's own white noise (errors in variables): Gauss-Newton's sum
     # p p^T counts it as motion, and where the master's signal moves along one direction only (level
     # flight's specific force: the vertical) its noise alone "determined" the rotation about that direction,
@@ -643,13 +656,15 @@ def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = 
     mom.uu = mom.uu - n * np.diag(_white_noise_var(u_m) if u_noise_var is None else np.asarray(u_noise_var))
     hess, _ = mom.normal_equations(r_mat, lev)
     scores = np.empty((n, p))  # per sample h^T e: p x e, and (R K)^T e = K^T (R^T e)
-    for a in range(0, n, BLOCK_ROWS):  # row by row arithmetic: the blocks bound the temporaries
-        b = slice(a, a + BLOCK_ROWS)
-        scores[b, :3] = np.cross(v_s[b] - e[b], e[b])
+    ss = 0.0
+    for a in range(0, n, BLOCK_ROWS):  # row by row arithmetic: the blocks bound the temporaries (the residual e
+        b = slice(a, a + BLOCK_ROWS)  # among them)
+        e = _residual(u_m[b], v_s[b], r_mat, None if k_lever is None else k_lever[b], lev)
+        ss += float(np.einsum("ij,ij->", e, e))
+        scores[b, :3] = np.cross(v_s[b] - e, e)
         if lev is not None:
-            scores[b, 3:] = np.einsum("kjl,kj->kl", k_lever[b], e[b] @ r_mat)
-    rms = float(np.sqrt(np.einsum("ij,ij->", e, e) / max(len(e), 1)))
-    del e
+            scores[b, 3:] = np.einsum("kjl,kj->kl", k_lever[b], e @ r_mat)
+    rms = float(np.sqrt(ss / max(n, 1)))
     om, tau = _long_run_cov(scores, overwrite=True)
     del scores
     hess = 0.5 * (hess + hess.T)
@@ -757,11 +772,14 @@ def _lever_regressors(t: np.ndarray, tm: np.ndarray, gyro_m: np.ndarray, cfg: Im
     0.84 of it at 16 Hz on a 100 Hz grid, and the lever arm comes out that much too long, the rotation with
     it). ``w``: the rates at t, where already interpolated."""
     pts = cfg.lever_interp_points
-    w = _interp_at(t, tm, gyro_m, cfg.gap_steps, pts)[0] if w is None else w
-    dw = _interp_at(t, tm, _derivative(tm, gyro_m, cfg.lever_derivative_points), cfg.gap_steps, pts)[0]
+    dg = _derivative(tm, gyro_m, cfg.lever_derivative_points)
+    step = median_step_s(tm, default=np.inf)
     for a in range(0, len(t), BLOCK_ROWS):  # row by row arithmetic: the blocks bound the temporaries (4 h of
-        b = slice(a, a + BLOCK_ROWS)  # 200 Hz is 207 MB for each (n, 3, 3) a whole-array expression makes)
-        out[b, :, :3] = skew(dw[b]) + skew(w[b]) @ skew(w[b])  # f at r = f + dw x r + w x (w x r)
+        b = slice(a, a + BLOCK_ROWS)  # 200 Hz is 207 MB for each (n, 3, 3) a whole-array expression makes,
+        # 69 MB for each rate interpolated, and four times that for the interpolation's indices)
+        wb = _interp_at(t[b], tm, gyro_m, cfg.gap_steps, pts, step)[0] if w is None else w[b]
+        dw = _interp_at(t[b], tm, dg, cfg.gap_steps, pts, step)[0]
+        out[b, :, :3] = skew(dw) + skew(wb) @ skew(wb)  # f at r = f + dw x r + w x (w x r)
 
 
 def _regressor_noise_cov(parts: tuple[np.ndarray, np.ndarray, float], nwin: int, nlp: int,
@@ -868,35 +886,87 @@ def _lever_band(parts: tuple, nwin: int, nlp: int, dt: float, ncov, cfg: ImuToIm
     return None, None, ncov
 
 
-def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highpass_s: float,
-               cfg: ImuToImuConfig, starts: tuple[np.ndarray, ...] = ()) -> TriadRotation | str:
-    """One triad's rotation on common samples (t, master u, slave v: high-passed in place), the slow part
-    out over highpass_s; ``starts``: further starting rotations of the fit (the accelerometers': the gyro
-    triad's)."""
+def _lever_columns(t: np.ndarray, gm: tuple[np.ndarray, np.ndarray], nwin: int, cfg: ImuToImuConfig,
+                   w: np.ndarray | None = None) -> np.ndarray:
+    """(n, 3, 4): the lever arm's regressors at t (:func:`_lever_regressors`, from the master's gyro ``gm``; ``w``
+    its rates at t where already interpolated), high-passed over ``nwin``, in the first three columns; the
+    fourth (the delay's) left to :func:`_with_delay_column`."""
+    n = len(t)
+    k = np.empty((n, 3, 4))
+    _lever_regressors(t, *gm, cfg, k, w)
+    kf = k.reshape(n, 12)
+    for j in range(12):
+        if j % 4 != 3:
+            _highpass(kf[:, j:j + 1], nwin, out=kf[:, j:j + 1])
+    return k
+
+
+def _with_delay_column(t: np.ndarray, u: np.ndarray, k: np.ndarray | None) -> np.ndarray:
+    """The regressors with the delay's: a delay left between the two (the latency's error, the sensors' own
+    sampling instants) as one more parameter, v(t) = R u(t - d) ~ R (u - d du/dt), in k's last column ((n, 3, 1)
+    without the lever arm's); a delay of 1.4 ms turned the rotation of IMU2's gyro triad by 0.2 deg on a
+    hand-carried ArduPlane (rates and their derivatives correlate across axes)."""
+    if k is None:
+        return -np.gradient(u, t, axis=0)[:, :, None]
+    k[:, :, 3] = -np.gradient(u, t, axis=0)
+    return k
+
+
+def _rows(x: np.ndarray) -> np.ndarray:
+    """x (n, ...) as (n, columns), a view: what is written into it is written into x (the fit's arrays are made
+    C-contiguous)."""
+    assert x.flags.c_contiguous
+    return x.reshape(len(x), -1)
+
+
+def _lowpassed_columns(sos: np.ndarray, *xs: np.ndarray) -> None:
+    """Every series of the fit (u, v, k) through the zero-phase low-pass ``sos``, in place (the model is linear
+    in them)."""
+    for x in xs:
+        _lowpassed(_rows(x), sos)
+
+
+def _columns_again(common: Callable, master_gyro: Callable, nwin: int, lever: bool, sos: np.ndarray | None,
+                   cfg: ImuToImuConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(u, v, k) as :func:`_one_triad` built them for its first fit, built again with its decisions (the lever
+    arm's regressors or not, the low-pass or none): the same arithmetic, the same numbers."""
+    t, u, v = common()
+    u, v = _highpass(u, nwin, out=u), _highpass(v, nwin, out=v)
+    k = _with_delay_column(t, u, _lever_columns(t, master_gyro(), nwin, cfg) if lever else None)
+    if sos is not None:
+        _lowpassed_columns(sos, u, v, k)
+    return u, v, k
+
+
+def _one_triad(name: str, common: Callable, master_gyro: Callable, highpass_s: float, cfg: ImuToImuConfig,
+               starts: tuple[np.ndarray, ...] = ()) -> TriadRotation | str:
+    """One triad's rotation on common samples (``common()``: t, master u, slave v, made anew at each call), the
+    slow part out over highpass_s; ``master_gyro()``: the master's gyro (stamps, rates) or None; ``starts``:
+    further starting rotations of the fit (the accelerometers': the gyro triad's). The fit's columns are built
+    twice (the whole motion and its slow part are fitted on the first, its fast part on the second), so that
+    no two sets of them are held at once: 4 h of 200 Hz accelerometers' are 415 MB a set."""
+    com = common()
+    if com is None or len(com[0]) < cfg.min_samples:
+        return TOO_FEW_COMMON
+    t, u, v = com
+    del com
     dt = median_step_s(t)
     nwin = max(int(round(highpass_s / dt)), 3)
-    # the slow part out, in place (the caller's arrays: it makes them anew for another try); the ends
-    # (shorter means) trimmed below
+    # the slow part out, in place; the ends (shorter means) trimmed below
     u, v = _highpass(u, nwin, out=u), _highpass(v, nwin, out=v)
     n = len(t)
     k = w = None
-    if name == "accel" and gm is not None and len(gm[0]) >= 3:
+    gm = master_gyro() if name == "accel" else None
+    if gm is not None and len(gm[0]) >= 3:
         w, okw = _interp_at(t, *gm, cfg.gap_steps, cfg.lever_interp_points)
         if okw.all():
-            # the lever arm's regressors and the delay's (below) in one array, filled in place
-            k = np.empty((n, 3, 4))
-            _lever_regressors(t, *gm, cfg, k, w)
-            kf = k.reshape(n, 12)
-            for j in range(12):
-                if j % 4 != 3:
-                    _highpass(kf[:, j:j + 1], nwin, out=kf[:, j:j + 1])
-            moving = float(np.sqrt(np.mean(np.sum(u ** 2, axis=1))))
-            kl = k[:, :, :3] * k[:, :, :3]
-            power = float(np.mean(np.sum(kl, axis=(1, 2))))
-            del kl
+            k = _lever_columns(t, gm, nwin, cfg, w)  # (the delay's column below)
+            moving = float(np.sqrt(np.einsum("ij,ij->", u, u) / n))  # (no squared copies: 4 h of 200 Hz
+            power = float(np.einsum("kij,kij->", k[:, :, :3], k[:, :, :3]) / n)  # are 207 MB of the regressors')
     nlp = max(int(round(cfg.band_split_s / dt)), 2)  # (the slow and fast parts' split, below)
     # the noise the master gyro puts into the lever arm's regressors: taken out of their moments in each fit
     parts = _noise_regressors(t, gm, nwin, cfg) if k is not None else None  # (shared with _lever_band's trials)
+    del gm
     ncov = _regressor_noise_cov(parts, nwin, nlp) if parts is not None else None
     if k is not None:
         # the lever arm's effect from the regressors' motion, their noise out: a quiet vehicle's differentiated
@@ -905,27 +975,24 @@ def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highp
         if ncov is not None:
             power -= float(np.trace(ncov[0]))  # (per sample, the delay's columns none)
         effect = cfg.lever_plausible_m * float(np.sqrt(max(power, 0.0) / 3.0))
-        if not (float(np.sqrt(np.mean(np.sum(_highpass(w, nwin) ** 2, axis=1)))) > cfg.lever_min_rate_rad_s
-                or effect > cfg.lever_min_effect * moving):
+        wh = _highpass(w, nwin)
+        rate = float(np.sqrt(np.einsum("ij,ij->", wh, wh) / n))
+        del wh
+        if not (rate > cfg.lever_min_rate_rad_s or effect > cfg.lever_min_effect * moving):
             k, ncov = None, None
     del w
-    # a delay left between the two (the latency's error, the sensors' own sampling instants) as one more
-    # parameter: v(t) = R u(t - d) ~ R (u - d du/dt); a delay of 1.4 ms turned the rotation of IMU2's gyro
-    # triad by 0.2 deg on a hand-carried ArduPlane (rates and their derivatives correlate across axes)
-    if k is None:
-        k = -np.gradient(u, t, axis=0)[:, :, None]
-    else:
-        k[:, :, 3] = -np.gradient(u, t, axis=0)
+    k = _with_delay_column(t, u, k)
+    lever = k.shape[2] == 4
     cut = slice(nwin // 2, len(t) - nwin // 2)
-    lp_hz = u_var = None
-    if name == "accel" and k.shape[2] == 4:
+    sos = lp_hz = u_var = None
+    if name == "accel" and lever:
         sos, lp_hz, ncov = _lever_band(parts, nwin, nlp, dt, ncov, cfg)
         if sos is not None:  # every series of the fit through the same low-pass
             # (the master's white noise as the fit sees it: measured before, times the low-pass's power gain;
             # third differences of a low-passed series see little of it, and straight and level flight's
             # horizontal specific force, its noise low-passed, came out "determined" 20 deg off)
             u_var = _white_noise_var(u[cut], cfg) * _noise_gain(sos)
-            _lowpassed(u, sos), _lowpassed(v, sos), _lowpassed(k.reshape(n, 12), sos)
+            _lowpassed_columns(sos, u, v, k)
     del parts
     rel = ncov[3] if ncov else 0.0
     res = _triad(u[cut], v[cut], k[cut], dt, cfg, starts=starts, k_noise_cov=ncov[0] if ncov else None,
@@ -937,19 +1004,23 @@ def _one_triad(name: str, t: np.ndarray, u: np.ndarray, v: np.ndarray, gm, highp
     # a rotation is the same at every frequency: fitted on the slow and on the fast part of the motion
     # apart, two figures beyond band_z sigmas say the triads differ by more than a rotation (the
     # sensors' own filters, vibration aliased into the snapshots, scale factors)
-    lo = []
-    for x in (u, v, k):  # x - highpass(x), written over the highpass's own array
-        hp = _highpass(x.reshape(len(t), -1), nlp).reshape(x.shape)
-        lo.append(np.subtract(x, hp, out=hp))
+    lo = (u, v, k)  # x - highpass(x), written over x column by column (the columns are built again for the
+    for x in lo:  # fast part: not held while the slow part is fitted)
+        xf = _rows(x)
+        for j in range(xf.shape[1]):
+            np.subtract(xf[:, j], _highpass(xf[:, j:j + 1], nlp)[:, 0], out=xf[:, j])
+    del u, v, k, x, xf
     # (a band the rotation explains poorly is itself the sign: no minimum there, the sigmas judge)
     band_lo = _triad(lo[0][cut], lo[1][cut], lo[2][cut], dt, cfg, min_explained=0.0, starts=starts,
                      k_noise_cov=ncov[1] if ncov else None, k_noise_rel_sd=rel)
-    for x, y in zip((u, v, k), lo):  # the fast band: x - lo in place, once the slow band's fit is done
-        x -= y
-    del lo, x, y, hp  # (the loops' names held the lever arm's slow copy: 276 MB at 4 h of 200 Hz)
-    bands = [band_lo, _triad(u[cut], v[cut], k[cut], dt, cfg, min_explained=0.0, starts=starts,
+    del lo
+    hi = _columns_again(common, master_gyro, nwin, lever, sos, cfg)
+    for x in hi:  # the fast part, in place
+        _highpass(_rows(x), nlp, out=_rows(x))
+    del x
+    bands = [band_lo, _triad(hi[0][cut], hi[1][cut], hi[2][cut], dt, cfg, min_explained=0.0, starts=starts,
                              k_noise_cov=ncov[2] if ncov else None, k_noise_rel_sd=rel)]
-    del u, v, k
+    del hi
     if all(isinstance(b, TriadRotation) for b in bands):
         zb, d = _z(bands[0].rpy_deg, bands[0].sigma_deg, bands[1].rpy_deg, bands[1].sigma_deg,
                    cfg.consistency_floor_deg, cfg.gimbal_compare_deg)
@@ -967,7 +1038,9 @@ def imu_to_imu(master: InsLog, slave: InsLog, *, config: ImuToImuConfig = DEFAUL
         slave = slave.rebased(master.meta.t0_ns)
     reasons: dict[str, str] = {}
     out: dict[str, TriadRotation | None] = {"gyro": None, "accel": None}
-    gm = finite_increasing(master.t_imu_s(), master.gyro_rad_s()) if master.has_gyro else None
+    def master_gyro() -> tuple[np.ndarray, np.ndarray] | None:  # (read anew where needed: not held between)
+        return finite_increasing(master.t_imu_s(), master.gyro_rad_s()) if master.has_gyro else None
+
     for name, has, get in (("gyro", "has_gyro", "gyro_rad_s"), ("accel", "has_accel", "accel_m_s2")):
         if not (getattr(master, has) and getattr(slave, has)):
             who = " and ".join(r for r, lg in (("master", master), ("slave", slave)) if not getattr(lg, has))
@@ -978,10 +1051,6 @@ def imu_to_imu(master: InsLog, slave: InsLog, *, config: ImuToImuConfig = DEFAUL
             ts, ys = finite_increasing(slave.t_imu_s(), getattr(slave, get)())
             return _common(tm, ym, ts, ys, config.gap_steps)
 
-        com = common()
-        if com is None or len(com[0]) < config.min_samples:
-            reasons[name] = "too few common IMU samples of the two units"
-            continue
         res: TriadRotation | str = ""
         # the accelerometers' fit also starts from the gyro triad's rotation (a board's two triads are
         # degrees apart at most): a multirotor's lever-arm accelerations can dominate the moving specific
@@ -989,13 +1058,10 @@ def imu_to_imu(master: InsLog, slave: InsLog, *, config: ImuToImuConfig = DEFAUL
         gyro = out["gyro"]
         starts = () if name != "accel" or gyro is None else (
             (dcm_from_quat(gyro.quat_wxyz),) if gyro.gimbal else (dcm_from_euler(np.radians(gyro.rpy_deg)),))
-        for i, hp in enumerate((config.highpass_s, *config.highpass_retry_s)):  # slow motion (a ship's sway,
-            if i:  # S-turns): a longer window, on the common samples made anew (the last try high-passed them)
-                com = common()
-            res = _one_triad(name, *com, gm, hp, config, starts=starts)
-            if isinstance(res, TriadRotation):
+        for hp in (config.highpass_s, *config.highpass_retry_s):  # slow motion (a ship's sway, S-turns): a
+            res = _one_triad(name, common, master_gyro, hp, config, starts=starts)  # longer window
+            if isinstance(res, TriadRotation) or res == TOO_FEW_COMMON:
                 break
-        del com
         if isinstance(res, str):
             reasons[name] = res
             continue
