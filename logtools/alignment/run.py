@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import weakref
 from dataclasses import dataclass, fields, replace
-from functools import cached_property
 from typing import Callable
 
 import numpy as np
@@ -127,8 +126,8 @@ def _align(master: InsLog, slave: InsLog, kind: FilterKind, match: str, smoother
         prog(0.0, "alignment: preparing")
     notes = list(prep.notes)
     prior = _mounting_prior(prep.coarse, dcm_from_quat(prep.inp.q0), opts, config, notes)
-    prob = _Problem(kind, match, smoother, opts, config, master, prep.t_imu, prep.gyro, prep.accel, prior, prep.win,
-                    prep.span_s, prep.seed.prior_rad_s if prep.seed.applied else None, prep.noise)
+    prob = _Problem(kind, match, smoother, opts, config, master, prior, prep.win, prep.span_s, prep.noise,
+                    prep.seed.prior_rad_s if prep.seed.applied else None)
     run, lay, settings, sig0 = _filter_passes(prob, prep.inp, prep.src, progress, prog, notes)
     if prep.seed.applied:  # the bias estimates (and their history) are the seed plus the states
         xs = run.x.copy()
@@ -141,15 +140,12 @@ def _align(master: InsLog, slave: InsLog, kind: FilterKind, match: str, smoother
 
 @dataclass(frozen=True)
 class Prepared:
-    """What an alignment prepares from the two logs before its filter: the slave's IMU over the overlap, the
-    delay window, the coarse mounting, the slave's noise, the gyro-bias seed, the filter's inputs, and the
-    notes said on the way. None of it depends on the board's states: ``board_errors="auto"`` runs its two
-    filters on one preparation (:func:`_align_board_auto`)."""
+    """What an alignment prepares from the two logs before its filter: the delay window, the coarse mounting,
+    the slave's noise, the gyro-bias seed, the filter's inputs (the slave's IMU over the overlap as the
+    strapdown's increments), and the notes said on the way. None of it depends on the board's states:
+    ``board_errors="auto"`` runs its two filters on one preparation (:func:`_align_board_auto`)."""
 
     src: str
-    t_imu: np.ndarray
-    gyro: np.ndarray
-    accel: np.ndarray
     win: DelayWindow
     span_s: float
     coarse: CoarseMounting
@@ -170,7 +166,9 @@ def _prepare(master: InsLog, slave: InsLog, kind: FilterKind, match: str, opts: 
     _check_inputs(master, slave, kind, match, src)
     notes: list[str] = []
     prog(0.0, "alignment: preparing")
-
+    # the master's series and noise first, before the slave's copies (their temporaries are the stage's
+    # largest: 4 h of a 200 Hz master, 0.5 GB beyond the 0.35 GB of the series)
+    prepare_master(master, config)
     t_imu, gyro, accel = _slave_imu(slave, src)
     ms = _master_series_cached(master, config)
     win = _delay_window(kind, opts, config, master, ms, t_imu, gyro, notes)
@@ -196,12 +194,13 @@ def _prepare(master: InsLog, slave: InsLog, kind: FilterKind, match: str, opts: 
     # taken with the seed removed (the bias states are linear, so this is the filter started from the seed)
     ep = _epochs(t_imu, gyro - seed.b_rad_s if seed.applied else gyro, accel, win.dt_upd_s, span_s, config, src,
                  notes, ms.t_s + win.tau0_s if win.paced else None, ms.gap if win.paced else None)
+    del gyro, accel  # (the filter reads the increments: the samples go, 4 h of 200 Hz are 138 MB)
     ms_lever = _lever_rate_as_integrated(ms, t_imu, config)
     q0, v0, lever0 = _initial_state(master, slave, ms_lever, ep.t_s[0], win.tau0_s, r0, opts, src, notes)
     llh0 = _initial_position(master, slave, ep.t_s[0], opts, notes)
     inp = AlignInputs(ep.t_s, ep.seg_dq, ep.seg_dv_b, ep.seg_dt_s, ms_lever, q0, v0, llh0, r0, lever0, win.tau0_s,
                       ep.restart)
-    return Prepared(src, t_imu, gyro, accel, win, span_s, coarse, noise, seed, inp, tuple(notes))
+    return Prepared(src, win, span_s, coarse, noise, seed, inp, tuple(notes))
 
 
 # ---- the steps of run_alignment ---------------------------------------------------------------------
@@ -278,16 +277,13 @@ class _Problem:
     opts: AlignmentOptions
     config: AlignmentConfig
     master: InsLog
-    t_imu: np.ndarray
-    gyro: np.ndarray
-    accel: np.ndarray
     prior: MountingPrior
     win: DelayWindow
     overlap_s: float
+    noise: SlaveNoise  # the slave IMU's white noise over the overlap
     #: (3,) rad/s: the gyro-bias states' prior sigma where the bias was seeded (:class:`GyroBiasSeed`); None:
     #: the sensor grade's (``_gyro_bias_prior``)
     gyro_bias_prior_rad_s: np.ndarray | None = None
-    noise: SlaveNoise | None = None  # the slave IMU's white noise over the overlap (t_imu, gyro, accel)
 
 
 @dataclass(frozen=True)
@@ -447,8 +443,7 @@ def _setup(prob: _Problem, flexure: bool, board: bool = False) -> tuple[StateLay
     with or without the board's error states)."""
     ly = make_layout(prob.match, flexure=flexure, lever_arm=bool(prob.opts.estimate_lever_arm),
                      delay=prob.win.delay_state, board_errors=board)
-    noise = prob.noise if prob.noise is not None else SlaveNoise(prob.t_imu, prob.gyro, prob.accel)
-    st, s0 = _settings(prob.kind, ly, prob.master, noise, prob.opts, prob.config,
+    st, s0 = _settings(prob.kind, ly, prob.master, prob.noise, prob.opts, prob.config,
                        prob.prior, prob.win.dt_upd_s, prob.win.tau0_s, (prob.win.lo_s, prob.win.hi_s),
                        prob.smoother, prob.gyro_bias_prior_rad_s)
     return ly, st, s0
@@ -488,6 +483,7 @@ def _filter_passes(prob: _Problem, inp: AlignInputs, src: str, progress: Callabl
         # motion): rerun with the measurement noise taken from the first pass's residuals
         nis0 = _mean_nis(run)
         settings = recal
+        del run  # (its histories are not held while the second pass runs: 4 h at 19 Hz are 0.2 GB)
         run = run_filter(inp, settings, progress=None, compiled=cfg.compiled_kf)
         ratio = nis0 / lay.n_meas
         ratio_text = f"{ratio:.1f}" if ratio >= 0.1 else f"{ratio:.2g}"
@@ -570,10 +566,10 @@ def prepare_master(master: InsLog, config: AlignmentConfig = CONFIG) -> None:
     velocity's noise), prepared now and kept for this master object: runs forked after this share it (copy
     on write) instead of each preparing its own (0.9 s of CPU for a 1 h pair of 200 Hz logs; the series
     are about 350 MB at 4 h). A master a run cannot use is left for that run to say so."""
-    try:
-        _master_series_cached(master, config)
+    try:  # (the noise first: its temporaries are not held beside the series)
         _master_attitude_noise(master, config)
         _master_velocity_noise(master, config)
+        _master_series_cached(master, config)
     except AnalysisError:
         pass
 
@@ -1173,28 +1169,18 @@ def _hf_sigma(y: np.ndarray) -> float:
 
 class SlaveNoise:
     """The slave IMU's white noise (:func:`_hf_sigma` of its gyros, rad/s, and of its accelerometers,
-    m/s^2) and its sample step (s), measured once per alignment run: the prior, the seed and every filter
-    pass's settings read them (each is a median over the whole overlap). ``accel_without_lever``: the
-    accelerometers' measured without the lever arm's acceleration (``noise.accel_noise_without_lever``; None
-    where it could not be), the smaller taken: a rigid-body vibration's w' x r is motion the filter models."""
+    m/s^2) and its sample step (s), measured once per alignment run, when made (the samples are not held):
+    the prior, the seed and every filter pass's settings read them (each is a median over the whole
+    overlap). ``accel_without_lever``: the accelerometers' measured without the lever arm's acceleration
+    (``noise.accel_noise_without_lever``; None where it could not be), the smaller taken: a rigid-body
+    vibration's w' x r is motion the filter models."""
 
     def __init__(self, t_imu: np.ndarray, gyro: np.ndarray, accel: np.ndarray,
                  accel_without_lever: float | None = None):
-        self._t, self._g, self._a = t_imu, gyro, accel
-        self._a_lever = accel_without_lever
-
-    @cached_property
-    def dt_s(self) -> float:
-        return median_step_s(self._t)
-
-    @cached_property
-    def gyro(self) -> float:
-        return _hf_sigma(self._g)
-
-    @cached_property
-    def accel(self) -> float:
-        own = _hf_sigma(self._a)
-        return own if self._a_lever is None else min(own, self._a_lever)
+        self.dt_s = median_step_s(t_imu)
+        self.gyro = _hf_sigma(gyro)
+        own = _hf_sigma(accel)
+        self.accel = own if accel_without_lever is None else min(own, accel_without_lever)
 
 
 def _arw_rad_s(opts: AlignmentOptions, noise: SlaveNoise) -> float:
