@@ -88,7 +88,10 @@ def _check_finite(name: str, what: str, arr: np.ndarray) -> None:
 
 
 def _clean_times(t: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Sort by time and drop duplicate stamps (np.interp needs increasing abscissae)."""
+    """Sort by time and drop duplicate stamps (np.interp needs increasing abscissae); the arrays as they are
+    where their stamps already increase (a log's usual case: no copies of 4 h of samples)."""
+    if len(t) < 2 or bool(np.all(t[1:] > t[:-1])):
+        return t, v
     order = np.argsort(t, kind="stable")
     t, v = t[order], v[order]
     keep = np.concatenate([[True], np.diff(t) > 0])
@@ -251,7 +254,13 @@ def _wrap(a: np.ndarray) -> np.ndarray:
 
 
 def _euler_on_grid(t: np.ndarray, q: np.ndarray, grid: np.ndarray) -> np.ndarray:
-    """Slerp the quaternions onto ``grid`` (inside [t0, t-1]) and return [roll, pitch, yaw] rows."""
+    """Slerp the quaternions onto ``grid`` (inside [t0, t-1], increasing) and return [roll, pitch, yaw] rows.
+    Only the samples around the grid are read (a record of seconds out of hours: their signs made continuous
+    among themselves, which gives the same angles, as q and -q are one rotation)."""
+    if len(grid) and len(t) > 2:
+        i0 = max(int(np.searchsorted(t, grid[0], side="right")) - 2, 0)
+        i1 = min(int(np.searchsorted(t, grid[-1], side="right")) + 1, len(t))
+        t, q = t[i0:i1], q[i0:i1]
     q = quat_make_continuous(q)
     j = np.clip(np.searchsorted(t, grid, side="right") - 1, 0, len(t) - 2)
     frac = np.clip((grid - t[j]) / (t[j + 1] - t[j]), 0.0, 1.0)
@@ -321,10 +330,13 @@ def s002_search(master: InsLog, slave: InsLog, *, max_lag_s: float | None = 1.0,
     n_pos = len(gm) - n_rec + 1
     if n_pos < 1:
         raise AnalysisError(f"{name}: master record shorter than the slave record")
-    p_all = np.arange(n_pos)
-    lags_all = gs[a] - gm[p_all]
-    if max_lag_s is not None:
-        p_all = p_all[np.abs(lags_all) <= max_lag_s + 1e-9]
+    if max_lag_s is None:
+        p_all = np.arange(n_pos)
+    else:  # the shifts near the search range (two steps' margin: gm increases), then its test
+        lo_p = max(int(np.searchsorted(gm, gs[a] - max_lag_s, side="left")) - 2, 0)
+        hi_p = min(int(np.searchsorted(gm, gs[a] + max_lag_s, side="right")) + 2, n_pos)
+        p_all = np.arange(lo_p, max(hi_p, lo_p))
+        p_all = p_all[np.abs(gs[a] - gm[p_all]) <= max_lag_s + 1e-9]
     if len(p_all) == 0:
         raise AnalysisError(f"{name}: no candidate lag inside the search range")
     # the master's angles only where a candidate shift reads them

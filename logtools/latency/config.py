@@ -56,6 +56,10 @@ class PrepareConfig:
     low_motion_snr: float = 10.0  # ... below this: the "too_little_motion" flag (test_latency)
     low_motion_dps: float = 0.5  # ... or a master motion below this RMS (deg/s): the same flag
     min_motion_dps: float = 1e-3  # a master motion below this RMS (deg/s): "no motion" whatever its SNR
+    #: the units' rates before the low-pass (``prepare.RawRates``) are let go after the first fit and made again
+    #: when asked (the xcorr baseline) where they hold more than this: 4 h of two 200 Hz units are 138 MB, held
+    #: through the velocity stage at the run's peak; below it, the time of making them again is spared
+    raw_hold_max_bytes: float = 100e6
     accel_aided: bool = True  # accelerometer rows in the final GLS when both units log IMUs (bench_latency gyro-only)
     velocity_aided: bool = True  # velocity matching when both units log NED velocity (bench_latency no-velocity)
 

@@ -3,7 +3,7 @@ stamp statistics; the accelerometer and velocity sources. Returns a frozen ``Ctx
 from __future__ import annotations
 
 import re
-
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -18,6 +18,27 @@ from logtools.latency.system import Accel
 from logtools.resample import Interpolant, interpolant, lowpass, median_rate_hz, smooth_interpolant, stamp_noise_s
 
 
+class RawRates:
+    """The two units' rates on their own uniform grids before the low-pass, (master, slave): what
+    :func:`refiltered_ctx` low-passes again at another cutoff and the xcorr baseline correlates. Held while the
+    stage may need them (its first fit); where they are large (``PrepareConfig.raw_hold_max_bytes``) let go
+    then and made again from the logs when asked: the same numbers (4 h of two 200 Hz units: 138 MB held
+    through the whole stage otherwise)."""
+
+    def __init__(self, make: Callable[[], tuple], value: tuple | None = None):
+        self._make, self._value = make, value
+
+    def get(self) -> tuple:
+        if self._value is None:
+            self._value = self._make()
+        return self._value
+
+    def release(self, max_bytes: float) -> None:
+        """Let the series go where they hold more than ``max_bytes``."""
+        if self._value is not None and sum(u.values.nbytes for u in self._value) > max_bytes:
+            self._value = None
+
+
 @dataclass(frozen=True)
 class Ctx:
     """Everything the stages read about the pair, frozen (a stage that changes it returns a new one)."""
@@ -30,7 +51,7 @@ class Ctx:
     band_cutoff_hz: float  # the motion's band (signal/noise, the velocities' low-pass)
     dt_s: float = 0.0  # integer-lag search grid
     dt_r: float = 0.0  # continuous refinement samples (master)
-    raw: tuple = ()  # (master, slave) unfiltered native uniform series (baseline method)
+    raw: RawRates | None = None  # (master, slave) unfiltered native uniform series (refits, baseline method)
     adapted_cutoff: bool = False
     warnings: tuple[str, ...] = ()  # the inputs' warnings (the stages return their own as data)
     t0_abs_s: float = 0.0
@@ -133,8 +154,16 @@ def prepare(master: InsLog, slave: InsLog, max_lag_s: float | None, *, accelerom
         if n_bad:
             warnings.append(f"{role}: {n_bad} of {len(w)} attitude intervals frozen (an EKF not running) or "
                             f"at a reset left out of the rates")
+    def raw_again() -> tuple:  # (prepare's own steps for the two series: the same numbers)
+        out = []
+        for log, role, rate_hz in ((master, "master", fm), (slave_r, "slave", fs)):
+            t, w, _ = unit_rate(log, role)
+            nat, _ = uniform_native(t, w, role)
+            out.append(band_limited_native(nat, t, w, rate_hz, cutoff, cfg.prepare.band_limited_fraction, role))
+        return tuple(out)
+
     return Ctx(um, us, dt_c, cutoff, max_lag_s, band_cutoff_hz=band_cutoff, t0_abs_s=master.t0_s,
-               dt_s=1.0 / f_s, dt_r=1.0 / f_r, raw=(natm, nats),
+               dt_s=1.0 / f_s, dt_r=1.0 / f_r, raw=RawRates(raw_again, (natm, nats)),
                stamp_jitter_s=(stamp_noise_s(tm), stamp_noise_s(ts)), stamp_resolution_s=res_s, clock_sigma_s=clk_s,
                warnings=tuple(warnings), acc_src=acc_src, vel_src=vel_src, cfg=cfg)
 
@@ -155,7 +184,7 @@ def _unit(nat, t: np.ndarray, w: np.ndarray, rate_hz: float, noise: float, src: 
 def refiltered_ctx(ctx: "Ctx", cutoff_hz: float) -> "Ctx":
     """The units low-passed again (zero-phase) from their raw series at a new cutoff."""
     units = []
-    for u, nat in zip((ctx.master, ctx.slave), ctx.raw):
+    for u, nat in zip((ctx.master, ctx.slave), ctx.raw.get()):
         lp = lowpass(nat, cutoff_hz)
         itp = interpolant(lp)
         units.append(replace(u, native=lp, itp=itp, grid=series_on_grid(itp, ctx.dt_s)))

@@ -48,8 +48,9 @@ class VelocityFit:
 
 
 def _finite(t: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rows with a finite stamp and values (the arrays themselves where all are: no copies of 4 h)."""
     ok = np.isfinite(t) & np.all(np.isfinite(v), axis=1)
-    return t[ok], v[ok]
+    return (t, v) if ok.all() else (t[ok], v[ok])
 
 
 def _same_stream(tm: np.ndarray, vm: np.ndarray, ts: np.ndarray, vs: np.ndarray) -> bool:
@@ -83,8 +84,10 @@ def velocity_pair(master: InsLog, slave: InsLog, cutoff_hz: float, master_rate: 
     lever = None
     if master.has_quat:
         tq, q = _finite(*master.quat_wxyz())
-        o = np.argsort(tq, kind="stable")
-        tq, q = tq[o], q[o]
+        if not np.all(tq[1:] >= tq[:-1]):  # (sorted already: the stable sort leaves it as it is)
+            o = np.argsort(tq, kind="stable")
+            tq, q = tq[o], q[o]
+            del o
         w, okw = master_rate(tq) if len(tq) else (np.zeros((0, 3)), np.zeros(0, bool))
         if okw.sum() >= cfg.velocity.min_samples:
             # C_nb [w x] at the attitude's instants, low-passed like the velocities: the lever arm's part of
@@ -92,9 +95,9 @@ def velocity_pair(master: InsLog, slave: InsLog, cutoff_hz: float, master_rate: 
             # (a rate from a noisy attitude: a master logging its navigation solution alone) would only
             # dilute the lever arm's regression (measured: an aircraft's along-track lever arm 14 % short,
             # its latency 2 ms off at a sigma of 0.5 ms, with the rows at the rate fit's 4 Hz)
-            rows = _lever_rows(q[okw], w[okw])
-            t_rows = tq[okw]
-            del q, w, tq, o
+            rows = _lever_rows(q, w) if okw.all() else _lever_rows(q[okw], w[okw])
+            t_rows = tq if okw.all() else tq[okw]
+            del q, w, tq
             try:  # (column by column: 4 h of 9 columns is 207 MB a copy)
                 lev_itp = smooth_interpolant(t_rows, rows, cut, name="master lever-arm rows",
                                              band_limited_fraction=cfg.prepare.band_limited_fraction)
