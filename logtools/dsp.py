@@ -396,11 +396,14 @@ def mad_sigma(x: np.ndarray) -> np.ndarray:
     x = np.asarray(x)
     if x.ndim != 2:
         return np.median(np.abs(x - np.median(x, axis=0)), axis=0) * 1.4826
-    # each column's values contiguous (one transposed copy): the medians' partitions run 20-30 % faster than
-    # along the strided first axis, and give the same values (a median does not depend on the layout)
-    xt = np.ascontiguousarray(x.T)
-    med = np.median(xt, axis=1)
-    return np.median(np.abs(xt - med[:, None]), axis=1) * 1.4826
+    # each column's values contiguous, one column at a time: the medians' partitions run 20-30 % faster than
+    # along the strided first axis, and give the same values (a median does not depend on the layout); the
+    # copies are a column's (4 h of a 200 Hz triad's third differences: 23 MB, not 69 MB each)
+    out = np.empty(x.shape[1])
+    for j in range(x.shape[1]):
+        c = np.ascontiguousarray(x[:, j])
+        out[j] = np.median(np.abs(c - np.median(c)))
+    return out * 1.4826
 
 
 def correlate_valid(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -2,7 +2,7 @@
 (S004 ship sway: mounting [0.3, 0.4, -1] deg, slave gyro 0.01 deg/h, accel 0.1 mg, 120 s)."""
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -1262,3 +1262,24 @@ def test_a_master_whose_navigation_comes_at_2_hz_gives_a_determined_mounting():
                                             @ dcm_from_euler(np.radians(truth)).T)))
     assert np.all(err < 3 * np.asarray(res.mounting_sigma_deg)), (err, res.mounting_sigma_deg)
     assert max(res.mounting_sigma_deg) < 0.1
+
+
+@pytest.mark.parametrize("gain", [0.5, 0.0])
+def test_a_rigid_pass_not_held_beside_the_flexure_pass_gives_the_same_result(gain):
+    """flexure="auto" on a long log (AlignmentConfig.hold_one_pass_min_bytes: 4 h of histories are 0.2 GB a
+    pass) drops the rigid pass before the flexure pass and runs it again where the flexure states are not
+    kept: the same result as holding both, figure for figure, whether they are kept (flex_auto_gain 0.5) or
+    not (0: never)."""
+    kw = dict(duration_s=60.0, latency_s=0.0, drift_ppm=0.0, mount_rpy_deg=(122.8, 135.2, -127.5),
+              master_imu_rate_hz=163.6, slave_imu_rate_hz=391.8, slave_nav_rate_hz=100.0,
+              lever_arm_m=(-0.17, 0.12, 1.21), slave_vel_noise_m_s=0.005, slave_att_noise_deg=0.01,
+              speed_m_s=4.0, turn_amp_deg=37.0, turn_period_s=44.3)
+    p = sim.simulate(sim.scenario_config("multirotor", seed=62015, flexure=True, **kw))
+    opts = AlignmentOptions(estimate_lever_arm=True, flexure="auto")
+    cfg = replace(CONFIG, flex_auto_gain=gain)
+    held = run_alignment(p.master, p.slave, options=opts, config=cfg)
+    dropped = run_alignment(p.master, p.slave, options=opts, config=replace(cfg, hold_one_pass_min_bytes=0))
+    assert any(n.startswith("flexure states added") for n in held.notes) == (gain > 0)
+    for f in fields(held):
+        a, b = getattr(held, f.name), getattr(dropped, f.name)
+        assert (np.array_equal(a, b) if isinstance(a, np.ndarray) else a == b), f.name

@@ -171,6 +171,10 @@ class AlignmentConfig:
     flex_auto_nis: float = 10.0
     #: ... kept when its mean NIS falls below flex_auto_gain x the rigid pass's (the flexing-multirotor tests)
     flex_auto_gain: float = 0.5
+    #: ... and where the rigid pass's histories are at least this large, they are not held while the flexure
+    #: pass runs: the rigid pass runs again if its states are kept (the same numbers). 4 h at 19 Hz are 0.2 GB
+    #: a pass (two held at once made the 4 h pair's alignment peak); below this, the time of a pass is spared
+    hold_one_pass_min_bytes: int = 100_000_000
     #: the flexure model of that pass, and of ``--flexure on`` without a fitted one: seed 000's (eq 8)
     flex_auto_sigma_deg: float = 0.05
     flex_auto_beta_1_s: float = 2.0

@@ -190,9 +190,12 @@ def _prepare(master: InsLog, slave: InsLog, kind: FilterKind, match: str, opts: 
                                                  max_delay_s=config.noise_fit_max_delay_s,
                                                  min_rate_ratio=config.noise_fit_min_rate_ratio))
     seed = _gyro_bias_seed(master, ms, rates, win.tau0_s, r0, _gyro_bias_prior(opts, noise), config, notes)
+    del rates  # (the coarse mounting's and the seed's only)
     # the filter's gyro-bias states carry what is left of the bias after the seed: the slave's increments are
     # taken with the seed removed (the bias states are linear, so this is the filter started from the seed)
-    ep = _epochs(t_imu, gyro - seed.b_rad_s if seed.applied else gyro, accel, win.dt_upd_s, span_s, config, src,
+    if seed.applied:  # (in place: the samples are this run's copy, not needed with the bias in them again)
+        np.subtract(gyro, seed.b_rad_s, out=gyro)
+    ep = _epochs(t_imu, gyro, accel, win.dt_upd_s, span_s, config, src,
                  notes, ms.t_s + win.tau0_s if win.paced else None, ms.gap if win.paced else None)
     del gyro, accel  # (the filter reads the increments: the samples go, 4 h of 200 Hz are 138 MB)
     ms_lever = _lever_rate_as_integrated(ms, t_imu, config)
@@ -467,12 +470,18 @@ def _filter_passes(prob: _Problem, inp: AlignInputs, src: str, progress: Callabl
     if opts.flexure_auto and lay.flex_ang is None and nis_rigid > cfg.flex_auto_nis * lay.n_meas:
         # residuals far beyond the noise model: is it a flexing slave? The flexure states are kept when
         # they explain most of the excess (mean NIS down by flex_auto_gain at least)
+        dropped = _run_bytes(run) >= cfg.hold_one_pass_min_bytes
+        if dropped:
+            del run
         lay_f, st_f, sig0_f = _setup(prob, True, lay.has_board_states)
         run_f = run_filter(inp, st_f, progress=None, compiled=cfg.compiled_kf)
         if _mean_nis(run_f) < cfg.flex_auto_gain * nis_rigid:
             notes.append(f"flexure states added (mean NIS/dof {nis_rigid / lay.n_meas:.1f} without them, "
                          f"{_mean_nis(run_f) / lay_f.n_meas:.1f} with)")
             lay, settings, sig0, run = lay_f, st_f, sig0_f, run_f
+        elif dropped:
+            del run_f
+            run = run_filter(inp, settings, progress=None, compiled=cfg.compiled_kf)
     if lay.flex_ang is not None:
         notes.append(f"flexure states (seed 000 eq 8): sigma {_fmt3(np.degrees(sig0[lay.flex_ang]))} deg, "
                      f"beta {settings.flex_beta:.3g} 1/s")
@@ -603,7 +612,8 @@ def _nav_noise(t: np.ndarray, y: np.ndarray, config: AlignmentConfig = CONFIG) -
     every 0.5 s: 0.53 deg and 0.89 m/s for 0.0007 deg and 0.0025 m/s, the mounting 0.7 arcmin off at a
     sigma of 2.2 where a plain 2 Hz master gave 0.02 at 0.03)."""
     ok = np.isfinite(t) & np.isfinite(y).all(axis=1)
-    t, y = t[ok], y[ok]
+    if not ok.all():
+        t, y = t[ok], y[ok]
     if len(t) >= 8 and _bursty(t, config):
         return d3_sigma(d3_at(t, y))
     return _hf_sigma(y)
@@ -647,21 +657,25 @@ def _master_series(master: InsLog, config: AlignmentConfig = CONFIG) -> MasterSe
             q = q[np.searchsorted(tq, t)]
         else:
             v = v[np.searchsorted(tv, t)]
+    del cols_t  # (the streams' own stamps: the series' are t; what is no longer needed goes at once below, 4 h
+    tq = tv = None  # of a 200 Hz master's series being 0.35 GB)
     if len(t) < 3:
         raise AnalysisError(f"{src}: the master's attitude and velocity overlap in fewer than 3 samples")
     if master.has_quat:
         ok = np.isfinite(q).all(1)
         quat = quat_make_continuous(q / np.linalg.norm(q, axis=1, keepdims=True))
+        q = None
     else:
         ok = np.ones(len(t), bool)
     if master.has_vel:
         ok &= np.isfinite(v).all(1)
-    t = t[ok]
+    every = bool(ok.all())  # (nothing to drop: no copies)
+    t = t if every else t[ok]
     if len(t) < 3:
         raise AnalysisError(f"{src}: the master has fewer than 3 finite navigation samples")
     gap = _nav_gaps(t, config)
     if quat is not None:
-        quat = quat[ok]
+        quat = quat if every else quat[ok]
         # body rate relative to NED in the master frame (lever arm): from the master's gyro when it has
         # one (minus the earth rate), else from its attitude differenced over ~0.1 s (a noisy rate in H
         # would bias the lever-arm estimate toward zero: errors in variables)
@@ -671,7 +685,8 @@ def _master_series(master: InsLog, config: AlignmentConfig = CONFIG) -> MasterSe
         if w is None:
             w = _rate_from_attitude(t, quat, config, gap)
     if master.has_vel:
-        vel = v[ok]
+        vel = v if every else v[ok]
+        v = None
         acc = _derivative(t, vel, span_s=0.1, gap=gap)
     # a bursty output's long steps are judged like gaps: against the gyro integrated over them, not the rate
     # at their middle (pairs 0.2 s apart every 2 s from a multirotor: 26 of 30 long steps called EKF
@@ -1337,6 +1352,11 @@ def _accel_misalign_sigma_rad(opts: AlignmentOptions, config: AlignmentConfig) -
     return float(_given(opts.accel_misalign_sigma_deg, config.accel_misalign_sigma_deg)) * DEG
 
 
+def _run_bytes(run: FilterRun) -> int:
+    """The memory a pass's histories hold."""
+    return sum(v.nbytes for v in vars(run).values() if isinstance(v, np.ndarray))
+
+
 def _mean_nis(run: FilterRun) -> float:
     v = run.nis[np.isfinite(run.nis)]
     return float(np.mean(v[len(v) // 10:])) if len(v) else float("nan")
@@ -1428,11 +1448,11 @@ def _result(run: FilterRun, lay: StateLayout, st: FilterSettings, sig0: np.ndarr
     if run.n_skipped:
         notes.append(f"{run.n_skipped} of {ne} updates skipped: the master's output was frozen, jumping or missing")
     # histories, decimated to at most max_history_rows (the last epoch kept)
-    names, cols, sigs = _histories(run, lay, mnt.hist_deg, mnt.sig_e)
     step = max(int(np.ceil(ne / int(opts.max_history_rows))), 1)
     rows = np.arange(0, ne, step)
     if rows[-1] != ne - 1:
         rows = np.append(rows, ne - 1)
+    names, cols, sigs = _histories(run, lay, mnt.hist_deg, mnt.sig_e, rows)
     lever_m, lever_sig = _lever_arm(run, lay, sig0, k_rep, sig_scale, opts, config, notes)
     delay_s = delay_sig = None
     if lay.delay is not None:
@@ -1451,8 +1471,8 @@ def _result(run: FilterRun, lay: StateLayout, st: FilterSettings, sig0: np.ndarr
         gyro_bias_sigma_dph=tuple(float(x) for x in gbs), accel_bias_sigma_mg=tuple(float(x) for x in abs_),
         delay_s=delay_s, delay_sigma_s=delay_sig, lever_arm_m=lever_m, lever_arm_sigma_m=lever_sig,
         observability=obs, notes=tuple(notes), innovation_corr_epochs=_innovation_correlation_times(run),
-        history_t_s=run.t_s[rows].copy(), history_names=tuple(names), history_x=cols[rows],
-        history_sigma=sigs[rows], residual_t_s=run.t_s[rows].copy(), residual_names=tuple(rn),
+        history_t_s=run.t_s[rows].copy(), history_names=tuple(names), history_x=cols,
+        history_sigma=sigs, residual_t_s=run.t_s[rows].copy(), residual_names=tuple(rn),
         residuals=resid[rows],
     )
 
@@ -1698,21 +1718,24 @@ def rpy_unwrap(hist_deg: np.ndarray, ref_deg: np.ndarray) -> np.ndarray:
     return ref_deg + (hist_deg - ref_deg + 180.0) % 360.0 - 180.0
 
 
-def _histories(run: FilterRun, lay: StateLayout, hist_mount: np.ndarray, sig_e: np.ndarray
+def _histories(run: FilterRun, lay: StateLayout, hist_mount: np.ndarray, sig_e: np.ndarray, rows: np.ndarray
                ) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """The reported histories (names, values, sigmas) at the epochs ``rows`` (taken first: 4 h of epochs at
+    19 Hz are 0.2 GB of whole histories)."""
     names: list[str] = []
     cols: list[np.ndarray] = []
     sigs: list[np.ndarray] = []
-    sd = np.sqrt(np.maximum(run.p_diag, 0.0))
+    x = run.x[rows]
+    sd = np.sqrt(np.maximum(run.p_diag[rows], 0.0))
 
     def add(sl, labels, scale):
         names.extend(labels)
-        cols.append(run.x[:, sl] * scale)
+        cols.append(x[:, sl] * scale)
         sigs.append(sd[:, sl] * scale)
 
     names.extend(["mount_roll_deg", "mount_pitch_deg", "mount_yaw_deg"])
-    cols.append(hist_mount)
-    sigs.append(np.degrees(sig_e))
+    cols.append(hist_mount[rows])
+    sigs.append(np.degrees(sig_e[rows]))
     add(lay.att, ["att_err_n_arcmin", "att_err_e_arcmin", "att_err_d_arcmin"], 1.0 / ARCMIN)
     if lay.vel is not None:
         add(lay.vel, ["vel_err_n_m_s", "vel_err_e_m_s", "vel_err_d_m_s"], 1.0)
@@ -1728,10 +1751,10 @@ def _histories(run: FilterRun, lay: StateLayout, hist_mount: np.ndarray, sig_e: 
         add(lay.accel_mis, ["accel_misalign_x_deg", "accel_misalign_y_deg", "accel_misalign_z_deg"], 1.0 / DEG)
     if lay.lever is not None:
         names.extend(["lever_arm_x_m", "lever_arm_y_m", "lever_arm_z_m"])
-        cols.append(run.lever_hat)
+        cols.append(run.lever_hat[rows])
         sigs.append(sd[:, lay.lever])
     if lay.delay is not None:
         names.append("delay_s")
-        cols.append(run.tau_hat[:, None])
+        cols.append(run.tau_hat[rows, None])
         sigs.append(sd[:, [lay.delay]])
     return names, np.concatenate(cols, axis=1), np.concatenate(sigs, axis=1)
