@@ -58,15 +58,10 @@ def restamp_ulog(src: str, dst: str, shift: ClockShift, *, selector=None) -> Res
     sel = selector if isinstance(selector, Selector) else Selector.parse(str(selector or ""))
     buf = read_bytes(src)
     damage: list[str] = []
-    byte_shift = 0  # (what a byte offset of buf adds to be the input file's)
-    at = ul.magic_start(buf) if len(buf) >= 16 and buf[:7].tobytes() != ul.MAGIC else None
-    if at is not None:  # bytes put before the file: as the parser reads it, from its header on
-        buf, byte_shift = buf[at:], at
+    buf, byte_shift, how, at = ul.located(buf)  # (as the parser reads it; byte_shift: what a byte offset of buf
+    if how == "prefix":  # adds to be the input file's)
         damage.append(f"damaged: the first {at} bytes are not ULog (bytes put before its header); not copied")
-    repaired = ul.repaired_head(buf) if len(buf) >= 16 and buf[:7].tobytes() != ul.MAGIC else None
-    if repaired is not None:  # a damaged header: as the parser reads it
-        buf, at = repaired
-        byte_shift = at - 16
+    elif how == "repaired":
         damage.append(f"damaged header: the first {at} bytes are no ULog messages (bad magic bytes); a new "
                       f"header (start time 0) written before the messages from byte {at} on")
     if len(buf) < 16 or buf[:7].tobytes() != ul.MAGIC:

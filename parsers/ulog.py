@@ -134,6 +134,24 @@ def repaired_head(buf: np.ndarray) -> tuple[np.ndarray, int] | None:
     return np.concatenate([np.frombuffer(MAGIC + bytes(9), np.uint8), buf[at:]]), at
 
 
+def located(buf: np.ndarray) -> tuple[np.ndarray, int, str | None, int]:
+    """A ULog's bytes as the reader and the export take them: (the bytes from its header on, what an offset into
+    them adds to be the file's, how they were found, the offset in the file where they were). ``how``: None (a
+    ULog at byte 0, or no ULog found: the bytes unchanged), "prefix" (bytes put before its magic and header:
+    :func:`magic_start`), "repaired" (a damaged header: a header made anew before its messages, from where they
+    resume: :func:`repaired_head`)."""
+    if len(buf) < 16 or buf[:7].tobytes() == MAGIC:
+        return buf, 0, None, 0
+    at = magic_start(buf)
+    if at is not None:
+        return buf[at:], at, "prefix", at
+    repaired = repaired_head(buf)
+    if repaired is None:
+        return buf, 0, None, 0
+    out, at = repaired
+    return out, at - 16, "repaired", at
+
+
 def sniff_damaged(head: bytes, path: str) -> bool:
     """A ULog with bytes put before it (its magic and header further on: :func:`magic_start`), or whose first
     bytes (its magic among them) are damaged (its messages resume within the first bytes read: :func:`body_start`)."""
@@ -468,21 +486,18 @@ def read_topics(path: str, names: set[str] | None = None, *, engine: str = "auto
     buf = np.fromfile(path, dtype=np.uint8)
     if len(buf) < 16:
         raise InputError(f"truncated ULog: {len(buf)} bytes, header needs 16", path)
-    head_note, byte_shift = None, 0
-    at = magic_start(buf) if buf[:7].tobytes() != MAGIC else None
-    if at is not None:  # bytes put before the file: read from its header on
-        buf, byte_shift = buf[at:], at
+    # bytes put before the file: read from its header on; a damaged header: the messages read from where they
+    # resume, behind a header made anew (in memory; the file is not touched), what lay before them (the flag
+    # bits, the first definitions) lost. byte_shift: the read bytes' offsets as the file's in what is said
+    buf, byte_shift, how, at = located(buf)
+    head_note = None
+    if how == "prefix":
         head_note = f"damaged: the first {at} bytes are not ULog (bytes put before its header); read from byte {at}"
-    elif buf[:7].tobytes() != MAGIC:
-        # a damaged header: the messages read from where they resume, behind a header made anew (in memory;
-        # the file is not touched). What lay before them (the flag bits, the first definitions) is lost
-        repaired = repaired_head(buf)
-        if repaired is None:
-            raise InputError("not a ULog file (bad magic bytes)", path)
-        buf, at = repaired
-        byte_shift = at - 16  # (the repaired bytes' offsets, as the file's in what is said)
+    elif how == "repaired":
         head_note = (f"damaged header: the first {at} bytes are no ULog messages (bad magic bytes); read from byte "
                      f"{at}, where its messages resume")
+    elif buf[:7].tobytes() != MAGIC:
+        raise InputError("not a ULog file (bad magic bytes)", path)
     try:
         res = _read_fast(path, buf, names, byte_shift)
     except InputError:
