@@ -863,13 +863,14 @@ def test_the_raw_rates_let_go_and_made_again_give_the_same_numbers():
     from logtools.latency.prepare import prepare
 
     master, slave = make_pair(np.random.default_rng(7), dur_s=60.0)
+    always = replace(DEFAULT, prepare=replace(DEFAULT.prepare, raw_hold_max_bytes=0.0))
     held = estimate(master, slave)
-    let_go = estimate(master, slave, config=replace(DEFAULT, prepare=replace(DEFAULT.prepare, raw_hold_max_bytes=0.0)))
+    let_go = estimate(master, slave, config=always)
     assert (held.latency_s, held.sigma_s, held.drift_ppm) == (let_go.latency_s, let_go.sigma_s, let_go.drift_ppm)
     assert repr(held.methods) == repr(let_go.methods) and np.isfinite(held.methods["xcorr-norm"].latency_s)
-    raw = prepare(master, slave, 2.0).raw
+    raw = prepare(master, slave, 2.0, cfg=always).raw
     first = raw.get()
-    raw.release(0.0)
+    raw.release()
     again = raw.get()
     assert again is not first
     for x, y in zip(first, again):

@@ -368,7 +368,7 @@ def xcorr_estimate(ctx: Ctx) -> MethodEstimate:
     """Baseline: |w| normalised cross-correlation on the common grid, parabolic peak interpolation."""
     m, s = (series_on_grid(interpolant(lowpass(u, ctx.cfg.prepare.cutoff_fraction / ctx.dt_c)), ctx.dt_c)
             for u in ctx.raw.get())
-    ctx.raw.release(ctx.cfg.prepare.raw_hold_max_bytes)  # (not held beside the correlation where large)
+    ctx.raw.release()  # (not held beside the correlation where large)
     corr = Correlator(m, s)
     lags, min_count = lag_window(ctx, corr, ctx.dt_c, 0.5 if ctx.max_lag_s is not None else 0.25)
     rho, n = norm_xcorr(m, s, lags)

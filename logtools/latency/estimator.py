@@ -180,7 +180,7 @@ def _tapost(ctx: Ctx, progress: Progress, pair: Beside | None, threads_done: Cal
     prog(0.35, "refinement")
     smp = analysed_window(ctx, co)
     ctx, smp, d_center, noise = first_fit(ctx, co, smp)
-    ctx.raw.release(cfg.prepare.raw_hold_max_bytes)  # (the refit at another cutoff was the last to need them)
+    ctx.raw.release()  # (the refit at another cutoff was the last to need them)
     t_mid, w0, w1 = smp.t_mid, smp.w0, smp.w1
     prog(0.55, "windows and drift")
     ov = Overlap(smp.t_m, smp.a, smp.valid, ctx.slave.itp, w0, w1)

@@ -25,17 +25,17 @@ class RawRates:
     then and made again from the logs when asked: the same numbers (4 h of two 200 Hz units: 138 MB held
     through the whole stage otherwise)."""
 
-    def __init__(self, make: Callable[[], tuple], value: tuple | None = None):
-        self._make, self._value = make, value
+    def __init__(self, make: Callable[[], tuple], value: tuple | None, max_bytes: float):
+        self._make, self._value, self._max_bytes = make, value, max_bytes
 
     def get(self) -> tuple:
         if self._value is None:
             self._value = self._make()
         return self._value
 
-    def release(self, max_bytes: float) -> None:
-        """Let the series go where they hold more than ``max_bytes``."""
-        if self._value is not None and sum(u.values.nbytes for u in self._value) > max_bytes:
+    def release(self) -> None:
+        """Let the series go where they hold more than the threshold they were made with."""
+        if self._value is not None and sum(u.values.nbytes for u in self._value) > self._max_bytes:
             self._value = None
 
 
@@ -163,7 +163,7 @@ def prepare(master: InsLog, slave: InsLog, max_lag_s: float | None, *, accelerom
         return tuple(out)
 
     return Ctx(um, us, dt_c, cutoff, max_lag_s, band_cutoff_hz=band_cutoff, t0_abs_s=master.t0_s,
-               dt_s=1.0 / f_s, dt_r=1.0 / f_r, raw=RawRates(raw_again, (natm, nats)),
+               dt_s=1.0 / f_s, dt_r=1.0 / f_r, raw=RawRates(raw_again, (natm, nats), cfg.prepare.raw_hold_max_bytes),
                stamp_jitter_s=(stamp_noise_s(tm), stamp_noise_s(ts)), stamp_resolution_s=res_s, clock_sigma_s=clk_s,
                warnings=tuple(warnings), acc_src=acc_src, vel_src=vel_src, cfg=cfg)
 
