@@ -29,15 +29,80 @@ def _lay_out(out, rec_off, prefix, src, starts, lens):  # compiled with numba (_
         out[o + p:o + p + lens[i]] = src[starts[i]:starts[i] + lens[i]]
 
 
-_KERNEL: list = []
+def _bag1_record_times(buf, t_at, times):  # compiled with numba (_kernel)
+    """times[i] (8 bytes: a ROS time) written at buf[t_at[i]:], where the 4-byte length before ``time=``
+    (buf[t_at[i] - 9]) says 13; returns the first i where it does not (len(t_at): every record written)."""
+    for i in range(len(t_at)):
+        o = t_at[i]
+        if buf[o - 9] != 13 or buf[o - 8] != 0 or buf[o - 7] != 0 or buf[o - 6] != 0:
+            return i
+        for j in range(8):
+            buf[o + j] = times[i, j]
+    return len(t_at)
 
 
-def _kernel():
-    if not _KERNEL:
+def _bag1_index_times(buf, pos, base, rec_at, conn, want, times):  # compiled with numba (_kernel)
+    """ROS 1 index entries (12 bytes: time, offset of the record in its chunk's data) at buf[pos[i]:]: the
+    message whose record starts at base[i] + that offset (rec_at: increasing) and is of connection want[i]
+    (conn: each message's) gets its time times[m] written in the entry. Returns the first i that points at
+    no such message (len(pos): every entry written)."""
+    n = len(rec_at)
+    lo = 0
+    for i in range(len(pos)):
+        p = pos[i]
+        at = base[i] + (np.int64(buf[p + 8]) | (np.int64(buf[p + 9]) << 8) | (np.int64(buf[p + 10]) << 16)
+                        | (np.int64(buf[p + 11]) << 24))
+        # (an entry's message is a few places after the previous entry's, most often: looked for there first)
+        k = lo + 1
+        while k < n and k < lo + 16 and rec_at[k] < at:
+            k += 1
+        if k < n and k < lo + 16 and rec_at[k] == at and (k == 0 or rec_at[k - 1] < at):
+            lo = k
+        else:
+            lo, hi = 0, n
+            while lo < hi:
+                mid = (lo + hi) // 2
+                if rec_at[mid] < at:
+                    lo = mid + 1
+                else:
+                    hi = mid
+        if lo == n or rec_at[lo] != at or conn[lo] != want[i]:
+            return i
+        for j in range(8):
+            buf[p + j] = times[lo, j]
+    return len(pos)
+
+
+_KERNELS: dict = {}
+
+
+def _kernel(name: str = "_lay_out"):
+    fn = _KERNELS.get(name)
+    if fn is None:
         from logtools import jit  # compiled in compiled mode (cached on disk), plain Python otherwise
 
-        _KERNEL.append(jit.njit(_lay_out, nogil=True))  # (runs in the writer's threads)
-    return _KERNEL[0]
+        fn = _KERNELS[name] = jit.njit(globals()[name], nogil=True)  # (_lay_out runs in the writer's threads)
+    return fn
+
+
+def patch_bag1_times(buf: np.ndarray, t_at: np.ndarray, times: np.ndarray) -> bool:
+    """The record times of a ROS 1 bag's messages rewritten where they lie (``t_at``: each record's time
+    value in ``buf``; ``times``: (n, 8) bytes); False (some written) where a record's time field is not 8
+    bytes long."""
+    if len(t_at) and (int(t_at.min()) < 9 or int(t_at.max()) + 8 > len(buf)):
+        return False
+    return _kernel("_bag1_record_times")(buf, t_at, times) == len(t_at)
+
+
+def patch_bag1_index(buf: np.ndarray, pos: np.ndarray, base: np.ndarray, rec_at: np.ndarray, conn: np.ndarray,
+                     want: np.ndarray, times: np.ndarray) -> bool:
+    """The times of a ROS 1 bag's index entries (at ``pos``, in the index data records after the chunks whose
+    data start at ``base``) set to their messages' ``times`` (messages: records at the increasing ``rec_at``,
+    of connections ``conn``; ``want``: each entry's connection); False (some written) where an entry points
+    at no message of its connection."""
+    if len(pos) and (int(pos.min()) < 0 or int(pos.max()) + 12 > len(buf)):
+        return False
+    return _kernel("_bag1_index_times")(buf, pos, base, rec_at, conn, want, times) == len(pos)
 
 
 def _records(prefix: np.ndarray, msgs, sel: slice) -> np.ndarray:

@@ -254,18 +254,21 @@ class _Scan:
         c_at = h0 + lay[:, 1]
         cid = (arr[c_at].astype(np.int64) | (arr[c_at + 1].astype(np.int64) << 8) |
                (arr[c_at + 2].astype(np.int64) << 16) | (arr[c_at + 3].astype(np.int64) << 24))
-        sn = arr[(h0 + lay[:, 2])[:, None] + np.arange(8)].view("<u4").astype(np.int64)
+        t_at = h0 + lay[:, 2]
+        sn = arr[t_at[:, None] + np.arange(8)].view("<u4").astype(np.int64)
         t_ns = sn[:, 0] * 1_000_000_000 + sn[:, 1]
         d0 = h0 + hls + 4
         known = np.isin(cid, np.fromiter(self.times, np.int64, len(self.times)))
         stop = len(cid) if known.all() else int(np.argmin(known))
-        self._keep(buf, arr, cid[:stop], t_ns[:stop], d0[:stop], dls[:stop])
+        self._keep(buf, arr, cid[:stop], t_ns[:stop], d0[:stop], dls[:stop], offs[:stop], t_at[:stop])
         if stop < len(cid):
             raise _Damage(f"{where}: message for unknown connection {int(cid[stop])} at byte {int(offs[stop])}",
                           int(offs[stop]))
 
-    def _keep(self, buf: bytes, arr: np.ndarray, cid, t_ns, d0, lens) -> None:
-        """Messages of known connections, in file order: record times and payload bytes per connection."""
+    def _keep(self, buf: bytes, arr: np.ndarray, cid, t_ns, d0, lens, rec_at, t_at) -> None:
+        """Messages of known connections, in file order: record times and payload bytes per connection
+        (``d0``: where the payloads start in ``arr``; ``rec_at``, ``t_at``: where their records and their
+        record times lie, for the export)."""
         d1 = d0 + lens
         for c in np.unique(cid).tolist():
             rows = np.flatnonzero(cid == c)
@@ -592,7 +595,7 @@ class _StreamScan(_Scan):
             dec = self.decoders[cid] = _decoder(topic, msgtype, msgdef)
             self.data[cid] = _Feed(dec, lambda: int(1.25 * len(times) * self.size / max(self.done, 1)) + 1024)
 
-    def _keep(self, buf: bytes, arr: np.ndarray, cid, t_ns, d0, lens) -> None:
+    def _keep(self, buf: bytes, arr: np.ndarray, cid, t_ns, d0, lens, rec_at, t_at) -> None:
         d1 = d0 + lens
         present = np.unique(cid).tolist()
         for c in present:

@@ -54,6 +54,19 @@ def _pool() -> cf.ThreadPoolExecutor:
         return _POOL[0]
 
 
+def beside(fn: Callable[..., R], *args) -> cf.Future:
+    """``fn(*args)`` started in a worker thread while the caller goes on (run here, now, with one worker):
+    its ``result()`` where the caller needs it (and waited for by ``drain`` where the caller leaves early)."""
+    if workers() < 2:
+        fut: cf.Future = cf.Future()
+        try:
+            fut.set_result(fn(*args))
+        except BaseException as exc:  # noqa: BLE001 - raised by result(), where an inline call would raise it
+            fut.set_exception(exc)
+        return fut
+    return _pool().submit(fn, *args)
+
+
 def ordered(fn: Callable[[T], R], items: Iterable[T], ahead: int | None = None) -> Iterator[R]:
     """``fn(item)`` for every item, in order, up to ``ahead`` items computed ahead in worker threads.
     Leaving the loop early waits for the work in flight (it may touch buffers the caller frees next)."""

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +20,7 @@ import parsers
 from logtools.errors import InputError
 from parsers import mcap_ros, registry, rosbag1, rosbag2
 from parsers import restamp_ros as rr
+from parsers.filemap import FileMap
 from parsers.restamp import ClockShift
 from tests.test_parsers_ros import CAR_BAG, WRITERS, mcap_with_a_flipped_chunk, synthetic_log
 
@@ -126,6 +128,91 @@ def test_library_reads_same_messages_only_time_fields_changed(slaves, fmt, opts,
             sa, sb = _stamp(pa), _stamp(pb)
             assert sb == int(shift.to_master_ns(np.array([sa]))[0])
             assert ta - tb == sa - sb  # the record time moved by the stamp's shift
+
+
+def _bag1_records(data: bytes, start: int, end: int):
+    """(record start, {field: (value offset, value)}, data start, data end) of the ROS 1 records in
+    data[start:end] (the format's framing, read here independently of tapost's scanner)."""
+    off = start
+    while off < end:
+        (hlen,) = struct.unpack_from("<I", data, off)
+        fields, p = {}, off + 4
+        while p < off + 4 + hlen:
+            (ln,) = struct.unpack_from("<I", data, p)
+            name, _, value = data[p + 4:p + 4 + ln].partition(b"=")
+            fields[name.decode()] = (p + 4 + len(name) + 1, value)
+            p += 4 + ln
+        (dlen,) = struct.unpack_from("<I", data, off + 4 + hlen)
+        yield off, fields, off + 8 + hlen, off + 8 + hlen + dlen
+        off += 8 + hlen + dlen
+
+
+def _ros_ns(b: bytes) -> int:
+    sec, nsec = struct.unpack("<II", b)
+    return sec * 1_000_000_000 + nsec
+
+
+def test_uncompressed_bag_is_copied_with_only_its_time_fields_rewritten(slaves, tmp_path):
+    src = slaves["x.bag"]
+    shift = _shift_for(parsers.load(src))
+    dst = str(tmp_path / "out.bag")
+    st = rr.restamp_rosbag1(src, dst, shift)
+    assert st.how.startswith("the input's bytes copied") and st.records == 1000 and st.damage == ()
+    a, b = open(src, "rb").read(), open(dst, "rb").read()
+    assert len(a) == len(b)
+    may_differ = np.zeros(len(a), bool)
+    new_time = {}  # (record start in its chunk's data, chunk) -> its new record time
+    chunks, counted = {}, {"msg": 0, "index": 0, "info": 0}
+    for off, f, d0, d1 in _bag1_records(a, len(rosbag1.MAGIC), len(a)):
+        op = f["op"][1][0]
+        if op == 5:  # a chunk: its records
+            assert f["compression"][1] == b"none"
+            chunks[off] = []
+            for r, g, e0, _e1 in _bag1_records(a, d0, d1):
+                if g["op"][1][0] != 2:
+                    continue
+                t_at = g["time"][0]
+                stamp_old, stamp_new = _ros_ns(a[e0 + 4:e0 + 12]), _ros_ns(b[e0 + 4:e0 + 12])
+                assert stamp_new == int(shift.to_master_ns(np.array([stamp_old]))[0])
+                t_new = _ros_ns(b[t_at:t_at + 8])
+                assert _ros_ns(a[t_at:t_at + 8]) - t_new == stamp_old - stamp_new  # moved by the stamp's shift
+                may_differ[t_at:t_at + 8] = may_differ[e0 + 4:e0 + 12] = True
+                new_time[r - d0, off] = t_new
+                chunks[off].append(t_new)
+                counted["msg"] += 1
+            last_chunk = off
+        elif op == 4:  # index data: (time, offset in the chunk) entries
+            for e in range(d0, d1, 12):
+                (rel,) = struct.unpack_from("<I", a, e + 8)
+                assert _ros_ns(b[e:e + 8]) == new_time[rel, last_chunk]
+                may_differ[e:e + 8] = True
+                counted["index"] += 1
+        elif op == 6:  # chunk info: the first and last record time of its chunk
+            (pos,) = struct.unpack("<Q", f["chunk_pos"][1])
+            for name, want in (("start_time", min(chunks[pos])), ("end_time", max(chunks[pos]))):
+                at = f[name][0]
+                assert _ros_ns(b[at:at + 8]) == want
+                may_differ[at:at + 8] = True
+            counted["info"] += 1
+    assert counted["msg"] == counted["index"] == 1000 and counted["info"] == len(chunks) > 0
+    changed = np.flatnonzero(np.frombuffer(a, np.uint8) != np.frombuffer(b, np.uint8))
+    assert len(changed) and may_differ[changed].all()  # every other byte as it was
+
+
+def test_a_bag_that_cannot_be_patched_in_place_is_written_anew(slaves, tmp_path, monkeypatch):
+    def declined(*args, **kwargs):
+        raise rr._NotInPlace("declined by the test")
+
+    monkeypatch.setattr(rr, "_patch_bag1", declined)
+    src = slaves["x.bag"]
+    a = parsers.load(src)
+    shift = _shift_for(a)
+    dst = tmp_path / "out.bag"
+    st = rr.restamp_rosbag1(src, str(dst), shift)
+    assert st.how.startswith("tapost's vectorised ROS 1 bag writer") and st.records == 1000
+    assert os.listdir(tmp_path) == ["out.bag"]  # the copy of the declined attempt is gone
+    b = parsers.load(str(dst))
+    np.testing.assert_array_equal(_t_ns(b, b.imu), shift.to_master_ns(_t_ns(a, a.imu)))
 
 
 @pytest.mark.parametrize("name", ["bag_sqlite", "bag_mcap", "bag_mcap_zfile", "bag_sqlite_zmsg"])
@@ -367,7 +454,11 @@ def test_truncated_input_writes_the_readable_part_and_names_the_damage(big, tmp_
     shift = _shift_for(a)
     st = RESTAMP[fmt](cut, dst, shift)
     assert any("truncated" in d for d in st.damage)
-    n_read = rr._scan_mcap(cut).count if fmt == "mcap" else rr._scan_rosbag1(cut).count
+    if fmt == "mcap":
+        n_read = rr._scan_mcap(cut).count
+    else:
+        with FileMap(cut) as fmap:
+            n_read = rr._scan_rosbag1(cut, fmap).count
     assert st.records == n_read and 0.3 * 3 * 6000 < st.records < 3 * 6000
     lib = _library_messages(dst, "mcap" if fmt == "mcap" else "rosbag1")
     assert sum(len(v) for v in lib.values()) == st.records  # the output is complete and indexed
