@@ -3,6 +3,7 @@ two IMUs (Wahba + Gauss-Newton, sandwich sigma with the residuals' correlation t
 check against the nav-referenced mounting."""
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -702,7 +703,7 @@ def test_the_fast_band_is_fitted_on_the_first_fits_columns_built_again(monkeypat
 
     monkeypatch.setattr(i2i, "_triad", record_triad)
     monkeypatch.setattr(i2i, "_columns_again", record_again)
-    res = imu_to_imu(master, slave)
+    res = imu_to_imu(master, slave, config=replace(i2i.DEFAULT, rebuild_min_bytes=0.0))  # (as a long log's)
     assert res.accel is not None and res.accel.band_z is not None
     assert (res.accel.lever_arm_m is not None) and ((res.accel.lowpass_hz is not None) == case.startswith("quiet"))
     assert len(again) == 2 and len(fits) == 6  # each triad: the whole motion, the slow band, the fast band
@@ -712,3 +713,6 @@ def test_the_fast_band_is_fitted_on_the_first_fits_columns_built_again(monkeypat
         a = (len(built[0]) - m) // 2  # (the fits see the rows inside the high-pass's half windows)
         for x, y in zip(first, built):
             assert np.array_equal(x, y[a:a + m])
+    monkeypatch.setattr(i2i, "_triad", triad)
+    kept = imu_to_imu(master, slave)  # (short logs: the first set's copy, not built again)
+    assert len(again) == 2 and kept == res  # the same result, field by field

@@ -62,6 +62,11 @@ class ImuToImuConfig:
     #: long before; 4 h of 200 Hz would otherwise be 2.9 M rows of differences per fit)
     noise_rows: int = 1 << 18
     noise_block_rows: int = 1024
+    #: the fit's columns (u, v, the lever arm's and the delay's regressors) are built again for the fast band
+    #: where one set holds at least this many bytes (:func:`_columns_again`: 4 h of 200 Hz accelerometers are
+    #: 415 MB a set, and a second set beside the first took the 4 h pair past 2 GB); below, a copy of the
+    #: first is kept for it (the same numbers: building them again cost 1.3 s of the 1 h pair's 6 s fit)
+    rebuild_min_bytes: float = 150e6
     gap_steps: float = 3.0  # a step of a unit's stamps beyond this many of its median steps is a gap (not bridged)
     consistency_z: float = 3.0  # beyond this many combined sigmas the two views disagree
     #: a disagreement up to this many combined sigmas is said to be marginal, its causes possible rather than
@@ -942,9 +947,10 @@ def _one_triad(name: str, common: Callable, master_gyro: Callable, highpass_s: f
                starts: tuple[np.ndarray, ...] = ()) -> TriadRotation | str:
     """One triad's rotation on common samples (``common()``: t, master u, slave v, made anew at each call), the
     slow part out over highpass_s; ``master_gyro()``: the master's gyro (stamps, rates) or None; ``starts``:
-    further starting rotations of the fit (the accelerometers': the gyro triad's). The fit's columns are built
-    twice (the whole motion and its slow part are fitted on the first, its fast part on the second), so that
-    no two sets of them are held at once: 4 h of 200 Hz accelerometers' are 415 MB a set."""
+    further starting rotations of the fit (the accelerometers': the gyro triad's). Where the fit's columns
+    hold ``cfg.rebuild_min_bytes`` or more, they are built twice (the whole motion and its slow part are fitted
+    on the first, its fast part on the second), so that no two sets of them are held at once: 4 h of 200 Hz
+    accelerometers' are 415 MB a set."""
     com = common()
     if com is None or len(com[0]) < cfg.min_samples:
         return TOO_FEW_COMMON
@@ -1004,8 +1010,11 @@ def _one_triad(name: str, common: Callable, master_gyro: Callable, highpass_s: f
     # a rotation is the same at every frequency: fitted on the slow and on the fast part of the motion
     # apart, two figures beyond band_z sigmas say the triads differ by more than a rotation (the
     # sensors' own filters, vibration aliased into the snapshots, scale factors)
-    lo = (u, v, k)  # x - highpass(x), written over x column by column (the columns are built again for the
-    for x in lo:  # fast part: not held while the slow part is fitted)
+    # the fast part's columns: a copy of these, or (long logs) built again once the slow part is fitted
+    held = tuple(x.copy(order="K") for x in (u, v, k)) if u.nbytes + v.nbytes + k.nbytes < cfg.rebuild_min_bytes \
+        else None
+    lo = (u, v, k)  # x - highpass(x), written over x column by column
+    for x in lo:
         xf = _rows(x)
         for j in range(xf.shape[1]):
             np.subtract(xf[:, j], _highpass(xf[:, j:j + 1], nlp)[:, 0], out=xf[:, j])
@@ -1014,7 +1023,8 @@ def _one_triad(name: str, common: Callable, master_gyro: Callable, highpass_s: f
     band_lo = _triad(lo[0][cut], lo[1][cut], lo[2][cut], dt, cfg, min_explained=0.0, starts=starts,
                      k_noise_cov=ncov[1] if ncov else None, k_noise_rel_sd=rel)
     del lo
-    hi = _columns_again(common, master_gyro, nwin, lever, sos, cfg)
+    hi = held if held is not None else _columns_again(common, master_gyro, nwin, lever, sos, cfg)
+    del held
     for x in hi:  # the fast part, in place
         _highpass(_rows(x), nlp, out=_rows(x))
     del x
