@@ -649,7 +649,10 @@ def _restamp_bag1_in_place(src: str, tmp: str, dst: str, scan: _Scan1, shift: Cl
     with open(tmp, "r+b") as fh:
         if os.fstat(fh.fileno()).st_size != scan.size:
             raise _NotInPlace("the input changed size while it was read")
-        mm = mmap.mmap(fh.fileno(), 0)  # (shared: the patches go to the file's pages)
+        try:
+            mm = mmap.mmap(fh.fileno(), 0)  # (shared: the patches go to the file's pages)
+        except (OSError, ValueError) as exc:  # (a file system that cannot map a file for writing)
+            raise _NotInPlace(f"the copy cannot be mapped ({exc})") from None
     if sys.platform.startswith("linux"):  # every page is patched: its write faults taken in one call, not each
         with contextlib.suppress(OSError, ValueError):  # (MADV_POPULATE_WRITE: Linux 5.14)
             mm.madvise(getattr(mmap, "MADV_POPULATE_WRITE", 23))

@@ -199,11 +199,28 @@ def test_uncompressed_bag_is_copied_with_only_its_time_fields_rewritten(slaves, 
     assert len(changed) and may_differ[changed].all()  # every other byte as it was
 
 
-def test_a_bag_that_cannot_be_patched_in_place_is_written_anew(slaves, tmp_path, monkeypatch):
+class _RefusingMmap:
+    """``mmap`` as a file system that cannot map a file for writing has it."""
+
+    def __getattr__(self, name):
+        import mmap
+
+        return getattr(mmap, name)
+
+    @staticmethod
+    def mmap(*args, **kwargs):
+        raise OSError(19, "No such device")
+
+
+@pytest.mark.parametrize("why", ["an index entry points at no message", "the copy cannot be mapped"])
+def test_a_bag_that_cannot_be_patched_in_place_is_written_anew(slaves, tmp_path, monkeypatch, why):
     def declined(*args, **kwargs):
         raise rr._NotInPlace("declined by the test")
 
-    monkeypatch.setattr(rr, "_patch_bag1", declined)
+    if why.startswith("an index"):
+        monkeypatch.setattr(rr, "_patch_bag1", declined)
+    else:
+        monkeypatch.setattr(rr, "mmap", _RefusingMmap())
     src = slaves["x.bag"]
     a = parsers.load(src)
     shift = _shift_for(a)
