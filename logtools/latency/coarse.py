@@ -6,7 +6,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import fft as sfft
-from scipy import optimize
 
 from logtools import dsp
 from logtools.conventions import wahba
@@ -203,6 +202,8 @@ def subsample_minima(m: UniformSeries, s: UniformSeries, itp: Interpolant, lags:
     # (every stride-th row of a long log: the ranking needs the cost's level, not every sample's share)
     stride = max(1, int(np.ceil(len(m.values) / sc.subsample_max_rows)))
     t, a, va = m.t_s[::stride], m.values[::stride], m.valid[::stride]
+    from scipy import optimize  # (here: its import costs 0.2-0.3 s, and only logs with rival lags get this far)
+
     out = {}
     for i in [best] + rivals:
         k = float(lags[i])  # (searched in grid steps about it: a lag may be 1.7e9 s, clocks unrelated)

@@ -29,7 +29,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import linalg as sla
-from scipy import optimize
 
 from logtools.latency.config import DEFAULT, LatencyConfig
 
@@ -249,6 +248,9 @@ def fit_model(y: np.ndarray, ws: np.ndarray, fs: np.ndarray | None, use: np.ndar
         _, M, ld = whitened_normal(y, ws, fs, use, _model(theta, C, dt_s), store=False)
         val = _nll(M, ld, p)
         return val if np.isfinite(val) else 1e300
+
+    from scipy import optimize  # (here: scipy.optimize and what it imports cost 0.2-0.3 s, and a short log's
+    # analysis never gets this far)
 
     res = optimize.minimize(f, theta0, method="L-BFGS-B", bounds=list(zip(lo, hi)),
                             options={"maxiter": cfg.flexure.max_ml_iter})
