@@ -57,7 +57,7 @@ from parsers import ros_common as rc
 from parsers.atomic import atomic_folder, atomic_path, check_replaceable
 from parsers.base import Selector, check_readable
 from parsers.filemap import FileMap
-from parsers.restamp import ClockShift, RestampStats, get_bytes, get_le, put_bytes
+from parsers.restamp import ClockShift, RestampStats, get_bytes, put_bytes
 
 HEADER = "std_msgs/msg/Header"
 #: a topic whose header stamps are this far from the unit's clock is on another clock
@@ -693,7 +693,8 @@ def _bag1_places(file: np.ndarray, off: int, hlen: int) -> dict[str, tuple[int, 
     return out
 
 
-def _u32_field(file: np.ndarray, places: dict[str, tuple[int, int]], name: str, size: int = 4) -> int:
+def _uint_field(file: np.ndarray, places: dict[str, tuple[int, int]], name: str, size: int = 4) -> int:
+    """The little-endian unsigned value (``size`` bytes: 4 or 8) of header field ``name`` (:func:`_bag1_places`)."""
     at, ln = places.get(name, (0, -1))
     if ln != size:
         raise _NotInPlace(f"a record header's {name} field missing or not of {size} bytes")
@@ -726,12 +727,12 @@ def _patch_bag1(file: np.ndarray, src: str, scan: _Scan1, shift: ClockShift,
     pos, base, want = [], [], []
     for off, hlen, nxt, ci in scan.index_recs:
         places = _bag1_places(file, off, hlen)
-        count = _u32_field(file, places, "count")
-        if ci < 0 or _u32_field(file, places, "ver") != 1 or nxt - (off + 8 + hlen) != 12 * count:
+        count = _uint_field(file, places, "count")
+        if ci < 0 or _uint_field(file, places, "ver") != 1 or nxt - (off + 8 + hlen) != 12 * count:
             raise _NotInPlace(f"index data record at byte {off} not of version 1 after a chunk")
         pos.append(off + 8 + hlen + 12 * np.arange(count, dtype=np.int64))
         base.append(np.full(count, scan.chunk_recs[ci][1], np.int64))
-        want.append(np.full(count, _u32_field(file, places, "conn"), np.int64))
+        want.append(np.full(count, _uint_field(file, places, "conn"), np.int64))
     if pos:
         ids = np.asarray(cids, np.int64)  # (each entry's connection as the messages' number of it, -1: none)
         want_k = np.minimum(np.searchsorted(ids, np.concatenate(want)), len(ids) - 1)
@@ -743,8 +744,8 @@ def _patch_bag1(file: np.ndarray, src: str, scan: _Scan1, shift: ClockShift,
     chunks = {c[0]: (c[1], c[2]) for c in scan.chunk_recs}
     for off, hlen, _nxt in scan.info_recs:
         places = _bag1_places(file, off, hlen)
-        span = chunks.get(_u32_field(file, places, "chunk_pos", 8))
-        if span is None or _u32_field(file, places, "ver") != 1:
+        span = chunks.get(_uint_field(file, places, "chunk_pos", 8))
+        if span is None or _uint_field(file, places, "ver") != 1:
             raise _NotInPlace(f"chunk info record at byte {off} points at no chunk")
         a, b = np.searchsorted(rec_at, span)
         if a == b:
