@@ -214,20 +214,25 @@ class _RefusingMmap:
 
 @pytest.mark.parametrize("why", ["an index entry points at no message", "the copy cannot be mapped"])
 def test_a_bag_that_cannot_be_patched_in_place_is_written_anew(slaves, tmp_path, monkeypatch, why):
-    def declined(*args, **kwargs):
-        raise rr._NotInPlace("declined by the test")
-
-    if why.startswith("an index"):
-        monkeypatch.setattr(rr, "_patch_bag1", declined)
+    src = slaves["x.bag"]
+    if why.startswith("an index"):  # the first index entry's offset set to a place where no record starts
+        data = bytearray(open(src, "rb").read())
+        first = next(d0 for _off, f, d0, _d1 in _bag1_records(bytes(data), len(rosbag1.MAGIC), len(data))
+                     if f["op"][1] == b"\x04")
+        struct.pack_into("<I", data, first + 8, 7)
+        src = str(tmp_path / "in" / "bad_index.bag")
+        os.makedirs(os.path.dirname(src))
+        open(src, "wb").write(bytes(data))
     else:
         monkeypatch.setattr(rr, "mmap", _RefusingMmap())
-    src = slaves["x.bag"]
     a = parsers.load(src)
     shift = _shift_for(a)
     dst = tmp_path / "out.bag"
     st = rr.restamp_rosbag1(src, str(dst), shift)
-    assert st.how.startswith("tapost's vectorised ROS 1 bag writer") and st.records == 1000
-    assert os.listdir(tmp_path) == ["out.bag"]  # the copy of the declined attempt is gone
+    # (the scan finds no damage: the index entry's offset is what declines the patch in place)
+    assert st.how.startswith("tapost's vectorised ROS 1 bag writer") and st.records == 1000 and st.damage == ()
+    expected = ["in", "out.bag"] if why.startswith("an index") else ["out.bag"]
+    assert sorted(os.listdir(tmp_path)) == expected  # the declined attempt's copy is gone
     b = parsers.load(str(dst))
     np.testing.assert_array_equal(_t_ns(b, b.imu), shift.to_master_ns(_t_ns(a, a.imu)))
 
