@@ -667,14 +667,6 @@ def _restamp_bag1_in_place(src: str, tmp: str, dst: str, scan: _Scan1, shift: Cl
                         records=records, records_by_type=by_type, time_fields=_BAG1_TIME_FIELDS, damage=tuple(notes))
 
 
-def _ros_times(t_ns: np.ndarray) -> np.ndarray:
-    """(n, 8) bytes of ROS 1 times (uint32 seconds, uint32 nanoseconds, little-endian)."""
-    sec, nsec = np.divmod(np.asarray(t_ns, np.int64), 1_000_000_000)
-    tt = np.empty((len(sec), 2), "<u4")
-    tt[:, 0], tt[:, 1] = sec, nsec
-    return tt.view(np.uint8)
-
-
 def _bag1_places(file: np.ndarray, off: int, hlen: int) -> dict[str, tuple[int, int]]:
     """Where each field value of the record header at ``file[off + 4:off + 4 + hlen]`` lies: name ->
     (byte, length)."""
@@ -717,7 +709,7 @@ def _patch_bag1(file: np.ndarray, src: str, scan: _Scan1, shift: ClockShift,
     new_log, out, notes = _apply(streams, msgs, typestore, shift, selector, src)  # (Header stamps, in ``file``)
     if out.buf is not file:
         raise _NotInPlace("a restamped payload changed length")
-    times = _ros_times(new_log)
+    times = rcw.bag1_times(new_log)
     if not rcw.patch_bag1_times(file, t_at, times):
         raise _NotInPlace("a record time field that is not 8 bytes")
     n = len(new_log)
@@ -755,7 +747,7 @@ def _patch_bag1(file: np.ndarray, src: str, scan: _Scan1, shift: ClockShift,
             at, ln = places.get(name, (0, -1))
             if ln != 8:
                 raise _NotInPlace(f"chunk info record at byte {off}: no 8-byte {name}")
-            file[at:at + 8] = np.frombuffer(rosbag1._TIME.pack(*divmod(value, 1_000_000_000)), np.uint8)
+            file[at:at + 8] = np.frombuffer(rcw._bag1_time(value), np.uint8)
     return n, _counts(streams, msgs.conn), notes
 
 

@@ -194,6 +194,15 @@ def _bag1_time(t_ns: int) -> bytes:
     return struct.pack("<II", t_ns // 1_000_000_000, t_ns % 1_000_000_000)
 
 
+def bag1_times(t_ns: np.ndarray) -> np.ndarray:
+    """(n, 8) bytes of ROS 1 times (uint32 seconds, uint32 nanoseconds, little-endian): :func:`_bag1_time` of
+    each of ``t_ns``."""
+    sec, nsec = np.divmod(np.asarray(t_ns, np.int64), 1_000_000_000)
+    tt = np.empty((len(sec), 2), "<u4")
+    tt[:, 0], tt[:, 1] = sec, nsec
+    return tt.view(np.uint8)
+
+
 def _bag1_conn(cid: int, f: dict[str, bytes]) -> bytes:
     data = b"".join(struct.pack("<I", len(k) + 1 + len(v)) + k.encode() + b"=" + v for k, v in f.items())
     return _bag1_record([(b"op", b"\x07"), (b"conn", struct.pack("<I", cid)), (b"topic", f.get("topic", b""))], data)
@@ -212,8 +221,7 @@ def write_bag1(fh, fields: list[dict[str, bytes]], cids: list[int], msgs, log_ns
     pre[:, 12:21] = np.frombuffer(struct.pack("<I", 9) + b"conn=", np.uint8)
     pre[:, 21:25] = np.asarray(cids, np.uint32)[msgs.conn].astype("<u4").view(np.uint8).reshape(n, 4) if n else 0
     pre[:, 25:34] = np.frombuffer(struct.pack("<I", 13) + b"time=", np.uint8)
-    tt = np.stack([log_ns // 1_000_000_000, log_ns % 1_000_000_000], axis=1).astype("<u4")
-    pre[:, 34:42] = tt.view(np.uint8).reshape(n, 8)
+    pre[:, 34:42] = bag1_times(log_ns)
     pre[:, 42:46] = msgs.lens.astype("<u4").view(np.uint8).reshape(n, 4)
     size = 46 + msgs.lens
     pos = 0
