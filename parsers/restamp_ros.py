@@ -57,7 +57,7 @@ from parsers import ros_common as rc
 from parsers.atomic import atomic_folder, atomic_path, check_replaceable
 from parsers.base import Selector, check_readable
 from parsers.filemap import FileMap
-from parsers.restamp import ClockShift, RestampStats, get_bytes, put_bytes
+from parsers.restamp import ClockShift, RestampStats, get_bytes
 
 HEADER = "std_msgs/msg/Header"
 #: a topic whose header stamps are this far from the unit's clock is on another clock
@@ -204,14 +204,8 @@ def _unit(streams: list[_Stream], msgs: _Msgs, typestore, selector: str | None, 
 
 def _first_header_stamps(buf: np.ndarray, starts: np.ndarray, encoding: str) -> tuple[np.ndarray, np.ndarray]:
     """(header stamps, ns; big-endian mask) of Header-first messages (payloads of 12 bytes or more) at
-    ``starts``: the stamp's sec and nanosec at bytes 4..12 (after ROS 1's seq, after CDR's encapsulation, whose
-    second byte 0 says big endian)."""
-    raw = get_bytes(buf, starts + 4, 8)
-    be = (buf[starts + 1] == 0) if encoding == "cdr" else np.zeros(len(starts), bool)  # CDR 00 00: big endian
-    le_v = raw.view("<u4").astype(np.int64)
-    if be.any():
-        le_v[be] = raw[be].view(">u4").astype(np.int64)
-    return le_v[:, 0] * 1_000_000_000 + le_v[:, 1], be
+    ``starts`` (:func:`parsers.ros_containers.header_stamps`)."""
+    return rcw.header_stamps(buf, starts, encoding == "cdr")
 
 
 def _without_far(streams: list[_Stream], msgs: _Msgs, what: str) -> tuple[_Msgs, list[str]]:
@@ -321,11 +315,7 @@ def _apply(streams: list[_Stream], msgs: _Msgs, typestore, shift: ClockShift, se
             raise InputError(f"{streams[k].topic}: the shift would make header stamps negative (message "
                              f"{int(idx[j])}: header stamp {int(st[j]) * 1e-9:.3f} s, shift "
                              f"{int(delta[idx[j]]) * 1e-9:.6g} s)", path)
-        sn = np.stack([new // 1_000_000_000, new % 1_000_000_000], axis=1)
-        vals = sn.astype("<u4").view(np.uint8).reshape(-1, 8)
-        if be.any():
-            vals[be] = sn[be].astype(">u4").view(np.uint8).reshape(-1, 8)
-        put_bytes(buf, msgs.starts[idx] + 4, vals)
+        rcw.put_header_stamps(buf, msgs.starts[idx], new, be)
     grown: dict[int, bytes] = {}
     for k, idx in texts.items():  # the stamp's digits replaced in the text (a longer number: repacked below)
         bad = 0
@@ -986,9 +976,9 @@ def _mcap_streams(sc: _McapScan, typestore) -> tuple[list[int], list[_Stream]]:
     return cids, streams
 
 
-def _mcap_msgs(sc: _McapScan, cids: list[int]) -> tuple[_Msgs, np.ndarray, np.ndarray, rcw.ChunkLayout | None]:
-    """All messages (payloads in one writable buffer), their publish times and sequence numbers, and
-    where the input's chunks lie in that buffer (None unless every message came from a whole chunk)."""
+def _mcap_msgs(sc: _McapScan, cids: list[int]) -> tuple[_Msgs, rcw.ChunkLayout | None]:
+    """All messages (payloads in one writable buffer, each after its record's head) and where the input's
+    chunks lie in that buffer (None unless every message came from a whole chunk)."""
     cat = (lambda v: np.concatenate(v) if v else np.zeros(0, np.int64))
     lut = np.zeros(max(cids, default=0) + 1, np.int64)
     lut[cids] = np.arange(len(cids))
@@ -1010,11 +1000,17 @@ def _mcap_msgs(sc: _McapScan, cids: list[int]) -> tuple[_Msgs, np.ndarray, np.nd
     if sc.blocks and all(sc.whole):
         layout = rcw.ChunkLayout(np.asarray(base, np.int64), np.asarray(blens, np.int64),
                                  np.asarray([len(c) for c in sc.cid], np.int64))
+    return _Msgs(conn, cat(sc.log), buf, starts, lens), layout
+
+
+def _mcap_heads(msgs: _Msgs) -> tuple[np.ndarray, np.ndarray]:
+    """The publish times and sequence numbers of the message records whose payloads ``msgs`` holds (each after
+    its record's head, as :func:`_mcap_msgs` gives them): what a writer laying the records out anew needs."""
     # a message record is opcode, length, channel, sequence (4 bytes), log time, publish time (8 each), data
-    head = get_bytes(buf, starts - 20, 20)  # sequence, log and publish times in one pass over the records
+    head = get_bytes(msgs.buf, msgs.starts - 20, 20)  # sequence, log and publish times in one pass over the records
     seq = head[:, :4].copy().view("<u4").ravel().astype(np.int64)
     pub = head[:, 12:].copy().view("<u8").ravel().astype(np.int64)
-    return _Msgs(conn, cat(sc.log), buf, starts, lens), pub, seq, layout
+    return pub, seq
 
 
 def _views_of(base: np.ndarray, blocks: list) -> list[int] | None:
@@ -1043,14 +1039,17 @@ def restamp_mcap(src: str, dst: str, shift: ClockShift, *, selector: str | None 
     sc = _scan_mcap(src)
     typestore = get_typestore(Stores.EMPTY)
     cids, streams = _mcap_streams(sc, typestore)
-    msgs0, pub, seq, layout = _mcap_msgs(sc, cids)
-    new_log, msgs, notes = _apply(streams, msgs0, typestore, shift, selector, src)
+    msgs0, layout = _mcap_msgs(sc, cids)
+    new_log, msgs, notes = _apply(streams, msgs0, typestore, shift, selector, src)  # (payloads only: not the heads)
     delta = msgs.log_ns - new_log
-    new_pub = np.where(pub != 0, pub - delta, 0)
     comp = sc.compression if sc.compression is not None else "zstd"
+    if layout is not None and msgs.buf is msgs0.buf:  # the input's chunks, their records' times patched
+        new_pub = seq = None
+    else:  # records laid out anew (a payload grew, or a chunk was damaged)
+        pub, seq = _mcap_heads(msgs0)
+        new_pub, layout = np.where(pub != 0, pub - delta, 0), None
     with atomic_path(dst) as tmp, open(tmp, "wb") as fh:
-        rcw.write_mcap(fh, sc, cids, msgs, new_log, new_pub, seq, comp, _chunk_bytes(sc),
-                       layout=layout if msgs.buf is msgs0.buf else None)
+        rcw.write_mcap(fh, sc, cids, msgs, new_log, new_pub, seq, comp, _chunk_bytes(sc), layout=layout, delta=delta)
     return RestampStats(path=dst, format="mcap", how="tapost's vectorised MCAP writer (chunk compression kept, "
                         "CRCs, message indexes and summary rebuilt); Header stamps patched in the payload "
                         "bytes (nested Headers through rosbags (de)serialisation; JSON-encoded messages: the "
@@ -1132,7 +1131,8 @@ def _read_ros2_part(f: str, g: str, storage: str, by_key, damage: list[str]) -> 
         sc = _scan_mcap(g)
         damage += [f"{name}: {d}" for d in sc.damage]
         cids = sorted(sc.channels)
-        m, pub, seq, layout = _mcap_msgs(sc, cids)
+        m, layout = _mcap_msgs(sc, cids)
+        pub, seq = _mcap_heads(m)
         keys = [by_key.get((sc.channels[c][0], rc.normalize_msgtype(sc.schemas.get(sc.channels[c][2], ("", "", b""))[0])))
                 for c in cids]
         if any(k is None for k in keys):
@@ -1473,7 +1473,7 @@ def _write_ros2_mcap(tmp: str, meta: dict, mode: str, parts: list[_Part], stream
             layout = rcw.ChunkLayout(part.layout.base + o, part.layout.size, part.layout.count)
         with open(path, "wb") as fh:
             rcw.write_mcap(fh, sc, cids, sub, t, pub, part.seq, sc.compression if sc.compression is not None else "zstd",
-                           _chunk_bytes(sc), layout=layout)
+                           _chunk_bytes(sc), layout=layout, delta=delta[sl])
         if mode == "file":
             import zstandard
 

@@ -73,6 +73,52 @@ def _bag1_index_times(buf, pos, base, rec_at, conn, want, times):  # compiled wi
     return len(pos)
 
 
+def _mcap_record_times(buf, starts, log_ns, delta):  # compiled with numba (_kernel)
+    """MCAP message records' log and publish times (the 16 bytes before each payload at ``starts``) set: the
+    log time to ``log_ns[i]``, a publish time other than 0 (unset) moved by ``-delta[i]``."""
+    for i in range(len(starts)):
+        o = starts[i] - 16
+        t = log_ns[i]
+        for j in range(8):
+            buf[o + j] = (t >> (8 * j)) & 0xFF
+        pub = np.int64(0)
+        for j in range(8):
+            pub |= np.int64(buf[o + 8 + j]) << (8 * j)
+        if pub != 0:
+            pub -= delta[i]
+            for j in range(8):
+                buf[o + 8 + j] = (pub >> (8 * j)) & 0xFF
+
+
+def _header_stamps_get(buf, at, cdr, stamp, be):  # compiled with numba (_kernel)
+    """stamp[i]: the Header stamp (uint32 sec, uint32 nanosec, ns) at buf[at[i] + 4:] (after ROS 1's seq, after
+    CDR's encapsulation); be[i]: big endian (``cdr`` and the encapsulation's second byte 0)."""
+    for i in range(len(at)):
+        s = at[i]
+        big = cdr and buf[s + 1] == 0
+        be[i] = big
+        sec = np.int64(0)
+        nsec = np.int64(0)
+        for j in range(4):
+            k = 3 - j if big else j
+            sec |= np.int64(buf[s + 4 + j]) << (8 * k)
+            nsec |= np.int64(buf[s + 8 + j]) << (8 * k)
+        stamp[i] = sec * 1_000_000_000 + nsec
+
+
+def _header_stamps_put(buf, at, new, be):  # compiled with numba (_kernel)
+    """The Header stamps at buf[at[i] + 4:] set to new[i] (ns, >= 0; uint32 sec and nanosec, big endian where
+    be[i])."""
+    for i in range(len(at)):
+        s = at[i] + 4
+        sec = new[i] // 1_000_000_000
+        nsec = new[i] - sec * 1_000_000_000
+        for j in range(4):
+            k = 3 - j if be[i] else j
+            buf[s + j] = (sec >> (8 * k)) & 0xFF
+            buf[s + 4 + j] = (nsec >> (8 * k)) & 0xFF
+
+
 _KERNELS: dict = {}
 
 
@@ -83,6 +129,69 @@ def _kernel(name: str = "_lay_out"):
 
         fn = _KERNELS[name] = jit.njit(globals()[name], nogil=True)  # (_lay_out runs in the writer's threads)
     return fn
+
+
+def header_stamps(buf: np.ndarray, starts: np.ndarray, cdr: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(stamps, ns; big-endian mask) of the Header-first messages whose payloads (12 bytes or more) start at
+    ``starts``: the stamp's sec and nanosec at bytes 4..12 (after ROS 1's seq, after CDR's encapsulation, whose
+    second byte 0 says big endian)."""
+    from logtools import jit
+    from parsers.restamp import get_bytes
+
+    starts = np.asarray(starts, np.int64)
+    if len(starts) and (int(starts.min()) < 0 or int(starts.max()) + 12 > len(buf)):
+        raise IndexError("a Header stamp lies outside the buffer")
+    if jit.compiled():
+        stamp, be = np.empty(len(starts), np.int64), np.empty(len(starts), np.bool_)
+        _kernel("_header_stamps_get")(buf, starts, cdr, stamp, be)
+        return stamp, be
+    raw = get_bytes(buf, starts + 4, 8)
+    be = (buf[starts + 1] == 0) if cdr else np.zeros(len(starts), bool)  # CDR 00 00: big endian
+    le_v = raw.view("<u4").astype(np.int64)
+    if be.any():
+        le_v[be] = raw[be].view(">u4").astype(np.int64)
+    return le_v[:, 0] * 1_000_000_000 + le_v[:, 1], be
+
+
+def put_header_stamps(buf: np.ndarray, starts: np.ndarray, new: np.ndarray, be: np.ndarray) -> None:
+    """The Header stamps of the messages at ``starts`` (as :func:`header_stamps` reads them) set to ``new``
+    (ns, >= 0), in their byte order ``be``."""
+    from logtools import jit
+    from parsers.restamp import put_bytes
+
+    starts = np.asarray(starts, np.int64)
+    if not len(starts):
+        return
+    if int(starts.min()) < 0 or int(starts.max()) + 12 > len(buf):
+        raise IndexError("a Header stamp lies outside the buffer")
+    if jit.compiled():
+        _kernel("_header_stamps_put")(buf, starts, np.asarray(new, np.int64), np.asarray(be, np.bool_))
+        return
+    sn = np.stack([new // 1_000_000_000, new % 1_000_000_000], axis=1)
+    vals = sn.astype("<u4").view(np.uint8).reshape(-1, 8)
+    if be.any():
+        vals[be] = sn[be].astype(">u4").view(np.uint8).reshape(-1, 8)
+    put_bytes(buf, starts + 4, vals)
+
+
+def patch_mcap_times(buf: np.ndarray, starts: np.ndarray, log_ns: np.ndarray, delta: np.ndarray) -> None:
+    """The log and publish times of MCAP message records in ``buf`` (payloads at ``starts``) rewritten where
+    they lie: log time ``log_ns``, a set publish time (not 0) less ``delta`` (both ns). In compiled mode one
+    pass of a kernel that releases the GIL (run per chunk in the writer's threads); else numpy."""
+    from logtools import jit
+    from parsers.restamp import get_bytes, put_bytes
+
+    if not len(starts):
+        return
+    if int(starts.min()) < 16 or int(starts.max()) > len(buf):
+        raise IndexError("an MCAP message record's times lie outside the buffer")
+    if jit.compiled():
+        _kernel("_mcap_record_times")(buf, starts, log_ns, delta)
+        return
+    pub = get_bytes(buf, starts - 8, 8).view("<i8").ravel()
+    times = np.empty((len(starts), 2), "<i8")
+    times[:, 0], times[:, 1] = log_ns, np.where(pub != 0, pub - delta, 0)
+    put_bytes(buf, starts - 16, times.view(np.uint8).reshape(len(starts), 16))
 
 
 def patch_bag1_times(buf: np.ndarray, t_at: np.ndarray, times: np.ndarray) -> bool:
@@ -148,6 +257,17 @@ def _by_chunk_and_key(slices: list[slice], key: np.ndarray) -> list[list[tuple[i
         c = int(ck[a])
         out[c].append((int(kk[a]), order[a:b] - starts[c]))
     return out
+
+
+def _by_key(key: np.ndarray) -> list[tuple[int, np.ndarray]]:
+    """The (key, positions) groups of one chunk's messages (``key``: their channel ids), keys ascending,
+    positions in message order (a stable radix sort of the 16-bit ids)."""
+    if not len(key):
+        return []
+    order = np.argsort(key, kind="stable")
+    kk = key[order]
+    cut = np.flatnonzero(kk[1:] != kk[:-1]) + 1
+    return [(int(kk[a]), order[a:b]) for a, b in zip(np.r_[0, cut].tolist(), np.r_[cut, len(key)].tolist())]
 
 
 _LOCAL = threading.local()
@@ -305,24 +425,26 @@ def _mmap(d: dict[str, str]) -> bytes:
     return struct.pack("<I", len(body)) + body
 
 
-def write_mcap(fh, sc, cids: list[int], msgs, log_ns: np.ndarray, pub_ns: np.ndarray,
-                seq: np.ndarray, comp: str, chunk_bytes: int, layout: ChunkLayout | None = None) -> None:
+def write_mcap(fh, sc, cids: list[int], msgs, log_ns: np.ndarray, pub_ns: np.ndarray | None,
+                seq: np.ndarray | None, comp: str, chunk_bytes: int, layout: ChunkLayout | None = None,
+                delta: np.ndarray | None = None) -> None:
     """An MCAP file: header, schemas and channels, chunks of message records (each followed by its message
     indexes), metadata and attachments, data end; summary (schemas, channels, statistics, chunk, metadata
     and attachment indexes), summary offsets, footer. Ids as in the input.
 
     With ``layout`` (the messages are the input's records, in its chunks, in ``msgs.buf``) the chunks are
-    the input's: their records' log and publish times are patched in ``msgs.buf`` and each chunk is
-    compressed as it lies. Without it, the records are laid out anew in chunks of ``chunk_bytes``."""
-    from parsers.restamp import put_bytes
-
+    the input's: each chunk's records get their log times ``log_ns`` and their publish times (where set)
+    moved by ``-delta`` where they lie in ``msgs.buf`` (:func:`patch_mcap_times`, in the writer's threads,
+    chunk by chunk), and each chunk is compressed as it lies (``pub_ns`` and ``seq`` are not read). Without
+    it, the records are laid out anew in chunks of ``chunk_bytes`` with publish times ``pub_ns`` and sequence
+    numbers ``seq``."""
     comp = comp if comp in ("", "zstd", "lz4") else "zstd"
     n = len(log_ns)
     size = 31 + msgs.lens
+    key = np.asarray(cids, np.uint16)[msgs.conn] if n else np.zeros(0, np.uint16)  # channel id per message
     if layout is not None:  # record: opcode, length, channel, sequence (4), log time (8), publish time (8), data
-        times = np.empty((n, 2), "<u8")  # log and publish time, side by side as in the record: one pass
-        times[:, 0], times[:, 1] = log_ns, pub_ns
-        put_bytes(msgs.buf, msgs.starts - 16, times.view(np.uint8).reshape(n, 16))
+        if delta is None:
+            raise ValueError("write_mcap: the input's chunks (layout) are patched with each message's delta")
         ends = np.cumsum(layout.count)
         slices = [slice(int(e - c), int(e)) for e, c in zip(ends.tolist(), layout.count.tolist())]
         spans = list(zip(layout.base.tolist(), layout.size.tolist()))
@@ -365,14 +487,17 @@ def write_mcap(fh, sc, cids: list[int], msgs, log_ns: np.ndarray, pub_ns: np.nda
         put(r)
     chunk_index = []
 
-    def work(job: tuple[slice, tuple[int, int] | None]) -> tuple[int, int, bytes]:  # in the writer's threads
+    def work(job: tuple[slice, tuple[int, int] | None]) -> tuple[int, int, bytes, list]:  # in the writer's threads
         sl, span = job
-        body = _records(pre[sl], msgs, sl) if span is None else msgs.buf[span[0]:span[0] + span[1]]
-        return len(body), zlib.crc32(body), compress_chunk(comp, body)
+        if span is None:
+            body = _records(pre[sl], msgs, sl)
+        else:
+            patch_mcap_times(msgs.buf, msgs.starts[sl], log_ns[sl], delta[sl])
+            body = msgs.buf[span[0]:span[0] + span[1]]
+        return len(body), zlib.crc32(body), compress_chunk(comp, body), _by_key(key[sl])
 
-    groups = _by_chunk_and_key(slices, np.asarray(cids, np.int64)[msgs.conn] if n else np.zeros(0, np.int64))
     jobs = list(zip(slices, spans))
-    for ci, (sl, (body_len, crc, data)) in enumerate(zip(slices, threads.ordered(work, jobs))):
+    for sl, (body_len, crc, data, by_channel) in zip(slices, threads.ordered(work, jobs)):
         t = log_ns[sl]
         t0, t1 = (int(t.min()), int(t.max())) if len(t) else (0, 0)
         head = struct.pack("<QQQI", t0, t1, body_len, crc) + _mstr(comp) + struct.pack("<Q", len(data))
@@ -382,7 +507,7 @@ def write_mcap(fh, sc, cids: list[int], msgs, log_ns: np.ndarray, pub_ns: np.nda
         off = np.cumsum(size[sl]) - size[sl] if rec_off is None else rec_off[sl]
         idx_offsets = {}
         idx_start = pos
-        for c, m in groups[ci]:
+        for c, m in by_channel:
             ent = np.empty((len(m), 2), "<u8")
             ent[:, 0], ent[:, 1] = t[m], off[m]
             idx_offsets[c] = put(_mrec(7, struct.pack("<HI", c, ent.nbytes) + ent.tobytes()))

@@ -1094,3 +1094,54 @@ def test_a_damaged_message_definition_is_restamped_by_the_built_in_one_the_reade
     b = parsers.load(dst)
     np.testing.assert_array_equal(_t_ns(b, b.nav), shift.to_master_ns(_t_ns(a, a.nav)))
     np.testing.assert_array_equal(b.nav.to_numpy(), a.nav.to_numpy())
+
+
+def test_time_field_kernels_equal_the_numpy_code(monkeypatch):
+    """The kernels that read and write Header stamps and MCAP records' log/publish times (one pass, per chunk in
+    the writer's threads) give the numpy code's bytes: little- and big-endian CDR stamps, unset (0) publish
+    times left at 0, negative results wrapped as the uint64 fields hold them."""
+    from logtools import jit
+
+    rng = np.random.default_rng(11)
+    n, size = 500, 64
+    buf0 = rng.integers(0, 256, n * size, dtype=np.uint8)
+    starts = np.arange(n, dtype=np.int64) * size + 20
+    buf0[starts[::3] + 1] = 0  # CDR encapsulation 00 00: big endian
+    buf0[starts[1::3] + 1] = 1
+    pub_at = (starts - 8)[::4]
+    buf0[pub_at[:, None] + np.arange(8)] = 0  # unset publish times
+    new = rng.integers(0, 2**62, n)
+    log = rng.integers(0, 2**62, n)
+    delta = rng.integers(-(2**40), 2**40, n)
+    delta[7] = 2**63 - 1  # (a publish time less a large delta: negative, wrapped)
+
+    def run(use_kernels: bool):
+        monkeypatch.setattr(jit, "compiled", lambda: use_kernels)
+        buf = buf0.copy()
+        stamp, be = rr.rcw.header_stamps(buf, starts, True)
+        rr.rcw.put_header_stamps(buf, starts, new, be)
+        rr.rcw.patch_mcap_times(buf, starts, log, delta)
+        return stamp, be, buf
+
+    kernels = jit.mode() == "compiled"
+    want = run(False)
+    stamp, be, buf = want
+    assert be[::3].all() and not be[1::3].any()
+    raw = buf0[(starts + 4)[:, None] + np.arange(8)].copy()
+    raw[be] = raw[be].reshape(-1, 2, 4)[:, :, ::-1].reshape(-1, 8)  # (big-endian words as little-endian)
+    sec_nsec = raw.view("<u4").astype(np.int64)
+    np.testing.assert_array_equal(stamp, sec_nsec[:, 0] * 10**9 + sec_nsec[:, 1])
+    pub = buf[(starts - 8)[:, None] + np.arange(8)].copy().view("<i8").ravel()
+    pub0 = buf0[(starts - 8)[:, None] + np.arange(8)].copy().view("<i8").ravel()
+    np.testing.assert_array_equal(pub, np.where(pub0 != 0, pub0 - delta, 0))
+    np.testing.assert_array_equal(buf[(starts - 16)[:, None] + np.arange(8)].copy().view("<i8").ravel(), log)
+    got_stamps = buf[(starts + 4)[:, None] + np.arange(8)].copy()
+    got_stamps[be] = got_stamps[be].reshape(-1, 2, 4)[:, :, ::-1].reshape(-1, 8)
+    v = got_stamps.view("<u4").astype(np.int64)
+    np.testing.assert_array_equal(v[:, 0], (new // 10**9) % 2**32)
+    np.testing.assert_array_equal(v[:, 1], new % 10**9)
+    if not kernels:
+        pytest.skip("numba kernels not in use in this process (the numpy code checked)")
+    got = run(True)
+    for a, b in zip(got, want):
+        np.testing.assert_array_equal(a, b)
