@@ -37,14 +37,21 @@ class ClockShift:
         """The nanoseconds to subtract from each slave instant (int64, rounded to the nearest ns)."""
         t = np.asarray(t_ns, dtype=np.int64)
         d = self.drift_ppm * 1e-6
-        dt_s = (t - np.int64(self.t_ref_ns)).astype(np.float64) * 1e-9  # exact difference first
-        s = (self.latency_s + d * dt_s) / (1.0 + d) * 1e9
-        if not np.all(np.abs(s) < _INT64_NS):  # (NaN fails too) no clock offset: stamps cannot hold it
-            a = np.atleast_1d(s)
-            worst = float(a[~(np.abs(a) < _INT64_NS)][0]) * 1e-9
+        # (latency + d * dt_s) / (1 + d) * 1e9 with dt_s = (t - t_ref) 1e-9 (the exact difference first), each
+        # operation in place on one array (a million stamps: one temporary instead of eight), the same numbers
+        s = np.atleast_1d(t - np.int64(self.t_ref_ns)).astype(np.float64)
+        s *= 1e-9
+        s *= d
+        s += self.latency_s
+        s /= 1.0 + d
+        s *= 1e9
+        if len(s) and not (float(s.max()) < _INT64_NS and float(s.min()) > -_INT64_NS):  # (NaN fails too)
+            worst = float(s[~(np.abs(s) < _INT64_NS)][0]) * 1e-9  # no clock offset: stamps cannot hold it
             raise ValueError(f"a shift of {worst:.6g} s (latency {self.latency_s:.6g} s, drift {self.drift_ppm:.6g} "
                              "ppm) is beyond what int64 nanosecond stamps hold: not a usable clock offset")
-        return np.rint(s).astype(np.int64)
+        np.rint(s, out=s)
+        out = s.astype(np.int64)
+        return out if np.ndim(t) else out[0]
 
     def to_master_ns(self, t_ns: np.ndarray) -> np.ndarray:
         t = np.asarray(t_ns, dtype=np.int64)

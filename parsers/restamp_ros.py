@@ -283,7 +283,7 @@ def _apply(streams: list[_Stream], msgs: _Msgs, typestore, shift: ClockShift, se
     if mode == "log":
         t_an = log.copy()
     else:
-        is_unit = np.isin(msgs.conn, [k for k, s in enumerate(streams) if s.topic in unit])
+        is_unit = np.array([s.topic in unit for s in streams] or [False], bool)[msgs.conn]
         have = is_unit & (stamp != 0)
         ref = int(np.median(stamp[have] - log[have])) if have.any() else 0
         t_an = log + ref
