@@ -95,8 +95,13 @@ def velocity_pair(master: InsLog, slave: InsLog, cutoff_hz: float, master_rate: 
             # (a rate from a noisy attitude: a master logging its navigation solution alone) would only
             # dilute the lever arm's regression (measured: an aircraft's along-track lever arm 14 % short,
             # its latency 2 ms off at a sigma of 0.5 ms, with the rows at the rate fit's 4 Hz)
-            rows = _lever_rows(q, w) if okw.all() else _lever_rows(q[okw], w[okw])
-            t_rows = tq if okw.all() else tq[okw]
+            if not okw.all():  # (each unit's copy rebound at once: never the series and their copies together)
+                q = q[okw]
+                w = w[okw]
+                tq = tq[okw]
+            del okw
+            rows = _lever_rows(q, w)
+            t_rows = tq
             del q, w, tq
             try:  # (column by column: 4 h of 9 columns is 207 MB a copy)
                 lev_itp = smooth_interpolant(t_rows, rows, cut, name="master lever-arm rows",
