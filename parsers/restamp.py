@@ -6,6 +6,9 @@ units and clocks); this module holds what they share.
 """
 from __future__ import annotations
 
+import contextlib
+import mmap
+
 import os
 from dataclasses import dataclass, field
 
@@ -146,6 +149,24 @@ def read_bytes(src: str) -> np.ndarray:
     if os.path.isdir(src):
         raise IsADirectoryError(src)
     return np.fromfile(src, dtype=np.uint8)
+
+
+def populate_for_write(buf: np.ndarray, mm: mmap.mmap) -> None:
+    """``madvise(MADV_POPULATE_WRITE)`` (Linux 5.14) over the shared map ``mm`` (``buf`` viewing it) of a copy
+    about to be patched: its pages' write faults taken in one call instead of one by one. Through libc, which
+    releases the GIL for the call (0.03-0.04 s for a 347 MB copy; a caller may run it in a thread beside its
+    reads); ``mmap.madvise`` where ctypes cannot. A kernel without it (EINVAL): nothing, the pages fault as
+    they are written."""
+    advice = getattr(mmap, "MADV_POPULATE_WRITE", 23)
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.madvise.argtypes = (ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int)
+        libc.madvise(buf.ctypes.data, buf.nbytes, advice)
+    except (OSError, AttributeError):
+        with contextlib.suppress(OSError, ValueError):
+            mm.madvise(advice)
 
 
 _LE = {1: "<u1", 2: "<u2", 4: "<u4", 8: "<u8"}

@@ -18,14 +18,20 @@ the input's, and reading the output with the same selector gives the compensated
 """
 from __future__ import annotations
 
+import contextlib
+import mmap
+import os
+import shutil
+
 import numpy as np
 
 from logtools.errors import InputError
 from parsers import threads
 from parsers.atomic import atomic_path
 from parsers.base import Selector
-from parsers.restamp import (ClockShift, RestampStats, get_le, kernel_loader, nonneg_or_glitch, put_le, read_bytes,
-                             write_bytes_atomic)
+from parsers.filemap import FileMap
+from parsers.restamp import (ClockShift, RestampStats, get_le, kernel_loader, nonneg_or_glitch, populate_for_write,
+                             put_le, read_bytes, write_bytes_atomic)
 
 HOW = "byte-level rewrite of the time fields (every other byte copied)"
 MS_NS, US_NS = 1_000_000, 1_000
@@ -321,6 +327,30 @@ def _field_tables(n_ids: int):
     return o
 
 
+@contextlib.contextmanager
+def _mapped(path: str, size: int):
+    """``path`` (a finished copy of ``size`` bytes) mapped shared and writable: a uint8 array over it, written
+    back by the kernel; None where it cannot be (another size, a file system that cannot map a file for
+    writing), the caller then writing the file itself."""
+    mm = None
+    try:
+        with open(path, "r+b") as fh:
+            if os.fstat(fh.fileno()).st_size == size and size:
+                mm = mmap.mmap(fh.fileno(), 0)
+    except (OSError, ValueError):
+        mm = None
+    if mm is None:
+        yield None
+        return
+    try:
+        out = np.frombuffer(mm, np.uint8)
+        populate_for_write(out, mm)
+        yield out
+    finally:
+        with contextlib.suppress(BufferError):  # (an array still viewing the map: unmapped when it goes)
+            mm.close()
+
+
 def restamp_tlog(src: str, dst: str, shift: ClockShift, *, selector=None) -> RestampStats:
     """Rewrite every record's 8-byte big-endian receive stamp (UNIX us) and, in every intact frame, the
     message time fields ``time_usec`` / ``time_boot_ms`` (and SYSTEM_TIME's ``time_unix_usec``); the CRC
@@ -333,45 +363,62 @@ def restamp_tlog(src: str, dst: str, shift: ClockShift, *, selector=None) -> Res
     from parsers import mavlink_tlog as tl
 
     sel = _selector(selector)
-    orig = read_bytes(src)
-    fr, starts, idx = _frames(src, orig)
-    sysid, compid, mode, plan, lag = _tlog_plan(src, sel, fr)
-    recv, v2, plen, sys_a, comp_a, msgid, pay, status = idx
-    buf = orig  # (a private copy of the file: the input is never written)
-    extra = tl._crc_extra_table().astype(np.int64)
-    tabs = _field_tables(len(extra))
-    ids = np.asarray(msgid, np.int64)
-    stat = np.where(ids < len(extra), np.asarray(status), 2).astype(np.int64)
-    ids = np.where(ids < len(extra), ids, 0)
-    starts, pay, plen, v2 = (np.asarray(a, t) for a, t in ((starts, np.int64), (pay, np.int64), (plen, np.int64),
-                                                            (v2, np.bool_)))
-    kernel = _kernel("_tlog_kernel")
-    consts = (tabs["time_usec"], tabs["time_boot_ms"], tabs["time_unix_usec"], extra,
-              int(tl.msgdef("SYSTEM_TIME").id), int(0 if mode == "receive" else lag), int(plan.add_ns[0]),
-              int(plan.add_ns[1]), mode == "receive", float(shift.latency_s), float(shift.drift_ppm * 1e-6),
-              int(shift.t_ref_ns), int(tl.EPOCH_US_THRESHOLD), mc.CRC_TABLE)
+    if os.path.isdir(src):
+        raise IsADirectoryError(src)
+    with FileMap(src) as fmap, atomic_path(dst) as tmp:
+        # the output starts as a copy of the input made by the kernel (sendfile) while the records are walked
+        # in a read-only map of it; its time fields are then patched where they lie, in a map of the copy
+        copied = threads.beside(shutil.copyfile, src, tmp)
+        try:
+            orig = fmap.array
+            fr, starts, idx = _frames(src, orig)
+            sysid, compid, mode, plan, lag = _tlog_plan(src, sel, fr)
+            recv, v2, plen, sys_a, comp_a, msgid, pay, status = idx
+            extra = tl._crc_extra_table().astype(np.int64)
+            tabs = _field_tables(len(extra))
+            ids = np.asarray(msgid, np.int64)
+            stat = np.where(ids < len(extra), np.asarray(status), 2).astype(np.int64)
+            ids = np.where(ids < len(extra), ids, 0)
+            starts, pay, plen, v2 = (np.asarray(a, t) for a, t in ((starts, np.int64), (pay, np.int64),
+                                                                    (plen, np.int64), (v2, np.bool_)))
+            kernel = _kernel("_tlog_kernel")
+            consts = (tabs["time_usec"], tabs["time_boot_ms"], tabs["time_unix_usec"], extra,
+                      int(tl.msgdef("SYSTEM_TIME").id), int(0 if mode == "receive" else lag), int(plan.add_ns[0]),
+                      int(plan.add_ns[1]), mode == "receive", float(shift.latency_s), float(shift.drift_ppm * 1e-6),
+                      int(shift.t_ref_ns), int(tl.EPOCH_US_THRESHOLD), mc.CRC_TABLE)
+            cuts = np.linspace(0, len(starts), _parts(len(starts)) + 1).astype(np.int64).tolist()
+            runs = list(zip(cuts[:-1], cuts[1:]))
+            copied.result()
+            with _mapped(tmp, fmap.size) as out:
+                # a run's bytes: from its first record to the next run's (the file's first and last bytes with the
+                # first and last run: what precedes the first record and follows the last is copied as it is)
+                edges = [0] + [int(starts[a]) for a, _ in runs[1:]] + [len(orig)]
+                buf = out if out is not None else np.array(orig)  # (no map: a private copy, written run by run)
 
-    def run(ab: tuple[int, int]):  # one run of records: its frames are its own bytes (in a worker thread)
-        a, b = ab
-        return kernel(buf, starts[a:b], pay[a:b], plen[a:b], stat[a:b], ids[a:b], v2[a:b], *consts)
+                def run(ab: tuple[int, int]):  # one run of records: its frames are its own bytes (a worker thread)
+                    a, b = ab
+                    return kernel(buf, starts[a:b], pay[a:b], plen[a:b], stat[a:b], ids[a:b], v2[a:b], *consts)
 
-    cuts = np.linspace(0, len(starts), _parts(len(starts)) + 1).astype(np.int64).tolist()
-    runs = list(zip(cuts[:-1], cuts[1:]))
-    # a run's bytes: from its first record to the next run's (the file's first and last bytes with the
-    # first and last run: what precedes the first record and follows the last is copied as it is)
-    edges = [0] + [int(starts[a]) for a, _ in runs[1:]] + [len(buf)]
-    changed = signed_changed = bits = 0
-    negative = -1
-    with atomic_path(dst) as tmp, open(tmp, "wb") as fh:
-        for k, (c, sc, neg, bt) in enumerate(threads.ordered(run, runs)):
-            changed, signed_changed, bits = changed + c, signed_changed + sc, bits | bt
-            if neg >= 0 and negative < 0:
-                negative = runs[k][0] + neg
-            if negative < 0:
-                fh.write(memoryview(buf[edges[k]:edges[k + 1]]))  # (written while the next runs are worked)
-        if negative >= 0:
-            raise InputError(f"native export: a shifted stamp of record {negative} would be negative (the master's "
-                             "clock starts later than the field's clock can express; export csv/parquet instead)", src)
+                changed = signed_changed = bits = 0
+                negative = -1
+                fh = open(tmp, "r+b") if out is None else None
+                try:
+                    for k, (c, sc, neg, bt) in enumerate(threads.ordered(run, runs)):
+                        changed, signed_changed, bits = changed + c, signed_changed + sc, bits | bt
+                        if neg >= 0 and negative < 0:
+                            negative = runs[k][0] + neg
+                        if fh is not None and negative < 0:
+                            fh.write(memoryview(buf[edges[k]:edges[k + 1]]))  # (while the next runs are worked)
+                finally:
+                    if fh is not None:
+                        fh.close()
+                del buf, out  # (the map closes as the block ends)
+            if negative >= 0:
+                raise InputError(f"native export: a shifted stamp of record {negative} would be negative (the "
+                                 "master's clock starts later than the field's clock can express; export csv/parquet "
+                                 "instead)", src)
+        finally:
+            threads.drain([copied])
     u, c = np.unique(ids[stat == 0], return_counts=True)
     by_type = {tl.msgdef_by_id(int(m)).name: int(k) for m, k in zip(u, c)}
     fields_done = ["receive stamp"] + [name for bit, name in ((1, "time_usec"), (2, "time_boot_ms"),

@@ -57,7 +57,7 @@ from parsers import ros_common as rc
 from parsers.atomic import atomic_folder, atomic_path, check_replaceable
 from parsers.base import Selector, check_readable
 from parsers.filemap import FileMap
-from parsers.restamp import ClockShift, RestampStats, get_bytes
+from parsers.restamp import ClockShift, RestampStats, get_bytes, populate_for_write
 
 HEADER = "std_msgs/msg/Header"
 #: a topic whose header stamps are this far from the unit's clock is on another clock
@@ -645,7 +645,7 @@ def _restamp_bag1_in_place(src: str, tmp: str, dst: str, scan: _Scan1, shift: Cl
             raise _NotInPlace(f"the copy cannot be mapped ({exc})") from None
     file = np.frombuffer(mm, np.uint8)
     # every page is patched: its write faults taken in one call, not each, in a thread while the patch reads
-    populated = threads.beside(_populate_for_write, file, mm) if sys.platform.startswith("linux") else None
+    populated = threads.beside(populate_for_write, file, mm) if sys.platform.startswith("linux") else None
     try:
         records, by_type, notes = _patch_bag1(file, src, scan, shift, selector)
     finally:
@@ -658,23 +658,6 @@ def _restamp_bag1_in_place(src: str, tmp: str, dst: str, scan: _Scan1, shift: Cl
                         "where they lie (chunks, record order, connections and index kept); Header stamps "
                         "patched in the payload bytes (nested Headers through rosbags (de)serialisation)",
                         records=records, records_by_type=by_type, time_fields=_BAG1_TIME_FIELDS, damage=tuple(notes))
-
-
-def _populate_for_write(buf: np.ndarray, mm: mmap.mmap) -> None:
-    """``madvise(MADV_POPULATE_WRITE)`` (Linux 5.14) over the shared map ``mm`` (``buf`` viewing it): its pages'
-    write faults taken in one call. Through libc, which releases the GIL for the call (0.03-0.04 s for a
-    347 MB copy), so that the patch's first reads run beside it; ``mmap.madvise`` where ctypes cannot.
-    A kernel without it (EINVAL): nothing, the pages fault as they are written."""
-    advice = getattr(mmap, "MADV_POPULATE_WRITE", 23)
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.madvise.argtypes = (ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int)
-        libc.madvise(buf.ctypes.data, buf.nbytes, advice)
-    except (OSError, AttributeError):
-        with contextlib.suppress(OSError, ValueError):
-            mm.madvise(advice)
 
 
 def _bag1_places(file: np.ndarray, off: int, hlen: int) -> dict[str, tuple[int, int]]:

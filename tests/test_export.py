@@ -444,6 +444,50 @@ def test_tlog_runs_in_threads_write_the_same_bytes(slaves, pair, tmp_path, monke
     assert not (tmp_path / "neg.tlog").exists()
 
 
+@pytest.mark.parametrize("damaged", [False, True])
+def test_tlog_patched_in_a_mapped_copy_or_written_gives_the_same_bytes(slaves, pair, tmp_path, monkeypatch, damaged):
+    """The tlog export patches a kernel-made copy of the input where it lies (a shared map); where the copy
+    cannot be mapped it writes the patched bytes itself, run by run: the same file either way, the input's
+    bytes unchanged, and a shift the stamps cannot take leaves neither output nor temporary file."""
+    from parsers import restamp_mavlink
+
+    raw = bytearray(slaves["tlog"].read_bytes())
+    if damaged:
+        raw[len(raw) // 2:len(raw) // 2 + 9] = bytes(9)
+        raw = raw[:-5]
+    src = tmp_path / "in.tlog"
+    src.write_bytes(bytes(raw))
+    before = sha(src)
+    mapped = tmp_path / "mapped.tlog"
+    st_m = restamp_mavlink.restamp_tlog(str(src), str(mapped), shift_of(pair))
+
+    real_map = restamp_mavlink.mmap.mmap
+    refused = []
+
+    def no_map(fileno, length, *args, **kw):  # (the input's read-only map still works)
+        if kw.get("access") == restamp_mavlink.mmap.ACCESS_READ:
+            return real_map(fileno, length, *args, **kw)
+        refused.append(length)
+        raise OSError("this file system cannot map a file for writing")
+
+    monkeypatch.setattr(restamp_mavlink.mmap, "mmap", no_map)
+    written = tmp_path / "written.tlog"
+    st_w = restamp_mavlink.restamp_tlog(str(src), str(written), shift_of(pair))
+    assert refused  # (the copy's map was asked for, refused, and the bytes written instead)
+    assert mapped.read_bytes() == written.read_bytes() != bytes(raw)
+    assert st_m == dataclasses.replace(st_w, path=st_m.path)
+    assert bool(st_m.damage) == damaged
+    assert sha(src) == before
+    with pytest.raises(InputError, match="negative"):  # (the map refused: the written path)
+        restamp_mavlink.restamp_tlog(str(src), str(tmp_path / "neg_written.tlog"),
+                                     ClockShift(4e9, 0.0, int(pair.truth.t_mid_ns)))
+    monkeypatch.undo()
+    with pytest.raises(InputError, match="negative"):
+        restamp_mavlink.restamp_tlog(str(src), str(tmp_path / "neg_mapped.tlog"),
+                                     ClockShift(4e9, 0.0, int(pair.truth.t_mid_ns)))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in.tlog", "mapped.tlog", "written.tlog"]
+
+
 def test_dataflash_damaged_time_value_is_copied_and_named(slaves, pair, tmp_path):
     """A flipped byte that makes one record's TimeUS absurd (here: negative once shifted) does not stop the
     export: that record keeps its bytes and is named; a shift the clock cannot express is still an error."""
