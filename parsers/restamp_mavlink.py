@@ -358,7 +358,9 @@ def restamp_tlog(src: str, dst: str, shift: ClockShift, *, selector=None) -> Res
     boot -> UNIX offset is kept). MAVLink 2 signatures cannot be recomputed without the key: they are kept
     as they are and the signed frames that changed are counted in ``damage`` (they no longer verify).
     One compiled pass over the records (numba), after the reader's walk and index; on a large file both the
-    index and that pass run on runs of records in the I/O threads, each run written as soon as it is done."""
+    index and that pass run on runs of records in the I/O threads. The pass patches a copy of the input made
+    by the kernel while the records are walked, mapped (or, where it cannot be mapped, a private copy of the
+    bytes, written out run by run as each is done)."""
     from parsers import mavlink_common as mc
     from parsers import mavlink_tlog as tl
 
@@ -409,6 +411,8 @@ def restamp_tlog(src: str, dst: str, shift: ClockShift, *, selector=None) -> Res
                             negative = runs[k][0] + neg
                         if fh is not None and negative < 0:
                             fh.write(memoryview(buf[edges[k]:edges[k + 1]]))  # (while the next runs are worked)
+                    if fh is not None and negative < 0:
+                        fh.truncate()  # (the copy's length, were it not the input's as it was read)
                 finally:
                     if fh is not None:
                         fh.close()
