@@ -8,14 +8,16 @@ from __future__ import annotations
 
 import contextlib
 import mmap
-
 import os
+import sys
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from logtools.errors import InputError
 from logtools.latency.config import SearchConfig
+from parsers import threads
 from parsers.atomic import atomic_path
 
 
@@ -156,7 +158,9 @@ def populate_for_write(buf: np.ndarray, mm: mmap.mmap) -> None:
     about to be patched: its pages' write faults taken in one call instead of one by one. Through libc, which
     releases the GIL for the call (0.03-0.04 s for a 347 MB copy; a caller may run it in a thread beside its
     reads); ``mmap.madvise`` where ctypes cannot. A kernel without it (EINVAL): nothing, the pages fault as
-    they are written."""
+    they are written; elsewhere than Linux, nothing."""
+    if not sys.platform.startswith("linux"):
+        return
     advice = getattr(mmap, "MADV_POPULATE_WRITE", 23)
     try:
         import ctypes
@@ -167,6 +171,38 @@ def populate_for_write(buf: np.ndarray, mm: mmap.mmap) -> None:
     except (OSError, AttributeError):
         with contextlib.suppress(OSError, ValueError):
             mm.madvise(advice)
+
+
+@contextlib.contextmanager
+def mapped_copy(path: str, size: int, *, populate_beside: bool = False) -> Iterator[np.ndarray | None]:
+    """``path`` (a finished copy of ``size`` bytes, about to be patched) mapped shared and writable: a uint8 array
+    over it, written back by the kernel, its pages populated for writing (:func:`populate_for_write`: now, or
+    with ``populate_beside`` in a worker thread while the caller begins, waited for before the map goes); None
+    where it cannot be (another size, an empty file, a file system that cannot map a file for writing)."""
+    mm = None
+    try:
+        with open(path, "r+b") as fh:
+            if os.fstat(fh.fileno()).st_size == size and size:
+                mm = mmap.mmap(fh.fileno(), 0)
+    except (OSError, ValueError):
+        mm = None
+    if mm is None:
+        yield None
+        return
+    out = np.frombuffer(mm, np.uint8)
+    populated = None
+    try:
+        if populate_beside:
+            populated = threads.beside(populate_for_write, out, mm)
+        else:
+            populate_for_write(out, mm)
+        yield out
+    finally:
+        if populated is not None:
+            threads.drain([populated])  # (before the map goes)
+        del out
+        with contextlib.suppress(BufferError):  # (an array still viewing the map: unmapped when it goes)
+            mm.close()
 
 
 _LE = {1: "<u1", 2: "<u2", 4: "<u4", 8: "<u8"}

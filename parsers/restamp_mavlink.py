@@ -18,8 +18,6 @@ the input's, and reading the output with the same selector gives the compensated
 """
 from __future__ import annotations
 
-import contextlib
-import mmap
 import os
 import shutil
 
@@ -30,8 +28,8 @@ from parsers import threads
 from parsers.atomic import atomic_path
 from parsers.base import Selector
 from parsers.filemap import FileMap
-from parsers.restamp import (ClockShift, RestampStats, get_le, kernel_loader, nonneg_or_glitch, populate_for_write,
-                             put_le, read_bytes, write_bytes_atomic)
+from parsers.restamp import (ClockShift, RestampStats, get_le, kernel_loader, mapped_copy,
+                             nonneg_or_glitch, put_le, read_bytes, write_bytes_atomic)
 
 HOW = "byte-level rewrite of the time fields (every other byte copied)"
 MS_NS, US_NS = 1_000_000, 1_000
@@ -327,30 +325,6 @@ def _field_tables(n_ids: int):
     return o
 
 
-@contextlib.contextmanager
-def _mapped(path: str, size: int):
-    """``path`` (a finished copy of ``size`` bytes) mapped shared and writable: a uint8 array over it, written
-    back by the kernel; None where it cannot be (another size, a file system that cannot map a file for
-    writing), the caller then writing the file itself."""
-    mm = None
-    try:
-        with open(path, "r+b") as fh:
-            if os.fstat(fh.fileno()).st_size == size and size:
-                mm = mmap.mmap(fh.fileno(), 0)
-    except (OSError, ValueError):
-        mm = None
-    if mm is None:
-        yield None
-        return
-    try:
-        out = np.frombuffer(mm, np.uint8)
-        populate_for_write(out, mm)
-        yield out
-    finally:
-        with contextlib.suppress(BufferError):  # (an array still viewing the map: unmapped when it goes)
-            mm.close()
-
-
 def restamp_tlog(src: str, dst: str, shift: ClockShift, *, selector=None) -> RestampStats:
     """Rewrite every record's 8-byte big-endian receive stamp (UNIX us) and, in every intact frame, the
     message time fields ``time_usec`` / ``time_boot_ms`` (and SYSTEM_TIME's ``time_unix_usec``); the CRC
@@ -391,7 +365,7 @@ def restamp_tlog(src: str, dst: str, shift: ClockShift, *, selector=None) -> Res
             cuts = np.linspace(0, len(starts), _parts(len(starts)) + 1).astype(np.int64).tolist()
             runs = list(zip(cuts[:-1], cuts[1:]))
             copied.result()
-            with _mapped(tmp, fmap.size) as out:
+            with mapped_copy(tmp, fmap.size) as out:
                 # a run's bytes: from its first record to the next run's (the file's first and last bytes with the
                 # first and last run: what precedes the first record and follows the last is copied as it is)
                 edges = [0] + [int(starts[a]) for a, _ in runs[1:]] + [len(orig)]
@@ -416,7 +390,7 @@ def restamp_tlog(src: str, dst: str, shift: ClockShift, *, selector=None) -> Res
                 finally:
                     if fh is not None:
                         fh.close()
-                del buf, out  # (the map closes as the block ends)
+                buf = out = None  # (no array left viewing the map: it closes as the block ends)
             if negative >= 0:
                 raise InputError(f"native export: a shifted stamp of record {negative} would be negative (the "
                                  "master's clock starts later than the field's clock can express; export csv/parquet "

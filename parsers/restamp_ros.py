@@ -36,16 +36,13 @@ the analysis clock (record time + the median header-minus-record offset of the u
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import json
-import mmap
 import os
 import re
 import shutil
 import sqlite3
 import struct
-import sys
 import tempfile
 
 import numpy as np
@@ -57,7 +54,7 @@ from parsers import ros_common as rc
 from parsers.atomic import atomic_folder, atomic_path, check_replaceable
 from parsers.base import Selector, check_readable
 from parsers.filemap import FileMap
-from parsers.restamp import ClockShift, RestampStats, get_bytes, populate_for_write
+from parsers.restamp import ClockShift, RestampStats, get_bytes, mapped_copy
 
 HEADER = "std_msgs/msg/Header"
 #: a topic whose header stamps are this far from the unit's clock is on another clock
@@ -636,24 +633,12 @@ def _restamp_bag1_in_place(src: str, tmp: str, dst: str, scan: _Scan1, shift: Cl
     to three times tapost's parse of it (a 1 h 200 Hz bag: 347 MB through the writer). _NotInPlace where
     a message's payload changes length (a nested Header re-serialised otherwise) or a record is not where
     the scan expects it."""
-    with open(tmp, "r+b") as fh:
-        if os.fstat(fh.fileno()).st_size != scan.size:
-            raise _NotInPlace("the input changed size while it was read")
-        try:
-            mm = mmap.mmap(fh.fileno(), 0)  # (shared: the patches go to the file's pages)
-        except (OSError, ValueError) as exc:  # (a file system that cannot map a file for writing)
-            raise _NotInPlace(f"the copy cannot be mapped ({exc})") from None
-    file = np.frombuffer(mm, np.uint8)
-    # every page is patched: its write faults taken in one call, not each, in a thread while the patch reads
-    populated = threads.beside(populate_for_write, file, mm) if sys.platform.startswith("linux") else None
-    try:
+    # (every page is patched: its write faults taken in one call, in a thread while the patch reads)
+    with mapped_copy(tmp, scan.size, populate_beside=True) as file:
+        if file is None:  # (a file system that cannot map a file for writing, or the input changed size)
+            raise _NotInPlace("the copy cannot be mapped, or is not the size the scan read")
         records, by_type, notes = _patch_bag1(file, src, scan, shift, selector)
-    finally:
-        if populated is not None:
-            threads.drain([populated])  # (before the map goes)
-        del file
-        with contextlib.suppress(BufferError):  # (an array still viewing the map: unmapped when it goes)
-            mm.close()
+        file = None  # (no array left viewing the map: it closes as the block ends)
     return RestampStats(path=dst, format="rosbag1", how="the input's bytes copied, only its time fields rewritten "
                         "where they lie (chunks, record order, connections and index kept); Header stamps "
                         "patched in the payload bytes (nested Headers through rosbags (de)serialisation)",

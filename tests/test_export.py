@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import mmap
 import os
 from pathlib import Path
 
@@ -461,16 +462,16 @@ def test_tlog_patched_in_a_mapped_copy_or_written_gives_the_same_bytes(slaves, p
     mapped = tmp_path / "mapped.tlog"
     st_m = restamp_mavlink.restamp_tlog(str(src), str(mapped), shift_of(pair))
 
-    real_map = restamp_mavlink.mmap.mmap
+    real_map = mmap.mmap
     refused = []
 
     def no_map(fileno, length, *args, **kw):  # (the input's read-only map still works)
-        if kw.get("access") == restamp_mavlink.mmap.ACCESS_READ:
+        if kw.get("access") == mmap.ACCESS_READ:
             return real_map(fileno, length, *args, **kw)
         refused.append(length)
         raise OSError("this file system cannot map a file for writing")
 
-    monkeypatch.setattr(restamp_mavlink.mmap, "mmap", no_map)
+    monkeypatch.setattr(mmap, "mmap", no_map)
     written = tmp_path / "written.tlog"
     st_w = restamp_mavlink.restamp_tlog(str(src), str(written), shift_of(pair))
     assert refused  # (the copy's map was asked for, refused, and the bytes written instead)

@@ -224,7 +224,9 @@ def test_a_bag_that_cannot_be_patched_in_place_is_written_anew(slaves, tmp_path,
         os.makedirs(os.path.dirname(src))
         open(src, "wb").write(bytes(data))
     else:
-        monkeypatch.setattr(rr, "mmap", _RefusingMmap())
+        from parsers import restamp
+
+        monkeypatch.setattr(restamp, "mmap", _RefusingMmap())  # (where the copy is mapped: restamp.mapped_copy)
     a = parsers.load(src)
     shift = _shift_for(a)
     dst = tmp_path / "out.bag"
