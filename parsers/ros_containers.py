@@ -234,34 +234,10 @@ def _chunks(size: np.ndarray, target: int) -> list[slice]:
     return [slice(a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a]
 
 
-def _by_chunk_and_key(slices: list[slice], key: np.ndarray) -> list[list[tuple[int, np.ndarray]]]:
-    """For each chunk, its (key, message positions within the chunk) groups, keys ascending, positions in
-    message order: one stable sort for the whole file instead of a np.unique per chunk."""
-    if not slices:
-        return []
-    n = slices[-1].stop
-    chunk = np.repeat(np.arange(len(slices)), [sl.stop - sl.start for sl in slices])
-    present = np.flatnonzero(np.bincount(key)) if n else np.zeros(0, np.int64)  # (keys: ids, a few)
-    rank = np.zeros(int(present[-1]) + 1 if len(present) else 1, np.int64)
-    rank[present] = np.arange(len(present))
-    keys, kidx = present, rank[key]
-    pair = chunk * len(keys) + kidx
-    # stable: within (chunk, key) the messages stay in order (a radix sort where the pairs fit 16 bits)
-    order = np.argsort(pair.astype(np.uint16) if len(slices) * len(keys) <= 1 << 16 else pair, kind="stable")
-    ck, kk = chunk[order], key[order]
-    cut = np.flatnonzero((np.diff(ck) != 0) | (np.diff(kk) != 0)) + 1
-    a_s, b_s = np.r_[0, cut].tolist(), np.r_[cut, n].tolist()
-    out: list[list[tuple[int, np.ndarray]]] = [[] for _ in slices]
-    starts = [sl.start for sl in slices]
-    for a, b in zip(a_s, b_s):
-        c = int(ck[a])
-        out[c].append((int(kk[a]), order[a:b] - starts[c]))
-    return out
-
-
 def _by_key(key: np.ndarray) -> list[tuple[int, np.ndarray]]:
-    """The (key, positions) groups of one chunk's messages (``key``: their channel ids), keys ascending,
-    positions in message order (a stable radix sort of the 16-bit ids)."""
+    """The (key, positions) groups of one chunk's messages (``key``: their channel or connection ids), keys
+    ascending, positions in message order (one stable sort: a radix sort of 16-bit ids), for the chunk's
+    message indexes; computed in the writer's threads, chunk by chunk."""
     if not len(key):
         return []
     order = np.argsort(key, kind="stable")
@@ -359,14 +335,13 @@ def write_bag1(fh, fields: list[dict[str, bytes]], cids: list[int], msgs, log_ns
     slices = _chunks(size, chunk_bytes)
     lead_all = b"".join(conn_recs.values())
 
-    def work(sl: slice) -> tuple[int, bytes]:  # in the writer's threads: lay out and compress one chunk
+    def work(sl: slice) -> tuple[int, bytes, list]:  # in the writer's threads: lay out and compress one chunk
         body = _records(pre[sl], msgs, sl)
         if sl.start == 0 and lead_all:
             body = np.concatenate([np.frombuffer(lead_all, np.uint8), body])
-        return len(body), compress_chunk(comp, body)
+        return len(body), compress_chunk(comp, body), _by_key(msgs.conn[sl])
 
-    groups = _by_chunk_and_key(slices, msgs.conn)
-    for ci, (sl, (body_len, data)) in enumerate(zip(slices, threads.ordered(work, slices))):
+    for sl, (body_len, data, by_conn) in zip(slices, threads.ordered(work, slices)):
         lead = lead_all if sl.start == 0 else b""  # (the connection records open the first chunk)
         at = pos
         put(_bag1_header([(b"op", b"\x05"), (b"compression", comp.encode()),
@@ -375,7 +350,7 @@ def write_bag1(fh, fields: list[dict[str, bytes]], cids: list[int], msgs, log_ns
         t = log_ns[sl]
         off = len(lead) + np.cumsum(size[sl]) - size[sl]
         counts = []
-        for kk, m in groups[ci]:
+        for kk, m in by_conn:
             ent = np.empty((len(m), 3), "<u4")
             ent[:, 0], ent[:, 1], ent[:, 2] = t[m] // 1_000_000_000, t[m] % 1_000_000_000, off[m]
             put(_bag1_record([(b"op", b"\x04"), (b"ver", struct.pack("<I", 1)),
