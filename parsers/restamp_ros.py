@@ -199,12 +199,6 @@ def _unit(streams: list[_Stream], msgs: _Msgs, typestore, selector: str | None, 
     return unit, plan.time_mode
 
 
-def _first_header_stamps(buf: np.ndarray, starts: np.ndarray, encoding: str) -> tuple[np.ndarray, np.ndarray]:
-    """(header stamps, ns; big-endian mask) of Header-first messages (payloads of 12 bytes or more) at
-    ``starts`` (:func:`parsers.ros_containers.header_stamps`)."""
-    return rcw.header_stamps(buf, starts, encoding == "cdr")
-
-
 def _without_far(streams: list[_Stream], msgs: _Msgs, what: str) -> tuple[_Msgs, list[str]]:
     """``msgs`` less the messages whose record time (``what``: the format's name for it) a damaged byte put
     more than a day from the others' (:func:`_far_times`; they cannot be shifted), but for those with a sound
@@ -236,7 +230,7 @@ def _far_repaired(streams: list[_Stream], msgs: _Msgs, far: np.ndarray) -> np.nd
         idx = np.flatnonzero((msgs.conn == k) & (msgs.lens >= 12))
         if not len(idx) or not far[idx].any():
             continue
-        stamp, _be = _first_header_stamps(msgs.buf, msgs.starts[idx], s.encoding)
+        stamp, _be = rcw.header_stamps(msgs.buf, msgs.starts[idx], s.encoding == "cdr")
         good = ~far[idx] & (stamp != 0)
         if good.sum() < 10:
             continue
@@ -267,7 +261,7 @@ def _apply(streams: list[_Stream], msgs: _Msgs, typestore, shift: ClockShift, se
             idx = idx[ok]
         if not len(idx):
             continue
-        stamp[idx], be = _first_header_stamps(buf, msgs.starts[idx], s.encoding)
+        stamp[idx], be = rcw.header_stamps(buf, msgs.starts[idx], s.encoding == "cdr")
         first[k] = (idx, be)
     texts: dict[int, np.ndarray] = {}  # JSON-encoded streams: message index (their stamps read from the text)
     for k, s in enumerate(streams):
