@@ -359,8 +359,9 @@ def first_run(m: str, s: str, work: str) -> dict:
     t = time.perf_counter()
     stamp_dir = os.path.join(xdg, "tapost")
     while time.perf_counter() - t < 900:
-        if any(f.endswith(".json") for f in (os.listdir(stamp_dir) if os.path.isdir(stamp_dir) else [])):
-            break
+        names = os.listdir(stamp_dir) if os.path.isdir(stamp_dir) else []
+        if any(f.endswith(".json") for f in names) and not any(f.endswith(".lock") for f in names):
+            break  # (the stamp written and the background job done: its ahead-of-time build too)
         time.sleep(1.0)
     waited = time.perf_counter() - t
     second = analyze_once(m, s, os.path.join(work, "out_second"), env=env)

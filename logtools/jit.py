@@ -143,9 +143,16 @@ def njit(fn=None, *, always: bool = False, **options):
 
     def wrap(f):
         if compiled():
+            table = aot_table()
+            if table is not None:
+                from logtools import aot
+
+                return aot.kernel(f, options, table)
             from numba import njit as _njit
 
-            return _njit(cache=True, **options)(f)
+            disp = _njit(cache=True, **options)(f)
+            _DISPATCHERS.append((disp, dict(options)))
+            return disp
         if not always or not _numba_importable():
             return f
         box: list = []
@@ -163,6 +170,24 @@ def njit(fn=None, *, always: bool = False, **options):
         return first_call
 
     return wrap(fn) if fn is not None else wrap
+
+
+_DISPATCHERS: list = []  # (numba dispatcher, options) made in this process: what the warm-up exports
+
+
+def dispatchers() -> list:
+    return list(_DISPATCHERS)
+
+
+def aot_table() -> dict | None:
+    """The ahead-of-time compiled kernels of this installation (logtools.aot), loaded once; None without."""
+    if "aot" not in _state:
+        _state["aot"] = None
+        if compiled():
+            from logtools import aot
+
+            _state["aot"] = aot.load(kernel_fingerprint())
+    return _state["aot"]
 
 
 def lazy(fn):

@@ -50,6 +50,18 @@ def announce_compiling(stream=None) -> bool:
 
     if not jit.compiled():
         return False
+    if jit.aot_table() is not None:  # (kernels compiled ahead of time: numba loads only if one is missing)
+        from logtools import aot
+
+        _state["installed"] = True
+        aot.on_numba_load(lambda: _listen(stream))
+        return True
+    _listen(stream)
+    _state["installed"] = True
+    return True
+
+
+def _listen(stream) -> None:
     from numba.core import event
 
     class _Listener(event.Listener):
@@ -60,8 +72,6 @@ def announce_compiling(stream=None) -> bool:
             pass
 
     event.register("numba:compile", _Listener())
-    _state["installed"] = True
-    return True
 
 
 def input_bytes(command: str | None, args: list[str]) -> int | None:

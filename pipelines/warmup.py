@@ -30,6 +30,7 @@ def warm(quiet: bool = False) -> float:
     """Compile every kernel (this process in compiled mode); returns the seconds it took."""
     os.environ["TAPOST_KERNELS"] = "compiled"
     os.environ["TAPOST_WARMUP"] = "0"
+    os.environ["TAPOST_AOT"] = "0"  # (numba's dispatchers, whose signatures the ahead-of-time build exports)
     t0 = time.perf_counter()
     from logtools import jit, sim
     from parsers import load, registry
@@ -96,7 +97,37 @@ def warm(quiet: bool = False) -> float:
         opts = analyze.options_from({k: None for k in analyze.CLI_KEYS})[0]
         analyze.compute(paths["mcap"], paths["tlog"], opts)
         _say(quiet, f"  latency, compensation, alignment: {time.perf_counter() - t:.1f} s")
+        # the other paths' kernels and argument types (the ahead-of-time build exports what ran here): a pair
+        # with flexure (the latency fit's flexure whitening), the alignment's other filters and options
+        t = time.perf_counter()
+        flex = sim.simulate(sim.scenario_config("aircraft", duration_s=30.0, flexure=True))
+        fm, fs = os.path.join(d, "flex_master.mcap"), os.path.join(d, "flex_slave.tlog")
+        registry.write(fm, flex.master, "mcap")
+        registry.write(fs, flex.slave, "tlog")
+        analyze.compute(fm, fs, opts)
+        for variant in ({"filter": "kf-split"}, {"filter": "kf-delay", "smoother": True, "board_errors": "on"},
+                        {"filter": "ahinf"}, {"filter": "hinf", "match": "vel", "compensation": "interp"}):
+            cli = {k: None for k in analyze.CLI_KEYS}
+            cli.update(variant)
+            analyze.compute(paths["mcap"], paths["tlog"], analyze.options_from(cli)[0])
+        _say(quiet, f"  flexure pair, other filters and options: {time.perf_counter() - t:.1f} s")
     return time.perf_counter() - t0
+
+
+def build_ahead(quiet: bool = False) -> str | None:
+    """The kernels this process compiled, exported into one extension module (logtools.aot): later runs call
+    them without loading numba. Its failure (no C compiler, a numba without pycc) is said and harmless: runs
+    use numba's cache then."""
+    from logtools import aot, jit
+
+    fingerprint = jit.kernel_fingerprint()
+    if aot.built(fingerprint):  # (built for these sources and this CPU already)
+        return aot.aot_dir(fingerprint)
+    try:
+        return aot.build(jit.dispatchers(), fingerprint, log=lambda t: _say(quiet, t))
+    except Exception as exc:  # noqa: BLE001 - any failure leaves numba's cache in use, as before
+        _say(quiet, f"  ahead-of-time build skipped: {type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}")
+        return None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -115,6 +146,7 @@ def main(argv: list[str] | None = None) -> int:
         from logtools import jit
 
         path = jit.write_stamp(seconds)
+        build_ahead(a.quiet)
         _say(a.quiet, f"tapost: kernels compiled in {seconds:.0f} s; later runs use them ({path})")
         return 0
     finally:

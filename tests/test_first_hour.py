@@ -227,6 +227,9 @@ def test_a_compile_is_announced_once_on_stderr(monkeypatch, capsys):
 
     # a listener an earlier test registered may say it first (on stderr): one line in all, either way
     monkeypatch.setattr(firstrun, "_state", {"installed": False, "said": False})
+    from logtools import jit
+
+    monkeypatch.setitem(jit._state, "aot", None)  # (numba's cache, not kernels compiled ahead of time)
     assert firstrun.announce_compiling() is True
 
     @numba.njit  # not cached: compiles here, in this test
