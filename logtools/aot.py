@@ -11,7 +11,7 @@ plain CPython extension that needs only numpy to run.
   ``~/.cache/tapost/aot-<fingerprint>/``: the extension and ``table.json`` (which export serves which kernel
   at which argument types; the CPU it was compiled for).
 * :func:`load` (``logtools.jit``, once per process in compiled mode) imports that extension when it was built
-  for this installation (the kernel fingerprint) and this CPU.
+  for this installation (the kernel fingerprint), this CPU, this Python and this numpy.
 * :class:`Kernel` stands in for a numba dispatcher: a call whose arguments' types (numpy dtype, dimensions,
   layout, writability; Python and numpy scalars; tuples of those) match an export runs the export;
   anything else (a type no warm-up passed, a damaged-file path, a format not warmed) makes numba's
@@ -252,7 +252,7 @@ def load(fingerprint: str) -> dict | None:
         try:
             with open(os.path.join(d, TABLE)) as f:
                 meta = json.load(f)
-            if meta.get("cpu") == cpu_key() and meta.get("python") == sys.implementation.cache_tag:
+            if _same_machine(meta):
                 path = os.path.join(d, meta["file"])
                 loader = importlib.machinery.ExtensionFileLoader(MODULE, path)
                 spec = importlib.util.spec_from_file_location(MODULE, path, loader=loader)
@@ -266,14 +266,20 @@ def load(fingerprint: str) -> dict | None:
     return table
 
 
+def _same_machine(meta: dict) -> bool:
+    """The extension was built for this CPU, this Python and this numpy (its C API: an upgraded numpy needs
+    it built again)."""
+    return (meta.get("cpu") == cpu_key() and meta.get("python") == sys.implementation.cache_tag
+            and meta.get("numpy") == np.__version__)
+
+
 def built(fingerprint: str) -> bool:
     """This installation's extension exists for this CPU and Python (whether or not TAPOST_AOT is 0)."""
     d = aot_dir(fingerprint)
     try:
         with open(os.path.join(d, TABLE)) as f:
             meta = json.load(f)
-        return (meta.get("cpu") == cpu_key() and meta.get("python") == sys.implementation.cache_tag
-                and meta.get("builder") == _builder() and os.path.isfile(os.path.join(d, meta["file"])))
+        return _same_machine(meta) and meta.get("builder") == _builder() and os.path.isfile(os.path.join(d, meta["file"]))
     except (OSError, ValueError, KeyError, TypeError):
         return False
 
@@ -371,6 +377,7 @@ def build(dispatchers, fingerprint: str, log=None) -> str:
         if len(so) != 1:
             raise RuntimeError(f"the compile left {so or 'no extension'}")
         meta = {"file": so[0], "cpu": cpu_key(), "python": sys.implementation.cache_tag, "builder": _builder(),
+                "numpy": np.__version__,
                 "fingerprint": fingerprint, "exports": n, "compile_s": round(time.perf_counter() - t0, 1),
                 "kernels": rows}
         with open(os.path.join(work, TABLE), "w") as f:

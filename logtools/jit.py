@@ -11,6 +11,9 @@ minute on a 2-core machine, once per installation; a 2-minute pair needs none of
   compiles the kernels for the next runs (``pipelines/warmup.py``, low priority, once; it writes the stamp
   when every kernel is in the cache).
 
+In compiled mode, where the warm-up also built the kernels ahead of time (logtools.aot), :func:`njit` returns
+stand-ins that call that extension and load numba only for argument types it does not export.
+
 ``TAPOST_KERNELS=compiled|reference|auto`` (default auto) overrides the choice; ``TAPOST_WARMUP=0`` stops the
 background compile. The decision is taken at the first call of :func:`compiled` (the kernel modules call
 it when they are imported) and holds for the process.

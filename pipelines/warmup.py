@@ -9,8 +9,10 @@ image:
 
 It simulates a 30-second pair, writes it in the formats whose readers or native exports have kernels
 (MCAP, ROS 1 bag, tlog, DataFlash, ULog, CSV, ROS 2 bag, a vendor CSV of ISO date-times), reads each back, exports each on a shifted
-clock, and runs the whole analysis on the MCAP/tlog pair, so every kernel compiles with the argument types a real run
-passes.
+clock, and runs the whole analysis on the MCAP/tlog pair (and on a pair with flexure, and with the alignment's
+other filters), so every kernel compiles with the argument types a real run passes. Then it compiles the
+kernels it called once more, ahead of time, into one extension module that later runs call without loading
+numba (logtools.aot; needs a C compiler, skipped with one line on stderr without).
 """
 from __future__ import annotations
 
@@ -126,7 +128,9 @@ def build_ahead(quiet: bool = False) -> str | None:
     try:
         return aot.build(jit.dispatchers(), fingerprint, log=lambda t: _say(quiet, t))
     except Exception as exc:  # noqa: BLE001 - any failure leaves numba's cache in use, as before
-        _say(quiet, f"  ahead-of-time build skipped: {type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}")
+        first = str(exc).splitlines()[0] if str(exc) else ""
+        print(f"tapost warmup: the kernels' ahead-of-time extension was not built ({type(exc).__name__}: {first}); "
+              "runs use numba's cache", file=sys.stderr, flush=True)
         return None
 
 

@@ -148,7 +148,7 @@ def test_an_extension_for_another_cpu_or_python_is_not_loaded(built, tmp_path):
     meta_path = os.path.join(folder, aot.TABLE)
     with open(meta_path) as f:
         meta = json.load(f)
-    for key, value in (("cpu", "0" * 16), ("python", "cpython-20")):
+    for key, value in (("cpu", "0" * 16), ("python", "cpython-20"), ("numpy", "0.1")):
         with open(meta_path, "w") as f:
             json.dump(dict(meta, **{key: value}), f)
         aot._LOADED.clear()
