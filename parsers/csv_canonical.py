@@ -156,13 +156,22 @@ def load(path: str, selector: Selector) -> InsLog:
     if not ok_t.all():
         warnings.append(f"{int((~ok_t).sum())} row(s) whose time is not a decimal number dropped (damaged lines?)")
         t_ns, df = t_ns[ok_t], df[ok_t]
+    return assemble_rows(path, df, t_ns, dec, warnings, fmt=NAME, time_col=TIME,
+                         stamp_source="csv time_s column")
+
+
+def assemble_rows(path: str, df: pd.DataFrame, t_ns: np.ndarray, dec: int | None, warnings: list[str], *,
+                  fmt: str, time_col: str, stamp_source: str, row: str = "line", first_row: int = 2) -> InsLog:
+    """The InsLog of canonical rows ``df`` (its columns by the canonical names; ``df.index`` the rows'
+    places in the file, counted from ``first_row`` in the warnings, each a ``row``) at int64 stamps ``t_ns``
+    (``dec``: the decimals the stamps were written with, None when unknown)."""
     groups = {"gyro": CSV_GYRO, "accel": CSV_ACCEL, "quat": CSV_QUAT, "euler": CSV_EULER, "vel": CSV_VEL,
               "pos": CSV_POS}
     present = {g: cols for g, cols in groups.items() if all(c in df.columns for c in cols)}
     partial = [g for g, cols in groups.items() if g not in present and any(c in df.columns for c in cols)]
     if partial:
         warnings.append(f"incomplete column group(s) ignored: {', '.join(partial)}")
-    other = [str(c) for c in df.columns if c not in HEADER and c not in CSV_EULER]
+    other = [str(c) for c in df.columns if c not in HEADER and c not in CSV_EULER and c not in (time_col, "time_ns")]
     if other:
         warnings.append(f"note: column(s) not read (not the canonical CSV's): {', '.join(other[:8])}"
                         + (" ..." if len(other) > 8 else ""))
@@ -173,19 +182,19 @@ def load(path: str, selector: Selector) -> InsLog:
     # lines whose times run back for another reason than the clock, dropped alone before the clock-step rule:
     # a stretch written twice (parsers.assemble.repeated_lines: the lines' cells compared by hash) and a
     # corrupt time cell (parsers.assemble.stamp_outliers)
-    for find, said in ((lambda: repeated_lines(t_ns, df, TIME), REPEATED_LINES_SAID),
-                       (lambda: stamp_outliers(t_ns), "time_s column: {n} line(s) whose time jumps away from the "
-                        "lines around and back dropped (a corrupt time field?; first at line {line})")):
+    for find, said in ((lambda: repeated_lines(t_ns, df, time_col), REPEATED_LINES_SAID),
+                       (lambda: stamp_outliers(t_ns), f"{time_col} column: {{n}} line(s) whose time jumps away from "
+                        "the lines around and back dropped (a corrupt time field?; first at line {line})")):
         if not np.any(np.diff(t_ns) < 0):
             break
         drop = find()
         if drop.any():
-            lines = (np.asarray(df.index, dtype=np.int64) + 2)[drop]  # (the header is line 1)
-            warnings.append(said.format(n=int(drop.sum()), line=int(lines[0])))
+            lines = (np.asarray(df.index, dtype=np.int64) + first_row)[drop]  # (a CSV's header is line 1)
+            warnings.append(said.format(n=int(drop.sum()), line=int(lines[0])).replace(" line", f" {row}"))
             t_ns, df = t_ns[~drop], df[~drop]
     if np.any(np.diff(t_ns) < 0):  # a clock step back or reset keeps one part (parsers.assemble.clock_steps)
-        keep = split_at_clock_steps(t_ns, "time_s column: ", warnings, unit="line",
-                                    rows=np.asarray(df.index, dtype=np.int64) + 2)  # (the header is line 1)
+        keep = split_at_clock_steps(t_ns, f"{time_col} column: ", warnings, unit=row,
+                                    rows=np.asarray(df.index, dtype=np.int64) + first_row)
         if keep is not None:
             t_ns, df = t_ns[keep], df.iloc[keep]
     order = np.argsort(t_ns, kind="stable")
@@ -197,7 +206,7 @@ def load(path: str, selector: Selector) -> InsLog:
     if dup.any():
         t_ns, df, said = _merge_same_stamp(t_ns, df, dup)
         warnings.extend(said)
-    keep = drop_stray(t_ns, "time_s column: ", warnings)
+    keep = drop_stray(t_ns, f"{time_col} column: ", warnings)
     t_ns, df = t_ns[keep], df[keep]
     t0_ns = int(t_ns[0])
     t_s = (t_ns - t0_ns) * 1e-9
@@ -249,7 +258,7 @@ def load(path: str, selector: Selector) -> InsLog:
             kw["gyro_rad_s"] = blocks["gyro"][imu_mask]
         if "accel" in present:
             kw["accel_m_s2"] = blocks["accel"][imu_mask]
-        channels["imu"] = ChannelInfo(rate_of(t_s[imu_mask]), int(imu_mask.sum()), "csv", resolution(imu_mask))
+        channels["imu"] = ChannelInfo(rate_of(t_s[imu_mask]), int(imu_mask.sum()), fmt, resolution(imu_mask))
     if nav_mask.any():
         kw["t_nav_s"] = t_s[nav_mask]
         if "quat" in present:
@@ -258,27 +267,31 @@ def load(path: str, selector: Selector) -> InsLog:
             kw["vel_ned_m_s"] = blocks["vel"][nav_mask]
         if "pos" in present:
             kw["lat_lon_alt"] = blocks["pos"][nav_mask]
-        channels["nav"] = ChannelInfo(rate_of(t_s[nav_mask]), int(nav_mask.sum()), "csv", resolution(nav_mask))
+        channels["nav"] = ChannelInfo(rate_of(t_s[nav_mask]), int(nav_mask.sum()), fmt, resolution(nav_mask))
     if not kw:
         raise InputError("no complete data rows", path)
     for name, mask in (("imu", imu_mask), ("nav", nav_mask)):
-        said = gap_warning(f"{name} (csv)", np.diff(t_ns[mask])) if mask.sum() > 2 else None
+        said = gap_warning(f"{name} ({fmt})", np.diff(t_ns[mask])) if mask.sum() > 2 else None
         if said:
             warnings.append(said)
-    meta = LogMeta(source_path=path, format=NAME, selector=str(selector), clock=clock, t0_ns=t0_ns,
-                   stamp_source="csv time_s column", channels=channels, warnings=tuple(warnings))
+    meta = LogMeta(source_path=path, format=fmt, selector="", clock=clock, t0_ns=t0_ns,
+                   stamp_source=stamp_source, channels=channels, warnings=tuple(warnings))
     return InsLog.from_arrays(meta, **kw)
 
 
 def inventory(path: str) -> Inventory:
-    log = load(path, Selector())
+    return rows_inventory(path, load(path, Selector()))
+
+
+def rows_inventory(path: str, log: InsLog) -> Inventory:
+    """The inventory of a one-unit table (canonical CSV or Parquet): its IMU and navigation rows."""
     streams = []
     for name, ch in log.meta.channels.items():
         t = log.t_imu_s() if name == "imu" else log.t_nav_s()
         streams.append(StreamInfo(name=name, kind=name, count=ch.count, rate_hz=ch.rate_hz,
                                   start_s=log.t0_s + float(t[0]), duration_s=float(t[-1] - t[0]),
                                   clock=log.meta.clock))
-    return Inventory(path=path, format=NAME, streams=tuple(streams), selectors=("",),
+    return Inventory(path=path, format=log.meta.format, streams=tuple(streams), selectors=("",),
                      warnings=log.meta.warnings)
 
 

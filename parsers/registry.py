@@ -18,6 +18,7 @@ _MODULES = (
     "parsers.ulog",
     "parsers.dataflash",
     "parsers.mavlink_tlog",
+    "parsers.parquet_canonical",
     "parsers.csv_vendor",
     "parsers.csv_canonical",
 )
@@ -92,7 +93,7 @@ def detect(path: str) -> ModuleType:
                 continue
     if os.path.isdir(path):
         raise InputError("directory holds no recognised log (no metadata.yaml, no sensors.csv)", path)
-    raise InputError("unrecognised format (not MCAP, ROS bag, ULog, DataFlash, tlog or CSV)" + _named_like(path), path)
+    raise InputError("unrecognised format (not MCAP, ROS bag, ULog, DataFlash, tlog, CSV or tapost's Parquet)" + _named_like(path), path)
 
 
 def _named_formats(path: str) -> list[ModuleType]:

@@ -44,6 +44,7 @@ NATIVE_WRITERS: dict[str, tuple[str, str, str]] = {
     "rosbag1": ("parsers.restamp_ros", "restamp_rosbag1", ".bag"),
     "rosbag2": ("parsers.restamp_ros", "restamp_rosbag2", ""),
     "mcap": ("parsers.restamp_ros", "restamp_mcap", ".mcap"),
+    "parquet": ("parsers.restamp_parquet", "restamp_parquet", ".parquet"),
 }
 
 
@@ -183,8 +184,8 @@ def native_path(out_dir: str, fmt: str, src_path: str, kinds: tuple[str, ...]) -
     suffix = NATIVE_WRITERS.get(fmt, ("", "", ""))[2]
     if fmt == "csv-vendor" and os.path.isdir(src_path):
         suffix = ""
-    if suffix == ".csv" and "csv" in kinds:
-        suffix = ".native.csv"  # the canonical export owns slave_on_master_clock.csv
+    if suffix in (".csv", ".parquet") and suffix[1:] in kinds:
+        suffix = ".native" + suffix  # the canonical export owns slave_on_master_clock.csv / .parquet
     return os.path.join(out_dir, BASENAME + suffix)
 
 

@@ -89,7 +89,7 @@ def test_analyze_write_slave_cli(sim_dir, tmp_path, capsys):
 
     validate(rep)
     master = registry.load(str(sim_dir / "master.csv"))
-    for name in ("slave_on_master_clock.ulg", "slave_on_master_clock.csv"):
+    for name in ("slave_on_master_clock.ulg", "slave_on_master_clock.csv", "slave_on_master_clock.parquet"):
         assert_zero(estimate(master, registry.load(str(out / name)), compare=False), name)
 
 
