@@ -165,8 +165,21 @@ class Kernel:
             _materialise()
         return self._dispatcher
 
+    def __reduce__(self):
+        """Pickled by name, as a function is (a process that unpickles it has its own stand-in)."""
+        return _by_name, (self.py_func.__module__, self.py_func.__qualname__)
+
     def __repr__(self) -> str:
         return f"<tapost kernel {kernel_name(self.py_func)}: {len(self._exports)} exported signature(s)>"
+
+
+def _by_name(module: str, qualname: str):
+    import importlib
+
+    obj = importlib.import_module(module)
+    for part in qualname.split("."):
+        obj = getattr(obj, part)
+    return obj
 
 
 def _widening(key: str, exports: dict):

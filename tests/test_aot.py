@@ -129,6 +129,15 @@ def test_an_exact_match_runs_the_export_anything_else_numbas_dispatcher(built):
     assert scale.dispatcher().signatures  # (the fallback compiled there)
 
 
+def test_a_stand_in_pickles_by_name(built):
+    import pickle
+
+    probe, _, table = built
+    k = aot.kernel(probe.scale_rows, {"nogil": True}, table)
+    probe.scale_rows = k  # (as jit.njit leaves it in its module)
+    assert pickle.loads(pickle.dumps(k)) is k
+
+
 def test_numbas_fallback_rebinds_the_stand_ins_its_kernels_call(built):
     """A kernel numba compiles after the extension served calls reaches its callees through its module's
     globals: the stand-ins there become numba's dispatchers first."""
