@@ -129,8 +129,9 @@ def build_ahead(quiet: bool = False) -> str | None:
         return aot.build(jit.dispatchers(), fingerprint, log=lambda t: _say(quiet, t))
     except Exception as exc:  # noqa: BLE001 - any failure leaves numba's cache in use, as before
         first = str(exc).splitlines()[0] if str(exc) else ""
-        print(f"tapost warmup: the kernels' ahead-of-time extension was not built ({type(exc).__name__}: {first}); "
-              "runs use numba's cache", file=sys.stderr, flush=True)
+        why = ("no working C compiler" if "compiler" in first.lower() else f"{type(exc).__name__}: {first}")
+        print(f"tapost warmup: the kernels' ahead-of-time extension was not built ({why}); runs use numba's "
+              "cache, about 0.4 s slower each", file=sys.stderr, flush=True)
         return None
 
 

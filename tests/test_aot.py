@@ -209,3 +209,19 @@ def test_the_sample_pair_served_ahead_of_time_loads_no_numba_and_reports_the_sam
         a.pop(k, None)
         b.pop(k, None)
     assert a == b
+
+
+def test_a_failed_build_is_one_line_and_leaves_numbas_cache_in_use(monkeypatch, tmp_path, capsys):
+    """No C compiler (numba.pycc's error): the warm-up says so in one line on stderr and goes on."""
+    from pipelines import warmup
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+
+    def no_compiler(*a, **k):
+        raise RuntimeError("Attempted to compile AOT function without the compiler used by `numpy.distutils` "
+                           "present. If using conda try:\n\n#> conda install gcc_linux-64")
+
+    monkeypatch.setattr(aot, "build", no_compiler)
+    assert warmup.build_ahead(quiet=True) is None
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no working C compiler" in err[0] and "numba's cache" in err[0]
