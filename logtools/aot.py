@@ -68,6 +68,14 @@ def cpu_key() -> str:
                     break
     except OSError:
         pass
+    if not text and sys.platform == "darwin":  # (no /proc: the CPU's brand and features from sysctl)
+        import subprocess
+
+        for key in ("machdep.cpu.brand_string", "machdep.cpu.features", "hw.optional.arm64"):
+            try:
+                text += subprocess.run(["sysctl", "-n", key], capture_output=True, text=True, timeout=5).stdout
+            except (OSError, subprocess.SubprocessError):
+                pass
     text += f"{platform.machine()}|{platform.processor()}"
     return hashlib.sha1(text.encode()).hexdigest()[:16]
 
