@@ -163,8 +163,6 @@ class Kernel:
             ex = self._exports[key] = _widening(key, self._exports)  # (None: numba's dispatcher)
             if ex is not None:
                 return ex(*args)
-        if self._dispatcher is None:
-            MISSES.append((kernel_name(self.py_func), key))
         return self.dispatcher()(*args)
 
     def dispatcher(self):
@@ -217,7 +215,6 @@ def _key_or_miss(x) -> str:
 
 
 _KERNELS: list[Kernel] = []
-MISSES: list = []  # (kernel, argument-types key) of the calls numba's dispatchers served first
 _HOOKS: list = []  # called once when numba first loads (the CLI's compile announcement)
 _LOCK = threading.RLock()  # (kernels run in threads: one materialisation)
 
@@ -268,41 +265,40 @@ def load(fingerprint: str) -> dict | None:
     if fingerprint in _LOADED:
         return _LOADED[fingerprint]
     table = None
-    if enabled() and fingerprint:
-        d = aot_dir(fingerprint)
+    meta = _meta(fingerprint) if enabled() and fingerprint else None
+    if meta is not None:
         try:
-            with open(os.path.join(d, TABLE)) as f:
-                meta = json.load(f)
-            if _same_machine(meta):
-                path = os.path.join(d, meta["file"])
-                loader = importlib.machinery.ExtensionFileLoader(MODULE, path)
-                spec = importlib.util.spec_from_file_location(MODULE, path, loader=loader)
-                mod = importlib.util.module_from_spec(spec)
-                loader.exec_module(mod)
-                table = {name: {key: getattr(mod, sym) for key, sym in rows}
-                         for name, rows in meta["kernels"].items()}
+            path = os.path.join(aot_dir(fingerprint), meta["file"])
+            loader = importlib.machinery.ExtensionFileLoader(MODULE, path)
+            spec = importlib.util.spec_from_file_location(MODULE, path, loader=loader)
+            mod = importlib.util.module_from_spec(spec)
+            loader.exec_module(mod)
+            table = {name: {key: getattr(mod, sym) for key, sym in rows} for name, rows in meta["kernels"].items()}
         except (OSError, ValueError, KeyError, ImportError, AttributeError, TypeError):
             table = None
     _LOADED[fingerprint] = table
     return table
 
 
-def _same_machine(meta: dict) -> bool:
-    """The extension was built for this CPU, this Python and this numpy (its C API: an upgraded numpy needs
-    it built again)."""
-    return (meta.get("cpu") == cpu_key() and meta.get("python") == sys.implementation.cache_tag
-            and meta.get("numpy") == np.__version__)
+def _meta(fingerprint: str) -> dict | None:
+    """The table of this installation's extension, when it was built for this CPU, this Python and this numpy
+    (its C API: an upgraded numpy needs it built again); else None."""
+    try:
+        with open(os.path.join(aot_dir(fingerprint), TABLE)) as f:
+            meta = json.load(f)
+    except (OSError, ValueError):
+        return None
+    same = (isinstance(meta, dict) and meta.get("cpu") == cpu_key()
+            and meta.get("python") == sys.implementation.cache_tag and meta.get("numpy") == np.__version__)
+    return meta if same else None
 
 
 def built(fingerprint: str) -> bool:
-    """This installation's extension exists for this CPU and Python (whether or not TAPOST_AOT is 0)."""
-    d = aot_dir(fingerprint)
-    try:
-        with open(os.path.join(d, TABLE)) as f:
-            meta = json.load(f)
-        return _same_machine(meta) and meta.get("builder") == _builder() and os.path.isfile(os.path.join(d, meta["file"]))
-    except (OSError, ValueError, KeyError, TypeError):
-        return False
+    """This installation's extension exists for this CPU, Python and numpy and was built by these sources
+    (whether or not TAPOST_AOT is 0)."""
+    meta = _meta(fingerprint)
+    return (meta is not None and meta.get("builder") == _builder()
+            and os.path.isfile(os.path.join(aot_dir(fingerprint), str(meta.get("file")))))
 
 
 def _builder() -> str:
@@ -374,21 +370,20 @@ def build(dispatchers, fingerprint: str, log=None) -> str:
         rows: dict[str, list] = {}
         options_of: dict[int, dict] = {}
         n = 0
-        seen = set()
         for disp, options in dispatchers:
             name = kernel_name(disp.py_func)
-            if name in seen:
-                continue
-            seen.add(name)
             for sig in disp.nopython_signatures:
                 keys = [numba_key(a) for a in sig.args]
                 if None in keys:  # (an argument type no call could match: left to numba)
+                    continue
+                key = ",".join(keys)
+                if any(k == key for k, _ in rows.get(name, ())):  # (a kernel made twice: each signature once)
                     continue
                 sym = f"k{n}"
                 n += 1
                 cc.export(sym, sig)(disp.py_func)
                 options_of[id(disp.py_func)] = options
-                rows.setdefault(name, []).append([",".join(keys), sym])
+                rows.setdefault(name, []).append([key, sym])
         if not n:
             raise RuntimeError("no kernel to export")
         with _as_numba_compiles(options_of):

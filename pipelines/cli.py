@@ -179,6 +179,15 @@ SYSTEM_REFUSALS = frozenset(getattr(errno, n) for n in (
     "ENOTEMPTY", "EMFILE", "ENFILE", "EFBIG", "EIO", "ELOOP", "EXDEV") if hasattr(errno, n))
 
 
+def flush_std_streams() -> None:
+    """stdout and stderr flushed before a process ends without the interpreter's teardown (``os._exit``)."""
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # (a closed pipe: nothing more can be said on it)
+            pass
+
+
 def script() -> None:
     """The ``tapost`` command (its console script, ``python -m pipelines.cli``): :func:`main`, then the process
     ends at once. By then the outputs are written and closed; stdout and stderr are flushed and the exit
@@ -189,21 +198,14 @@ def script() -> None:
     import atexit
     import threading
 
-    def flush() -> None:
-        for stream in (sys.stdout, sys.stderr):
-            try:
-                stream.flush()
-            except (OSError, ValueError):  # (a closed pipe: nothing more can be said on it)
-                pass
-
     code = main()
-    flush()
+    flush_std_streams()
     run_exit_handlers = getattr(atexit, "_run_exitfuncs", None)
     others = [t for t in threading.enumerate() if t is not threading.current_thread() and not t.daemon]
     if run_exit_handlers is None or others:
         sys.exit(code)
     run_exit_handlers()
-    flush()  # (what the handlers said)
+    flush_std_streams()  # (what the handlers said)
     os._exit(int(code) & 0xFF)
 
 

@@ -53,10 +53,9 @@ def announce_compiling(stream=None) -> bool:
     if jit.aot_table() is not None:  # (kernels compiled ahead of time: numba loads only if one is missing)
         from logtools import aot
 
-        _state["installed"] = True
         aot.on_numba_load(lambda: _listen(stream))
-        return True
-    _listen(stream)
+    else:
+        _listen(stream)
     _state["installed"] = True
     return True
 

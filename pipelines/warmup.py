@@ -164,11 +164,9 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     # the process ends at once once its files are written and its lock removed: the interpreter's teardown of
-    # numba's compiler (about 0.4 s of a core) would otherwise run beside the user's next tapost
+    # numba's compiler (0.55-0.7 s of a core) would otherwise run beside the user's next tapost
+    from pipelines.cli import flush_std_streams
+
     code = main()
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            stream.flush()
-        except (OSError, ValueError):
-            pass
+    flush_std_streams()
     os._exit(code)
