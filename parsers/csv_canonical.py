@@ -171,7 +171,7 @@ def assemble_rows(path: str, df: pd.DataFrame, t_ns: np.ndarray, dec: int | None
     partial = [g for g, cols in groups.items() if g not in present and any(c in df.columns for c in cols)]
     if partial:
         warnings.append(f"incomplete column group(s) ignored: {', '.join(partial)}")
-    other = [str(c) for c in df.columns if c not in HEADER and c not in CSV_EULER and c not in (time_col, "time_ns")]
+    other = [str(c) for c in df.columns if c not in HEADER and c not in CSV_EULER and c != time_col]
     if other:
         warnings.append(f"note: column(s) not read (not the canonical CSV's): {', '.join(other[:8])}"
                         + (" ..." if len(other) > 8 else ""))

@@ -49,39 +49,51 @@ def read_parquet(path: str):
         raise InputError(f"damaged Parquet file ({text})", path) from None
 
 
-def load(path: str, selector: Selector) -> InsLog:
-    import pandas as pd
+def seconds_of_ns(ns: np.ndarray) -> np.ndarray:
+    """The float64 ``time_s`` column written beside ``time_ns``: whole seconds plus the fraction (the nearest
+    float to the stamp, about 0.2 us at UNIX epoch)."""
+    return ns // 1_000_000_000 + (ns % 1_000_000_000) * 1e-9
 
-    from parsers.csv_canonical import HEADER, TIME, assemble_rows
 
-    if selector:
-        raise InputError(f"a canonical Parquet file holds one unit: selector '{selector}' does not apply", path)
-    table = read_parquet(path)
+def stamps_ns(table, path: str) -> tuple[np.ndarray, np.ndarray, str]:
+    """(int64 ns stamps, which rows have one, the column they come from) of a pyarrow table: ``time_ns``
+    (integers, exact) where it is there, else ``time_s`` (float64 seconds, rounded to the ns); InputError for
+    neither or a ``time_ns`` that is not integers."""
+    from parsers.csv_canonical import TIME
+
     names = list(table.column_names)
-    warnings: list[str] = []
     if TIME_NS in names:
         col = table.column(TIME_NS)
         if not str(col.type).startswith(("int", "uint")):
             raise InputError(f"column '{TIME_NS}' is {col.type}, not an integer count of nanoseconds", path)
-        t = col.to_numpy(zero_copy_only=False)
         ok = ~np.asarray(col.is_null().to_numpy(zero_copy_only=False), bool)
-        t_ns, dec = np.asarray(t, dtype=np.int64), 9
-        time_col = TIME_NS
-    elif TIME in names:
-        col = table.column(TIME)
-        t = np.asarray(col.to_numpy(zero_copy_only=False), dtype=float)
+        return np.asarray(col.to_numpy(zero_copy_only=False), dtype=np.int64), ok, TIME_NS
+    if TIME in names:
+        t = np.asarray(table.column(TIME).to_numpy(zero_copy_only=False), dtype=float)
         ok = np.isfinite(t)
         t_ns = np.zeros(len(t), np.int64)
         t_ns[ok] = np.round(t[ok] * 1e9).astype(np.int64)
-        dec, time_col = None, TIME
+        return t_ns, ok, TIME
+    raise InputError(f"no '{TIME_NS}' or '{TIME}' column (tapost's Parquet export expected; columns: "
+                     f"{', '.join(names[:8])}{' ...' if len(names) > 8 else ''})", path)
+
+
+def load(path: str, selector: Selector) -> InsLog:
+    import pandas as pd
+
+    from parsers.csv_canonical import CSV_EULER, HEADER, TIME, assemble_rows
+
+    if selector:
+        raise InputError(f"a canonical Parquet file holds one unit: selector '{selector}' does not apply", path)
+    table = read_parquet(path)
+    t_ns, ok, time_col = stamps_ns(table, path)
+    warnings: list[str] = []
+    if time_col == TIME:
         warnings.append(f"note: stamps from the float64 '{TIME}' column (no '{TIME_NS}'): epoch stamps are "
                         "exact to about 0.2 us only")
-    else:
-        raise InputError(f"no '{TIME_NS}' or '{TIME}' column (tapost's Parquet export expected; columns: "
-                         f"{', '.join(names[:8])}{' ...' if len(names) > 8 else ''})", path)
     data = {}
-    for c in names:
-        if c in HEADER[1:] or c in ("roll_deg", "pitch_deg", "yaw_deg"):
+    for c in table.column_names:
+        if c in HEADER[1:] or c in CSV_EULER:
             arr = table.column(c).to_numpy(zero_copy_only=False)
             try:
                 data[c] = np.asarray(arr, dtype=float)
@@ -96,8 +108,8 @@ def load(path: str, selector: Selector) -> InsLog:
         t_ns, df = t_ns[ok], df[ok]
     if not len(df):
         raise InputError("no data rows", path)
-    return assemble_rows(path, df, t_ns, dec, warnings, fmt=NAME, time_col=time_col,
-                         stamp_source=f"parquet {time_col} column", row="row", first_row=0)
+    return assemble_rows(path, df, t_ns, 9 if time_col == TIME_NS else None, warnings, fmt=NAME,
+                         time_col=time_col, stamp_source=f"parquet {time_col} column", row="row", first_row=0)
 
 
 def inventory(path: str) -> Inventory:

@@ -7,8 +7,6 @@ only gets it rewritten from its nanoseconds rounded. Rows without a time keep th
 """
 from __future__ import annotations
 
-import numpy as np
-
 from logtools.errors import InputError
 from parsers.atomic import atomic_path
 from parsers.restamp import ClockShift, RestampStats
@@ -21,21 +19,11 @@ def restamp_parquet(src: str, dst: str, shift: ClockShift, *, selector=None) -> 
     import pyarrow.parquet as pq
 
     from parsers.csv_canonical import TIME
-    from parsers.parquet_canonical import TIME_NS, read_parquet
+    from parsers.parquet_canonical import TIME_NS, read_parquet, seconds_of_ns, stamps_ns
 
     table = read_parquet(src)
     names = table.column_names
-    if TIME_NS in names:
-        col = table.column(TIME_NS)
-        valid = ~np.asarray(col.is_null().to_numpy(zero_copy_only=False), bool)
-        t_ns = np.asarray(col.to_numpy(zero_copy_only=False), dtype=np.int64)
-    elif TIME in names:
-        t = np.asarray(table.column(TIME).to_numpy(zero_copy_only=False), dtype=float)
-        valid = np.isfinite(t)
-        t_ns = np.zeros(len(t), np.int64)
-        t_ns[valid] = np.round(t[valid] * 1e9).astype(np.int64)
-    else:
-        raise InputError(f"native export: no '{TIME_NS}' or '{TIME}' column to restamp", src)
+    t_ns, valid, _ = stamps_ns(table, src)
     new = t_ns.copy()
     new[valid] = shift.to_master_ns(t_ns[valid])
     if (new[valid] < 0).any():
@@ -50,8 +38,7 @@ def restamp_parquet(src: str, dst: str, shift: ClockShift, *, selector=None) -> 
             arr = pa.array(new.astype(table.schema.field(i).type.to_pandas_dtype(), copy=False),
                            table.schema.field(i).type, mask=~valid)
         else:
-            arr = pa.array(new // 1_000_000_000 + (new % 1_000_000_000) * 1e-9, table.schema.field(i).type,
-                           mask=~valid)
+            arr = pa.array(seconds_of_ns(new), table.schema.field(i).type, mask=~valid)
         table = table.set_column(i, table.schema.field(i), arr)
         changed.append(name)
     meta = dict(table.schema.metadata or {})

@@ -149,9 +149,10 @@ def write_parquet(path: str, table: pd.DataFrame, meta: dict[str, str]) -> int:
         import pyarrow.parquet as pq
     except ImportError as exc:  # pragma: no cover - pyarrow is a dependency
         raise InputError(f"parquet export needs pyarrow ({exc})") from None
+    from parsers.parquet_canonical import seconds_of_ns
+
     ns = table.index.to_numpy(np.int64)
-    cols = {"time_ns": pa.array(ns, pa.int64()),
-            "time_s": pa.array(ns // 1_000_000_000 + (ns % 1_000_000_000) * 1e-9, pa.float64())}
+    cols = {"time_ns": pa.array(ns, pa.int64()), "time_s": pa.array(seconds_of_ns(ns), pa.float64())}
     for c in table.columns:
         cols[c] = pa.array(table[c].to_numpy(float), pa.float64())
     tab = pa.table(cols).replace_schema_metadata({f"tapost.{k}": str(v) for k, v in meta.items()})
