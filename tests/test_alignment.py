@@ -168,6 +168,62 @@ def test_compiled_kf_step_equals_reference_joseph_update():
     assert nis == pytest.approx(info["nis"]) and np.allclose(e, info["innovation"])
 
 
+@pytest.mark.parametrize("match", mdl.MATCHES)
+@pytest.mark.parametrize("flexure,lever,delay,board", [(False, False, False, False), (True, True, True, True),
+                                                       (True, False, True, False), (False, True, False, True)])
+def test_the_reference_loops_dynamics_and_measurement_matrices_equal_the_kernels(match, flexure, lever, delay,
+                                                                                 board):
+    """F and H as the reference loop assigns them (blocks, fill_dynamics_np / fill_h_np) against the
+    compiled loop's element-by-element kernels, in every layout: the same matrices, bit for bit."""
+    lay = mdl.make_layout(match, flexure=flexure, lever_arm=lever, delay=delay, board_errors=board)
+    rng = np.random.default_rng(lay.n)
+    for _ in range(5):
+        c_ns, c_nm, mav = _rot(rng.normal(size=3)), _rot(rng.normal(size=3)), rng.normal(size=(3, 3))
+        f_n, w_ie, w_en, vel, w_l, w_ns, a_m = (rng.normal(size=3) for _ in range(7))
+        beta, mk_rate = rng.uniform(0.1, 3.0, 2)
+        f1, f2 = np.zeros((lay.n, lay.n)), np.zeros((lay.n, lay.n))
+        mdl._fill_dynamics(f1, lay.offsets, c_ns, f_n, w_ie, w_en, vel, mav, beta, mk_rate)
+        mdl.fill_dynamics_np(f2, lay.offsets.tolist(), c_ns, f_n, w_ie, w_en, vel, mav, beta, mk_rate)
+        assert np.array_equal(f1, f2)
+        h1, h2 = np.zeros((lay.n_meas, lay.n)), np.zeros((lay.n_meas, lay.n))
+        mdl._fill_h(h1, lay.offsets, c_ns, c_nm, w_l, w_ns, a_m)
+        mdl.fill_h_np(h2, lay.offsets.tolist(), c_ns, c_nm, w_l, w_ns, a_m)
+        assert np.array_equal(h1, h2)
+
+
+def test_the_reference_loops_scalar_helpers_equal_the_kernels():
+    """The reference loop's rotations, lookups and navigation step in Python floats against the kernels
+    (math's sin/cos/atan2 may differ from numpy's by an ulp: 1e-15)."""
+    from logtools import strapdown as sd
+
+    rng = np.random.default_rng(3)
+    ts = np.sort(rng.uniform(0.0, 100.0, 50))
+    for scale in (1e-10, 1e-4, 0.3, 2.0):
+        for _ in range(50):
+            q, rv = rng.normal(size=4), rng.normal(size=3) * scale
+            qn = q / np.linalg.norm(q)
+            assert np.array_equal(kfm._dcm(q), kfm._dcm_np(q))
+            assert np.allclose(kfm._q_left_rotvec(rv, q), kfm._q_left_rotvec_np(rv, q), rtol=0, atol=1e-15)
+            assert np.allclose(mdl.exp_so3(rv), mdl.exp_so3_np(rv), rtol=0, atol=1e-15)
+            assert np.allclose(kfm._rotvec_nb(qn), kfm._rotvec_np(qn), rtol=1e-14, atol=1e-15)
+            m = mdl.exp_so3(rv)
+            assert np.allclose(mdl.rotvec_small(m), mdl.rotvec_small_np(m), rtol=1e-14, atol=1e-15)
+            a, b = rng.normal(size=3), rng.normal(size=3)
+            assert np.array_equal(kfm._cross3(a, b), kfm._cross3_np(a, b))
+            t = float(rng.uniform(-10.0, 110.0))
+            assert kfm._index(ts, t) == kfm._index_np(ts, t)
+            llh = np.array([rng.uniform(-1.4, 1.4), rng.uniform(-3.0, 3.0), rng.uniform(-100.0, 9000.0)])
+            v, dv = rng.normal(size=3) * 30.0, rng.normal(size=3) * 0.2
+            dq = np.r_[1.0, rv * 0.5]
+            dq /= np.linalg.norm(dq)
+            out1 = (np.empty(4), np.empty(3), np.empty(3))
+            out2 = (np.empty(4), np.empty(3), np.empty(3))
+            sd.nav_step(qn, v, llh, dq, dv, 0.01, *out1)
+            sd.nav_step_np(qn, v, llh, dq, dv, 0.01, *out2)
+            for o1, o2 in zip(out1, out2):
+                assert np.allclose(o1, o2, rtol=1e-15, atol=1e-15)
+
+
 @pytest.mark.parametrize("n,m,predict", [(18, 6, True), (21, 3, True), (12, 6, False)])
 def test_the_filter_loops_workspace_step_equals_the_allocating_one_bit_for_bit(n, m, predict):
     """kf_step_ws with one set of work arrays through consecutive steps (the compiled loop's: made once per

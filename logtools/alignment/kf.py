@@ -12,7 +12,9 @@ the smoothed state at epoch k+1 relative to the pre-feedback nominal is x_s + fb
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Callable
 
 import numpy as np
@@ -22,10 +24,11 @@ from scipy.linalg.lapack import dpotrf as _potrf, dpotrs as _potrs
 from logtools import earth
 from logtools.conventions import dcm_from_quat, quat_from_dcm
 from logtools.errors import AnalysisError
-from logtools.strapdown import HAVE_NUMBA, _WIE, _radii, nav_step, njit
+from logtools.strapdown import HAVE_NUMBA, _WIE, _radii, nav_step, nav_step_np, njit
 
 from .options import FilterKind
-from .model import StateLayout, _discretise_ws, discretise_workspace, _fill_dynamics, discretise_step, _fill_h, att_residual, exp_so3, rotvec_small
+from .model import (StateLayout, _discretise_ws, _fill_dynamics, _fill_h, att_residual_np, discretise_step,
+                    discretise_workspace, exp_so3, exp_so3_np, fill_dynamics_np, fill_h_np, rotvec_small)
 
 
 
@@ -205,9 +208,60 @@ def _q_left_rotvec(rv, q):
     return out / np.sqrt((out * out).sum())
 
 
-@njit
-def _lerp_row(arr, i, a):
-    return (1.0 - a) * arr[i] + a * arr[i + 1]
+# ---- the reference loop's scalar helpers: the kernels' algebra with Python floats (element by element,
+# the kernels as plain Python cost about 3x more per epoch); checked against the compiled loop in
+# tests/test_alignment.py
+_Z3 = np.zeros(3)
+_EYE3 = np.eye(3)
+_Z3.flags.writeable = _EYE3.flags.writeable = False
+
+
+def _dcm_np(q: np.ndarray) -> np.ndarray:
+    """:func:`_dcm` for the reference loop."""
+    w, x, y, z = q.tolist()
+    nn = math.sqrt(w * w + x * x + y * y + z * z)
+    w, x, y, z = w / nn, x / nn, y / nn, z / nn
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+def _q_left_rotvec_np(rv: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """:func:`_q_left_rotvec` for the reference loop."""
+    r0, r1, r2 = rv.tolist()
+    ang = math.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
+    k = math.sin(0.5 * ang) / ang if ang > 1e-8 else 0.5 - ang * ang / 48.0
+    pw, px, py, pz = math.cos(0.5 * ang), r0 * k, r1 * k, r2 * k
+    qw, qx, qy, qz = q.tolist()
+    ow = pw * qw - px * qx - py * qy - pz * qz
+    ox = pw * qx + px * qw + py * qz - pz * qy
+    oy = pw * qy - px * qz + py * qw + pz * qx
+    oz = pw * qz + px * qy - py * qx + pz * qw
+    nn = math.sqrt(ow * ow + ox * ox + oy * oy + oz * oz)
+    return np.array([ow / nn, ox / nn, oy / nn, oz / nn])
+
+
+def _index_np(ts: np.ndarray, t: float) -> tuple[int, float]:
+    """:func:`_index` for the reference loop."""
+    i = min(max(int(ts.searchsorted(t, "right")) - 1, 0), len(ts) - 2)
+    t0, t1 = ts[i:i + 2].tolist()
+    return i, min(max((t - t0) / (t1 - t0), -1.0), 2.0)
+
+
+def _rotvec_np(q: np.ndarray) -> np.ndarray:
+    """:func:`_rotvec_nb` for the reference loop: the rotation vector of a quaternion."""
+    w, x, y, z = q.tolist()
+    vn = math.sqrt(x * x + y * y + z * z)
+    if vn < 1e-12:
+        return 2.0 * q[1:] / max(w, 1e-300)
+    return q[1:] * (2.0 * math.atan2(vn, w) / vn)
+
+
+def _cross3_np(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """:func:`_cross3` for the reference loop."""
+    a0, a1, a2 = a.tolist()
+    b0, b1, b2 = b.tolist()
+    return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
 
 
 # ---- inputs ---------------------------------------------------------------------------------------
@@ -253,20 +307,27 @@ class MasterSeries:
         return bool(self.valid[i] and self.valid[i + 1])
 
     def _idx(self, t: float) -> tuple[int, float]:
-        return _index(self.t_s, t)
+        return _index_np(self.t_s, t)
+
+    @cached_property
+    def _rows(self) -> np.ndarray:
+        """[quat, vel, acc] (those there are) side by side: one interpolation per sample."""
+        cols = [c for c in (self.quat, self.vel, self.acc) if c is not None]
+        return np.ascontiguousarray(np.hstack(cols), float) if cols else np.zeros((len(self.t_s), 0))
 
     def sample(self, t: float) -> tuple:
         """(C_nm or None, v or None, a or None, w_nm_m or None) at relative time t."""
         i, a = self._idx(t)
-        b = 1.0 - a
+        rows = self._rows
+        row = (1.0 - a) * rows[i] + a * rows[i + 1]
         c_nm = v = acc = w = None
+        j = 0
         if self.quat is not None:
-            c_nm = _dcm(_lerp_row(self.quat, i, a))
+            c_nm, j = _dcm_np(row[:4]), 4
         if self.vel is not None:
-            v = b * self.vel[i] + a * self.vel[i + 1]
-            acc = b * self.acc[i] + a * self.acc[i + 1]
+            v, acc = row[j:j + 3], row[j + 3:j + 6]
         if self.w_nm_m is not None:  # (on its own stamps)
-            j, aw = _index(self.w_stamps_s, t)
+            j, aw = _index_np(self.w_stamps_s, t)
             w = (1.0 - aw) * self.w_nm_m[j] + aw * self.w_nm_m[j + 1]
         return c_nm, v, acc, w
 
@@ -438,6 +499,7 @@ class _LoopState:
     p0_var: np.ndarray
     qc: np.ndarray
     fb_mask: np.ndarray
+    off: list  # the layout's offsets (StateLayout.offsets) as Python ints
     q_new: np.ndarray = field(default_factory=lambda: np.empty(4))  # nav_step's output buffers
     v_new: np.ndarray = field(default_factory=lambda: np.empty(3))
     llh_new: np.ndarray = field(default_factory=lambda: np.empty(3))
@@ -453,7 +515,7 @@ class _LoopState:
                    r_hat=r_hat, r_fej=r_hat.copy(), lever=np.array(inp.lever0_m, float), tau=float(inp.tau0_s),
                    x=np.zeros(s.layout.n), P=np.ascontiguousarray(_initial_cov(s)),
                    p0_var=np.asarray(s.p0_sigma, float) ** 2, qc=np.asarray(s.qc, float),
-                   fb_mask=_feedback_mask(s.layout))
+                   fb_mask=_feedback_mask(s.layout), off=s.layout.offsets.tolist())
 
     def reset(self, sl: slice) -> None:
         """A state block back to its prior (``_reset_block`` of the compiled loop)."""
@@ -488,27 +550,27 @@ def _propagate(st: _LoopState, inp: AlignInputs, s: FilterSettings, k: int, rest
     n = lay.n
     j = k - 1
     dt = float(inp.seg_dt_s[j])
-    c_ns = _dcm(st.q)
-    lat, h = st.llh[0], st.llh[2]
+    c_ns = _dcm_np(st.q)
+    lat, _, h = st.llh.tolist()
     v = st.v
-    r_m, r_n = earth.radii_m(lat)
-    cl, sl_, tl = np.cos(lat), np.sin(lat), np.tan(lat)
-    w_ie, w_en, mav = np.zeros(3), np.zeros(3), np.zeros((3, 3))
-    w_ie[0], w_ie[2] = earth.OMEGA_IE_RAD_S * cl, -earth.OMEGA_IE_RAD_S * sl_
-    w_en[0], w_en[1], w_en[2] = v[1] / (r_n + h), -v[0] / (r_m + h), -v[1] * tl / (r_n + h)
-    mav[0, 1], mav[1, 0], mav[2, 1] = 1.0 / (r_n + h), -1.0 / (r_m + h), -tl / (r_n + h)
+    v0, v1, _ = v.tolist()
+    r_m, r_n = (float(r) for r in earth.radii_m(lat))
+    cl, sl_, tl = math.cos(lat), math.sin(lat), math.tan(lat)
+    w_ie = np.array([earth.OMEGA_IE_RAD_S * cl, 0.0, -earth.OMEGA_IE_RAD_S * sl_])
+    w_en = np.array([v1 / (r_n + h), -v0 / (r_m + h), -v1 * tl / (r_n + h)])
+    mav = np.array([[0.0, 1.0 / (r_n + h), 0.0], [-1.0 / (r_m + h), 0.0, 0.0], [0.0, -tl / (r_n + h), 0.0]])
     if st.c_nm_prev is not None and _dynamics_fej(s):  # AlignmentConfig.dynamics_fej
         c_ns = st.c_nm_prev @ st.r_fej.T
     f_n = c_ns @ (inp.seg_dv_b[j] / dt)
     f_buf = np.zeros((n, n))
-    _fill_dynamics(f_buf, lay.offsets, _mid_segment(c_ns, inp.seg_dq[j]), f_n, w_ie, w_en, v, mav, s.flex_beta,
-                   1.0 / s.master_att_tau_s)
+    c_mid = c_ns @ exp_so3_np(0.5 * _rotvec_np(inp.seg_dq[j]))  # as _mid_segment
+    fill_dynamics_np(f_buf, st.off, c_mid, f_n, w_ie, w_en, v, mav, s.flex_beta, 1.0 / s.master_att_tau_s)
     phi_k = np.empty((n, n))
     qd_k = np.empty((n, n))
     discretise_step(f_buf, st.qc, dt, phi_k, qd_k)
     if restart:  # a gap: the error state is not propagated through unknown motion
         phi_k, qd_k = np.eye(n), np.diag(st.qc * dt)
-    nav_step(st.q, st.v, st.llh, inp.seg_dq[j], inp.seg_dv_b[j], dt, st.q_new, st.v_new, st.llh_new)
+    nav_step_np(st.q, st.v, st.llh, inp.seg_dq[j], inp.seg_dv_b[j], dt, st.q_new, st.v_new, st.llh_new)
     st.q, st.q_new = st.q_new, st.q
     st.v, st.v_new = st.v_new, st.v
     st.llh, st.llh_new = st.llh_new, st.llh
@@ -534,8 +596,8 @@ def _restarts(st: _LoopState, inp: AlignInputs, lay: StateLayout, k: int, restar
         if c_nm is not None:
             st.q = quat_from_dcm(c_nm @ st.r_hat.T)
         if v_m is not None:
-            cm = c_nm if c_nm is not None else np.eye(3)
-            st.v = v_m + cm @ _cross3(w_m if w_m is not None else np.zeros(3), st.lever)
+            cm = c_nm if c_nm is not None else _EYE3
+            st.v = v_m + cm @ _cross3_np(w_m if w_m is not None else _Z3, st.lever)
         st.reset(lay.att)
         if lay.vel is not None:
             st.reset(lay.vel)
@@ -546,34 +608,34 @@ def _measurement(st: _LoopState, inp: AlignInputs, lay: StateLayout, att_only_fe
                  ) -> tuple[np.ndarray, np.ndarray]:
     """(z, H) at epoch k: velocity (master's, lever arm carried) and/or attitude (through the mounting)."""
     c_nm, v_m, a_m, w_m = ms_k
-    z3, eye3 = np.zeros(3), np.eye(3)
-    c_ns = _dcm(st.q)
+    z3, eye3 = _Z3, _EYE3
+    c_ns = _dcm_np(st.q)
     zs = []
     if lay.uses_vel:
         wl = w_m if w_m is not None else z3
         cm = c_nm if c_nm is not None else eye3
-        zs.append(st.v - v_m - cm @ _cross3(wl, st.lever))
+        zs.append(st.v - v_m - cm @ _cross3_np(wl, st.lever))
     if lay.uses_att:
-        zs.append(att_residual(c_ns, c_nm, st.r_hat))
+        zs.append(att_residual_np(c_ns, c_nm, st.r_hat))
     z = np.concatenate(zs) if len(zs) > 1 else zs[0]
     w_ns_n = z3
     if lay.delay is not None and lay.uses_att:
         # slave rate relative to NED in NED: the segment's mean body rate (bias removed) minus w_in
         j = max(k - 1, 0)
-        w_b = _rotvec_q(inp.seg_dq[j]) / float(inp.seg_dt_s[j]) - st.x[lay.gyro]
-        lat, h = st.llh[0], st.llh[2]
-        v = st.v
-        r_m, r_n = earth.radii_m(lat)
-        w_in = np.array([earth.OMEGA_IE_RAD_S * np.cos(lat) + v[1] / (r_n + h), -v[0] / (r_m + h),
-                         -earth.OMEGA_IE_RAD_S * np.sin(lat) - v[1] * np.tan(lat) / (r_n + h)])
+        w_b = _rotvec_np(inp.seg_dq[j]) / float(inp.seg_dt_s[j]) - st.x[lay.gyro]
+        lat, _, h = st.llh.tolist()
+        v0, v1, _ = st.v.tolist()
+        r_m, r_n = (float(r) for r in earth.radii_m(lat))
+        w_in = np.array([earth.OMEGA_IE_RAD_S * math.cos(lat) + v1 / (r_n + h), -v0 / (r_m + h),
+                         -earth.OMEGA_IE_RAD_S * math.sin(lat) - v1 * math.tan(lat) / (r_n + h)])
         w_ns_n = c_ns @ w_b - w_in
     # first-estimate Jacobian: the mounting enters H through the coarse mounting r0, not the running
     # r_hat; feeding back along an unobservable direction would otherwise rotate H and invent
     # information (the EKF inconsistency known from SLAM heading)
     c_ref = (c_nm @ st.r_fej.T) if c_nm is not None and (lay.uses_vel or att_only_fej) else c_ns
     h_buf = np.zeros((lay.n_meas, lay.n))
-    _fill_h(h_buf, lay.offsets, c_ref, c_nm if c_nm is not None else eye3, w_m if w_m is not None else z3,
-            w_ns_n, a_m if a_m is not None else z3)
+    fill_h_np(h_buf, st.off, c_ref, c_nm if c_nm is not None else eye3, w_m if w_m is not None else z3,
+              w_ns_n, a_m if a_m is not None else z3)
     return z, h_buf
 
 
@@ -663,11 +725,11 @@ def _feedback(st: _LoopState, lay: StateLayout, delay_bounds_s: tuple[float, flo
     smoother's fb; the delay's as clamped to its bounds)."""
     x = st.x
     fb = np.where(st.fb_mask, x, 0.0)
-    st.q = _q_left_rotvec(x[lay.att], st.q)
+    st.q = _q_left_rotvec_np(x[lay.att], st.q)
     if lay.vel is not None:
         st.v = st.v - x[lay.vel]
     if lay.mount is not None:
-        st.r_hat = exp_so3(-x[lay.mount]) @ st.r_hat
+        st.r_hat = exp_so3_np(-x[lay.mount]) @ st.r_hat
     if lay.lever is not None:
         st.lever = st.lever + x[lay.lever]
     if lay.delay is not None:
@@ -730,7 +792,7 @@ class _Histories:
         if lay.mount is not None:
             self.pm_hist[k] = st.P[lay.mount, lay.mount]
         else:
-            cq = _dcm(st.q)
+            cq = _dcm_np(st.q)
             self.pm_hist[k] = cq.T @ st.P[lay.att, lay.att] @ cq
         self.tau_hist[k] = st.tau
         self.lev_hist[k] = st.lever
@@ -764,15 +826,6 @@ def gstate_weight(s: FilterSettings) -> np.ndarray:
     """H-infinity weight S_bar = diag(1 / sigma0^2): every state measured in units of its prior."""
     sg = np.asarray(s.p0_sigma, float)
     return np.diag(1.0 / np.where(sg > 0, sg, 1.0) ** 2)
-
-
-def _rotvec_q(q: np.ndarray) -> np.ndarray:
-    w = q[0]
-    vn = np.sqrt(q[1] ** 2 + q[2] ** 2 + q[3] ** 2)
-    if vn < 1e-12:
-        return 2.0 * q[1:] / max(w, 1e-300)
-    ang = 2.0 * np.arctan2(vn, w)
-    return q[1:] * (ang / vn)
 
 
 def _rts(run: FilterRun, lay: StateLayout, phi, xpred, ppred, xf, pf, fb) -> None:

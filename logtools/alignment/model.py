@@ -28,7 +28,9 @@ Measurements:
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -76,9 +78,9 @@ class StateLayout:
     def n_meas(self) -> int:
         return 3 * (self.uses_vel + self.uses_att)
 
-    @property
+    @cached_property
     def offsets(self) -> np.ndarray:
-        """Start index of each group (-1 when absent), for the compiled kernels:
+        """Start index of each group (-1 when absent), for the compiled kernels (made once per layout):
         [att, vel, gyro, accel, mount, flex_ang, flex_rate, lever, delay, uses_vel, uses_att, master_att,
         accel_mis]."""
         def o(s):
@@ -201,6 +203,94 @@ def _fill_dynamics(f, off, c_ns, f_n, w_ie, w_en, vel, mav, beta, mk_rate):
             f[fa + i, fr + i] = 1.0
             f[fr + i, fa + i] = -beta * beta
             f[fr + i, fr + i] = -2.0 * beta
+
+
+# ---- the reference loop's copies (logtools.alignment.kf.run_filter's Python loop): the same blocks as the
+# kernels above, each assigned at once, with the scalars as Python floats (tested equal in tests/test_alignment.py;
+# the element-by-element kernels as plain Python cost 3-4x more per epoch)
+def _set_diag3(m: np.ndarray, r: int, c: int, value: float) -> None:
+    """m[r + i, c + i] = value, i = 0..2 (m C-contiguous; a strided view, no index arrays)."""
+    ncol = m.shape[1]
+    start = r * ncol + c
+    m.reshape(-1)[start:start + 2 * (ncol + 1) + 1:ncol + 1] = value
+
+
+def skew3(x: float, y: float, z: float) -> np.ndarray:
+    """[v x] of v = (x, y, z)."""
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def fill_dynamics_np(f, off, c_ns, f_n, w_ie, w_en, vel, mav, beta, mk_rate):
+    """:func:`_fill_dynamics` for the reference loop (``off``: the offsets as a list)."""
+    a, v, g, acc, _, fa, fr, _, _, _, _, mk, am = off
+    f[a:a + 3, a:a + 3] = -skew3(*(w_ie + w_en).tolist())
+    f[a:a + 3, g:g + 3] = -c_ns
+    if v >= 0:
+        f_x = skew3(*f_n.tolist())
+        f[v:v + 3, a:a + 3] = f_x
+        f[v:v + 3, v:v + 3] = -skew3(*(2.0 * w_ie + w_en).tolist()) + skew3(*vel.tolist()) @ mav
+        f[a:a + 3, v:v + 3] = mav
+        f[v:v + 3, acc:acc + 3] = c_ns
+        if am >= 0:  # - [f^n x] C_ns alpha
+            f[v:v + 3, am:am + 3] = -(f_x @ c_ns)
+    if mk >= 0:
+        _set_diag3(f, mk, mk, -mk_rate)
+    if fa >= 0:
+        _set_diag3(f, fa, fr, 1.0)
+        _set_diag3(f, fr, fa, -beta * beta)
+        _set_diag3(f, fr, fr, -2.0 * beta)
+
+
+def fill_h_np(h, off, c_ns, c_nm, w_l, w_ns, a_m):
+    """:func:`_fill_h` for the reference loop (``off``: the offsets as a list)."""
+    a, v, _, _, mo, fa, _, lev, d, uses_vel, uses_att, mk, _ = off
+    row = 0
+    if uses_vel:
+        _set_diag3(h, 0, v, 1.0)
+        if lev >= 0:
+            h[0:3, lev:lev + 3] = c_nm @ skew3(*w_l.tolist())
+        if d >= 0:
+            h[0:3, d] = -a_m
+        row = 3
+    if uses_att:
+        _set_diag3(h, row, a, 1.0)
+        h[row:row + 3, mo:mo + 3] = -c_ns
+        if fa >= 0:
+            h[row:row + 3, fa:fa + 3] = -c_ns
+        if d >= 0:
+            h[row:row + 3, d] = w_ns
+        if mk >= 0:
+            _set_diag3(h, row, mk, 1.0)
+    return h
+
+
+def exp_so3_np(rv: np.ndarray) -> np.ndarray:
+    """:func:`exp_so3` for the reference loop."""
+    x, y, z = rv.tolist()
+    ang = math.sqrt(x * x + y * y + z * z)
+    if ang < 1e-9:
+        a, b = 1.0, 0.5
+    else:
+        a, b = math.sin(ang) / ang, (1.0 - math.cos(ang)) / (ang * ang)
+    # I + a [rv x] + b [rv x]^2, element by element
+    ax, ay, az, bxy, bxz, byz = a * x, a * y, a * z, b * x * y, b * x * z, b * y * z
+    return np.array([[1.0 - b * (y * y + z * z), bxy - az, bxz + ay],
+                     [bxy + az, 1.0 - b * (x * x + z * z), byz - ax],
+                     [bxz - ay, byz + ax, 1.0 - b * (x * x + y * y)]])
+
+
+def rotvec_small_np(m: np.ndarray) -> np.ndarray:
+    """:func:`rotvec_small` for the reference loop."""
+    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = m.tolist()
+    c = min(max((m00 + m11 + m22 - 1.0) / 2.0, -1.0), 1.0)
+    ang = math.acos(c)
+    k = 0.5 if ang < 1e-6 else ang / (2.0 * math.sin(ang))
+    return np.array([(m21 - m12) * k, (m02 - m20) * k, (m10 - m01) * k])
+
+
+def att_residual_np(c_ns_hat: np.ndarray, c_nm: np.ndarray, r_hat: np.ndarray) -> np.ndarray:
+    """:func:`att_residual` for the reference loop."""
+    return rotvec_small_np(c_nm @ r_hat.T @ c_ns_hat.T)
 
 
 def discretise(f: np.ndarray, qc_diag: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
