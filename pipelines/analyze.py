@@ -79,6 +79,15 @@ def numerics_stage(name: str) -> Callable:
     return fn
 
 
+def _kernels_release_the_gil() -> bool:
+    """This process runs the compiled kernels (logtools.jit), which let a second thread run beside them. The
+    reference code's Python holds the GIL: the latency's velocity pair in a thread beside its rate fit made
+    the sample pair's first run 0.25-0.3 s slower instead of faster."""
+    from logtools import jit
+
+    return jit.compiled()
+
+
 @dataclass(frozen=True)
 class AnalyzeOptions:
     """What ``tapost analyze`` does. ``max_lag_s=None`` searches the whole overlap (``--max-lag auto``)."""
@@ -844,7 +853,8 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
             takes = inspect.signature(estimate).parameters
             beside = ({"beside": parallel.submit} if parallel.available() and opts.compare
                       and n_imu <= parallel.FORK_COMPARE_MAX_SAMPLES and "beside" in takes else {})
-            if parallel.available() and n_imu <= parallel.THREAD_LATENCY_MAX_SAMPLES and "overlap" in takes:
+            if (parallel.available() and n_imu <= parallel.THREAD_LATENCY_MAX_SAMPLES and "overlap" in takes
+                    and _kernels_release_the_gil()):
                 beside["overlap"] = True  # (the velocity pair in a thread beside the rate fit)
             an.latency = estimate(master, slave, method=opts.latency_method, max_lag_s=max_lag,
                                   compare=opts.compare, progress=sub(0.15, 0.45, "latency"), **beside)

@@ -111,7 +111,7 @@ def test_the_spline_kernel_is_scipys_cubic_spline_bit_for_bit(spacing):
     """logtools.dsp.cubic_spline_at against scipy's CubicSpline(x, y)(xs): the same numbers to the bit, on
     jittered stamps with a grid inside them (to_uniform's case), on intervals spread over three decades
     (rows swapped in the tridiagonal solve, its other branch), at the knots and at both ends; the Python
-    function (reference kernels) gives them too."""
+    function and the reference mode's numpy copy give them too."""
     from scipy.interpolate import CubicSpline
 
     rng = np.random.default_rng(3)
@@ -125,6 +125,7 @@ def test_the_spline_kernel_is_scipys_cubic_spline_bit_for_bit(spacing):
     want = CubicSpline(x, y)(xs)
     python = getattr(dsp._not_a_knot_at_kernel, "py_func", dsp._not_a_knot_at_kernel)  # (as Python)
     assert np.array_equal(python(x, y, xs, np.empty(len(xs))), want)
+    assert np.array_equal(dsp._not_a_knot_at_np(x, y, xs), want)  # the reference mode's numpy copy
     if spacing == "uneven":  # the solve's row interchanges happen on this input
         d = 2 * (np.diff(x)[:-1] + np.diff(x)[1:])
         assert np.any(np.abs(d[:-1]) < np.diff(x)[2:])

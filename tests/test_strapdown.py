@@ -128,3 +128,21 @@ def test_simulated_master_and_slave_imu_against_truth_60s(scenario):
         vel_err = np.linalg.norm(sol.vel_ned_m_s - tr.vel_ned_m_s, axis=1)
         assert att_arcsec.max() < 0.5, (unit, att_arcsec.max())  # measured 0.04" ship, 0.16" aircraft
         assert vel_err.max() < 2e-4, (unit, vel_err.max())  # m/s; measured 0.01-0.05 mm/s
+
+
+def test_the_reference_segment_composition_equals_the_kernel():
+    """compose_segments' numpy copy (reference mode: the k-th interval of every segment at once) against the
+    kernel, segments of 0 to 7 intervals, rotations from 1e-10 to 0.3 rad: the same numbers (numpy's
+    vectorised sin/cos may differ from libm's by an ulp)."""
+    rng = np.random.default_rng(11)
+    n = 400
+    rv = rng.normal(size=(n, 3)) * rng.choice([1e-10, 1e-4, 0.3], size=(n, 1))
+    dv = rng.normal(size=(n, 3)) * 0.1
+    cuts = np.sort(rng.choice(np.arange(n + 1), 90, replace=True))
+    starts, stops = cuts[:-1].astype(np.int64), cuts[1:].astype(np.int64)
+    assert (stops - starts).max() >= 5 and ((stops - starts) == 0).any()
+    q1, d1 = np.empty((len(starts), 4)), np.empty((len(starts), 3))
+    q2, d2 = np.empty((len(starts), 4)), np.empty((len(starts), 3))
+    sd._compose(rv, dv, starts, stops, q1, d1)
+    sd._compose_np(rv, dv, starts, stops, q2, d2)
+    assert np.allclose(q1, q2, rtol=0, atol=1e-15) and np.allclose(d1, d2, rtol=0, atol=1e-15)

@@ -301,10 +301,10 @@ class MasterSeries:
 
     def usable(self, t: float) -> bool:
         """Both master samples around t are valid."""
-        if self.valid is None:
-            return True
-        i, _ = self._idx(t)
-        return bool(self.valid[i] and self.valid[i + 1])
+        return self._usable_at(self._idx(t)[0])
+
+    def _usable_at(self, i: int) -> bool:
+        return self.valid is None or bool(self.valid[i] and self.valid[i + 1])
 
     def _idx(self, t: float) -> tuple[int, float]:
         return _index_np(self.t_s, t)
@@ -317,7 +317,10 @@ class MasterSeries:
 
     def sample(self, t: float) -> tuple:
         """(C_nm or None, v or None, a or None, w_nm_m or None) at relative time t."""
-        i, a = self._idx(t)
+        return self._sample_at(*self._idx(t), t)
+
+    def _sample_at(self, i: int, a: float, t: float) -> tuple:
+        """:meth:`sample` between master samples i and i + 1 at the fraction a (:meth:`_idx` of t)."""
         rows = self._rows
         row = (1.0 - a) * rows[i] + a * rows[i + 1]
         c_nm = v = acc = w = None
@@ -444,13 +447,16 @@ def run_filter(inp: AlignInputs, s: FilterSettings, *, progress: Callable | None
         restart[:] = np.asarray(inp.restart, bool)
     master = inp.master
     prog_every = max(ne // 50, 1)
+    restart_k, t_epoch = restart.tolist(), inp.t_epoch_s.tolist()
     for k in range(ne):
-        phi_k, qd_k = _propagate(st, inp, s, k, bool(restart[k])) if k > 0 else (_NO_PHI, _NO_PHI)
-        tk = float(inp.t_epoch_s[k])
-        ms_k = master.sample(tk - st.tau)
+        phi_k, qd_k = _propagate(st, inp, s, k, restart_k[k]) if k > 0 else (_NO_PHI, _NO_PHI)
+        tk = t_epoch[k]
+        t_m = tk - st.tau
+        i_m, a_m = master._idx(t_m)
+        ms_k = master._sample_at(i_m, a_m, t_m)
         st.c_nm_prev = ms_k[0]
-        _restarts(st, inp, lay, k, bool(restart[k]), ms_k)
-        if not master.usable(tk - st.tau):
+        _restarts(st, inp, lay, k, restart_k[k], ms_k)
+        if not master._usable_at(i_m):
             # no usable master sample: prediction only
             if k > 0:
                 st.x = phi_k @ st.x
@@ -658,15 +664,14 @@ def kf_step_np(x, P, phi, qd, z, H, r_diag, e_out):
     l, info = _potrf(s, lower=1, clean=1)
     if info != 0:  # not positive definite: the compiled loop's clamped factor
         l = _chol(s)
-    kt, _ = _potrs(l, ph.T, lower=1)
-    k = kt.T
+    sol, _ = _potrs(l, np.concatenate((ph.T, e[:, None]), axis=1), lower=1)  # S^-1 [H P, e]: one solve
+    k = sol[:, :n].T
     x += k @ e
     ikh = -k @ H
     _diag_view(ikh)[:] += 1.0
     pp = ikh @ P @ ikh.T + (k * r_diag) @ k.T
     P[:, :] = 0.5 * (pp + pp.T)
-    se, _ = _potrs(l, e, lower=1)
-    return float(e @ se)
+    return float(e @ sol[:, n])
 
 
 #: the update the reference loop calls: compiled, or numpy in reference mode (logtools.jit)
