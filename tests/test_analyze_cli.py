@@ -572,3 +572,23 @@ def test_progress_line_fits_the_terminal_and_says_the_sub_step(monkeypatch):
     assert pg._without_head("latency done", "latency") == "done"
     assert pg._without_head("latent", "latency") == "latent"
     assert pg._without_head("alignment", "alignment (x)") == "alignment"
+
+
+def test_a_fresh_tapost_process_imports_numpys_unused_submodules_only_when_used(tmp_path):
+    """The console script's process (``main()`` without an argument list) analysing the sample pair: numpy.f2py
+    and numpy.testing, which scipy's array-API layer would import at once (pipelines.cli.NUMPY_DEFERRED_SUBMODULES),
+    are not loaded; np.char, which some parsers use, still works when asked for."""
+    import os
+    import subprocess
+    from pathlib import Path
+
+    sample = Path(__file__).resolve().parents[1] / "sample_logs"
+    code = ("import sys; from pipelines.cli import main; "
+            f"sys.argv = ['tapost', 'analyze', {str(sample / 'master.mcap')!r}, {str(sample / 'slave.tlog')!r}, "
+            f"'-o', {str(tmp_path / 'out')!r}]; rc = main(); import numpy as np; "
+            "print(rc, 'scipy.linalg' in sys.modules, sorted(m for m in ('numpy.f2py.f2py2e', "
+            "'numpy.testing._private.utils') if m in sys.modules), np.char.add(['a'], ['b']).tolist())")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                       env={**os.environ, "TAPOST_WARMUP": "0"}, cwd=str(tmp_path))
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.strip().splitlines()[-1] == "0 True [] ['ab']"
