@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from functools import cached_property
 from typing import Callable
 
 import numpy as np
@@ -309,26 +308,19 @@ class MasterSeries:
     def _idx(self, t: float) -> tuple[int, float]:
         return _index_np(self.t_s, t)
 
-    @cached_property
-    def _rows(self) -> np.ndarray:
-        """[quat, vel, acc] (those there are) side by side: one interpolation per sample."""
-        cols = [c for c in (self.quat, self.vel, self.acc) if c is not None]
-        return np.ascontiguousarray(np.hstack(cols), float) if cols else np.zeros((len(self.t_s), 0))
-
     def sample(self, t: float) -> tuple:
         """(C_nm or None, v or None, a or None, w_nm_m or None) at relative time t."""
         return self._sample_at(*self._idx(t), t)
 
     def _sample_at(self, i: int, a: float, t: float) -> tuple:
         """:meth:`sample` between master samples i and i + 1 at the fraction a (:meth:`_idx` of t)."""
-        rows = self._rows
-        row = (1.0 - a) * rows[i] + a * rows[i + 1]
+        b = 1.0 - a
         c_nm = v = acc = w = None
-        j = 0
         if self.quat is not None:
-            c_nm, j = _dcm_np(row[:4]), 4
+            c_nm = _dcm_np(b * self.quat[i] + a * self.quat[i + 1])
         if self.vel is not None:
-            v, acc = row[j:j + 3], row[j + 3:j + 6]
+            v = b * self.vel[i] + a * self.vel[i + 1]
+            acc = b * self.acc[i] + a * self.acc[i + 1]
         if self.w_nm_m is not None:  # (on its own stamps)
             j, aw = _index_np(self.w_stamps_s, t)
             w = (1.0 - aw) * self.w_nm_m[j] + aw * self.w_nm_m[j + 1]
