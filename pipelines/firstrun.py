@@ -97,6 +97,36 @@ def input_bytes(command: str | None, args: list[str]) -> int | None:
     return total if seen else None
 
 
+#: tapost's packages, byte-compiled in the background during a first run that finds them not compiled yet
+PACKAGES = ("logtools", "parsers", "pipelines")
+#: a module the analysis imports late (its byte code missing: the packages were not compiled at install)
+LATE_MODULE = os.path.join("logtools", "alignment", "kf.py")
+
+
+def compile_bytecode_in_background() -> bool:
+    """Byte-compile tapost's packages in a detached low-priority process, where that was not done at install
+    (``pip install -e`` does not; a regular ``pip install`` does). The first run's imports then find most of
+    their byte code ready instead of compiling every module's source themselves: the sample pair's first run
+    1.62-1.72 -> 1.52-1.55 s on 2 cores. Not where Python is told to write no byte code. Returns True when
+    started."""
+    if sys.dont_write_bytecode or os.environ.get("PYTHONDONTWRITEBYTECODE"):
+        return False
+    import importlib.util
+    import subprocess
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    try:
+        if os.path.exists(importlib.util.cache_from_source(os.path.join(root, LATE_MODULE))):
+            return False
+        subprocess.Popen([sys.executable, "-m", "compileall", "-q", *(os.path.join(root, p) for p in PACKAGES)],
+                         stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                         start_new_session=True, close_fds=True,
+                         preexec_fn=(lambda: os.nice(19)) if hasattr(os, "nice") else None)
+        return True
+    except (OSError, ValueError, NotImplementedError):
+        return False
+
+
 def early_notice(command: str | None, args: list[str] | None = None, stream=None) -> str:
     """For a fresh process: decide the kernels (logtools.jit, from the inputs' size) and say at once what
     that means; start the background compile where the reference code runs. Returns the mode."""
@@ -108,6 +138,7 @@ def early_notice(command: str | None, args: list[str] | None = None, stream=None
     out = stream if stream is not None else sys.stderr
     if command in ("analyze", "batch"):
         if mode == "reference" and jit.why() == "kernels not compiled yet":
+            compile_bytecode_in_background()
             if command == "analyze" and not jit.warmup_running() and jit.warmup_wanted():
                 # one pair: the compile starts when this run ends, so that it does not share the machine
                 # with it (two vCPUs are often one core's two threads); a batch starts it at once

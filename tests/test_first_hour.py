@@ -286,6 +286,33 @@ def test_a_fresh_analyze_on_a_cold_cache_says_so_before_its_imports(tmp_path):
     print(f"kernels line after {t_first:.2f} s")
 
 
+def test_a_first_run_byte_compiles_tapost_in_the_background_only_where_it_is_not(tmp_path, monkeypatch):
+    """An editable install leaves tapost's modules without byte code; the first run (reference code) starts one
+    low-priority ``compileall`` of its packages, and no other run does: not where the byte code is there, not
+    where Python is told to write none."""
+    import importlib.util
+    import subprocess
+
+    from pipelines import firstrun
+
+    started: list = []
+    monkeypatch.setattr(subprocess, "Popen", lambda cmd, **kw: started.append((cmd, kw)))
+    monkeypatch.setattr(sys, "dont_write_bytecode", False)
+    monkeypatch.delenv("PYTHONDONTWRITEBYTECODE", raising=False)
+    pyc = tmp_path / "kf.cpython.pyc"
+    monkeypatch.setattr(importlib.util, "cache_from_source", lambda path: str(pyc))
+    assert firstrun.compile_bytecode_in_background()  # no byte code yet
+    (cmd, kw), = started
+    assert cmd[1:4] == ["-m", "compileall", "-q"] and [Path(c).name for c in cmd[4:]] == list(firstrun.PACKAGES)
+    assert all(Path(c).is_dir() for c in cmd[4:]) and kw["start_new_session"]
+    pyc.write_bytes(b"")
+    assert not firstrun.compile_bytecode_in_background()  # compiled at install (or by an earlier run)
+    pyc.unlink()
+    monkeypatch.setenv("PYTHONDONTWRITEBYTECODE", "1")
+    assert not firstrun.compile_bytecode_in_background()
+    assert len(started) == 1
+
+
 def test_batch_no_html_skips_every_pairs_report_html_and_links_report_json(tmp_path, fake_numerics):
     from test_batch import make_campaign
 
