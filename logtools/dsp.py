@@ -181,6 +181,21 @@ def sosfiltfilt_even(sos: np.ndarray, x: np.ndarray) -> np.ndarray:
 
 
 @jit.njit
+def _not_a_knot_end_rows(x, dx, slope, dl, d, du, b):  # pragma: no cover - compiled in its callers
+    """The not-a-knot system's first and last rows, as ``CubicSpline.__init__`` sets them (the kernel's and
+    the numpy copy's)."""
+    n = x.shape[0]
+    d0 = x[2] - x[0]
+    d[0] = dx[1]
+    du[0] = d0
+    b[0] = ((dx[0] + 2 * d0) * dx[1] * slope[0] + dx[0] * dx[0] * slope[1]) / d0
+    d1 = x[n - 1] - x[n - 3]
+    d[n - 1] = dx[n - 3]
+    dl[n - 2] = d1
+    b[n - 1] = (dx[n - 2] * dx[n - 2] * slope[n - 3] + (2 * d1 + dx[n - 2]) * dx[n - 3] * slope[n - 2]) / d1
+
+
+@jit.njit
 def _not_a_knot_at_kernel(x, y, xs, out):  # pragma: no cover - compiled (scipy's operations, same order)
     """scipy's ``CubicSpline(x, y)(xs)`` for 1-D y (n >= 4, x strictly increasing, xs within [x0, x(n-1)]):
     the not-a-knot system of ``CubicSpline.__init__``, solved as LAPACK's ``dgtsv`` solves it (Gaussian
@@ -204,14 +219,7 @@ def _not_a_knot_at_kernel(x, y, xs, out):  # pragma: no cover - compiled (scipy'
         du[i] = dx[i - 1]
     for i in range(n - 2):
         dl[i] = dx[i + 1]
-    d0 = x[2] - x[0]
-    d[0] = dx[1]
-    du[0] = d0
-    b[0] = ((dx[0] + 2 * d0) * dx[1] * slope[0] + dx[0] * dx[0] * slope[1]) / d0
-    d1 = x[n - 1] - x[n - 3]
-    d[n - 1] = dx[n - 3]
-    dl[n - 2] = d1
-    b[n - 1] = (dx[n - 2] * dx[n - 2] * slope[n - 3] + (2 * d1 + dx[n - 2]) * dx[n - 3] * slope[n - 2]) / d1
+    _not_a_knot_end_rows(x, dx, slope, dl, d, du, b)
     # dgtsv, NRHS = 1: forward elimination with row interchanges, then the back solve
     for i in range(n - 2):
         if abs(d[i]) >= abs(dl[i]):
@@ -284,14 +292,7 @@ def _not_a_knot_at_np(x: np.ndarray, y: np.ndarray, xs: np.ndarray) -> np.ndarra
     b[1:n - 1] = 3 * (dx[1:] * slope[:n - 2] + dx[:n - 2] * slope[1:])
     du[1:] = dx[:n - 2]
     dl[:n - 2] = dx[1:]
-    d0 = x[2] - x[0]
-    d[0] = dx[1]
-    du[0] = d0
-    b[0] = ((dx[0] + 2 * d0) * dx[1] * slope[0] + dx[0] * dx[0] * slope[1]) / d0
-    d1 = x[n - 1] - x[n - 3]
-    d[n - 1] = dx[n - 3]
-    dl[n - 2] = d1
-    b[n - 1] = (dx[n - 2] * dx[n - 2] * slope[n - 3] + (2 * d1 + dx[n - 2]) * dx[n - 3] * slope[n - 2]) / d1
+    _not_a_knot_end_rows(x, dx, slope, dl, d, du, b)
     _, _, _, b, info = dgtsv(dl, d, du, b, overwrite_dl=1, overwrite_d=1, overwrite_du=1, overwrite_b=1)
     if info != 0:
         raise np.linalg.LinAlgError(f"cubic spline: singular system (dgtsv info {info})")

@@ -215,6 +215,16 @@ def nav_step(q, v, llh, dq, dv_b, dt, q_out, v_out, llh_out):
         q_out[i] /= n
 
 
+def rotvec_times_quat(r0: float, r1: float, r2: float, qw: float, qx: float, qy: float, qz: float
+                      ) -> tuple[float, float, float, float]:
+    """q(r) * q in Python floats, not normalised: :func:`_qrv` and :func:`_qmul` for the reference code."""
+    ang = math.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
+    k = math.sin(0.5 * ang) / ang if ang > 1e-8 else 0.5 - ang * ang / 48.0
+    pw, px, py, pz = math.cos(0.5 * ang), r0 * k, r1 * k, r2 * k
+    return (pw * qw - px * qx - py * qy - pz * qz, pw * qx + px * qw + py * qz - pz * qy,
+            pw * qy - px * qz + py * qw + pz * qx, pw * qz + px * qy - py * qx + pz * qw)
+
+
 def nav_step_np(q, v, llh, dq, dv_b, dt, q_out, v_out, llh_out):
     """:func:`nav_step` with Python floats: the alignment filter's reference loop calls it once per epoch
     (as plain Python the element-by-element kernel costs 3x more; tested equal in tests/test_strapdown.py)."""
@@ -253,13 +263,7 @@ def nav_step_np(q, v, llh, dq, dv_b, dt, q_out, v_out, llh_out):
     llh_out[1] = lon + 0.5 * (v1 + n1) / ((r_n + h) * cl) * dt
     llh_out[2] = h - 0.5 * (v2 + n2) * dt
     # attitude: q(-zeta) * q * dq
-    ang = math.sqrt(z0 * z0 + z1 * z1 + z2 * z2)
-    k = math.sin(0.5 * ang) / ang if ang > 1e-8 else 0.5 - ang * ang / 48.0
-    pw, px, py, pz = math.cos(0.5 * ang), -z0 * k, -z1 * k, -z2 * k
-    tw = pw * qw - px * qx - py * qy - pz * qz
-    tx = pw * qx + px * qw + py * qz - pz * qy
-    ty = pw * qy - px * qz + py * qw + pz * qx
-    tz = pw * qz + px * qy - py * qx + pz * qw
+    tw, tx, ty, tz = rotvec_times_quat(-z0, -z1, -z2, qw, qx, qy, qz)
     dw, dx, dy, dz = dq.tolist()
     ow = tw * dw - tx * dx - ty * dy - tz * dz
     ox = tw * dx + tx * dw + ty * dz - tz * dy

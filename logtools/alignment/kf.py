@@ -23,7 +23,7 @@ from scipy.linalg.lapack import dpotrf as _potrf, dpotrs as _potrs
 from logtools import earth
 from logtools.conventions import dcm_from_quat, quat_from_dcm
 from logtools.errors import AnalysisError
-from logtools.strapdown import HAVE_NUMBA, _WIE, _radii, nav_step, nav_step_np, njit
+from logtools.strapdown import HAVE_NUMBA, _WIE, _radii, nav_step, nav_step_np, njit, rotvec_times_quat
 
 from .options import FilterKind
 from .model import (StateLayout, _discretise_ws, _fill_dynamics, _fill_h, att_residual_np, discretise_step,
@@ -227,15 +227,7 @@ def _dcm_np(q: np.ndarray) -> np.ndarray:
 
 def _q_left_rotvec_np(rv: np.ndarray, q: np.ndarray) -> np.ndarray:
     """:func:`_q_left_rotvec` for the reference loop."""
-    r0, r1, r2 = rv.tolist()
-    ang = math.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
-    k = math.sin(0.5 * ang) / ang if ang > 1e-8 else 0.5 - ang * ang / 48.0
-    pw, px, py, pz = math.cos(0.5 * ang), r0 * k, r1 * k, r2 * k
-    qw, qx, qy, qz = q.tolist()
-    ow = pw * qw - px * qx - py * qy - pz * qz
-    ox = pw * qx + px * qw + py * qz - pz * qy
-    oy = pw * qy - px * qz + py * qw + pz * qx
-    oz = pw * qz + px * qy - py * qx + pz * qw
+    ow, ox, oy, oz = rotvec_times_quat(*rv.tolist(), *q.tolist())
     nn = math.sqrt(ow * ow + ox * ox + oy * oy + oz * oz)
     return np.array([ow / nn, ox / nn, oy / nn, oz / nn])
 
