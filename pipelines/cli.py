@@ -53,11 +53,12 @@ NUMPY_HUGEPAGE_VARIABLE = "NUMPY_MADVISE_HUGEPAGE"
 GC_THRESHOLDS = (100_000, 10, 10)
 #: numpy's submodules that scipy's array-API layer (scipy 1.15 and later) imports in every process that
 #: imports scipy: it asks numpy for each of its public names, and numpy imports those submodules on demand
-#: (f2py also pulls in charset_normalizer). tapost's log commands use none of them at start (np.char in a few
-#: parsers, where it then loads), so they are registered as lazy modules (importlib.util.LazyLoader: loaded
-#: on first attribute access) before scipy is imported. Measured on 2 cores: importing scipy.linalg, fft and
-#: ndimage 0.19-0.22 -> 0.15 s
-NUMPY_DEFERRED_SUBMODULES = ("f2py", "testing", "ctypeslib", "polynomial", "ma", "rec", "char", "strings")
+#: (f2py also pulls in charset_normalizer). tapost's log commands use none of these, so they are registered as
+#: lazy modules (importlib.util.LazyLoader: loaded on first attribute access) before scipy is imported. Not
+#: numpy.ma or numpy.strings (pandas loads them anyway) nor numpy.char (some parsers use it): nothing the
+#: analysis touches goes through a lazy module, whose first access is not thread-safe before Python 3.12.
+#: Measured on 2 cores: importing scipy.linalg, fft and ndimage 0.19-0.20 -> 0.13-0.16 s
+NUMPY_DEFERRED_SUBMODULES = ("f2py", "testing", "ctypeslib", "polynomial", "rec")
 
 
 def set_numpy_environment() -> None:

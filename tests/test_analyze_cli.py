@@ -577,7 +577,7 @@ def test_progress_line_fits_the_terminal_and_says_the_sub_step(monkeypatch):
 def test_a_fresh_tapost_process_imports_numpys_unused_submodules_only_when_used(tmp_path):
     """The console script's process (``main()`` without an argument list) analysing the sample pair: numpy.f2py
     and numpy.testing, which scipy's array-API layer would import at once (pipelines.cli.NUMPY_DEFERRED_SUBMODULES),
-    are not loaded; np.char, which some parsers use, still works when asked for."""
+    are not loaded; numpy works as before (np.char, which some parsers use, is not deferred)."""
     import os
     import subprocess
     from pathlib import Path

@@ -207,8 +207,8 @@ def _q_left_rotvec(rv, q):
     return out / np.sqrt((out * out).sum())
 
 
-# ---- the reference loop's scalar helpers: the kernels' algebra with Python floats (element by element,
-# the kernels as plain Python cost about 3x more per epoch); checked against the compiled loop in
+# ---- the reference loop's scalar helpers: the kernels' algebra with Python floats (the kernels themselves,
+# element by element on numpy scalars, cost 2-4x more each as plain Python); checked against the kernels in
 # tests/test_alignment.py
 _Z3 = np.zeros(3)
 _EYE3 = np.eye(3)

@@ -206,8 +206,8 @@ def _fill_dynamics(f, off, c_ns, f_n, w_ie, w_en, vel, mav, beta, mk_rate):
 
 
 # ---- the reference loop's copies (logtools.alignment.kf.run_filter's Python loop): the same blocks as the
-# kernels above, each assigned at once, with the scalars as Python floats (tested equal in tests/test_alignment.py;
-# the element-by-element kernels as plain Python cost 3-4x more per epoch)
+# kernels above, each assigned at once, with the scalars as Python floats (tested equal in tests/test_alignment.py).
+# Run as plain Python, the element-by-element kernels made the loop about 150 us an epoch; with these, 100 us
 def _set_diag3(m: np.ndarray, r: int, c: int, value: float) -> None:
     """m[r + i, c + i] = value, i = 0..2 (m C-contiguous; a strided view, no index arrays)."""
     ncol = m.shape[1]
