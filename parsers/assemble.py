@@ -280,11 +280,12 @@ def repeated_samples(t_ns: np.ndarray, values, cfg: ClockStepConfig = CLOCK_STEP
     return out
 
 
-#: what the drop of a stretch recorded twice says, of samples and of a CSV's lines
+#: what the drop of a stretch recorded twice says, of samples and of a table's rows (``row``: "line" in a CSV,
+#: "row" in a Parquet file)
 REPEATED_SAMPLES_SAID = ("repeating earlier ones exactly (stamp and values: a stretch of the log recorded twice?) "
                          "dropped")
-REPEATED_LINES_SAID = ("{n} line(s) repeating earlier ones exactly (a stretch of the file written twice?) dropped "
-                       "(first at line {line})")
+REPEATED_LINES_SAID = ("{n} {row}(s) repeating earlier ones exactly (a stretch of the file written twice?) dropped "
+                       "(first at {row} {line})")
 
 
 def repeated_lines(t_ns: np.ndarray, df: pd.DataFrame, time_col: str) -> np.ndarray:

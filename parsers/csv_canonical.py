@@ -183,14 +183,14 @@ def assemble_rows(path: str, df: pd.DataFrame, t_ns: np.ndarray, dec: int | None
     # a stretch written twice (parsers.assemble.repeated_lines: the lines' cells compared by hash) and a
     # corrupt time cell (parsers.assemble.stamp_outliers)
     for find, said in ((lambda: repeated_lines(t_ns, df, time_col), REPEATED_LINES_SAID),
-                       (lambda: stamp_outliers(t_ns), f"{time_col} column: {{n}} line(s) whose time jumps away from "
-                        "the lines around and back dropped (a corrupt time field?; first at line {line})")):
+                       (lambda: stamp_outliers(t_ns), f"{time_col} column: {{n}} {{row}}(s) whose time jumps away "
+                        "from the {row}s around and back dropped (a corrupt time field?; first at {row} {line})")):
         if not np.any(np.diff(t_ns) < 0):
             break
         drop = find()
         if drop.any():
             lines = (np.asarray(df.index, dtype=np.int64) + first_row)[drop]  # (a CSV's header is line 1)
-            warnings.append(said.format(n=int(drop.sum()), line=int(lines[0])).replace(" line", f" {row}"))
+            warnings.append(said.format(n=int(drop.sum()), line=int(lines[0]), row=row))
             t_ns, df = t_ns[~drop], df[~drop]
     if np.any(np.diff(t_ns) < 0):  # a clock step back or reset keeps one part (parsers.assemble.clock_steps)
         keep = split_at_clock_steps(t_ns, f"{time_col} column: ", warnings, unit=row,

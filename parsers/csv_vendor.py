@@ -900,7 +900,8 @@ def _streams_from_table(path: str, cmap: ColumnMap, groups_wanted: tuple[str, ..
         rep = repeated_lines(t_ns[valid], df.iloc[valid], time_col)
         if rep.any():
             line = int(df.index[valid[rep][0]]) + 2 + int(cmap.units_row)  # (the header is line 1)
-            warns.append(f"{os.path.basename(path)}: " + REPEATED_LINES_SAID.format(n=int(rep.sum()), line=line))
+            said = REPEATED_LINES_SAID.format(n=int(rep.sum()), line=line, row="line")
+            warns.append(f"{os.path.basename(path)}: {said}")
             fresh[valid[rep]] = False
     non_numeric: dict[str, int] = {}
     for g in groups_wanted:
