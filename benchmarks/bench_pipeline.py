@@ -65,7 +65,9 @@ def byte_compile() -> str:
     checkout would otherwise recompile its sources in every process (about 0.3 s of each short analyze)."""
     import compileall
 
-    ok = all(compileall.compile_dir(os.path.join(ROOT, d), quiet=1) for d in ("logtools", "parsers", "pipelines"))
+    from pipelines.firstrun import PACKAGES
+
+    ok = all(compileall.compile_dir(os.path.join(ROOT, d), quiet=1) for d in PACKAGES)
     return ("tapost's modules byte-compiled before timing, as an installed package is"
             + ("" if ok else " (some failed)") + f"; PYTHONDONTWRITEBYTECODE={os.environ.get('PYTHONDONTWRITEBYTECODE', '')!r}")
 
@@ -350,15 +352,13 @@ def ensure_warm() -> None:
                    env={k: v for k, v in os.environ.items() if k != "TAPOST_KERNELS"})
 
 
-#: tapost's packages (a first run's copy of them is made without their byte code)
-PACKAGES = ("logtools", "parsers", "pipelines")
-
-
 def first_run(m: str, s: str, work: str) -> dict:
     """A new user's first analyze, as the README's ``pip install -e .`` leaves it: empty numba cache and kernel
     stamp, and tapost's modules without byte code (a copy of the packages without ``__pycache__``, first on
     PYTHONPATH; Python writing byte code, as it does by default). Then the next analyze once the background
     work the first one started has finished."""
+    from pipelines.firstrun import PACKAGES
+
     nb, xdg = tempfile.mkdtemp(prefix="numba_", dir=work), tempfile.mkdtemp(prefix="xdg_", dir=work)
     tree = tempfile.mkdtemp(prefix="fresh_tree_", dir=work)
     for pkg in PACKAGES:

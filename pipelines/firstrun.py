@@ -97,7 +97,8 @@ def input_bytes(command: str | None, args: list[str]) -> int | None:
     return total if seen else None
 
 
-#: tapost's packages, byte-compiled in the background during a first run that finds them not compiled yet
+#: tapost's packages (under ``logtools.jit._root()``), byte-compiled in the background during a first run that
+#: finds them not compiled yet
 PACKAGES = ("logtools", "parsers", "pipelines")
 #: a module the analysis imports late (its byte code missing: the packages were not compiled at install)
 LATE_MODULE = os.path.join("logtools", "alignment", "kf.py")
@@ -114,7 +115,9 @@ def compile_bytecode_in_background() -> bool:
     import importlib.util
     import subprocess
 
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    from logtools import jit
+
+    root = jit._root()
     try:
         if os.path.exists(importlib.util.cache_from_source(os.path.join(root, LATE_MODULE))):
             return False
