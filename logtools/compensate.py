@@ -47,13 +47,12 @@ import re
 from dataclasses import dataclass, replace
 
 import numpy as np
-import pandas as pd
 
 from logtools.conventions import (
     quat_conj, quat_from_rotvec, quat_make_continuous, quat_mul, quat_normalize, quat_slerp, rotvec_from_quat,
 )
 from logtools.errors import AnalysisError, InputError
-from logtools.inslog import ACCEL, GYRO, POS, QUAT, T, VEL, ChannelInfo, InsLog
+from logtools.inslog import ACCEL, GYRO, POS, QUAT, VEL, ChannelInfo, Columns, InsLog
 from logtools.results import LatencyResult
 
 METHODS = ("restamp", "interp", "shift", "poly2", "split")
@@ -103,37 +102,36 @@ def _median_dt(t: np.ndarray) -> float:
     return float(np.median(d)) if len(d) else float("nan")
 
 
-def _reindexed(df: pd.DataFrame, t_new: np.ndarray) -> pd.DataFrame:
-    out = df.set_axis(pd.Index(np.asarray(t_new, float), name=T), axis=0)
-    return out
+def _reindexed(st: Columns, t_new: np.ndarray) -> Columns:
+    return st.with_t(t_new)
 
 
-def _frame(cols: dict[str, np.ndarray], t: np.ndarray) -> pd.DataFrame:
-    return pd.DataFrame(cols, index=pd.Index(np.asarray(t, float), name=T))
+def _frame(cols: dict[str, np.ndarray], t: np.ndarray) -> Columns:
+    return Columns.from_dict(t, cols) if cols else Columns.empty()
 
 
-def _group_rows(df: pd.DataFrame, cols: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
-    if not all(c in df.columns for c in cols) or len(df) == 0:
+def _group_rows(st: Columns, cols: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+    if not all(c in st.data for c in cols) or len(st) == 0:
         return np.zeros(0), np.zeros((0, len(cols)))
-    sub = df[list(cols)]
-    ok = sub.notna().all(axis=1).to_numpy()
-    t = df.index.to_numpy(dtype=float)[ok]
-    v = sub.to_numpy(dtype=float)[ok]
+    v = st.values(cols, "C")
+    ok = ~np.isnan(v).any(axis=1)
+    t = st.t_s[ok]
+    v = v[ok]
     order = np.argsort(t, kind="stable")
     t, v = t[order], v[order]
     keep = np.concatenate([[True], np.diff(t) > 0]) if len(t) else np.zeros(0, bool)
     return t[keep], v[keep]
 
 
-def _group_stamps(df: pd.DataFrame, cols: tuple[str, ...]) -> np.ndarray:
-    """``_group_rows(df, cols)[0]`` (the stamps of the rows with every column set, increasing, each once)
+def _group_stamps(st: Columns, cols: tuple[str, ...]) -> np.ndarray:
+    """``_group_rows(st, cols)[0]`` (the stamps of the rows with every column set, increasing, each once)
     without its values: the channels' rates and counts need only these."""
-    if not all(c in df.columns for c in cols) or len(df) == 0:
+    if not all(c in st.data for c in cols) or len(st) == 0:
         return np.zeros(0)
-    ok = np.ones(len(df), bool)
+    ok = np.ones(len(st), bool)
     for c in cols:
-        ok &= df[c].notna().to_numpy()
-    t = df.index.to_numpy(dtype=float)[ok]
+        ok &= ~np.isnan(np.asarray(st.data[c], float))
+    t = st.t_s[ok]
     if len(t) > 1 and not np.all(t[1:] >= t[:-1]):
         t = np.sort(t, kind="stable")
     return t[np.concatenate([[True], np.diff(t) > 0])] if len(t) else t
@@ -195,35 +193,35 @@ def _poly2_group(t_src: np.ndarray, v: np.ndarray, t_dst: np.ndarray, is_quat: b
     return out, ok
 
 
-def _resample(slave_true: InsLog, master: InsLog, kind: str) -> tuple[pd.DataFrame, pd.DataFrame]:
+def _resample(slave_true: InsLog, master: InsLog, kind: str) -> tuple[Columns, Columns]:
     """IMU onto master IMU instants, nav onto master nav instants (IMU instants if no master nav)."""
     fn = _interp_group if kind == "interp" else _poly2_group
     t_m_imu = master.t_imu_s()
-    t_m_nav = master.t_nav_s() if len(master.nav) else t_m_imu
+    t_m_nav = master.t_nav_s() if master.n_nav else t_m_imu
     # IMU
     imu_cols: dict[str, np.ndarray] = {}
     ok_imu = np.zeros(len(t_m_imu), bool)
     for cols in (GYRO, ACCEL):
-        t_src, v = _group_rows(slave_true.imu, cols)
+        t_src, v = _group_rows(slave_true.imu_columns, cols)
         if len(t_src) == 0:
             continue
         val, ok = fn(t_src, v, t_m_imu, False)
         ok_imu |= ok
         val[~ok] = np.nan
         imu_cols.update(zip(cols, val.T))
-    imu = _frame(imu_cols, t_m_imu).loc[ok_imu] if imu_cols else _frame({}, np.zeros(0))
+    imu = _frame(imu_cols, t_m_imu).take(ok_imu) if imu_cols else Columns.empty()
     # nav
     nav_cols: dict[str, np.ndarray] = {}
     ok_nav = np.zeros(len(t_m_nav), bool)
     for cols in (QUAT, VEL, POS):
-        t_src, v = _group_rows(slave_true.nav, cols)
+        t_src, v = _group_rows(slave_true.nav_columns, cols)
         if len(t_src) == 0:
             continue
         val, ok = fn(t_src, v, t_m_nav, cols == QUAT)
         ok_nav |= ok
         val[~ok] = np.nan
         nav_cols.update(zip(cols, val.T))
-    nav = _frame(nav_cols, t_m_nav).loc[ok_nav] if nav_cols else _frame({}, np.zeros(0))
+    nav = _frame(nav_cols, t_m_nav).take(ok_nav) if nav_cols else Columns.empty()
     return imu, nav
 
 
@@ -234,14 +232,15 @@ def _rate_hz(t: np.ndarray) -> float:
 
 def _update_channels(log: InsLog) -> dict[str, ChannelInfo]:
     """Refresh rate and count of the channels the log already lists (names as the parsers use them)."""
-    groups = {"imu": (log.imu, ()), "nav": (log.nav, ()), "gyro": (log.imu, GYRO), "accel": (log.imu, ACCEL)}
-    groups.update({name: (log.nav, cols) for cols, name in _NAV_CHANNEL.items()})
+    imu, nav = log.imu_columns, log.nav_columns
+    groups = {"imu": (imu, ()), "nav": (nav, ()), "gyro": (imu, GYRO), "accel": (imu, ACCEL)}
+    groups.update({name: (nav, cols) for cols, name in _NAV_CHANNEL.items()})
     ch = dict(log.meta.channels)
     for name, old in log.meta.channels.items():
         if name not in groups:
             continue
-        df, cols = groups[name]
-        t = df.index.to_numpy(dtype=float) if not cols else _group_stamps(df, cols)
+        st, cols = groups[name]
+        t = st.t_s if not cols else _group_stamps(st, cols)
         ch[name] = ChannelInfo(_rate_hz(t), int(len(t)), old.source)
     return ch
 
@@ -259,7 +258,7 @@ def compensate(slave: InsLog, lat: LatencyResult, master: InsLog, *, method: str
     if not (np.isfinite(lat.latency_s) and np.isfinite(lat.drift_ppm) and np.isfinite(lat.t_mid_rel_s)):
         raise AnalysisError(f"cannot compensate: latency {lat.latency_s!r} s / drift {lat.drift_ppm!r} ppm "
                             "is not a finite estimate")
-    if len(slave.imu) == 0 and len(slave.nav) == 0:
+    if slave.n_imu == 0 and slave.n_nav == 0:
         raise AnalysisError(f"{slave.meta.source_path}: slave log holds no samples to compensate")
     s = slave.rebased(master.meta.t0_ns)
     d = lat.drift_ppm * 1e-6
@@ -267,22 +266,22 @@ def compensate(slave: InsLog, lat: LatencyResult, master: InsLog, *, method: str
             f"drift {lat.drift_ppm:+.3f} ppm (method {lat.method})")
 
     if method in ("restamp", "interp", "poly2"):
-        true_imu = _reindexed(s.imu, true_time_s(s.t_imu_s(), lat))
-        true_nav = _reindexed(s.nav, true_time_s(s.t_nav_s(), lat))
+        true_imu = _reindexed(s.imu_columns, true_time_s(s.t_imu_s(), lat))
+        true_nav = _reindexed(s.nav_columns, true_time_s(s.t_nav_s(), lat))
         if method == "restamp":
-            out = replace(s, imu=true_imu, nav=true_nav)
+            out = s.with_streams(imu=true_imu, nav=true_nav)
             note = f"{head}; slave's own samples, stamps tau = (t - L0 + d t_mid)/(1 + d)"
         else:
-            imu, nav = _resample(replace(s, imu=true_imu, nav=true_nav), master, method)
+            imu, nav = _resample(s.with_streams(imu=true_imu, nav=true_nav), master, method)
             if len(imu) == 0 and len(nav) == 0:
                 raise AnalysisError(f"{slave.meta.source_path}: no master instant inside the compensated "
                                     f"slave's span ({method} needs an overlap)")
-            out = replace(s, imu=imu, nav=nav)
+            out = s.with_streams(imu=imu, nav=nav)
             what = ("linear (IMU, velocity, position) / slerp (attitude) interpolation" if method == "interp"
                     else "S003 eqs 1-2 second-order polynomial extrapolation")
             note = f"{head}; {what} onto master instants ({len(imu)} IMU, {len(nav)} nav rows)"
     else:  # shift / split: integer number of slave IMU samples, drift removed from the stamps
-        t_ref = s.t_imu_s() if len(s.imu) > 1 else s.t_nav_s()
+        t_ref = s.t_imu_s() if s.n_imu > 1 else s.t_nav_s()
         dt = _median_dt(t_ref)
         sp = split_latency(lat.latency_s, dt, rounding="round" if method == "shift" else "floor")
 
@@ -290,7 +289,8 @@ def compensate(slave: InsLog, lat: LatencyResult, master: InsLog, *, method: str
             tau = true_time_s(t, lat)
             return tau + lat.latency_s - sp.integer_s  # = t - (drift part) - k dt
 
-        out = replace(s, imu=_reindexed(s.imu, restamp(s.t_imu_s())), nav=_reindexed(s.nav, restamp(s.t_nav_s())))
+        out = s.with_streams(imu=_reindexed(s.imu_columns, restamp(s.t_imu_s())),
+                             nav=_reindexed(s.nav_columns, restamp(s.t_nav_s())))
         if method == "shift":
             note = (f"{head}; S000 data shifting by k={sp.k_samples} samples x dt={dt:.6g} s "
                     f"({sp.integer_s * 1e3:+.4f} ms), drift removed from the stamps; "
@@ -299,6 +299,6 @@ def compensate(slave: InsLog, lat: LatencyResult, master: InsLog, *, method: str
             note = (f"{head}; S004 split: integer lag k={sp.k_samples} samples x dt={dt:.6g} s "
                     f"({sp.integer_s * 1e3:+.4f} ms) applied, drift removed from the stamps; "
                     f"residual_s={sp.residual_s:+.9f} left for the delay-state filter")
-    out = replace(out, meta=replace(out.meta, t0_ns=int(master.meta.t0_ns)))
-    out = replace(out, meta=replace(out.meta.with_warning(note), channels=_update_channels(out)))
+    out = out.with_streams(meta=replace(out.meta, t0_ns=int(master.meta.t0_ns)))
+    out = out.with_streams(meta=replace(out.meta.with_warning(note), channels=_update_channels(out)))
     return out

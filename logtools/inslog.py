@@ -2,15 +2,18 @@
 
 ``imu`` and ``nav`` are pandas DataFrames indexed by ``t_s`` (float64 seconds relative to
 ``meta.t0_ns``); absolute time of a row is ``meta.t0_ns * 1e-9 + t_s`` (kept as int ns at the IO edge).
+They are held as numpy arrays (:class:`Columns`) and made DataFrames when first asked for.
 Column names carry their units and frames (FRD body, NED navigation), see the constants below.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
-import pandas as pd
+
+if TYPE_CHECKING:  # (imported where a DataFrame is made: the analysis itself reads the arrays)
+    import pandas as pd
 
 # ---- column names: the one place they are spelled -------------------------------------------
 T = "t_s"
@@ -57,29 +60,157 @@ class LogMeta:
         return replace(self, warnings=self.warnings + tuple(msgs))
 
 
-def _columns(frame: pd.DataFrame, cols: tuple[str, ...], order: str = "F") -> np.ndarray:
-    """``frame[list(cols)].to_numpy(dtype=float)`` filled column by column (one copy of the values, not
-    a sub-frame and then its array), in that array's memory order (F: each column contiguous) or C."""
-    missing = [c for c in cols if c not in frame.columns]
-    if missing:
-        raise KeyError(f"{missing} not in index")
-    out = np.empty((len(cols), len(frame))).T if order == "F" else np.empty((len(frame), len(cols)))
-    for j, c in enumerate(cols):
-        out[:, j] = frame[c].to_numpy(dtype=float)
-    return out
+def _float(a) -> np.ndarray:
+    return np.asarray(a, dtype=float)
 
 
-def _empty(columns: tuple[str, ...]) -> pd.DataFrame:
-    return pd.DataFrame({c: np.zeros(0) for c in columns}, index=pd.Index(np.zeros(0), name=T))
+@dataclass(frozen=True, eq=False)
+class Columns:
+    """One stream of an :class:`InsLog` as numpy arrays: ``t_s`` (float64 seconds from ``meta.t0_ns``) and
+    named columns, each ``len(t_s)`` long. An InsLog holds its streams so; the pandas DataFrame
+    (``InsLog.imu``, ``.nav``) is made from them when first asked for, without a copy when the columns are the
+    rows of one (k, N) ``block`` (the layout pandas gives a frame built from k float columns). The analysis
+    reads the arrays (``InsLog.gyro_rad_s()`` ...): a command that never asks for a DataFrame never imports
+    pandas (about 0.17 s of every run)."""
+
+    t_s: np.ndarray
+    data: dict[str, np.ndarray]
+    #: (k, N) whose rows are ``data``'s values in their order, or None
+    block: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(self.data)
+
+    @staticmethod
+    def empty() -> "Columns":
+        return Columns(np.zeros(0), {})
+
+    @staticmethod
+    def from_block(t_s: np.ndarray, names, block: np.ndarray) -> "Columns":
+        """Over ``block`` (k, N): column j is row j, not copied."""
+        return Columns(t_s, dict(zip(list(names), block)), block)
+
+    @staticmethod
+    def from_dict(t_s, data: dict[str, np.ndarray]) -> "Columns":
+        return Columns(_float(t_s), dict(data))
+
+    @staticmethod
+    def from_frame(frame) -> "Columns":
+        """A DataFrame's index (as float) and columns (their arrays, not copied where pandas holds them so)."""
+        return Columns(frame.index.to_numpy(dtype=float), {c: frame[c].to_numpy() for c in frame.columns})
+
+    def frame(self):
+        """The DataFrame (index ``t_s``): over ``block`` when there is one, else made from the columns."""
+        import pandas as pd
+
+        index = pd.Index(self.t_s, name=T)
+        if not self.data:
+            return pd.DataFrame(index=index)
+        if self.block is not None:
+            return pd.DataFrame(self.block.T, index=index, columns=list(self.data), copy=False)
+        return pd.DataFrame(self.data, index=index)
+
+    def with_t(self, t_s) -> "Columns":
+        """The same values at other stamps (the DataFrame's ``set_axis``)."""
+        return Columns(_float(t_s), self.data, self.block)
+
+    def take(self, rows) -> "Columns":
+        """The rows ``rows`` (a boolean mask or a slice) of every column."""
+        if self.block is not None:
+            block = self.block[:, rows]
+            return Columns(self.t_s[rows], dict(zip(self.data, block)), block)
+        return Columns(self.t_s[rows], {c: v[rows] for c, v in self.data.items()})
+
+    def between(self, t_start_s: float, t_end_s: float) -> "Columns":
+        """Rows with t_start_s <= t_s <= t_end_s (increasing stamps: the DataFrame's ``.loc[a:b]``)."""
+        i0 = int(np.searchsorted(self.t_s, t_start_s, side="left"))
+        i1 = int(np.searchsorted(self.t_s, t_end_s, side="right"))
+        return self.take(slice(i0, max(i0, i1)))
+
+    def values(self, cols: tuple[str, ...], order: str = "F") -> np.ndarray:
+        """(N, len(cols)) float64 of those columns (one copy), in that memory order (F: each column
+        contiguous, or C); KeyError naming the missing ones."""
+        missing = [c for c in cols if c not in self.data]
+        if missing:
+            raise KeyError(f"{missing} not in index")
+        out = np.empty((len(cols), len(self))).T if order == "F" else np.empty((len(self), len(cols)))
+        for j, c in enumerate(cols):
+            out[:, j] = self.data[c]
+        return out
+
+    def present(self, cols: tuple[str, ...]) -> bool:
+        """Every column of ``cols`` there with at least one value (not NaN)."""
+        return all(c in self.data for c in cols) and all(bool((~np.isnan(_float(self.data[c]))).any())
+                                                         for c in cols)
 
 
-@dataclass(frozen=True)
+def _as_columns(stream) -> Columns:
+    return stream if isinstance(stream, Columns) else Columns.from_frame(stream)
+
+
+@dataclass(frozen=True, eq=False, init=False, repr=False)
 class InsLog:
-    """One unit's data. Treat the DataFrames as read-only; derive new logs with helpers below."""
+    """One unit's data: ``imu`` and ``nav`` pandas DataFrames indexed by ``t_s``, and ``meta``. Read-only:
+    derive new logs with the helpers below (``with_streams``, ``with_meta``, ``between``, ``rebased``) or
+    ``dataclasses.replace``. ``imu``/``nav`` are given as DataFrames or as :class:`Columns` (what the parsers
+    give); the array accessors (``t_imu_s()``, ``gyro_rad_s()``, ``nav_rows()``, ...) read the arrays, and a
+    DataFrame is made on the first access of ``.imu``/``.nav``."""
 
-    imu: pd.DataFrame
-    nav: pd.DataFrame
+    __slots__ = ("_imu", "_nav", "_frames", "meta", "__weakref__")
+
+    imu: "pd.DataFrame"
+    nav: "pd.DataFrame"
     meta: LogMeta
+
+    def __init__(self, imu, nav, meta: LogMeta) -> None:
+        frames = {k: v for k, v in (("imu", imu), ("nav", nav)) if not isinstance(v, Columns)}
+        object.__setattr__(self, "_imu", _as_columns(imu))
+        object.__setattr__(self, "_nav", _as_columns(nav))
+        object.__setattr__(self, "_frames", frames)
+        object.__setattr__(self, "meta", meta)
+
+    def __reduce__(self):
+        return (InsLog, (self._frames.get("imu", self._imu), self._frames.get("nav", self._nav), self.meta))
+
+    def __repr__(self) -> str:
+        return (f"InsLog({self.meta.format!r}, {self.meta.source_path!r}, imu: {len(self._imu)} rows "
+                f"{list(self._imu.names)}, nav: {len(self._nav)} rows {list(self._nav.names)})")
+
+    def _frame(self, kind: str):
+        f = self._frames.get(kind)
+        if f is None:
+            f = self._frames[kind] = (self._imu if kind == "imu" else self._nav).frame()
+        return f
+
+    @property
+    def imu_columns(self) -> Columns:
+        """The IMU stream's arrays (no pandas)."""
+        return self._imu
+
+    @property
+    def nav_columns(self) -> Columns:
+        """The navigation stream's arrays (no pandas)."""
+        return self._nav
+
+    @property
+    def n_imu(self) -> int:
+        """IMU rows (``len(log.imu)`` without making the DataFrame)."""
+        return len(self._imu)
+
+    @property
+    def n_nav(self) -> int:
+        """Navigation rows (``len(log.nav)`` without making the DataFrame)."""
+        return len(self._nav)
+
+    def with_streams(self, imu=None, nav=None, meta: LogMeta | None = None) -> "InsLog":
+        """A new log with the given streams (DataFrames or Columns) or meta, the others kept."""
+        return InsLog(imu=self._frames.get("imu", self._imu) if imu is None else imu,
+                      nav=self._frames.get("nav", self._nav) if nav is None else nav,
+                      meta=self.meta if meta is None else meta)
 
     # -- construction ------------------------------------------------------------------------
     @staticmethod
@@ -96,42 +227,40 @@ class InsLog:
         """Build from arrays (times relative to ``meta.t0_ns``); absent groups are left out."""
         imu_cols: dict[str, np.ndarray] = {}
         if gyro_rad_s is not None:
-            imu_cols.update(zip(GYRO, np.asarray(gyro_rad_s, float).T))
+            imu_cols.update(zip(GYRO, _float(gyro_rad_s).T))
         if accel_m_s2 is not None:
-            imu_cols.update(zip(ACCEL, np.asarray(accel_m_s2, float).T))
+            imu_cols.update(zip(ACCEL, _float(accel_m_s2).T))
         nav_cols: dict[str, np.ndarray] = {}
         if quat_wxyz is not None:
-            nav_cols.update(zip(QUAT, np.asarray(quat_wxyz, float).T))
+            nav_cols.update(zip(QUAT, _float(quat_wxyz).T))
         if vel_ned_m_s is not None:
-            nav_cols.update(zip(VEL, np.asarray(vel_ned_m_s, float).T))
+            nav_cols.update(zip(VEL, _float(vel_ned_m_s).T))
         if lat_lon_alt is not None:
-            nav_cols.update(zip(POS, np.asarray(lat_lon_alt, float).T))
-        imu = (pd.DataFrame(imu_cols, index=pd.Index(np.asarray(t_imu_s, float), name=T))
-               if imu_cols else pd.DataFrame(index=pd.Index(np.zeros(0), name=T)))
-        nav = (pd.DataFrame(nav_cols, index=pd.Index(np.asarray(t_nav_s, float), name=T))
-               if nav_cols else pd.DataFrame(index=pd.Index(np.zeros(0), name=T)))
+            nav_cols.update(zip(POS, _float(lat_lon_alt).T))
+        imu = Columns.from_dict(t_imu_s, imu_cols) if imu_cols else Columns.empty()
+        nav = Columns.from_dict(t_nav_s, nav_cols) if nav_cols else Columns.empty()
         return InsLog(imu=imu, nav=nav, meta=meta)
 
     # -- what the log holds ------------------------------------------------------------------
     @property
     def has_gyro(self) -> bool:
-        return all(c in self.imu.columns for c in GYRO) and len(self.imu) > 0
+        return all(c in self._imu.data for c in GYRO) and len(self._imu) > 0
 
     @property
     def has_accel(self) -> bool:
-        return all(c in self.imu.columns for c in ACCEL) and len(self.imu) > 0
+        return all(c in self._imu.data for c in ACCEL) and len(self._imu) > 0
 
     @property
     def has_quat(self) -> bool:
-        return all(c in self.nav.columns for c in QUAT) and self.nav[list(QUAT)].notna().any().all()
+        return self._nav.present(QUAT)
 
     @property
     def has_vel(self) -> bool:
-        return all(c in self.nav.columns for c in VEL) and self.nav[list(VEL)].notna().any().all()
+        return self._nav.present(VEL)
 
     @property
     def has_pos(self) -> bool:
-        return all(c in self.nav.columns for c in POS) and self.nav[list(POS)].notna().any().all()
+        return self._nav.present(POS)
 
     def _channel(self, group: str) -> ChannelInfo | None:
         """A group's (``"gyro"``, ``"accel"``, ``"att"``, ``"vel"``, ``"pos"``) ChannelInfo; logs that name their
@@ -160,24 +289,24 @@ class InsLog:
 
     # -- array views -------------------------------------------------------------------------
     def t_imu_s(self) -> np.ndarray:
-        return self.imu.index.to_numpy(dtype=float)
+        return self._imu.t_s
 
     def t_nav_s(self) -> np.ndarray:
-        return self.nav.index.to_numpy(dtype=float)
+        return self._nav.t_s
 
     def gyro_rad_s(self) -> np.ndarray:
-        return _columns(self.imu, GYRO)
+        return self._imu.values(GYRO)
 
     def accel_m_s2(self) -> np.ndarray:
-        return _columns(self.imu, ACCEL)
+        return self._imu.values(ACCEL)
 
     def nav_rows(self, cols: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
-        """(t_s, values) for the nav rows where every column of ``cols`` is present."""
-        vals = _columns(self.nav, cols, "C")  # (the order of the original's masked copy)
+        """(t_s, values) for the nav rows where every column of ``cols`` is present (new arrays)."""
+        vals = self._nav.values(cols, "C")  # (the order of the original's masked copy)
         ok = ~np.isnan(vals).any(axis=1)
-        t = self.nav.index.to_numpy(dtype=float)
+        t = self._nav.t_s
         if ok.all():  # (no rows to drop: the arrays as they are)
-            return t.copy() if np.shares_memory(t, self.nav.index.to_numpy()) else t, vals
+            return t.copy(), vals
         return t[ok], vals[ok]
 
     def quat_wxyz(self) -> tuple[np.ndarray, np.ndarray]:
@@ -207,21 +336,23 @@ class InsLog:
         return float(b - a) if np.isfinite(a) else 0.0
 
     def between(self, t_start_s: float, t_end_s: float) -> "InsLog":
-        """Rows with t_start_s <= t_s <= t_end_s (relative seconds); cheap (index slicing)."""
-        return replace(
-            self,
-            imu=self.imu.loc[t_start_s:t_end_s],
-            nav=self.nav.loc[t_start_s:t_end_s],
-        )
+        """Rows with t_start_s <= t_s <= t_end_s (relative seconds); cheap (views of the arrays)."""
+        return InsLog(imu=self._imu.between(t_start_s, t_end_s), nav=self._nav.between(t_start_s, t_end_s),
+                      meta=self.meta)
 
     def rebased(self, t0_ns: int) -> "InsLog":
         """Same data expressed relative to another origin ``t0_ns`` (exact integer shift)."""
         d = (self.meta.t0_ns - int(t0_ns)) * 1e-9
-        imu = self.imu.set_axis(self.imu.index + d, axis=0)
-        nav = self.nav.set_axis(self.nav.index + d, axis=0)
-        imu.index.name = T
-        nav.index.name = T
-        return replace(self, imu=imu, nav=nav, meta=replace(self.meta, t0_ns=int(t0_ns)))
+        return InsLog(imu=self._imu.with_t(self._imu.t_s + d), nav=self._nav.with_t(self._nav.t_s + d),
+                      meta=replace(self.meta, t0_ns=int(t0_ns)))
 
     def with_meta(self, **changes) -> "InsLog":
-        return replace(self, meta=replace(self.meta, **changes))
+        return self.with_streams(meta=replace(self.meta, **changes))
+
+
+# (set after the dataclass is made: ``imu`` and ``nav`` stay its fields, for ``dataclasses.replace`` and
+# ``fields``, and read through these)
+InsLog.imu = property(lambda self: self._frame("imu"),
+                      doc="The IMU stream as a pandas DataFrame (index ``t_s``; GYRO and ACCEL columns).")
+InsLog.nav = property(lambda self: self._frame("nav"),
+                      doc="The navigation stream as a pandas DataFrame (index ``t_s``; QUAT, VEL and POS columns).")

@@ -46,8 +46,8 @@ CONFIG = UnitsCheckConfig()
 def _norms(log: InsLog, cols: tuple[str, ...], cfg: UnitsCheckConfig) -> np.ndarray:
     """|x| of the IMU columns ``cols``, every k-th row (at most ``max_samples``; the rows taken first, so
     that a long log is not copied whole for them)."""
-    step = max(1, len(log.imu) // cfg.max_samples)
-    x = log.imu.iloc[::step][list(cols)].to_numpy(dtype=float)
+    step = max(1, log.n_imu // cfg.max_samples)
+    x = log.imu_columns.take(slice(None, None, step)).values(cols, "C")
     n = np.sqrt(np.sum(x ** 2, axis=1))
     return n[np.isfinite(n)]
 

@@ -8,11 +8,10 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-import pandas as pd
 
 from logtools.conventions import typical_step
 from logtools.errors import InputError
-from logtools.inslog import ACCEL, GYRO, POS, QUAT, T, VEL, ChannelInfo, InsLog, LogMeta
+from logtools.inslog import ACCEL, GYRO, POS, QUAT, VEL, ChannelInfo, Columns, InsLog, LogMeta
 from parsers.base import EPOCH_MAX_NS, EPOCH_MIN_NS, STAMP_LIMIT_NS, rate_of, stamp_grid_s
 
 #: a stamp step larger than this many typical periods is reported as a gap (gap_warning)
@@ -288,10 +287,12 @@ REPEATED_LINES_SAID = ("{n} {row}(s) repeating earlier ones exactly (a stretch o
                        "(first at {row} {line})")
 
 
-def repeated_lines(t_ns: np.ndarray, df: pd.DataFrame, time_col: str) -> np.ndarray:
+def repeated_lines(t_ns: np.ndarray, df, time_col: str) -> np.ndarray:
     """:func:`repeated_samples` of a CSV's lines (rows of ``df``, ``t_ns`` their times), their data cells
     compared by hash: a column that does not change along the stretch (an accelerometer at rest) goes with
     its line, where judged alone it would leave the stretch to the clock-step rule."""
+    import pandas as pd  # (its callers, the CSV readers, hold a DataFrame)
+
     return repeated_samples(t_ns, lambda: pd.util.hash_pandas_object(df.drop(columns=time_col),
                                                                      index=False).to_numpy())
 
@@ -587,10 +588,10 @@ def _union_sorted(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return c[np.concatenate([[True], c[1:] != c[:-1]])]
 
 
-def _frame(block: np.ndarray, t_s: np.ndarray, names: tuple[str, ...] | list[str]) -> pd.DataFrame:
-    """A float64 frame over ``block`` (k, N), one column per row, without a copy: the layout pandas gives
-    a frame built from k columns (one consolidated (k, N) block)."""
-    return pd.DataFrame(block.T, index=pd.Index(t_s, name=T), columns=list(names), copy=False)
+def _frame(block: np.ndarray, t_s: np.ndarray, names: tuple[str, ...] | list[str]) -> Columns:
+    """The stream's columns over ``block`` (k, N), one column per row, without a copy (its DataFrame, when
+    asked for, is the layout pandas gives a frame built from k columns: one consolidated (k, N) block)."""
+    return Columns.from_block(t_s, names, block)
 
 
 def _shifted(cleaned: dict[str, Stream], offset: ClockOffset, clock: str, stamp_source: str, selector: str,
@@ -641,7 +642,7 @@ def assemble_inslog(streams: dict[str, Stream | None], *, path: str, fmt: str, s
     def rel(t_ns):
         return (np.asarray(t_ns, np.int64) - t0_ns) * 1e-9
 
-    imu = pd.DataFrame(index=pd.Index(np.zeros(0), name=T))
+    imu = Columns.empty()
     g, a = cleaned.pop("gyro", None), cleaned.pop("accel", None)
     base = g if g is not None else a
     if base is not None:
@@ -713,7 +714,7 @@ def assemble_inslog(streams: dict[str, Stream | None], *, path: str, fmt: str, s
         nav = _frame(block, rel(t_nav), names)
         del block, t_nav
     else:
-        nav = pd.DataFrame(index=pd.Index(np.zeros(0), name=T))
+        nav = Columns.empty()
     meta = LogMeta(source_path=path, format=fmt, selector=selector, clock=clock, t0_ns=t0_ns,
                    stamp_source=stamp_source, channels=channels, warnings=tuple(warns))
     return InsLog(imu=imu, nav=nav, meta=meta)

@@ -506,7 +506,10 @@ def _uncompensated_options(opts: AnalyzeOptions, compensated: bool) -> AnalyzeOp
 
 
 #: the modules of the outputs (write_outputs) and what they import: rerun's SDK alone is about 0.4 s
-OUTPUT_MODULES = {"html": ("pipelines.html",), "recording": ("pipelines.recording", "rerun", "rerun.blueprint")}
+#: the output stages' imports, done ahead (in the recording's prepared child, or while this process waits).
+#: pandas is the recording's too: pyarrow, under rerun, imports it on the first array it converts (to ask
+#: whether that is a pandas object), and nothing before the recording needs it on the analysis' own path
+OUTPUT_MODULES = {"html": ("pipelines.html",), "recording": ("pipelines.recording", "rerun", "rerun.blueprint", "pandas")}
 
 
 def _import_output_modules(opts: AnalyzeOptions) -> None:
@@ -815,7 +818,7 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
     # -- parse
     t = time.perf_counter()
     master, slave = parse_pair(master_arg, slave_arg, prog, meanwhile=_import_numerics)
-    parallel.large_arrays_mmapped(len(master.imu) + len(master.nav) + len(slave.imu) + len(slave.nav))
+    parallel.large_arrays_mmapped(master.n_imu + master.n_nav + slave.n_imu + slave.n_nav)
     parallel.release_freed_memory()  # (each stage's freed temporaries: not carried into the next stage)
     tim["parse"] = time.perf_counter() - t
     if same_stream(master, slave):
@@ -849,7 +852,7 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
         try:
             # the comparison methods in a forked child beside the headline (CLI, logs up to about 1 h); an
             # estimate put in with use_numerics may not take the argument
-            n_imu = len(master.imu) + len(slave.imu)
+            n_imu = master.n_imu + slave.n_imu
             takes = inspect.signature(estimate).parameters
             beside = ({"beside": parallel.submit} if parallel.available() and opts.compare
                       and n_imu <= parallel.FORK_COMPARE_MAX_SAMPLES and "beside" in takes else {})
@@ -894,7 +897,7 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
     run_opts = {"uncompensated": _uncompensated_options(opts, an.slave_comp is not None), "compensated": opts}
     pending = {}
     decision: _BoardDecision | None = None
-    n_imu = len(master.imu) + len(an.slave.imu)
+    n_imu = master.n_imu + an.slave.n_imu
     forked = (runs["uncompensated"][0] is not None and runs["compensated"][0] is not None and parallel.available()
               and n_imu <= parallel.FORK_ALIGNMENT_MAX_SAMPLES)
     imu_fit = None

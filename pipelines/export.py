@@ -22,14 +22,17 @@ import os
 import struct
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pandas as pd
 
 from logtools.errors import InputError, os_error_path
 from logtools.inslog import ACCEL, GYRO, POS, QUAT, VEL, InsLog
 from parsers.atomic import atomic_path
 from parsers.restamp import ClockShift, RestampStats
+
+if TYPE_CHECKING:  # (pandas is imported where a table is made: a run that writes none never loads it)
+    import pandas as pd
 
 KINDS = ("csv", "parquet", "native")
 BASENAME = "slave_on_master_clock"
@@ -98,6 +101,8 @@ def _abs_ns(log: InsLog, df: pd.DataFrame) -> np.ndarray:
 
 def table_on_master_clock(slave: InsLog, shift: ClockShift) -> pd.DataFrame:
     """The slave's samples as one table: ``time_ns`` (master clock, int64) + canonical CSV columns."""
+    import pandas as pd
+
     from parsers.csv_canonical import CSV_QUAT, HEADER
 
     parts = []

@@ -205,6 +205,7 @@ def test_the_channels_stamps_are_the_grouped_rows_stamps_without_their_values():
     import pandas as pd
 
     from logtools.compensate import _group_rows, _group_stamps
+    from logtools.inslog import Columns
 
     rng = np.random.default_rng(3)
     t = rng.random(2000) * 100.0
@@ -212,7 +213,7 @@ def test_the_channels_stamps_are_the_grouped_rows_stamps_without_their_values():
     v = rng.standard_normal((2000, 3))
     v[3, 1] = v[11, 0] = np.nan
     for idx in (t, np.sort(t)):
-        df = pd.DataFrame(v, columns=["a", "b", "c"], index=pd.Index(idx))
+        df = Columns.from_frame(pd.DataFrame(v, columns=["a", "b", "c"], index=pd.Index(idx)))
         for cols in (("a", "b", "c"), ("c",), ("a", "x")):
             assert np.array_equal(_group_stamps(df, cols), _group_rows(df, cols)[0])
-    assert len(_group_stamps(pd.DataFrame({"a": []}), ("a",))) == 0
+    assert len(_group_stamps(Columns.from_frame(pd.DataFrame({"a": []})), ("a",))) == 0

@@ -199,6 +199,26 @@ def test_the_analysis_does_not_import_scipys_heavy_subpackages(tmp_path, kernels
     assert p.stdout.strip().splitlines()[-1] == "0 []"
 
 
+@pytest.mark.parametrize("kernels", ["compiled", "reference"])
+def test_the_analysing_process_never_imports_pandas(tmp_path, kernels):
+    """``tapost analyze`` of the sample pair as a user runs it: the process that parses and analyses never
+    imports pandas (about 0.17 s of a short log's run; the logs are numpy arrays, their DataFrames made only
+    when asked for). The recording's prepared child imports it for pyarrow, beside the analysis."""
+    sample = Path(__file__).resolve().parents[1] / "sample_logs"
+    argv = ["tapost", "analyze", str(sample / "master.mcap"), str(sample / "slave.tlog"), "-o", str(tmp_path / "out")]
+    code = "\n".join([  # (the console script ends the process after its exit handlers: one prints)
+        "import atexit, runpy, sys",
+        "atexit.register(lambda: print(sorted(m for m in sys.modules if m.partition('.')[0] == 'pandas')))",
+        f"sys.argv = {argv!r}",
+        "runpy.run_module('pipelines.cli', run_name='__main__', alter_sys=True)"])
+    env = {**os.environ, "TAPOST_KERNELS": kernels, "TAPOST_WARMUP": "0"}
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=env,
+                       cwd=str(tmp_path))
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.strip().splitlines()[-1] == "[]", p.stdout[-500:]
+    assert (tmp_path / "out" / "report.json").exists() and (tmp_path / "out" / "recording.rrd").exists()
+
+
 @pytest.mark.parametrize("k", [1, 3, 9])
 def test_weighted_rows_is_numpys_broadcast_expression_bit_for_bit(k):
     """The B-spline evaluation's weighted sum of four coefficient rows (logtools.resample.Interpolant):

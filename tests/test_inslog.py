@@ -97,6 +97,60 @@ def _abs_ns(log: InsLog, t: np.ndarray) -> np.ndarray:
     return log.meta.t0_ns + np.round(t * 1e9).astype(np.int64)
 
 
+def _pandas_log(log: InsLog) -> InsLog:
+    """``log`` rebuilt from DataFrames made by pandas itself (what every InsLog held before its arrays)."""
+    def frame(cols):
+        if not cols.data:
+            return pd.DataFrame(index=pd.Index(np.zeros(0), name="t_s"))
+        return pd.DataFrame(dict(cols.data), index=pd.Index(cols.t_s.copy(), name="t_s"))
+
+    return InsLog(imu=frame(log.imu_columns), nav=frame(log.nav_columns), meta=log.meta)
+
+
+def test_the_arrays_and_the_dataframes_give_the_same_log():
+    """An InsLog held as arrays (the parsers', from_arrays) and the same built from pandas DataFrames give the
+    same DataFrames, accessors, slices and rebased copies to the bit; a parser's frame views its one block."""
+    from logtools.inslog import Columns
+
+    for log in (_log(), _log(n_nav=0)):
+        ref = _pandas_log(log)
+        assert isinstance(log.imu_columns, Columns) and "imu" not in log._frames
+        for a, b in ((log, ref), (log.between(0.3, 1.2), ref.between(0.3, 1.2)),
+                     (log.rebased(T0_NS - 10**9), ref.rebased(T0_NS - 10**9))):
+            pd.testing.assert_frame_equal(a.imu, b.imu, check_exact=True)
+            if len(b.nav):
+                pd.testing.assert_frame_equal(a.nav, b.nav, check_exact=True)
+            assert len(a.nav) == len(b.nav) == a.n_nav and len(a.imu) == a.n_imu
+            for name in ("has_gyro", "has_accel", "has_quat", "has_vel", "has_pos", "duration_s"):
+                assert getattr(a, name) == getattr(b, name), name
+            assert np.array_equal(a.gyro_rad_s(), b.gyro_rad_s()) and np.array_equal(a.t_nav_s(), b.t_nav_s())
+            if a.has_quat:
+                for x, y in zip(a.quat_wxyz(), b.quat_wxyz()):
+                    assert np.array_equal(x, y)
+        # slicing as pandas' own .loc does it
+        pd.testing.assert_frame_equal(log.between(0.3, 1.2).imu, ref.imu.loc[0.3:1.2], check_exact=True)
+    block = np.arange(12.0).reshape(3, 4)
+    cols = Columns.from_block(np.arange(4.0), GYRO, block)
+    frame = InsLog(imu=cols, nav=Columns.empty(), meta=LogMeta("mem", "test")).imu
+    assert np.shares_memory(frame.to_numpy(), block) and list(frame.columns) == list(GYRO)
+
+
+def test_a_log_of_arrays_is_a_dataclass_that_replaces_pickles_and_stays_read_only():
+    import pickle
+
+    log = _log()
+    assert [f.name for f in dataclasses.fields(log)] == ["imu", "nav", "meta"]
+    moved = dataclasses.replace(log, meta=dataclasses.replace(log.meta, t0_ns=5))
+    assert moved.meta.t0_ns == 5 and np.array_equal(moved.gyro_rad_s(), log.gyro_rad_s())
+    other = dataclasses.replace(log, nav=log.nav.iloc[:10])
+    assert other.n_nav == 10 and other.n_imu == log.n_imu
+    back = pickle.loads(pickle.dumps(log))
+    pd.testing.assert_frame_equal(back.imu, log.imu, check_exact=True)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        log.meta = log.meta
+    assert "400 rows" in repr(log)
+
+
 def test_canonical_csv_round_trip_epoch_ns(tmp_path):
     log = _log()
     p = str(tmp_path / "unit.csv")
