@@ -95,6 +95,54 @@ def defer_numpy_submodules() -> None:
             sys.modules.pop(name, None)
 
 
+#: the commands whose analysis imports scipy (fft, linalg, ndimage) in every run
+SCIPY_COMMANDS = ("analyze", "batch", "simulate")
+
+
+class _DocAsIs:
+    """Stands in for scipy's docstring scraper in ``keep_scipy_docstrings``: the docstring as it is."""
+
+    def __init__(self, f, *args, **kwargs):
+        self._doc = getattr(f, "__doc__", None) or ""
+
+    def __getitem__(self, section):
+        return []  # (a section the caller appends to, then drops)
+
+    def __str__(self) -> str:
+        return "\n" + self._doc  # (the caller drops the first line, the signature)
+
+
+def keep_scipy_docstrings() -> None:
+    """scipy 1.15 and later rewrite the docstring of every function they mark with its array-API capabilities
+    (``scipy._lib._array_api.xp_capabilities``) while the module is imported: the docstring is parsed by
+    numpydoc's scraper and written back with a table appended. That is about 50 ms of every analyze (about
+    200 functions in scipy.fft, linalg, ndimage, special), for docstrings a command never shows. In this
+    process the decorator still records each function's capabilities and leaves its docstring as it is.
+    Checked on a probe function first; when scipy's decorator is not the one known, nothing is changed."""
+    try:
+        from scipy._lib import _array_api as api
+    except Exception:  # noqa: BLE001 - no scipy, or another layout: nothing to do
+        return
+    real = getattr(api, "FunctionDoc", None)
+    if real is None or not callable(getattr(api, "xp_capabilities", None)):
+        return
+
+    def probe():
+        """Probe.
+
+        Text.
+        """
+
+    api.FunctionDoc = _DocAsIs
+    try:
+        api.xp_capabilities(capabilities_table={})(probe)
+        ok = probe.__doc__ == "Probe.\n\n        Text.\n        "
+    except Exception:  # noqa: BLE001 - not the decorator known: scipy's own scraper stays
+        ok = False
+    if not ok:
+        api.FunctionDoc = real
+
+
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str):  # one line, exit 2 (argparse's own code for usage errors)
         self.exit(2, f"tapost: {message} (see '{self.prog} --help')\n")
@@ -178,6 +226,8 @@ def _main(argv: list[str] | None) -> int:
         early_notice(command, argv)
         if command in LOG_COMMANDS:
             defer_numpy_submodules()
+            if command in SCIPY_COMMANDS:
+                keep_scipy_docstrings()
             announce_compiling()
         if command == "analyze":  # one pair in this process: its independent stages may fork
             from pipelines import parallel

@@ -219,6 +219,49 @@ def test_the_analysing_process_never_imports_pandas(tmp_path, kernels):
     assert (tmp_path / "out" / "report.json").exists() and (tmp_path / "out" / "recording.rrd").exists()
 
 
+_PROBE = '''
+from pipelines import cli
+cli.keep_scipy_docstrings()
+from scipy._lib import _array_api as api
+def f():
+    """One line.
+
+    More.
+    """
+table = {}
+api.xp_capabilities(capabilities_table=table, cpu_only=True)(f)
+print(api.FunctionDoc.__name__, f in table, repr(f.__doc__))
+import scipy.fft
+print(scipy.fft.fft.__doc__.startswith("Compute the 1-D discrete Fourier Transform."))
+'''
+
+_STRICT = '''
+from scipy._lib import _array_api as api
+real = api.FunctionDoc
+def strict(*args, **kwargs):
+    def deco(f):
+        api.FunctionDoc(f)["Parameters"][0]
+        return f
+    return deco
+api.xp_capabilities = strict
+from pipelines import cli
+cli.keep_scipy_docstrings()
+print(api.FunctionDoc is real)
+'''
+
+
+def test_scipys_docstrings_are_kept_as_they_are_in_a_log_commands_process():
+    """``cli.keep_scipy_docstrings``: scipy's array-API decorator still records a function's capabilities but
+    leaves its docstring as written (no scraping); where the decorator is not the one known (here: one that
+    reads a section the stand-in does not have), scipy's own scraper is put back."""
+    p = subprocess.run([sys.executable, "-c", _PROBE], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.strip().splitlines() == ["_DocAsIs True 'One line.\\n\\n    More.\\n    '", "True"]
+    p = subprocess.run([sys.executable, "-c", _STRICT], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.strip() == "True"
+
+
 @pytest.mark.parametrize("k", [1, 3, 9])
 def test_weighted_rows_is_numpys_broadcast_expression_bit_for_bit(k):
     """The B-spline evaluation's weighted sum of four coefficient rows (logtools.resample.Interpolant):
