@@ -32,6 +32,7 @@ Everything ROS-specific about the *content* lives here:
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -148,6 +149,16 @@ def default_typestore(encoding: str):
 
 def register_msgdef(typestore, msgtype: str, text: str, fmt: str = "msg") -> None:
     """Register a message definition (``msg`` text with ``MSG:`` sections, or ``idl``)."""
+    typs = {k: v for k, v in _parsed_msgdef(text, normalize_msgtype(msgtype), fmt) if k not in typestore.fielddefs}
+    if typs:
+        typestore.register(typs)
+
+
+@functools.lru_cache(maxsize=64)
+def _parsed_msgdef(text: str, msgtype: str, fmt: str) -> tuple:
+    """rosbags' parse of a message definition, as (type name, definition) pairs: once per text in a process (a
+    log's reader registers each channel's schema in the channel's decoder and in the log's typestore; the
+    parse is rosbags' PEG grammar, about 2-5 ms a definition)."""
     from rosbags.typesys import get_types_from_idl, get_types_from_msg
 
     if fmt == "idl":
@@ -160,10 +171,8 @@ def register_msgdef(typestore, msgtype: str, text: str, fmt: str = "msg") -> Non
         else:
             typs.update(get_types_from_idl(text))
     else:
-        typs = get_types_from_msg(text, normalize_msgtype(msgtype))
-    typs = {k: v for k, v in typs.items() if k not in typestore.fielddefs}
-    if typs:
-        typestore.register(typs)
+        typs = get_types_from_msg(text, msgtype)
+    return tuple(typs.items())
 
 
 # ---- vectorised decode: numpy structured dtypes from message definitions ---------------------
@@ -713,8 +722,49 @@ class TopicData:
     frame_id: str = ""
 
 
+#: the fields of std_msgs/Header by encoding (ROS 1's has a sequence number first)
+_HEADER_FIELDS = {"cdr": ["stamp", "frame_id"], "ros1": ["seq", "stamp", "frame_id"]}
+
+
+def header_frame_id(typestore, msgtype: str, data, encoding: str) -> str | None:
+    """``header.frame_id`` of one serialised message, read where the encoding puts it, for a message whose first
+    field is a std_msgs Header of the standard definition: CDR, after the 4-byte encapsulation header and the
+    stamp (int32 sec, uint32 nanosec), a uint32 length (with its NUL) then the bytes; ROS 1, after seq and the
+    stamp, a uint32 length then the bytes. None where the type or the bytes are not that (the library's
+    deserialiser then: it builds a message class per type, about 3 ms each, for one string)."""
+    try:
+        name, (kind, htype) = typestore.fielddefs[msgtype][1][0]
+        hfields = typestore.fielddefs[htype][1]
+        stamp = [d for f, d in hfields if f == "stamp"][0]
+        tfields = typestore.fielddefs[stamp[1]][1]
+    except (KeyError, IndexError, TypeError, ValueError):
+        return None
+    if (name != "header" or int(kind) != 2 or [f for f, _ in hfields] != _HEADER_FIELDS.get(encoding)
+            or int(stamp[0]) != 2 or [(int(d[0]), d[1][0]) for _f, d in tfields] != [(1, "int32"), (1, "uint32")]):
+        return None
+    b = bytes(data[:4096])
+    if encoding == "cdr":
+        if len(b) < 16 or b[0] != 0 or b[1] not in (0, 1):
+            return None
+        order, at, nul = ("little" if b[1] == 1 else "big"), 12, 1
+    else:
+        order, at, nul = "little", 12, 0
+    n = int.from_bytes(b[at:at + 4], order)
+    text = b[at + 4:at + 4 + n]
+    if len(text) != n or n < nul or (nul and text[-1:] != b"\0"):
+        return None
+    try:
+        return text[:n - nul].decode()
+    except UnicodeDecodeError:
+        return None
+
+
 def _frame_id(typestore, raw: RawTopic) -> str:
     try:
+        if raw.encoding in ("cdr", "ros1"):
+            fast = header_frame_id(typestore, raw.msgtype, raw.data[0], raw.encoding)
+            if fast is not None:
+                return fast
         if raw.encoding == "json":
             import json
 

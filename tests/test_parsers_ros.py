@@ -492,6 +492,34 @@ def test_fast_path_mixed_frames_and_odd_messages(encoding):
         assert np.isnan(dec.columns["gx"][2]) and np.isfinite(np.delete(dec.columns["gx"], 2)).all()
 
 
+@pytest.mark.parametrize("encoding", ["cdr", "ros1"])
+def test_the_frame_id_read_in_place_is_the_libraries(encoding):
+    """``header_frame_id`` (the frame_id where the encoding puts it) gives what rosbags' deserialiser gives, for
+    every header-first type tapost reads, empty and long and non-ASCII frame ids, big-endian CDR; None for a
+    type without a header first, a short or damaged message (the library is asked then)."""
+    ts = rc.default_typestore(encoding)
+    deser = ts.deserialize_cdr if encoding == "cdr" else ts.deserialize_ros1
+    cols = {"header.stamp.sec": np.array([1_700_000_000]), "header.stamp.nanosec": np.array([5])}
+    seen = 0
+    for msgtype in sorted(rc.SUPPORTED):
+        if ts.fielddefs[msgtype][1][0][0] != "header":
+            continue
+        for frame in ("", "imu", "base_link_with_a_long_name", "capteur_é"):
+            data = rc.encode_messages(ts, msgtype, rc._template(ts, msgtype, frame, encoding), encoding, cols)[0]
+            assert rc.header_frame_id(ts, msgtype, data, encoding) == deser(data, msgtype).header.frame_id == frame
+            seen += 1
+            if encoding == "cdr":
+                big = ts.serialize_cdr(deser(data, msgtype), msgtype, little_endian=False)
+                assert big[1] == 0 and rc.header_frame_id(ts, msgtype, big, encoding) == frame
+    assert seen >= 8
+    data = rc.encode_messages(ts, rc.IMU, rc._template(ts, rc.IMU, "imu", encoding), encoding, cols)[0]
+    assert rc.header_frame_id(ts, rc.IMU, data[:14], encoding) is None  # (cut inside the string)
+    assert rc.header_frame_id(ts, "geometry_msgs/msg/Vector3", data, encoding) is None
+    bad = bytearray(data)
+    bad[12:16] = (1000).to_bytes(4, "little")  # a length past the message's end
+    assert rc.header_frame_id(ts, rc.IMU, bytes(bad), encoding) is None
+
+
 # ---- real data ---------------------------------------------------------------------------------
 @pytest.mark.skipif(not CAR_BAG.exists(), reason="../shared/realdata absent")
 def test_real_car_bag():
