@@ -53,15 +53,37 @@ def _root() -> str:
     return os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
-def kernel_fingerprint() -> str:
-    """numba's version and the kernel sources' sizes and mtimes (what numba's cache is keyed on)."""
-    h = hashlib.sha1()
-    try:
-        from importlib.metadata import version
+def _numba_install() -> str | None:
+    """Where numba is installed, with its version file's and __init__'s sizes and mtimes (any other numba put
+    there changes them); None without numba. Neither numba nor importlib.metadata is imported for it (the
+    metadata lookup of numba's version cost about 10 ms of every run)."""
+    import importlib.util
 
-        h.update(version("numba").encode())
-    except Exception:  # noqa: BLE001 - numba absent: no kernels to compile
+    try:
+        spec = importlib.util.find_spec("numba")
+    except (ImportError, ValueError):
+        return None
+    if spec is None or not spec.origin:
+        return None
+    where = os.path.dirname(spec.origin)
+    parts = [where]
+    for name in ("_version.py", "__init__.py"):
+        try:
+            st = os.stat(os.path.join(where, name))
+        except OSError:
+            continue
+        parts.append(f"{name}:{st.st_size}:{st.st_mtime_ns}")
+    return "|".join(parts)
+
+
+def kernel_fingerprint() -> str:
+    """numba's installation and the kernel sources' sizes and mtimes (what numba's cache is keyed on); "" without
+    numba (no kernels to compile)."""
+    numba_key = _numba_install()
+    if numba_key is None:
         return ""
+    h = hashlib.sha1()
+    h.update(numba_key.encode())
     root = _root()
     h.update(root.encode())
     h.update(os.environ.get("NUMBA_CACHE_DIR", "").encode())

@@ -225,3 +225,33 @@ def test_a_failed_build_is_one_line_and_leaves_numbas_cache_in_use(monkeypatch, 
     assert warmup.build_ahead(quiet=True) is None
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no working C compiler" in err[0] and "numba's cache" in err[0]
+
+
+def test_the_kernel_fingerprint_follows_numbas_installation_without_importing_it(monkeypatch, tmp_path):
+    """``jit.kernel_fingerprint`` is keyed on where numba is installed and its files' sizes and mtimes (another
+    numba installed there changes it), "" without numba; a fresh process computes it without importing numba
+    or importlib.metadata."""
+    import importlib.machinery
+    import importlib.util
+
+    from logtools import jit
+
+    fake = tmp_path / "numba"
+    fake.mkdir()
+    (fake / "__init__.py").write_text("")
+    (fake / "_version.py").write_text("version_json = '{\"version\": \"0.60.0\"}'\n")
+    spec = importlib.machinery.ModuleSpec("numba", None, origin=str(fake / "__init__.py"))
+    real_find = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: spec if name == "numba" else real_find(name, *a))
+    before = jit.kernel_fingerprint()
+    assert before and jit.kernel_fingerprint() == before
+    (fake / "_version.py").write_text("version_json = '{\"version\": \"0.61.2\"}'\n")
+    assert jit.kernel_fingerprint() != before
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "numba" else real_find(name, *a))
+    assert jit.kernel_fingerprint() == ""
+    monkeypatch.undo()
+    code = ("import sys; from logtools import jit; f = jit.kernel_fingerprint(); "
+            "print(len(f), 'numba' in sys.modules, 'importlib.metadata' in sys.modules)")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.split() == ["16", "False", "False"]
