@@ -81,6 +81,13 @@ class Columns:
     def __len__(self) -> int:
         return len(self.t_s)
 
+    def __reduce__(self):
+        # the block once (its rows, the columns, are views of it: pickled apart they would be copies, twice the
+        # memory where a forked parse sends its log back)
+        if self.block is not None:
+            return (Columns.from_block, (self.t_s, tuple(self.data), self.block))
+        return (Columns, (self.t_s, self.data))
+
     @property
     def names(self) -> tuple[str, ...]:
         return tuple(self.data)

@@ -151,6 +151,25 @@ def test_a_log_of_arrays_is_a_dataclass_that_replaces_pickles_and_stays_read_onl
     assert "400 rows" in repr(log)
 
 
+def test_a_pickled_log_carries_its_block_once():
+    """A parser's stream (columns viewing one block) pickles as the block and the stamps, out of band as a
+    forked parse sends it back (pipelines.parallel): its rows apart would be a second copy of the data."""
+    import pickle
+
+    from logtools.inslog import Columns
+
+    n = 5000
+    block = np.random.default_rng(1).normal(size=(6, n))
+    log = InsLog(imu=Columns.from_block(np.arange(n) * 0.005, GYRO + ACCEL, block), nav=Columns.empty(),
+                 meta=LogMeta("mem", "test"))
+    bufs: list = []
+    data = pickle.dumps(log, protocol=5, buffer_callback=bufs.append)
+    assert sum(b.raw().nbytes for b in bufs) == block.nbytes + n * 8
+    back = pickle.loads(data, buffers=bufs)
+    assert np.shares_memory(back.imu_columns.data[GYRO[1]], back.imu_columns.block)
+    assert np.array_equal(back.gyro_rad_s(), log.gyro_rad_s()) and np.array_equal(back.t_imu_s(), log.t_imu_s())
+
+
 def test_canonical_csv_round_trip_epoch_ns(tmp_path):
     log = _log()
     p = str(tmp_path / "unit.csv")
