@@ -150,9 +150,16 @@ class Columns:
         return out
 
     def present(self, cols: tuple[str, ...]) -> bool:
-        """Every column of ``cols`` there with at least one value (not NaN)."""
-        return all(c in self.data for c in cols) and all(bool((~np.isnan(_float(self.data[c]))).any())
-                                                         for c in cols)
+        """Every column of ``cols`` there with at least one value (pandas' ``notna``: not NaN, not None)."""
+        return all(c in self.data for c in cols) and all(_any_value(self.data[c]) for c in cols)
+
+
+def _any_value(a: np.ndarray) -> bool:
+    if a.dtype.kind in "biu":
+        return len(a) > 0
+    if a.dtype.kind in "fc":
+        return bool((~np.isnan(a)).any())
+    return any(x is not None and x == x for x in a.tolist())  # (object columns: None and NaN are missing)
 
 
 def _as_columns(stream) -> Columns:

@@ -151,6 +151,15 @@ def test_a_log_of_arrays_is_a_dataclass_that_replaces_pickles_and_stays_read_onl
     assert "400 rows" in repr(log)
 
 
+@pytest.mark.parametrize("col", [[np.nan, 1.0], [np.nan, np.nan], [None, "x"], [None, None], [1, 2]])
+def test_a_group_is_present_as_pandas_notna_says(col):
+    """``has_quat`` and the like on a log given as DataFrames of any column type: pandas' notna's answer."""
+    nav = pd.DataFrame({c: np.array(col, dtype=object if None in col else None) for c in QUAT},
+                       index=pd.Index([0.0, 1.0], name="t_s"))
+    log = InsLog(imu=pd.DataFrame(index=pd.Index([], name="t_s", dtype=float)), nav=nav, meta=LogMeta("m", "t"))
+    assert log.has_quat == bool(nav[list(QUAT)].notna().any().all())
+
+
 def test_a_pickled_log_carries_its_block_once():
     """A parser's stream (columns viewing one block) pickles as the block and the stamps, out of band as a
     forked parse sends it back (pipelines.parallel): its rows apart would be a second copy of the data."""
