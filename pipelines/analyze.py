@@ -411,9 +411,10 @@ def _flexure_options(opts: AnalyzeOptions, lat: LatencyResult | None) -> dict:
 
 
 def _alignment(master: InsLog, slave: InsLog, run: str, opts: AnalyzeOptions, progress,
-               lat: LatencyResult | None = None, board_decided=None, board_follow=None) -> AlignmentResult | str:
-    """One alignment run, or the reason it could not be done (str). ``board_decided``, ``board_follow``: see
-    run_alignment (passed where the alignment takes them)."""
+               lat: LatencyResult | None = None, board_decided=None, board_follow=None,
+               beside=None) -> AlignmentResult | str:
+    """One alignment run, or the reason it could not be done (str). ``board_decided``, ``board_follow``,
+    ``beside``: see run_alignment (passed where the alignment takes them)."""
     if not (slave.has_gyro and slave.has_accel):
         return "alignment needs the slave's IMU (angular rate and specific force)"
     match, why = _resolve_match(master, opts.match)
@@ -427,7 +428,7 @@ def _alignment(master: InsLog, slave: InsLog, run: str, opts: AnalyzeOptions, pr
     except ImportError as exc:
         return f"alignment is not available in this installation ({exc})"
     takes = inspect.signature(run_alignment).parameters
-    hook = {k: v for k, v in (("board_decided", board_decided), ("board_follow", board_follow))
+    hook = {k: v for k, v in (("board_decided", board_decided), ("board_follow", board_follow), ("beside", beside))
             if v is not None and k in takes}
     try:
         return run_alignment(master, slave, filter=opts.filter, match=match, smoother=opts.smoother,
@@ -911,7 +912,12 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
         imu_fit = parallel.submit(imu_to_imu, master, an.slave_comp)
     if forked:
         # the two runs share nothing but their inputs: the uncompensated one in a forked child (CLI only),
-        # the master's series prepared before (the child shares them instead of preparing its own)
+        # the master's series prepared before (the child shares them instead of preparing its own). Where the
+        # filter runs as Python (the kernels not compiled yet: a first run), that child starts its flexure
+        # pass in a child of its own beside its rigid pass (run_alignment's ``beside``): the delay left in
+        # the uncompensated slave makes the flexure pass follow almost always, and the run's three passes
+        # were the alignment stage's critical path (the sample pair's first run: 0.72 s of Python passes)
+        flex_beside = None if _kernels_release_the_gil() else parallel.submit
         _prepare_master(master)
         if run_opts["uncompensated"] is not opts and _numerics.run_alignment is None:
             # --board-errors auto: the compensated run decides the board's states; the uncompensated one
@@ -920,11 +926,12 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
             # a consumer board's 1 h pair spent 4.8 s so at the stage's end)
             decision = _BoardDecision()
             pending["uncompensated"] = parallel.submit(_alignment, master, face, "uncompensated", opts,
-                                                       null_progress, an.latency, None, decision)
+                                                       null_progress, an.latency, None, decision, flex_beside)
             decision.after_fork()
         else:
             pending["uncompensated"] = parallel.submit(_alignment, master, face, "uncompensated",
-                                                       run_opts["uncompensated"], null_progress, an.latency)
+                                                       run_opts["uncompensated"], null_progress, an.latency,
+                                                       beside=flex_beside)
     for run, (slog, p) in runs.items():
         if slog is None:
             why = ("latency failed" if an.latency is None

@@ -1339,3 +1339,56 @@ def test_a_rigid_pass_not_held_beside_the_flexure_pass_gives_the_same_result(gai
     for f in fields(held):
         a, b = getattr(held, f.name), getattr(dropped, f.name)
         assert (np.array_equal(a, b) if isinstance(a, np.ndarray) else a == b), f.name
+
+
+class _Beside:
+    """A stand-in for pipelines.parallel.submit that runs the call when its result is asked for and records
+    what was started and what was dropped."""
+
+    def __init__(self):
+        self.started, self.cancelled, self.used = 0, 0, 0
+
+    def __call__(self, fn, *args, **kwargs):
+        outer = self
+        outer.started += 1
+
+        class _P:
+            def result(self):
+                outer.used += 1
+                return fn(*args, **kwargs)
+
+            def cancel(self):
+                outer.cancelled += 1
+        return _P()
+
+
+@pytest.mark.parametrize("flexure", [True, False])
+def test_the_flexure_pass_started_beside_gives_the_same_run(flexure):
+    """run_alignment's ``beside``: the flexure pass (flexure="auto") starts beside the rigid one and is used
+    where the residuals call for it, dropped where they do not; the result is the same to the bit as without
+    it, in the Python loop (where the CLI gives it) and with a real forked child (pipelines.parallel)."""
+    from pipelines import parallel
+
+    kw = dict(duration_s=40.0, latency_s=0.0, drift_ppm=0.0, mount_rpy_deg=(122.8, 135.2, -127.5),
+              master_imu_rate_hz=163.6, slave_imu_rate_hz=391.8, slave_nav_rate_hz=100.0,
+              lever_arm_m=(-0.17, 0.12, 1.21), slave_vel_noise_m_s=0.005, slave_att_noise_deg=0.01,
+              speed_m_s=4.0, turn_amp_deg=37.0, turn_period_s=44.3)
+    p = sim.simulate(sim.scenario_config("multirotor", seed=62015, flexure=flexure, **kw))
+    opts = AlignmentOptions(estimate_lever_arm=True, flexure="auto")
+    cfg = replace(CONFIG, compiled_kf=False)
+    alone = run_alignment(p.master, p.slave, options=opts, config=cfg)
+    beside = _Beside()
+    with_it = run_alignment(p.master, p.slave, options=opts, config=cfg, beside=beside)
+    assert beside.started == 1 and (beside.used, beside.cancelled) == ((1, 0) if flexure else (0, 1))
+    assert any(n.startswith("flexure states added") for n in alone.notes) == flexure
+    assert alone.notes == with_it.notes and alone.mounting_rpy_deg == with_it.mounting_rpy_deg
+    assert np.array_equal(alone.history_x, with_it.history_x)
+    assert np.array_equal(alone.history_sigma, with_it.history_sigma)
+    if flexure:
+        parallel.enable(True)
+        try:
+            forked = run_alignment(p.master, p.slave, options=opts, config=cfg, beside=parallel.submit)
+        finally:
+            parallel.enable(False)
+        assert forked.notes == alone.notes and forked.mounting_rpy_deg == alone.mounting_rpy_deg
+        assert np.array_equal(forked.history_x, alone.history_x)

@@ -175,6 +175,10 @@ class AlignmentConfig:
     #: pass runs: the rigid pass runs again if its states are kept (the same numbers). 4 h at 19 Hz are 0.2 GB
     #: a pass (two held at once made the 4 h pair's alignment peak); below this, the time of a pass is spared
     hold_one_pass_min_bytes: int = 100_000_000
+    #: a pass's histories per state and epoch, about (estimates, variances and the rest: 8 values): where a
+    #: pass would hold hold_one_pass_min_bytes or more, the flexure pass is never started beside the rigid one
+    #: (run_alignment's ``beside``), whose histories it would sit beside
+    pass_bytes_per_state_epoch: int = 64
     #: the flexure model of that pass, and of ``--flexure on`` without a fitted one: seed 000's (eq 8)
     flex_auto_sigma_deg: float = 0.05
     flex_auto_beta_1_s: float = 2.0

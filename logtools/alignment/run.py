@@ -45,7 +45,8 @@ def run_alignment(master: InsLog, slave: InsLog, *, filter: str | FilterKind = "
                   smoother: bool = False, progress: Callable | None = None,
                   options: AlignmentOptions | None = None, config: AlignmentConfig = CONFIG,
                   board_decided: Callable[[bool], None] | None = None,
-                  board_follow: Callable[[], bool] | None = None) -> AlignmentResult:
+                  board_follow: Callable[[], bool] | None = None,
+                  beside: Callable | None = None) -> AlignmentResult:
     """Transfer alignment; ``slave`` already on the master's clock (DESIGN.md). See the module doc.
 
     ``board_decided``: with ``board_errors="auto"``, called once with the decision as soon as it is made,
@@ -56,21 +57,28 @@ def run_alignment(master: InsLog, slave: InsLog, *, filter: str | FilterKind = "
     ``board_follow``: with ``board_errors="auto"``, the decision is someone else's (another run's
     ``board_decided``): after the filter without the board's states, ``board_follow()`` says whether the
     filter runs again with them, on the same preparation; the result is the run without them or the one
-    with them as it comes, exactly as ``board_errors=False`` or ``True`` would give it."""
+    with them as it comes, exactly as ``board_errors=False`` or ``True`` would give it.
+
+    ``beside``: a function like ``pipelines.parallel.submit`` (``beside(fn, *args, **kw)`` -> an object with
+    ``result()`` and ``cancel()``). With ``flexure="auto"``, the pass with the flexure states then starts
+    beside the rigid pass instead of after it, and is dropped where the rigid pass's residuals do not call for
+    it: the same result, sooner where passes are slow (the CLI gives it to the uncompensated run when the
+    kernels are not compiled yet: the delay left in its data makes the flexure pass follow almost always)."""
     opts = AlignmentOptions() if options is None else options
     kind = FilterKind.parse(filter)
     if match not in MATCHES:
         raise AnalysisError(f"match must be one of {', '.join(MATCHES)}, not {match!r}")
     if opts.board_auto:
         return _align_board_auto(master, slave, kind, match, smoother, progress, opts, config, board_decided,
-                                 board_follow)
-    return _align(master, slave, kind, match, smoother, progress, opts, config)
+                                 board_follow, beside)
+    return _align(master, slave, kind, match, smoother, progress, opts, config, beside=beside)
 
 
 def _align_board_auto(master: InsLog, slave: InsLog, kind: FilterKind, match: str, smoother: bool,
                       progress: Callable | None, opts: AlignmentOptions, config: AlignmentConfig,
                       board_decided: Callable[[bool], None] | None = None,
-                      board_follow: Callable[[], bool] | None = None) -> AlignmentResult:
+                      board_follow: Callable[[], bool] | None = None,
+                      beside: Callable | None = None) -> AlignmentResult:
     """board_errors="auto": without the board's states first; when an innovation channel of that run is
     correlated in time (errors the white model leaves out), again with them (docs/alignment.md)."""
     prog = progress or (lambda f, s="": None)
@@ -79,12 +87,13 @@ def _align_board_auto(master: InsLog, slave: InsLog, kind: FilterKind, match: st
         prog(0.5 * f, s)
 
     prep = _prepare(master, slave, kind, match, opts, config, first_prog)  # (the two runs' common part, once)
-    first = _align(master, slave, kind, match, smoother, first_prog, replace(opts, board_errors=False), config, prep)
+    first = _align(master, slave, kind, match, smoother, first_prog, replace(opts, board_errors=False), config, prep,
+                   beside)
     if board_follow is not None:  # (the decision of another run: each run as it comes)
         if not board_follow():
             return first
         return _align(master, slave, kind, match, smoother, lambda f, s="": prog(0.5 + 0.5 * f, s),
-                      replace(opts, board_errors=True), config, prep)
+                      replace(opts, board_errors=True), config, prep, beside)
     corr = max(first.innovation_corr_epochs or (1.0,))
     if board_decided is not None:
         board_decided(bool(corr > config.board_auto_corr_min))
@@ -93,7 +102,7 @@ def _align_board_auto(master: InsLog, slave: InsLog, kind: FilterKind, match: st
             f"board error states not needed: no innovation channel is correlated over more than {corr:.1f} "
             f"epochs (at most {config.board_auto_corr_min:g}; --board-errors auto)",))
     res = _align(master, slave, kind, match, smoother, lambda f, s="": prog(0.5 + 0.5 * f, s),
-                 replace(opts, board_errors=True), config, prep)
+                 replace(opts, board_errors=True), config, prep, beside)
     if _did_not_follow(res) and not _did_not_follow(first):
         # the states cannot explain what correlates the innovations (an unmodelled lever arm of metres:
         # tests/test_analyze_cli.py) and the larger filter lost the data: the run without them stands
@@ -116,7 +125,8 @@ def _did_not_follow(res: AlignmentResult) -> bool:
 
 
 def _align(master: InsLog, slave: InsLog, kind: FilterKind, match: str, smoother: bool, progress: Callable | None,
-           opts: AlignmentOptions, config: AlignmentConfig, prep: Prepared | None = None) -> AlignmentResult:
+           opts: AlignmentOptions, config: AlignmentConfig, prep: Prepared | None = None,
+           beside: Callable | None = None) -> AlignmentResult:
     """One alignment with the board's states as ``opts.board_errors`` (a bool) says; on ``prep`` when given
     (:func:`_prepare` of the same logs, kind, match and options but the board's states)."""
     prog = progress or (lambda f, s="": None)
@@ -127,7 +137,7 @@ def _align(master: InsLog, slave: InsLog, kind: FilterKind, match: str, smoother
     notes = list(prep.notes)
     prior = _mounting_prior(prep.coarse, dcm_from_quat(prep.inp.q0), opts, config, notes)
     prob = _Problem(kind, match, smoother, opts, config, master, prior, prep.win, prep.span_s, prep.noise,
-                    prep.seed.prior_rad_s if prep.seed.applied else None)
+                    prep.seed.prior_rad_s if prep.seed.applied else None, beside)
     run, lay, settings, sig0 = _filter_passes(prob, prep.inp, prep.src, progress, prog, notes)
     if prep.seed.applied:  # the bias estimates (and their history) are the seed plus the states
         xs = run.x.copy()
@@ -287,6 +297,8 @@ class _Problem:
     #: (3,) rad/s: the gyro-bias states' prior sigma where the bias was seeded (:class:`GyroBiasSeed`); None:
     #: the sensor grade's (``_gyro_bias_prior``)
     gyro_bias_prior_rad_s: np.ndarray | None = None
+    #: run_alignment's ``beside``: the flexure pass started beside the rigid one (:func:`_filter_passes`)
+    beside: Callable | None = None
 
 
 @dataclass(frozen=True)
@@ -465,16 +477,30 @@ def _filter_passes(prob: _Problem, inp: AlignInputs, src: str, progress: Callabl
                                 f"{prob.win.update_hz:g} Hz; lower update_hz or run without the smoother")
     prog(0.05, "alignment filter")
     sub = (lambda f, s="": prog(0.05 + 0.9 * f, s)) if progress else None
-    run = run_filter(inp, settings, progress=sub, compiled=cfg.compiled_kf)
+    flex_ahead = None  # the flexure pass started beside the rigid one (prob.beside), with its setup
+    if (prob.beside is not None and opts.flexure_auto and lay.flex_ang is None and not prob.smoother
+            and len(inp.t_epoch_s) * lay.n * cfg.pass_bytes_per_state_epoch < cfg.hold_one_pass_min_bytes):
+        ahead = _setup(prob, True, lay.has_board_states)
+        flex_ahead = (ahead, prob.beside(run_filter, inp, ahead[1], progress=None, compiled=cfg.compiled_kf))
+    try:
+        run = run_filter(inp, settings, progress=sub, compiled=cfg.compiled_kf)
+    except BaseException:
+        if flex_ahead is not None:
+            flex_ahead[1].cancel()
+        raise
     nis_rigid = _mean_nis(run)
     if opts.flexure_auto and lay.flex_ang is None and nis_rigid > cfg.flex_auto_nis * lay.n_meas:
         # residuals far beyond the noise model: is it a flexing slave? The flexure states are kept when
         # they explain most of the excess (mean NIS down by flex_auto_gain at least)
-        dropped = _run_bytes(run) >= cfg.hold_one_pass_min_bytes
+        dropped = flex_ahead is None and _run_bytes(run) >= cfg.hold_one_pass_min_bytes
         if dropped:
             del run
-        lay_f, st_f, sig0_f = _setup(prob, True, lay.has_board_states)
-        run_f = run_filter(inp, st_f, progress=None, compiled=cfg.compiled_kf)
+        if flex_ahead is not None:
+            (lay_f, st_f, sig0_f), pending = flex_ahead
+            run_f = pending.result()
+        else:
+            lay_f, st_f, sig0_f = _setup(prob, True, lay.has_board_states)
+            run_f = run_filter(inp, st_f, progress=None, compiled=cfg.compiled_kf)
         if _mean_nis(run_f) < cfg.flex_auto_gain * nis_rigid:
             notes.append(f"flexure states added (mean NIS/dof {nis_rigid / lay.n_meas:.1f} without them, "
                          f"{_mean_nis(run_f) / lay_f.n_meas:.1f} with)")
@@ -482,6 +508,8 @@ def _filter_passes(prob: _Problem, inp: AlignInputs, src: str, progress: Callabl
         elif dropped:
             del run_f
             run = run_filter(inp, settings, progress=None, compiled=cfg.compiled_kf)
+    elif flex_ahead is not None:  # (the rigid pass stands: the flexure pass beside it is not wanted)
+        flex_ahead[1].cancel()
     if lay.flex_ang is not None:
         notes.append(f"flexure states (seed 000 eq 8): sigma {_fmt3(np.degrees(sig0[lay.flex_ang]))} deg, "
                      f"beta {settings.flex_beta:.3g} 1/s")
