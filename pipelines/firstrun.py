@@ -106,10 +106,11 @@ LATE_MODULE = os.path.join("logtools", "alignment", "kf.py")
 
 def compile_bytecode_in_background() -> bool:
     """Byte-compile tapost's packages in a detached low-priority process, where that was not done at install
-    (``pip install -e`` does not; a regular ``pip install`` does). The first run's imports then find most of
-    their byte code ready instead of compiling every module's source themselves: the sample pair's first run
-    1.62-1.72 -> 1.52-1.55 s on 2 cores. Not where Python is told to write no byte code. Returns True when
-    started."""
+    (``pip install -e`` does not; a regular ``pip install`` does), for the runs after this one: the modules
+    this run does not import (batch, simulate, ...) too. It was measured to shorten the first run itself
+    (the sample pair 1.62-1.72 -> 1.52-1.55 s on 2 cores); once the run's own forked children kept the other
+    core busy, it no longer did (1.60 s either way, 2026-12-07). Not where Python is told to write no byte
+    code. Returns True when started."""
     if sys.dont_write_bytecode or os.environ.get("PYTHONDONTWRITEBYTECODE"):
         return False
     import importlib.util
