@@ -518,15 +518,19 @@ def test_attitude_only_matching_with_a_rolled_mounting_does_not_diverge(mount):
     assert np.all(np.abs(np.degrees(rotvec_from_quat(quat_from_dcm(e))) * 60.0) < 0.5)
 
 
+#: a multirotor whose slave flexes (with flexure=True) or not: the flexure="auto" tests' scenario
+_FLEXING_MULTIROTOR = dict(latency_s=0.0, drift_ppm=0.0, mount_rpy_deg=(122.8, 135.2, -127.5),
+                           master_imu_rate_hz=163.6, slave_imu_rate_hz=391.8, slave_nav_rate_hz=100.0,
+                           lever_arm_m=(-0.17, 0.12, 1.21), slave_vel_noise_m_s=0.005, slave_att_noise_deg=0.01,
+                           speed_m_s=4.0, turn_amp_deg=37.0, turn_period_s=44.3)
+
+
 def test_flexure_auto_adds_the_states_where_the_residuals_call_for_them():
     """flexure="auto" (what the CLI passes when the latency fit found no flexure model: a multirotor's fast
     motion pins the latency without it): a flexing slave's residuals far beyond the noise model bring the
     flexure states in (the mounting was 1.2 arcmin off at sigma 0.18 without them); a rigid one is left
     as it was."""
-    kw = dict(duration_s=90.0, latency_s=0.0, drift_ppm=0.0, mount_rpy_deg=(122.8, 135.2, -127.5),
-              master_imu_rate_hz=163.6, slave_imu_rate_hz=391.8, slave_nav_rate_hz=100.0,
-              lever_arm_m=(-0.17, 0.12, 1.21), slave_vel_noise_m_s=0.005, slave_att_noise_deg=0.01,
-              speed_m_s=4.0, turn_amp_deg=37.0, turn_period_s=44.3)
+    kw = dict(duration_s=90.0, **_FLEXING_MULTIROTOR)
     p = sim.simulate(sim.scenario_config("multirotor", seed=62015, flexure=True, **kw))
     rigid = run_alignment(p.master, p.slave, options=AlignmentOptions(estimate_lever_arm=True))
     auto = run_alignment(p.master, p.slave, options=AlignmentOptions(estimate_lever_arm=True, flexure="auto"))
@@ -1326,10 +1330,7 @@ def test_a_rigid_pass_not_held_beside_the_flexure_pass_gives_the_same_result(gai
     pass) drops the rigid pass before the flexure pass and runs it again where the flexure states are not
     kept: the same result as holding both, figure for figure, whether they are kept (flex_auto_gain 0.5) or
     not (0: never)."""
-    kw = dict(duration_s=60.0, latency_s=0.0, drift_ppm=0.0, mount_rpy_deg=(122.8, 135.2, -127.5),
-              master_imu_rate_hz=163.6, slave_imu_rate_hz=391.8, slave_nav_rate_hz=100.0,
-              lever_arm_m=(-0.17, 0.12, 1.21), slave_vel_noise_m_s=0.005, slave_att_noise_deg=0.01,
-              speed_m_s=4.0, turn_amp_deg=37.0, turn_period_s=44.3)
+    kw = dict(duration_s=60.0, **_FLEXING_MULTIROTOR)
     p = sim.simulate(sim.scenario_config("multirotor", seed=62015, flexure=True, **kw))
     opts = AlignmentOptions(estimate_lever_arm=True, flexure="auto")
     cfg = replace(CONFIG, flex_auto_gain=gain)
@@ -1369,10 +1370,7 @@ def test_the_flexure_pass_started_beside_gives_the_same_run(flexure):
     it, in the Python loop (where the CLI gives it) and with a real forked child (pipelines.parallel)."""
     from pipelines import parallel
 
-    kw = dict(duration_s=40.0, latency_s=0.0, drift_ppm=0.0, mount_rpy_deg=(122.8, 135.2, -127.5),
-              master_imu_rate_hz=163.6, slave_imu_rate_hz=391.8, slave_nav_rate_hz=100.0,
-              lever_arm_m=(-0.17, 0.12, 1.21), slave_vel_noise_m_s=0.005, slave_att_noise_deg=0.01,
-              speed_m_s=4.0, turn_amp_deg=37.0, turn_period_s=44.3)
+    kw = dict(duration_s=40.0, **_FLEXING_MULTIROTOR)
     p = sim.simulate(sim.scenario_config("multirotor", seed=62015, flexure=flexure, **kw))
     opts = AlignmentOptions(estimate_lever_arm=True, flexure="auto")
     cfg = replace(CONFIG, compiled_kf=False)
