@@ -102,14 +102,6 @@ def _median_dt(t: np.ndarray) -> float:
     return float(np.median(d)) if len(d) else float("nan")
 
 
-def _reindexed(st: Columns, t_new: np.ndarray) -> Columns:
-    return st.with_t(t_new)
-
-
-def _frame(cols: dict[str, np.ndarray], t: np.ndarray) -> Columns:
-    return Columns.from_dict(t, cols) if cols else Columns.empty()
-
-
 def _group_rows(st: Columns, cols: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
     if not all(c in st.data for c in cols) or len(st) == 0:
         return np.zeros(0), np.zeros((0, len(cols)))
@@ -209,7 +201,7 @@ def _resample(slave_true: InsLog, master: InsLog, kind: str) -> tuple[Columns, C
         ok_imu |= ok
         val[~ok] = np.nan
         imu_cols.update(zip(cols, val.T))
-    imu = _frame(imu_cols, t_m_imu).take(ok_imu) if imu_cols else Columns.empty()
+    imu = Columns.from_dict(t_m_imu, imu_cols).take(ok_imu) if imu_cols else Columns.empty()
     # nav
     nav_cols: dict[str, np.ndarray] = {}
     ok_nav = np.zeros(len(t_m_nav), bool)
@@ -221,7 +213,7 @@ def _resample(slave_true: InsLog, master: InsLog, kind: str) -> tuple[Columns, C
         ok_nav |= ok
         val[~ok] = np.nan
         nav_cols.update(zip(cols, val.T))
-    nav = _frame(nav_cols, t_m_nav).take(ok_nav) if nav_cols else Columns.empty()
+    nav = Columns.from_dict(t_m_nav, nav_cols).take(ok_nav) if nav_cols else Columns.empty()
     return imu, nav
 
 
@@ -261,13 +253,12 @@ def compensate(slave: InsLog, lat: LatencyResult, master: InsLog, *, method: str
     if slave.n_imu == 0 and slave.n_nav == 0:
         raise AnalysisError(f"{slave.meta.source_path}: slave log holds no samples to compensate")
     s = slave.rebased(master.meta.t0_ns)
-    d = lat.drift_ppm * 1e-6
     head = (f"compensated ({method}): latency {lat.latency_s * 1e3:+.4f} ms at master t={lat.t_mid_rel_s:.3f} s, "
             f"drift {lat.drift_ppm:+.3f} ppm (method {lat.method})")
 
     if method in ("restamp", "interp", "poly2"):
-        true_imu = _reindexed(s.imu_columns, true_time_s(s.t_imu_s(), lat))
-        true_nav = _reindexed(s.nav_columns, true_time_s(s.t_nav_s(), lat))
+        true_imu = s.imu_columns.with_t(true_time_s(s.t_imu_s(), lat))
+        true_nav = s.nav_columns.with_t(true_time_s(s.t_nav_s(), lat))
         if method == "restamp":
             out = s.with_streams(imu=true_imu, nav=true_nav)
             note = f"{head}; slave's own samples, stamps tau = (t - L0 + d t_mid)/(1 + d)"
@@ -289,8 +280,8 @@ def compensate(slave: InsLog, lat: LatencyResult, master: InsLog, *, method: str
             tau = true_time_s(t, lat)
             return tau + lat.latency_s - sp.integer_s  # = t - (drift part) - k dt
 
-        out = s.with_streams(imu=_reindexed(s.imu_columns, restamp(s.t_imu_s())),
-                             nav=_reindexed(s.nav_columns, restamp(s.t_nav_s())))
+        out = s.with_streams(imu=s.imu_columns.with_t(restamp(s.t_imu_s())),
+                             nav=s.nav_columns.with_t(restamp(s.t_nav_s())))
         if method == "shift":
             note = (f"{head}; S000 data shifting by k={sp.k_samples} samples x dt={dt:.6g} s "
                     f"({sp.integer_s * 1e3:+.4f} ms), drift removed from the stamps; "

@@ -588,12 +588,6 @@ def _union_sorted(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return c[np.concatenate([[True], c[1:] != c[:-1]])]
 
 
-def _frame(block: np.ndarray, t_s: np.ndarray, names: tuple[str, ...] | list[str]) -> Columns:
-    """The stream's columns over ``block`` (k, N), one column per row, without a copy (its DataFrame, when
-    asked for, is the layout pandas gives a frame built from k columns: one consolidated (k, N) block)."""
-    return Columns.from_block(t_s, names, block)
-
-
 def _shifted(cleaned: dict[str, Stream], offset: ClockOffset, clock: str, stamp_source: str, selector: str,
              warns: list[str]) -> tuple[dict[str, Stream], str, str, str]:
     """The cleaned streams with ``offset`` added (and the clock, stamp source, selector it gives), or as they
@@ -682,7 +676,7 @@ def assemble_inslog(streams: dict[str, Stream | None], *, path: str, fmt: str, s
             if not keep.all():
                 block, t_imu = block[:, keep], t_imu[keep]
             del keep
-        imu = _frame(block, t_imu, names)
+        imu = Columns.from_block(t_imu, names, block)  # (the columns are its rows: no copy)
         del block, t_imu
 
     parts = [(key, names, cleaned.pop(key)) for key, names in (("quat", QUAT), ("vel", VEL), ("pos", POS))
@@ -711,7 +705,7 @@ def assemble_inslog(streams: dict[str, Stream | None], *, path: str, fmt: str, s
             channels[{"quat": "att", "vel": "vel", "pos": "pos"}[key]] = ChannelInfo(
                 rate_of(rel(s.t_ns)), len(s.t_ns), s.source, s.stamp_resolution_s, s.clock_sigma_s, s.clock_offset_ns)
             del s, rows, at
-        nav = _frame(block, rel(t_nav), names)
+        nav = Columns.from_block(rel(t_nav), names, block)
         del block, t_nav
     else:
         nav = Columns.empty()

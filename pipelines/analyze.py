@@ -79,10 +79,11 @@ def numerics_stage(name: str) -> Callable:
     return fn
 
 
-def _kernels_release_the_gil() -> bool:
-    """This process runs the compiled kernels (logtools.jit), which let a second thread run beside them. The
-    reference code's Python holds the GIL: the latency's velocity pair in a thread beside its rate fit made
-    the sample pair's first run 0.25-0.3 s slower instead of faster."""
+def _kernels_compiled() -> bool:
+    """This process runs the compiled kernels (logtools.jit). They release the GIL, so that a second thread can
+    run beside them (the reference code's Python holds it: the latency's velocity pair in a thread beside its
+    rate fit made the sample pair's first run 0.25-0.3 s slower instead of faster), and a filter pass takes
+    tens of ms, too little for a fork (the reference code's passes are worth one: compute)."""
     from logtools import jit
 
     return jit.compiled()
@@ -506,9 +507,8 @@ def _uncompensated_options(opts: AnalyzeOptions, compensated: bool) -> AnalyzeOp
     return opts
 
 
-#: the modules of the outputs (write_outputs) and what they import: rerun's SDK alone is about 0.4 s
-#: the output stages' imports, done ahead (in the recording's prepared child, or while this process waits).
-#: pandas is the recording's too: pyarrow, under rerun, imports it on the first array it converts (to ask
+#: the modules of the outputs (write_outputs) and what they import (rerun's SDK alone is about 0.4 s), done
+#: ahead: in the recording's prepared child, or while this process waits. pandas is the recording's too: pyarrow, under rerun, imports it on the first array it converts (to ask
 #: whether that is a pandas object), and nothing before the recording needs it on the analysis' own path
 OUTPUT_MODULES = {"html": ("pipelines.html",), "recording": ("pipelines.recording", "rerun", "rerun.blueprint", "pandas")}
 
@@ -858,7 +858,7 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
             beside = ({"beside": parallel.submit} if parallel.available() and opts.compare
                       and n_imu <= parallel.FORK_COMPARE_MAX_SAMPLES and "beside" in takes else {})
             if (parallel.available() and n_imu <= parallel.THREAD_LATENCY_MAX_SAMPLES and "overlap" in takes
-                    and _kernels_release_the_gil()):
+                    and _kernels_compiled()):
                 beside["overlap"] = True  # (the velocity pair in a thread beside the rate fit)
             an.latency = estimate(master, slave, method=opts.latency_method, max_lag_s=max_lag,
                                   compare=opts.compare, progress=sub(0.15, 0.45, "latency"), **beside)
@@ -917,7 +917,7 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
         # pass in a child of its own beside its rigid pass (run_alignment's ``beside``): the delay left in
         # the uncompensated slave makes the flexure pass follow almost always, and the run's three passes
         # were the alignment stage's critical path (the sample pair's first run: 0.72 s of Python passes)
-        flex_beside = None if _kernels_release_the_gil() else parallel.submit
+        flex_beside = None if _kernels_compiled() else parallel.submit
         _prepare_master(master)
         if run_opts["uncompensated"] is not opts and _numerics.run_alignment is None:
             # --board-errors auto: the compensated run decides the board's states; the uncompensated one
