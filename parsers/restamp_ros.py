@@ -54,7 +54,7 @@ from parsers import ros_common as rc
 from parsers.atomic import atomic_folder, atomic_path, check_replaceable
 from parsers.base import Selector, check_readable
 from parsers.filemap import FileMap
-from parsers.restamp import ClockShift, RestampStats, get_bytes, mapped_copy
+from parsers.restamp import ClockShift, RestampStats, export_hugepages, get_bytes, mapped_copy
 
 HEADER = "std_msgs/msg/Header"
 #: a topic whose header stamps are this far from the unit's clock is on another clock
@@ -1016,6 +1016,11 @@ def _chunk_bytes(sc: _McapScan) -> int:
 
 def restamp_mcap(src: str, dst: str, shift: ClockShift, *, selector: str | None = None) -> RestampStats:
     """An MCAP file with every message kept, header stamps and log/publish times on the master's clock."""
+    with export_hugepages():  # (its few large buffers: the file's copy, the decompressed chunks)
+        return _restamp_mcap(src, dst, shift, selector)
+
+
+def _restamp_mcap(src: str, dst: str, shift: ClockShift, selector: str | None) -> RestampStats:
     from rosbags.typesys import Stores, get_typestore
 
     sc = _scan_mcap(src)

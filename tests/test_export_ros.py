@@ -582,6 +582,33 @@ def test_zstd_chunks_are_inflated_into_the_messages_buffer(big, tmp_path, monkey
     assert len(st.damage) == 1 and f"chunk at byte {off}" in st.damage[0]
 
 
+def test_mcap_export_turns_numpy_hugepages_on_for_its_time_only(big, tmp_path, monkeypatch):
+    """The MCAP export runs with numpy's huge-page advice on (its few large buffers, parsers.restamp.
+    EXPORT_HUGEPAGES) and gives numpy's setting back as it was, also when it fails; the output bytes are
+    those of an export with the advice off."""
+    from numpy._core import multiarray as ma
+
+    from parsers import restamp
+
+    src, shift = big["mcap"], _shift_for(big["log"])
+    seen = []
+    scan = rr._scan_mcap
+    monkeypatch.setattr(rr, "_scan_mcap", lambda path: (seen.append(ma._set_madvise_hugepage(True)), scan(path))[1])
+    before = ma._set_madvise_hugepage(False)
+    try:
+        rr.restamp_mcap(src, str(tmp_path / "on.mcap"), shift)
+        assert seen == [True] and ma._set_madvise_hugepage(False) is False  # on inside, off again after
+        with pytest.raises(InputError):
+            rr.restamp_mcap(str(tmp_path / "missing.mcap"), str(tmp_path / "x.mcap"), shift)
+        assert ma._set_madvise_hugepage(False) is False
+        monkeypatch.setattr(restamp, "EXPORT_HUGEPAGES", False)
+        rr.restamp_mcap(src, str(tmp_path / "off.mcap"), shift)
+        assert seen[-1] is False
+    finally:
+        ma._set_madvise_hugepage(before)
+    assert _digest(str(tmp_path / "on.mcap")) == _digest(str(tmp_path / "off.mcap"))
+
+
 def test_unreadable_or_wrong_input_is_one_clear_error(big, tmp_path):
     junk = tmp_path / "junk.bag"
     junk.write_bytes(b"not a bag at all")
