@@ -178,14 +178,16 @@ def _pack(conn: np.ndarray, log_ns: np.ndarray, parts: list) -> _Msgs:
     return _Msgs(np.asarray(conn, np.int64), np.asarray(log_ns, np.int64), buf, starts, lens)
 
 
-def _unit(streams: list[_Stream], msgs: _Msgs, typestore, selector: str | None, path: str) -> tuple[set[str], str]:
-    """The topics tapost reads the slave from (with ``selector``) and the time mode (header/log)."""
+def _unit(streams: list[_Stream], msgs: _Msgs, typestore, selector: str | None, path: str,
+          where: list[np.ndarray]) -> tuple[set[str], str]:
+    """The topics tapost reads the slave from (with ``selector``) and the time mode (header/log); ``where``:
+    each stream's message indexes."""
     sel = Selector.parse(selector or "")
     mode = (sel.get("time") or "header").lower()
     topics: dict[str, rc.RawTopic] = {}
     for k, s in enumerate(streams):
         if s.msgtype in rc.SUPPORTED and s.encoding in mcap_ros.READ_ENCODINGS and s.topic not in topics:
-            idx = np.flatnonzero(msgs.conn == k)
+            idx = where[k]
             topics[s.topic] = rc.RawTopic(s.topic, s.msgtype, s.encoding, msgs.log_ns[idx],
                                           [msgs.payload(i) for i in idx[:20].tolist()])
     raw = rc.RawLog(path=path, fmt="", topics=topics, typestore=typestore)
@@ -246,7 +248,8 @@ def _apply(streams: list[_Stream], msgs: _Msgs, typestore, shift: ClockShift, se
            path: str) -> tuple[np.ndarray, _Msgs, list[str]]:
     """New record times; the payloads restamped (in ``msgs.buf``, in place); notes on what was left."""
     n = len(msgs.log_ns)
-    unit, mode = _unit(streams, msgs, typestore, selector, path)
+    where = [np.flatnonzero(msgs.conn == k) for k in range(len(streams))]  # each stream's messages
+    unit, mode = _unit(streams, msgs, typestore, selector, path, where)
     stamp = np.zeros(n, np.int64)  # header stamp of Header-first messages (0: none / unset)
     first: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # stream -> (message index, big endian)
     notes: list[str] = []
@@ -254,7 +257,7 @@ def _apply(streams: list[_Stream], msgs: _Msgs, typestore, shift: ClockShift, se
     for k, s in enumerate(streams):
         if s.kind != _FIRST or s.encoding not in ("ros1", "cdr"):
             continue
-        idx = np.flatnonzero(msgs.conn == k)
+        idx = where[k]
         ok = msgs.lens[idx] >= 12
         if not ok.all():
             notes.append(f"{s.topic}: {int((~ok).sum())} messages too short for a header; kept unchanged")
@@ -266,7 +269,7 @@ def _apply(streams: list[_Stream], msgs: _Msgs, typestore, shift: ClockShift, se
     texts: dict[int, np.ndarray] = {}  # JSON-encoded streams: message index (their stamps read from the text)
     for k, s in enumerate(streams):
         if s.kind == _JSON:
-            idx = np.flatnonzero(msgs.conn == k)
+            idx = where[k]
             stamp[idx] = [_json_stamp_ns(msgs.payload(i)) for i in idx.tolist()]
             texts[k] = idx
     log = msgs.log_ns
@@ -276,15 +279,18 @@ def _apply(streams: list[_Stream], msgs: _Msgs, typestore, shift: ClockShift, se
     else:
         is_unit = np.array([s.topic in unit for s in streams] or [False], bool)[msgs.conn]
         have = is_unit & (stamp != 0)
-        ref = int(np.median(stamp[have] - log[have])) if have.any() else 0
+        d = stamp - log  # (each message's stamp - record time, int64 as the medians take it)
+        exact = n > 0 and int(log.min()) >= 0 and int(stamp.min()) >= 0  # (then no wrap in ``d``)
+        ref = int(np.median(d[have])) if have.any() else 0
         t_an = log + ref
         for idx in [idx for idx, _be in first.values()] + list(texts.values()):
             h = idx[stamp[idx] != 0]
-            if len(h) and abs(int(np.median(stamp[h] - log[h])) - ref) < _SAME_CLOCK_NS:
+            dh = d[h]
+            if len(h) and abs(int(np.median(dh)) - ref) < _SAME_CLOCK_NS:
                 # (as the reader's stray-stamp policy, parsers.assemble: a stamp a day away from where its
                 # record puts it is a damaged field, not an instant: the record's time gives its shift)
-                far = np.abs(stamp[h].astype(float) - log[h].astype(float) - ref) > _FAR_NS
-                if far.any():
+                far = _far_stamps(stamp, log, h, dh, ref, exact)
+                if far is not None:
                     wild[h[far]] = True
                     h = h[~far]
                 t_an[h] = stamp[h]
@@ -298,9 +304,13 @@ def _apply(streams: list[_Stream], msgs: _Msgs, typestore, shift: ClockShift, se
     if wild.any():
         notes.append(f"{int(wild.sum())} header stamp(s) more than a day from their record times (damaged?): "
                      "written unchanged, their records shifted by their record times")
+    any_wild = bool(wild.any())
     for k, (idx, be) in first.items():
         st = stamp[idx]
-        new = np.where((st == 0) | wild[idx], st, st - delta[idx])
+        keep = (st == 0) | wild[idx] if any_wild else st == 0  # (unset or damaged stamps: written unchanged)
+        new = st - delta[idx]
+        if keep.any():
+            new = np.where(keep, st, new)
         if int(new.min()) < 0:
             j = int(np.argmin(new))
             raise InputError(f"{streams[k].topic}: the shift would make header stamps negative (message "
@@ -353,6 +363,20 @@ def _apply(streams: list[_Stream], msgs: _Msgs, typestore, shift: ClockShift, se
         parts = [grown[i] if i in grown else msgs.payload(i) for i in range(n)]
         msgs = _pack(msgs.conn, msgs.log_ns, parts)
     return new_log, msgs, notes
+
+
+def _far_stamps(stamp: np.ndarray, log: np.ndarray, h: np.ndarray, dh: np.ndarray, ref: int,
+                exact: bool) -> np.ndarray | None:
+    """Of the messages ``h`` (``dh``: their stamp - record time, int64), those whose header stamp is more than
+    _FAR_NS from where their record time and ``ref`` put it, as float64 arithmetic decides (the reader's
+    policy); None where there is none. Where ``dh`` is exact (``exact``: stamps and record times >= 0, so no
+    int64 wrap) and every ``dh`` is within _FAR_NS less 1 ms of ``ref``, there is none, decided without the
+    float64 pass (its rounding of such nanosecond counts stays below 10 us)."""
+    lim = _FAR_NS - 1_000_000
+    if exact and bool(((dh >= ref - lim) & (dh <= ref + lim)).all()):
+        return None
+    far = np.abs(stamp[h].astype(float) - log[h].astype(float) - ref) > _FAR_NS
+    return far if far.any() else None
 
 
 def _new_payload(msgs: _Msgs, i: int, out: bytes, grown: dict[int, bytes]) -> None:

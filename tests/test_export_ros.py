@@ -609,6 +609,31 @@ def test_mcap_export_turns_numpy_hugepages_on_for_its_time_only(big, tmp_path, m
     assert _digest(str(tmp_path / "on.mcap")) == _digest(str(tmp_path / "off.mcap"))
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_far_stamps_decide_as_the_float_rule(seed):
+    """rr._far_stamps (an int64 pre-check before the float64 rule) marks exactly the stamps the float64 rule
+    marks: stamps near the one-day limit on either side, huge and negative record times (int64 wrap)."""
+    rng = np.random.default_rng(seed)
+    n = 4000
+    log = rng.integers(0, 4_000_000_000_000_000_000, n)
+    ref = int(rng.integers(-10**12, 10**12))
+    off = rng.normal(0, 1e9, n).astype(np.int64)
+    edge = rng.random(n) < 0.05  # within microseconds of the limit, or beyond
+    off[edge] = (rng.choice([-1, 1], edge.sum()) * (rr._FAR_NS + rng.integers(-5000, 5000, edge.sum())))
+    stamp = np.clip(log + ref + off, 1, 2**32 * 10**9 - 1)
+    cases = [(stamp, log, True)]
+    log2 = log.copy()
+    log2[:5] = -(2**62) - rng.integers(0, 2**61, 5)  # a damaged record time read as a negative int64
+    cases.append((stamp, log2, False))
+    for st, lg, exact_ok in cases:
+        exact = bool(int(lg.min()) >= 0 and int(st.min()) >= 0)
+        assert exact is exact_ok
+        for h in (np.arange(n), np.flatnonzero(~edge), np.flatnonzero(rng.random(n) < 0.5)):
+            want = np.abs(st[h].astype(float) - lg[h].astype(float) - ref) > rr._FAR_NS
+            got = rr._far_stamps(st, lg, h, (st - lg)[h], ref, exact)
+            assert (got is None and not want.any()) or (got is not None and np.array_equal(got, want))
+
+
 def test_unreadable_or_wrong_input_is_one_clear_error(big, tmp_path):
     junk = tmp_path / "junk.bag"
     junk.write_bytes(b"not a bag at all")
