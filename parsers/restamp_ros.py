@@ -681,6 +681,55 @@ def _bag1_places(file: np.ndarray, off: int, hlen: int) -> dict[str, tuple[int, 
     return out
 
 
+def _bag1_index_entries(file: np.ndarray, scan: _Scan1) -> tuple[list, list, list]:
+    """The entries of the bag's index data records (version 1, each after a chunk): where each lies in
+    ``file``, the data start of its chunk, its connection id (as lists of arrays). The records whose headers
+    are laid out as the first one's of their length (the same fields in the same order: a writer's records)
+    are read together, column by column; any other one by one."""
+    pos, base, want = [], [], []
+    recs = np.asarray(scan.index_recs, np.int64).reshape(-1, 4)
+    data0 = np.asarray([c[1] for c in scan.chunk_recs] or [0], np.int64)
+    alone = np.zeros(len(recs), bool)
+    for hlen in np.unique(recs[:, 1]).tolist():
+        rows = np.flatnonzero(recs[:, 1] == hlen)
+        off, nxt, ci = recs[rows, 0], recs[rows, 2], recs[rows, 3]
+        places = _bag1_places(file, int(off[0]), hlen)
+        head = get_bytes(file, off + 4, hlen)  # (n, hlen): each record's header
+        layout = np.ones(hlen, bool)  # the bytes other than the field values: lengths, names, '='
+        for at, ln in places.values():
+            layout[at - int(off[0]) - 4:at - int(off[0]) - 4 + ln] = False
+        same = (head[:, layout] == head[0, layout]).all(axis=1)
+        alone[rows[~same]] = True
+        rows, off, nxt, ci, head = rows[same], off[same], nxt[same], ci[same], head[same]
+        if not len(rows):
+            continue
+        value = {}
+        for name in ("count", "ver", "conn"):
+            at, ln = places.get(name, (0, -1))
+            if ln != 4:
+                raise _NotInPlace(f"a record header's {name} field missing or not of 4 bytes")
+            rel = at - int(off[0]) - 4
+            value[name] = np.ascontiguousarray(head[:, rel:rel + 4]).view("<u4").ravel().astype(np.int64)
+        count = value["count"]
+        bad = (ci < 0) | (value["ver"] != 1) | (nxt - (off + 8 + hlen) != 12 * count)
+        if bad.any():
+            raise _NotInPlace(f"index data record at byte {int(off[np.argmax(bad)])} not of version 1 after a chunk")
+        first = np.cumsum(count) - count
+        k = np.arange(int(count.sum()), dtype=np.int64) - np.repeat(first, count)  # entry number in its record
+        pos.append(np.repeat(off + 8 + hlen, count) + 12 * k)
+        base.append(np.repeat(data0[np.maximum(ci, 0)], count))
+        want.append(np.repeat(value["conn"], count))
+    for off, hlen, nxt, ci in recs[alone].tolist():
+        places = _bag1_places(file, off, hlen)
+        count = _uint_field(file, places, "count")
+        if ci < 0 or _uint_field(file, places, "ver") != 1 or nxt - (off + 8 + hlen) != 12 * count:
+            raise _NotInPlace(f"index data record at byte {off} not of version 1 after a chunk")
+        pos.append(off + 8 + hlen + 12 * np.arange(count, dtype=np.int64))
+        base.append(np.full(count, scan.chunk_recs[ci][1], np.int64))
+        want.append(np.full(count, _uint_field(file, places, "conn"), np.int64))
+    return pos, base, want
+
+
 def _uint_field(file: np.ndarray, places: dict[str, tuple[int, int]], name: str, size: int = 4) -> int:
     """The little-endian unsigned value (``size`` bytes: 4 or 8) of header field ``name`` (:func:`_bag1_places`)."""
     at, ln = places.get(name, (0, -1))
@@ -712,15 +761,7 @@ def _patch_bag1(file: np.ndarray, src: str, scan: _Scan1, shift: ClockShift,
     if n > 1 and not bool((rec_at[1:] > rec_at[:-1]).all()):  # (the scan's blocks are in the file's order)
         raise _NotInPlace("messages not in the file's order")
     # index data (ver 1): per connection and chunk, (time, offset of the record in the chunk's data) entries
-    pos, base, want = [], [], []
-    for off, hlen, nxt, ci in scan.index_recs:
-        places = _bag1_places(file, off, hlen)
-        count = _uint_field(file, places, "count")
-        if ci < 0 or _uint_field(file, places, "ver") != 1 or nxt - (off + 8 + hlen) != 12 * count:
-            raise _NotInPlace(f"index data record at byte {off} not of version 1 after a chunk")
-        pos.append(off + 8 + hlen + 12 * np.arange(count, dtype=np.int64))
-        base.append(np.full(count, scan.chunk_recs[ci][1], np.int64))
-        want.append(np.full(count, _uint_field(file, places, "conn"), np.int64))
+    pos, base, want = _bag1_index_entries(file, scan)
     if pos:
         ids = np.asarray(cids, np.int64)  # (each entry's connection as the messages' number of it, -1: none)
         want_k = np.minimum(np.searchsorted(ids, np.concatenate(want)), len(ids) - 1)

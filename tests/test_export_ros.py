@@ -152,8 +152,35 @@ def _ros_ns(b: bytes) -> int:
     return sec * 1_000_000_000 + nsec
 
 
-def test_uncompressed_bag_is_copied_with_only_its_time_fields_rewritten(slaves, tmp_path):
+def _reordered_index_headers(data: bytes, every: int) -> bytes:
+    """``data`` (a ROS 1 bag) with the header fields of every ``every``-th index data record in reverse order
+    (the same fields and length, laid out otherwise: as another writer may)."""
+    out = bytearray(data)
+    k = 0
+    for off, f, _d0, _d1 in _bag1_records(data, len(rosbag1.MAGIC), len(data)):
+        if f["op"][1] != b"\x04":
+            continue
+        if k % every == 0:
+            (hlen,) = struct.unpack_from("<I", data, off)
+            parts, p = [], off + 4
+            while p < off + 4 + hlen:
+                (ln,) = struct.unpack_from("<I", data, p)
+                parts.append(data[p:p + 4 + ln])
+                p += 4 + ln
+            out[off + 4:off + 4 + hlen] = b"".join(reversed(parts))
+        k += 1
+    return bytes(out)
+
+
+@pytest.mark.parametrize("layout", ["as written", "index headers laid out otherwise"])
+def test_uncompressed_bag_is_copied_with_only_its_time_fields_rewritten(slaves, tmp_path, layout):
+    """Every time field of the copy is the shifted one, every other byte as it was; also where some index
+    data records' headers are laid out otherwise than the others (read one by one, not with the rest)."""
     src = slaves["x.bag"]
+    if layout != "as written":
+        src = str(tmp_path / "reordered.bag")
+        with open(src, "wb") as fh:
+            fh.write(_reordered_index_headers(open(slaves["x.bag"], "rb").read(), 3))
     shift = _shift_for(parsers.load(src))
     dst = str(tmp_path / "out.bag")
     st = rr.restamp_rosbag1(src, dst, shift)
