@@ -153,15 +153,16 @@ def read_bytes(src: str) -> np.ndarray:
     return np.fromfile(src, dtype=np.uint8)
 
 
-#: numpy's huge-page advice (madvise(MADV_HUGEPAGE) on arrays of 4 MB and more) on while an MCAP export runs.
-#: A tapost process keeps it off (``pipelines.cli.NUMPY_HUGEPAGES``: its analysis stages allocate and free many
-#: arrays); an export instead allocates a few large buffers that it fills once, whole (the file's copy, its
-#: decompressed chunks, the columns of message offsets, times and stamps), and with 4 KiB pages each page of
-#: them is one fault. Measured on the 1 h 200 Hz MCAP slave (316 MB of chunks), the export in one process:
-#: 125 000 page faults and 0.26-0.32 s of system time with it off, 11 000-13 000 and 0.10-0.20 s with it on;
-#: 0.63-0.68 s against 0.45-0.57 s wall; the same output bytes. Not for the other formats' exports: tried on
-#: all of them, the ROS 2 sqlite3 and CSV exports got slower in some runs (the kernel compacting memory to find
-#: huge pages), and they allocate no such buffers.
+#: numpy's huge-page advice (madvise(MADV_HUGEPAGE) on arrays of 4 MB and more) on while an MCAP or a ROS 1 bag
+#: export runs. A tapost process keeps it off (``pipelines.cli.NUMPY_HUGEPAGES``: its analysis stages allocate
+#: and free many arrays); these exports instead allocate a few large buffers that they fill once, whole (the
+#: file's copy, its decompressed chunks, the columns of message offsets, times and stamps), and with 4 KiB
+#: pages each page of them is one fault. Measured on the 1 h 200 Hz slaves, the export in one process: MCAP
+#: (316 MB of chunks) 125 000 page faults and 0.26-0.32 s of system time with it off, 11 000-13 000 and
+#: 0.10-0.20 s with it on, 0.63-0.68 s against 0.45-0.57 s wall; ROS 1 bag (347 MB) 0.50 against 0.47 s
+#: (medians of 5 processes). The same output bytes. Not for the other formats' exports: tried on all of them,
+#: the ROS 2 sqlite3 and CSV exports got slower in some runs (the kernel compacting memory to find huge
+#: pages), and they allocate no such buffers.
 EXPORT_HUGEPAGES = True
 
 

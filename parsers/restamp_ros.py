@@ -565,6 +565,11 @@ def restamp_rosbag1(src: str, dst: str, shift: ClockShift, *, selector: str | No
     bag of uncompressed chunks copied and its time fields rewritten where they lie
     (:func:`_restamp_bag1_in_place`), any other (compressed chunks, damage) written anew by
     :func:`parsers.ros_containers.write_bag1` from what the scan read."""
+    with export_hugepages():  # (its columns of message offsets, times and stamps, over the whole bag)
+        return _restamp_rosbag1(src, dst, shift, selector)
+
+
+def _restamp_rosbag1(src: str, dst: str, shift: ClockShift, selector: str | None) -> RestampStats:
     check_readable(src)
     with FileMap(src) as fmap:
         scan = None

@@ -609,31 +609,38 @@ def test_zstd_chunks_are_inflated_into_the_messages_buffer(big, tmp_path, monkey
     assert len(st.damage) == 1 and f"chunk at byte {off}" in st.damage[0]
 
 
-def test_mcap_export_turns_numpy_hugepages_on_for_its_time_only(big, tmp_path, monkeypatch):
-    """The MCAP export runs with numpy's huge-page advice on (its few large buffers, parsers.restamp.
-    EXPORT_HUGEPAGES) and gives numpy's setting back as it was, also when it fails; the output bytes are
-    those of an export with the advice off."""
+@pytest.mark.parametrize("fmt", ["mcap", "rosbag1"])
+def test_mcap_and_bag_exports_turn_numpy_hugepages_on_for_their_time_only(big, slaves, tmp_path, monkeypatch, fmt):
+    """The MCAP and ROS 1 bag exports run with numpy's huge-page advice on (their large buffers,
+    parsers.restamp.EXPORT_HUGEPAGES) and give numpy's setting back as it was, also when they fail; the
+    output bytes are those of an export with the advice off (the bag: compressed, and uncompressed in place)."""
     from numpy._core import multiarray as ma
 
     from parsers import restamp
 
-    src, shift = big["mcap"], _shift_for(big["log"])
+    write = rr.restamp_mcap if fmt == "mcap" else rr.restamp_rosbag1
+    sources = [big["mcap"]] if fmt == "mcap" else [big["rosbag1"], slaves["x.bag"]]
     seen = []
-    scan = rr._scan_mcap
-    monkeypatch.setattr(rr, "_scan_mcap", lambda path: (seen.append(ma._set_madvise_hugepage(True)), scan(path))[1])
+    apply = rr._apply
+    monkeypatch.setattr(rr, "_apply", lambda *a: (seen.append(ma._set_madvise_hugepage(True)), apply(*a))[1])
     before = ma._set_madvise_hugepage(False)
     try:
-        rr.restamp_mcap(src, str(tmp_path / "on.mcap"), shift)
-        assert seen == [True] and ma._set_madvise_hugepage(False) is False  # on inside, off again after
-        with pytest.raises(InputError):
-            rr.restamp_mcap(str(tmp_path / "missing.mcap"), str(tmp_path / "x.mcap"), shift)
-        assert ma._set_madvise_hugepage(False) is False
-        monkeypatch.setattr(restamp, "EXPORT_HUGEPAGES", False)
-        rr.restamp_mcap(src, str(tmp_path / "off.mcap"), shift)
-        assert seen[-1] is False
+        for k, src in enumerate(sources):
+            shift = _shift_for(parsers.load(src))
+            on, off = str(tmp_path / f"on{k}.{fmt}"), str(tmp_path / f"off{k}.{fmt}")
+            monkeypatch.setattr(restamp, "EXPORT_HUGEPAGES", True)
+            write(src, on, shift)
+            assert seen[-1] is True and ma._set_madvise_hugepage(False) is False  # on inside, off again after
+            with pytest.raises(InputError):
+                write(str(tmp_path / "missing"), str(tmp_path / "x"), shift)
+            assert ma._set_madvise_hugepage(False) is False
+            monkeypatch.setattr(restamp, "EXPORT_HUGEPAGES", False)
+            write(src, off, shift)
+            assert seen[-1] is False
+            ma._set_madvise_hugepage(False)  # (what the spy turned on, with nothing to turn it back)
+            assert _digest(on) == _digest(off)
     finally:
         ma._set_madvise_hugepage(before)
-    assert _digest(str(tmp_path / "on.mcap")) == _digest(str(tmp_path / "off.mcap"))
 
 
 @pytest.mark.parametrize("seed", range(4))
