@@ -446,9 +446,10 @@ def _close_prepared() -> None:
     _PREPARED.clear()
 
 
-def prepare(name: str, modules: tuple[str, ...]) -> bool:
-    """Fork a child that imports ``modules`` now and then waits for one call (``call_prepared(name, ...)``);
-    where forking is not allowed, nothing (the call will run here). Returns whether a child started."""
+def prepare(name: str, modules: tuple[str, ...], setup: tuple[str, str] | None = None) -> bool:
+    """Fork a child that imports ``modules`` now, calls ``setup`` (module, function; an optimisation: what
+    fails there is ignored) and then waits for one call (``call_prepared(name, ...)``); where forking is not
+    allowed, nothing (the call will run here). Returns whether a child started."""
     if not available() or name in _PREPARED:
         return False
     try:
@@ -473,6 +474,11 @@ def prepare(name: str, modules: tuple[str, ...]) -> bool:
             _in_child(memfd)
             for m in modules:
                 importlib.import_module(m)
+            if setup is not None:
+                try:
+                    getattr(importlib.import_module(setup[0]), setup[1])()
+                except Exception:  # noqa: BLE001 - the call runs without it
+                    pass
             fh = os.fdopen(req_r, "rb")
             try:
                 fn, args, kwargs, awaiting = pickle.load(fh)

@@ -254,6 +254,30 @@ def test_a_prepared_child_imports_ahead_and_runs_the_call_sent_later(forking):
     assert parallel.call_prepared("t", _pid_and_sum, np.ones(2)) == (os.getpid(), 2.0)
 
 
+def _mark_setup():
+    os.environ["TAPOST_TEST_SETUP"] = str(os.getpid())
+
+
+def _failing_setup():
+    raise RuntimeError("a setup that fails")
+
+
+def _setup_state():
+    return os.getpid(), os.environ.get("TAPOST_TEST_SETUP")
+
+
+@posix_fork
+def test_a_prepared_child_runs_its_setup_after_its_imports_and_a_failing_one_changes_nothing(forking):
+    os.environ.pop("TAPOST_TEST_SETUP", None)
+    assert parallel.prepare("s", ("colorsys",), setup=(__name__, "_mark_setup"))
+    pid, mark = parallel.call_prepared("s", _setup_state)
+    assert pid != os.getpid() and mark == str(pid) and "TAPOST_TEST_SETUP" not in os.environ
+    assert parallel.prepare("f", (), setup=(__name__, "_failing_setup"))
+    assert parallel.call_prepared("f", _pid_and_sum, np.ones(3))[1] == 3.0
+    assert parallel.prepare("m", (), setup=("no_such_module_here", "f"))
+    assert parallel.call_prepared("m", _pid_and_sum, np.ones(2))[1] == 2.0
+
+
 @posix_fork
 def test_a_prepared_childs_exception_comes_back_and_what_cannot_travel_runs_here(forking):
     parallel.prepare("boom", ())

@@ -110,3 +110,27 @@ def test_a_recording_that_fails_while_streamed_to_its_file_leaves_no_file(tmp_pa
     with pytest.raises(RuntimeError, match="while building"):
         write_recording(str(out), an, fake_report(an))
     assert list(tmp_path.iterdir()) == []
+
+
+def test_pyarrow_told_pandas_is_not_there_converts_arrays_and_leaves_pandas_importable():
+    """``pyarrow_without_pandas`` (the recording's prepared child): pyarrow converts arrays without importing
+    pandas, and pandas stays importable for anything else; where pandas is loaded already, nothing changes.
+    (The CLI's recording, written so, equals the in-process one: test_parallel.)"""
+    import subprocess
+    import sys
+
+    code = "\n".join([
+        "import sys, numpy as np",
+        "from pipelines.recording import pyarrow_without_pandas",
+        "pyarrow_without_pandas()",
+        "import pyarrow as pa",
+        "a = pa.array(np.arange(4.0)); t = pa.table({'x': np.arange(3)})",
+        "before = 'pandas' in sys.modules",
+        "import pandas",
+        "print(before, a.to_pylist(), t.num_rows, pa.lib._pandas_api.have_pandas)",
+        "pyarrow_without_pandas()",  # (pandas loaded: nothing)
+    ])
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.split() == ["False", "[0.0,", "1.0,", "2.0,", "3.0]", "3", "False"]
+
