@@ -49,36 +49,34 @@ COLORS = {"master": [30, 30, 30], "slave_raw": [230, 120, 20], "slave_comp": [31
 RUN_COLORS = {"uncompensated": [214, 39, 40], "compensated": [31, 119, 180]}
 
 
-def pyarrow_without_pandas() -> None:
-    """pyarrow told, once, that pandas is not there, in a process that will not need it (the recording's
-    prepared child: ``pipelines.analyze.RECORDING_CHILD_SETUP``). On its first array pyarrow imports pandas
-    only to ask whether each array it converts is a pandas object (its one attempt, remembered for the
-    process): 0.1-0.25 s of CPU in every short run's recording child, beside the analysis that wants both
-    cores. The attempt is made here with pandas' import refused, then pandas is importable again for
-    anything else (rerun does not need it to write; the recording is the same, tested). Only an
-    optimisation: wherever pyarrow does not behave so, nothing changes."""
+class _PandasRefused:
+    """A module finder that refuses pandas (see :func:`without_pandas`)."""
+
+    @staticmethod
+    def find_spec(name, path=None, target=None):
+        if name == "pandas" or name.startswith("pandas."):
+            raise ModuleNotFoundError(f"No module named {name!r} (refused in the recording's process)", name=name)
+        return None
+
+
+def without_pandas() -> None:
+    """pandas refused for the rest of this process: the recording's prepared child (``pipelines.analyze.
+    RECORDING_CHILD_SETUP``), which writes numpy arrays only. pyarrow, under rerun, imports pandas on its
+    first array only to ask whether the arrays it converts are pandas objects, and again where rerun builds
+    a bar chart's tensor; without pandas it skips those checks. That import was 0.1-0.25 s of CPU in every
+    short run's recording child, beside the analysis that wants both cores, and once it came late, on the
+    run's last stretch. The recording is the same (tested with ``rerun rrd compare``); should a later rerun
+    need pandas to write, the recording fails with ModuleNotFoundError and ``write_outputs`` writes it in the
+    analysing process instead. Nothing where pandas is loaded already."""
     import sys
 
-    if "pandas" in sys.modules:
-        return
+    if "pandas" not in sys.modules and not any(isinstance(f, _PandasRefused) for f in sys.meta_path):
+        sys.meta_path.insert(0, _PandasRefused())
 
-    class _NoPandas:
-        @staticmethod
-        def find_spec(name, path=None, target=None):
-            if name == "pandas" or name.startswith("pandas."):
-                raise ModuleNotFoundError(f"No module named {name!r} (not for pyarrow here)", name=name)
-            return None
 
-    finder = _NoPandas()
-    sys.meta_path.insert(0, finder)
-    try:
-        import pyarrow.lib
-
-        _ = pyarrow.lib._pandas_api.have_pandas  # (its one attempt at importing pandas: refused)
-    except (ImportError, AttributeError):
-        pass
-    finally:
-        sys.meta_path.remove(finder)
+def refused_pandas(exc: BaseException) -> bool:
+    """Whether ``exc`` is :func:`without_pandas`' refusal (the recording is then written elsewhere)."""
+    return isinstance(exc, ModuleNotFoundError) and (exc.name or "").partition(".")[0] == "pandas"
 
 
 def block_mean(t: np.ndarray, y: np.ndarray, max_rows: int = MAX_ROWS) -> tuple[np.ndarray, np.ndarray, int]:

@@ -439,6 +439,28 @@ def test_the_cli_recording_written_by_the_prepared_child_equals_the_in_process_o
     assert read_properties(str(out / "recording.rrd")) == read_properties(str(tmp_path / "here.rrd"))
 
 
+def test_a_recording_the_child_could_not_write_without_pandas_is_written_here(tmp_path):
+    """Should rerun need pandas in the recording's child, which refuses it (pipelines.recording.without_pandas),
+    write_outputs writes the recording in the analysing process: the report lists it, nothing is skipped."""
+    from pipelines import api
+    from pipelines.analyze import write_outputs
+    from pipelines.recording import read_entities
+
+    class _Refused:  # (the child's answer: the refusal, as it comes back through the pipe)
+        def send(self, rep):
+            pass
+
+        def result(self):
+            raise ModuleNotFoundError("No module named 'pandas' (refused in the recording's process)",
+                                      name="pandas")
+
+    an = api.analyze(str(SAMPLE / "master.mcap"), str(SAMPLE / "slave.tlog"))
+    out = write_outputs(an, str(tmp_path / "out"), recording=_Refused())
+    rep = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert rep["outputs"]["recording"] == "recording.rrd" and not rep["skipped"]
+    assert out.paths["recording"] and "/rates/x/master" in read_entities(out.paths["recording"])
+
+
 def test_the_cli_runs_one_blas_thread_and_no_numpy_huge_pages_unless_the_user_chose(tmp_path):
     """`tapost` sets BLAS_THREADS and NUMPY_HUGEPAGES where the environment does not say, before numpy is
     imported (after, the variables would do nothing: numpy reads its page switch at import), and keeps a

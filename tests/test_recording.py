@@ -112,25 +112,29 @@ def test_a_recording_that_fails_while_streamed_to_its_file_leaves_no_file(tmp_pa
     assert list(tmp_path.iterdir()) == []
 
 
-def test_pyarrow_told_pandas_is_not_there_converts_arrays_and_leaves_pandas_importable():
-    """``pyarrow_without_pandas`` (the recording's prepared child): pyarrow converts arrays without importing
-    pandas, and pandas stays importable for anything else; where pandas is loaded already, nothing changes.
-    (The CLI's recording, written so, equals the in-process one: test_parallel.)"""
+def test_a_recording_written_with_pandas_refused_is_the_same_recording(tmp_path):
+    """``without_pandas`` (the recording's prepared child): the recording is written without pandas ever
+    loading (pyarrow and rerun's bar chart skip their pandas checks), and it is the same recording as one
+    written where pandas is there (``rerun rrd compare``); a second call changes nothing."""
     import subprocess
-    import sys
 
     code = "\n".join([
-        "import sys, numpy as np",
-        "from pipelines.recording import pyarrow_without_pandas",
-        "pyarrow_without_pandas()",
-        "import pyarrow as pa",
-        "a = pa.array(np.arange(4.0)); t = pa.table({'x': np.arange(3)})",
-        "before = 'pandas' in sys.modules",
-        "import pandas",
-        "print(before, a.to_pylist(), t.num_rows, pa.lib._pandas_api.have_pandas)",
-        "pyarrow_without_pandas()",  # (pandas loaded: nothing)
+        "import sys",
+        f"sys.path.insert(0, {str(Path(__file__).parent)!r})",
+        "from pipelines.recording import without_pandas, write_recording",
+        "without_pandas(); without_pandas()",
+        "from test_report import fake_report, make_fake_analysis",
+        "an = make_fake_analysis(duration_s=20, rate_hz=50)",
+        f"write_recording({str(tmp_path / 'refused.rrd')!r}, an, fake_report(an), max_rows=400)",
+        "print('pandas' in sys.modules, sum(type(f).__name__ == '_PandasRefused' for f in sys.meta_path))",
     ])
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert p.returncode == 0, p.stderr
-    assert p.stdout.split() == ["False", "[0.0,", "1.0,", "2.0,", "3.0]", "3", "False"]
+    assert p.stdout.split() == ["False", "1"]
+    import pandas  # noqa: F401 - the reference: written where pandas is loaded
 
+    an = make_fake_analysis(duration_s=20, rate_hz=50)
+    write_recording(str(tmp_path / "here.rrd"), an, fake_report(an), max_rows=400)
+    cmp = subprocess.run([sys.executable, "-m", "rerun", "rrd", "compare", str(tmp_path / "refused.rrd"),
+                          str(tmp_path / "here.rrd")], capture_output=True, text=True, timeout=120)
+    assert cmp.returncode == 0, cmp.stdout + cmp.stderr
