@@ -811,7 +811,9 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
     """Parse (or take) both logs -> latency -> compensation -> both alignment runs, in memory.
 
     ``when_aligned(an)`` is called where the IMU-to-IMU fit still runs in a forked child once both alignment
-    runs are in ``an`` (the CLI starts its recording there: ``start_recording``).
+    runs are in ``an``, or sooner, once the compensated run is, where the uncompensated one still runs in its
+    child and the compensated run gives the mounting (``an.alignment`` then holds the compensated run alone
+    during the call; the CLI starts its recording there: ``start_recording``, which gets the other run later).
 
     Raises InputError (unreadable input, the same stream on both sides: exit 2). A latency the data
     cannot give is not raised: ``Analysis.failure`` says why (the CLI's exit 1)."""
@@ -953,6 +955,18 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
                     decided(False)  # (no decision made: the run failed, or never reached it; else ignored)
     if forked:
         _import_output_modules(opts)  # (this process would wait for the children here)
+    early = (when_aligned is not None and isinstance(imu_fit, parallel.Pending)
+             and isinstance(pending.get("uncompensated"), parallel.Pending)
+             and _gives_the_mounting(pending.get("compensated")))
+    if early:
+        # the recording started now, while the uncompensated run still runs in its child: it logs the series
+        # (rotated by the compensated run's mounting, which the plots use whatever the other run gives) and
+        # that run's states, and gets the uncompensated run's with the report (pipelines.recording.Rest). On
+        # the sample pair this process waited here 0.1 s with a core free, and the recording was the run's
+        # last 0.15 s
+        an.alignment["compensated"] = pending["compensated"]
+        when_aligned(an)
+        an.alignment.clear()  # (filled below, in the runs' order)
     for run in runs:
         res = pending[run]
         if isinstance(res, parallel.Pending):
@@ -981,7 +995,7 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
     if "logtools.alignment.run" in sys.modules:  # the runs are done: their master series go
         sys.modules["logtools.alignment.run"].forget_master(master)
     parallel.release_freed_memory()
-    if when_aligned is not None and isinstance(imu_fit, parallel.Pending):
+    if when_aligned is not None and isinstance(imu_fit, parallel.Pending) and not early:
         when_aligned(an)
     _imu_to_imu_sections(master, an, an.align_sections, extra,
                          imu_fit.result() if isinstance(imu_fit, parallel.Pending) else None)
@@ -990,6 +1004,12 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
     tim["total"] = time.perf_counter() - t_all
     an.timings_s = tim
     return an
+
+
+def _gives_the_mounting(res) -> bool:
+    """Whether the compensated run's result ``res`` is the mounting the outputs use (``Analysis.mounting``
+    takes the compensated run's where its angles are finite)."""
+    return isinstance(res, AlignmentResult) and bool(np.all(np.isfinite(res.mounting_rpy_deg)))
 
 
 def start_recording(an: Analysis, out_dir: str):
@@ -1038,7 +1058,9 @@ def write_outputs(an: Analysis, out_dir: str, progress=None, recording=None) -> 
         try:
             rep = an.build_report({**tim, "report": 0.0, "recording": 0.0}, paths)
             if recording is not None:
-                recording.send(rep)
+                from pipelines.recording import Rest
+
+                recording.send(Rest(rep, dict(an.alignment)))  # (a run it started without: logged now)
             else:
                 from pipelines.recording import write_recording
 

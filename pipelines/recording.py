@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import math
 import os
+from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
@@ -118,6 +119,17 @@ def ned_track(log: InsLog) -> tuple[np.ndarray, np.ndarray] | None:
     e = np.radians(lla[:, 1] - lla[0, 1]) * (float(re[0]) + lla[0, 2]) * np.cos(lat0)
     d = -(lla[:, 2] - lla[0, 2])
     return t, np.column_stack([n, e, d])
+
+
+@dataclass(frozen=True)
+class Rest:
+    """What a recording started before the analysis ended gets later (``write_recording``'s ``later``): the
+    report and every alignment run's result. The analysis starts the recording once the compensated run is
+    done, while the uncompensated one still runs in its child (``pipelines.analyze.compute``); that run's
+    states are logged when this comes."""
+
+    report: dict
+    alignment: dict
 
 
 def pair_name(an: Analysis, rep: dict | None = None) -> str:
@@ -316,36 +328,23 @@ def _fill(rec, rr, rrb, an: Analysis, rep: dict | None, max_rows: int, pose_rate
         rec.log("/latency/fit", rr.SeriesLines(names="latency fit (ms)", colors=[[214, 39, 40]]), static=True)
         _send_scalars(rec, rr, "/latency/fit", tt, lat.latency_at(tt) * 1e3, max_rows, clock=clock)
 
-    # -- alignment states with 3-sigma bounds, residuals
+    # -- alignment states with 3-sigma bounds, residuals: the runs in ``an`` now; a run that still ran when the
+    # recording started (see Rest) once the rest comes
     state_rows = max(1000, max_rows // 10)
     info["max_rows_states"] = state_rows
-    for run in RUNS:
-        res = an.alignment.get(run)
-        if res is None:
-            continue
-        c = RUN_COLORS.get(run, [100, 100, 100])
-        if res.history_x.size:
-            t = np.asarray(res.history_t_s, float)
-            for i, name in enumerate(res.history_names):
-                base = f"/alignment/{run}/{rr.escape_entity_path_part(name)}"
-                x, s = res.history_x[:, i], res.history_sigma[:, i]
-                for part, y, w in (("value", x, 1.5), ("upper", x + 3 * s, 0.7), ("lower", x - 3 * s, 0.7)):
-                    rec.log(f"{base}/{part}", rr.SeriesLines(names=f"{name} {part if part != 'value' else ''}".strip(),
-                                                             colors=[c], widths=w), static=True)
-                    info["factors"][f"{base}/{part}"] = _send_scalars(rec, rr, f"{base}/{part}", t, y,
-                                                                       state_rows, clock=clock)
-        if res.residuals.size:
-            t = np.asarray(res.residual_t_s, float)
-            for i, name in enumerate(res.residual_names):
-                path = f"/alignment/{run}/residuals/{rr.escape_entity_path_part(name)}"
-                rec.log(path, rr.SeriesPoints(names=name, colors=[c], marker_sizes=1.5), static=True)
-                info["factors"][path] = _send_scalars(rec, rr, path, t, res.residuals[:, i], state_rows,
-                                                      clock=clock)
+    run_factors: dict[str, dict] = {}
+    _log_runs(rec, rr, an, run_factors, state_rows, clock)
 
     # -- the report's parts: the headline property and the summary text (last: the report may still be in
     # the making while the series above are logged, see write_recording)
     if callable(rep):
         rep = rep()
+        if isinstance(rep, Rest):
+            an.alignment.update({k: v for k, v in rep.alignment.items() if an.alignment.get(k) is None})
+            rep = rep.report
+            _log_runs(rec, rr, an, run_factors, state_rows, clock)
+    for run in RUNS:  # (the factors in the runs' order, however they came)
+        info["factors"].update(run_factors.get(run, {}))
     props = {k: v for k, v in headline(an, rep).items() if v is not None}
     rec.send_property("results", rr.AnyValues(**props))
     if rep is not None:
@@ -357,6 +356,33 @@ def _fill(rec, rr, rrb, an: Analysis, rep: dict | None, max_rows: int, pose_rate
 
     rec.send_blueprint(_blueprint(rrb, an, [c for c in comparisons if c[0] in info["comparisons"]]))
     return info
+
+
+def _log_runs(rec, rr, an: Analysis, run_factors: dict, state_rows: int, clock: _Clock) -> None:
+    """Each alignment run of ``an`` not logged yet (not in ``run_factors``): its filter states with 3-sigma
+    bounds and its residuals; its downsampling factors into ``run_factors[run]``."""
+    for run in RUNS:
+        res = an.alignment.get(run)
+        if res is None or run in run_factors:
+            continue
+        factors = run_factors[run] = {}
+        c = RUN_COLORS.get(run, [100, 100, 100])
+        if res.history_x.size:
+            t = np.asarray(res.history_t_s, float)
+            for i, name in enumerate(res.history_names):
+                base = f"/alignment/{run}/{rr.escape_entity_path_part(name)}"
+                x, s = res.history_x[:, i], res.history_sigma[:, i]
+                for part, y, w in (("value", x, 1.5), ("upper", x + 3 * s, 0.7), ("lower", x - 3 * s, 0.7)):
+                    rec.log(f"{base}/{part}", rr.SeriesLines(names=f"{name} {part if part != 'value' else ''}".strip(),
+                                                             colors=[c], widths=w), static=True)
+                    factors[f"{base}/{part}"] = _send_scalars(rec, rr, f"{base}/{part}", t, y, state_rows,
+                                                              clock=clock)
+        if res.residuals.size:
+            t = np.asarray(res.residual_t_s, float)
+            for i, name in enumerate(res.residual_names):
+                path = f"/alignment/{run}/residuals/{rr.escape_entity_path_part(name)}"
+                rec.log(path, rr.SeriesPoints(names=name, colors=[c], marker_sizes=1.5), static=True)
+                factors[path] = _send_scalars(rec, rr, path, t, res.residuals[:, i], state_rows, clock=clock)
 
 
 def _blueprint(rrb, an: Analysis, comparisons=()):

@@ -138,3 +138,26 @@ def test_a_recording_written_with_pandas_refused_is_the_same_recording(tmp_path)
     cmp = subprocess.run([sys.executable, "-m", "rerun", "rrd", "compare", str(tmp_path / "refused.rrd"),
                           str(tmp_path / "here.rrd")], capture_output=True, text=True, timeout=120)
     assert cmp.returncode == 0, cmp.stdout + cmp.stderr
+
+
+def test_a_recording_started_before_the_uncompensated_run_ends_is_the_same_recording(tmp_path):
+    """The CLI starts the recording once the compensated run is done (pipelines.analyze.compute): it gets the
+    uncompensated run with the report (``later`` -> Rest). The same entities, rows, properties and
+    downsampling factors, in the same order, as a recording of the whole analysis."""
+    import copy
+
+    from pipelines.recording import Rest, read_properties
+
+    an = make_fake_analysis(duration_s=30, rate_hz=50)
+    assert set(an.alignment) == {"uncompensated", "compensated"}
+    rep = fake_report(an)
+    whole = write_recording(str(tmp_path / "whole.rrd"), an, rep, max_rows=500)
+    early_an = copy.copy(an)
+    early_an.alignment = {"compensated": an.alignment["compensated"]}
+    early = write_recording(str(tmp_path / "early.rrd"), early_an, max_rows=500,
+                            later=lambda: Rest(rep, dict(an.alignment)))
+    assert early == whole and list(early["factors"]) == list(whole["factors"])
+    assert any(k.startswith("/alignment/uncompensated/") for k in early["factors"])
+    assert read_entities(str(tmp_path / "early.rrd")) == read_entities(str(tmp_path / "whole.rrd"))
+    assert read_properties(str(tmp_path / "early.rrd")) == read_properties(str(tmp_path / "whole.rrd"))
+
