@@ -82,8 +82,7 @@ def numerics_stage(name: str) -> Callable:
 def _kernels_compiled() -> bool:
     """This process runs the compiled kernels (logtools.jit). They release the GIL, so that a second thread can
     run beside them (the reference code's Python holds it: the latency's velocity pair in a thread beside its
-    rate fit made the sample pair's first run 0.25-0.3 s slower instead of faster), and a filter pass takes
-    tens of ms, too little for a fork (the reference code's passes are worth one: compute)."""
+    rate fit made the sample pair's first run 0.25-0.3 s slower instead of faster)."""
     from logtools import jit
 
     return jit.compiled()
@@ -920,12 +919,13 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
         imu_fit = parallel.submit(imu_to_imu, master, an.slave_comp)
     if forked:
         # the two runs share nothing but their inputs: the uncompensated one in a forked child (CLI only),
-        # the master's series prepared before (the child shares them instead of preparing its own). Where the
-        # filter runs as Python (the kernels not compiled yet: a first run), that child starts its flexure
-        # pass in a child of its own beside its rigid pass (run_alignment's ``beside``): the delay left in
-        # the uncompensated slave makes the flexure pass follow almost always, and the run's three passes
-        # were the alignment stage's critical path (the sample pair's first run: 0.72 s of Python passes)
-        flex_beside = None if _kernels_compiled() else parallel.submit
+        # the master's series prepared before (the child shares them instead of preparing its own). That
+        # child starts its flexure pass in a child of its own beside its rigid pass (run_alignment's
+        # ``beside``): the delay left in the uncompensated slave makes the flexure pass follow almost always,
+        # and the run's three passes are the alignment stage's critical path (the sample pair's first run:
+        # 0.72 s of Python passes; with the kernels compiled, 0.15 s, while this process, done with the
+        # compensated run, only starts the recording: 0.765 -> 0.744 s, medians of 16 whole runs)
+        flex_beside = parallel.submit
         _prepare_master(master)
         if run_opts["uncompensated"] is not opts and _numerics.run_alignment is None:
             # --board-errors auto: the compensated run decides the board's states; the uncompensated one
