@@ -1026,8 +1026,10 @@ def start_recording(an: Analysis, out_dir: str):
         os.makedirs(out_dir, exist_ok=True)
     except (ImportError, OSError):
         return None  # (write_outputs meets it again and says so)
-    return parallel.start_prepared_awaiting("recording", write_recording, os.path.join(out_dir, RECORDING), an,
-                                            max_rows=opts.recording_max_rows)
+    job = parallel.start_prepared_awaiting("recording", write_recording, os.path.join(out_dir, RECORDING), an,
+                                           max_rows=opts.recording_max_rows)
+    job.runs_sent = frozenset(run for run, res in an.alignment.items() if res is not None)  # (write_outputs)
+    return job
 
 
 def write_outputs(an: Analysis, out_dir: str, progress=None, recording=None) -> PairOutcome:
@@ -1060,7 +1062,8 @@ def write_outputs(an: Analysis, out_dir: str, progress=None, recording=None) -> 
             if recording is not None:
                 from pipelines.recording import Rest
 
-                recording.send(Rest(rep, dict(an.alignment)))  # (a run it started without: logged now)
+                sent = getattr(recording, "runs_sent", frozenset())  # (a run it started without: logged now)
+                recording.send(Rest(rep, {run: res for run, res in an.alignment.items() if run not in sent}))
             else:
                 from pipelines.recording import write_recording
 
