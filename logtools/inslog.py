@@ -188,7 +188,11 @@ class InsLog:
         object.__setattr__(self, "meta", meta)
 
     def __reduce__(self):
-        return (InsLog, (self._frames.get("imu", self._imu), self._frames.get("nav", self._nav), self.meta))
+        return (InsLog, (self._given("imu"), self._given("nav"), self.meta))
+
+    def _given(self, kind: str):
+        """The stream as it was given or last made: its DataFrame where there is one, else its Columns."""
+        return self._frames.get(kind, self._imu if kind == "imu" else self._nav)
 
     def __repr__(self) -> str:
         return (f"InsLog({self.meta.format!r}, {self.meta.source_path!r}, imu: {len(self._imu)} rows "
@@ -222,8 +226,8 @@ class InsLog:
 
     def with_streams(self, imu=None, nav=None, meta: LogMeta | None = None) -> "InsLog":
         """A new log with the given streams (DataFrames or Columns) or meta, the others kept."""
-        return InsLog(imu=self._frames.get("imu", self._imu) if imu is None else imu,
-                      nav=self._frames.get("nav", self._nav) if nav is None else nav,
+        return InsLog(imu=self._given("imu") if imu is None else imu,
+                      nav=self._given("nav") if nav is None else nav,
                       meta=self.meta if meta is None else meta)
 
     # -- construction ------------------------------------------------------------------------

@@ -925,7 +925,6 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
         # and the run's three passes are the alignment stage's critical path (the sample pair's first run:
         # 0.72 s of Python passes; with the kernels compiled, 0.15 s, while this process, done with the
         # compensated run, only starts the recording: 0.765 -> 0.744 s, medians of 16 whole runs)
-        flex_beside = parallel.submit
         _prepare_master(master)
         if run_opts["uncompensated"] is not opts and _numerics.run_alignment is None:
             # --board-errors auto: the compensated run decides the board's states; the uncompensated one
@@ -934,12 +933,12 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
             # a consumer board's 1 h pair spent 4.8 s so at the stage's end)
             decision = _BoardDecision()
             pending["uncompensated"] = parallel.submit(_alignment, master, face, "uncompensated", opts,
-                                                       null_progress, an.latency, None, decision, flex_beside)
+                                                       null_progress, an.latency, None, decision, parallel.submit)
             decision.after_fork()
         else:
             pending["uncompensated"] = parallel.submit(_alignment, master, face, "uncompensated",
                                                        run_opts["uncompensated"], null_progress, an.latency,
-                                                       beside=flex_beside)
+                                                       beside=parallel.submit)
     for run, (slog, p) in runs.items():
         if slog is None:
             why = ("latency failed" if an.latency is None

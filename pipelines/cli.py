@@ -45,12 +45,12 @@ BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THR
 NUMPY_HUGEPAGES = "0"
 NUMPY_HUGEPAGE_VARIABLE = "NUMPY_MADVISE_HUGEPAGE"
 #: the garbage collector's thresholds in a tapost process and its children (Python's are 700, 10, 10). A run
-#: imports numpy and scipy, and its recording's child pandas and rerun: millions of long-lived objects, which
-#: every full collection scans (40-50 ms each, several per run of the sample pair, most of them while those
-#: imports run). With the young
-#: generation collected every 100 000 allocations instead of 700, a short run makes none or one; reference
-#: cycles are still collected. Measured on 2 cores, whole processes alternated: the sample pair 1.09 -> 1.00 s
-#: (medians of 6), the 1 h pair the same wall time and peak memory (9.1-9.4 s, 0.84-0.86 GB) either way
+#: imports numpy and scipy, and its recording's child rerun: millions of long-lived objects, which every full
+#: collection scans (40-50 ms each, several per run of the sample pair, most of them while those imports run).
+#: With the young generation collected every 100 000 allocations instead of 700, a short run makes none or
+#: one; reference cycles are still collected. Measured on 2 cores, whole processes alternated: the sample
+#: pair 1.09 -> 1.00 s (medians of 6), the 1 h pair the same wall time and peak memory (9.1-9.4 s,
+#: 0.84-0.86 GB) either way
 GC_THRESHOLDS = (100_000, 10, 10)
 #: numpy's submodules that scipy's array-API layer (scipy 1.15 and later) imports in every process that
 #: imports scipy: it asks numpy for each of its public names, and numpy imports those submodules on demand

@@ -124,9 +124,9 @@ def ned_track(log: InsLog) -> tuple[np.ndarray, np.ndarray] | None:
 @dataclass(frozen=True)
 class Rest:
     """What a recording started before the analysis ended gets later (``write_recording``'s ``later``): the
-    report and every alignment run's result. The analysis starts the recording once the compensated run is
-    done, while the uncompensated one still runs in its child (``pipelines.analyze.compute``); that run's
-    states are logged when this comes."""
+    report and the alignment runs it started without. The analysis starts the recording once the compensated
+    run is done, while the uncompensated one still runs in its child (``pipelines.analyze.compute``); that
+    run's states are logged when this comes."""
 
     report: dict
     alignment: dict

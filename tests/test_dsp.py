@@ -203,7 +203,7 @@ def test_the_analysis_does_not_import_scipys_heavy_subpackages(tmp_path, kernels
 def test_the_analysing_process_never_imports_pandas(tmp_path, kernels):
     """``tapost analyze`` of the sample pair as a user runs it: the process that parses and analyses never
     imports pandas (about 0.17 s of a short log's run; the logs are numpy arrays, their DataFrames made only
-    when asked for). The recording's prepared child imports it for pyarrow, beside the analysis."""
+    when asked for). The recording's prepared child refuses it (test_recording)."""
     sample = Path(__file__).resolve().parents[1] / "sample_logs"
     argv = ["tapost", "analyze", str(sample / "master.mcap"), str(sample / "slave.tlog"), "-o", str(tmp_path / "out")]
     code = "\n".join([  # (the console script ends the process after its exit handlers: one prints)

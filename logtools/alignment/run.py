@@ -62,8 +62,8 @@ def run_alignment(master: InsLog, slave: InsLog, *, filter: str | FilterKind = "
     ``beside``: a function like ``pipelines.parallel.submit`` (``beside(fn, *args, **kw)`` -> an object with
     ``result()`` and ``cancel()``). With ``flexure="auto"``, the pass with the flexure states then starts
     beside the rigid pass instead of after it, and is dropped where the rigid pass's residuals do not call for
-    it: the same result, sooner where passes are slow (the CLI gives it to the uncompensated run when the
-    kernels are not compiled yet: the delay left in its data makes the flexure pass follow almost always)."""
+    it: the same result, sooner where passes are slow (the CLI gives it to the uncompensated run: the delay
+    left in its data makes the flexure pass follow almost always)."""
     opts = AlignmentOptions() if options is None else options
     kind = FilterKind.parse(filter)
     if match not in MATCHES:
