@@ -40,7 +40,6 @@ import numpy as np
 
 from logtools.conventions import (
     dcm_from_quat,
-    enu_to_ned,
     ned_to_enu,
     frd_to_flu,
     quat_mul,

@@ -647,7 +647,8 @@ def summary_lines(rep: dict, paths: dict[str, str | None]) -> list[str]:
                        "triad): --board-errors auto found the innovations correlated without them")
         la, ls = a.get("lever_arm_m"), a.get("lever_arm_sigma_m")
         if la is not None and None not in la:
-            tail = (" +/- " + " ".join(f"{x:.3f}" for x in ls) + " m (1 sigma)") if ls and None not in ls else " m (given)"
+            tail = ((" +/- " + " ".join(f"{x:.3f}" for x in ls) + " m (1 sigma)") if ls and None not in ls
+                    else " m (given)")
             out.append(f"        lever arm x y z = {' '.join(f'{x:+.3f}' for x in la)}{tail}")
     out += _imu_to_imu_lines(rep["alignment"])
     for k, v in rep.get("skipped", {}).items():
@@ -1027,8 +1028,25 @@ def start_recording(an: Analysis, out_dir: str):
         return None  # (write_outputs meets it again and says so)
     job = parallel.start_prepared_awaiting("recording", write_recording, os.path.join(out_dir, RECORDING), an,
                                            max_rows=opts.recording_max_rows)
-    job.runs_sent = frozenset(run for run, res in an.alignment.items() if res is not None)  # (write_outputs)
-    return job
+    return StartedRecording(job, frozenset(run for run, res in an.alignment.items() if res is not None))
+
+
+class StartedRecording:
+    """A recording ``start_recording`` started: its child's call (``parallel.start_prepared_awaiting``)
+    and the alignment runs it was started with; ``write_outputs`` sends the report with the other runs
+    (``pipelines.recording.Rest``)."""
+
+    def __init__(self, job, runs_sent: frozenset[str]) -> None:
+        self.job, self.runs_sent = job, runs_sent
+
+    def send(self, rest) -> None:
+        self.job.send(rest)
+
+    def result(self):
+        return self.job.result()
+
+    def abandon(self) -> None:
+        self.job.abandon()
 
 
 def write_outputs(an: Analysis, out_dir: str, progress=None, recording=None) -> PairOutcome:
@@ -1061,7 +1079,8 @@ def write_outputs(an: Analysis, out_dir: str, progress=None, recording=None) -> 
             if recording is not None:
                 from pipelines.recording import Rest
 
-                sent = getattr(recording, "runs_sent", frozenset())  # (a run it started without: logged now)
+                # (StartedRecording: a run it started without is logged now)
+                sent = getattr(recording, "runs_sent", frozenset())
                 recording.send(Rest(rep, {run: res for run, res in an.alignment.items() if run not in sent}))
             else:
                 from pipelines.recording import write_recording

@@ -47,7 +47,7 @@ import sys
 import threading
 import time
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 
 from logtools.errors import InputError, TapostError
 from pipelines import report as rp

@@ -28,8 +28,6 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from logtools.inslog import InsLog
-from logtools.results import AlignmentResult
 from pipelines.report import RUNS, Analysis, write_text_atomic
 from pipelines.svgplot import Figure
 

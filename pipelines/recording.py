@@ -36,7 +36,6 @@ from typing import Callable
 
 import numpy as np
 
-from logtools.conventions import quat_rotate
 from logtools.earth import radii_m
 from logtools.inslog import InsLog
 from pipelines.report import RUNS, Analysis

@@ -15,7 +15,6 @@ kept out of the terminal; when rerun fails, the last line it wrote is shown.
 from __future__ import annotations
 
 import argparse
-import functools
 import http.server
 import os
 import re
