@@ -301,6 +301,36 @@ def test_real_cli_on_simulated_files(tmp_path, capsys, fmt):
     assert (out / "report.html").exists() and (out / "recording.rrd").exists()
 
 
+def test_real_cli_a_master_with_velocity_alone_is_a_clear_latency_failure(tmp_path, capsys):
+    """A master CSV with a time and a velocity alone (no rate, no attitude): the latency cannot be estimated,
+    exit 1 with one line saying so, the report written; the uncompensated alignment run says the mounting is
+    not determined. It was an internal error (UnboundLocalError in the alignment's master series)."""
+    sim = _real()
+    pair = sim.simulate(sim.scenario_config("vehicle", duration_s=60.0))
+    full, s = str(tmp_path / "full.csv"), str(tmp_path / "s.csv")
+    registry.write(full, pair.master, "csv")
+    registry.write(s, pair.slave, "csv")
+    lines = open(full).read().splitlines()
+    head = lines[0].split(",")
+    keep = [i for i, c in enumerate(head) if c == "time_s" or c.startswith("vel_")]
+    assert len(keep) == 4
+    m = str(tmp_path / "m.csv")
+    with open(m, "w") as fh:
+        for line in lines:
+            cells = line.split(",")
+            fh.write(",".join(cells[i] for i in keep) + "\n")
+    out = tmp_path / "out"
+    rc = main(["analyze", m, s, "-o", str(out), "--no-recording", "--no-html"])
+    err = capsys.readouterr().err
+    assert rc == 1
+    assert "internal error" not in err and "Traceback" not in err
+    assert "latency needs angular rate or attitude from both units; the master has neither" in err
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["status"] == "failed"
+    unc = rep["alignment"]["uncompensated"]
+    assert unc.get("skipped") or unc["mounting_rpy_deg"] == [None, None, None]
+
+
 def test_real_cli_a_stray_stamp_days_away_is_dropped_with_a_warning(tmp_path, capsys):
     """A corrupt time field (a flipped byte in a DataFlash TimeUS put one IMU sample 12 days after a 40 s
     log): the uniform grid over that span took 16 GB. The stray sample is dropped at the parser's edge,

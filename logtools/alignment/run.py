@@ -702,12 +702,12 @@ def _master_series(master: InsLog, config: AlignmentConfig = CONFIG) -> MasterSe
     if len(t) < 3:
         raise AnalysisError(f"{src}: the master has fewer than 3 finite navigation samples")
     gap = _nav_gaps(t, config)
+    w_t = None
     if quat is not None:
         quat = quat if every else quat[ok]
         # body rate relative to NED in the master frame (lever arm): from the master's gyro when it has
         # one (minus the earth rate), else from its attitude differenced over ~0.1 s (a noisy rate in H
         # would bias the lever-arm estimate toward zero: errors in variables)
-        w = w_t = None
         if master.has_gyro:
             w, w_t = _gyro_rate_nm(master, t, quat)
         if w is None:
