@@ -17,6 +17,7 @@ from parsers import load
 from parsers.registry import detect, parse_log_arg
 from parsers.restamp import ClockShift
 from pipelines import export
+from pipelines.report import log_section
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -27,6 +28,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="output file (folder for folder formats); default next to the report")
     p.add_argument("--format", default="native", metavar="native|csv|parquet[,...]",
                    help="native (the slave's own format, default), csv or parquet; comma-separated for several")
+    p.add_argument("--force", action="store_true",
+                   help="apply the report's correction to a log whose channels are not the report's slave's")
 
 
 def read_report(path: str) -> dict:
@@ -48,6 +51,43 @@ def read_report(path: str) -> dict:
         if sec is not None and not isinstance(sec, dict):
             raise InputError(f"the report's {key} is not an object ({type(sec).__name__})", path)
     return rep
+
+
+#: channels' rates within this fraction are the same log's (a rate is measured over the log's whole span: a
+#: copy cut short or with a gap keeps it within a fraction of a percent; another unit or stream setting does not)
+SAME_RATE_FRACTION = 0.02
+
+
+def not_the_reports_slave(rep_slave: dict, here: dict) -> tuple[str, str]:
+    """(why the log described by ``here`` (``pipelines.report.log_section``) is not the one the report's slave
+    section ``rep_slave`` describes, how it differs from it otherwise), each "" where nothing says so: a
+    channel's other source or rate (beyond SAME_RATE_FRACTION), or stamps that do not overlap the report's, is
+    another log; another start, length, count or set of channels is the same log cut, extended, damaged or
+    read differently. What the report does not give (a hand-written one) is not compared."""
+    other, differs = [], []
+    chans, mine = rep_slave.get("channels"), here.get("channels") or {}
+    if isinstance(chans, dict) and chans:
+        if set(chans) != set(mine):  # (a reader that takes one more channel than the report's did: differs)
+            differs.append(f"channels {', '.join(sorted(mine)) or 'none'} where the report's slave had "
+                         f"{', '.join(sorted(chans))}")
+        for name in sorted(set(chans) & set(mine)):
+            a, b = chans[name] if isinstance(chans[name], dict) else {}, mine[name]
+            if a.get("source") is not None and a.get("source") != b.get("source"):
+                other.append(f"{name} from {b.get('source')}, the report's from {a.get('source')}")
+            ra, rb = a.get("rate_hz"), b.get("rate_hz")
+            if isinstance(ra, (int, float)) and rb is not None and ra > 0 and abs(rb / ra - 1) > SAME_RATE_FRACTION:
+                other.append(f"{name} at {rb:.4g} Hz, the report's at {ra:.4g} Hz")
+            elif isinstance(a.get("count"), int) and a["count"] != b.get("count"):
+                differs.append(f"{b.get('count')} {name} samples, the report's {a['count']}")
+    s0, d0 = rep_slave.get("start_s"), rep_slave.get("duration_s")
+    s1, d1 = here.get("start_s"), here.get("duration_s")
+    if all(isinstance(x, (int, float)) for x in (s0, d0, s1, d1)):
+        if s1 > s0 + d0 or s0 > s1 + d1:
+            other.append(f"its stamps ({s1:.3f}..{s1 + d1:.3f} s) do not overlap the report's slave's "
+                         f"({s0:.3f}..{s0 + d0:.3f} s)")
+        elif abs(s1 - s0) > 1e-3 or abs(d1 - d0) > 1e-3:
+            differs.append(f"it spans {s1:.3f}..{s1 + d1:.3f} s, the report's slave {s0:.3f}..{s0 + d0:.3f} s")
+    return "; ".join(other), "; ".join(differs)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -78,6 +118,13 @@ def run(args: argparse.Namespace) -> int:
     if slave_rep.get("clock") and slave_rep["clock"] != slave.meta.clock:
         raise InputError(f"the report's slave was read on the {slave_rep['clock']} clock, this one on "
                          f"{slave.meta.clock}: give the report's selector ({slave_rep.get('selector')})", path)
+    other, differs = not_the_reports_slave(slave_rep, log_section(slave))
+    if other and not args.force:
+        raise InputError(f"not the log this report analysed: {other} (--force applies its correction anyway)",
+                         path)
+    if other or differs:
+        notes.append(f"warning: this log differs from the report's slave: {'; '.join(filter(None, [other, differs]))}; "
+                     "the report's latency and drift applied as they are")
     out_dir = os.path.dirname(os.path.abspath(report_path))
     # the report's master is an input too: never written over (its path as analyze was given it: from where
     # analyze ran, unknown here, so as it reads from here and from the report's folder)

@@ -607,6 +607,45 @@ def test_restamp_cli_takes_a_report_of_unrelated_clocks(slaves, pair, tmp_path, 
         ClockShift.from_report(rep)
 
 
+def test_restamp_cli_refuses_a_report_of_another_log(slaves, pair, tmp_path, capsys):
+    """A report whose slave section describes another log (other rates, another span): exit 2, one line
+    saying what differs, nothing written; --force applies it with a warning. The report's own log: no
+    warning. (restamp applied any report of the same format silently.)"""
+    from pipelines.report import log_section
+
+    t = pair.truth
+    own = log_section(registry.load(str(slaves["tlog"])))
+    rep = {"schema": "tapost.report/1", "master": {"t0_ns": int(t.t_mid_ns) - 6_000_000_000},
+           "slave": own, "latency": {"latency_s": t.latency_s, "drift_ppm": t.drift_ppm, "t_mid_rel_s": 6.0}}
+    (tmp_path / "report.json").write_text(json.dumps(rep))
+    assert cli_main(["restamp", str(slaves["tlog"]), "--from", str(tmp_path / "report.json")]) == 0
+    assert "warning" not in capsys.readouterr().out
+    other = json.loads(json.dumps(own))
+    for ch in other["channels"].values():
+        ch["rate_hz"] *= 4
+    other["start_s"] += 30.0
+    (tmp_path / "slave_on_master_clock.tlog").unlink()
+    rep["slave"] = other
+    (tmp_path / "other.json").write_text(json.dumps(rep))
+    assert cli_main(["restamp", str(slaves["tlog"]), "--from", str(tmp_path / "other.json")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "not the log this report analysed" in err and "the report's at" in err
+    assert "do not overlap" in err and "--force" in err
+    assert not (tmp_path / "slave_on_master_clock.tlog").exists()
+    assert cli_main(["restamp", str(slaves["tlog"]), "--from", str(tmp_path / "other.json"), "--force"]) == 0
+    out = capsys.readouterr().out
+    assert "warning: this log differs from the report's slave" in out
+    assert (tmp_path / "slave_on_master_clock.tlog").exists()
+    # the same log cut short or read with one more channel: a warning, not a refusal
+    cut = json.loads(json.dumps(own))
+    cut["duration_s"] += 5.0
+    cut["channels"].pop("pos", None)
+    (tmp_path / "cut.json").write_text(json.dumps({**rep, "slave": cut}))
+    assert cli_main(["restamp", str(slaves["tlog"]), "--from", str(tmp_path / "cut.json")]) == 0
+    out = capsys.readouterr().out
+    assert "warning: this log differs from the report's slave" in out and "spans" in out
+
+
 def test_export_table_has_every_channel(pair):
     sh = shift_of(pair)
     tab = export.table_on_master_clock(pair.slave, sh)
