@@ -351,8 +351,8 @@ def _walk_tlog_part(buf, i, stop, in_sync, prev_t, found):
     skipped = 0
     resyncs = 0
     while i < stop:
-        if in_sync and n - i < 16:
-            break  # a truncated last record (shorter than the smallest frame)
+        if in_sync and (n - i < 16 or (n - i < 20 and buf[i + 8] == 0xFD)):
+            break  # a truncated last record (shorter than the smallest frame: 16 bytes, a MAVLink 2 one 20)
         size = _tlog_frame_size(buf, i, n)
         ok = size > 0 and i + size <= n
         if ok:

@@ -401,6 +401,28 @@ def test_empty_and_random_files_exit_2(tmp_path, capsys, ext):
         registry.load(str(rnd))
 
 
+def test_tlog_cut_anywhere_in_its_last_record_is_called_truncated(tmp_path):
+    """A tlog cut at every byte of a record (its stamp, its MAVLink 2 header, its payload, its CRC) keeps
+    the records before it and says the file is truncated; the 8-byte stamp and the first bytes of a MAVLink 2
+    header (16-19 bytes, more than the smallest MAVLink 1 frame) were counted as damaged bytes skipped."""
+    log = make_log(duration_s=2.0)
+    good = tmp_path / "good.tlog"
+    T.write(str(good), log)
+    data = good.read_bytes()
+    fr = T.read_frames(str(good))
+    k = len(fr.pay) // 2
+    assert fr.v2[k]
+    start = int(fr.pay[k]) - 10 - 8  # (the record: stamp, then the 10-byte MAVLink 2 header)
+    size = 8 + 10 + int(fr.plen[k]) + 2
+    cut = tmp_path / "cut.tlog"
+    for extra in range(1, size):
+        cut.write_bytes(data[:start + extra])
+        back = T.read_frames(str(cut))
+        assert len(back.pay) == k, extra
+        assert any("truncated" in w for w in back.warnings), (extra, back.warnings)
+        assert not any("bad bytes" in w for w in back.warnings), (extra, back.warnings)
+
+
 def test_tlog_truncated_and_flipped_byte(tmp_path, capsys):
     log = make_log(duration_s=4.0)
     good = tmp_path / "good.tlog"
