@@ -18,6 +18,8 @@ cost. Damage in the middle (an implausible message header) or a truncated tail i
 walk (:func:`walk_resyncing`: on where the headers chain again), as the native export rewrites it; what it
 cannot judge (appended data, removed subscriptions, data before its subscription) sends the file to
 pyulog; a data message of no subscription or of a wrong size is left out alone. The damage is reported as a warning.
+Only the flag bits message at the spec's place, the first message after the header, is the file's (its unknown
+incompatible flags refuse the file); a 'B' further on (bytes the walk resumed on after damage) is left out, named.
 
 Selector keys: ``imu=`` (``sensor_combined`` | ``sensor_gyro[i]`` (pairs ``sensor_accel[i]``) |
 ``vehicle_imu[i]`` (delta angle / delta velocity over dt) | ``vehicle_angular_velocity[i]`` (pairs
@@ -369,9 +371,13 @@ class _Fallback(Exception):
     """The fast path met something only pyulog should judge (damage, appended data...)."""
 
 
-def _read_fast(path: str, buf: np.ndarray, names: set[str] | None, byte_shift: int = 0) -> ULogTopics:
+def _read_fast(path: str, buf: np.ndarray, names: set[str] | None, byte_shift: int = 0,
+               flags_here: bool = True) -> ULogTopics:
     """The topics by the compiled walk; ``byte_shift``: what a byte offset of ``buf`` adds to be the file's
-    (a damaged header's repair, :func:`repaired_head`: the resume offset less the new header's 16 bytes)."""
+    (a damaged header's repair, :func:`repaired_head`: the resume offset less the new header's 16 bytes).
+    Only a flag bits message that is the first one after the header (byte 16; the ULog spec's place for it)
+    is the file's: one further on is left out and named; ``flags_here`` False (a header made anew before
+    messages resumed later than byte 16): none is."""
     from pyulog import ULog
 
     # damage in the middle: read on where the headers chain again (pyulog, byte by byte to the next sync
@@ -383,6 +389,7 @@ def _read_fast(path: str, buf: np.ndarray, names: set[str] | None, byte_shift: i
     subs: dict[int, object] = {}
     sub_at: dict[int, int] = {}  # file offset of each subscription
     info: dict[str, object] = {}
+    misplaced: list[int] = []  # file offsets of flag bits messages not at byte 16
     header = ULog._MessageHeader()
 
     def payload(i: int) -> bytes:
@@ -396,8 +403,12 @@ def _read_fast(path: str, buf: np.ndarray, names: set[str] | None, byte_shift: i
             fmt = ULog.MessageFormat(payload(i), header)
             formats[fmt.name] = fmt
         elif t == _T_FLAGS:
-            data = payload(i)
-            incompat = data[8:16]
+            if i != 0 or int(offsets[0]) != 16 or not flags_here:
+                # not at the spec's place (the first message after the header): no flag bits of this file, but
+                # random bytes the walk resumed on after damage (or a writer's fault); they decide nothing
+                misplaced.append(int(offsets[i]) + byte_shift)
+                continue
+            incompat = payload(i)[8:16]
             if any(incompat[1:]) or incompat[0] & ~1:
                 raise InputError("ULog with unknown incompatible flags: cannot be read", path)
             if incompat[0] & 1:
@@ -413,6 +424,9 @@ def _read_fast(path: str, buf: np.ndarray, names: set[str] | None, byte_shift: i
         elif t == _T_INFO:
             msg = ULog._MessageInfo(payload(i), header)
             info[msg.key] = msg.value
+    if misplaced:
+        warns.append(f"damaged ULog: {len(misplaced)} flag bits message(s) not first after the header (at byte(s) "
+                     f"{', '.join(map(str, misplaced[:5]))}) left out: only the first message's flags count")
     data_idx = np.flatnonzero(types == _T_DATA)
     d_off = offsets[data_idx]
     ids = buf[d_off + 3].astype(np.int64) | (buf[d_off + 4].astype(np.int64) << 8)
@@ -499,7 +513,7 @@ def read_topics(path: str, names: set[str] | None = None, *, engine: str = "auto
     elif buf[:7].tobytes() != MAGIC:
         raise InputError("not a ULog file (bad magic bytes)", path)
     try:
-        res = _read_fast(path, buf, names, byte_shift)
+        res = _read_fast(path, buf, names, byte_shift, flags_here=how != "repaired" or at == 16)
     except InputError:
         raise
     except _Fallback as why:

@@ -577,3 +577,99 @@ def test_a_data_message_of_no_subscription_is_left_out_alone(tmp_path, sim_pair)
     restamp_ulog.restamp_ulog(str(q), str(tmp_path / "out.ulg"), sh)
     out = ulog.load(str(tmp_path / "out.ulg"), Selector())
     assert (len(out.imu), len(out.nav)) == (len(back.imu), len(back.nav))
+
+
+def _fake_flag_bits(incompat: bytes) -> bytes:
+    """A 'B' message (40 bytes: compat flags, incompat flags, 3 appended offsets) with these incompat flags."""
+    payload = bytes(8) + incompat.ljust(8, b"\0") + bytes(24)
+    return len(payload).to_bytes(2, "little") + b"B" + payload
+
+
+def test_a_flag_bits_message_after_damage_decides_nothing(tmp_path, written):
+    """A stretch in the data section overwritten, the walk resuming on a 'B' message made of the damaged bytes
+    whose incompatible flags are not zero (a fuzzed PX4 log: refused whole, "unknown incompatible flags"). Only
+    the flag bits message first after the header is the file's (ULog spec): the file reads, fast, the samples
+    before and after the damage kept, the damage and the misplaced 'B' named; the native export copies it."""
+    from parsers import restamp_ulog
+    from parsers.restamp import ClockShift
+
+    log, path = written
+    buf = np.fromfile(path, np.uint8)
+    offsets, sizes, types, _end, status = ulog.kernel("_walk")(buf, 16, ulog._KNOWN_TYPES, ulog._MAX_MSG_SIZE)
+    assert status == 0 and types[0] == ulog._T_FLAGS and offsets[0] == 16
+    i = int(np.searchsorted(offsets, len(buf) // 2))
+    j = i + 40
+    assert types[i - 1] == types[j] == ulog._T_DATA
+    fake = _fake_flag_bits(b"\x02\x80")  # (unknown incompatible flags)
+    bad = buf.copy()
+    bad[offsets[i]:offsets[j]] = 0xFF  # (no header chains in there: size 0xFFFF)
+    at = int(offsets[j]) - len(fake)  # (the fake 'B' ends where message j starts: the walk resumes on it)
+    assert at > offsets[i] + 3
+    bad[at:offsets[j]] = np.frombuffer(fake, np.uint8)
+    p = tmp_path / "fake_b.ulg"
+    bad.tofile(p)
+
+    topics = ulog.read_topics(str(p))
+    assert topics.engine == "fast"
+    assert any(f"implausible message header at byte {offsets[i]}" in w and f"resume at byte {at}" in w
+               for w in topics.warnings)
+    assert any(f"flag bits message(s) not first after the header (at byte(s) {at})" in w for w in topics.warnings)
+    # every data message kept but those the damage covers (and the one before the break): exactly
+    lost = (offsets >= offsets[i - 1]) & (offsets < offsets[j])
+    subs, _ = ulog.definitions(buf, offsets, sizes, types)
+    d_off = offsets[types == ulog._T_DATA]
+    ids = buf[d_off + 3].astype(np.int64) | (buf[d_off + 4].astype(np.int64) << 8)
+    full = ulog.read_topics(str(path))
+    kept_any = False
+    for mid, add in subs.items():
+        key = (add.message_name, int(add.multi_id))
+        mine = d_off[ids == mid]
+        keep = ~np.isin(mine, offsets[lost])
+        kept_any |= not keep.all()
+        for f, v in full.topics[key].items():
+            assert np.array_equal(topics.topics[key][f], v[keep], equal_nan=True), (key, f)
+    assert kept_any  # (the damage did cost samples; those before and after it are all there)
+
+    back = registry.load(str(p))
+    assert any("not first after the header" in w for w in back.meta.warnings)
+    assert len(log.imu) - 45 <= len(back.imu) < len(log.imu)
+    assert back.duration_s == pytest.approx(log.duration_s, abs=0.01)
+
+    # the native export: the fake 'B' and the damaged bytes copied unchanged, the rest as the reader reads it
+    st = restamp_ulog.restamp_ulog(str(p), str(tmp_path / "out.ulg"), ClockShift(0.02, 0.0, back.meta.t0_ns))
+    assert any(f"resume at byte {at}" in d for d in st.damage)
+    out_buf = np.fromfile(tmp_path / "out.ulg", np.uint8)
+    assert len(out_buf) == len(bad) and np.array_equal(out_buf[offsets[i]:offsets[j]], bad[offsets[i]:offsets[j]])
+    out = ulog.load(str(tmp_path / "out.ulg"), Selector())
+    assert (len(out.imu), len(out.nav)) == (len(back.imu), len(back.nav))
+
+
+def test_unknown_incompatible_flags_of_the_first_message_still_refuse_the_file(tmp_path, written):
+    """The file's own flag bits (the first message after the header) with a flag tapost does not know: refused,
+    one line, by both readers; a header made anew before messages resuming later does not take the 'B' it resumes
+    on for the file's."""
+    _, path = written
+    data = bytearray(path.read_bytes())
+    assert data[18] == ord("B")
+    for k, v in ((0, 0x02), (1, 0x01), (7, 0x80)):  # (incompat[0] bit 0: data appended, known)
+        bad = bytearray(data)
+        bad[16 + 3 + 8 + k] = v
+        p = tmp_path / f"flags{k}.ulg"
+        p.write_bytes(bytes(bad))
+        with pytest.raises(InputError, match="ULog with unknown incompatible flags: cannot be read"):
+            ulog.read_topics(str(p))
+        with pytest.raises(InputError, match="ULog with unknown incompatible flags: cannot be read"):
+            registry.load(str(p))
+        with pytest.raises(InputError, match="(?i)incompatible flag"):
+            ulog.read_topics(str(p), engine="pyulog")
+
+    # damaged header, the messages resuming (byte 75) on a 'B' that is not at the spec's place: not the file's
+    first_def = 16 + 3 + (data[16] | data[17] << 8)
+    fake = _fake_flag_bits(b"\x02")
+    rebuilt = b"\xff" * 75 + fake + bytes(data[first_def:])
+    p = tmp_path / "resumed_on_b.ulg"
+    p.write_bytes(rebuilt)
+    assert ulog.body_start(np.frombuffer(rebuilt, np.uint8)) == 75
+    topics = ulog.read_topics(str(p))
+    assert topics.engine == "fast" and any("not first after the header (at byte(s) 75)" in w for w in topics.warnings)
+    _same_topics(topics, ulog.read_topics(str(path)))
