@@ -48,6 +48,15 @@ class ClockStepConfig:
     #: more clock steps than this in one stream: not a clock that was set back now and then but stamps
     #: that run back and forth (sorted as before, said in the warning)
     max_steps: int = 8
+    #: rows out of order (a table's stretch of rows shuffled, or moved) are no clock step, where these are
+    #: set (a canonical table's rows, ``parsers.csv_canonical``; the streams of a log: off). After a step
+    #: the stamps run on increasing from where they landed: at most this fraction of the steps along the
+    #: samples until they are past the stamp before the step again run back (1.0: not asked) ...
+    max_run_back_fraction: float = 1.0
+    #: ... and those samples overlap the stamps before the step: the samples before it within their span
+    #: at least this fraction of their number (0.0: not asked). Rows out of order are globally consistent:
+    #: a stretch moved fills a hole of the stamps around it, a shuffled one does not climb
+    min_overlap_fraction: float = 0.0
 
 
 CLOCK_STEP = ClockStepConfig()
@@ -112,6 +121,13 @@ def clock_steps(t_ns: np.ndarray, cfg: ClockStepConfig = CLOCK_STEP) -> np.ndarr
             continue
         if len(above) and tj[c + j - 1] - tj[c] < cfg.min_cover_fraction * (before - tj[c]):
             continue  # a late burst: the stamps then jump forward past the step
+        if cfg.max_run_back_fraction < 1.0 or cfg.min_overlap_fraction > 0.0:
+            run = tj[c:c + j]
+            if np.count_nonzero(np.diff(run) < 0) > cfg.max_run_back_fraction * (j - 1):
+                continue  # rows shuffled: the stamps after it do not climb
+            earlier = tj[:c]
+            if np.count_nonzero((earlier >= run.min()) & (earlier <= run.max())) < cfg.min_overlap_fraction * j:
+                continue  # rows moved: they fill a hole of the stamps before them, no clock's second pass
         steps.append(int(idx[c]))
     if len(steps) > cfg.max_steps:
         return np.zeros(0, np.int64)
@@ -160,12 +176,14 @@ def clock_step_text(t_ns: np.ndarray, steps: np.ndarray, part: int, unit: str = 
 
 
 def split_at_clock_steps(t_ns: np.ndarray, label: str, warnings: list[str], shared: dict | None = None,
-                         unit: str = "sample", rows: np.ndarray | None = None) -> np.ndarray | None:
+                         unit: str = "sample", rows: np.ndarray | None = None,
+                         cfg: ClockStepConfig = CLOCK_STEP) -> np.ndarray | None:
     """The record indices to keep of stamps in record order (None: all): one part where a clock step back
     or reset splits them (said in ``warnings``, prefixed with ``label``). ``shared``: the choice of the
     first stream of the log with a step ({"part", "parts"}), set here if empty; a stream split into as many
-    parts keeps the same one (the streams of one log stay on one stretch of it)."""
-    steps = clock_steps(t_ns)
+    parts keeps the same one (the streams of one log stay on one stretch of it). ``cfg``: the rule's
+    (``ClockStepConfig``)."""
+    steps = clock_steps(t_ns, cfg)
     if not len(steps):
         return None
     n_parts = len(steps) + 1

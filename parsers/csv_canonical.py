@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import io
 import os
+from dataclasses import replace
 
 import numpy as np
 import pandas as pd
@@ -15,8 +16,8 @@ import pandas as pd
 from logtools.conventions import quat_from_euler
 from logtools.errors import InputError
 from logtools.inslog import ACCEL, GYRO, POS, QUAT, VEL, ChannelInfo, InsLog, LogMeta
-from parsers.assemble import (REPEATED_LINES_SAID, drop_stray, gap_warning, implausible, repeated_lines,
-                              split_at_clock_steps, stamp_outliers)
+from parsers.assemble import (CLOCK_STEP, REPEATED_LINES_SAID, ClockStepConfig, drop_stray, gap_warning, implausible,
+                              repeated_lines, split_at_clock_steps, stamp_outliers)
 from parsers.atomic import atomic_path
 from parsers.base import (DAMAGED_HEAD_READ_BYTES, DAMAGED_HEAD_SEARCH_BYTES, Inventory, Selector, StreamInfo, rate_of,
                           stamp_grid_s)
@@ -37,6 +38,11 @@ HEADER = (TIME,) + CSV_GYRO + CSV_ACCEL + CSV_QUAT + CSV_VEL + CSV_POS
 CSV_EULER = ("roll_deg", "pitch_deg", "yaw_deg")
 #: epoch stamps are larger than this (2001-09-09); boot-relative stamps are smaller
 EPOCH_THRESHOLD_S = 1e9
+#: the clock-step rule on a CSV's lines: a stretch of lines out of order (shuffled, or moved) is no clock step
+#: (its times, sorted, consistent with the lines around: sorted, said once); a step back or reset is, the
+#: times after it climbing from where they landed over times the lines before it already had (a fuzzed file
+#: with 2000 lines shuffled lost the 6013 lines before one of them, taken for a reset)
+CSV_CLOCK_STEP = replace(CLOCK_STEP, max_run_back_fraction=0.25, min_overlap_fraction=0.25)
 
 
 def _is_header(line: bytes) -> bool:
@@ -148,23 +154,37 @@ def load(path: str, selector: Selector) -> InsLog:
     if selector:
         raise InputError(f"a canonical CSV holds one unit: selector '{selector}' does not apply", path)
     df, warnings = _read_frame(path)
-    df = df[df[TIME].notna()]
+    df = _drop_rows(df, df[TIME].isna().to_numpy(), "whose time is NaN or empty", warnings)
     try:
         t_ns, ok_t, dec = _seconds_text(df[TIME])
     except ValueError as exc:
         raise InputError(str(exc), path) from None
     if not ok_t.all():
-        warnings.append(f"{int((~ok_t).sum())} row(s) whose time is not a decimal number dropped (damaged lines?)")
-        t_ns, df = t_ns[ok_t], df[ok_t]
+        t_ns, df = t_ns[ok_t], _drop_rows(df, ~ok_t, "whose time is not a decimal number", warnings)
+    empty = df.drop(columns=TIME).isna().all(axis=1).to_numpy()  # (text "nan" and empty cells read as NaN)
+    if empty.any() and not empty.all():  # (none with a value: said as "no complete data rows")
+        t_ns, df = t_ns[~empty], _drop_rows(df, empty, "whose every value is NaN or empty", warnings)
     return assemble_rows(path, df, t_ns, dec, warnings, fmt=NAME, time_col=TIME,
-                         stamp_source="csv time_s column")
+                         stamp_source="csv time_s column", clock_cfg=CSV_CLOCK_STEP)
+
+
+def _drop_rows(df: pd.DataFrame, drop: np.ndarray, what: str, warnings: list[str]) -> pd.DataFrame:
+    """``df`` without the rows ``drop``, said in ``warnings`` where there are any: their count, ``what`` they
+    are, the first one's line (a CSV's header is line 1)."""
+    if not drop.any():
+        return df
+    line = int(df.index[np.flatnonzero(drop)[0]]) + 2
+    warnings.append(f"{int(drop.sum())} row(s) {what} dropped (damaged lines?; first at line {line})")
+    return df[~drop]
 
 
 def assemble_rows(path: str, df: pd.DataFrame, t_ns: np.ndarray, dec: int | None, warnings: list[str], *,
-                  fmt: str, time_col: str, stamp_source: str, row: str = "line", first_row: int = 2) -> InsLog:
+                  fmt: str, time_col: str, stamp_source: str, row: str = "line", first_row: int = 2,
+                  clock_cfg: ClockStepConfig = CLOCK_STEP) -> InsLog:
     """The InsLog of canonical rows ``df`` (its columns by the canonical names; ``df.index`` the rows'
     places in the file, counted from ``first_row`` in the warnings, each a ``row``) at int64 stamps ``t_ns``
-    (``dec``: the decimals the stamps were written with, None when unknown)."""
+    (``dec``: the decimals the stamps were written with, None when unknown). ``clock_cfg``: the clock-step
+    rule's (a CSV's: ``CSV_CLOCK_STEP``, rows out of order no step)."""
     groups = {"gyro": CSV_GYRO, "accel": CSV_ACCEL, "quat": CSV_QUAT, "euler": CSV_EULER, "vel": CSV_VEL,
               "pos": CSV_POS}
     present = {g: cols for g, cols in groups.items() if all(c in df.columns for c in cols)}
@@ -194,12 +214,14 @@ def assemble_rows(path: str, df: pd.DataFrame, t_ns: np.ndarray, dec: int | None
             t_ns, df = t_ns[~drop], df[~drop]
     if np.any(np.diff(t_ns) < 0):  # a clock step back or reset keeps one part (parsers.assemble.clock_steps)
         keep = split_at_clock_steps(t_ns, f"{time_col} column: ", warnings, unit=row,
-                                    rows=np.asarray(df.index, dtype=np.int64) + first_row)
+                                    rows=np.asarray(df.index, dtype=np.int64) + first_row, cfg=clock_cfg)
         if keep is not None:
             t_ns, df = t_ns[keep], df.iloc[keep]
     order = np.argsort(t_ns, kind="stable")
-    if np.any(np.diff(t_ns) < 0):
-        warnings.append("rows not in time order: sorted")
+    back = np.flatnonzero(np.diff(t_ns) < 0) + 1  # (a row whose time is below the one before it)
+    if len(back):
+        warnings.append(f"rows not in time order: sorted ({len(back)} {row}(s) with a time below the one before, "
+                        f"first at {row} {int(df.index[back[0]]) + first_row})")
     t_ns = t_ns[order]
     df = df.iloc[order]
     dup = np.concatenate([[False], np.diff(t_ns) == 0])

@@ -1280,7 +1280,8 @@ def test_gaps_in_a_canonical_csvs_imu_or_navigation_rows_are_said(tmp_path):
             c = list(c)
             if cut:
                 c[cols] = [""] * len(c[cols])
-            out.append(",".join(c))
+            if any(c[1:]):  # (a line left without a value is not written: a damaged line, said as such)
+                out.append(",".join(c))
         return out
 
     for name, cols in (("imu", slice(1, 7)), ("nav", slice(7, None))):
@@ -1290,3 +1291,68 @@ def test_gaps_in_a_canonical_csvs_imu_or_navigation_rows_are_said(tmp_path):
     path.write_text("\n".join([header] + [r for r, cut in zip(rows, inside) if not cut]) + "\n")
     assert {w.split(":")[0] for w in registry.load(str(path)).meta.warnings} == {"imu (csv)", "nav (csv)"}
 
+
+
+def _imu_csv(path: Path, t_ns: np.ndarray, gyro: np.ndarray) -> Path:
+    body = "\n".join(",".join(r) for r in np.column_stack(
+        [csv_canonical.ns_to_seconds_text(t_ns), np.char.mod("%.17g", gyro)]))
+    return _write(path, "time_s,gyro_x_rad_s,gyro_y_rad_s,gyro_z_rad_s\n" + body + "\n")
+
+
+def test_a_stretch_of_canonical_csv_lines_out_of_order_is_sorted_not_taken_for_a_clock_step(tmp_path):
+    """2000 lines shuffled in a fuzzed canonical CSV: one of their steps back was taken for a clock reset, and
+    the 6013 lines before it were left out, with "rows not in time order: sorted" beside it. Lines out of order
+    whose times are consistent with the lines around (shuffled, or a stretch moved) are every one kept, sorted,
+    said once; a clock that steps back or resets, its times climbing from there over times the lines before it
+    already had, still keeps one part."""
+    from parsers.assemble import CLOCK_STEP_WORDS
+
+    rng = np.random.default_rng(0)
+    n = 8000
+    t = 1_700_000_000_000_000_000 + np.arange(n, dtype=np.int64) * 5_000_000  # 200 Hz
+    t += rng.integers(-200_000, 200_000, n)  # (jitter)
+    shuffled = np.arange(n)
+    shuffled[3000:5000] = rng.permutation(shuffled[3000:5000])  # (taken for two clock steps: 2 parts lost)
+    moved = np.concatenate([np.arange(3000), np.arange(4000, 4500), np.arange(3000, 4000), np.arange(4500, n)])
+    gyro = rng.standard_normal((n, 3))
+    for name, idx in (("shuffled", shuffled), ("moved", moved)):
+        log = registry.load(str(_imu_csv(tmp_path / f"{name}.csv", t[idx], gyro[idx])))
+        assert len(log.imu) == n, (name, log.meta.warnings)
+        np.testing.assert_array_equal(log.meta.t0_ns + np.round(log.t_imu_s() * 1e9).astype(np.int64), t)
+        np.testing.assert_array_equal(log.gyro_rad_s(), gyro)
+        first = 2 + int(np.flatnonzero(np.diff(t[idx]) < 0)[0]) + 1
+        assert log.meta.warnings == (f"rows not in time order: sorted ({int(np.sum(np.diff(t[idx]) < 0))} line(s) "
+                                     f"with a time below the one before, first at line {first})",), name
+    # a clock step back 3 s at line 2502, and a reset to the log's first time: one part kept, nothing sorted
+    for name, back_ns, kept in (("step", 3_000_000_000, slice(0, 5000)), ("reset", None, slice(2000, n))):
+        at = 5000 if name == "step" else 2000
+        stepped = t.copy()
+        stepped[at:] -= back_ns if back_ns else stepped[at] - t[0]
+        log = registry.load(str(_imu_csv(tmp_path / f"{name}.csv", stepped, gyro)))
+        said = [w for w in log.meta.warnings if CLOCK_STEP_WORDS in w]
+        assert len(said) == 1 and f"at line {at + 2} " in said[0], log.meta.warnings
+        assert not any("sorted" in w for w in log.meta.warnings), log.meta.warnings
+        np.testing.assert_array_equal(log.gyro_rad_s(), gyro[kept])
+
+
+def test_canonical_csv_rows_with_a_nan_time_or_no_value_are_counted_in_a_warning(tmp_path):
+    """Lines whose time is "nan" (or empty) and lines whose every value is NaN or empty were dropped without a
+    word (the report said only that the stamps had a gap), where a time that is not a number was said: each
+    kind is now counted and its first line named, as that one is."""
+    n = 400
+    t = np.arange(n) * 0.005
+    lines = [f"{ti:.3f},{0.1 * i:.3f},0.2,0.3" for i, ti in enumerate(t)]
+    for i in (50, 51, 52, 300):
+        lines[i] = "nan" + lines[i][lines[i].index(","):]
+    lines[60] = "," + lines[60].split(",", 1)[1]  # (an empty time cell)
+    for i in range(100, 110):
+        lines[i] = f"{t[i]:.3f},nan,nan,nan"
+    lines[200] = f"{t[200]:.3f},,,"
+    lines[250] = "x1.5" + lines[250][lines[250].index(","):]  # (not a number: said as before)
+    log = registry.load(str(_write(tmp_path / "nan.csv", "time_s,gyro_x_rad_s,gyro_y_rad_s,gyro_z_rad_s\n"
+                                   + "\n".join(lines) + "\n")))
+    assert len(log.imu) == n - 5 - 11 - 1
+    w = log.meta.warnings
+    assert "5 row(s) whose time is NaN or empty dropped (damaged lines?; first at line 52)" in w, w
+    assert "11 row(s) whose every value is NaN or empty dropped (damaged lines?; first at line 102)" in w, w
+    assert "1 row(s) whose time is not a decimal number dropped (damaged lines?; first at line 252)" in w, w
