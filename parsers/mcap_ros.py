@@ -119,6 +119,36 @@ def records_shift(buf) -> int:
     return summary_shift(buf) or 0
 
 
+#: the opcodes of the records a summary section holds (schema, channel, chunk index, attachment and metadata
+#: indexes, statistics, summary offsets)
+_SUMMARY_OPS = np.zeros(256, bool)
+_SUMMARY_OPS[[_OP_SCHEMA, _OP_CHANNEL, _OP_CHUNK_INDEX, 0x0A, 0x0B, 0x0D, 0x0E]] = True
+
+
+def _footer_at(buf) -> int:
+    return len(buf) - len(MAGIC) - 29
+
+
+def _reaches_footer(buf, at: int, foot: int) -> bool:
+    """Summary records chain from ``at`` exactly up to the footer at ``foot``."""
+    off = at
+    while off + 9 <= foot:
+        op, ln = _REC.unpack_from(buf, off)
+        if not _SUMMARY_OPS[op] or off + 9 + ln > foot:
+            return False
+        off += 9 + ln
+    return off == foot
+
+
+def _first_chain(buf, lo: int, hi: int, foot: int) -> int | None:
+    """The first offset in ``buf[lo:hi]`` from which summary records chain exactly up to the footer."""
+    window = np.frombuffer(bytes(buf[lo:hi]), np.uint8)
+    for i in np.flatnonzero(_SUMMARY_OPS[window]):
+        if _reaches_footer(buf, lo + int(i), foot):
+            return lo + int(i)
+    return None
+
+
 def summary_shift(buf, search: int = DAMAGED_HEAD_SEARCH_BYTES) -> int | None:
     """The shift of a file's records against the offsets its footer gives (bytes put before them: positive;
     lost from the start: negative), where the start is damaged past its Header record: the shift, within
@@ -127,42 +157,88 @@ def summary_shift(buf, search: int = DAMAGED_HEAD_SEARCH_BYTES) -> int | None:
     start = footer_start(buf)
     if start is None:
         return None
-    n = len(buf)
-    foot = n - len(MAGIC) - 29
+    foot = _footer_at(buf)
     lo, hi = max(len(MAGIC), start - search), min(foot, start + search)
     if hi <= lo:
         return None
-    window = np.frombuffer(bytes(buf[lo:hi]), np.uint8)
-    summary_ops = np.zeros(256, bool)
-    summary_ops[[_OP_SCHEMA, _OP_CHANNEL, _OP_CHUNK_INDEX, 0x0A, 0x0B, 0x0D, 0x0E]] = True
-
-    def reaches_footer(at: int) -> bool:
-        off = at
-        while off + 9 <= foot:
-            op, ln = _REC.unpack_from(buf, off)
-            if not summary_ops[op] or off + 9 + ln > foot:
-                return False
-            off += 9 + ln
-        return off == foot
-
-    if reaches_footer(start):
+    if _reaches_footer(buf, start, foot):
         return None  # (the summary where the footer says: no shift)
     # every record boundary inside the summary chains to the footer: its start is the earliest that does
-    for i in np.flatnonzero(summary_ops[window]):
-        at = lo + int(i)
-        if reaches_footer(at):
-            return at - start
-    return None
+    at = _first_chain(buf, lo, hi, foot)
+    return None if at is None else at - start
+
+
+def _opens_chunk(buf, at: int) -> bool:
+    if at < len(MAGIC) or at + 9 > len(buf):
+        return False
+    op, ln = _REC.unpack_from(buf, at)
+    return op == _OP_CHUNK and at + 9 + ln <= len(buf)
+
+
+def _offsets_in_place(buf, start: int, at: int) -> bool:
+    """The summary section's records chain to the footer from ``at``, not from the footer's summary start
+    ``start``: True when the file's other offsets show that nothing moved (the bytes from ``start`` were
+    overwritten: the records there are damaged in place), False when they are off by as much (bytes put in
+    or lost before the summary, :func:`inner_shift`) or nothing tells. Judged by the footer's summary offset
+    start (a summary offset record there and not ``at - start`` bytes on, or the other way), else by the
+    chunk index records after ``at``: the last chunk whose record opens at exactly one of its offset and that
+    offset moved."""
+    foot = _footer_at(buf)
+    d = at - start
+    (so,) = _U64.unpack_from(buf, foot + 9 + 8)
+
+    def offsets_record(k: int) -> bool:
+        return at <= k < foot and buf[k] == 0x0E and _reaches_footer(buf, k, foot)
+
+    if so and offsets_record(so) != offsets_record(so + d):
+        return offsets_record(so)
+    off, chunks = at, []
+    while off + 9 <= foot:
+        op, ln = _REC.unpack_from(buf, off)
+        if op == _OP_CHUNK_INDEX and ln >= 32:
+            chunks.append(int(_U64.unpack_from(buf, off + 9 + 16)[0]))
+        off += 9 + ln
+    for c in reversed(chunks):
+        here, moved = _opens_chunk(buf, c), _opens_chunk(buf, c + d)
+        if here != moved:
+            return here
+    return False
 
 
 def inner_shift(buf) -> int:
     """Bytes put in (positive) or lost (negative) inside a file's data section: the summary section moved by as
     much from where its footer says (:func:`summary_shift`), the chunks after the damage with it. 0 when the
-    summary is where the footer says, the file has no footer or no such shift is found. The parser and the
-    export judge a file alike."""
-    if footer_start(buf) is None or _summary_records(buf)[1]:
+    summary is where the footer says, the file has no footer or no such shift is found, or when the file's
+    offsets show that its summary is in place with its first bytes damaged (overwritten: a summary read from
+    a later record boundary is not moved, :func:`summary_damaged_head`). The parser and the export judge a
+    file alike."""
+    start = footer_start(buf)
+    if start is None or _summary_walk(buf, start):
         return 0
-    return summary_shift(buf) or 0
+    d = summary_shift(buf)
+    if not d or (d > 0 and _offsets_in_place(buf, start, start + d)):
+        return 0
+    return d
+
+
+def summary_damaged_head(buf, search: int = DAMAGED_HEAD_SEARCH_BYTES) -> tuple[int, int] | None:
+    """Where a summary section damaged in place (bytes overwritten, not put in or lost: :func:`inner_shift` is
+    0) stops reading and where it reads again: (the end of the records that read from the footer's summary
+    start, the first record boundary within ``search`` bytes after them from which the records chain exactly
+    up to the footer, with the file's offsets in place: :func:`_offsets_in_place`). None when the summary
+    reads up to the footer, is moved, the file has none, or no such boundary is found."""
+    start = footer_start(buf)
+    foot = _footer_at(buf)
+    if start is None or not len(MAGIC) <= start < foot:
+        return None
+    recs = _summary_walk(buf, start)
+    stop = recs[-1][2] if recs else start
+    if stop == foot or (not recs and inner_shift(buf)):
+        return None
+    at = _first_chain(buf, stop, min(foot, stop + search), foot)
+    if at is None or at == stop or not _offsets_in_place(buf, start, at):
+        return None
+    return stop, at
 
 
 def _header_fits(buf, at: int, ln: int) -> bool:
@@ -398,7 +474,22 @@ class _Scan:
                     del self.channels[c]
                     self._define(c, t, sid, e)
             return
-        self.schemas.setdefault(sid, new)
+        if sid in self.schemas:
+            return
+        self.schemas[sid] = new
+        # channels defined before their schema (its summary record damaged: they came from the summary with
+        # no type, so their content was not kept) are judged again with it: the /imu of a file whose
+        # summary's first record was overwritten had its 16128 messages counted, none read (analyze refused
+        # the file while inspect listed the topic)
+        for c, (t, c_sid, e) in list(self.channels.items()):
+            if c_sid != sid or self.kept[c] or not self.keep(t, name):
+                continue
+            n = self.counts.get(c, 0)
+            if n:  # (its messages so far were read without their content: left out, said so)
+                self.warnings.append(f"damaged: {n} messages of {t} before its schema {name} (schema id {sid}) "
+                                     "was read: their content was not kept; left out")
+            del self.channels[c]
+            self._define(c, t, sid, e)
 
     def channel(self, buf, off: int) -> None:
         cid, sid = struct.unpack_from("<HH", buf, off)
@@ -620,15 +711,9 @@ def read_streamed(path: str, keep: Callable[[str, str], bool] = rc.keep_supporte
     return _rawlog(path, fmt, _scan_file(path, scan, done))
 
 
-def _summary_records(buf, shift: int = 0) -> tuple[int, list[tuple[int, int, int]]]:
-    """(summary start, [(opcode, offset, next)] of the summary section's records), found through the footer
-    (up to the first record that does not read), ``shift`` bytes from where it says (:func:`summary_shift`);
-    (0, []) without a footer."""
-    start = footer_start(buf)
-    if start is None:
-        return 0, []
-    start += shift
-    at = len(buf) - len(MAGIC) - 29
+def _summary_walk(buf, start: int) -> list[tuple[int, int, int]]:
+    """[(opcode, offset, next)] of the records from ``start`` up to the footer or the first that does not read."""
+    at = _footer_at(buf)
     out = []
     off = int(start)
     while len(MAGIC) <= off < at and off + 9 <= at:
@@ -638,6 +723,23 @@ def _summary_records(buf, shift: int = 0) -> tuple[int, list[tuple[int, int, int
             break
         out.append((op, off, nxt))
         off = nxt
+    return out
+
+
+def _summary_records(buf, shift: int = 0) -> tuple[int, list[tuple[int, int, int]]]:
+    """(summary start, [(opcode, offset, next)] of the summary section's records), found through the footer
+    (up to the first record that does not read), ``shift`` bytes from where it says (:func:`summary_shift`);
+    (0, []) without a footer. A summary damaged in place (``shift`` 0, :func:`summary_damaged_head`): the
+    records before the damage and those from where they chain to the footer again."""
+    start = footer_start(buf)
+    if start is None:
+        return 0, []
+    start += shift
+    out = _summary_walk(buf, start)
+    if not shift:
+        head = summary_damaged_head(buf)
+        if head is not None:
+            out = [r for r in out if r[2] <= head[0]] + _summary_walk(buf, head[1])
     return start, out
 
 
@@ -904,6 +1006,13 @@ def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
             scan.warnings.append(f"damaged: the summary section is {inner:+d} bytes from where the footer says "
                                  "(bytes put in or lost inside the file): the chunks after the damage are "
                                  "read at the summary's offsets moved by as much")
+        else:
+            head = summary_damaged_head(buf)
+            if head is not None:
+                scan.warnings.append(f"damaged: the summary section does not read from byte {head[0]} to byte "
+                                     f"{head[1]} (bytes overwritten: the footer's offsets are where the records "
+                                     "are); its records after them used, the definitions lost with them read from "
+                                     "the data section")
         for op, at, nxt in summary_definitions(buf, inner):
             try:
                 scan.schema(buf, at + 9, nxt) if op == _OP_SCHEMA else scan.channel(buf, at + 9)

@@ -943,6 +943,9 @@ def _scan_mcap(path: str) -> _McapScan:
         sc.damage.append(f"the summary section is {inner:+d} bytes from where the footer says (bytes put in or "
                          "lost inside the file): the chunks after the damage read at the summary's offsets moved by "
                          "as much")
+    elif (head := mcap_ros.summary_damaged_head(buf)) is not None:
+        sc.damage.append(f"the summary section does not read from byte {head[0]} to byte {head[1]} (bytes "
+                         "overwritten); the output's summary is written anew")
     for op, at, _nxt in mcap_ros.summary_definitions(buf, inner):  # channels known even if their chunk is damaged
         try:
             (sc.schema if op == _OP["schema"] else sc.channel)(buf, at + 9)

@@ -426,8 +426,10 @@ def _layout_tries(typestore, msgtype: str, encoding: str, paths: dict[str, str],
     return n_fast
 
 
-def decode_topic(typestore, raw: RawTopic, paths: dict[str, str], *, fast: bool = True) -> Decoded:
-    """Columns ``paths`` of every message of ``raw`` (float64), vectorised where possible.
+def decode_topic(typestore, raw: RawTopic, paths: dict[str, str], *, fast: bool = True,
+                 path: str | None = None) -> Decoded:
+    """Columns ``paths`` of every message of ``raw`` (float64), vectorised where possible (``path``: the log's
+    file, named by the InputError of a topic whose message content was not read).
 
     Messages are grouped by length; each group is decoded with the layout of its first message, the
     messages that fail the layout's checks get another try with the layout of the first of them (a
@@ -437,7 +439,7 @@ def decode_topic(typestore, raw: RawTopic, paths: dict[str, str], *, fast: bool 
     if n == 0:
         return Decoded(out, 0, 0)
     if len(raw.data) != n:
-        raise InputError(f"topic {raw.name}: message content was not read")
+        raise InputError(f"topic {raw.name}: message content was not read ({len(raw.data)} of {n} messages)", path)
     if raw.encoding == "json":  # (text: no fixed layout; every message through the JSON decoder)
         return Decoded(json_decode(raw, paths), n, 0)
     lens = np.fromiter(map(len, raw.data), dtype=np.int64, count=n)
@@ -782,7 +784,7 @@ def topic_data(rawlog: RawLog, name: str, time_mode: str, warnings: list[str],
         paths = {k: v for k, v in paths.items() if k in keys}
     if raw.decoded is not None:
         return _streamed_topic_data(rawlog, raw, paths, time_mode, warnings)
-    dec = decode_topic(rawlog.typestore, raw, {**paths, **STAMP_FIELDS})
+    dec = decode_topic(rawlog.typestore, raw, {**paths, **STAMP_FIELDS}, path=rawlog.path)
     if dec.n_slow:
         warnings.append(f"{name}: {dec.n_slow} of {raw.count} messages decoded by the library "
                         "(not the fixed-layout fast path)")
@@ -964,7 +966,8 @@ def _imu_has_orientation(rawlog: RawLog, topic: str) -> bool:
     if n == 0:
         return False
     sub = RawTopic(raw.name, raw.msgtype, raw.encoding, raw.log_ns[:n], raw.data[:n])
-    c = decode_topic(rawlog.typestore, sub, {k: FIELDS[IMU][k] for k in ("qx", "qy", "qz", "qw", "q_cov0")}).columns
+    c = decode_topic(rawlog.typestore, sub, {k: FIELDS[IMU][k] for k in ("qx", "qy", "qz", "qw", "q_cov0")},
+                     path=rawlog.path).columns
     _q, ok = quat_ros_to_ned_frd(c)
     return bool(np.any(ok & (c["q_cov0"] != -1)))
 
@@ -978,7 +981,7 @@ def _imu_all_zero(rawlog: RawLog, topic: str, n: int = 200) -> bool:
         return False
     sub = RawTopic(raw.name, raw.msgtype, raw.encoding, raw.log_ns[:n], raw.data[:n])
     keys = [f"g{c}" for c in "xyz"] + [f"a{c}" for c in "xyz"]
-    c = decode_topic(rawlog.typestore, sub, {k: FIELDS[IMU][k] for k in keys}).columns
+    c = decode_topic(rawlog.typestore, sub, {k: FIELDS[IMU][k] for k in keys}, path=rawlog.path).columns
     vals = np.stack([np.asarray(c[k], float) for k in keys])
     return bool(vals.size) and bool(np.all(vals == 0.0))
 

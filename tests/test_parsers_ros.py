@@ -1341,3 +1341,55 @@ def test_a_definition_in_a_chunk_that_failed_its_crc_does_not_replace_the_summar
     got = registry.load(str(bad))
     assert any("CRC mismatch" in w for w in got.meta.warnings), got.meta.warnings
     assert got.has_pos and len(got.nav) == len(registry.load(str(path)).nav)
+
+
+@pytest.mark.parametrize("reach", ["summary", "data_end"])
+def test_mcap_with_its_summarys_first_record_overwritten_reads_every_readable_message(big_files, tmp_path, reach):
+    """Fuzz case (5 random blocks overwritten, one over the summary section's start): the summary's first
+    record, the /imu schema, was garbage. The chain of summary records to the footer was found one record on
+    and taken for bytes put in (a +877-byte "shift"), and the /imu channel, defined from the summary before
+    its schema, had no type: its messages were counted, none kept. inspect listed 16128 /imu messages, analyze
+    stopped at 'topic /imu: message content was not read' (no file named). The summary is now read as damaged
+    in place (the footer's offsets are where the records are), the schema from the data section sets the
+    channel up again, and every readable message is read. ``data_end``: the random block starts inside the
+    last chunk's compressed records, as in the fuzz file (that chunk's tail, its message indexes and the data
+    end record lost too)."""
+    src = big_files["mcap"]
+    data = bytearray(open(src, "rb").read())
+    start = mcap_ros.footer_start(memoryview(bytes(data)))
+    imu = [(a, nxt) for op, a, nxt in mcap_ros.summary_definitions(memoryview(bytes(data)))
+           if op == 3 and b"sensor_msgs/msg/Imu" in data[a:nxt]]
+    assert imu and imu[0][0] == start  # (the writer's first summary record: the /imu schema)
+    last, ln = _mcap_chunks(bytes(data))[-1]
+    lo = last + 9 + ln - 2000 if reach == "data_end" else start
+    data[lo:imu[0][1]] = np.random.default_rng(5).integers(0, 256, imu[0][1] - lo, dtype=np.uint8).tobytes()
+    data[start] = 0  # (the summary's first record does not read)
+    p = _copy_with(src, str(tmp_path / f"summary_head_{reach}.mcap"), bytes(data))
+    assert mcap_ros.inner_shift(memoryview(bytes(data))) == 0  # (overwritten: nothing moved)
+    full, back = parsers.load(src), parsers.load(p)
+    said = [w for w in back.meta.warnings if "summary section does not read" in w]
+    assert said and f"from byte {start} to byte {imu[0][1]}" in said[0], back.meta.warnings
+    assert not any("put in or lost" in w for w in back.meta.warnings), back.meta.warnings
+    if reach == "summary":
+        assert len(back.imu) == len(full.imu)
+        np.testing.assert_array_equal(back.gyro_rad_s(), full.gyro_rad_s())
+    else:
+        assert any(f"byte {last}" in w for w in back.meta.warnings), back.meta.warnings  # (the last chunk named)
+        assert 0.8 * len(full.imu) < len(back.imu) < len(full.imu)
+        np.testing.assert_array_equal(back.gyro_rad_s(), full.gyro_rad_s()[:len(back.imu)])
+    # inspect and analyze agree: the /imu inspect lists is the one loaded, on its header stamps
+    st = {s.name: s for s in registry.inspect_log(p).streams}["/imu"]
+    assert st.count == len(back.imu) and "header.stamp" in st.clock, st
+    raw = mcap_ros.read_raw(p)
+    assert len(raw.topics["/imu"].data) == raw.topics["/imu"].count == len(back.imu)
+
+
+def test_a_topic_whose_content_was_not_read_is_an_error_naming_the_file(written):
+    """A reader that counted a topic's messages without their content (a damaged file): the load stops with
+    one line that names the file, not 'topic /imu: message content was not read' alone."""
+    raw = mcap_ros.read_raw(written["x.mcap"])
+    t = raw.topics["/imu"]
+    t.data = t.data[:-5]
+    with pytest.raises(InputError) as exc:
+        rc.to_inslog(raw, parsers.base.Selector())
+    assert exc.value.path == written["x.mcap"] and "/imu" in str(exc.value) and written["x.mcap"] in str(exc.value)
