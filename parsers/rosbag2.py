@@ -384,6 +384,18 @@ def read_raw(path: str, keep: Callable[[str, str], bool] = rc.keep_supported) ->
         have = sum(t.count for t in topics.values())
         if declared and have < declared:
             warnings.append(f"read {have} of the {declared} messages metadata.yaml declares")
+        short = []  # (each topic read against its count in metadata.yaml: a topic's messages lost alone)
+        for entry in meta.get("topics_with_message_count") or ():
+            try:
+                name, count = entry["topic_metadata"]["name"], int(entry["message_count"])
+            except (KeyError, TypeError, ValueError):
+                continue
+            t = topics.get(name)
+            if t is not None and t.count < count:
+                short.append(f"{name} {t.count} of {count}")
+        if short:
+            warnings.append(f"fewer messages than metadata.yaml declares per topic: {', '.join(short[:5])}"
+                            + (f" (and {len(short) - 5} more topics)" if len(short) > 5 else ""))
     return rc.RawLog(path=path, fmt=NAME, topics=topics, typestore=typestore, warnings=warnings)
 
 

@@ -1393,3 +1393,26 @@ def test_a_topic_whose_content_was_not_read_is_an_error_naming_the_file(written)
     with pytest.raises(InputError) as exc:
         rc.to_inslog(raw, parsers.base.Selector())
     assert exc.value.path == written["x.mcap"] and "/imu" in str(exc.value) and written["x.mcap"] in str(exc.value)
+
+
+@pytest.mark.parametrize("name", ["bag_sqlite", "bag_mcap"])
+def test_rosbag2_topic_with_fewer_messages_than_its_metadata_declares_is_said(written, tmp_path, name):
+    """metadata.yaml counts each topic's messages: a topic read with fewer (its messages lost, or the count
+    damaged) is named in a warning, with its count read and declared; the data read is used as it is."""
+    import yaml
+
+    src = written[name]
+    bad = tmp_path / "bad"
+    shutil.copytree(src, bad)
+    meta_p = bad / "metadata.yaml"
+    meta = yaml.safe_load(meta_p.read_text())
+    entries = meta["rosbag2_bagfile_information"]["topics_with_message_count"]
+    (imu,) = [e for e in entries if e["topic_metadata"]["name"] == "/imu"]
+    n = imu["message_count"]
+    imu["message_count"] = 99_999_999
+    meta_p.write_text(yaml.safe_dump(meta))
+    want, got = parsers.load(src), parsers.load(str(bad))
+    np.testing.assert_array_equal(got.imu.to_numpy(), want.imu.to_numpy())
+    assert not any("per topic" in w for w in want.meta.warnings)
+    (w,) = [w for w in got.meta.warnings if "per topic" in w]
+    assert f"/imu {n} of 99999999" in w
