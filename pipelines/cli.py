@@ -244,8 +244,10 @@ def _main(argv: list[str] | None) -> int:
     try:
         return int(args._run(args) or 0)
     except TapostError as exc:
-        if debug:
-            raise
+        if debug:  # the traceback, and the same exit code as without --debug
+            import traceback
+
+            traceback.print_exc()
         print(f"tapost: {exc}", file=sys.stderr)
         return exc.exit_code
     except KeyboardInterrupt:
@@ -255,7 +257,9 @@ def _main(argv: list[str] | None) -> int:
         return 0
     except Exception as exc:  # a bug (or the system refusing a file): still one line
         if debug:
-            raise
+            import traceback
+
+            traceback.print_exc()
         if isinstance(exc, OSError) and exc.errno in SYSTEM_REFUSALS:
             # the system refused a file (an output's path taken by a folder, a full or read-only disk, no
             # permission): what the user can act on, named by the path they know
@@ -263,8 +267,8 @@ def _main(argv: list[str] | None) -> int:
             print(f"tapost: {where}: {exc.strerror}" if where is not None else f"tapost: {exc.strerror}",
                   file=sys.stderr)
             return 2
-        print(f"tapost: internal error: {type(exc).__name__}: {exc} (rerun with --debug for details)",
-              file=sys.stderr)
+        print(f"tapost: internal error: {type(exc).__name__}: {exc}"
+              + ("" if debug else " (rerun with --debug for details)"), file=sys.stderr)
         return 1
 
 

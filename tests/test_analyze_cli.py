@@ -194,6 +194,19 @@ def test_bad_inputs_exit_2_one_line(tmp_path, fake_numerics, capsys):
     assert not (tmp_path / "x").exists()  # nothing written for unreadable input
 
 
+def test_debug_shows_the_traceback_and_keeps_the_exit_code(tmp_path, fake_numerics, capsys):
+    """--debug adds the traceback before the one line; the exit code is the one without it (an unreadable
+    input was exit 1 with --debug: the exception left main)."""
+    m, s = write_fake_pair(tmp_path)
+    for argv, code in ((["analyze", str(tmp_path / "missing.csv"), s], 2),
+                       (["analyze", m, s, "--lever-arm", "1,2"], 2)):
+        assert main(argv + ["-o", str(tmp_path / "x")]) == code
+        plain = capsys.readouterr().err.strip().splitlines()
+        assert main(["--debug"] + argv + ["-o", str(tmp_path / "x")]) == code
+        err = capsys.readouterr().err.strip().splitlines()
+        assert "Traceback (most recent call last):" in err and err[-1] == plain[-1]
+
+
 def test_config_file_toml_and_json(tmp_path, fake_numerics):
     m, s = write_fake_pair(tmp_path, duration_s=20)
     cfg = tmp_path / "c.toml"
