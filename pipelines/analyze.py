@@ -762,12 +762,47 @@ def _arg_path(arg) -> str:
 
 
 def same_stream(master: InsLog, slave: InsLog) -> bool:
-    """True when both sides are the same stream of the same file (same resolved selector)."""
+    """True when both sides are the same stream: of the same file with the same resolved selector, or the
+    same angular rates and navigation sources (of one file read on two clocks; of any files at the same
+    stamps: a unit's folder and the session that defaults to it, a plain copy). A copy restamped (its stamps
+    shifted) is a pair: the export's round trip is one. One IMU with two navigation sources: ``same_imu``."""
+    same_file = _same_file(master, slave)
+    if same_file and master.meta.selector == slave.meta.selector:
+        return True
+    return _nav_sources(master) == _nav_sources(slave) and _one_imu(master, slave, same_file)
+
+
+def same_imu(master: InsLog, slave: InsLog) -> str | None:
+    """What to say where both sides read one IMU stream with different navigation sources (two EKF lanes
+    of one log against one IMU): the latency is then that stream against itself, 0 by construction; the
+    alignment compares the two navigation sources. None otherwise."""
+    if not _one_imu(master, slave, _same_file(master, slave)):
+        return None
+    src = master._channel("gyro").source if master._channel("gyro") is not None else "IMU"
+    return (f"master and slave read the same IMU stream ({src}): the latency compares it with itself (0 by "
+            "construction); the alignment compares their navigation sources. For the latency between two units, "
+            "give two IMUs (`tapost inspect FILE` lists them)")
+
+
+def _same_file(master: InsLog, slave: InsLog) -> bool:
     try:
-        same_file = os.path.samefile(master.meta.source_path, slave.meta.source_path)
+        return os.path.samefile(master.meta.source_path, slave.meta.source_path)
     except OSError:
-        same_file = os.path.abspath(master.meta.source_path) == os.path.abspath(slave.meta.source_path)
-    return same_file and master.meta.selector == slave.meta.selector
+        return os.path.abspath(master.meta.source_path) == os.path.abspath(slave.meta.source_path)
+
+
+def _nav_sources(log: InsLog) -> tuple:
+    return tuple(getattr(log._channel(k), "source", None) for k in ("att", "vel", "pos"))
+
+
+def _one_imu(master: InsLog, slave: InsLog, same_file: bool) -> bool:
+    """The same angular rates on both sides: of the same file, or at the same stamps."""
+    if not (master.has_gyro and slave.has_gyro and master.n_imu == slave.n_imu and master.n_imu):
+        return False
+    if not np.array_equal(master.gyro_rad_s(), slave.gyro_rad_s(), equal_nan=True):
+        return False
+    return same_file or bool(np.array_equal(master.t_imu_s() * 1e9 + master.meta.t0_ns,
+                                            slave.t_imu_s() * 1e9 + slave.meta.t0_ns))
 
 
 def parse_pair(master_arg: str | InsLog, slave_arg: str | InsLog, prog=null_progress,
@@ -831,7 +866,7 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
     parallel.release_freed_memory()  # (each stage's freed temporaries: not carried into the next stage)
     tim["parse"] = time.perf_counter() - t
     if same_stream(master, slave):
-        raise InputError("master and slave are the same stream of the same file (nothing to compare); "
+        raise InputError("master and slave are the same stream (the same angular rates; nothing to compare); "
                          "give two logs, or two units of one log with selectors "
                          "(e.g. FILE::imu=IMU and FILE::imu=IMU2; `tapost inspect FILE` lists them)",
                          _arg_path(slave_arg))
@@ -840,6 +875,9 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
     extra = an.extra
     units = scale_findings(master, slave)  # (a unit mix-up: said as a warning, and in a failure's line)
     extra.setdefault("warnings", []).extend({"stage": "parse", "text": u} for u in units)
+    one_imu = same_imu(master, slave)
+    if one_imu:
+        extra["warnings"].append({"stage": "parse", "text": one_imu})
 
     # -- latency
     t = time.perf_counter()

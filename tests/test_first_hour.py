@@ -186,6 +186,38 @@ def test_one_file_two_selectors_stays_allowed_and_the_default_is_its_own_stream(
     assert "same stream" in capsys.readouterr().err
 
 
+def test_one_imu_read_twice_or_a_plain_copy_is_the_same_stream(tmp_path, capsys):
+    """The same angular rates on both sides are refused in one line: one file's IMU with two navigation
+    sources or on two clocks (the 'latency' would be 0, or the offset between the clocks), a plain copy of a
+    file (same rates at the same stamps). A restamped copy (its stamps shifted) stays a pair."""
+    import shutil
+
+    from pipelines.analyze import same_imu, same_stream
+    from parsers import load
+    from parsers.restamp import ClockShift
+    from pipelines import export
+
+    log = str(SAMPLE / "slave.tlog")
+    copy = tmp_path / "copy.tlog"
+    shutil.copyfile(log, copy)
+    for m, s in ((log, f"{log}::time=receive"), (log, str(copy))):
+        a, b = load(m), load(s)
+        assert a.meta.selector != b.meta.selector or m != s
+        assert same_stream(a, b), (m, s)
+    assert main(["analyze", log, str(copy), "-o", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "same stream" in err
+    slave = load(log)
+    (e,) = export.write_slave(("native",), str(tmp_path / "x"), slave, ClockShift(0.025, 0.0, slave.meta.t0_ns))
+    assert not same_stream(slave, load(e.path))  # (the export's round trip: a pair)
+    assert not same_stream(load(str(SAMPLE / "master.mcap")), slave)
+    # one IMU with two attitude sources: a pair, said in a warning (the latency is 0 by construction)
+    other_att = load(f"{log}::imu=HIGHRES_IMU,att=ATTITUDE")
+    assert not same_stream(slave, other_att)
+    assert "the same IMU stream (HIGHRES_IMU)" in same_imu(slave, other_att)
+    assert same_imu(load(str(SAMPLE / "master.mcap")), slave) is None
+
+
 def _readme_python_block() -> str:
     text = (ROOT / "README.md").read_text(encoding="utf-8")
     start = text.index("<!-- api-example -->")
