@@ -15,6 +15,7 @@ import argparse
 import importlib
 import inspect
 import json
+import math
 import numbers
 import os
 import sys
@@ -920,6 +921,9 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
     if failure and units:
         failure += f"; but {'; '.join(units)}"
     an.failure = failure
+    disagrees = _chosen_method_disagrees(an.latency)
+    if disagrees:
+        extra["warnings"].append({"stage": "latency", "text": disagrees})
     parallel.release_freed_memory()
     tim["latency"] = time.perf_counter() - t
 
@@ -1042,6 +1046,29 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
     tim["total"] = time.perf_counter() - t_all
     an.timings_s = tim
     return an
+
+
+#: a chosen latency method (``--latency-method``) is said to disagree with tapost's own estimate beyond this many
+#: combined sigmas (the seeds' methods assume aligned axes and a fixed search grid: 56 sigma off on a pair
+#: mounted at 90 deg yaw; where they hold, within 1-2)
+METHOD_DISAGREES_SIGMAS = 5.0
+
+
+def _chosen_method_disagrees(lat: LatencyResult | None) -> str | None:
+    """What to say where the headline latency is another method's than tapost's and tapost's own estimate
+    (run beside it, ``--compare``) is more than METHOD_DISAGREES_SIGMAS combined sigmas away."""
+    if lat is None or lat.method == "tapost":
+        return None
+    own = (lat.methods or {}).get("tapost")
+    if own is None or not (np.isfinite(own.latency_s) and np.isfinite(own.sigma_s)):
+        return None
+    sig = math.hypot(lat.sigma_s, own.sigma_s)
+    d = lat.latency_s - own.latency_s
+    if not (sig > 0 and abs(d) > METHOD_DISAGREES_SIGMAS * sig):
+        return None
+    return (f"the chosen method {lat.method} gives {lat.latency_s * 1e3:+.3f} ms, {abs(d) / sig:.0f} sigma from "
+            f"tapost's own estimate ({own.latency_s * 1e3:+.3f} +/- {own.sigma_s * 1e3:.3f} ms); the seeds' "
+            "methods assume aligned axes and a drift of 0 (docs/latency.md)")
 
 
 def _gives_the_mounting(res) -> bool:

@@ -9,6 +9,7 @@ Two layers:
 from __future__ import annotations
 
 import json
+import math
 import sys
 
 import numpy as np
@@ -635,3 +636,22 @@ def test_a_fresh_tapost_process_imports_numpys_unused_submodules_only_when_used(
                        env={**os.environ, "TAPOST_WARMUP": "0"}, cwd=str(tmp_path))
     assert p.returncode == 0, p.stderr
     assert p.stdout.strip().splitlines()[-1] == "0 True [] ['ab']"
+
+
+def test_a_chosen_method_far_from_taposts_own_estimate_is_a_warning():
+    """--latency-method s000-rate-integral (or s002) on a pair its assumptions do not hold for (axes not
+    aligned) was the headline with no word; beyond METHOD_DISAGREES_SIGMAS combined sigmas of tapost's own
+    estimate (run beside it) it is a warning. Within them, or with tapost chosen, nothing."""
+    from pipelines.analyze import METHOD_DISAGREES_SIGMAS, _chosen_method_disagrees
+
+    own = MethodEstimate(0.011, 5e-6)
+
+    def lat(method, value, sigma):
+        return LatencyResult(value, sigma, 0.0, method, (0.0, 60.0), methods={"tapost": own})
+
+    text = _chosen_method_disagrees(lat("s000-rate-integral", 0.295, 7.2e-4))
+    assert text and "s000-rate-integral" in text and "+295.000 ms" in text and "+11.000" in text
+    near = 0.011 + 0.9 * METHOD_DISAGREES_SIGMAS * math.hypot(7.2e-4, 5e-6)
+    assert _chosen_method_disagrees(lat("s000-rate-integral", near, 7.2e-4)) is None
+    assert _chosen_method_disagrees(lat("tapost", 0.011, 5e-6)) is None
+    assert _chosen_method_disagrees(LatencyResult(0.2, 1e-3, 0.0, "xcorr-norm", (0.0, 1.0))) is None  # (no own)
