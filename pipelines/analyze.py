@@ -1124,6 +1124,7 @@ def write_outputs(an: Analysis, out_dir: str, progress=None, recording=None) -> 
     prog = progress if progress is not None else null_progress
     t_out = time.perf_counter()
     tim = {k: v for k, v in an.timings_s.items() if k != "total"}
+    _refuse_an_input_folder(out_dir, (an.master.meta.source_path, an.slave.meta.source_path))
     try:
         os.makedirs(out_dir, exist_ok=True)
     except OSError as exc:
@@ -1211,6 +1212,23 @@ def write_outputs(an: Analysis, out_dir: str, progress=None, recording=None) -> 
     return outcome
 
 
+def _refuse_an_input_folder(out_dir: str, sources) -> None:
+    """InputError where ``out_dir`` is or lies in an input folder (a log read from a folder: a ROS 2 bag, an
+    NGIMU unit or session; or the ROS 2 bag a storage file given alone lies in): inputs are never changed,
+    and files written into a bag's folder are files of that bag."""
+    out = os.path.realpath(out_dir)
+    for src in sources:
+        if not src:
+            continue
+        folder = src if os.path.isdir(src) else os.path.dirname(src)
+        if not (os.path.isdir(src) or os.path.isfile(os.path.join(folder, "metadata.yaml"))):
+            continue
+        real = os.path.realpath(folder)
+        if out == real or out.startswith(real + os.sep):
+            raise InputError(f"the output folder is inside the input folder {folder} (a ROS 2 bag or a sensor's "
+                             "folder, which the outputs would change): give another -o", out_dir)
+
+
 def analyze_pair(master_arg: str, slave_arg: str, out_dir: str, opts: AnalyzeOptions | None = None,
                  progress=None) -> PairOutcome:
     """Run the whole analysis of one pair and write its outputs in ``out_dir`` (``compute`` then
@@ -1235,6 +1253,8 @@ def run(args: argparse.Namespace) -> int:
         if size is not None and size <= parallel.PREPARED_MAX_INPUT_BYTES:
             parallel.prepare("recording", OUTPUT_MODULES["recording"], setup=RECORDING_CHILD_SETUP)
     out_dir = out or "tapost_out"
+    # (before the work; a bad path or selector is said by the parse, in its order)
+    _refuse_an_input_folder(out_dir, [str(a).partition("::")[0] for a in (args.master, args.slave)])
     started: list = []  # the recording, started while the IMU-to-IMU fit ends
 
     def aligned(a: Analysis) -> None:

@@ -9,6 +9,7 @@ Two layers:
 from __future__ import annotations
 
 import json
+import os
 import math
 import sys
 
@@ -655,3 +656,21 @@ def test_a_chosen_method_far_from_taposts_own_estimate_is_a_warning():
     assert _chosen_method_disagrees(lat("s000-rate-integral", near, 7.2e-4)) is None
     assert _chosen_method_disagrees(lat("tapost", 0.011, 5e-6)) is None
     assert _chosen_method_disagrees(LatencyResult(0.2, 1e-3, 0.0, "xcorr-norm", (0.0, 1.0))) is None  # (no own)
+
+
+def test_an_output_folder_inside_an_input_folder_is_refused(tmp_path, fake_numerics, capsys):
+    """-o naming a ROS 2 bag's folder (an input), or a folder in it, or the bag a storage file given alone
+    lies in: one line, exit 2, the bag unchanged (report.json, recording.rrd and the CSV were written into the
+    input bag)."""
+    sim = _real()
+    pair = sim.simulate(sim.scenario_config("ship", duration_s=20.0))
+    bag, s = tmp_path / "master_bag", str(tmp_path / "s.csv")
+    registry.write(str(bag), pair.master, "rosbag2", storage="sqlite3")
+    registry.write(s, pair.slave, "csv")
+    before = sorted(os.listdir(bag))
+    (db3,) = [f for f in before if f.endswith(".db3")]
+    for master, out in ((bag, bag), (bag, bag / "sub"), (bag / db3, bag)):
+        assert main(["analyze", str(master), s, "-o", str(out), "--no-recording"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "inside the input folder" in err[0] and str(bag) in err[0]
+        assert sorted(os.listdir(bag)) == before
