@@ -12,6 +12,8 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
+from logtools.errors import AnalysisError
+
 if TYPE_CHECKING:  # (imported where a DataFrame is made: the analysis itself reads the arrays)
     import pandas as pd
 
@@ -24,6 +26,12 @@ VEL = ("vel_n_m_s", "vel_e_m_s", "vel_d_m_s")
 POS = ("lat_deg", "lon_deg", "alt_m")
 IMU_COLUMNS = GYRO + ACCEL
 NAV_COLUMNS = QUAT + VEL + POS
+#: each column group's name, the ``has_*`` property that says whether a log holds it, and its accessor
+_GROUPS = {GYRO: ("angular rate (gyro)", "has_gyro", "gyro_rad_s"),
+           ACCEL: ("specific force (accel)", "has_accel", "accel_m_s2"),
+           QUAT: ("attitude (quaternion)", "has_quat", "quat_wxyz"),
+           VEL: ("velocity (NED)", "has_vel", "vel_ned_m_s"),
+           POS: ("position (lat/lon/alt)", "has_pos", "lat_lon_alt")}
 
 Clock = Literal["epoch", "boot", "unknown"]
 
@@ -58,6 +66,19 @@ class LogMeta:
 
     def with_warning(self, *msgs: str) -> "LogMeta":
         return replace(self, warnings=self.warnings + tuple(msgs))
+
+
+class MissingChannelError(AnalysisError, KeyError):
+    """An InsLog accessor (``gyro_rad_s()``, ``quat_wxyz()``, ...) asked for a channel the log lacks. An
+    ``AnalysisError`` (the data are read but lack what is asked: tapost's one-line error, exit 1) and a
+    ``KeyError`` (what a missing column raised before, for callers that catch that). ``columns``: the missing
+    ones."""
+
+    def __init__(self, problem: str, path: str | None = None, columns: tuple[str, ...] = ()):
+        super().__init__(problem, path)
+        self.columns = columns
+
+    __str__ = Exception.__str__  # (KeyError's would quote the message)
 
 
 def _float(a) -> np.ndarray:
@@ -306,6 +327,16 @@ class InsLog:
         return ch.clock_offset_ns if ch is not None else None
 
     # -- array views -------------------------------------------------------------------------
+    def _missing(self, stream: Columns, cols: tuple[str, ...]) -> MissingChannelError:
+        """The error for ``cols`` absent from ``stream``: which channel, which log, what to check first."""
+        missing = tuple(c for c in cols if c not in stream.data)
+        name, has, accessor = _GROUPS.get(cols, (f"columns {', '.join(cols)}", "", "nav_rows"))
+        m = self.meta
+        source = (m.source_path or "an InsLog made in memory") + (f"::{m.selector}" if m.selector else "")
+        check = f"check log.{has} before calling {accessor}()" if has else "check log.nav_columns.names"
+        return MissingChannelError(f"the log ({m.format or 'unknown format'}) has no {name}: no column(s) "
+                                   f"{', '.join(missing)}; {check}", source, missing)
+
     def t_imu_s(self) -> np.ndarray:
         return self._imu.t_s
 
@@ -313,14 +344,26 @@ class InsLog:
         return self._nav.t_s
 
     def gyro_rad_s(self) -> np.ndarray:
-        return self._imu.values(GYRO)
+        """(N, 3) angular rate, rad/s, FRD body; MissingChannelError where the log has none (``has_gyro``)."""
+        try:
+            return self._imu.values(GYRO)
+        except KeyError:
+            raise self._missing(self._imu, GYRO) from None
 
     def accel_m_s2(self) -> np.ndarray:
-        return self._imu.values(ACCEL)
+        """(N, 3) specific force, m/s^2, FRD body; MissingChannelError where the log has none (``has_accel``)."""
+        try:
+            return self._imu.values(ACCEL)
+        except KeyError:
+            raise self._missing(self._imu, ACCEL) from None
 
     def nav_rows(self, cols: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
-        """(t_s, values) for the nav rows where every column of ``cols`` is present (new arrays)."""
-        vals = self._nav.values(cols, "C")  # (the order of the original's masked copy)
+        """(t_s, values) for the nav rows where every column of ``cols`` is present (new arrays);
+        MissingChannelError where the log lacks one of ``cols``."""
+        try:
+            vals = self._nav.values(cols, "C")  # (the order of the original's masked copy)
+        except KeyError:
+            raise self._missing(self._nav, cols) from None
         ok = ~np.isnan(vals).any(axis=1)
         t = self._nav.t_s
         if ok.all():  # (no rows to drop: the arrays as they are)

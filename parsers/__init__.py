@@ -2,6 +2,6 @@
 
 The only package that knows a format's units, axes and clocks.
 """
-from parsers.registry import inspect_log, load, parse_log_arg, write
+from parsers.registry import inspect_log, load, parse_log_arg, path_arg, write
 
-__all__ = ["inspect_log", "load", "parse_log_arg", "write"]
+__all__ = ["inspect_log", "load", "parse_log_arg", "path_arg", "write"]

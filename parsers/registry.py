@@ -48,9 +48,45 @@ def format_by_name(name: str) -> ModuleType:
     raise InputError(f"unknown format {name!r}; known: {', '.join(m.NAME for m in formats())}")
 
 
-def parse_log_arg(arg: str) -> tuple[str, Selector]:
-    """``PATH[::SELECTOR]`` -> (path, Selector)."""
-    path, sep, sel = arg.partition("::")
+def _given(arg, limit: int = 60) -> str:
+    """What a wrong argument was, for a message: its type and (short) repr."""
+    if isinstance(arg, InsLog):
+        return f"an InsLog (read from {arg.meta.source_path or 'memory'})"
+    if arg is None:
+        return "None"
+    text = repr(arg)
+    return f"{type(arg).__name__} {text if len(text) <= limit else text[:limit - 3] + '...'}"
+
+
+def path_arg(arg, what: str = "a log", selector: bool = True, inslog: bool = False) -> str:
+    """``arg`` as a str path: a str as it is, an ``os.PathLike`` (``pathlib.Path``) by ``os.fspath`` (its
+    text read as a str's: ``PATH[::SELECTOR]`` where ``selector``); anything else (None, a number, bytes, a
+    list, an InsLog) raises InputError naming ``what``, what was given and what is expected (``inslog``: the
+    caller takes an InsLog too, and says so)."""
+    if isinstance(arg, str):
+        return arg
+    if isinstance(arg, os.PathLike):
+        try:
+            return os.fsdecode(os.fspath(arg))
+        except (TypeError, UnicodeDecodeError) as exc:
+            raise InputError(f"{what} must be a path; {_given(arg)} gives none: {exc}") from None
+    hint = ""
+    if isinstance(arg, InsLog):
+        hint = ": this takes a file, not a log already read (its path is log.meta.source_path)"
+    elif isinstance(arg, (bytes, bytearray)):
+        hint = ": decode it (os.fsdecode) or give a str or pathlib.Path"
+    elif isinstance(arg, (list, tuple, set, frozenset, dict)):
+        hint = ": give one path"
+    form = ("a path: a str PATH[::SELECTOR] or an os.PathLike such as pathlib.Path" if selector
+            else "a path: a str or an os.PathLike such as pathlib.Path")
+    if inslog:
+        form = "an InsLog (api.load) or " + form
+    raise InputError(f"{what} must be {form}; got {_given(arg)}{hint}")
+
+
+def parse_log_arg(arg) -> tuple[str, Selector]:
+    """``PATH[::SELECTOR]`` (a str, or an ``os.PathLike`` whose text is read the same) -> (path, Selector)."""
+    path, sep, sel = path_arg(arg).partition("::")
     try:
         selector = Selector.parse(sel) if sep else Selector()
     except ValueError as exc:
@@ -64,8 +100,10 @@ def parse_log_arg(arg: str) -> tuple[str, Selector]:
     return path, selector
 
 
-def detect(path: str) -> ModuleType:
-    """The format module for ``path``, decided by content (a directory by its metadata)."""
+def detect(path) -> ModuleType:
+    """The format module for ``path`` (a str or ``os.PathLike``), decided by content (a directory by its
+    metadata)."""
+    path = path_arg(path, "the log file", selector=False)
     check_readable(path)
     head = b""
     if not os.path.isdir(path):
@@ -117,8 +155,9 @@ def _named_like(path: str) -> str:
     return f"; named like {named[0].NAME}, but its first bytes are not (damaged, or another format?)"
 
 
-def load(arg: str) -> InsLog:
-    """Read ``PATH[::SELECTOR]`` into an InsLog. Raises InputError with a one-line reason."""
+def load(arg) -> InsLog:
+    """Read ``PATH[::SELECTOR]`` (a str, or an ``os.PathLike`` such as ``pathlib.Path``) into an InsLog.
+    Raises InputError with a one-line reason (a wrong type of ``arg`` too)."""
     path, selector = parse_log_arg(arg)
     mod = detect(path)
     try:
@@ -133,7 +172,9 @@ def load(arg: str) -> InsLog:
         release_free_memory()  # the parse's temporaries: not held into the next stage
 
 
-def inspect_log(path: str) -> Inventory:
+def inspect_log(path) -> Inventory:
+    """What a log holds (its selectable units); ``path``: a str or ``os.PathLike``."""
+    path = path_arg(path, "the log file", selector=False)
     mod = detect(path)
     try:
         return mod.inventory(path)
@@ -143,8 +184,11 @@ def inspect_log(path: str) -> Inventory:
         raise InputError(f"cannot read as {mod.NAME}: {type(exc).__name__}: {exc}", path) from exc
 
 
-def write(path: str, log: InsLog, fmt: str, **options) -> None:
-    """Write ``log`` to ``path`` in format ``fmt`` (atomically: temp file + rename)."""
+def write(path, log: InsLog, fmt: str, **options) -> None:
+    """Write ``log`` to ``path`` (a str or ``os.PathLike``) in format ``fmt`` (atomically: temp file + rename)."""
+    path = path_arg(path, "the output", selector=False)
+    if not isinstance(log, InsLog):
+        raise InputError(f"the log to write must be an InsLog, not {_given(log)}", path)
     mod = format_by_name(fmt)
     if not hasattr(mod, "write"):
         raise InputError(f"format {fmt} cannot be written", path)

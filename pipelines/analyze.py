@@ -753,9 +753,33 @@ class Analysis(rp.Analysis):
         """The short summary ``tapost analyze`` prints."""
         return "\n".join(summary_lines(self.report, {}))
 
-    def write(self, out_dir: str, progress=None) -> "PairOutcome":
-        """Write the CLI's outputs in ``out_dir`` (report.json last; see ``write_outputs``)."""
-        return write_outputs(self, out_dir, progress)
+    def write(self, out_dir, progress=None) -> "PairOutcome":
+        """Write the CLI's outputs in ``out_dir`` (a str or ``os.PathLike``; report.json last; see
+        ``write_outputs``). A wrong argument raises InputError naming it (``progress_arg``)."""
+        from parsers.registry import path_arg
+
+        return write_outputs(self, path_arg(out_dir, "the output folder", selector=False), progress_arg(progress))
+
+
+def progress_arg(progress):
+    """``progress``: None, or a callable that takes ``(fraction, stage)``; else InputError saying so."""
+    if progress is None:
+        return None
+    if not callable(progress):
+        given = f"{type(progress).__name__} {progress!r}"
+        raise InputError("progress must be None or a callable progress(fraction, stage); got "
+                         + (given if len(given) <= 80 else given[:77] + "..."))
+    try:
+        sig = inspect.signature(progress)
+    except (TypeError, ValueError):  # (a builtin without a signature: taken on trust)
+        return progress
+    try:
+        sig.bind(0.5, "stage")
+    except TypeError as exc:
+        name = getattr(progress, "__qualname__", type(progress).__name__)
+        raise InputError(f"progress must take two arguments, progress(fraction, stage); {name}{sig} "
+                         f"does not ({exc})") from None
+    return progress
 
 
 def _arg_path(arg) -> str:

@@ -13,28 +13,38 @@ an.write("out/")             # the CLI's outputs: report.json, report.html, reco
 
 Keyword options are the CLI's long options with ``_`` for ``-`` (``max_lag=0.5``, ``filter="kf-delay"``,
 ``lever_arm="0.1,0,0"``, ``no_recording=True``, ``no_html=True``, ``no_compare=True``, ``config="a.toml"``).
-Unreadable input raises ``InputError``; a latency the data cannot give does not raise: ``an.ok`` is False,
-``an.failure`` says why and ``an.report["status"]`` is "failed" (the CLI exits 1 there).
+Paths are ``str`` (``PATH[::SELECTOR]`` for a log) or any ``os.PathLike`` (``pathlib.Path``: its text is read
+as a str's, selector included). Unreadable input raises ``InputError``, and so does a wrong argument (a log
+that is neither a path nor an InsLog, an output folder that is no path, a ``progress`` that is no
+``progress(fraction, stage)`` callable), naming what was given and what is expected. An InsLog accessor
+asked for a channel its log lacks (``quat_wxyz()`` where ``has_quat`` is False) raises
+``MissingChannelError`` (an ``AnalysisError``, and a ``KeyError``). A latency the data cannot give does not
+raise: ``an.ok`` is False, ``an.failure`` says why and ``an.report["status"]`` is "failed" (the CLI exits 1
+there).
 """
 from __future__ import annotations
 
 from logtools.errors import AnalysisError, InputError, TapostError
-from logtools.inslog import InsLog
+from logtools.inslog import InsLog, MissingChannelError
 from logtools.results import AlignmentResult, LatencyResult
 from parsers import load as _load
+from parsers.registry import path_arg
 from pipelines import analyze as _analyze
 from pipelines.analyze import Analysis, AnalyzeOptions
 
 __all__ = ["load", "analyze", "options", "Analysis", "AnalyzeOptions", "InsLog", "LatencyResult",
-           "AlignmentResult", "TapostError", "InputError", "AnalysisError"]
+           "AlignmentResult", "TapostError", "InputError", "AnalysisError", "MissingChannelError"]
 
 #: keyword options: the CLI's long options (``tapost analyze --help``), dashes as underscores
 OPTIONS = _analyze.CLI_KEYS + ("no_compare", "config")
 
 
-def load(arg: str) -> InsLog:
-    """Read one unit of a log, ``PATH[::SELECTOR]`` (``tapost inspect PATH`` lists the selectors)."""
-    return _load(arg)
+def load(arg) -> InsLog:
+    """Read one unit of a log, ``PATH[::SELECTOR]`` (a str, or an ``os.PathLike`` such as ``pathlib.Path``;
+    ``tapost inspect PATH`` lists the selectors). An InsLog is returned as it is (``analyze`` takes either)."""
+    if isinstance(arg, InsLog):
+        return arg
+    return _load(path_arg(arg))
 
 
 def options(**opts) -> AnalyzeOptions:
@@ -42,20 +52,29 @@ def options(**opts) -> AnalyzeOptions:
     unknown = set(opts) - set(OPTIONS)
     if unknown:
         raise InputError(f"unknown option(s): {', '.join(sorted(unknown))}; known: {', '.join(OPTIONS)}")
-    config = _analyze.read_config(opts.pop("config")) if opts.get("config") else None
-    opts.pop("config", None)
+    config_path = opts.pop("config", None)
+    config = _analyze.read_config(path_arg(config_path, "config", selector=False)) if config_path else None
     if opts.pop("no_compare", None):
         opts["compare"] = False
     cli = {k: opts.get(k) for k in _analyze.CLI_KEYS}
     return _analyze.options_from(cli, config)[0]
 
 
+def _log_arg(arg, role: str) -> str | InsLog:
+    """``analyze``'s ``master``/``slave``: an InsLog as it is, a path as a str (a Path's text, so that the
+    report records a str and large files are parsed in parallel as the CLI's are)."""
+    return arg if isinstance(arg, InsLog) else path_arg(arg, f"the {role} log", inslog=True)
+
+
 def analyze(master: str | InsLog, slave: str | InsLog, progress=None, **opts) -> Analysis:
     """Analyze one pair in memory: latency, compensation, both alignment runs (nothing is written).
 
-    ``master``/``slave`` are ``PATH[::SELECTOR]`` strings or InsLogs (``load``). ``progress`` is an
-    optional ``progress(fraction, stage)`` callback."""
+    ``master``/``slave`` are ``PATH[::SELECTOR]`` strings, ``os.PathLike`` paths or InsLogs (``load``).
+    ``progress`` is an optional ``progress(fraction, stage)`` callback. Wrong arguments raise InputError."""
     from pipelines.firstrun import announce_compiling
 
+    master, slave = _log_arg(master, "master"), _log_arg(slave, "slave")
+    progress = _analyze.progress_arg(progress)
+    opts_ = options(**opts)
     announce_compiling()  # one line on stderr if numba compiles (the first run after installing)
-    return _analyze.compute(master, slave, options(**opts), progress=progress)
+    return _analyze.compute(master, slave, opts_, progress=progress)
