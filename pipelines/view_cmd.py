@@ -10,12 +10,22 @@
   otherwise (``--bind 0.0.0.0``: every interface). The address to open is printed on one line.
 
 Ctrl-C stops the viewer (the whole process group rerun starts) and exits 0. rerun's own output is
-kept out of the terminal; when rerun fails, the last line it wrote is shown.
+kept out of the terminal; when rerun fails, the last line it wrote is shown. On Linux the viewer also
+ends when this process is killed outright (SIGKILL): rerun's binary is started directly (not through
+the ``rerun`` command's Python wrapper, which would leave it a grandchild) with its parent-death signal
+set (``prctl(PR_SET_PDEATHSIG, SIGTERM)``), so no viewer is left listening after us.
+
+A folder is trusted as far as its report.json says: a recording.rrd there that report.json's
+``outputs`` does not list (an analysis rerun into the same folder with ``--no-recording``, or one that
+failed or skipped its recording) is from another run, and is refused with one line (exit 2). A folder
+without report.json, or a .rrd file named directly, is opened as it is.
 """
 from __future__ import annotations
 
 import argparse
 import http.server
+import importlib.util
+import json
 import os
 import re
 import shutil
@@ -51,8 +61,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bind", default="127.0.0.1", metavar="ADDR",
                    help="with --web: the address to listen on (default 127.0.0.1, this machine only; "
                         "0.0.0.0 = every interface)")
-    p.add_argument("--port", type=int, default=0,
-                   help="with --web: the web viewer's port (default: a free one)")
+    p.add_argument("--port", type=port_number, default=0,
+                   help="with --web: the web viewer's port, 1..65535 (default, or 0: a free one)")
+
+
+def port_number(text: str) -> int:
+    """``--port``: 1..65535, or 0 for a free one (argparse says a bad one in one line, exit 2, before
+    anything starts; rerun itself would refuse it with only its usage hint)."""
+    try:
+        port = int(text)
+    except ValueError:
+        port = -1
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"{text!r} is no TCP port: give 1..65535 (or 0, the default: a free one)")
+    return port
 
 
 def has_display(environ=None) -> bool:
@@ -67,8 +89,41 @@ def has_display(environ=None) -> bool:
 RRD_MAGIC = b"RRF"
 
 
+def _unlisted_recording(folder: str, name: str) -> str | None:
+    """Why the analysis whose report.json is in ``folder`` has no recording ``name`` (with what to do, where
+    something helps), or None where it lists it or there is no readable report.json to say (the folder is
+    then taken as it is)."""
+    try:
+        with open(os.path.join(folder, "report.json"), encoding="utf-8") as fh:
+            rep = json.load(fh)
+    except (OSError, ValueError):
+        return None
+    if not isinstance(rep, dict) or not isinstance(rep.get("outputs"), dict):
+        return None  # (no tapost report, or one from before report.json listed its outputs)
+    if rep["outputs"].get("recording") == name:
+        return None
+
+    def section(key: str) -> dict:
+        return rep[key] if isinstance(rep.get(key), dict) else {}
+
+    if section("options").get("recording") is False:
+        return "the analysis ran with --no-recording; analyze again without it to write one"
+    if section("skipped").get("recording"):
+        return f"its recording was skipped: {section('skipped')['recording']}"
+    if rep.get("status") == "failed" or "failed" in section("latency"):
+        return "a failed analysis (no latency) writes none"
+    return "analyze again to write one"
+
+
 def recording_path(target: str) -> str:
     path = os.path.join(target, "recording.rrd") if os.path.isdir(target) else target
+    if os.path.isdir(target):
+        why = _unlisted_recording(target, "recording.rrd")
+        if why is not None:
+            if os.path.lexists(path):
+                raise InputError(f"left from another run, not this analysis' recording: the report.json beside "
+                                 f"it lists no recording ({why})", path)
+            raise InputError(f"no recording: its report.json lists none ({why})", target)
     if not os.path.isfile(path):
         raise InputError("no recording found (expected a .rrd file or a folder holding recording.rrd)", target)
     try:
@@ -82,8 +137,56 @@ def recording_path(target: str) -> str:
 
 
 def rerun_cli() -> list[str]:
+    binary = _rerun_binary()
+    if binary:
+        return [binary]
     exe = shutil.which("rerun")
     return [exe] if exe else [sys.executable, "-m", "rerun"]
+
+
+def _rerun_binary() -> str | None:
+    """Linux: the binary the ``rerun`` command runs (rerun_cli's Python wrapper runs it as its child, which
+    a parent-death signal given to the wrapper would not reach): ``RERUN_CLI_PATH`` as the wrapper honours
+    it, else the one in this Python's rerun_cli package (the version of the rerun SDK that wrote the
+    recording). None elsewhere or where there is none: the ``rerun`` command then."""
+    if not sys.platform.startswith("linux"):
+        return None
+    path = os.environ.get("RERUN_CLI_PATH")
+    if not path:
+        try:
+            spec = importlib.util.find_spec("rerun_cli")
+        except (ImportError, ValueError):
+            spec = None
+        if spec is None or not spec.origin:
+            return None
+        path = os.path.join(os.path.dirname(spec.origin), "rerun")
+    return path if os.path.isfile(path) and os.access(path, os.X_OK) else None
+
+
+def _die_with_parent():
+    """Linux: a ``preexec_fn`` that has the child sent SIGTERM when this process ends, however it ends
+    (``prctl(PR_SET_PDEATHSIG)``, kept across exec; tied to the thread that starts the child, which here
+    waits for it), and ends the child at once if we are gone already. None elsewhere or where libc's
+    prctl cannot be had. Resolved here, so that the forked child only makes the one call."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        import ctypes
+
+        prctl = ctypes.CDLL(None, use_errno=True).prctl
+        prctl.argtypes = [ctypes.c_int, ctypes.c_ulong, ctypes.c_ulong, ctypes.c_ulong, ctypes.c_ulong]
+        prctl.restype = ctypes.c_int
+    except (ImportError, OSError, AttributeError):
+        return None
+    parent = os.getpid()
+    pr_set_pdeathsig = 1
+
+    def preexec() -> None:
+        prctl(pr_set_pdeathsig, int(signal.SIGTERM), 0, 0, 0)
+        if os.getppid() != parent:  # (we died before the call)
+            os._exit(1)
+
+    return preexec
 
 
 def free_port(host: str) -> int:
@@ -209,7 +312,7 @@ def _run_viewer_inner(cmd: list[str], on_started) -> int:
     try:
         with open(log_path, "w") as out:
             proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT, env=env,
-                                    start_new_session=True)
+                                    start_new_session=True, preexec_fn=_die_with_parent())
         try:
             time.sleep(0.5)
             if proc.poll() is None and on_started is not None:
