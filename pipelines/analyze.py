@@ -151,6 +151,8 @@ class PairOutcome:
 def parse_max_lag(text) -> float | None:
     if text is None:
         return None
+    if isinstance(text, (bool, np.bool_)):  # (true is no number of seconds: it was taken for 1 s)
+        raise InputError(f"--max-lag takes seconds or 'auto', not {text!r}")
     if isinstance(text, str) and text.strip().lower() == "auto":
         return None
     try:
@@ -187,6 +189,8 @@ def read_config(path: str) -> dict:
             raw = fh.read()
     except OSError as exc:
         raise InputError(f"cannot read config: {exc.strerror}", path) from None
+    if raw.startswith(b"\xef\xbb\xbf"):  # (a UTF-8 byte order mark, as some editors write: not the file's text)
+        raw = raw[3:]
     try:
         data = json.loads(raw) if raw.lstrip()[:1] in (b"{",) else tomllib.loads(raw.decode("utf-8"))
     except (ValueError, UnicodeDecodeError) as exc:

@@ -54,7 +54,8 @@ def options(**opts) -> AnalyzeOptions:
         raise InputError(f"unknown option(s): {', '.join(sorted(unknown))}; known: {', '.join(OPTIONS)}")
     config_path = opts.pop("config", None)
     config = _analyze.read_config(path_arg(config_path, "config", selector=False)) if config_path else None
-    if opts.pop("no_compare", None):
+    no_compare = opts.pop("no_compare", None)
+    if no_compare is not None and _analyze._flag("no_compare", no_compare):  # (None: not given, as the CLI's)
         opts["compare"] = False
     cli = {k: opts.get(k) for k in _analyze.CLI_KEYS}
     return _analyze.options_from(cli, config)[0]

@@ -674,3 +674,28 @@ def test_an_output_folder_inside_an_input_folder_is_refused(tmp_path, fake_numer
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "inside the input folder" in err[0] and str(bag) in err[0]
         assert sorted(os.listdir(bag)) == before
+
+
+def test_config_values_true_for_seconds_and_a_byte_order_mark(tmp_path):
+    """max_lag = true was taken for 1 s (a bool is an int); now refused naming the file. A config saved
+    with a UTF-8 byte order mark was 'Invalid statement'; now read. api.options(no_compare="x") was taken
+    for true; now refused as the other switches are."""
+    from pipelines import api
+    from pipelines.analyze import read_config
+
+    bt = tmp_path / "bt.toml"
+    bt.write_text("max_lag = true\n")
+    with pytest.raises(api.InputError, match="max-lag takes seconds") as exc:
+        read_config(str(bt))
+    assert "bt.toml" in str(exc.value)
+    with pytest.raises(api.InputError):
+        api.options(max_lag=True)
+    bom = tmp_path / "bom.toml"
+    bom.write_bytes(b"\xef\xbb\xbfmax_lag = 0.5\n")
+    assert read_config(str(bom)) == {"max_lag": 0.5}
+    bomj = tmp_path / "bom.json"
+    bomj.write_bytes(b'\xef\xbb\xbf{"max_lag": 0.25}')
+    assert read_config(str(bomj)) == {"max_lag": 0.25}
+    with pytest.raises(api.InputError, match="no_compare takes true or false"):
+        api.options(no_compare="x")
+    assert api.options(no_compare=None).compare and not api.options(no_compare=True).compare
