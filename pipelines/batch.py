@@ -179,7 +179,7 @@ def discover_manifest(manifest: str, out_root: str) -> list[PairJob]:
         seen.add(name)
         problem = ""
         try:
-            opts = tuple(shlex.split(row.get("options", "")))
+            opts = _config_from(base, tuple(shlex.split(row.get("options", ""))))
         except ValueError as exc:
             opts, problem = (), f"bad options in manifest row {i}: {exc}"
         if not row.get("master") or not row.get("slave"):
@@ -190,6 +190,21 @@ def discover_manifest(manifest: str, out_root: str) -> list[PairJob]:
         jobs.append(PairJob(name, resolve(row.get("master", "")), resolve(row.get("slave", "")),
                             os.path.join(out_root, name), opts, problem))
     return jobs
+
+
+def _config_from(base: str, opts: tuple[str, ...]) -> tuple[str, ...]:
+    """A manifest row's options with a relative ``--config FILE`` taken from the manifest's folder ``base``, as
+    its master and slave paths are (it was taken from where batch ran)."""
+    out = list(opts)
+    for i, a in enumerate(out):
+        if a == "--config" and i + 1 < len(out):
+            if out[i + 1] and not os.path.isabs(out[i + 1]):
+                out[i + 1] = os.path.join(base, out[i + 1])
+        elif a.startswith("--config="):
+            path = a[len("--config="):]
+            if path and not os.path.isabs(path):
+                out[i] = "--config=" + os.path.join(base, path)
+    return tuple(out)
 
 
 def discover(campaign: str, out_root: str) -> list[PairJob]:

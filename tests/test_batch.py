@@ -99,6 +99,28 @@ def test_manifest_options_reach_the_analysis(tmp_path):
     assert set(analyze.CLI_KEYS) <= set(vars(ns))
 
 
+def test_a_manifest_rows_config_is_taken_from_the_manifests_folder(tmp_path, monkeypatch):
+    """--config in a manifest row is a path relative to the manifest, as its master and slave are (it was
+    taken from where batch ran: 'cannot read config')."""
+    from pipelines import analyze
+
+    camp = tmp_path / "campaign"
+    camp.mkdir()
+    (camp / "c.toml").write_text("max_lag = 0.25\n")
+    man = camp / "m.csv"
+    man.write_text('master,slave,options\nm.csv,s.csv,--config c.toml\nm.csv,s.csv,--config=c.toml\n'
+                   f'm.csv,s.csv,--config {tmp_path / "abs.toml"}\n')
+    (tmp_path / "abs.toml").write_text("max_lag = 0.5\n")
+    monkeypatch.chdir(tmp_path)
+    jobs = batch.discover(str(man), str(tmp_path / "o"))
+    got = []
+    for job in jobs:
+        ns = batch._parse_options(job.options)
+        opts, _ = analyze.options_from(analyze.cli_values(ns), analyze.read_config(ns.config))
+        got.append(opts.max_lag_s)
+    assert got == [0.25, 0.25, 0.5]
+
+
 def test_manifest_row_with_an_unquoted_comma_is_a_failed_row_not_an_internal_error(tmp_path):
     """A selector holding commas left unquoted gives its row more fields than the header: that row fails
     with a reason saying to quote it (csv put the extra fields in a list, and the batch stopped with an
