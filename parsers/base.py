@@ -24,6 +24,8 @@ class Selector:
             if "=" not in part:
                 raise ValueError(f"selector item {part!r} is not key=value")
             k, v = part.split("=", 1)
+            if not v.strip():  # (imu= read as "not given" chose nothing and said no INS messages were found)
+                raise ValueError(f"selector item {part!r} gives {k.strip()} no value")
             items.append((k.strip().lower(), v.strip()))
         return Selector(tuple(items))
 

@@ -715,6 +715,9 @@ def _resolve(path: str, selector: Selector) -> _Source:
             unit = ""
         else:
             units = _unit_dirs(path)
+            if not units and os.path.isfile(os.path.join(path, NGIMU_SENSORS)):
+                raise InputError(f"unit={unit}: this folder is one unit's (it holds {NGIMU_SENSORS}): give it "
+                                 "without unit=, or its session's folder with unit=", path)
             if not units:
                 raise InputError("directory holds no sensors.csv (nor unit folders with one)", path)
             if unit is None:

@@ -363,7 +363,8 @@ def _att(log: DfLog, src: Src) -> tuple[np.ndarray, np.ndarray, str]:
             return t[good], q[good], f"{src} quaternion" + (
                 f" ({bad} samples with a non-unit quaternion dropped)" if bad else "")
     if not euler:
-        raise InputError(f"{src} carries no attitude (Roll/Pitch/Yaw or Q1..Q4)", log.path)
+        raise InputError(f"{src} carries no attitude (Roll/Pitch/Yaw or Q1..Q4): not a navigation output "
+                         "(`tapost inspect` lists those)", log.path)
     rpy = np.column_stack([log.column(src.name, rec, c) for c in ("Roll", "Pitch", "Yaw")]) * DEG
     return t, quat_from_euler(rpy), f"{src} Euler angles"
 

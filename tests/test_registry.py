@@ -431,3 +431,26 @@ def test_detecting_a_format_imports_only_the_readers_tried_before_it():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=root, timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "[]"
+
+
+def test_a_selector_key_without_a_value_is_refused_naming_it(tmp_path):
+    """FILE::imu= chose nothing and the reader then said it found no INS messages; now 'bad selector'."""
+    from parsers.base import Selector
+
+    with pytest.raises(ValueError, match="gives imu no value"):
+        Selector.parse("imu=,att=ATT")
+    assert Selector.parse("imu=IMU, ,att=ATT").get("att") == "ATT"
+
+
+def test_a_unit_folder_given_a_unit_says_it_is_one_units_folder():
+    """ngimu_session/blue::unit=blue said the folder held no sensors.csv (it does)."""
+    from pathlib import Path
+
+    from logtools.errors import InputError
+    from parsers import load
+
+    blue = Path(__file__).resolve().parents[1].parent / "shared" / "realdata" / "ngimu_session" / "blue"
+    if not blue.exists():
+        pytest.skip("../shared/realdata absent")
+    with pytest.raises(InputError, match="this folder is one unit's"):
+        load(f"{blue}::unit=blue")

@@ -60,8 +60,10 @@ def unit_rate(log: InsLog, role: str) -> tuple[np.ndarray, np.ndarray, str]:
         raise AnalysisError(f"{name}: latency needs angular rate or attitude; the log has neither")
     ok = np.isfinite(t) & np.all(np.isfinite(w), axis=1)
     if ok.sum() < 20:
+        why = ("NaN-only or empty data" if ok.sum() < len(t) or not len(t)
+               else "too few for a latency: a longer log, or a faster stream")
         raise AnalysisError(f"{name}: angular rate ({src}) has {int(ok.sum())} finite samples "
-                            f"of {len(t)} (NaN-only or empty data)")
+                            f"of {len(t)}, 20 needed ({why})")
     return t, w, src
 
 
