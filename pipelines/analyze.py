@@ -136,6 +136,12 @@ class AnalyzeOptions:
                 raise InputError(f"{name} must be one of {', '.join(allowed)}, not {getattr(self, name)!r}")
         if self.max_lag_s is not None and not (self.max_lag_s > 0 and np.isfinite(self.max_lag_s)):
             raise InputError(f"max lag must be a positive number of seconds or 'auto', not {self.max_lag_s!r}")
+        if self.compensation == "split" and not FilterKind.parse(self.filter).splits_delay:
+            # (S004's split shifts the slave by whole samples and leaves the rest to kf-split's delay state:
+            # with another filter that rest, up to half a sample, stayed in the slave without a word)
+            raise InputError(f"--compensation split leaves the delay under one sample to the kf-split filter's "
+                             f"delay state; with --filter {self.filter} it would stay in the slave: use --filter "
+                             "kf-split with it, or another compensation")
 
 
 @dataclass

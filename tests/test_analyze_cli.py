@@ -699,3 +699,23 @@ def test_config_values_true_for_seconds_and_a_byte_order_mark(tmp_path):
     with pytest.raises(api.InputError, match="no_compare takes true or false"):
         api.options(no_compare="x")
     assert api.options(no_compare=None).compare and not api.options(no_compare=True).compare
+
+
+def test_options_that_would_do_nothing_are_said(tmp_path, capsys):
+    """--compensation split with a filter that has no delay state left up to half a sample in the slave
+    without a word: refused (one line, exit 2, before the work). A lever arm given with attitude matching
+    alone is not used: a note of each run says so."""
+    from pathlib import Path
+
+    sample = Path(__file__).resolve().parents[1] / "sample_logs"
+    m, s = str(sample / "master.mcap"), str(sample / "slave.tlog")
+    assert main(["analyze", m, s, "--compensation", "split", "--filter", "hinf", "-o", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--compensation split" in err[0] and "kf-split" in err[0]
+    assert not (tmp_path / "x").exists()
+    out = tmp_path / "o"
+    assert main(["analyze", m, s, "--lever-arm", "1,2,3", "--match", "att", "-o", str(out), "--no-recording",
+                 "--no-html"]) == 0
+    rep = json.loads((out / "report.json").read_text())
+    said = [n["text"] for n in rep["notes"] if "lever arm given" in n["text"]]
+    assert len(said) == 2 and all("not used with attitude matching alone" in t for t in said)

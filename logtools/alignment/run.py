@@ -1734,6 +1734,9 @@ def _lever_arm(run: FilterRun, lay: StateLayout, sig0: np.ndarray, k_rep: int, s
         return lever_m, lever_sig
     if opts.lever_arm_m is not None and lay.uses_vel:
         return tuple(float(x) for x in np.asarray(opts.lever_arm_m, float)), None
+    if opts.lever_arm_m is not None and not opts.estimate_lever_arm and np.any(np.asarray(opts.lever_arm_m) != 0):
+        notes.append(f"the lever arm given ({_fmt3(opts.lever_arm_m)} m) acts on velocity matching only: not used "
+                     "with attitude matching alone")
     return None, None
 
 
