@@ -1233,6 +1233,12 @@ def write_outputs(an: Analysis, out_dir: str, progress=None, recording=None) -> 
         attach_to_analysis(opts.write_slave, out_dir, an.slave, an.master, an.latency, paths, an.extra)
         tim["export"] = time.perf_counter() - t
 
+    # -- what an earlier run left in the folder, said (a report.html that is not this report's is a trap)
+    stale = _left_from_an_earlier_run(out_dir, paths)
+    an.extra["warnings"] = [w for w in an.extra.get("warnings", []) if not w.get("earlier_run")] + [
+        {"stage": "outputs", "text": f"{name} in {out_dir} is left from an earlier run (this analysis did not "
+         "write it): delete it, or write it again", "earlier_run": True} for name in stale]
+
     # -- report.json last
     t = time.perf_counter()
     tim["total"] = an.timings_s.get("total", 0.0) + time.perf_counter() - t_out
@@ -1261,6 +1267,21 @@ def _refuse_an_input_folder(out_dir: str, sources) -> None:
         if out == real or out.startswith(real + os.sep):
             raise InputError(f"the output folder is inside the input folder {folder} (a ROS 2 bag or a sensor's "
                              "folder, which the outputs would change): give another -o", out_dir)
+
+
+def _left_from_an_earlier_run(out_dir: str, paths: dict) -> list[str]:
+    """tapost's own output names in ``out_dir`` (report.html, recording.rrd, slave_on_master_clock.*) that this
+    run did not write (``paths``): an analysis rerun into a folder with --no-html, --no-recording or without
+    --write-slave leaves the earlier ones, which report.json does not list."""
+    from pipelines.export import BASENAME
+
+    written = {os.path.basename(str(v)) for v in paths.values() if v}
+    try:
+        names = os.listdir(out_dir)
+    except OSError:
+        return []
+    return sorted(n for n in names if n not in written
+                  and (n in (HTML, RECORDING) or n.startswith(BASENAME + ".")) and not n.endswith(".tmp"))
 
 
 def analyze_pair(master_arg: str, slave_arg: str, out_dir: str, opts: AnalyzeOptions | None = None,

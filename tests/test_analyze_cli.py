@@ -719,3 +719,20 @@ def test_options_that_would_do_nothing_are_said(tmp_path, capsys):
     rep = json.loads((out / "report.json").read_text())
     said = [n["text"] for n in rep["notes"] if "lever arm given" in n["text"]]
     assert len(said) == 2 and all("not used with attitude matching alone" in t for t in said)
+
+
+def test_outputs_an_earlier_run_left_in_the_folder_are_said(tmp_path, fake_numerics, capsys):
+    """An analysis rerun into its folder with --no-html and --no-recording left the earlier report.html and
+    recording.rrd, which report.json does not list, without a word: a warning now names each."""
+    m, s = write_fake_pair(tmp_path)
+    out = tmp_path / "out"
+    assert main(["analyze", m, s, "-o", str(out)]) == 0
+    rep = json.loads((out / "report.json").read_text())
+    assert not [w for w in rep["warnings"] if "earlier run" in w["text"]]
+    capsys.readouterr()
+    assert main(["analyze", m, s, "-o", str(out), "--no-html", "--no-recording"]) == 0
+    rep = json.loads((out / "report.json").read_text())
+    said = sorted(w["text"].split(" in ")[0] for w in rep["warnings"] if "left from an earlier run" in w["text"])
+    assert said == ["recording.rrd", "report.html"]
+    assert "left from an earlier run" in capsys.readouterr().out
+    rp.validate(rep)
