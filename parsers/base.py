@@ -77,14 +77,33 @@ class FormatModule(Protocol):
     def inventory(self, path: str) -> Inventory: ...
 
 
+#: a stream whose stamps come in bursts (more than this share of its steps beyond BURST_STEP_RATIO of the median
+#: step: telemetry received a few messages at a time) is given its mean rate over its bursts, not the rate
+#: within a burst (a tlog's AHRS2 on receive stamps, 4.3 Hz delivered in groups 3-9 ms apart, was "111 Hz")
+BURST_STEP_SHARE = 0.1
+BURST_STEP_RATIO = 3.0
+#: a step beyond this many typical steps of a bursty stream is a gap, not part of its rate
+BURST_GAP_STEPS = 10.0
+
+
 def rate_of(t_s: np.ndarray) -> float:
-    """Robust sample rate (Hz) from stamps: median of positive steps."""
+    """Robust sample rate (Hz) from stamps: 1 / the median of the positive steps; for a bursty stream (its
+    long steps common, BURST_STEP_SHARE) the samples per second over its steps bar gaps (BURST_GAP_STEPS of
+    ``typical_step``). A regular stream with gaps keeps its median: its long steps are few."""
     t = np.asarray(t_s, dtype=float)
     if len(t) < 2:
         return 0.0
     d = np.diff(t)
     d = d[d > 0]
-    return float(1.0 / np.median(d)) if len(d) else 0.0
+    if not len(d):
+        return 0.0
+    med = float(np.median(d))
+    if np.count_nonzero(d > BURST_STEP_RATIO * med) > BURST_STEP_SHARE * len(d):
+        from logtools.conventions import typical_step
+
+        keep = d <= BURST_GAP_STEPS * typical_step(d)
+        return float(np.count_nonzero(keep) / d[keep].sum())
+    return 1.0 / med
 
 
 #: how far into a file whose start is damaged, or has bytes put before it (a transfer's garbage in front of
