@@ -17,14 +17,25 @@ from logtools.errors import InputError
 DEFAULT_FORMATS = {"master": ("mcap", "csv"), "slave": ("tlog", "csv")}
 
 
-def _floats(text: str, n: int, what: str) -> tuple[float, ...]:
+def _floats(text: str, n: int, what: str, limit: float | None = None, unit: str = "") -> tuple[float, ...]:
+    """``n`` comma-separated finite numbers, each within +-``limit`` where one is given."""
     try:
         vals = tuple(float(x) for x in text.split(","))
     except ValueError:
         raise InputError(f"simulate: {what} needs {n} comma-separated numbers, got {text!r}") from None
     if len(vals) != n or not all(math.isfinite(v) for v in vals):
         raise InputError(f"simulate: {what} needs {n} comma-separated finite numbers, got {text!r}")
+    if limit is not None and any(abs(v) > limit for v in vals):
+        raise InputError(f"simulate: {what} beyond +-{limit:g} {unit} ({text}): the readers would drop such samples "
+                         "as impossible values")
     return vals
+
+
+#: the largest biases and lever arm simulate writes: a tenth of what the readers take for a corrupt value
+#: (parsers.assemble.LIMITS: 175 rad/s, 5000 m/s^2), and a lever arm of a large ship's
+MAX_GYRO_BIAS_DPH = 175.0 / 10 * 180 / math.pi * 3600
+MAX_ACCEL_BIAS_MG = 5000.0 / 10 / 9.80665 * 1000
+MAX_LEVER_ARM_M = 500.0
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -115,11 +126,11 @@ def config_from_args(args: argparse.Namespace):
     if args.mount is not None:
         ov["mount_rpy_deg"] = _floats(args.mount, 3, "--mount")
     if args.lever_arm is not None:
-        ov["lever_arm_m"] = _floats(args.lever_arm, 3, "--lever-arm")
+        ov["lever_arm_m"] = _floats(args.lever_arm, 3, "--lever-arm", MAX_LEVER_ARM_M, "m")
     if args.gyro_bias is not None:
-        ov["slave_gyro_bias_dph"] = _floats(args.gyro_bias, 3, "--gyro-bias")
+        ov["slave_gyro_bias_dph"] = _floats(args.gyro_bias, 3, "--gyro-bias", MAX_GYRO_BIAS_DPH, "deg/h")
     if args.accel_bias is not None:
-        ov["slave_accel_bias_mg"] = _floats(args.accel_bias, 3, "--accel-bias")
+        ov["slave_accel_bias_mg"] = _floats(args.accel_bias, 3, "--accel-bias", MAX_ACCEL_BIAS_MG, "mg")
     if args.flexure:
         ov["flexure"] = True
     if args.no_slave_nav:

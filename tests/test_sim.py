@@ -402,6 +402,9 @@ def test_cli_simulate_truth_follows_a_slave_file_written_on_its_boot_clock(tmp_p
     (["--set", "heave_amp_m=x"], "bad value for heave_amp_m"),
     (["--slave-rate", "-5"], "slave_imu_rate_hz"),
     (["--master-format", "nosuch"], "unknown format"),
+    (["--gyro-bias=1e9,0,0"], "--gyro-bias beyond"),  # (written, then dropped by the readers as impossible)
+    (["--accel-bias=1e9,0,0"], "--accel-bias beyond"),
+    (["--lever-arm=1e9,0,0"], "--lever-arm beyond"),
 ])
 def test_cli_simulate_bad_options_one_line(tmp_path, capsys, argv, msg):
     from pipelines.cli import main
