@@ -262,9 +262,11 @@ def options_from(cli: dict, config: dict | None = None) -> tuple[AnalyzeOptions,
     if kw.get("filter") in FILTERS and FilterKind.parse(kw["filter"]).splits_delay and "compensation" not in kw:
         kw["compensation"] = "split"  # S004: integer-sample lag applied, the residual left to the delay state
     if "write_slave" in merged:
-        from pipelines.export import parse_kinds
+        from pipelines.export import KINDS, parse_kinds
 
         kw["write_slave"] = parse_kinds(merged["write_slave"])
+        if not kw["write_slave"] and cli.get("write_slave") is not None:  # (--write-slave= from an empty variable)
+            raise InputError(f"--write-slave names nothing to write ({', '.join(KINDS)}, comma-separated)")
     if "recording_max_rows" in merged:
         kw["recording_max_rows"] = _whole_rows("recording_max_rows", merged["recording_max_rows"])
     if "lever_arm" in merged:

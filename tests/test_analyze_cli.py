@@ -736,3 +736,13 @@ def test_outputs_an_earlier_run_left_in_the_folder_are_said(tmp_path, fake_numer
     assert said == ["recording.rrd", "report.html"]
     assert "left from an earlier run" in capsys.readouterr().out
     rp.validate(rep)
+
+
+def test_an_empty_write_slave_is_refused(tmp_path, fake_numerics, capsys):
+    """--write-slave= (an empty shell variable) wrote nothing without a word."""
+    m, s = write_fake_pair(tmp_path)
+    for value in ("", ",", " , "):
+        assert main(["analyze", m, s, f"--write-slave={value}", "-o", str(tmp_path / "x")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "--write-slave names nothing" in err[0]
+    assert not (tmp_path / "x").exists()
