@@ -15,6 +15,9 @@ from pathlib import Path
 
 import pytest
 
+sys.path.insert(0, str(Path(__file__).parent))
+from test_outputs_19 import _tiny_rrd  # noqa: E402
+
 from pipelines import view_cmd
 from pipelines.cli import main
 
@@ -24,15 +27,6 @@ SAMPLE = ROOT / "sample_logs"
 _REAL_POPEN = subprocess.Popen
 
 
-def _tiny_rrd(path: Path) -> Path:
-    import rerun as rr
-
-    rec = rr.RecordingStream("tapost", recording_id=None)
-    rec.save(str(path))
-    rec.log("/a", rr.Scalars(1.0))
-    rec.flush()
-    rec.disconnect()
-    return path
 
 
 def _report(folder: Path, recording: str | None, **fields) -> None:
