@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_outputs_19 import _tiny_rrd  # noqa: E402
+from test_outputs_19 import _listening, _tiny_rrd  # noqa: E402
 
 from pipelines import view_cmd
 from pipelines.cli import main
@@ -188,19 +188,6 @@ def test_a_folder_reused_with_no_recording_refuses_the_old_recording(tmp_path, l
 
 
 # ---- the viewer dies with tapost -----------------------------------------------------------------
-def _listening(port: int) -> bool:
-    for f in ("/proc/net/tcp", "/proc/net/tcp6"):
-        try:
-            rows = Path(f).read_text().splitlines()[1:]
-        except OSError:
-            continue
-        for r in rows:
-            parts = r.split()
-            if parts[3] == "0A" and int(parts[1].split(":")[1], 16) == port:
-                return True
-    return False
-
-
 def _children(pid: int) -> list[int]:
     out = []
     for d in Path("/proc").iterdir():
