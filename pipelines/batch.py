@@ -182,6 +182,9 @@ def discover_manifest(manifest: str, out_root: str) -> list[PairJob]:
             opts = _config_from(base, tuple(shlex.split(row.get("options", ""))))
         except ValueError as exc:
             opts, problem = (), f"bad options in manifest row {i}: {exc}"
+        if any(a in ("-o", "--out") or a.startswith(("--out=", "-o=")) for a in opts):
+            problem = (f"manifest row {i}: -o is no per-pair option (each pair's outputs go to the campaign's "
+                       "output folder, in a folder of the pair's name: give the name column)")
         if not row.get("master") or not row.get("slave"):
             problem = f"manifest row {i} lacks a master or a slave path"
         if extra:
@@ -719,9 +722,24 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="skip each pair's report.html (report.json is always written; index.html still is)")
 
 
+def scheduler_address(text: str | None) -> str | None:
+    """``--scheduler``: None (not given), else ``[tcp://]HOST:PORT`` with a port 1..65535, checked before any
+    pair runs (an empty one ran the campaign here; a port beyond 65535 waited 20 s for a connection)."""
+    if text is None:
+        return None
+    addr = text.strip()
+    _scheme, _sep, rest = addr.rpartition("://")
+    host, colon, port = rest.rpartition(":")
+    if not (host and colon and port.isdigit() and 1 <= int(port) <= 65535):
+        raise InputError("not a Dask scheduler address (a host and a port 1..65535): give tcp://HOST:PORT",
+                         text if text.strip() else "--scheduler ''")
+    return addr
+
+
 def run(args: argparse.Namespace) -> int:
     if args.jobs < 1:
         raise InputError("--jobs must be at least 1")
+    args.scheduler = scheduler_address(args.scheduler)
     rows, counts = run_batch(args.campaign, args.out, jobs=args.jobs, scheduler=args.scheduler,
                              write_slave=args.write_slave, no_html=args.no_html)
     n_ok = sum(r["status"] in ("ok", "partial") for r in rows)

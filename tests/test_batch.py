@@ -361,3 +361,27 @@ def test_a_pair_that_kills_its_worker_fails_alone(tmp_path, monkeypatch):
     assert sorted(got) == [j.name for j in jobs]
     assert got["p1"]["status"] == "failed" and "died" in got["p1"]["reason"]
     assert all(got[n]["status"] == "ok" for n in got if n != "p1")
+
+
+@pytest.mark.parametrize("address", ["", "127.0.0.1:99999", "tcp://host", "tcp://host:0"])
+def test_a_scheduler_address_is_checked_before_any_pair_runs(tmp_path, capsys, address):
+    """--scheduler '' ran the campaign here, and a port beyond 65535 waited 20 s for a connection: one line,
+    exit 2, at once."""
+    from pipelines.batch import scheduler_address
+
+    camp = tmp_path / "camp"
+    camp.mkdir()
+    t = time.perf_counter()
+    assert main(["batch", str(camp), "-o", str(tmp_path / "o"), "--scheduler", address]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not a Dask scheduler address" in err[0] and time.perf_counter() - t < 5
+    assert not (tmp_path / "o").exists()
+    assert scheduler_address(" tcp://[::1]:8786 ") == "tcp://[::1]:8786"
+
+
+def test_a_manifest_row_with_its_own_output_folder_is_a_failed_row(tmp_path):
+    """-o in a manifest row's options was ignored without a word (the pair went to OUT/<name>)."""
+    man = tmp_path / "m.csv"
+    man.write_text('master,slave,options\nm.csv,s.csv,-o elsewhere\nm.csv,s.csv,--out=x\nm.csv,s.csv,--no-html\n')
+    jobs = batch.discover(str(man), str(tmp_path / "o"))
+    assert ["-o is no per-pair option" in j.problem for j in jobs] == [True, True, False]
