@@ -728,7 +728,9 @@ def scheduler_address(text: str | None) -> str | None:
     if text is None:
         return None
     addr = text.strip()
-    _scheme, _sep, rest = addr.rpartition("://")
+    scheme, _sep, rest = addr.rpartition("://")
+    if scheme == "inproc" and rest:  # (a scheduler in this process: dask's LocalCluster(processes=False))
+        return addr
     host, colon, port = rest.rpartition(":")
     if not (host and colon and port.isdigit() and 1 <= int(port) <= 65535):
         raise InputError("not a Dask scheduler address (a host and a port 1..65535): give tcp://HOST:PORT",
