@@ -746,3 +746,18 @@ def test_an_empty_write_slave_is_refused(tmp_path, fake_numerics, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "--write-slave names nothing" in err[0]
     assert not (tmp_path / "x").exists()
+
+
+def test_a_rate_with_no_regular_stretch_is_said_so_not_as_no_motion(tmp_path, capsys):
+    """The real sitl tlog's RAW_IMU on receive stamps (4 Hz telemetry received in bursts) was 'not enough
+    motion: 0 deg/s RMS on the master' while the vehicle turns at ~20 deg/s: the rate has no stretch regular
+    enough to read, and the message now says so and what to use."""
+    from pathlib import Path
+
+    real = Path(__file__).resolve().parents[1].parent / "shared" / "realdata" / "sitl_vtol.tlog"
+    if not real.exists():
+        pytest.skip("../shared/realdata absent")
+    rc = main(["analyze", f"{real}::imu=RAW_IMU,att=AHRS2,time=receive", f"{real}::imu=SCALED_IMU2,att=AHRS2",
+               "-o", str(tmp_path / "o"), "--no-recording", "--no-html"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 1 and "no stretch regular enough to read" in err[-1] and "receive stamps" in err[-1]

@@ -62,6 +62,12 @@ def check_motion(ctx: Ctx) -> tuple[float, float, float, float]:
                 f"the master moves {motion_dps:.3g} deg/s RMS" + (
                     " (derived from attitude: its stamps too irregular or too coarse?)"
                     if ctx.slave.source == "attitude" else ""))
+        for unit, role in ((ctx.master, "master"), (ctx.slave, "slave")):
+            if int(np.count_nonzero(unit.grid.valid)) < 10:  # (motion_snr's 0: no stretch of the rate read)
+                raise AnalysisError(
+                    f"the {role}'s angular rate has no stretch regular enough to read: its stamps come in bursts or "
+                    "with gaps everywhere (a telemetry log on receive stamps? its messages' own time fields are "
+                    "the default)")
         raise AnalysisError(
             f"not enough motion to estimate the latency: {motion_dps:.3g} deg/s RMS on the master "
             f"(signal/noise {min(snr, snr_s):.2g}, need {need:g})")
