@@ -798,23 +798,34 @@ def _arg_path(arg) -> str:
     return arg.meta.source_path if isinstance(arg, InsLog) else str(arg).partition("::")[0]
 
 
-def same_stream(master: InsLog, slave: InsLog) -> bool:
-    """True when both sides are the same stream: of the same file with the same resolved selector, or the
+def stream_relation(master: InsLog, slave: InsLog) -> str | None:
+    """"same" where both sides are the same stream: of the same file with the same resolved selector, or the
     same angular rates and navigation sources (of one file read on two clocks; of any files at the same
-    stamps: a unit's folder and the session that defaults to it, a plain copy). A copy restamped (its stamps
-    shifted) is a pair: the export's round trip is one. One IMU with two navigation sources: ``same_imu``."""
+    stamps: a unit's folder and the session that defaults to it, a plain copy). "one imu" where they read one
+    IMU stream with different navigation sources (two EKF lanes of one log against one IMU). Else None: a
+    pair (a copy restamped, its stamps shifted, is one: the export's round trip)."""
     same_file = _same_file(master, slave)
     if same_file and master.meta.selector == slave.meta.selector:
-        return True
-    return _nav_sources(master) == _nav_sources(slave) and _one_imu(master, slave, same_file)
+        return "same"
+    if not _one_imu(master, slave, same_file):
+        return None
+    return "same" if _nav_sources(master) == _nav_sources(slave) else "one imu"
+
+
+def same_stream(master: InsLog, slave: InsLog) -> bool:
+    """Both sides are the same stream (``stream_relation``): nothing to compare."""
+    return stream_relation(master, slave) == "same"
 
 
 def same_imu(master: InsLog, slave: InsLog) -> str | None:
-    """What to say where both sides read one IMU stream with different navigation sources (two EKF lanes
-    of one log against one IMU): the latency is then that stream against itself, 0 by construction; the
-    alignment compares the two navigation sources. None otherwise."""
-    if not _one_imu(master, slave, _same_file(master, slave)):
-        return None
+    """What to say where both sides read one IMU stream with different navigation sources
+    (``stream_relation``), else None."""
+    return _one_imu_text(master) if stream_relation(master, slave) == "one imu" else None
+
+
+def _one_imu_text(master: InsLog) -> str:
+    """The warning of a pair that reads one IMU stream on both sides: the latency is then that stream against
+    itself, 0 by construction; the alignment compares the two navigation sources."""
     src = master._channel("gyro").source if master._channel("gyro") is not None else "IMU"
     return (f"master and slave read the same IMU stream ({src}): the latency compares it with itself (0 by "
             "construction); the alignment compares their navigation sources. For the latency between two units, "
@@ -902,7 +913,8 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
     parallel.large_arrays_mmapped(master.n_imu + master.n_nav + slave.n_imu + slave.n_nav)
     parallel.release_freed_memory()  # (each stage's freed temporaries: not carried into the next stage)
     tim["parse"] = time.perf_counter() - t
-    if same_stream(master, slave):
+    relation = stream_relation(master, slave)  # (one comparison of the rates for both checks)
+    if relation == "same":
         raise InputError("master and slave are the same stream (the same angular rates; nothing to compare); "
                          "give two logs, or two units of one log with selectors "
                          "(e.g. FILE::imu=IMU and FILE::imu=IMU2; `tapost inspect FILE` lists them)",
@@ -912,9 +924,8 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
     extra = an.extra
     units = scale_findings(master, slave)  # (a unit mix-up: said as a warning, and in a failure's line)
     extra.setdefault("warnings", []).extend({"stage": "parse", "text": u} for u in units)
-    one_imu = same_imu(master, slave)
-    if one_imu:
-        extra["warnings"].append({"stage": "parse", "text": one_imu})
+    if relation == "one imu":
+        extra["warnings"].append({"stage": "parse", "text": _one_imu_text(master)})
 
     # -- latency
     t = time.perf_counter()
@@ -1235,16 +1246,17 @@ def write_outputs(an: Analysis, out_dir: str, progress=None, recording=None) -> 
         attach_to_analysis(opts.write_slave, out_dir, an.slave, an.master, an.latency, paths, an.extra)
         tim["export"] = time.perf_counter() - t
 
-    # -- what an earlier run left in the folder, said (a report.html that is not this report's is a trap)
-    stale = _left_from_an_earlier_run(out_dir, paths)
-    an.extra["warnings"] = [w for w in an.extra.get("warnings", []) if not w.get("earlier_run")] + [
-        {"stage": "outputs", "text": f"{name} in {out_dir} is left from an earlier run (this analysis did not "
-         "write it): delete it, or write it again", "earlier_run": True} for name in stale]
-
-    # -- report.json last
+    # -- report.json last, with what an earlier run left in the folder said (a report.html that is not this
+    # report's is a trap): in this report alone (another write of the same analysis finds its own folder)
     t = time.perf_counter()
     tim["total"] = an.timings_s.get("total", 0.0) + time.perf_counter() - t_out
     rep = an.build_report(tim, paths)
+    stale = _left_from_an_earlier_run(out_dir, paths)
+    if stale:
+        rep["warnings"] = rep.get("warnings", []) + [
+            {"stage": "outputs", "text": f"{name} in {out_dir} is left from an earlier run (this analysis did not "
+             "write it): delete it, or write it again"} for name in stale]
+        rp.add_findings(rep)
     rp.write_report(paths["report"], rep)
     tim["report"] += time.perf_counter() - t
     an._report = rep
