@@ -44,7 +44,7 @@ def load(arg) -> InsLog:
     ``tapost inspect PATH`` lists the selectors). An InsLog is returned as it is (``analyze`` takes either)."""
     if isinstance(arg, InsLog):
         return arg
-    return _load(path_arg(arg))
+    return _load(arg)  # (parsers.load takes a str or an os.PathLike, and says what else it was given)
 
 
 def options(**opts) -> AnalyzeOptions:

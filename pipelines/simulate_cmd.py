@@ -12,7 +12,9 @@ import json
 import math
 import os
 
+from logtools.conventions import G0_M_S2
 from logtools.errors import InputError
+from parsers.assemble import LIMITS
 
 DEFAULT_FORMATS = {"master": ("mcap", "csv"), "slave": ("tlog", "csv")}
 
@@ -33,8 +35,8 @@ def _floats(text: str, n: int, what: str, limit: float | None = None, unit: str 
 
 #: the largest biases and lever arm simulate writes: a tenth of what the readers take for a corrupt value
 #: (parsers.assemble.LIMITS: 175 rad/s, 5000 m/s^2), and a lever arm of a large ship's
-MAX_GYRO_BIAS_DPH = 175.0 / 10 * 180 / math.pi * 3600
-MAX_ACCEL_BIAS_MG = 5000.0 / 10 / 9.80665 * 1000
+MAX_GYRO_BIAS_DPH = math.degrees(LIMITS["gyro"] / 10) * 3600
+MAX_ACCEL_BIAS_MG = LIMITS["accel"] / 10 / G0_M_S2 * 1000
 MAX_LEVER_ARM_M = 500.0
 
 
