@@ -76,7 +76,9 @@ def cpu_key() -> str:
                 text += subprocess.run(["sysctl", "-n", key], capture_output=True, text=True, timeout=5).stdout
             except (OSError, subprocess.SubprocessError):
                 pass
-    text += f"{platform.machine()}|{platform.processor()}"
+    # (the processor's name only where neither gave anything: on Linux it is `uname -p`, run in a subprocess,
+    # a fork of the analysing process in every run, and it says nothing the model name and flags do not)
+    text += platform.machine() + ("" if text else f"|{platform.processor()}")
     return hashlib.sha1(text.encode()).hexdigest()[:16]
 
 

@@ -1,7 +1,9 @@
 """What every format module provides, and small shared helpers for them."""
 from __future__ import annotations
 
+import functools
 import os
+import sys
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -215,25 +217,36 @@ def stamp_grid_s(t_ns: np.ndarray, steps: np.ndarray | None = None) -> float:
     return 0.0
 
 
-_LIBC: list = []
+@functools.cache
+def libc():
+    """The C library of this process (``ctypes.CDLL(None)``: the one already loaded, nothing looked up), for
+    the few system calls numpy and the standard library do not offer (malloc controls, madvise, prctl); None
+    elsewhere than Linux or where ctypes cannot load it. ``ctypes.util.find_library`` is not used: it runs
+    ``ldconfig -p`` in a subprocess (a fork of the analysing process in every run)."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        import ctypes
+
+        return ctypes.CDLL(None, use_errno=True)
+    except (ImportError, OSError):
+        return None
+
+
+def glibc():
+    """:func:`libc` where it is glibc (it has ``malloc_trim``; musl has not), else None."""
+    lib = libc()
+    return lib if lib is not None and hasattr(lib, "malloc_trim") else None
 
 
 def release_free_memory() -> None:
     """Hand the memory the allocator keeps free back to the system (glibc ``malloc_trim``; elsewhere
     nothing). A parse frees many mid-sized temporaries that glibc keeps in its heap for reuse: the next
     stage would otherwise start with them still counted in the process's resident memory."""
-    if not _LIBC:
+    lib = glibc()
+    if lib is not None:
         try:
-            import ctypes
-            import ctypes.util
-
-            lib = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-            _LIBC.append(lib.malloc_trim if hasattr(lib, "malloc_trim") else None)
-        except (OSError, AttributeError):
-            _LIBC.append(None)
-    if _LIBC[0] is not None:
-        try:
-            _LIBC[0](0)
+            lib.malloc_trim(0)
         except Exception:  # noqa: BLE001 - best effort
             pass
 

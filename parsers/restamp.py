@@ -197,9 +197,11 @@ def populate_for_write(buf: np.ndarray, mm: mmap.mmap) -> None:
     try:
         import ctypes
 
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.madvise.argtypes = (ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int)
-        libc.madvise(buf.ctypes.data, buf.nbytes, advice)
+        from parsers.base import libc
+
+        lib = libc()
+        lib.madvise.argtypes = (ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int)
+        lib.madvise(buf.ctypes.data, buf.nbytes, advice)
     except (OSError, AttributeError):
         with contextlib.suppress(OSError, ValueError):
             mm.madvise(advice)

@@ -20,7 +20,6 @@ import numbers
 import os
 import sys
 import time
-import tomllib
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 
@@ -197,6 +196,8 @@ def read_config(path: str) -> dict:
         raise InputError(f"cannot read config: {exc.strerror}", path) from None
     if raw.startswith(b"\xef\xbb\xbf"):  # (a UTF-8 byte order mark, as some editors write: not the file's text)
         raw = raw[3:]
+    import tomllib  # (here alone: only a run with --config reads one)
+
     try:
         data = json.loads(raw) if raw.lstrip()[:1] in (b"{",) else tomllib.loads(raw.decode("utf-8"))
     except (ValueError, UnicodeDecodeError) as exc:
@@ -522,8 +523,12 @@ def _uncompensated_options(opts: AnalyzeOptions, compensated: bool) -> AnalyzeOp
 #: the modules of the outputs (write_outputs) and what they import (rerun's SDK alone is about 0.4 s), done
 #: ahead: in the recording's prepared child, or while this process waits. pandas is the recording's too where
 #: it is written here: pyarrow, under rerun, imports it on the first array it converts (to ask whether that is
-#: a pandas object), and nothing before the recording needs it on the analysis' own path
-OUTPUT_MODULES = {"html": ("pipelines.html",), "recording": ("pipelines.recording", "rerun", "rerun.blueprint"),
+#: a pandas object), and nothing before the recording needs it on the analysis' own path. pyarrow.compute is
+#: the recording's too: rerun's bar chart (the latency cost) builds its tensor with pyarrow's
+#: ``ListArray.from_arrays``, which imports it (with dateutil): 35-50 ms of CPU in the recording's call, on the
+#: run's last stretch where the alignment's children still run, unless the prepared child has it already
+OUTPUT_MODULES = {"html": ("pipelines.html",),
+                  "recording": ("pipelines.recording", "rerun", "rerun.blueprint", "pyarrow.compute"),
                   "recording_here": ("pandas",)}
 #: what the recording's prepared child does after its imports (module, function): pandas refused there
 #: (``pipelines.recording.without_pandas``: pyarrow, under rerun, would import it only to ask whether the

@@ -51,6 +51,7 @@ from dataclasses import dataclass, replace
 
 from logtools.errors import InputError, TapostError
 from pipelines import report as rp
+from pipelines.report import input_damage, latency_instant, report_warnings, warning_severity  # noqa: F401 (batch's API)
 
 DONE = "done.json"
 SUMMARY_COLUMNS = (
@@ -272,78 +273,6 @@ def _v(x, i):
         return x[i]
     except (TypeError, IndexError, KeyError):
         return None
-
-
-#: warnings that say an input file is damaged (truncated, corrupt): the worst kind, shown beside the status
-_DAMAGE = re.compile(r"damag|truncat|corrupt|cut short|incomplete frame|bad crc|undecodable|bad bytes", re.I)
-
-
-def warning_severity(stage: str, text: str) -> int:
-    """3 a damaged input, 2 a step skipped or failed, 1 any other warning (notes are not warnings)."""
-    if _DAMAGE.search(text):
-        return 3
-    if stage.startswith("skipped"):
-        return 2
-    return 1
-
-
-def report_warnings(rep: dict) -> list[tuple[str, str]]:
-    """Every warning of a report as (stage, text), notes left out.
-
-    Uses the top-level ``warnings`` list of the report contract when the report has one; otherwise
-    gathers them from the inputs' sections (their "note: ..." lines are notes), the latency quality
-    and the skipped steps. A step that was skipped is a warning either way."""
-    out: list[tuple[str, str]] = []
-    top = rep.get("warnings")
-    if isinstance(top, list):
-        for w in top:
-            if isinstance(w, dict):
-                out.append((str(w.get("stage") or ""), str(w.get("text") or "")))
-            else:
-                out.append(("", str(w)))
-    else:
-        for role in ("master", "slave"):
-            for w in (rep.get(role) or {}).get("warnings") or []:
-                if not str(w).lower().startswith("note:"):
-                    out.append((role, str(w)))
-        for w in ((rep.get("latency") or {}).get("quality") or {}).get("warnings") or []:
-            out.append(("latency", str(w)))
-    seen = [t for _, t in out]
-    for k, v in (rep.get("skipped") or {}).items():
-        # (the contract's list says each skipped step in its own words, the reason quoted: counted once)
-        if not any(str(v) in t for t in seen):
-            out.append((f"skipped {k}", f"{k}: {v}"))
-    return out
-
-
-def input_damage(rep: dict) -> str:
-    """The inputs' damage warnings as one line ("slave: truncated tlog: ..."), or "" when none."""
-    parts = []
-    for role in ("master", "slave"):
-        parts += [f"{role}: {w}" for w in (rep.get(role) or {}).get("warnings") or [] if _DAMAGE.search(str(w))]
-    if not parts and isinstance(rep.get("warnings"), list):  # the contract's list, stage naming the input
-        parts = [f"{w.get('stage')}: {w.get('text')}" for w in rep["warnings"]
-                 if isinstance(w, dict) and _DAMAGE.search(str(w.get("text")))]
-    return "; ".join(parts)
-
-
-def latency_instant(rep: dict) -> tuple[float | None, str | None]:
-    """The instant ``latency_s`` is quoted at (the middle of the analysed window): absolute master
-    seconds as logged (UNIX or boot), and as UTC (ISO 8601) when the master is on UNIX time."""
-    import datetime as dt
-
-    lat, m = rep.get("latency") or {}, rep.get("master") or {}
-    t = None
-    if isinstance(lat.get("t_mid_rel_s"), (int, float)) and isinstance(m.get("t0_ns"), int):
-        t = m["t0_ns"] * 1e-9 + lat["t_mid_rel_s"]
-    elif isinstance(lat.get("window_s"), list) and None not in lat["window_s"][:2] and len(lat["window_s"]) >= 2:
-        t = 0.5 * (lat["window_s"][0] + lat["window_s"][1])
-    if t is None or lat.get("latency_s") is None:
-        return None, None
-    utc = None
-    if m.get("clock") == "epoch":
-        utc = dt.datetime.fromtimestamp(t, dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%f")[:-3] + "Z"
-    return t, utc
 
 
 def display_status(status: str, damage: str | None) -> str:

@@ -28,7 +28,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from pipelines.report import RUNS, Analysis, write_text_atomic
+from pipelines.report import RUNS, Analysis, input_damage, latency_instant, report_warnings, write_text_atomic
 from pipelines.svgplot import Figure
 
 AXES = ("x", "y", "z")
@@ -444,8 +444,6 @@ def _arcmin(v) -> str:
 
 def headline_html(rep: dict) -> str:
     """The verdict at the top: latency +- sigma (and when), drift, mounting +- sigma, converged, status."""
-    from pipelines.batch import input_damage, latency_instant, report_warnings
-
     status = rep.get("status", "ok")
     lat = rep.get("latency") or {}
     cells: list[tuple[str, str, str]] = []  # (title, big value, small print)
@@ -700,7 +698,6 @@ def render(rep: dict, an: Analysis) -> str:
                      "<p class=note>No alignment run produced state histories.</p>"))
     sections.append(("residuals", "Residuals",
                      img(fig_residuals(an), "residuals", "No residuals were recorded.")))
-    from pipelines.batch import report_warnings
 
     # the warnings the headline counts first (every stage's, as report.json lists them), then the notes
     warnings = report_warnings(rep)

@@ -22,7 +22,6 @@ threads of its own may not fork safely): ``analyze`` turns it on for its own pro
 """
 from __future__ import annotations
 
-import functools
 import importlib
 import mmap
 import os
@@ -30,6 +29,8 @@ import pickle
 import signal
 import sys
 from typing import Any, Callable
+
+from parsers.base import glibc as _libc  # (glibc, for its malloc controls; None elsewhere: their own policy)
 
 _ENABLED = {"on": False}
 #: name -> (pid, request write fd, result read fd, result memfd or -1)
@@ -123,20 +124,6 @@ def enable(on: bool = True) -> None:
 LARGE_PAIR_ROWS = 5_000_000
 MMAP_THRESHOLD_BYTES = 16 << 20
 M_MMAP_THRESHOLD = -3  # mallopt's parameter (malloc.h)
-
-
-@functools.cache
-def _libc():
-    """glibc, for its malloc controls; None elsewhere (musl, macOS, Windows: their own policy)."""
-    if not sys.platform.startswith("linux"):
-        return None
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL(None)
-        return libc if hasattr(libc, "malloc_trim") else None  # glibc's (not musl's)
-    except OSError:
-        return None
 
 
 def _fork() -> int:

@@ -173,7 +173,9 @@ def _die_with_parent():
     try:
         import ctypes
 
-        prctl = ctypes.CDLL(None, use_errno=True).prctl
+        from parsers.base import libc
+
+        prctl = libc().prctl
         prctl.argtypes = [ctypes.c_int, ctypes.c_ulong, ctypes.c_ulong, ctypes.c_ulong, ctypes.c_ulong]
         prctl.restype = ctypes.c_int
     except (ImportError, OSError, AttributeError):
