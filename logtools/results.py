@@ -51,6 +51,14 @@ class LatencyResult:
     mounting_rpy_deg: tuple[float, float, float] | None = None  # rotation found from angular rate
     t_mid_rel_s: float = 0.0  # middle of the window, master relative seconds (where latency_s holds)
 
+    @property
+    def drift_reported_ppm(self) -> float | None:
+        """``drift_ppm`` as the outputs state it: None where the method did not estimate a drift
+        (``quality["drift_estimated"]`` False: a method that assumes none, or too few windows to fit one;
+        ``quality["drift_not_estimated"]`` says which). ``drift_ppm`` then holds 0.0, what the compensation
+        applies."""
+        return None if self.quality.get("drift_estimated", True) is False else self.drift_ppm
+
     def latency_at(self, t_master_rel_s: np.ndarray) -> np.ndarray:
         """Latency (s) at master-relative instants, drift included."""
         return self.latency_s + self.drift_ppm * 1e-6 * (np.asarray(t_master_rel_s) - self.t_mid_rel_s)

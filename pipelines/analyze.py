@@ -626,8 +626,8 @@ def summary_lines(rep: dict, paths: dict[str, str | None]) -> list[str]:
             how += f", velocity alone {_fmt_ms(vel['latency_s'])} (disagrees, not used)"
         big = abs(lat["latency_s"]) >= 10.0  # unrelated clocks: the offset between them, in seconds
         head = f"{lat['latency_s']:+.6f} s" if big else f"{lat['latency_s'] * 1e3:+.3f} ms"
-        out.append(f"latency {head} +/- {sig * 1e3 if sig is not None else float('nan'):.3f} ms (1 sigma), "
-                   f"drift {lat['drift_ppm'] if lat['drift_ppm'] is not None else float('nan'):+.2f} ppm  "
+        drift = f"drift {lat['drift_ppm']:+.2f} ppm" if lat["drift_ppm"] is not None else "drift not estimated"
+        out.append(f"latency {head} +/- {sig * 1e3 if sig is not None else float('nan'):.3f} ms (1 sigma), {drift}  "
                    f"[{lat['method']}{' gyro+accel' if aided else ''}{how}, "
                    f"window {lat['window_s'][1] - lat['window_s'][0]:.1f} s]")
         # (the seeds' methods assume the units' axes aligned: said beside their figures, which a mounting

@@ -166,7 +166,8 @@ def fig_drift(an: Analysis) -> str | None:
     if np.isfinite(tc).any():
         tt = np.linspace(np.nanmin(tc), np.nanmax(tc), 50)
         ax.line(tt, lat.latency_at(tt) * 1e3, color="C3", width=1.2,
-                label=f"fit: {lat.latency_s * 1e3:+.3f} ms at mid, drift {lat.drift_ppm:+.2f} ppm")
+                label=f"fit: {lat.latency_s * 1e3:+.3f} ms at mid, "
+                      + (f"drift {lat.drift_ppm:+.2f} ppm" if lat.drift_reported_ppm is not None else "no drift fitted"))
     ax.xlabel("time since master start (s)")
     ax.ylabel("latency (ms)")
     ax.title("Latency over the log (clock drift)")
@@ -457,9 +458,14 @@ def headline_html(rep: dict) -> str:
                       f"{lat['latency_s'] * 1e3:+.3f} ms <small>&plusmn; {_fmt(None if sig is None else sig * 1e3, '.3f')}"
                       " ms (1&sigma;)</small>", f"{when}, the middle of the analysed window; method {_esc(lat.get('method'))}"))
         dsig = (lat.get("quality") or {}).get("drift_sigma_ppm")
-        cells.append(("clock drift", f"{_fmt(lat.get('drift_ppm'), '+.2f')} ppm"
-                      + (f" <small>&plusmn; {dsig:.2f} ppm (1&sigma;)</small>" if isinstance(dsig, (int, float)) else ""),
-                      "the slave's clock rate error (&micro;s per s)"))
+        why = (lat.get("quality") or {}).get("drift_not_estimated")
+        if lat.get("drift_ppm") is None and why:
+            cells.append(("clock drift", "not estimated", _esc(why)))
+        else:
+            cells.append(("clock drift", f"{_fmt(lat.get('drift_ppm'), '+.2f')} ppm"
+                          + (f" <small>&plusmn; {dsig:.2f} ppm (1&sigma;)</small>" if isinstance(dsig, (int, float))
+                             else ""),
+                          "the slave's clock rate error (&micro;s per s)"))
     align = rep.get("alignment") or {}
     run = next((r for r in ("compensated", "uncompensated")
                 if (align.get(r) or {}).get("mounting_rpy_deg") and None not in align[r]["mounting_rpy_deg"]), None)
@@ -598,8 +604,12 @@ def _summary_html(rep: dict) -> str:
         t.append(f"<tr><th>latency (slave behind master)</th><td class=num>{_fmt(lat['latency_s'] * 1e3, '+.3f', 'ms')}</td>"
                  f"<td class=num>{_fmt(None if lat['sigma_s'] is None else lat['sigma_s'] * 1e3, '.3f', 'ms')}</td></tr>")
         dsig = (lat.get("quality") or {}).get("drift_sigma_ppm")
-        t.append(f"<tr><th>clock drift</th><td class=num>{_fmt(lat['drift_ppm'], '+.2f', 'ppm')}</td>"
-                 f"<td class=num>{_fmt(dsig if isinstance(dsig, (int, float)) else None, '.2f', 'ppm')}</td></tr>")
+        why = (lat.get("quality") or {}).get("drift_not_estimated")
+        if lat["drift_ppm"] is None and why:
+            t.append(f"<tr><th>clock drift</th><td colspan=2>not estimated: {_esc(why)}</td></tr>")
+        else:
+            t.append(f"<tr><th>clock drift</th><td class=num>{_fmt(lat['drift_ppm'], '+.2f', 'ppm')}</td>"
+                     f"<td class=num>{_fmt(dsig if isinstance(dsig, (int, float)) else None, '.2f', 'ppm')}</td></tr>")
         w = lat.get("window_s") or [None, None]
         t.append(f"<tr><th>method / window (master stamps)</th><td colspan=2>{_esc(lat['method'])}, "
                  f"[{_fmt(w[0], '.3f')}, {_fmt(w[1], '.3f')}] s</td></tr>")

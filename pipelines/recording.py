@@ -150,7 +150,9 @@ def headline(an: Analysis, rep: dict | None = None) -> dict:
     lat = an.latency
     out: dict = {"status": (rep or {}).get("status")}
     if lat is not None:
-        out.update(latency_s=float(lat.latency_s), sigma_s=float(lat.sigma_s), drift_ppm=float(lat.drift_ppm))
+        drift = lat.drift_reported_ppm
+        out.update(latency_s=float(lat.latency_s), sigma_s=float(lat.sigma_s),
+                   drift_ppm=None if drift is None else float(drift))
     for run in ("compensated", "uncompensated"):
         res = an.alignment.get(run)
         if res is not None and np.all(np.isfinite(res.mounting_rpy_deg)):
@@ -317,7 +319,8 @@ def _fill(rec, rr, rrb, an: Analysis, rep: dict | None, max_rows: int, pose_rate
                                                    widths=[width], color=[31, 119, 180]), static=True)
         rec.log("/latency/estimate",
                 rr.TextDocument(f"latency {lat.latency_s * 1e3:+.3f} ms ± {lat.sigma_s * 1e3:.3f} ms (1σ), "
-                                f"drift {lat.drift_ppm:+.2f} ppm, method {lat.method}"), static=True)
+                                + (f"drift {lat.drift_reported_ppm:+.2f} ppm" if lat.drift_reported_ppm is not None
+                                   else "drift not estimated") + f", method {lat.method}"), static=True)
     if lat is not None and len(lat.window_latency_s):
         rec.log("/latency/window", rr.SeriesPoints(names="per-window latency (ms)", marker_sizes=3.0),
                 static=True)

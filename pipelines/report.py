@@ -128,7 +128,7 @@ def latency_section(lat: LatencyResult) -> dict:
     return {
         "latency_s": _num(lat.latency_s),
         "sigma_s": _num(lat.sigma_s),
-        "drift_ppm": _num(lat.drift_ppm),
+        "drift_ppm": _num(lat.drift_reported_ppm),  # (null where not estimated: quality.drift_not_estimated)
         "method": lat.method,
         "window_s": _vec(lat.window_s),
         "quality": json_safe(dict(lat.quality)),

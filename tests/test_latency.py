@@ -876,3 +876,27 @@ def test_the_raw_rates_let_go_and_made_again_give_the_same_numbers():
     for x, y in zip(first, again):
         assert (x.i0, x.dt_s) == (y.i0, y.dt_s) and np.array_equal(x.values, y.values)
         assert np.array_equal(x.valid, y.valid)
+
+
+def test_drift_not_estimated_is_null_with_its_reason():
+    """A drift no estimate determined is null in the outputs, with the reason (DESIGN: never the prior): a
+    log too short for three windows of motion, and a headline method that assumes no drift. The compensation
+    applies 0 ppm (``drift_ppm`` keeps it); a log long enough reports its drift."""
+    from logtools import sim
+    from pipelines.report import latency_section
+
+    p = sim.simulate(sim.scenario_config("aircraft", seed=5, duration_s=20.0, latency_s=0.06, drift_ppm=0.0))
+    short = estimate(p.master, p.slave, compare=False)
+    sec = latency_section(short)
+    assert sec["drift_ppm"] is None and short.drift_ppm == 0.0 and short.drift_reported_ppm is None
+    assert "3 needed to fit a drift" in sec["quality"]["drift_not_estimated"]
+    assert abs(short.latency_s - 0.06) < 5 * short.sigma_s
+
+    p = sim.simulate(sim.scenario_config("aircraft", seed=5, duration_s=120.0, latency_s=0.06, drift_ppm=20.0))
+    seed = estimate(p.master, p.slave, method="s000-rate-integral", compare=False)
+    sec = latency_section(seed)
+    assert sec["drift_ppm"] is None and "estimates no drift" in sec["quality"]["drift_not_estimated"]
+    full = estimate(p.master, p.slave, compare=False)
+    sec = latency_section(full)
+    assert sec["drift_ppm"] == full.drift_ppm and abs(full.drift_ppm - 20.0) < 5 * sec["quality"]["drift_sigma_ppm"]
+    assert "drift_not_estimated" not in sec["quality"]

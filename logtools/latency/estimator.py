@@ -388,7 +388,9 @@ def estimate(master: InsLog, slave: InsLog, *, method: str = "tapost", max_lag_s
         g = ctx.master.grid
         head = LatencyResult(latency_s=me.latency_s, sigma_s=me.sigma_s, drift_ppm=0.0, method=method,
                              window_s=(ctx.t0_abs_s + float(g.t_s[0]), ctx.t0_abs_s + float(g.t_s[-1])),
-                             quality={"note": me.note, "warnings": list(ctx.warnings)},
+                             quality={"note": me.note, "warnings": list(ctx.warnings), "drift_estimated": False,
+                                      "drift_not_estimated": f"{method} estimates no drift (it assumes the clocks "
+                                                             "run at one rate; the compensation applies none)"},
                              t_mid_rel_s=float(0.5 * (g.t_s[0] + g.t_s[-1])))
     check_plausible(head.latency_s, ctx)
     prog(1.0, "done")
