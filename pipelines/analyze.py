@@ -276,6 +276,8 @@ def options_from(cli: dict, config: dict | None = None) -> tuple[AnalyzeOptions,
     out = merged.get("out")
     if out is not None and not isinstance(out, (str, os.PathLike)):
         raise InputError(f"out takes a folder path, not {out!r}")
+    if isinstance(out, str) and not out.strip():
+        raise InputError("out is an empty path: give a folder, or leave it out for tapost_out/")
     return AnalyzeOptions(**kw), out
 
 
@@ -299,9 +301,11 @@ def _whole_rows(key: str, value) -> int:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from pipelines.cli import output_path
+
     p.add_argument("master", help="master log, PATH[::SELECTOR]")
     p.add_argument("slave", help="slave log, PATH[::SELECTOR]")
-    p.add_argument("-o", "--out", default=None, help="output directory (default tapost_out/)")
+    p.add_argument("-o", "--out", default=None, type=output_path, help="output directory (default tapost_out/)")
     p.add_argument("--max-lag", default=None, metavar="S|auto",
                    help="latency search half-width in seconds (default 2), or 'auto' for the whole overlap")
     p.add_argument("--filter", default=None, choices=FILTERS, help="alignment filter (default kf)")

@@ -641,7 +641,10 @@ def run_batch(campaign: str, out_root: str, *, jobs: int = 1, scheduler: str | N
 # ---- CLI ------------------------------------------------------------------------------------
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("campaign", help="campaign folder or manifest CSV (master,slave[,options][,name])")
-    p.add_argument("-o", "--out", default="tapost_batch", help="output directory (default tapost_batch/)")
+    from pipelines.cli import output_path
+
+    p.add_argument("-o", "--out", default="tapost_batch", type=output_path,
+                   help="output directory (default tapost_batch/)")
     p.add_argument("--jobs", type=int, default=1, help="pairs analyzed in parallel (processes)")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="run the pairs on a Dask cluster (e.g. tcp://host:8786)")
@@ -671,6 +674,9 @@ def run(args: argparse.Namespace) -> int:
     if args.jobs < 1:
         raise InputError("--jobs must be at least 1")
     args.scheduler = scheduler_address(args.scheduler)
+    if args.scheduler is not None and args.jobs != 1:  # (said, not silently dropped)
+        print(f"tapost: --jobs {args.jobs} is not used with --scheduler: the cluster's workers run the pairs",
+              file=sys.stderr)
     rows, counts = run_batch(args.campaign, args.out, jobs=args.jobs, scheduler=args.scheduler,
                              write_slave=args.write_slave, no_html=args.no_html)
     n_ok = sum(r["status"] in ("ok", "partial") for r in rows)

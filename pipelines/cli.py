@@ -145,6 +145,14 @@ def keep_scipy_docstrings() -> None:
         api.FunctionDoc = real
 
 
+def output_path(text: str) -> str:
+    """An output path argument (``-o``): an empty one (a script's unset variable) is refused, not taken for
+    the default folder or the current one."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("empty output path: give a folder or file name (or leave -o out)")
+    return text
+
+
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str):  # one line, exit 2 (argparse's own code for usage errors)
         self.exit(2, f"tapost: {message} (see '{self.prog} --help')\n")

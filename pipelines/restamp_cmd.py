@@ -24,7 +24,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("slave", help="slave log, PATH[::SELECTOR] (default selector: the report's)")
     p.add_argument("--from", dest="report", required=True, metavar="DIR/report.json",
                    help="report.json of a finished analysis of this slave (or its folder)")
-    p.add_argument("-o", "--out", default=None, metavar="OUT",
+    from pipelines.cli import output_path
+
+    p.add_argument("-o", "--out", default=None, metavar="OUT", type=output_path,
                    help="output file (folder for folder formats); default next to the report")
     p.add_argument("--format", default="native", metavar="native|csv|parquet[,...]",
                    help="native (the slave's own format, default), csv or parquet; comma-separated for several")

@@ -11,6 +11,7 @@ import dataclasses
 import json
 import math
 import os
+import sys
 
 from logtools.conventions import G0_M_S2
 from logtools.errors import InputError
@@ -42,7 +43,9 @@ MAX_LEVER_ARM_M = 500.0
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scenario", help="ship, aircraft, vehicle or multirotor")
-    p.add_argument("-o", "--out", required=True, help="output directory")
+    from pipelines.cli import output_path
+
+    p.add_argument("-o", "--out", required=True, type=output_path, help="output directory")
     p.add_argument("--duration", type=float, metavar="S", help="seconds (default 120)")
     p.add_argument("--seed", type=int, metavar="N", help="random seed (default 0)")
     p.add_argument("--latency", type=float, metavar="S", help="slave stamps late by S seconds")
@@ -198,6 +201,10 @@ def run(args: argparse.Namespace) -> int:
         os.makedirs(args.out, exist_ok=True)
     except OSError as exc:
         raise InputError(f"cannot create the output directory: {exc.strerror or exc}", args.out) from None
+    targets = [f"{role}{mods[role].EXTENSIONS[0]}" for role in ("master", "slave")] + ["truth.json"]
+    there = [name for name in targets if os.path.lexists(os.path.join(args.out, name))]
+    if there:  # (said: a folder of real logs given by mistake is not changed unnoticed)
+        print(f"note: {', '.join(there)} in {args.out} existed and are replaced", file=sys.stderr)
     pair = sim.simulate(cfg)
     paths = {}
     for role, log in (("master", pair.master), ("slave", pair.slave)):

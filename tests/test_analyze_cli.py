@@ -234,6 +234,7 @@ def test_config_file_toml_and_json(tmp_path, fake_numerics):
     ('recording_max_rows = "abc"\n', "recording_max_rows takes a whole number of rows (at least 1), not 'abc'"),
     ("recording_max_rows = -5\n", "recording_max_rows takes a whole number of rows (at least 1), not -5"),
     ("out = 5\n", "out takes a folder path, not 5"),
+    ('out = " "\n', "out is an empty path"),
     ('smoother = "false"\n', "smoother takes true or false, not 'false'"),
     ('[analyze]\nno_html = "yes"\n', "no_html takes true or false, not 'yes'"),
     ('filter = 3\n', "filter must be one of"),
@@ -761,3 +762,19 @@ def test_a_rate_with_no_regular_stretch_is_said_so_not_as_no_motion(tmp_path, ca
                "-o", str(tmp_path / "o"), "--no-recording", "--no-html"])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 1 and "no stretch regular enough to read" in err[-1] and "receive stamps" in err[-1]
+
+
+@pytest.mark.parametrize("command", [["analyze", "M", "S"], ["batch", "CAMPAIGN"], ["simulate", "aircraft"],
+                                     ["restamp", "S", "--from", "R"]])
+def test_an_empty_output_path_is_refused(tmp_path, capsys, monkeypatch, command):
+    """-o '' (a script's unset variable) is one line and exit 2 for every command that writes, nothing written:
+    not the default folder taken instead."""
+    monkeypatch.chdir(tmp_path)
+    try:
+        rc = main([*command, "-o", ""])
+    except SystemExit as exc:  # (argparse's usage error, in-process)
+        rc = exc.code
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "empty output path" in err
+    assert os.listdir(tmp_path) == []

@@ -210,8 +210,10 @@ def test_campaign_processes_and_dask_agree_and_rerun_does_nothing(tmp_path, fake
         # a second run does no work: nothing rewritten in the pair folders
         snap = snapshot(out2)
         capsys.readouterr()
-        assert main(["batch", str(camp), "-o", str(out2), "--scheduler", cl.scheduler_address]) == 0
-        assert "0 run now, 6 already done" in capsys.readouterr().out
+        assert main(["batch", str(camp), "-o", str(out2), "--scheduler", cl.scheduler_address, "--jobs", "3"]) == 0
+        got = capsys.readouterr()
+        assert "0 run now, 6 already done" in got.out
+        assert "--jobs 3 is not used with --scheduler" in got.err  # (said, not silently dropped)
         assert snapshot(out2) == snap
     pd.testing.assert_frame_equal(pd.read_csv(out2 / "summary.csv")[COMPARE], s1[COMPARE])
 

@@ -391,8 +391,14 @@ def test_cli_simulate_truth_follows_a_slave_file_written_on_its_boot_clock(tmp_p
     # (a format that keeps UNIX time: the truth as simulated)
     rc = main(["simulate", "aircraft", "-o", str(tmp_path / "t"), "--duration", "20", "--latency", "0.0213",
                "--slave-format", "tlog", "--no-slave-nav"])
-    assert rc == 0 and "boot clock" not in capsys.readouterr().out
+    got = capsys.readouterr()
+    assert rc == 0 and "boot clock" not in got.out and "existed and are replaced" not in got.err
     assert json.loads((tmp_path / "t" / "truth.json").read_text())["latency_s"] == 0.0213
+    # the same folder again: the files it replaces are named (a folder of real logs is not changed unnoticed)
+    assert main(["simulate", "aircraft", "-o", str(tmp_path / "t"), "--duration", "20", "--latency", "0.03",
+                 "--slave-format", "tlog", "--no-slave-nav"]) == 0
+    assert "master.mcap, slave.tlog, truth.json in" in capsys.readouterr().err
+    assert json.loads((tmp_path / "t" / "truth.json").read_text())["latency_s"] == 0.03
 
 
 @pytest.mark.parametrize("argv,msg", [
