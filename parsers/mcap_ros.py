@@ -837,6 +837,49 @@ def inflate_chunk_into(buf, off: int, nxt: int, out: np.ndarray) -> np.ndarray:
     return out
 
 
+def message_index_damage(buf, off: int, nxt: int, chunk: tuple[int, int, int] | None) -> bool:
+    """Whether the message index record at ``off`` (ending at ``nxt``) is damaged: its entries do not fill it
+    exactly, or one of them lies outside the chunk before it (``chunk``: its (message start time, message end
+    time, uncompressed size); None: not checked against one). The readers never need the message indexes (the
+    messages are read from the chunks): a damaged one is only said, a byte changed there is otherwise silent."""
+    ln = nxt - off - 9
+    if ln < 6:
+        return True
+    (n,) = _U32.unpack_from(buf, off + 11)
+    if n % 16 or 6 + n != ln:
+        return True
+    if chunk is None or not n:
+        return False
+    t0, t1, usize = chunk
+    pairs = np.frombuffer(buf, "<u8", n // 8, off + 15).reshape(-1, 2)
+    if int(pairs[:, 1].max()) >= usize:
+        return True
+    if t0 <= t1 and t1 > 0:  # (a chunk that states its messages' time span)
+        return int(pairs[:, 0].min()) < t0 or int(pairs[:, 0].max()) > t1
+    return False
+
+
+def message_index_warning(count: int, first: int) -> str:
+    """The one warning for ``count`` damaged message index records (the first at byte ``first``)."""
+    return (f"damaged: {count} message index record(s) do not match their chunks (the first at byte {first}): "
+            "not used, the messages are read from the chunks themselves")
+
+
+def summary_crc_damage(buf) -> str | None:
+    """The warning for a summary section whose CRC (the footer's, where the writer set one) does not match
+    its bytes, else None. The readers read the messages from the data section; the summary gives them only
+    definitions and where chunks start, which the data section repeats."""
+    start = footer_start(buf)
+    foot = _footer_at(buf)
+    if start is None or not len(MAGIC) <= start <= foot:
+        return None
+    (crc,) = _U32.unpack_from(buf, foot + 9 + 16)
+    if not crc or zlib.crc32(buf[start:foot + 9 + 16]) == crc:
+        return None
+    return ("damaged: the summary section does not match its CRC (bytes changed between byte "
+            f"{start} and the footer): the messages are read from the data section, not through the summary")
+
+
 def _message_index(buf, nxt: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """The message index records right after the chunk record that ends at ``nxt``: (record offsets in the
     chunk's records, channels, log times), sorted by offset; None where there is none or it does not read."""
@@ -1013,6 +1056,8 @@ def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
                                      f"{head[1]} (bytes overwritten: the footer's offsets are where the records "
                                      "are); its records after them used, the definitions lost with them read from "
                                      "the data section")
+            elif (said := summary_crc_damage(buf)) is not None:
+                scan.warnings.append(said)
         for op, at, nxt in summary_definitions(buf, inner):
             try:
                 scan.schema(buf, at + 9, nxt) if op == _OP_SCHEMA else scan.channel(buf, at + 9)
@@ -1021,6 +1066,8 @@ def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
         scan.provisional = {("schema", k) for k in scan.schemas} | {("channel", k) for k in scan.channels}
         starts = summary_chunk_starts(buf, inner)  # where the walk picks up again after a damaged stretch
         last = off
+        chunk = None  # (message start and end time, uncompressed size) of the last chunk: its indexes' bounds
+        bad_index = [0, 0]  # damaged message index records: count, the first's byte
         while off < end:
             if off + 9 > end:
                 scan.warnings.append(f"file truncated at byte {off} of {end} (no footer): readable part used")
@@ -1048,6 +1095,7 @@ def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
             try:
                 if op == _OP_CHUNK:
                     n_chunks += 1
+                    chunk = struct.unpack_from("<QQQ", buf, off + 9)  # (start, end time, uncompressed size)
                     try:
                         content = inflate_chunk(buf, off, nxt)
                     except _Undecodable as exc:  # the complete messages before the damaged block are kept
@@ -1075,6 +1123,10 @@ def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
                     del content
                 elif op == _OP_MESSAGE:
                     scan.records(buf, off, nxt, "data section")
+                elif op == _OP_MESSAGE_INDEX:
+                    if message_index_damage(buf, off, nxt, chunk):
+                        bad_index[1] = bad_index[1] if bad_index[0] else off
+                        bad_index[0] += 1
                 elif op == _OP_SCHEMA:
                     scan.schema(buf, off + 9, nxt)
                 elif op == _OP_CHANNEL:
@@ -1088,6 +1140,8 @@ def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
             last = off
             off = nxt
             fm.release_before(min(off, last))
+        if bad_index[0]:
+            scan.warnings.append(message_index_warning(*bad_index))
         if not footer and not any("truncated" in w or "rest of file" in w for w in scan.warnings):
             scan.warnings.append("no MCAP footer (file truncated?): readable part used")
         del buf

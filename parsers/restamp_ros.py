@@ -795,7 +795,7 @@ def _patch_bag1(file: np.ndarray, src: str, scan: _Scan1, shift: ClockShift,
 
 # ---- MCAP ----------------------------------------------------------------------------------------
 _U16, _U32, _U64 = struct.Struct("<H"), struct.Struct("<I"), struct.Struct("<Q")
-_OP = {"header": 1, "footer": 2, "schema": 3, "channel": 4, "message": 5, "chunk": 6,
+_OP = {"header": 1, "footer": 2, "schema": 3, "channel": 4, "message": 5, "chunk": 6, "message_index": 7,
        "attachment": 9, "metadata": 12, "data_end": 15}
 
 
@@ -946,6 +946,8 @@ def _scan_mcap(path: str) -> _McapScan:
     elif (head := mcap_ros.summary_damaged_head(buf)) is not None:
         sc.damage.append(f"the summary section does not read from byte {head[0]} to byte {head[1]} (bytes "
                          "overwritten); the output's summary is written anew")
+    elif (said := mcap_ros.summary_crc_damage(buf)) is not None:
+        sc.damage.append(said.removeprefix("damaged: ") + "; the output's summary is written anew")
     for op, at, _nxt in mcap_ros.summary_definitions(buf, inner):  # channels known even if their chunk is damaged
         try:
             (sc.schema if op == _OP["schema"] else sc.channel)(buf, at + 9)
@@ -955,6 +957,8 @@ def _scan_mcap(path: str) -> _McapScan:
     starts = mcap_ros.summary_chunk_starts(buf, inner)  # where the walk picks up again after a damaged stretch
     sc.arena = mcap_ros.chunk_arena(buf, off, starts=starts)
     last = off
+    chunk = None  # (message start and end time, uncompressed size) of the last chunk: its indexes' bounds
+    bad_index = [0, 0]  # damaged message index records (written anew): count, the first's byte
     with mcap_ros.chunk_prefetch(buf, off, sc.arena, starts) as chunks:  # decompression and CRC ahead, in threads
         while off < end:
             if off + 9 > end:
@@ -983,7 +987,12 @@ def _scan_mcap(path: str) -> _McapScan:
                     sc.profile, o = mcap_ros._string(buf, p)
                     sc.library, _ = mcap_ros._string(buf, o)
                 elif op == _OP["chunk"]:
+                    chunk = struct.unpack_from("<QQQ", buf, off + 9)  # (start, end time, uncompressed size)
                     sc.chunk(buf, off, nxt, chunks)
+                elif op == _OP["message_index"]:
+                    if mcap_ros.message_index_damage(buf, off, nxt, chunk):
+                        bad_index[1] = bad_index[1] if bad_index[0] else off
+                        bad_index[0] += 1
                 elif op == _OP["message"]:
                     sc.records(buf, off, nxt, "data section")
                 elif op == _OP["schema"]:
@@ -1008,6 +1017,10 @@ def _scan_mcap(path: str) -> _McapScan:
                 sc.damage.append(f"damaged: {msg}; its messages are not in the output")
             last = off
             off = nxt
+    if bad_index[0]:
+        sc.damage.append(mcap_ros.message_index_warning(*bad_index).replace(
+            "not used, the messages are read from the chunks themselves",
+            "the output's message indexes are made anew from its chunks"))
     if not footer and not sc.damage:
         sc.damage.append("no MCAP data end / footer (file truncated?)")
     return sc

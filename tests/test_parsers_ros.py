@@ -1416,3 +1416,37 @@ def test_rosbag2_topic_with_fewer_messages_than_its_metadata_declares_is_said(wr
     assert not any("per topic" in w for w in want.meta.warnings)
     (w,) = [w for w in got.meta.warnings if "per topic" in w]
     assert f"/imu {n} of 99999999" in w
+
+
+def test_mcap_damaged_message_index_or_summary_is_said_and_the_messages_read_in_full(big_files, tmp_path):
+    """A byte changed in a message index record (a quarter of a zstd MCAP's bytes) or in the middle of the
+    summary was silent: the readers never need them (the messages come from the chunks), so every message is
+    still read, and the damage is now said, by the parser and by the native export (whose output's indexes
+    and summary are made anew)."""
+    import struct
+    from mcap.reader import make_reader
+
+    from parsers.restamp_ros import restamp_mcap
+
+    src = big_files["mcap"]
+    data = bytearray(open(src, "rb").read())
+    clean = registry.load(src)
+    with open(src, "rb") as fh:
+        summary = make_reader(fh).get_summary()
+    idx_at = min(o for ci in summary.chunk_indexes for o in ci.message_index_offsets.values())
+    assert struct.unpack_from("<B", data, idx_at)[0] == 7
+    (foot_start,) = struct.unpack_from("<Q", data, len(data) - 8 - 29 + 9)
+    cases = {"index": (idx_at + 9 + 6 + 16, "message index record(s) do not match their chunks"),
+             "summary": ((foot_start + len(data) - 8 - 29) // 2, "summary section does not match its CRC")}
+    shift = ClockShift(0.01, 0.0, int(clean.meta.t0_ns))
+    for name, (at, said) in cases.items():
+        bad = bytearray(data)
+        bad[at:at + 16] = b"\xab" * 16
+        path = _copy_with(src, str(tmp_path / f"{name}.mcap"), bytes(bad))
+        got = registry.load(path)
+        assert any(said in w for w in got.meta.warnings), (name, got.meta.warnings)
+        np.testing.assert_array_equal(got.imu.to_numpy(), clean.imu.to_numpy())
+        st = restamp_mcap(path, str(tmp_path / f"{name}_out.mcap"), shift)
+        assert any(said in d for d in st.damage) and st.records == int(summary.statistics.message_count)
+    assert not any("damaged" in w for w in clean.meta.warnings)
+    assert not restamp_mcap(src, str(tmp_path / "clean_out.mcap"), shift).damage
