@@ -523,6 +523,7 @@ def _scan_rosbag1(path: str, fmap: FileMap) -> _Scan1:
         scan.warnings.append(f"the file does not start as a ROS 1 bag; read from the first chunk or connection "
                              f"record (byte {off}), the bytes before not in the output")
     good, floor = off, -1
+    chunk_size, chunk_offsets, bad_index = None, set(), [0, 0]  # (index records: checked as the parser does)
     while off < end:
         try:
             header, op, hlen, nxt = rosbag1.top_record(buf, off, end)  # (as the parser reads its records)
@@ -540,18 +541,29 @@ def _scan_rosbag1(path: str, fmap: FileMap) -> _Scan1:
             if op == bytes([rosbag1._OP_BAGHEADER]):
                 (scan.index_pos,) = struct.unpack_from("<Q", header.get("index_pos", b"\0" * 8), 0)
             elif op == bytes([rosbag1._OP_CHUNK]):
+                chunk_offsets.add(off)
+                chunk_size = struct.unpack("<I", header["size"])[0] if len(header.get("size", b"")) == 4 else None
                 scan.chunk(header, buf, off + 8 + hlen, nxt, off)
             elif op in (bytes([rosbag1._OP_CONN]), bytes([rosbag1._OP_MSG])):
                 scan.records(buf, off, nxt, "top level")
-            elif op == bytes([rosbag1._OP_INDEX]):
-                scan.index_recs.append((off, hlen, nxt, len(scan.chunk_recs) - 1))
-            elif op == bytes([rosbag1._OP_CHUNKINFO]):
-                scan.info_recs.append((off, hlen, nxt))
+            elif op in (bytes([rosbag1._OP_INDEX]), bytes([rosbag1._OP_CHUNKINFO])):
+                if rosbag1.index_damaged(op, header, buf, off + 8 + hlen, nxt, chunk_size, chunk_offsets,
+                                         scan.conns):
+                    bad_index[1] = bad_index[1] if bad_index[0] else off
+                    bad_index[0] += 1
+                if op == bytes([rosbag1._OP_INDEX]):
+                    scan.index_recs.append((off, hlen, nxt, len(scan.chunk_recs) - 1))
+                else:
+                    scan.info_recs.append((off, hlen, nxt))
             else:
                 raise rosbag1._Damage(f"unknown record op {op!r} at byte {off}")
         except (rosbag1._Damage, struct.error, KeyError, ValueError) as exc:
             scan.warnings.append(f"damaged: {exc}; its other messages are not in the output")
         good = off = nxt  # (its framing read: a later resynchronisation starts after it)
+    if bad_index[0]:
+        scan.warnings.append(rosbag1.index_warning(*bad_index).replace(
+            "not used, the messages are read from the chunks themselves (rosbag's and rosbags' readers, which go "
+            "by the index, may fail on this file)", "the output's index is made from its chunks"))
     scan.size = end
     return scan
 

@@ -441,6 +441,7 @@ def _walk_file(buf, scan: _Scan, path: str, progress: Callable[[int], None] | No
     index_pos = None
     good = off  # the end of the last record read well: a walk derailed by damage goes on after it
     floor = -1
+    chunk_size, chunk_offsets, bad_index = None, set(), [0, 0]  # (index records: checked against the chunks)
     while off < end:
         try:
             header, op, hlen, nxt = top_record(buf, off, end)
@@ -459,10 +460,16 @@ def _walk_file(buf, scan: _Scan, path: str, progress: Callable[[int], None] | No
             if op == bytes([_OP_BAGHEADER]):
                 (index_pos,) = struct.unpack_from("<Q", header.get("index_pos", b"\0" * 8), 0)
             elif op == bytes([_OP_CHUNK]):
+                chunk_offsets.add(off)
+                chunk_size = _U32.unpack_from(header["size"], 0)[0] if len(header.get("size", b"")) == 4 else None
                 scan.chunk(header, buf, off + 8 + hlen, nxt, off)
             elif op in (bytes([_OP_CONN]), bytes([_OP_MSG])):
                 scan.records(buf, off, nxt, "top level")
-            elif op not in (bytes([_OP_INDEX]), bytes([_OP_CHUNKINFO])):
+            elif op in (bytes([_OP_INDEX]), bytes([_OP_CHUNKINFO])):
+                if index_damaged(op, header, buf, off + 8 + hlen, nxt, chunk_size, chunk_offsets, scan.conns):
+                    bad_index[1] = bad_index[1] if bad_index[0] else off
+                    bad_index[0] += 1
+            else:
                 raise _Damage(f"unknown record op {op!r} at byte {off}")
         except (_Damage, struct.error, KeyError, ValueError) as exc:
             scan.warnings.append(f"damaged: {exc}; its messages dropped" if not isinstance(exc, _Damage)
@@ -470,12 +477,51 @@ def _walk_file(buf, scan: _Scan, path: str, progress: Callable[[int], None] | No
         good = off = nxt  # (its framing read: a later resynchronisation starts after it)
         if progress is not None:
             progress(off)
+    if bad_index[0]:
+        scan.warnings.append(index_warning(*bad_index))
     if index_pos == 0:
         scan.warnings.append("bag has no index (recording interrupted?): messages read by a linear scan")
     elif index_pos is not None and index_pos >= end and not any("truncated" in w for w in scan.warnings):
         span = _time_span(scan)
         scan.warnings.append(index_past_end(index_pos, end, span) + " up to the cut")
     return scan
+
+
+def index_damaged(op: bytes, header: dict[str, bytes], buf, d0: int, d1: int, chunk_size: int | None,
+                  chunk_offsets: set[int], conns) -> bool:
+    """Whether an index record (index data, op 4: after each chunk; chunk info, op 6: at the end) is damaged:
+    its entries do not fill its data, it names a connection the file does not define (``conns``: the ids read
+    so far), an index entry points past the chunk before it (``chunk_size``: that chunk's uncompressed size;
+    None: not checked), or a chunk info names no chunk record of the file (``chunk_offsets``: where they start)
+    or ends before it starts. The readers here never need the index (the messages are read from the chunks): a
+    damaged one is only said; rosbag's and rosbags' readers go by it."""
+    def u32(name: str) -> int | None:
+        v = header.get(name)
+        return _U32.unpack_from(v, 0)[0] if v is not None and len(v) == 4 else None
+
+    count = u32("count")
+    if count is None:
+        return True
+    if op == bytes([_OP_INDEX]):
+        if d1 - d0 != 12 * count or u32("conn") not in conns:
+            return True
+        if chunk_size is None or not count:
+            return False
+        offs = np.frombuffer(buf, "<u4", 3 * count, d0).reshape(-1, 3)[:, 2]
+        return int(offs.max()) >= chunk_size
+    pos, t0, t1 = (header.get(k) for k in ("chunk_pos", "start_time", "end_time"))
+    if d1 - d0 != 8 * count or any(v is None or len(v) != 8 for v in (pos, t0, t1)):
+        return True
+    start, end = (struct.unpack("<II", v) for v in (t0, t1))
+    ids = np.frombuffer(buf, "<u4", 2 * count, d0)[::2] if count else ()
+    return struct.unpack("<Q", pos)[0] not in chunk_offsets or start > end or any(int(c) not in conns for c in ids)
+
+
+def index_warning(count: int, first: int) -> str:
+    """The one warning for ``count`` damaged index records (the first at byte ``first``)."""
+    return (f"damaged: {count} index record(s) do not match the chunks (the first at byte {first}): not used, the "
+            "messages are read from the chunks themselves (rosbag's and rosbags' readers, which go by the index, "
+            "may fail on this file)")
 
 
 def _time_span(scan: _Scan) -> float | None:

@@ -1450,3 +1450,39 @@ def test_mcap_damaged_message_index_or_summary_is_said_and_the_messages_read_in_
         assert any(said in d for d in st.damage) and st.records == int(summary.statistics.message_count)
     assert not any("damaged" in w for w in clean.meta.warnings)
     assert not restamp_mcap(src, str(tmp_path / "clean_out.mcap"), shift).damage
+
+
+def test_rosbag1_damaged_index_is_said_and_the_messages_read_in_full(big_files, tmp_path):
+    """A ROS 1 bag's index data (after each chunk) and chunk infos (at the end) are never needed by the
+    readers here, but rosbag's and rosbags' readers go by them: bytes changed there were silent. Now said by
+    the parser and the export (whose output rosbags reads in full); every message still read."""
+    from rosbags.highlevel import AnyReader
+
+    from parsers.restamp_ros import restamp_rosbag1
+
+    src = big_files["rosbag1"]
+    data = open(src, "rb").read()
+    clean = registry.load(src)
+    recs, off = [], len(rosbag1.MAGIC)
+    while off < len(data):
+        header, op, hlen, nxt = rosbag1.top_record(data, off, len(data))
+        recs.append((op[0], off, hlen))
+        off = nxt
+    index = next(r for r in recs if r[0] == rosbag1._OP_INDEX)
+    info = next(r for r in recs if r[0] == rosbag1._OP_CHUNKINFO)
+    shift = ClockShift(0.01, 0.0, int(clean.meta.t0_ns))
+    for name, (_op, at, hlen) in {"index": index, "chunk info": info}.items():
+        bad = bytearray(data)
+        start = at + 8 + hlen + (20 if name == "index" else 0)  # (the 2nd entry's offset; a chunk info's 1st)
+        bad[start:start + 8] = b"\xab" * 8
+        path = _copy_with(src, str(tmp_path / f"{name.replace(' ', '_')}.bag"), bytes(bad))
+        got = registry.load(path)
+        assert any("index record(s) do not match the chunks" in w for w in got.meta.warnings), (name, got.meta.warnings)
+        np.testing.assert_array_equal(got.imu.to_numpy(), clean.imu.to_numpy())
+        out = tmp_path / f"{name.replace(' ', '_')}_out.bag"
+        st = restamp_rosbag1(path, str(out), shift)
+        assert any("index record(s) do not match the chunks" in d for d in st.damage)
+        with AnyReader([out]) as r:
+            assert sum(1 for _ in r.messages()) == st.records
+    assert not any("index record" in w for w in clean.meta.warnings)
+    assert not restamp_rosbag1(src, str(tmp_path / "clean_out.bag"), shift).damage
