@@ -1334,7 +1334,8 @@ def restamp_rosbag2(src: str, dst: str, shift: ClockShift, *, selector: str | No
     msgs = _concat([p.msgs for p in parts])
     declared = int(meta.get("message_count") or 0)
     if declared and len(msgs.log_ns) < declared:
-        damage.append(f"read {len(msgs.log_ns)} of the {declared} messages metadata.yaml declares")
+        damage.append(f"damaged or cut short: read {len(msgs.log_ns)} of the {declared} messages metadata.yaml "
+                      "declares")
     far_said: list[str] = []
     if not (storage == "mcap" and mode != "message"):  # (the mcap writer keeps its parts' records aligned)
         msgs, far_said = _without_far(streams, msgs, "row timestamp")  # (moved by a damaged byte)

@@ -383,7 +383,7 @@ def read_raw(path: str, keep: Callable[[str, str], bool] = rc.keep_supported) ->
         declared = int(meta.get("message_count") or 0)
         have = sum(t.count for t in topics.values())
         if declared and have < declared:
-            warnings.append(f"read {have} of the {declared} messages metadata.yaml declares")
+            warnings.append(f"damaged or cut short: read {have} of the {declared} messages metadata.yaml declares")
         short = []  # (each topic read against its count in metadata.yaml: a topic's messages lost alone)
         for entry in meta.get("topics_with_message_count") or ():
             try:
@@ -394,7 +394,8 @@ def read_raw(path: str, keep: Callable[[str, str], bool] = rc.keep_supported) ->
             if t is not None and t.count < count:
                 short.append(f"{name} {t.count} of {count}")
         if short:
-            warnings.append(f"fewer messages than metadata.yaml declares per topic: {', '.join(short[:5])}"
+            warnings.append(f"damaged or cut short: fewer messages than metadata.yaml declares per topic: "
+                            f"{', '.join(short[:5])}"
                             + (f" (and {len(short) - 5} more topics)" if len(short) > 5 else ""))
     return rc.RawLog(path=path, fmt=NAME, topics=topics, typestore=typestore, warnings=warnings)
 
