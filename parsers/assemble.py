@@ -408,9 +408,10 @@ def clean_stream(name: str, s: Stream, warnings: list[str], clock: dict | None =
     if name in SPIKE_FLOOR and len(t) >= 5:
         spike = impulsive(name, v)
         if spike.any():
+            floor = SPIKE_FLOOR[name]
+            floor = "/".join(f"{x:g}" for x in floor) if isinstance(floor, tuple) else f"{floor:g}"
             warnings.append(f"{name} ({s.source}): {int(spike.sum())} isolated spike(s) dropped (one sample "
-                            f"beyond {SPIKE_FLOOR[name]:g} {SPIKE_UNIT[name]} from its neighbours and back: "
-                            "corrupt data?)")
+                            f"beyond {floor} {SPIKE_UNIT[name]} from its neighbours and back: corrupt data?)")
             t, v = t[~spike], v[~spike]
             d = None
         del spike
@@ -441,9 +442,13 @@ CHECK_ROWS = 1 << 18
 #: 50 m/s from both neighbours, which agree, is no vehicle's either (10 g over a 5 Hz GPS's 0.2 s is 20 m/s,
 #: and it would not come back): a damaged MCAP chunk kept unverified gave one east velocity of -4e-225 m/s
 #: among 148 m/s, and the velocity-matched alignment ingested it and did not converge.
-SPIKE_FLOOR = {"gyro": 10.0, "accel": 1000.0, "vel": 50.0}
+#: how far (at least) an isolated sample stands from both neighbours to be dropped as a spike, per stream (a
+#: position per column: latitude and longitude in deg, 0.01 deg = 1.1 km; altitude in m): beyond any motion
+#: between two samples at a vehicle's rates, the size of a corrupt byte's jump (a flipped exponent bit in a
+#: latitude doubles it), far above a GNSS fix's single-sample glitch (tens of m)
+SPIKE_FLOOR = {"gyro": 10.0, "accel": 1000.0, "vel": 50.0, "pos": (0.01, 0.01, 1000.0)}
 SPIKE_BACK = 0.25
-SPIKE_UNIT = {"gyro": "rad/s", "accel": "m/s^2", "vel": "m/s"}
+SPIKE_UNIT = {"gyro": "rad/s", "accel": "m/s^2", "vel": "m/s", "pos": "deg (latitude, longitude) or m (altitude)"}
 SPIKE_SIGMAS = 20.0
 
 
@@ -457,7 +462,9 @@ def impulsive(name: str, values: np.ndarray) -> np.ndarray:
     out = np.zeros(n, dtype=bool)
     if n < 5:
         return out
-    floor = SPIKE_FLOOR[name]
+    floor = np.asarray(SPIKE_FLOOR[name], dtype=float)
+    if floor.ndim and floor.shape[0] != v.shape[1]:  # (a per-column floor for another layout: not checked)
+        return out
     d = np.abs(np.diff(v, axis=0))
     cand = np.flatnonzero(np.any(np.minimum(d[:-1], d[1:]) > floor, axis=1)) + 1  # away from both neighbours
     cand = cand[(cand >= 2) & (cand <= n - 3)]

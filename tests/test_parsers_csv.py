@@ -1356,3 +1356,31 @@ def test_canonical_csv_rows_with_a_nan_time_or_no_value_are_counted_in_a_warning
     assert "5 row(s) whose time is NaN or empty dropped (damaged lines?; first at line 52)" in w, w
     assert "11 row(s) whose every value is NaN or empty dropped (damaged lines?; first at line 102)" in w, w
     assert "1 row(s) whose time is not a decimal number dropped (damaged lines?; first at line 252)" in w, w
+
+
+def test_an_isolated_position_spike_is_dropped_real_tracks_are_kept():
+    """A flipped exponent bit in a log without a checksum (a ROS 1 bag's NavSatFix) doubled one latitude,
+    silently: a 4000 km jump of one sample, and back. It is dropped and named; the simulated tracks, a fast
+    jet's 1 Hz fixes and a GNSS fix's glitch of tens of metres are kept."""
+    from logtools import sim
+    from parsers.assemble import Stream, build_inslog, impulsive
+
+    n = 300
+    t = 1_700_000_000_000_000_000 + np.arange(n, dtype=np.int64) * 100_000_000
+    p = np.column_stack([37.4 + 1e-6 * np.arange(n), -122.1 + 2e-6 * np.arange(n), 120.0 + 0.01 * np.arange(n)])
+    p[150, 0] *= 2.0
+    log = build_inslog(path="x", fmt="test", selector="", clock="epoch", stamp_source="test",
+                       gyro=Stream(t, np.zeros((n, 3)), "IMU"), pos=Stream(t, p, "FIX"))
+    lat = log.nav["lat_deg"].dropna().to_numpy()
+    assert len(lat) == n - 1 and float(lat.max()) < 38.0
+    assert sum("isolated spike(s) dropped" in w and "latitude" in w for w in log.meta.warnings) == 1
+    jet = np.column_stack([40.0 + 0.0022 * np.arange(60), 10.0 + 0.0 * np.arange(60), 11000.0 + np.zeros(60)])
+    glitch = jet.copy()
+    glitch[30, :2] += 30.0 / 111_000.0  # (30 m)
+    glitch[30, 2] += 40.0
+    assert not impulsive("pos", jet).any() and not impulsive("pos", glitch).any()
+    for scen in ("multirotor", "aircraft", "vehicle", "ship"):
+        pair = sim.simulate(sim.scenario_config(scen, duration_s=60.0, seed=5))
+        for u in (pair.master, pair.slave):
+            if u.has_pos:
+                assert not impulsive("pos", u.nav[["lat_deg", "lon_deg", "alt_m"]].dropna().to_numpy()).any()
