@@ -112,8 +112,9 @@ def quality_record(ctx: Ctx, co: Coarse, fin: Fit, motion: tuple, rs: RateSigma,
         "sigma_budget": dict(sb.terms),
         "drift_estimated": fit_drift,
         **({} if fit_drift else {"drift_not_estimated": (
-            f"{n_windows} window(s) with enough motion, 3 needed to fit a drift: one latency for the whole "
-            "window (drift taken as 0 ppm, its prior in the sigma budget; the compensation applies none)")}),
+            f"a drift needs 3 windows with enough motion (about {cfg.windows.window_s:g} s each) and this log "
+            f"gives {n_windows}: one latency for the whole window (drift taken as 0 ppm, its prior in the sigma "
+            "budget; the compensation applies none)")}),
         "common_rate_hz": 1.0 / ctx.dt_c,
         "refine_rate_hz": 1.0 / ctx.dt_r,
         "lowpass_hz": ctx.cutoff_hz,
