@@ -507,12 +507,15 @@ def _low(x: np.ndarray) -> int:
     return int(x[k])
 
 
+#: the stamp source of a tlog read on its receive stamps by choice (selector time=receive)
+RECEIVE_CHOSEN = "tlog receive time (ground station UNIX clock, includes link delay)"
+
+
 def plan_clock(streams: list[tuple[np.ndarray, np.ndarray, np.ndarray]], sys_off: int | None,
                mode: str) -> ClockPlan:
     """``streams``: (kind, t_ns, recv_ns) per selected stream -> how to put all on one clock."""
     if mode == "receive":
-        return ClockPlan("epoch", "tlog receive time (ground station UNIX clock, includes link delay)",
-                         (), (0, 0, 0))
+        return ClockPlan("epoch", RECEIVE_CHOSEN, (), (0, 0, 0))
     kinds = set()
     for k, _, _ in streams:
         kinds |= set(np.unique(k).tolist())

@@ -974,6 +974,14 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
                     and (master.meta.clock != slave.meta.clock or min(m1, s1) <= max(m0, s0))):
                 failure += (f" (clocks look unrelated: master {master.meta.clock}, slave {slave.meta.clock}, "
                             "no overlap at face value; try --max-lag auto)")
+            from parsers.mavlink_tlog import RECEIVE_CHOSEN
+
+            received = [role for role, log in (("master", master), ("slave", slave))
+                        if log.meta.stamp_source == RECEIVE_CHOSEN]
+            if received:  # (a telemetry link delivers its messages in bursts: their receive stamps are no clock)
+                failure += (f"; the {' and '.join(received)}'s stamps are the tlog's receive stamps (time=receive), "
+                            "which a telemetry link gives in bursts: time=message reads the messages' own time "
+                            "fields")
     if failure and units:
         failure += f"; but {'; '.join(units)}"
     an.failure = failure
