@@ -703,7 +703,9 @@ def _imu_to_imu_lines(align: dict) -> list[str]:
             out.append(f"imu-to-imu {label}: not measured: {ii.get('reasons', {}).get(name, 'unknown')}")
         else:
             out.append(f"imu-to-imu {label}: roll pitch yaw = {' '.join(f'{x:+.4f}' for x in rpy)} deg +/- "
-                       f"{' '.join(f'{x * 60:.3g}' + chr(39) for x in sig)} (arcmin, 1 sigma)")
+                       f"{' '.join(f'{x * 60:.3g}' + chr(39) for x in sig)} (arcmin, 1 sigma)"
+                       + (f"; {rp.GIMBAL_LOCK_SAID.format(quat=f'{name}_quat_wxyz')}"
+                          if ii.get(f"{name}_gimbal_lock") else ""))
     cons = align.get("consistency")
     if cons and cons.get("note"):
         out.append(("WARNING: " if cons.get("agrees") is False else "") + "mounting vs imu-to-imu: " + cons["note"])

@@ -28,7 +28,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from pipelines.report import RUNS, Analysis, input_damage, latency_instant, report_warnings, write_text_atomic
+from pipelines.report import (GIMBAL_LOCK_SAID, RUNS, Analysis, input_damage, latency_instant, report_warnings,
+                              write_text_atomic)
 from pipelines.svgplot import Figure
 
 AXES = ("x", "y", "z")
@@ -167,7 +168,8 @@ def fig_drift(an: Analysis) -> str | None:
         tt = np.linspace(np.nanmin(tc), np.nanmax(tc), 50)
         ax.line(tt, lat.latency_at(tt) * 1e3, color="C3", width=1.2,
                 label=f"fit: {lat.latency_s * 1e3:+.3f} ms at mid, "
-                      + (f"drift {lat.drift_ppm:+.2f} ppm" if lat.drift_reported_ppm is not None else "no drift fitted"))
+                      + (f"drift {lat.drift_ppm:+.2f} ppm" if lat.drift_reported_ppm is not None
+                         else "no drift fitted"))
     ax.xlabel("time since master start (s)")
     ax.ylabel("latency (ms)")
     ax.title("Latency over the log (clock drift)")
@@ -669,6 +671,9 @@ def _imu_to_imu_html(rep: dict) -> str:
         else:
             t.append(f"<tr><th>{label}</th><td class=num>{_vec(rpy)} deg</td>"
                      f"<td class=num>{_vec(ii.get(f'{name}_sigma_deg'), '.4f')} deg</td></tr>")
+            if ii.get(f"{name}_gimbal_lock"):
+                said = GIMBAL_LOCK_SAID.format(quat=f"{name}_quat_wxyz")
+                t.append(f"<tr><td></td><td colspan=2 class=note>{_esc(said)}</td></tr>")
     t.append("</table>")
     cons = al.get("consistency")
     if cons and cons.get("note"):

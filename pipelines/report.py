@@ -121,6 +121,13 @@ def log_section(log: InsLog) -> dict:
     }
 
 
+#: what the summary and report.html say beside a rotation whose Euler angles are the gimbal lock's canonical
+#: triple (``imu_to_imu``'s ``*_gimbal_lock``)
+GIMBAL_LOCK_SAID = ("gimbal lock: the pitch lies within its uncertainty of +-90 deg, where roll and yaw turn about "
+                    "one axis and cannot be told apart; shown with roll 0 and the combined turn as yaw; the rotation "
+                    "itself is {quat} in report.json")
+
+
 LATENCY_KEYS = ("latency_s", "sigma_s", "drift_ppm", "method", "window_s", "quality", "methods")
 
 

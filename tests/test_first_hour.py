@@ -443,3 +443,20 @@ def test_the_summary_marks_the_methods_that_assume_aligned_axes():
     line = next(ln for ln in summary_lines({**rep, "warnings": [], "notes": []}, {}) if "other methods" in ln)
     assert "s000-rate-integral +416.000 ms (axes assumed aligned)" in line and "xcorr-norm +80.000 ms" in line
     assert line.count("axes assumed aligned") == 1
+
+
+def test_a_triad_at_the_gimbal_lock_says_so_in_the_summary_and_the_page():
+    """An IMU-to-IMU triad whose pitch lies within its uncertainty of 90 deg is given as the gimbal lock's
+    canonical triple (roll 0) with sigmas of thousands of arcmin: printed bare, it read as a failed fit.
+    The summary line and report.html now say why, and where the rotation itself is."""
+    from pipelines.analyze import _imu_to_imu_lines
+    from pipelines.html import _imu_to_imu_html
+
+    ii = {"gyro_rpy_deg": [10.0, 89.0, 30.0], "gyro_sigma_deg": [0.01, 0.0003, 0.01],
+          "accel_rpy_deg": [0.0, 90.0, 20.0], "accel_sigma_deg": [44.6, 59.2, 45.8], "accel_gimbal_lock": True}
+    rep = {"alignment": {"imu_to_imu": ii}}
+    lines = _imu_to_imu_lines(rep["alignment"])
+    assert len(lines) == 2 and "gimbal lock" not in lines[0]
+    assert "gimbal lock" in lines[1] and "accel_quat_wxyz" in lines[1]
+    page = _imu_to_imu_html(rep)
+    assert page.count("gimbal lock") == 1 and "accel_quat_wxyz" in page
