@@ -382,8 +382,8 @@ def read_raw(path: str, keep: Callable[[str, str], bool] = rc.keep_supported) ->
     if meta is not None:
         declared = int(meta.get("message_count") or 0)
         have = sum(t.count for t in topics.values())
-        if declared and have < declared:
-            warnings.append(f"damaged or cut short: read {have} of the {declared} messages metadata.yaml declares")
+        total = (f"read {have} of the {declared} messages metadata.yaml declares"
+                 if declared and have < declared else "")
         short = []  # (each topic read against its count in metadata.yaml: a topic's messages lost alone)
         for entry in meta.get("topics_with_message_count") or ():
             try:
@@ -393,10 +393,10 @@ def read_raw(path: str, keep: Callable[[str, str], bool] = rc.keep_supported) ->
             t = topics.get(name)
             if t is not None and t.count < count:
                 short.append(f"{name} {t.count} of {count}")
-        if short:
-            warnings.append(f"damaged or cut short: fewer messages than metadata.yaml declares per topic: "
-                            f"{', '.join(short[:5])}"
-                            + (f" (and {len(short) - 5} more topics)" if len(short) > 5 else ""))
+        per_topic = (f"fewer messages than metadata.yaml declares per topic: {', '.join(short[:5])}"
+                     + (f" (and {len(short) - 5} more topics)" if len(short) > 5 else "")) if short else ""
+        if total or per_topic:  # (one damage, one warning: the total and the topics it fell short in)
+            warnings.append("damaged or cut short: " + "; ".join(x for x in (total, per_topic) if x))
     return rc.RawLog(path=path, fmt=NAME, topics=topics, typestore=typestore, warnings=warnings)
 
 
