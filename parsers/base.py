@@ -217,6 +217,23 @@ def stamp_grid_s(t_ns: np.ndarray, steps: np.ndarray | None = None) -> float:
     return 0.0
 
 
+class DamagedRecords:
+    """The damaged records of one kind a walk meets, said once at its end: how many, and where the first lies
+    (``what``: their description, e.g. "index record(s) do not match the chunks")."""
+
+    def __init__(self, what: str):
+        self.what, self.count, self.first = what, 0, 0
+
+    def add(self, at: int) -> None:
+        if not self.count:
+            self.first = at
+        self.count += 1
+
+    def said(self, then: str) -> str | None:
+        """The one warning (``then``: what was done about them), or None where there were none."""
+        return f"damaged: {self.count} {self.what} (the first at byte {self.first}): {then}" if self.count else None
+
+
 @functools.cache
 def libc():
     """The C library of this process (``ctypes.CDLL(None)``: the one already loaded, nothing looked up), for

@@ -26,7 +26,7 @@ from logtools.errors import InputError
 from logtools.inslog import InsLog
 from parsers import ros_common as rc
 from parsers.atomic import atomic_path
-from parsers.base import DAMAGED_HEAD_SEARCH_BYTES, Inventory, Selector, check_readable
+from parsers.base import DAMAGED_HEAD_SEARCH_BYTES, DamagedRecords, Inventory, Selector, check_readable
 
 NAME = "mcap"
 EXTENSIONS = (".mcap",)
@@ -859,16 +859,18 @@ def message_index_damage(buf, off: int, nxt: int, chunk: tuple[int, int, int] | 
     return False
 
 
-def message_index_warning(count: int, first: int) -> str:
-    """The one warning for ``count`` damaged message index records (the first at byte ``first``)."""
-    return (f"damaged: {count} message index record(s) do not match their chunks (the first at byte {first}): "
-            "not used, the messages are read from the chunks themselves")
+#: damaged message index records (:func:`message_index_damage`), as ``base.DamagedRecords`` says them
+MESSAGE_INDEX_DAMAGE = "message index record(s) do not match their chunks"
+#: what the readers do about them, and about a damaged summary (:func:`summary_crc_damage`)
+MESSAGE_INDEX_UNUSED = "not used, the messages are read from the chunks themselves"
+SUMMARY_UNUSED = "the messages are read from the data section, not through the summary"
 
 
 def summary_crc_damage(buf) -> str | None:
-    """The warning for a summary section whose CRC (the footer's, where the writer set one) does not match
-    its bytes, else None. The readers read the messages from the data section; the summary gives them only
-    definitions and where chunks start, which the data section repeats."""
+    """What is wrong with a summary section whose CRC (the footer's, where the writer set one) does not match
+    its bytes (the caller says what it does about it: SUMMARY_UNUSED for the readers), else None. The
+    readers read the messages from the data section; the summary gives them only definitions and where
+    chunks start, which the data section repeats."""
     start = footer_start(buf)
     foot = _footer_at(buf)
     if start is None or not len(MAGIC) <= start <= foot:
@@ -876,8 +878,7 @@ def summary_crc_damage(buf) -> str | None:
     (crc,) = _U32.unpack_from(buf, foot + 9 + 16)
     if not crc or zlib.crc32(buf[start:foot + 9 + 16]) == crc:
         return None
-    return ("damaged: the summary section does not match its CRC (bytes changed between byte "
-            f"{start} and the footer): the messages are read from the data section, not through the summary")
+    return f"the summary section does not match its CRC (bytes changed between byte {start} and the footer)"
 
 
 def _message_index(buf, nxt: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
@@ -1057,7 +1058,7 @@ def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
                                      "are); its records after them used, the definitions lost with them read from "
                                      "the data section")
             elif (said := summary_crc_damage(buf)) is not None:
-                scan.warnings.append(said)
+                scan.warnings.append(f"damaged: {said}: {SUMMARY_UNUSED}")
         for op, at, nxt in summary_definitions(buf, inner):
             try:
                 scan.schema(buf, at + 9, nxt) if op == _OP_SCHEMA else scan.channel(buf, at + 9)
@@ -1067,7 +1068,7 @@ def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
         starts = summary_chunk_starts(buf, inner)  # where the walk picks up again after a damaged stretch
         last = off
         chunk = None  # (message start and end time, uncompressed size) of the last chunk: its indexes' bounds
-        bad_index = [0, 0]  # damaged message index records: count, the first's byte
+        bad_index = DamagedRecords(MESSAGE_INDEX_DAMAGE)
         while off < end:
             if off + 9 > end:
                 scan.warnings.append(f"file truncated at byte {off} of {end} (no footer): readable part used")
@@ -1125,8 +1126,7 @@ def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
                     scan.records(buf, off, nxt, "data section")
                 elif op == _OP_MESSAGE_INDEX:
                     if message_index_damage(buf, off, nxt, chunk):
-                        bad_index[1] = bad_index[1] if bad_index[0] else off
-                        bad_index[0] += 1
+                        bad_index.add(off)
                 elif op == _OP_SCHEMA:
                     scan.schema(buf, off + 9, nxt)
                 elif op == _OP_CHANNEL:
@@ -1140,8 +1140,8 @@ def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
             last = off
             off = nxt
             fm.release_before(min(off, last))
-        if bad_index[0]:
-            scan.warnings.append(message_index_warning(*bad_index))
+        if bad_index.count:
+            scan.warnings.append(bad_index.said(MESSAGE_INDEX_UNUSED))
         if not footer and not any("truncated" in w or "rest of file" in w for w in scan.warnings):
             scan.warnings.append("no MCAP footer (file truncated?): readable part used")
         del buf

@@ -52,7 +52,7 @@ from parsers import mcap_ros, rosbag1, rosbag2, threads
 from parsers import ros_containers as rcw
 from parsers import ros_common as rc
 from parsers.atomic import atomic_folder, atomic_path, check_replaceable
-from parsers.base import Selector, check_readable
+from parsers.base import DamagedRecords, Selector, check_readable
 from parsers.filemap import FileMap
 from parsers.restamp import ClockShift, RestampStats, export_hugepages, get_bytes, mapped_copy
 
@@ -523,7 +523,8 @@ def _scan_rosbag1(path: str, fmap: FileMap) -> _Scan1:
         scan.warnings.append(f"the file does not start as a ROS 1 bag; read from the first chunk or connection "
                              f"record (byte {off}), the bytes before not in the output")
     good, floor = off, -1
-    chunk_size, chunk_offsets, bad_index = None, set(), [0, 0]  # (index records: checked as the parser does)
+    chunk_size, chunk_offsets = None, set()  # (index records: checked as the parser does)
+    bad_index = DamagedRecords(rosbag1.INDEX_DAMAGE)
     while off < end:
         try:
             header, op, hlen, nxt = rosbag1.top_record(buf, off, end)  # (as the parser reads its records)
@@ -549,8 +550,7 @@ def _scan_rosbag1(path: str, fmap: FileMap) -> _Scan1:
             elif op in (bytes([rosbag1._OP_INDEX]), bytes([rosbag1._OP_CHUNKINFO])):
                 if rosbag1.index_damaged(op, header, buf, off + 8 + hlen, nxt, chunk_size, chunk_offsets,
                                          scan.conns):
-                    bad_index[1] = bad_index[1] if bad_index[0] else off
-                    bad_index[0] += 1
+                    bad_index.add(off)
                 if op == bytes([rosbag1._OP_INDEX]):
                     scan.index_recs.append((off, hlen, nxt, len(scan.chunk_recs) - 1))
                 else:
@@ -560,10 +560,8 @@ def _scan_rosbag1(path: str, fmap: FileMap) -> _Scan1:
         except (rosbag1._Damage, struct.error, KeyError, ValueError) as exc:
             scan.warnings.append(f"damaged: {exc}; its other messages are not in the output")
         good = off = nxt  # (its framing read: a later resynchronisation starts after it)
-    if bad_index[0]:
-        scan.warnings.append(rosbag1.index_warning(*bad_index).replace(
-            "not used, the messages are read from the chunks themselves (rosbag's and rosbags' readers, which go "
-            "by the index, may fail on this file)", "the output's index is made from its chunks"))
+    if bad_index.count:
+        scan.warnings.append(bad_index.said("the output's index is made from its chunks"))
     scan.size = end
     return scan
 
@@ -959,7 +957,7 @@ def _scan_mcap(path: str) -> _McapScan:
         sc.damage.append(f"the summary section does not read from byte {head[0]} to byte {head[1]} (bytes "
                          "overwritten); the output's summary is written anew")
     elif (said := mcap_ros.summary_crc_damage(buf)) is not None:
-        sc.damage.append(said.removeprefix("damaged: ") + "; the output's summary is written anew")
+        sc.damage.append(f"{said}: {mcap_ros.SUMMARY_UNUSED}; the output's summary is written anew")
     for op, at, _nxt in mcap_ros.summary_definitions(buf, inner):  # channels known even if their chunk is damaged
         try:
             (sc.schema if op == _OP["schema"] else sc.channel)(buf, at + 9)
@@ -970,7 +968,7 @@ def _scan_mcap(path: str) -> _McapScan:
     sc.arena = mcap_ros.chunk_arena(buf, off, starts=starts)
     last = off
     chunk = None  # (message start and end time, uncompressed size) of the last chunk: its indexes' bounds
-    bad_index = [0, 0]  # damaged message index records (written anew): count, the first's byte
+    bad_index = DamagedRecords(mcap_ros.MESSAGE_INDEX_DAMAGE)  # (their indexes written anew)
     with mcap_ros.chunk_prefetch(buf, off, sc.arena, starts) as chunks:  # decompression and CRC ahead, in threads
         while off < end:
             if off + 9 > end:
@@ -1003,8 +1001,7 @@ def _scan_mcap(path: str) -> _McapScan:
                     sc.chunk(buf, off, nxt, chunks)
                 elif op == _OP["message_index"]:
                     if mcap_ros.message_index_damage(buf, off, nxt, chunk):
-                        bad_index[1] = bad_index[1] if bad_index[0] else off
-                        bad_index[0] += 1
+                        bad_index.add(off)
                 elif op == _OP["message"]:
                     sc.records(buf, off, nxt, "data section")
                 elif op == _OP["schema"]:
@@ -1029,10 +1026,8 @@ def _scan_mcap(path: str) -> _McapScan:
                 sc.damage.append(f"damaged: {msg}; its messages are not in the output")
             last = off
             off = nxt
-    if bad_index[0]:
-        sc.damage.append(mcap_ros.message_index_warning(*bad_index).replace(
-            "not used, the messages are read from the chunks themselves",
-            "the output's message indexes are made anew from its chunks"))
+    if bad_index.count:
+        sc.damage.append(bad_index.said("the output's message indexes are made anew from its chunks"))
     if not footer and not sc.damage:
         sc.damage.append("no MCAP data end / footer (file truncated?)")
     return sc

@@ -27,7 +27,7 @@ from logtools.errors import InputError
 from logtools.inslog import InsLog
 from parsers import ros_common as rc
 from parsers.atomic import atomic_path
-from parsers.base import Inventory, Selector, check_readable
+from parsers.base import DamagedRecords, Inventory, Selector, check_readable
 
 NAME = "rosbag1"
 EXTENSIONS = (".bag",)
@@ -441,7 +441,8 @@ def _walk_file(buf, scan: _Scan, path: str, progress: Callable[[int], None] | No
     index_pos = None
     good = off  # the end of the last record read well: a walk derailed by damage goes on after it
     floor = -1
-    chunk_size, chunk_offsets, bad_index = None, set(), [0, 0]  # (index records: checked against the chunks)
+    chunk_size, chunk_offsets = None, set()  # (index records: checked against the chunks)
+    bad_index = DamagedRecords(INDEX_DAMAGE)
     while off < end:
         try:
             header, op, hlen, nxt = top_record(buf, off, end)
@@ -467,8 +468,7 @@ def _walk_file(buf, scan: _Scan, path: str, progress: Callable[[int], None] | No
                 scan.records(buf, off, nxt, "top level")
             elif op in (bytes([_OP_INDEX]), bytes([_OP_CHUNKINFO])):
                 if index_damaged(op, header, buf, off + 8 + hlen, nxt, chunk_size, chunk_offsets, scan.conns):
-                    bad_index[1] = bad_index[1] if bad_index[0] else off
-                    bad_index[0] += 1
+                    bad_index.add(off)
             else:
                 raise _Damage(f"unknown record op {op!r} at byte {off}")
         except (_Damage, struct.error, KeyError, ValueError) as exc:
@@ -477,8 +477,8 @@ def _walk_file(buf, scan: _Scan, path: str, progress: Callable[[int], None] | No
         good = off = nxt  # (its framing read: a later resynchronisation starts after it)
         if progress is not None:
             progress(off)
-    if bad_index[0]:
-        scan.warnings.append(index_warning(*bad_index))
+    if bad_index.count:
+        scan.warnings.append(bad_index.said(INDEX_UNUSED))
     if index_pos == 0:
         scan.warnings.append("bag has no index (recording interrupted?): messages read by a linear scan")
     elif index_pos is not None and index_pos >= end and not any("truncated" in w for w in scan.warnings):
@@ -517,11 +517,11 @@ def index_damaged(op: bytes, header: dict[str, bytes], buf, d0: int, d1: int, ch
     return struct.unpack("<Q", pos)[0] not in chunk_offsets or start > end or any(int(c) not in conns for c in ids)
 
 
-def index_warning(count: int, first: int) -> str:
-    """The one warning for ``count`` damaged index records (the first at byte ``first``)."""
-    return (f"damaged: {count} index record(s) do not match the chunks (the first at byte {first}): not used, the "
-            "messages are read from the chunks themselves (rosbag's and rosbags' readers, which go by the index, "
-            "may fail on this file)")
+#: damaged index records (:func:`index_damaged`), as ``base.DamagedRecords`` says them, and what the readers
+#: do about them
+INDEX_DAMAGE = "index record(s) do not match the chunks"
+INDEX_UNUSED = ("not used, the messages are read from the chunks themselves (rosbag's and rosbags' readers, "
+                "which go by the index, may fail on this file)")
 
 
 def _time_span(scan: _Scan) -> float | None:

@@ -753,9 +753,7 @@ def test_a_rate_with_no_regular_stretch_is_said_so_not_as_no_motion(tmp_path, ca
     """The real sitl tlog's RAW_IMU on receive stamps (4 Hz telemetry received in bursts) was 'not enough
     motion: 0 deg/s RMS on the master' while the vehicle turns at ~20 deg/s: the rate has no stretch regular
     enough to read, and the message now says so and what to use."""
-    from pathlib import Path
-
-    real = Path(__file__).resolve().parents[1].parent / "shared" / "realdata" / "sitl_vtol.tlog"
+    real = REALDATA / "sitl_vtol.tlog"
     if not real.exists():
         pytest.skip("../shared/realdata absent")
     rc = main(["analyze", f"{real}::imu=RAW_IMU,att=AHRS2,time=receive", f"{real}::imu=SCALED_IMU2,att=AHRS2",
@@ -784,9 +782,7 @@ def test_both_units_on_burst_receive_stamps_say_what_to_use(tmp_path, capsys):
     """Both units of the real sitl tlog read on their receive stamps (time=receive: 4 Hz telemetry received in
     bursts) left 0.2 s of usable rate, and the failure said only that the overlap was short; it now says the
     stamps are the tlog's receive stamps and what reads the messages' own time fields."""
-    from pathlib import Path
-
-    real = Path(__file__).resolve().parents[1].parent / "shared" / "realdata" / "sitl_vtol.tlog"
+    real = REALDATA / "sitl_vtol.tlog"
     if not real.exists():
         pytest.skip("../shared/realdata absent")
     rc = main(["analyze", f"{real}::imu=RAW_IMU,time=receive", f"{real}::imu=SCALED_IMU2,att=AHRS2,time=receive",
