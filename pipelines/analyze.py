@@ -980,7 +980,8 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
 
             received = [role for role, log in (("master", master), ("slave", slave))
                         if log.meta.stamp_source == RECEIVE_CHOSEN]
-            if received:  # (a telemetry link delivers its messages in bursts: their receive stamps are no clock)
+            if received and "receive stamps" not in failure:  # (a telemetry link delivers its messages in
+                # bursts: their receive stamps are no clock; said once, where the estimate's own line has not)
                 failure += (f"; the {' and '.join(received)}'s stamps are the tlog's receive stamps (time=receive), "
                             "which a telemetry link gives in bursts: time=message reads the messages' own time "
                             "fields")
