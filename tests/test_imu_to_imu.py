@@ -716,3 +716,23 @@ def test_the_fast_band_is_fitted_on_the_first_fits_columns_built_again(monkeypat
     monkeypatch.setattr(i2i, "_triad", triad)
     kept = imu_to_imu(master, slave)  # (short logs: the first set's copy, not built again)
     assert len(again) == 2 and kept == res  # the same result, field by field
+
+
+@pytest.mark.parametrize("seed,mount", [(3, (180.0, 24.0, -96.0)), (5, (124.0, -17.0, -3.0))])
+def test_an_aircrafts_low_passed_accelerometer_bands_count_the_masters_noise(seed, mount):
+    """An aircraft (logtools.sim): its accelerometers' fit is low-passed (25 Hz) for the lever arm, and above
+    2.5 Hz its specific force is mostly noise. The two bands' fits took their master's noise from their own
+    third differences, which see little of it through the low-pass: the fast band's rotation came out 30-120 deg
+    from the slow one's at a sigma of a degree, the triad was called "not one rotation" and its sigma inflated
+    to 10-80 deg (the consistency check with it weak). Each band now counts the noise the low-pass leaves in it."""
+    from logtools import sim
+    from scipy.spatial.transform import Rotation
+
+    cfg = sim.scenario_config("aircraft", duration_s=90.0, seed=seed, mount_rpy_deg=mount, latency_s=0.0, drift_ppm=0.0)
+    p = sim.simulate(cfg)
+    acc = imu_to_imu(p.master, p.slave.rebased(p.master.meta.t0_ns)).accel
+    assert acc is not None and acc.lowpass_hz is not None  # (the case: the low-passed fit)
+    assert acc.rigid is not False, (acc.band_z, acc.band_rpy_deg)
+    assert max(acc.sigma_deg) < 3.0, acc.sigma_deg
+    err = Rotation.from_matrix(dcm_from_euler(np.radians(acc.rpy_deg)) @ dcm_from_euler(np.radians(mount)).T)
+    assert np.degrees(np.linalg.norm(err.as_rotvec())) < 3.0 * max(acc.sigma_deg), (acc.rpy_deg, acc.sigma_deg)

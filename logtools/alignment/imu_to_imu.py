@@ -854,6 +854,17 @@ def _noise_gain(sos: np.ndarray, rows: int = 1 << 16) -> float:
     return float(np.var(_lowpassed(x, sos)[rows // 8:-rows // 8]))
 
 
+def _band_noise_gains(sos: np.ndarray, nlp: int, rows: int = 1 << 16) -> tuple[float, float]:
+    """The variances a unit white noise keeps, through the zero-phase low-pass ``sos``, in the slow part (its
+    moving mean over ``nlp`` samples) and in the fast part (the rest): the two bands of :func:`_one_triad`
+    (the fixed draw of :func:`_noise_gain`)."""
+    x = np.random.default_rng(1).standard_normal((rows, 1))
+    lp = _lowpassed(x, sos)
+    hi = _highpass(lp, nlp)
+    keep = slice(rows // 8, -rows // 8)
+    return float(np.var((lp - hi)[keep])), float(np.var(hi[keep]))
+
+
 def _kept_fraction(kk: np.ndarray, noise_kk: np.ndarray) -> float:
     """The regressors' motion beyond their noise in their weakest direction: the smallest eigenvalue of their
     moment ``kk`` with their noise's ``noise_kk`` out, over the raw one's (-inf where the raw one has none)."""
@@ -991,13 +1002,20 @@ def _one_triad(name: str, common: Callable, master_gyro: Callable, highpass_s: f
     lever = k.shape[2] == 4
     cut = slice(nwin // 2, len(t) - nwin // 2)
     sos = lp_hz = u_var = None
+    band_var = (None, None)  # the master's white noise in the slow and the fast band (low-passed: below)
     if name == "accel" and lever:
         sos, lp_hz, ncov = _lever_band(parts, nwin, nlp, dt, ncov, cfg)
         if sos is not None:  # every series of the fit through the same low-pass
             # (the master's white noise as the fit sees it: measured before, times the low-pass's power gain;
             # third differences of a low-passed series see little of it, and straight and level flight's
             # horizontal specific force, its noise low-passed, came out "determined" 20 deg off)
-            u_var = _white_noise_var(u[cut], cfg) * _noise_gain(sos)
+            white = _white_noise_var(u[cut], cfg)
+            u_var = white * _noise_gain(sos)
+            # ... and in each band apart: their own third differences see as little of it (the fast band of
+            # an aircraft's accelerometers, 2.5-25 Hz, is mostly noise: "determined" 30-120 deg from the slow
+            # band at a sigma of a degree, so the triad was called "not one rotation" and its sigma inflated to
+            # tens of degrees)
+            band_var = tuple(white * g for g in _band_noise_gains(sos, nlp))
             _lowpassed_columns(sos, u, v, k)
     del parts
     rel = ncov[3] if ncov else 0.0
@@ -1021,7 +1039,7 @@ def _one_triad(name: str, common: Callable, master_gyro: Callable, highpass_s: f
     del u, v, k, x, xf
     # (a band the rotation explains poorly is itself the sign: no minimum there, the sigmas judge)
     band_lo = _triad(lo[0][cut], lo[1][cut], lo[2][cut], dt, cfg, min_explained=0.0, starts=starts,
-                     k_noise_cov=ncov[1] if ncov else None, k_noise_rel_sd=rel)
+                     k_noise_cov=ncov[1] if ncov else None, k_noise_rel_sd=rel, u_noise_var=band_var[0])
     del lo
     hi = held if held is not None else _columns_again(common, master_gyro, nwin, lever, sos, cfg)
     del held
@@ -1029,7 +1047,7 @@ def _one_triad(name: str, common: Callable, master_gyro: Callable, highpass_s: f
         _highpass(_rows(x), nlp, out=_rows(x))
     del x
     bands = [band_lo, _triad(hi[0][cut], hi[1][cut], hi[2][cut], dt, cfg, min_explained=0.0, starts=starts,
-                             k_noise_cov=ncov[2] if ncov else None, k_noise_rel_sd=rel)]
+                             k_noise_cov=ncov[2] if ncov else None, k_noise_rel_sd=rel, u_noise_var=band_var[1])]
     del hi
     if all(isinstance(b, TriadRotation) for b in bands):
         zb, d = _z(bands[0].rpy_deg, bands[0].sigma_deg, bands[1].rpy_deg, bands[1].sigma_deg,
