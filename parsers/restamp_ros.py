@@ -158,6 +158,10 @@ class _Msgs:
     buf: np.ndarray  # uint8, writable
     starts: np.ndarray  # int64 payload offsets in buf
     lens: np.ndarray  # int64 payload lengths
+    #: (n, 12) uint8: each payload's first 12 bytes (zeros past a shorter payload's end), gathered by the scan
+    #: while its chunk was in the cache (:func:`_payload_heads`), where the Header stamps are read; None: read
+    #: from ``buf``
+    heads: np.ndarray | None = None
 
     def payload(self, i: int) -> bytes:
         a = int(self.starts[i])
@@ -168,7 +172,8 @@ class _Msgs:
         return [mv[a:a + n] for a, n in zip(self.starts.tolist(), self.lens.tolist())]
 
     def take(self, keep: np.ndarray) -> "_Msgs":
-        return _Msgs(self.conn[keep], self.log_ns[keep], self.buf, self.starts[keep], self.lens[keep])
+        return _Msgs(self.conn[keep], self.log_ns[keep], self.buf, self.starts[keep], self.lens[keep],
+                     None if self.heads is None else self.heads[keep])
 
 
 def _pack(conn: np.ndarray, log_ns: np.ndarray, parts: list) -> _Msgs:
@@ -264,7 +269,9 @@ def _apply(streams: list[_Stream], msgs: _Msgs, typestore, shift: ClockShift, se
             idx = idx[ok]
         if not len(idx):
             continue
-        stamp[idx], be = rcw.header_stamps(buf, msgs.starts[idx], s.encoding == "cdr")
+        # (from the heads the scan gathered, where it did: one cache miss per message less)
+        at, src = (idx * 12, msgs.heads.reshape(-1)) if msgs.heads is not None else (msgs.starts[idx], buf)
+        stamp[idx], be = rcw.header_stamps(src, at, s.encoding == "cdr")
         first[k] = (idx, be)
     texts: dict[int, np.ndarray] = {}  # JSON-encoded streams: message index (their stamps read from the text)
     for k, s in enumerate(streams):
@@ -831,6 +838,7 @@ class _McapScan:
         self.cid: list[np.ndarray] = []
         self.log: list[np.ndarray] = []
         self.blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (bytes, payload starts, lengths)
+        self.heads: list[np.ndarray] = []  # per block: its payloads' first 12 bytes (_payload_heads)
         self.whole: list[bool] = []  # per block: the records of one whole chunk (else a record or a cut chunk)
         self.file: np.ndarray | None = None  # the file's bytes (uncompressed chunks' blocks are views of it)
         #: (buffer, placement) the zstd chunks were decompressed into (their blocks are views of it), or None
@@ -872,6 +880,7 @@ class _McapScan:
         self.cid.append(cid.copy())
         self.log.append(t[:m].copy())
         self.blocks.append((arr[start:end], s - start, e - s))
+        self.heads.append(_payload_heads(arr, s))
         self.whole.append(whole_chunk)
         return m
 
@@ -903,7 +912,7 @@ class _McapScan:
                 lambda b, a, e, w: self.records(b, a, e, w, whole_chunk=True), content, len(content),
                 f"chunk at byte {off}", self.channels, (int(_t0), int(_t1)))
         except (mcap_ros._Damage, struct.error, UnicodeDecodeError):
-            del self.cid[n:], self.log[n:], self.blocks[n:], self.whole[n:]
+            del self.cid[n:], self.log[n:], self.blocks[n:], self.whole[n:], self.heads[n:]
             raise
         if places:
             self.whole[n:] = [False] * (len(self.whole) - n)  # (its records are laid out anew)
@@ -919,8 +928,21 @@ class _McapScan:
             content = rc.inflate_prefix(comp, buf[o + 8:end])
             return self.records(content, 0, len(content), f"partial chunk at byte {off}", cut_ok=True)
         except Exception:
-            del self.cid[n:], self.log[n:], self.blocks[n:], self.whole[n:]
+            del self.cid[n:], self.log[n:], self.blocks[n:], self.whole[n:], self.heads[n:]
             return 0
+
+
+def _payload_heads(arr: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """(m, 12) uint8: the 12 bytes from each of ``s`` (payload starts in ``arr``), where a Header's stamp lies
+    (bytes 4..12; byte 1: CDR's byte order). Taken as the scan walks each chunk (its bytes in the cache): read
+    later, each message's stamp was a cache miss, 0.05-0.09 s of a 1 h export. A payload shorter than 12
+    bytes gets what follows it (or zeros): such a message has no Header (:func:`_apply` skips it)."""
+    if len(arr) < 12:
+        return np.zeros((len(s), 12), np.uint8)
+    at = np.minimum(s, len(arr) - 12)
+    if not arr.flags.writeable:  # (a cut chunk's inflated bytes: the kernel is compiled for the writable arrays)
+        return np.ascontiguousarray(arr[at[:, None] + np.arange(12)])
+    return get_bytes(arr, at, 12)
 
 
 def _scan_mcap(path: str) -> _McapScan:
@@ -1075,7 +1097,8 @@ def _mcap_msgs(sc: _McapScan, cids: list[int]) -> tuple[_Msgs, rcw.ChunkLayout |
     if sc.blocks and all(sc.whole):
         layout = rcw.ChunkLayout(np.asarray(base, np.int64), np.asarray(blens, np.int64),
                                  np.asarray([len(c) for c in sc.cid], np.int64))
-    return _Msgs(conn, cat(sc.log), buf, starts, lens), layout
+    heads = np.concatenate(sc.heads) if sc.heads else np.zeros((0, 12), np.uint8)
+    return _Msgs(conn, cat(sc.log), buf, starts, lens, heads), layout
 
 
 def _mcap_heads(msgs: _Msgs) -> tuple[np.ndarray, np.ndarray]:
