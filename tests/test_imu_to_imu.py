@@ -736,3 +736,23 @@ def test_an_aircrafts_low_passed_accelerometer_bands_count_the_masters_noise(see
     assert max(acc.sigma_deg) < 3.0, acc.sigma_deg
     err = Rotation.from_matrix(dcm_from_euler(np.radians(acc.rpy_deg)) @ dcm_from_euler(np.radians(mount)).T)
     assert np.degrees(np.linalg.norm(err.as_rotvec())) < 3.0 * max(acc.sigma_deg), (acc.rpy_deg, acc.sigma_deg)
+
+
+def test_a_band_is_determined_only_where_the_units_share_motion_along_two_directions():
+    """The band fits' test (_second_canonical_z): independent noises and a common motion along one direction
+    score below the config's limit however many samples; a common motion along two directions far above it,
+    whatever the master's noise colour (the fits' own sigmas took that noise from third differences)."""
+    import logtools.alignment.imu_to_imu as i2i
+
+    rng = np.random.default_rng(3)
+    n = 20_000
+    r = dcm_from_euler(np.radians([40.0, -25.0, 130.0]))
+    lim = i2i.DEFAULT.band_min_canonical_z
+    w = rng.standard_normal((n + 2, 3))
+    noise_m = (w[:-2] + w[1:-1] + w[2:]) / 3.0  # (a coloured master noise: a 3-sample moving mean)
+    assert i2i._second_canonical_z(noise_m, rng.standard_normal((n, 3)), 1.0) < lim
+    one = np.outer(np.sin(np.arange(n) * 0.3), [0.0, 0.0, 1.0])  # the vertical only
+    assert i2i._second_canonical_z(one + noise_m, (one + 0.2 * rng.standard_normal((n, 3))) @ r.T * 3.0, 1.0) < lim
+    two = np.column_stack([np.sin(np.arange(n) * 0.3), np.cos(np.arange(n) * 0.17), np.zeros(n)])
+    assert i2i._second_canonical_z(two + noise_m, (two + rng.standard_normal((n, 3))) @ r.T, 1.0) > 10 * lim
+    assert i2i._second_canonical_z(two, two[:, [0, 0, 0]], 1.0) == 0.0  # (no motion in some direction)

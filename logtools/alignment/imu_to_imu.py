@@ -83,6 +83,14 @@ class ImuToImuConfig:
     consistency_lever_floor_m: float = 0.02
     band_split_s: float = 0.4  # the slow and the fast part of the motion split at this period (moving mean)
     band_z: float = 3.0  # the two bands' rotations further apart than this many combined sigmas: not one rotation
+    #: a band's rotation is determined only where the master's (fitted) and the slave's series share motion
+    #: along two directions at least: their second canonical correlation, Fisher-transformed, at least this
+    #: many of its standard errors under independence (1 / sqrt(samples / correlation time - 3)); a 3x3 of
+    #: independent noises reaches 4 about once in a hundred. The fits' sigmas cannot judge that: they take the master's noise from its third
+    #: differences, and an IMU's noise coloured by its own filter is larger in a band than they say (an
+    #: aircraft's fast band, its common motion the vertical only, came out 130 deg from the slow band at a
+    #: sigma of 1-3 deg; the triad was then called "not one rotation", its sigma inflated to 45-75 deg)
+    band_min_canonical_z: float = 5.0
     lever_min_rate_rad_s: float = 0.3  # the accelerometers' lever arm is estimated where the rates move this (rms)
     #: ... or where a lever arm of lever_plausible_m would move the specific force by lever_min_effect of its
     #: moving part (rms): a ship's sway at 0.1 rad/s, a 1.5 m lever arm, was 2-3 deg off without it
@@ -696,7 +704,10 @@ def fit_rotation(u_m: np.ndarray, v_s: np.ndarray, k_lever: np.ndarray | None = 
 def _triad(u: np.ndarray, v: np.ndarray, k: np.ndarray | None, dt: float, cfg: ImuToImuConfig,
            min_explained: float | None = None, starts: tuple[np.ndarray, ...] = (),
            k_noise_cov: np.ndarray | None = None, k_noise_rel_sd: float = 0.0,
-           u_noise_var: np.ndarray | None = None) -> TriadRotation | str:
+           u_noise_var: np.ndarray | None = None, min_canonical_z: float | None = None) -> TriadRotation | str:
+    """One triad's rotation fitted on u (master), v (slave), k (the nuisance parameters' regressors), or why
+    not. ``min_canonical_z``: a band's fit, determined only where the fitted master series and v share motion
+    along two directions (:func:`_second_canonical_z`)."""
     if len(u) < cfg.min_samples:
         return f"only {len(u)} common samples (at least {cfg.min_samples} needed)"
     sv = np.linalg.svd(v.T @ u, compute_uv=False)
@@ -712,6 +723,12 @@ def _triad(u: np.ndarray, v: np.ndarray, k: np.ndarray | None, dt: float, cfg: I
     # (the master gyro's noise in the lever arm's regressors is no motion the rotation failed to explain)
     explained = 1.0 - max(rms ** 2 - noise_ms, 0.0) / max(float(np.mean(np.sum(v * v, axis=1))), 1e-300)
     min_explained = cfg.min_explained if min_explained is None else min_explained
+    if min_canonical_z is not None:
+        w = u if lev is None else u + np.einsum("nij,j->ni", k, lev)  # (what the rotation carries onto v)
+        z2 = _second_canonical_z(w, v, tau_s / dt)
+        if not z2 >= min_canonical_z:
+            return (f"the two units share motion along one direction only in this band (second canonical "
+                    f"correlation {z2:.1f} standard errors, at least {min_canonical_z:g} needed)")
     if explained < min_explained:
         return (f"too little motion: the rotation explains {100 * max(explained, 0):.0f} % of the slave's "
                 f"signal (at least {100 * cfg.min_explained:.0f} % needed)")
@@ -739,6 +756,27 @@ def _triad(u: np.ndarray, v: np.ndarray, k: np.ndarray | None, dt: float, cfg: I
                          rms, float(tau_s), lever, float(lev[-1]) if lev is not None else None,
                          quat_wxyz=tuple(float(x) for x in quat_from_dcm(r_mat)), gimbal=gimbal,
                          lever_arm_sigma_m=lever_sig)
+
+
+def _second_canonical_z(w: np.ndarray, v: np.ndarray, tau_samples: float) -> float:
+    """The second largest canonical correlation of the series w and v (n, 3), Fisher-transformed (atanh), in
+    standard errors under independence (1 / sqrt(n / tau_samples - 3), tau_samples the fit's correlation time):
+    how clearly they share motion along a second direction (a rotation needs two). 0 where either has no
+    motion in some direction."""
+    n = len(w)
+
+    def whitener(x: np.ndarray) -> np.ndarray | None:
+        lam, vec = np.linalg.eigh(x.T @ x)
+        if not lam[0] > 1e-12 * max(float(lam[-1]), 1e-300):
+            return None
+        return vec @ np.diag(lam ** -0.5) @ vec.T
+
+    ww, wv = whitener(w), whitener(v)
+    if ww is None or wv is None:
+        return 0.0
+    rho = np.linalg.svd(wv @ (v.T @ w) @ ww, compute_uv=False)
+    n_eff = n / max(float(tau_samples), 1.0)
+    return float(np.arctanh(min(float(rho[1]), 1.0 - 1e-12)) * np.sqrt(max(n_eff - 3.0, 0.0)))
 
 
 def _derivative(t: np.ndarray, y: np.ndarray, points: int = 5) -> np.ndarray:
@@ -1039,7 +1077,8 @@ def _one_triad(name: str, common: Callable, master_gyro: Callable, highpass_s: f
     del u, v, k, x, xf
     # (a band the rotation explains poorly is itself the sign: no minimum there, the sigmas judge)
     band_lo = _triad(lo[0][cut], lo[1][cut], lo[2][cut], dt, cfg, min_explained=0.0, starts=starts,
-                     k_noise_cov=ncov[1] if ncov else None, k_noise_rel_sd=rel, u_noise_var=band_var[0])
+                     k_noise_cov=ncov[1] if ncov else None, k_noise_rel_sd=rel, u_noise_var=band_var[0],
+                     min_canonical_z=cfg.band_min_canonical_z)
     del lo
     hi = held if held is not None else _columns_again(common, master_gyro, nwin, lever, sos, cfg)
     del held
@@ -1047,7 +1086,8 @@ def _one_triad(name: str, common: Callable, master_gyro: Callable, highpass_s: f
         _highpass(_rows(x), nlp, out=_rows(x))
     del x
     bands = [band_lo, _triad(hi[0][cut], hi[1][cut], hi[2][cut], dt, cfg, min_explained=0.0, starts=starts,
-                             k_noise_cov=ncov[2] if ncov else None, k_noise_rel_sd=rel, u_noise_var=band_var[1])]
+                             k_noise_cov=ncov[2] if ncov else None, k_noise_rel_sd=rel, u_noise_var=band_var[1],
+                             min_canonical_z=cfg.band_min_canonical_z)]
     del hi
     if all(isinstance(b, TriadRotation) for b in bands):
         zb, d = _z(bands[0].rpy_deg, bands[0].sigma_deg, bands[1].rpy_deg, bands[1].sigma_deg,
