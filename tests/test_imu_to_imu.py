@@ -750,9 +750,10 @@ def test_a_band_is_determined_only_where_the_units_share_motion_along_two_direct
     lim = i2i.DEFAULT.band_min_canonical_z
     w = rng.standard_normal((n + 2, 3))
     noise_m = (w[:-2] + w[1:-1] + w[2:]) / 3.0  # (a coloured master noise: a 3-sample moving mean)
-    assert i2i._second_canonical_z(noise_m, rng.standard_normal((n, 3)), 1.0) < lim
+    assert i2i._second_canonical_z(noise_m, rng.standard_normal((n, 3)), None, None, 1.0) < lim
     one = np.outer(np.sin(np.arange(n) * 0.3), [0.0, 0.0, 1.0])  # the vertical only
-    assert i2i._second_canonical_z(one + noise_m, (one + 0.2 * rng.standard_normal((n, 3))) @ r.T * 3.0, 1.0) < lim
+    assert i2i._second_canonical_z(one + noise_m, (one + 0.2 * rng.standard_normal((n, 3))) @ r.T * 3.0, None, None,
+                                   1.0) < lim
     two = np.column_stack([np.sin(np.arange(n) * 0.3), np.cos(np.arange(n) * 0.17), np.zeros(n)])
-    assert i2i._second_canonical_z(two + noise_m, (two + rng.standard_normal((n, 3))) @ r.T, 1.0) > 10 * lim
-    assert i2i._second_canonical_z(two, two[:, [0, 0, 0]], 1.0) == 0.0  # (no motion in some direction)
+    assert i2i._second_canonical_z(two + noise_m, (two + rng.standard_normal((n, 3))) @ r.T, None, None, 1.0) > 10 * lim
+    assert i2i._second_canonical_z(two, two[:, [0, 0, 0]], None, None, 1.0) == 0.0  # (no motion in some direction)

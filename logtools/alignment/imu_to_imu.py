@@ -86,10 +86,11 @@ class ImuToImuConfig:
     #: a band's rotation is determined only where the master's (fitted) and the slave's series share motion
     #: along two directions at least: their second canonical correlation, Fisher-transformed, at least this
     #: many of its standard errors under independence (1 / sqrt(samples / correlation time - 3)); a 3x3 of
-    #: independent noises reaches 4 about once in a hundred. The fits' sigmas cannot judge that: they take the master's noise from its third
-    #: differences, and an IMU's noise coloured by its own filter is larger in a band than they say (an
-    #: aircraft's fast band, its common motion the vertical only, came out 130 deg from the slow band at a
-    #: sigma of 1-3 deg; the triad was then called "not one rotation", its sigma inflated to 45-75 deg)
+    #: independent noises reaches 4 about once in a hundred. The fits' sigmas cannot judge that: they take
+    #: the master's noise from its third differences, and an IMU's noise coloured by its own filter is larger
+    #: in a band than they say (an aircraft's fast band, its common motion the vertical only, came out 130 deg
+    #: from the slow band at a sigma of 1-3 deg; the triad was then called "not one rotation", its sigma
+    #: inflated to 45-75 deg)
     band_min_canonical_z: float = 5.0
     lever_min_rate_rad_s: float = 0.3  # the accelerometers' lever arm is estimated where the rates move this (rms)
     #: ... or where a lever arm of lever_plausible_m would move the specific force by lever_min_effect of its
@@ -724,8 +725,7 @@ def _triad(u: np.ndarray, v: np.ndarray, k: np.ndarray | None, dt: float, cfg: I
     explained = 1.0 - max(rms ** 2 - noise_ms, 0.0) / max(float(np.mean(np.sum(v * v, axis=1))), 1e-300)
     min_explained = cfg.min_explained if min_explained is None else min_explained
     if min_canonical_z is not None:
-        w = u if lev is None else u + np.einsum("nij,j->ni", k, lev)  # (what the rotation carries onto v)
-        z2 = _second_canonical_z(w, v, tau_s / dt)
+        z2 = _second_canonical_z(u, v, k, lev, tau_s / dt)
         if not z2 >= min_canonical_z:
             return (f"the two units share motion along one direction only in this band (second canonical "
                     f"correlation {z2:.1f} standard errors, at least {min_canonical_z:g} needed)")
@@ -758,23 +758,31 @@ def _triad(u: np.ndarray, v: np.ndarray, k: np.ndarray | None, dt: float, cfg: I
                          lever_arm_sigma_m=lever_sig)
 
 
-def _second_canonical_z(w: np.ndarray, v: np.ndarray, tau_samples: float) -> float:
-    """The second largest canonical correlation of the series w and v (n, 3), Fisher-transformed (atanh), in
-    standard errors under independence (1 / sqrt(n / tau_samples - 3), tau_samples the fit's correlation time):
-    how clearly they share motion along a second direction (a rotation needs two). 0 where either has no
-    motion in some direction."""
-    n = len(w)
+def _second_canonical_z(u: np.ndarray, v: np.ndarray, k: np.ndarray | None, lev: np.ndarray | None,
+                        tau_samples: float) -> float:
+    """The second largest canonical correlation of the master's fitted series w = u + K lev (u without
+    ``lev``) and the slave's v (n, 3), Fisher-transformed (atanh), in standard errors under independence
+    (1 / sqrt(n / tau_samples - 3), tau_samples the fit's correlation time): how clearly they share motion
+    along a second direction (a rotation needs two). 0 where either has no motion in some direction. Moments
+    summed in blocks of rows (no copy of w: 4 h of 200 Hz are 69 MB a series)."""
+    n = len(u)
+    ww, vw = np.zeros((3, 3)), np.zeros((3, 3))
+    for a in range(0, n, BLOCK_ROWS):
+        b = slice(a, a + BLOCK_ROWS)
+        w = u[b] if lev is None else u[b] + np.einsum("nij,j->ni", k[b], lev)
+        ww += w.T @ w
+        vw += v[b].T @ w
 
-    def whitener(x: np.ndarray) -> np.ndarray | None:
-        lam, vec = np.linalg.eigh(x.T @ x)
+    def whitener(m: np.ndarray) -> np.ndarray | None:
+        lam, vec = np.linalg.eigh(m)
         if not lam[0] > 1e-12 * max(float(lam[-1]), 1e-300):
             return None
         return vec @ np.diag(lam ** -0.5) @ vec.T
 
-    ww, wv = whitener(w), whitener(v)
-    if ww is None or wv is None:
+    w_w, w_v = whitener(ww), whitener(v.T @ v)
+    if w_w is None or w_v is None:
         return 0.0
-    rho = np.linalg.svd(wv @ (v.T @ w) @ ww, compute_uv=False)
+    rho = np.linalg.svd(w_v @ vw @ w_w, compute_uv=False)
     n_eff = n / max(float(tau_samples), 1.0)
     return float(np.arctanh(min(float(rho[1]), 1.0 - 1e-12)) * np.sqrt(max(n_eff - 3.0, 0.0)))
 
