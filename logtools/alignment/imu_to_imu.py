@@ -163,6 +163,7 @@ class TriadRotation:
     sigma_data_deg: tuple[float, float, float] | None = None  # the sigma from the residuals alone, where the
     # bands disagreed and half their spread was added to ``sigma_deg``
     rigid: bool | None = None  # one rotation at every frequency (band_z within the config's limit); None: not checked
+    band_unchecked: str | None = None  # why the band check was not made (a band's rotation not determined)
     #: the rotation itself (body master -> slave, v_slave = R v_master, as conventions.quat_from_dcm): exact
     #: where ``rpy_deg`` is the canonical triple at the gimbal lock (``gimbal``)
     quat_wxyz: tuple[float, float, float, float] | None = None
@@ -197,6 +198,8 @@ class ImuToImu:
                 if tr.band_z is not None:
                     out[f"{name}_band_z"] = tr.band_z
                     out[f"{name}_band_rpy_deg"] = {"slow": list(tr.band_rpy_deg[0]), "fast": list(tr.band_rpy_deg[1])}
+                if tr.band_unchecked is not None:
+                    out[f"{name}_band_unchecked"] = tr.band_unchecked
                 if tr.sigma_data_deg is not None:
                     out[f"{name}_sigma_data_deg"] = list(tr.sigma_data_deg)
                 if tr.lowpass_hz is not None:
@@ -1104,6 +1107,9 @@ def _one_triad(name: str, common: Callable, master_gyro: Callable, highpass_s: f
         if zb > cfg.band_z:  # not one rotation: half the bands' spread joins the sigma (the model's error)
             res = replace(res, sigma_deg=tuple(float(x) for x in np.hypot(res.sigma_deg, 0.5 * d)),
                           sigma_data_deg=res.sigma_deg)
+    else:
+        res = replace(res, band_unchecked="; ".join(f"{part} band: {b}" for part, b in zip(("slow", "fast"), bands)
+                                                    if isinstance(b, str)))
     return res
 
 
