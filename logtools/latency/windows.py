@@ -17,18 +17,27 @@ from logtools.latency.prepare import Ctx
 from logtools.resample import Interpolant
 
 
-def drift_windows(ctx: Ctx, t0: float, t1: float, t_ok: np.ndarray | None = None) -> list[tuple[float, float]]:
+def _gaps(t_ok: np.ndarray) -> np.ndarray:
+    """Where the instants ``t_ok`` (sorted, s) have a gap: a step beyond max(1 s, 10 of their median steps)."""
+    return np.flatnonzero(np.diff(t_ok) > max(1.0, 10.0 * median_step_s(t_ok)))
+
+
+def _has_gap(t_ok: np.ndarray) -> bool:
+    return len(t_ok) > 1 and len(_gaps(t_ok)) > 0
+
+
+def drift_windows(ctx: Ctx, t0: float, t1: float, t_ok: np.ndarray | None = None, in_runs: bool = False
+                  ) -> list[tuple[float, float]]:
     """The drift windows over [t0, t1]: about cfg.windows.window_s each (3..MAX_WINDOWS). With ``t_ok`` (the instants
-    that have data in both units) covering less than cfg.windows.window_data_fraction of the span (gaps), windows are
-    laid in the runs of data between the gaps instead (none across one), their number shared by the
-    runs' lengths (runs shorter than cfg.windows.min_window_s left out)."""
+    that have data in both units) covering less than cfg.windows.window_data_fraction of the span (gaps), or with
+    ``in_runs``, windows are laid in the runs of data between the gaps instead (none across one), their number
+    shared by the runs' lengths (runs shorter than cfg.windows.min_window_s left out)."""
     cfg = ctx.cfg
     T = t1 - t0
     if t_ok is not None and len(t_ok) > 1:
-        d = np.diff(t_ok)
         dt = median_step_s(t_ok)
-        if len(t_ok) * dt < cfg.windows.window_data_fraction * T:
-            cut = np.flatnonzero(d > max(1.0, 10.0 * dt))
+        if in_runs or len(t_ok) * dt < cfg.windows.window_data_fraction * T:
+            cut = _gaps(t_ok)
             runs = [(float(t_ok[a]), float(t_ok[b])) for a, b in
                     zip(np.concatenate([[0], cut + 1]), np.concatenate([cut, [len(t_ok) - 1]]))]
             runs = [r for r in runs if r[1] - r[0] >= cfg.windows.min_window_s]
@@ -192,8 +201,19 @@ def joint_fit(ctx: Ctx, ov: Overlap, d_center: float, drift_center: float, searc
     the bounds of every window that fitted)."""
     cfg = ctx.cfg
     t_m, a, valid, itp, t_mid = ov.t_m, ov.a, ov.valid, ov.itp, ov.t_mid
-    wins = drift_windows(ctx, ov.w0, ov.w1, t_m[valid & itp.ok(t_m + d_center)])
+    t_ok = t_m[valid & itp.ok(t_m + d_center)]
+    wins = drift_windows(ctx, ov.w0, ov.w1, t_ok)
     w = window_fits(ctx, ov, wins, None, d_center, drift_center, search_ppm)
+    if len(w) < 3 and _has_gap(t_ok):
+        # a gap inside a window can make its lag search fail (a 5 s gap in one of a 60 s log's three
+        # windows: no drift at all); where fewer than three windows fit, they are laid in the runs of data
+        # between the gaps instead, as for a log with more gaps (nothing changes where three fitted, or
+        # where the data have no gap)
+        again = drift_windows(ctx, ov.w0, ov.w1, t_ok, in_runs=True)
+        if again != wins:
+            w2 = window_fits(ctx, ov, again, None, d_center, drift_center, search_ppm)
+            if len(w2) >= 3:
+                wins, w = again, w2
     bounds = dict(w.bounds)
     fin = None
     if len(w) >= 3:
