@@ -897,21 +897,15 @@ def _lowpassed(x: np.ndarray, sos: np.ndarray) -> np.ndarray:
     return x
 
 
-def _noise_gain(sos: np.ndarray, rows: int = 1 << 16) -> float:
-    """The variance a unit white noise keeps through the zero-phase low-pass ``sos`` (a fixed draw)."""
-    x = np.random.default_rng(1).standard_normal((rows, 1))
-    return float(np.var(_lowpassed(x, sos)[rows // 8:-rows // 8]))
-
-
-def _band_noise_gains(sos: np.ndarray, nlp: int, rows: int = 1 << 16) -> tuple[float, float]:
-    """The variances a unit white noise keeps, through the zero-phase low-pass ``sos``, in the slow part (its
-    moving mean over ``nlp`` samples) and in the fast part (the rest): the two bands of :func:`_one_triad`
-    (the fixed draw of :func:`_noise_gain`)."""
+def _noise_gains(sos: np.ndarray, nlp: int, rows: int = 1 << 16) -> tuple[float, float, float]:
+    """The variances a unit white noise keeps (a fixed draw) through the zero-phase low-pass ``sos``: in all,
+    in its slow part (the moving mean over ``nlp`` samples) and in its fast part (the rest), the whole fit
+    and the two bands of :func:`_one_triad`."""
     x = np.random.default_rng(1).standard_normal((rows, 1))
     lp = _lowpassed(x, sos)
     hi = _highpass(lp, nlp)
     keep = slice(rows // 8, -rows // 8)
-    return float(np.var((lp - hi)[keep])), float(np.var(hi[keep]))
+    return float(np.var(lp[keep])), float(np.var((lp - hi)[keep])), float(np.var(hi[keep]))
 
 
 def _kept_fraction(kk: np.ndarray, noise_kk: np.ndarray) -> float:
@@ -1058,13 +1052,12 @@ def _one_triad(name: str, common: Callable, master_gyro: Callable, highpass_s: f
             # (the master's white noise as the fit sees it: measured before, times the low-pass's power gain;
             # third differences of a low-passed series see little of it, and straight and level flight's
             # horizontal specific force, its noise low-passed, came out "determined" 20 deg off)
-            white = _white_noise_var(u[cut], cfg)
-            u_var = white * _noise_gain(sos)
             # ... and in each band apart: their own third differences see as little of it (the fast band of
             # an aircraft's accelerometers, 2.5-25 Hz, is mostly noise: "determined" 30-120 deg from the slow
             # band at a sigma of a degree, so the triad was called "not one rotation" and its sigma inflated to
             # tens of degrees)
-            band_var = tuple(white * g for g in _band_noise_gains(sos, nlp))
+            white = _white_noise_var(u[cut], cfg)
+            u_var, *band_var = (white * g for g in _noise_gains(sos, nlp))
             _lowpassed_columns(sos, u, v, k)
     del parts
     rel = ncov[3] if ncov else 0.0
