@@ -866,6 +866,25 @@ MESSAGE_INDEX_UNUSED = "not used, the messages are read from the chunks themselv
 SUMMARY_UNUSED = "the messages are read from the data section, not through the summary"
 
 
+class IndexCheck:
+    """The message index records one walk over an MCAP file meets, each checked against the chunk before it
+    (:func:`message_index_damage`), tallied and said once at the walk's end (:meth:`said`)."""
+
+    def __init__(self):
+        self.chunk: tuple[int, int, int] | None = None  # the last chunk's (start, end time, uncompressed size)
+        self.bad = DamagedRecords(MESSAGE_INDEX_DAMAGE)
+
+    def chunk_at(self, buf, off: int) -> None:
+        self.chunk = struct.unpack_from("<QQQ", buf, off + 9)
+
+    def index_at(self, buf, off: int, nxt: int) -> None:
+        if message_index_damage(buf, off, nxt, self.chunk):
+            self.bad.add(off)
+
+    def said(self, then: str) -> str | None:
+        return self.bad.said(then)
+
+
 def summary_crc_damage(buf) -> str | None:
     """What is wrong with a summary section whose CRC (the footer's, where the writer set one) does not match
     its bytes (the caller says what it does about it: SUMMARY_UNUSED for the readers), else None. The
@@ -1067,8 +1086,7 @@ def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
         scan.provisional = {("schema", k) for k in scan.schemas} | {("channel", k) for k in scan.channels}
         starts = summary_chunk_starts(buf, inner)  # where the walk picks up again after a damaged stretch
         last = off
-        chunk = None  # (message start and end time, uncompressed size) of the last chunk: its indexes' bounds
-        bad_index = DamagedRecords(MESSAGE_INDEX_DAMAGE)
+        indexes = IndexCheck()
         while off < end:
             if off + 9 > end:
                 scan.warnings.append(f"file truncated at byte {off} of {end} (no footer): readable part used")
@@ -1096,7 +1114,7 @@ def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
             try:
                 if op == _OP_CHUNK:
                     n_chunks += 1
-                    chunk = struct.unpack_from("<QQQ", buf, off + 9)  # (start, end time, uncompressed size)
+                    indexes.chunk_at(buf, off)
                     try:
                         content = inflate_chunk(buf, off, nxt)
                     except _Undecodable as exc:  # the complete messages before the damaged block are kept
@@ -1125,8 +1143,7 @@ def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
                 elif op == _OP_MESSAGE:
                     scan.records(buf, off, nxt, "data section")
                 elif op == _OP_MESSAGE_INDEX:
-                    if message_index_damage(buf, off, nxt, chunk):
-                        bad_index.add(off)
+                    indexes.index_at(buf, off, nxt)
                 elif op == _OP_SCHEMA:
                     scan.schema(buf, off + 9, nxt)
                 elif op == _OP_CHANNEL:
@@ -1140,8 +1157,8 @@ def _scan_file(path: str, scan: _Scan, done: list[int] | None = None) -> _Scan:
             last = off
             off = nxt
             fm.release_before(min(off, last))
-        if bad_index.count:
-            scan.warnings.append(bad_index.said(MESSAGE_INDEX_UNUSED))
+        if (said := indexes.said(MESSAGE_INDEX_UNUSED)) is not None:
+            scan.warnings.append(said)
         if not footer and not any("truncated" in w or "rest of file" in w for w in scan.warnings):
             scan.warnings.append("no MCAP footer (file truncated?): readable part used")
         del buf

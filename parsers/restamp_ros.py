@@ -52,7 +52,7 @@ from parsers import mcap_ros, rosbag1, rosbag2, threads
 from parsers import ros_containers as rcw
 from parsers import ros_common as rc
 from parsers.atomic import atomic_folder, atomic_path, check_replaceable
-from parsers.base import DamagedRecords, Selector, check_readable
+from parsers.base import Selector, check_readable
 from parsers.filemap import FileMap
 from parsers.restamp import ClockShift, RestampStats, export_hugepages, get_bytes, mapped_copy
 
@@ -530,8 +530,7 @@ def _scan_rosbag1(path: str, fmap: FileMap) -> _Scan1:
         scan.warnings.append(f"the file does not start as a ROS 1 bag; read from the first chunk or connection "
                              f"record (byte {off}), the bytes before not in the output")
     good, floor = off, -1
-    chunk_size, chunk_offsets = None, set()  # (index records: checked as the parser does)
-    bad_index = DamagedRecords(rosbag1.INDEX_DAMAGE)
+    indexes = rosbag1.IndexCheck()  # (index records: checked as the parser does)
     while off < end:
         try:
             header, op, hlen, nxt = rosbag1.top_record(buf, off, end)  # (as the parser reads its records)
@@ -549,15 +548,12 @@ def _scan_rosbag1(path: str, fmap: FileMap) -> _Scan1:
             if op == bytes([rosbag1._OP_BAGHEADER]):
                 (scan.index_pos,) = struct.unpack_from("<Q", header.get("index_pos", b"\0" * 8), 0)
             elif op == bytes([rosbag1._OP_CHUNK]):
-                chunk_offsets.add(off)
-                chunk_size = struct.unpack("<I", header["size"])[0] if len(header.get("size", b"")) == 4 else None
+                indexes.chunk_at(off, header)
                 scan.chunk(header, buf, off + 8 + hlen, nxt, off)
             elif op in (bytes([rosbag1._OP_CONN]), bytes([rosbag1._OP_MSG])):
                 scan.records(buf, off, nxt, "top level")
             elif op in (bytes([rosbag1._OP_INDEX]), bytes([rosbag1._OP_CHUNKINFO])):
-                if rosbag1.index_damaged(op, header, buf, off + 8 + hlen, nxt, chunk_size, chunk_offsets,
-                                         scan.conns):
-                    bad_index.add(off)
+                indexes.index_at(op, header, buf, off, off + 8 + hlen, nxt, scan.conns)
                 if op == bytes([rosbag1._OP_INDEX]):
                     scan.index_recs.append((off, hlen, nxt, len(scan.chunk_recs) - 1))
                 else:
@@ -567,8 +563,8 @@ def _scan_rosbag1(path: str, fmap: FileMap) -> _Scan1:
         except (rosbag1._Damage, struct.error, KeyError, ValueError) as exc:
             scan.warnings.append(f"damaged: {exc}; its other messages are not in the output")
         good = off = nxt  # (its framing read: a later resynchronisation starts after it)
-    if bad_index.count:
-        scan.warnings.append(bad_index.said("the output's index is made from its chunks"))
+    if (said := indexes.said("the output's index is made from its chunks")) is not None:
+        scan.warnings.append(said)
     scan.size = end
     return scan
 
@@ -989,8 +985,7 @@ def _scan_mcap(path: str) -> _McapScan:
     starts = mcap_ros.summary_chunk_starts(buf, inner)  # where the walk picks up again after a damaged stretch
     sc.arena = mcap_ros.chunk_arena(buf, off, starts=starts)
     last = off
-    chunk = None  # (message start and end time, uncompressed size) of the last chunk: its indexes' bounds
-    bad_index = DamagedRecords(mcap_ros.MESSAGE_INDEX_DAMAGE)  # (their indexes written anew)
+    indexes = mcap_ros.IndexCheck()  # (damaged ones: the output's are written anew)
     with mcap_ros.chunk_prefetch(buf, off, sc.arena, starts) as chunks:  # decompression and CRC ahead, in threads
         while off < end:
             if off + 9 > end:
@@ -1019,11 +1014,10 @@ def _scan_mcap(path: str) -> _McapScan:
                     sc.profile, o = mcap_ros._string(buf, p)
                     sc.library, _ = mcap_ros._string(buf, o)
                 elif op == _OP["chunk"]:
-                    chunk = struct.unpack_from("<QQQ", buf, off + 9)  # (start, end time, uncompressed size)
+                    indexes.chunk_at(buf, off)
                     sc.chunk(buf, off, nxt, chunks)
                 elif op == _OP["message_index"]:
-                    if mcap_ros.message_index_damage(buf, off, nxt, chunk):
-                        bad_index.add(off)
+                    indexes.index_at(buf, off, nxt)
                 elif op == _OP["message"]:
                     sc.records(buf, off, nxt, "data section")
                 elif op == _OP["schema"]:
@@ -1048,8 +1042,8 @@ def _scan_mcap(path: str) -> _McapScan:
                 sc.damage.append(f"damaged: {msg}; its messages are not in the output")
             last = off
             off = nxt
-    if bad_index.count:
-        sc.damage.append(bad_index.said("the output's message indexes are made anew from its chunks"))
+    if (said := indexes.said("the output's message indexes are made anew from its chunks")) is not None:
+        sc.damage.append(said)
     if not footer and not sc.damage:
         sc.damage.append("no MCAP data end / footer (file truncated?)")
     return sc

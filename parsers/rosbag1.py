@@ -441,8 +441,7 @@ def _walk_file(buf, scan: _Scan, path: str, progress: Callable[[int], None] | No
     index_pos = None
     good = off  # the end of the last record read well: a walk derailed by damage goes on after it
     floor = -1
-    chunk_size, chunk_offsets = None, set()  # (index records: checked against the chunks)
-    bad_index = DamagedRecords(INDEX_DAMAGE)
+    indexes = IndexCheck()
     while off < end:
         try:
             header, op, hlen, nxt = top_record(buf, off, end)
@@ -461,14 +460,12 @@ def _walk_file(buf, scan: _Scan, path: str, progress: Callable[[int], None] | No
             if op == bytes([_OP_BAGHEADER]):
                 (index_pos,) = struct.unpack_from("<Q", header.get("index_pos", b"\0" * 8), 0)
             elif op == bytes([_OP_CHUNK]):
-                chunk_offsets.add(off)
-                chunk_size = _U32.unpack_from(header["size"], 0)[0] if len(header.get("size", b"")) == 4 else None
+                indexes.chunk_at(off, header)
                 scan.chunk(header, buf, off + 8 + hlen, nxt, off)
             elif op in (bytes([_OP_CONN]), bytes([_OP_MSG])):
                 scan.records(buf, off, nxt, "top level")
             elif op in (bytes([_OP_INDEX]), bytes([_OP_CHUNKINFO])):
-                if index_damaged(op, header, buf, off + 8 + hlen, nxt, chunk_size, chunk_offsets, scan.conns):
-                    bad_index.add(off)
+                indexes.index_at(op, header, buf, off, off + 8 + hlen, nxt, scan.conns)
             else:
                 raise _Damage(f"unknown record op {op!r} at byte {off}")
         except (_Damage, struct.error, KeyError, ValueError) as exc:
@@ -477,8 +474,8 @@ def _walk_file(buf, scan: _Scan, path: str, progress: Callable[[int], None] | No
         good = off = nxt  # (its framing read: a later resynchronisation starts after it)
         if progress is not None:
             progress(off)
-    if bad_index.count:
-        scan.warnings.append(bad_index.said(INDEX_UNUSED))
+    if (said := indexes.said(INDEX_UNUSED)) is not None:
+        scan.warnings.append(said)
     if index_pos == 0:
         scan.warnings.append("bag has no index (recording interrupted?): messages read by a linear scan")
     elif index_pos is not None and index_pos >= end and not any("truncated" in w for w in scan.warnings):
@@ -515,6 +512,28 @@ def index_damaged(op: bytes, header: dict[str, bytes], buf, d0: int, d1: int, ch
     start, end = (struct.unpack("<II", v) for v in (t0, t1))
     ids = np.frombuffer(buf, "<u4", 2 * count, d0)[::2] if count else ()
     return struct.unpack("<Q", pos)[0] not in chunk_offsets or start > end or any(int(c) not in conns for c in ids)
+
+
+class IndexCheck:
+    """The index records one walk over a ROS 1 bag meets, each checked against the chunks before it
+    (:func:`index_damaged`), tallied and said once at the walk's end (:meth:`said`)."""
+
+    def __init__(self):
+        self.chunk_size: int | None = None  # the last chunk's uncompressed size (None: not stated)
+        self.chunk_offsets: set[int] = set()  # where the chunk records start
+        self.bad = DamagedRecords(INDEX_DAMAGE)
+
+    def chunk_at(self, off: int, header: dict[str, bytes]) -> None:
+        self.chunk_offsets.add(off)
+        size = header.get("size", b"")
+        self.chunk_size = _U32.unpack_from(size, 0)[0] if len(size) == 4 else None
+
+    def index_at(self, op: bytes, header: dict[str, bytes], buf, off: int, d0: int, d1: int, conns) -> None:
+        if index_damaged(op, header, buf, d0, d1, self.chunk_size, self.chunk_offsets, conns):
+            self.bad.add(off)
+
+    def said(self, then: str) -> str | None:
+        return self.bad.said(then)
 
 
 #: damaged index records (:func:`index_damaged`), as ``base.DamagedRecords`` says them, and what the readers
