@@ -252,6 +252,56 @@ def test_the_filter_loops_workspace_step_equals_the_allocating_one_bit_for_bit(n
         assert nis1 == nis2 and np.array_equal(x1, x2) and np.array_equal(p1, p2) and np.array_equal(e1, e2)
 
 
+@pytest.mark.parametrize("n,m,predict", [(18, 6, True), (24, 6, True), (12, 3, False)])
+def test_the_reference_step_with_its_work_arrays_is_the_textbook_algebra(n, m, predict):
+    """The reference loop's discretisation and update (numpy, work arrays made once, unit and R matrices
+    added whole) give the numbers of the plain expressions, bit for bit (an added unit matrix adds zeros off
+    the diagonal), and the compiled step's within rounding; an innovation covariance that is not positive
+    definite takes the compiled loop's clamped factor in both."""
+    from logtools.alignment import model as mdl
+
+    rng = np.random.default_rng(7 * n + m)
+    f = np.where(rng.random((n, n)) < 0.3, rng.normal(size=(n, n)), 0.0)
+    qc, dt = rng.uniform(1e-6, 1e-3, n), 0.05
+    phi, qd = np.empty((n, n)), np.empty((n, n))
+    ws = mdl.discretise_workspace_np(qc)
+    for _ in range(2):  # (the work arrays' leftovers must not leak into the next segment)
+        mdl._discretise_np(f, qc, dt, phi, qd, ws)
+        ft = f * dt
+        want_phi = ft + 0.5 * (ft @ ft)
+        want_phi[np.diag_indices(n)] += 1.0
+        want_qd = (want_phi * qc) @ want_phi.T
+        want_qd[np.diag_indices(n)] += qc
+        assert np.array_equal(phi, want_phi) and np.array_equal(qd, 0.5 * dt * want_qd)
+    a = rng.normal(size=(n, n))
+    P = a @ a.T + n * np.eye(n)
+    x, z = rng.normal(size=n), rng.normal(size=m)
+    H = np.where(rng.random((m, n)) < 0.5, rng.normal(size=(m, n)), 0.0)
+    ph, qd_ = (phi, qd) if predict else (np.zeros((0, 0)), np.zeros((0, 0)))
+    r_pd = rng.uniform(0.5, 2.0, m)
+    h_zero, r_zero = H.copy(), r_pd.copy()
+    h_zero[-1], r_zero[-1] = 0.0, 0.0  # (a row that sees nothing, without noise: S singular)
+    for H, r in ((H, r_pd), (h_zero, r_zero)):
+        x1, p1, e1, x2, p2, e2 = x.copy(), P.copy(), np.zeros(m), x.copy(), P.copy(), np.zeros(m)
+        nis1 = kfm.kf_step_np(x1, p1, ph, qd_, z, H, r, e1, (np.diag(r), np.eye(n)))
+        if predict:
+            px, pp = ph @ x, ph @ P @ ph.T + qd_
+        else:
+            px, pp = x.copy(), P.copy()
+        e = z - H @ px
+        s_ = H @ pp @ H.T + np.diag(r)
+        assert np.array_equal(e1, e)
+        if r[-1] > 0:  # the textbook Joseph update
+            k = np.linalg.solve(s_, H @ pp).T
+            ikh = np.eye(n) - k @ H
+            assert np.allclose(x1, px + k @ e, rtol=1e-10, atol=1e-12)
+            assert np.allclose(p1, ikh @ pp @ ikh.T + (k * r) @ k.T, rtol=1e-9, atol=1e-12)
+        nis2 = kfm.kf_step_nb(x2, p2, ph, qd_, z, H, r, e2)
+        assert nis1 == pytest.approx(nis2, rel=1e-9) and (nis1 > 1e200) == (r[-1] == 0)  # (1 / the 1e-300 pivot)
+        assert np.isfinite(p1).all() and np.isfinite(x1).all()
+        assert np.allclose(x1, x2, rtol=1e-9, atol=1e-12) and np.allclose(p1, p2, rtol=1e-9, atol=1e-9)
+
+
 def test_discretise_matches_matrix_exponential_for_small_steps():
     from scipy.linalg import expm
     f = RNG.normal(size=(5, 5)) * 0.1

@@ -26,8 +26,10 @@ from logtools.errors import AnalysisError
 from logtools.strapdown import HAVE_NUMBA, _WIE, _radii, nav_step, nav_step_np, njit, rotvec_times_quat
 
 from .options import FilterKind
-from .model import (StateLayout, _discretise_ws, _fill_dynamics, _fill_h, att_residual_np, discretise_step,
-                    discretise_workspace, exp_so3, exp_so3_np, fill_dynamics_np, fill_h_np, rotvec_small)
+from .model import (StateLayout, _discretise_np, _discretise_ws, _fill_dynamics, _fill_h, att_residual_np,
+                    discretise_step, discretise_workspace, discretise_workspace_np, exp_so3, exp_so3_np,
+                    exp_so3_xyz,
+                    fill_dynamics_np, fill_h_np, rotvec_small)
 
 
 
@@ -225,9 +227,26 @@ def _dcm_np(q: np.ndarray) -> np.ndarray:
                      [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
 
 
+def _dcm_many(q: np.ndarray) -> np.ndarray:
+    """:func:`_dcm_np` of each row of ``q`` (K, 4): (K, 3, 3), the same operations element by element."""
+    w, x, y, z = q.T
+    nn = np.sqrt(w * w + x * x + y * y + z * z)
+    w, x, y, z = w / nn, x / nn, y / nn, z / nn
+    m = np.empty((len(q), 3, 3))
+    m[:, 0, 0], m[:, 0, 1], m[:, 0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
+    m[:, 1, 0], m[:, 1, 1], m[:, 1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
+    m[:, 2, 0], m[:, 2, 1], m[:, 2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
+    return m
+
+
 def _q_left_rotvec_np(rv: np.ndarray, q: np.ndarray) -> np.ndarray:
     """:func:`_q_left_rotvec` for the reference loop."""
-    ow, ox, oy, oz = rotvec_times_quat(*rv.tolist(), *q.tolist())
+    return _q_left_rotvec_xyz(*rv.tolist(), q)
+
+
+def _q_left_rotvec_xyz(x: float, y: float, z: float, q: np.ndarray) -> np.ndarray:
+    """:func:`_q_left_rotvec_np` of the rotation vector (x, y, z)."""
+    ow, ox, oy, oz = rotvec_times_quat(x, y, z, *q.tolist())
     nn = math.sqrt(ow * ow + ox * ox + oy * oy + oz * oz)
     return np.array([ow / nn, ox / nn, oy / nn, oz / nn])
 
@@ -303,6 +322,29 @@ class MasterSeries:
     def sample(self, t: float) -> tuple:
         """(C_nm or None, v or None, a or None, w_nm_m or None) at relative time t."""
         return self._sample_at(*self._idx(t), t)
+
+    def sample_epochs(self, t: np.ndarray) -> tuple[np.ndarray, tuple]:
+        """:meth:`_usable_at` and :meth:`sample` at every ``t`` at once (the reference loop's epochs where the
+        delay is not a state, so that the instants are known before the loop): (usable (K,), (C_nm (K, 3, 3),
+        v, a, w_nm_m (K, 3)), each None where :meth:`sample` gives None). Element by element the same
+        operations in the same order as the scalar lookups, so the same numbers."""
+        ts = self.t_s
+        i = np.clip(ts.searchsorted(t, "right") - 1, 0, len(ts) - 2)
+        a = np.clip((t - ts[i]) / (ts[i + 1] - ts[i]), -1.0, 2.0)[:, None]
+        b = 1.0 - a
+        usable = np.ones(len(t), bool) if self.valid is None else (self.valid[i] & self.valid[i + 1])
+        c_nm = v = acc = w = None
+        if self.quat is not None:
+            c_nm = _dcm_many(b * self.quat[i] + a * self.quat[i + 1])
+        if self.vel is not None:
+            v = b * self.vel[i] + a * self.vel[i + 1]
+            acc = b * self.acc[i] + a * self.acc[i + 1]
+        if self.w_nm_m is not None:
+            tw = self.w_stamps_s
+            j = np.clip(tw.searchsorted(t, "right") - 1, 0, len(tw) - 2)
+            aw = np.clip((t - tw[j]) / (tw[j + 1] - tw[j]), -1.0, 2.0)[:, None]
+            w = (1.0 - aw) * self.w_nm_m[j] + aw * self.w_nm_m[j + 1]
+        return usable, (c_nm, v, acc, w)
 
     def _sample_at(self, i: int, a: float, t: float) -> tuple:
         """:meth:`sample` between master samples i and i + 1 at the fraction a (:meth:`_idx` of t)."""
@@ -423,6 +465,7 @@ def run_filter(inp: AlignInputs, s: FilterSettings, *, progress: Callable | None
         return run
     lay = s.layout
     ne = len(inp.seg_dt_s) + 1
+    seg = _Segments.of(inp)
     upd = _Updater.for_settings(s)
     hist = _Histories.empty(ne, lay, s.smoother, lay.uses_att or inp.master.quat is not None)
     st = _LoopState.start(inp, s)
@@ -432,15 +475,27 @@ def run_filter(inp: AlignInputs, s: FilterSettings, *, progress: Callable | None
     master = inp.master
     prog_every = max(ne // 50, 1)
     restart_k, t_epoch = restart.tolist(), inp.t_epoch_s.tolist()
+    # without a delay state the master's instants t_k - tau are known before the loop: sampled at once
+    ms_all = fixed_all = None
+    if lay.delay is None:
+        usable_all, cols = master.sample_epochs(inp.t_epoch_s - st.tau)
+        usable_all = usable_all.tolist()
+        ms_all = list(zip(*(list(c) if c is not None else [None] * ne for c in cols)))
+        fixed_all = _fixed_terms(st, lay, s.att_only_fej, cols, ne)
     for k in range(ne):
-        phi_k, qd_k = _propagate(st, inp, s, k, restart_k[k]) if k > 0 else (_NO_PHI, _NO_PHI)
+        phi_k, qd_k = _propagate(st, inp, seg, s, k, restart_k[k]) if k > 0 else (_NO_PHI, _NO_PHI)
         tk = t_epoch[k]
-        t_m = tk - st.tau
-        i_m, a_m = master._idx(t_m)
-        ms_k = master._sample_at(i_m, a_m, t_m)
+        if ms_all is None:
+            t_m = tk - st.tau
+            i_m, a_m = master._idx(t_m)
+            ms_k = master._sample_at(i_m, a_m, t_m)
+            usable = master._usable_at(i_m)
+        else:
+            ms_k = ms_all[k]
+            usable = usable_all[k]
         st.c_nm_prev = ms_k[0]
         _restarts(st, inp, lay, k, restart_k[k], ms_k)
-        if not master._usable_at(i_m):
+        if not usable:
             # no usable master sample: prediction only
             if k > 0:
                 st.x = phi_k @ st.x
@@ -450,14 +505,14 @@ def run_filter(inp: AlignInputs, s: FilterSettings, *, progress: Callable | None
             hist.record(k, st, lay, ms_k[0], 0.0)
             st.n_skipped += 1
             continue
-        z, H = _measurement(st, inp, lay, s.att_only_fej, k, ms_k)
+        z, H = _measurement(st, inp, lay, s.att_only_fej, k, ms_k, None if fixed_all is None else fixed_all[k])
         e_prior, nis_k, gam_k = upd.update(st, phi_k, qd_k, z, H, k)
         if hist.keep and k > 0:
             hist.keep_prediction(k, phi_k, phi_k @ hist.sm_xf[k - 1], phi_k @ hist.sm_pf[k - 1] @ phi_k.T + qd_k)
         hist.innov[k] = e_prior
         hist.nis[k] = nis_k
         hist.gamma[k] = gam_k
-        if not (np.isfinite(st.x).all() and np.isfinite(st.P).all()):
+        if not (math.isfinite(st.x.sum()) and math.isfinite(st.P.sum())):  # (a NaN or inf anywhere: not finite)
             raise AnalysisError(f"alignment filter diverged at t = {tk:.2f} s (non-finite state)")
         hist.record_state(k, st.x, st.P)
         fb = _feedback(st, lay, s.delay_bounds_s)
@@ -470,6 +525,52 @@ def run_filter(inp: AlignInputs, s: FilterSettings, *, progress: Callable | None
 
 
 _NO_PHI = np.zeros((0, 0))  # "no prediction" (the first epoch)
+
+
+@dataclass(frozen=True)
+class _Segments:
+    """What the reference loop's propagation takes from each segment's increments alone, worked out before the
+    loop (element by element the same operations as in it): the step as Python floats, the mean specific
+    force in the body frame (dv / dt) and the turn over the segment's first half (the midpoint attitude,
+    :func:`_mid_segment`)."""
+
+    dt_s: list
+    dv_dt: np.ndarray  # (M, 3)
+    half_turn: np.ndarray  # (M, 3, 3): exp_so3_np(0.5 * _rotvec_np(seg_dq[j]))
+
+    @classmethod
+    def of(cls, inp: AlignInputs) -> "_Segments":
+        dt = np.asarray(inp.seg_dt_s, float)
+        return cls(dt.tolist(), inp.seg_dv_b / dt[:, None], _exp_so3_many(0.5 * _rotvec_many(inp.seg_dq)))
+
+
+def _rotvec_many(q: np.ndarray) -> np.ndarray:
+    """:func:`_rotvec_np` of each row of ``q`` (M, 4) (math's atan2, as the scalar code: numpy's may differ by
+    an ulp)."""
+    w, x, y, z = (np.asarray(c, float) for c in np.asarray(q, float).T)
+    vn = np.sqrt(x * x + y * y + z * z)
+    small = vn < 1e-12
+    k = np.array([0.0 if s else 2.0 * math.atan2(a, b) / a for a, b, s in zip(vn.tolist(), w.tolist(), small.tolist())])
+    out = q[:, 1:] * k[:, None]
+    if small.any():
+        out[small] = 2.0 * q[small, 1:] / np.maximum(w[small], 1e-300)[:, None]
+    return out
+
+
+def _exp_so3_many(rv: np.ndarray) -> np.ndarray:
+    """:func:`exp_so3_np` of each row of ``rv`` (M, 3): (M, 3, 3), element by element the same operations."""
+    x, y, z = (np.ascontiguousarray(c) for c in rv.T)
+    ang = np.sqrt(x * x + y * y + z * z)
+    tiny = ang < 1e-9
+    safe = np.where(tiny, 1.0, ang)
+    a = np.where(tiny, 1.0, np.sin(safe) / safe)
+    b = np.where(tiny, 0.5, (1.0 - np.cos(safe)) / (safe * safe))
+    ax, ay, az, bxy, bxz, byz = a * x, a * y, a * z, b * x * y, b * x * z, b * y * z
+    m = np.empty((len(ang), 3, 3))
+    m[:, 0, 0], m[:, 0, 1], m[:, 0, 2] = 1.0 - b * (y * y + z * z), bxy - az, bxz + ay
+    m[:, 1, 0], m[:, 1, 1], m[:, 1, 2] = bxy + az, 1.0 - b * (x * x + z * z), byz - ax
+    m[:, 2, 0], m[:, 2, 1], m[:, 2, 2] = bxz - ay, byz + ax, 1.0 - b * (x * x + y * y)
+    return m
 
 
 @dataclass
@@ -497,6 +598,14 @@ class _LoopState:
     n_restart: int = 0
     n_skipped: int = 0
     c_nm_prev: np.ndarray | None = None  # the master's attitude sampled at the previous epoch
+    #: F of the last segment and H of the last epoch (their constant blocks written once: fill_dynamics_np and
+    #: fill_h_np with constant=False after), Phi and Qd of the last segment (read within the epoch only)
+    f_buf: np.ndarray | None = None
+    h_buf: np.ndarray | None = None
+    phi_buf: np.ndarray | None = None
+    qd_buf: np.ndarray | None = None
+    disc_ws: tuple | None = None  # _discretise_np's work arrays (reference mode; None: the compiled kernel)
+    dynamics_fej: bool = False  # _dynamics_fej of the settings
 
     @classmethod
     def start(cls, inp: AlignInputs, s: FilterSettings) -> "_LoopState":
@@ -505,7 +614,10 @@ class _LoopState:
                    r_hat=r_hat, r_fej=r_hat.copy(), lever=np.array(inp.lever0_m, float), tau=float(inp.tau0_s),
                    x=np.zeros(s.layout.n), P=np.ascontiguousarray(_initial_cov(s)),
                    p0_var=np.asarray(s.p0_sigma, float) ** 2, qc=np.asarray(s.qc, float),
-                   fb_mask=_feedback_mask(s.layout), off=s.layout.offsets.tolist())
+                   fb_mask=_feedback_mask(s.layout), off=s.layout.offsets.tolist(),
+                   phi_buf=np.empty((s.layout.n, s.layout.n)), qd_buf=np.empty((s.layout.n, s.layout.n)),
+                   disc_ws=None if HAVE_NUMBA else discretise_workspace_np(np.asarray(s.qc, float)),
+                   dynamics_fej=_dynamics_fej(s))
 
     def reset(self, sl: slice) -> None:
         """A state block back to its prior (``_reset_block`` of the compiled loop)."""
@@ -531,7 +643,7 @@ def _mid_segment(c_ns, dq):
     return c_ns @ exp_so3(0.5 * _rotvec_nb(dq))
 
 
-def _propagate(st: _LoopState, inp: AlignInputs, s: FilterSettings, k: int, restart: bool
+def _propagate(st: _LoopState, inp: AlignInputs, seg: _Segments, s: FilterSettings, k: int, restart: bool
                ) -> tuple[np.ndarray, np.ndarray]:
     """(Phi, Qd) of segment k-1 -> k from the error dynamics at the segment start; the slave mechanised
     over the segment (st.q, st.v, st.llh). Over a gap in the slave's IMU the error state is not
@@ -539,25 +651,31 @@ def _propagate(st: _LoopState, inp: AlignInputs, s: FilterSettings, k: int, rest
     lay = s.layout
     n = lay.n
     j = k - 1
-    dt = float(inp.seg_dt_s[j])
+    dt = seg.dt_s[j]
     c_ns = _dcm_np(st.q)
     lat, _, h = st.llh.tolist()
     v = st.v
     v0, v1, _ = v.tolist()
-    r_m, r_n = (float(r) for r in earth.radii_m(lat))
+    r_m, r_n = _radii(lat)
     cl, sl_, tl = math.cos(lat), math.sin(lat), math.tan(lat)
-    w_ie = np.array([earth.OMEGA_IE_RAD_S * cl, 0.0, -earth.OMEGA_IE_RAD_S * sl_])
-    w_en = np.array([v1 / (r_n + h), -v0 / (r_m + h), -v1 * tl / (r_n + h)])
+    w_ie = (earth.OMEGA_IE_RAD_S * cl, 0.0, -earth.OMEGA_IE_RAD_S * sl_)
+    w_en = (v1 / (r_n + h), -v0 / (r_m + h), -v1 * tl / (r_n + h))
     mav = np.array([[0.0, 1.0 / (r_n + h), 0.0], [-1.0 / (r_m + h), 0.0, 0.0], [0.0, -tl / (r_n + h), 0.0]])
-    if st.c_nm_prev is not None and _dynamics_fej(s):  # AlignmentConfig.dynamics_fej
+    if st.c_nm_prev is not None and st.dynamics_fej:  # AlignmentConfig.dynamics_fej
         c_ns = st.c_nm_prev @ st.r_fej.T
-    f_n = c_ns @ (inp.seg_dv_b[j] / dt)
-    f_buf = np.zeros((n, n))
-    c_mid = c_ns @ exp_so3_np(0.5 * _rotvec_np(inp.seg_dq[j]))  # as _mid_segment
-    fill_dynamics_np(f_buf, st.off, c_mid, f_n, w_ie, w_en, v, mav, s.flex_beta, 1.0 / s.master_att_tau_s)
-    phi_k = np.empty((n, n))
-    qd_k = np.empty((n, n))
-    discretise_step(f_buf, st.qc, dt, phi_k, qd_k)
+    f_n = c_ns.dot(seg.dv_dt[j])
+    c_mid = c_ns.dot(seg.half_turn[j])  # as _mid_segment
+    first = st.f_buf is None
+    if first:
+        st.f_buf = np.zeros((n, n))
+    f_buf = st.f_buf
+    fill_dynamics_np(f_buf, st.off, c_mid, f_n, w_ie, w_en, v, mav, s.flex_beta, 1.0 / s.master_att_tau_s,
+                     constant=first)
+    phi_k, qd_k = st.phi_buf, st.qd_buf
+    if st.disc_ws is None:
+        discretise_step(f_buf, st.qc, dt, phi_k, qd_k)
+    else:
+        _discretise_np(f_buf, st.qc, dt, phi_k, qd_k, st.disc_ws)
     if restart:  # a gap: the error state is not propagated through unknown motion
         phi_k, qd_k = np.eye(n), np.diag(st.qc * dt)
     nav_step_np(st.q, st.v, st.llh, inp.seg_dq[j], inp.seg_dv_b[j], dt, st.q_new, st.v_new, st.llh_new)
@@ -594,17 +712,36 @@ def _restarts(st: _LoopState, inp: AlignInputs, lay: StateLayout, k: int, restar
         st.n_restart += 1
 
 
-def _measurement(st: _LoopState, inp: AlignInputs, lay: StateLayout, att_only_fej: bool, k: int, ms_k: tuple
-                 ) -> tuple[np.ndarray, np.ndarray]:
-    """(z, H) at epoch k: velocity (master's, lever arm carried) and/or attitude (through the mounting)."""
+def _fixed_terms(st: _LoopState, lay: StateLayout, att_only_fej: bool, cols: tuple, ne: int) -> list:
+    """:func:`_measurement`'s terms that do not depend on the loop's state where the master's samples are
+    known before it (``cols``: MasterSeries.sample_epochs'): the lever arm's velocity C_nm (w x l) where the
+    lever arm is not a state, the first-estimate attitude C_nm R0^T; per epoch (None: worked out in the loop)."""
+    c_nm, _, _, w_m = cols
+    lever_v = c_ref = [None] * ne
+    if lay.uses_vel and lay.lever is None:
+        w = w_m if w_m is not None else np.zeros((ne, 3))
+        lv = np.cross(w, st.lever)  # (as _cross3_np)
+        lever_v = list(lv if c_nm is None else (c_nm @ lv[:, :, None])[:, :, 0])
+    if c_nm is not None and (lay.uses_vel or att_only_fej):
+        c_ref = list(c_nm @ st.r_fej.T)
+    return list(zip(lever_v, c_ref))
+
+
+def _measurement(st: _LoopState, inp: AlignInputs, lay: StateLayout, att_only_fej: bool, k: int, ms_k: tuple,
+                 fixed_k: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(z, H) at epoch k: velocity (master's, lever arm carried) and/or attitude (through the mounting).
+    ``fixed_k``: :func:`_fixed_terms` of the epoch."""
     c_nm, v_m, a_m, w_m = ms_k
+    lever_v, c_ref = fixed_k if fixed_k is not None else (None, None)
     z3, eye3 = _Z3, _EYE3
     c_ns = _dcm_np(st.q)
     zs = []
     if lay.uses_vel:
-        wl = w_m if w_m is not None else z3
-        cm = c_nm if c_nm is not None else eye3
-        zs.append(st.v - v_m - cm @ _cross3_np(wl, st.lever))
+        if lever_v is None:
+            wl = w_m if w_m is not None else z3
+            cm = c_nm if c_nm is not None else eye3
+            lever_v = cm @ _cross3_np(wl, st.lever)
+        zs.append(st.v - v_m - lever_v)
     if lay.uses_att:
         zs.append(att_residual_np(c_ns, c_nm, st.r_hat))
     z = np.concatenate(zs) if len(zs) > 1 else zs[0]
@@ -622,11 +759,14 @@ def _measurement(st: _LoopState, inp: AlignInputs, lay: StateLayout, att_only_fe
     # first-estimate Jacobian: the mounting enters H through the coarse mounting r0, not the running
     # r_hat; feeding back along an unobservable direction would otherwise rotate H and invent
     # information (the EKF inconsistency known from SLAM heading)
-    c_ref = (c_nm @ st.r_fej.T) if c_nm is not None and (lay.uses_vel or att_only_fej) else c_ns
-    h_buf = np.zeros((lay.n_meas, lay.n))
-    fill_h_np(h_buf, st.off, c_ref, c_nm if c_nm is not None else eye3, w_m if w_m is not None else z3,
-              w_ns_n, a_m if a_m is not None else z3)
-    return z, h_buf
+    if c_ref is None:
+        c_ref = (c_nm @ st.r_fej.T) if c_nm is not None and (lay.uses_vel or att_only_fej) else c_ns
+    first = st.h_buf is None
+    if first:
+        st.h_buf = np.zeros((lay.n_meas, lay.n))
+    fill_h_np(st.h_buf, st.off, c_ref, c_nm if c_nm is not None else eye3, w_m if w_m is not None else z3,
+              w_ns_n, a_m if a_m is not None else z3, constant=first)
+    return z, st.h_buf
 
 
 def _diag_view(a: np.ndarray) -> np.ndarray:
@@ -634,27 +774,35 @@ def _diag_view(a: np.ndarray) -> np.ndarray:
     return a.reshape(-1)[:: a.shape[0] + 1]
 
 
-def kf_step_np(x, P, phi, qd, z, H, r_diag, e_out):
-    """numpy :func:`kf_step_nb` (the reference code: the same algebra with LAPACK's Cholesky)."""
+def kf_step_np(x, P, phi, qd, z, H, r_diag, e_out, ws=None):
+    """numpy :func:`kf_step_nb` (the reference code: the same algebra with LAPACK's Cholesky). ``ws``:
+    (diag(r_diag), I) of the loop, made once; adding them adds zeros off the diagonal, so the numbers are
+    those of adding r_diag and 1 on the diagonal."""
     n = x.shape[0]
-    if phi.shape[0] == n:
-        x[:] = phi @ x
-        P[:, :] = phi @ P @ phi.T + qd
-    e = z - H @ x
-    e_out[:] = e
-    ph = P @ H.T
-    s = H @ ph
-    _diag_view(s)[:] += r_diag
-    l, info = _potrf(s, lower=1, clean=1)
+    r_mat, eye = ws if ws is not None else (np.diag(r_diag), np.eye(n))
+    if phi.shape[0] == n:  # (ndarray.dot: numpy's matmul, 0.3-0.5 us less a call on these sizes)
+        x[:] = phi.dot(x)
+        np.dot(phi.dot(P), phi.T, out=P)
+        P += qd
+    e = e_out
+    np.subtract(z, H.dot(x), out=e)
+    ph = P.dot(H.T)
+    s = H.dot(ph)
+    s += r_mat
+    l, info = _potrf(s, lower=1, clean=1, overwrite_a=1)
     if info != 0:  # not positive definite: the compiled loop's clamped factor
-        l = _chol(s)
-    sol, _ = _potrs(l, np.concatenate((ph.T, e[:, None]), axis=1), lower=1)  # S^-1 [H P, e]: one solve
+        l = _chol(H.dot(ph) + r_mat)
+    rhs = np.empty((len(e), n + 1))  # [H P, e]: S^-1 of both in one solve
+    rhs[:, :n] = ph.T
+    rhs[:, n] = e
+    sol, _ = _potrs(l, rhs, lower=1, overwrite_b=1)
     k = sol[:, :n].T
     x += k @ e
-    ikh = -k @ H
-    _diag_view(ikh)[:] += 1.0
-    pp = ikh @ P @ ikh.T + (k * r_diag) @ k.T
-    P[:, :] = 0.5 * (pp + pp.T)
+    ikh = eye - k.dot(H)
+    pp = ikh.dot(P).dot(ikh.T)
+    pp += (k * r_diag).dot(k.T)
+    np.add(pp, pp.T, out=P)
+    P *= 0.5
     return float(e @ sol[:, n])
 
 
@@ -674,11 +822,13 @@ class _Updater:
     weight: np.ndarray | None = None
     gstate: object = None
     hinf: object = None
+    step_ws: tuple | None = None  # kf_step_np's work arrays (reference mode)
 
     @classmethod
     def for_settings(cls, s: FilterSettings) -> "_Updater":
         r_diag = _r_diag(s.layout, s)
-        upd = cls(s.kind, r_diag, np.diag(r_diag), s.hinf_gamma)
+        upd = cls(s.kind, r_diag, np.diag(r_diag), s.hinf_gamma,
+                  step_ws=None if HAVE_NUMBA else (np.diag(r_diag), np.eye(s.layout.n)))
         if s.kind.is_hinf:
             try:
                 from . import hinf as _hinf
@@ -696,7 +846,10 @@ class _Updater:
         """Predict (k > 0) and update st.x, st.P; (prior innovation, NIS, gamma used)."""
         if not self.kind.is_hinf:
             e_buf = np.zeros(len(z))
-            nis_k = kf_step(st.x, st.P, phi_k, qd_k, z, H, self.r_diag, e_buf)
+            if self.step_ws is None:
+                nis_k = kf_step(st.x, st.P, phi_k, qd_k, z, H, self.r_diag, e_buf)
+            else:
+                nis_k = kf_step_np(st.x, st.P, phi_k, qd_k, z, H, self.r_diag, e_buf, self.step_ws)
             return e_buf, nis_k, np.inf
         if k > 0:
             st.x = phi_k @ st.x
@@ -713,12 +866,15 @@ def _feedback(st: _LoopState, lay: StateLayout, delay_bounds_s: tuple[float, flo
     """The error estimates fed back into the nominal and reset to zero; returns what was fed back (the
     smoother's fb; the delay's as clamped to its bounds)."""
     x = st.x
+    xl = x.tolist()
     fb = np.where(st.fb_mask, x, 0.0)
-    st.q = _q_left_rotvec_np(x[lay.att], st.q)
+    a = lay.att.start  # (_q_left_rotvec_np and exp_so3_np on the floats)
+    st.q = _q_left_rotvec_xyz(xl[a], xl[a + 1], xl[a + 2], st.q)
     if lay.vel is not None:
         st.v = st.v - x[lay.vel]
     if lay.mount is not None:
-        st.r_hat = exp_so3_np(-x[lay.mount]) @ st.r_hat
+        m = lay.mount.start
+        st.r_hat = exp_so3_xyz(-xl[m], -xl[m + 1], -xl[m + 2]).dot(st.r_hat)
     if lay.lever is not None:
         st.lever = st.lever + x[lay.lever]
     if lay.delay is not None:
@@ -773,7 +929,7 @@ class _Histories:
     def record_state(self, k: int, x: np.ndarray, P: np.ndarray) -> None:
         """The posterior error state (before feedback) and its variances."""
         self.xs[k] = x
-        self.pd[k] = np.diag(P)
+        self.pd[k] = P.diagonal()
 
     def record(self, k: int, st: _LoopState, lay: StateLayout, c_nm: np.ndarray | None, fb) -> None:
         """The nominal after epoch k's feedback (and the smoother's filtered values)."""

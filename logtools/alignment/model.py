@@ -220,19 +220,31 @@ def skew3(x: float, y: float, z: float) -> np.ndarray:
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
-def fill_dynamics_np(f, off, c_ns, f_n, w_ie, w_en, vel, mav, beta, mk_rate):
-    """:func:`_fill_dynamics` for the reference loop (``off``: the offsets as a list)."""
+def _neg_skew3(x: float, y: float, z: float) -> np.ndarray:
+    """-[v x] of v = (x, y, z) (as ``-skew3``, its zeros negative)."""
+    return np.array([[-0.0, z, -y], [-z, -0.0, x], [y, -x, -0.0]])
+
+
+def fill_dynamics_np(f, off, c_ns, f_n, w_ie, w_en, vel, mav, beta, mk_rate, constant=True):
+    """:func:`_fill_dynamics` for the reference loop (``off``: the offsets as a list; ``w_ie``, ``w_en``: any
+    sequences of 3 floats). ``constant=False``: the blocks that do not change from segment to segment (the
+    Markov and flexure states') are left as they are (the loop's F written over, segment after segment)."""
     a, v, g, acc, _, fa, fr, _, _, _, _, mk, am = off
-    f[a:a + 3, a:a + 3] = -skew3(*(w_ie + w_en).tolist())
+    ie0, ie1, ie2 = w_ie
+    en0, en1, en2 = w_en
+    f[a:a + 3, a:a + 3] = _neg_skew3(ie0 + en0, ie1 + en1, ie2 + en2)
     f[a:a + 3, g:g + 3] = -c_ns
     if v >= 0:
         f_x = skew3(*f_n.tolist())
         f[v:v + 3, a:a + 3] = f_x
-        f[v:v + 3, v:v + 3] = -skew3(*(2.0 * w_ie + w_en).tolist()) + skew3(*vel.tolist()) @ mav
+        f[v:v + 3, v:v + 3] = (_neg_skew3(2.0 * ie0 + en0, 2.0 * ie1 + en1, 2.0 * ie2 + en2)
+                               + skew3(*vel.tolist()).dot(mav))
         f[a:a + 3, v:v + 3] = mav
         f[v:v + 3, acc:acc + 3] = c_ns
         if am >= 0:  # - [f^n x] C_ns alpha
             f[v:v + 3, am:am + 3] = -(f_x @ c_ns)
+    if not constant:
+        return
     if mk >= 0:
         _set_diag3(f, mk, mk, -mk_rate)
     if fa >= 0:
@@ -241,32 +253,39 @@ def fill_dynamics_np(f, off, c_ns, f_n, w_ie, w_en, vel, mav, beta, mk_rate):
         _set_diag3(f, fr, fr, -2.0 * beta)
 
 
-def fill_h_np(h, off, c_ns, c_nm, w_l, w_ns, a_m):
-    """:func:`_fill_h` for the reference loop (``off``: the offsets as a list)."""
+def fill_h_np(h, off, c_ns, c_nm, w_l, w_ns, a_m, constant=True):
+    """:func:`_fill_h` for the reference loop (``off``: the offsets as a list). ``constant=False``: the unit
+    blocks are left as they are (the loop's H written over, epoch after epoch)."""
     a, v, _, _, mo, fa, _, lev, d, uses_vel, uses_att, mk, _ = off
     row = 0
     if uses_vel:
-        _set_diag3(h, 0, v, 1.0)
+        if constant:
+            _set_diag3(h, 0, v, 1.0)
         if lev >= 0:
             h[0:3, lev:lev + 3] = c_nm @ skew3(*w_l.tolist())
         if d >= 0:
             h[0:3, d] = -a_m
         row = 3
     if uses_att:
-        _set_diag3(h, row, a, 1.0)
+        if constant:
+            _set_diag3(h, row, a, 1.0)
         h[row:row + 3, mo:mo + 3] = -c_ns
         if fa >= 0:
             h[row:row + 3, fa:fa + 3] = -c_ns
         if d >= 0:
             h[row:row + 3, d] = w_ns
-        if mk >= 0:
+        if mk >= 0 and constant:
             _set_diag3(h, row, mk, 1.0)
     return h
 
 
 def exp_so3_np(rv: np.ndarray) -> np.ndarray:
     """:func:`exp_so3` for the reference loop."""
-    x, y, z = rv.tolist()
+    return exp_so3_xyz(*rv.tolist())
+
+
+def exp_so3_xyz(x: float, y: float, z: float) -> np.ndarray:
+    """:func:`exp_so3_np` of the rotation vector (x, y, z)."""
     ang = math.sqrt(x * x + y * y + z * z)
     if ang < 1e-9:
         a, b = 1.0, 0.5
@@ -290,7 +309,7 @@ def rotvec_small_np(m: np.ndarray) -> np.ndarray:
 
 def att_residual_np(c_ns_hat: np.ndarray, c_nm: np.ndarray, r_hat: np.ndarray) -> np.ndarray:
     """:func:`att_residual` for the reference loop."""
-    return rotvec_small_np(c_nm @ r_hat.T @ c_ns_hat.T)
+    return rotvec_small_np(c_nm.dot(r_hat.T).dot(c_ns_hat.T))
 
 
 def discretise(f: np.ndarray, qc_diag: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -337,15 +356,26 @@ def _discretise_ws(f, qc, dt, phi, qd, ws):
             qd[i, j] = 0.5 * dt * q[i, j]
 
 
-def _discretise_np(f, qc, dt, phi, qd):
-    """numpy ``_discretise`` (the reference code: same algebra, array operations)."""
-    ft = f * dt
-    n = f.shape[0]
-    phi[:, :] = ft + 0.5 * (ft @ ft)
-    phi.reshape(-1)[:: n + 1] += 1.0
-    q = (phi * qc) @ phi.T
-    q.reshape(-1)[:: n + 1] += qc
-    qd[:, :] = 0.5 * dt * q
+def discretise_workspace_np(qc: np.ndarray) -> tuple:
+    """The work arrays of :func:`_discretise_np` for one run's loop (made once): F T, Phi Qc, I and diag(Qc)."""
+    n = len(qc)
+    return np.empty((n, n)), np.empty((n, n)), np.eye(n), np.diag(np.asarray(qc, float))
+
+
+def _discretise_np(f, qc, dt, phi, qd, ws=None):
+    """numpy ``_discretise`` (the reference code: same algebra, array operations, the same numbers as
+    ``phi = F T + (F T)^2 / 2`` with 1 added on the diagonal, and so on; a unit matrix added adds zeros
+    elsewhere). ``ws``: :func:`discretise_workspace_np`."""
+    ft, pq, eye, qcm = ws if ws is not None else discretise_workspace_np(qc)
+    np.multiply(f, dt, out=ft)
+    np.dot(ft, ft, out=phi)
+    phi *= 0.5
+    phi += ft
+    phi += eye
+    np.multiply(phi, qc, out=pq)
+    np.dot(pq, phi.T, out=qd)
+    qd += qcm
+    qd *= 0.5 * dt
 
 
 #: the discretisation the filter loop calls: compiled, or numpy in reference mode (logtools.jit)
