@@ -365,7 +365,6 @@ def _walk(b, start, end):  # compiled with numba (_walk_kernel); plain Python ot
 
 
 _REC = struct.Struct("<BQ")
-_MSG = struct.Struct("<H4xQ")  # channel id, (sequence), log time
 
 
 def _walk_py(b, start, end):
@@ -374,7 +373,7 @@ def _walk_py(b, start, end):
     nmax = (end - start) // 9 + 1
     cid, t, s, e = (np.empty(nmax, np.int64) for _ in range(4))
     oop, ooff, onxt = (np.empty(nmax, np.int64) for _ in range(3))
-    mc, mt, ms, me, oo, of, on = [], [], [], [], [], [], []
+    ms, me, oo, of, on = [], [], [], [], []  # (a message's channel id and log time gathered after the loop)
     off = start
     err, eoff = 0, end
     while off < end:
@@ -388,10 +387,7 @@ def _walk_py(b, start, end):
             if past or ln < 22:
                 err, eoff = _E_PAST_MSG, off
                 break
-            c, tt = _MSG.unpack_from(b, off + 9)
-            mc.append(c)
-            mt.append(tt - (1 << 64) if tt >= 1 << 63 else tt)
-            ms.append(off + 31)
+            ms.append(off)
             me.append(nxt)
             off = nxt
             continue
@@ -406,9 +402,14 @@ def _walk_py(b, start, end):
             of.append(off)
             on.append(nxt)
         off = nxt
-    m, k = len(mc), len(oo)
-    for arr, vals in ((cid, mc), (t, mt), (s, ms), (e, me), (oop, oo), (ooff, of), (onxt, on)):
+    m, k = len(ms), len(oo)
+    for arr, vals in ((s, ms), (e, me), (oop, oo), (ooff, of), (onxt, on)):
         arr[:len(vals)] = vals
+    if m:  # channel id (u16 at +9) and log time (i64 at +15) of every message, then its data's start
+        raw = np.frombuffer(b, np.uint8)
+        cid[:m] = raw[s[:m, None] + np.arange(9, 11)].view("<u2")[:, 0]
+        t[:m] = raw[s[:m, None] + np.arange(15, 23)].view("<i8")[:, 0]
+        s[:m] += 31
     return m, cid, t, s, e, k, oop, ooff, onxt, err, eoff
 
 

@@ -742,6 +742,57 @@ def test_windowed_walk_python_equals_compiled(tmp_path):
     assert (skipped, resyncs, len(buf) - i) == tuple(whole[1:])
 
 
+def _tlog_variants(tmp_path) -> dict[str, bytes]:
+    path = tmp_path / "unit.tlog"
+    T.write(str(path), make_log(duration_s=1.0))
+    clean = path.read_bytes()
+    frames = getattr(C._walk_tlog_impl, "py_func", C._walk_tlog_impl)(clean)[0]
+    mid = int(frames[len(frames) // 2])
+    late = bytearray(clean)  # every stamp from the middle on 2 min later: a gap (the careful walk's case)
+    for st in frames[frames >= mid]:
+        t = int.from_bytes(late[st:st + 8], "big") + 120_000_000
+        late[st:st + 8] = t.to_bytes(8, "big")
+    flipped = bytearray(clean)
+    flipped[len(clean) // 2] ^= 0x5A
+    return {"clean": clean, "cut": clean[:-5], "flipped": bytes(flipped), "gap": bytes(late),
+            "garbage first": b"\x01\x02\x03" + clean, "stamp back": clean[mid:] + clean[:mid]}
+
+
+def test_the_python_chain_walk_is_the_careful_walk_where_it_answers(tmp_path):
+    """The plain Python code's tlog walk follows the chain of frame sizes and checks the stamps at once
+    (mavlink_common._walk_tlog_chain) and leaves everything else to the careful walk: where it answers, its
+    answer is the careful walk's, whole file or window by window; on an undamaged log it answers."""
+    careful = getattr(C._walk_tlog_part, "py_func", C._walk_tlog_part)
+    answered = set()
+    for name, data in _tlog_variants(tmp_path).items():
+        for window in (None, 997, 5000):
+            i, in_sync, prev_t, found = 0, False, -1, False
+            while True:
+                stop = len(data) if window is None or len(data) - i <= window + 1024 else i + window
+                args = (data, i, stop, in_sync, prev_t, found)
+                ref = careful(*args)
+                got = C._walk_tlog_chain(*args)
+                if got is not None:
+                    answered.add(name)
+                    np.testing.assert_array_equal(got[0], ref[0])
+                    assert tuple(got[1:]) == tuple(ref[1:]), (name, window, i)
+                _, _, _, i, in_sync, prev_t = ref
+                found = found or len(ref[0]) > 0
+                if stop == len(data):
+                    break
+    assert "clean" in answered
+    for name, data in _tlog_variants(tmp_path).items():  # and the whole-file walk of the plain code
+        buf = np.frombuffer(data, np.uint8)
+        ref = getattr(C._walk_tlog_impl, "py_func", C._walk_tlog_impl)(data)
+        chain = C._walk_tlog_chain(data, 0, len(data), False, -1, False)
+        if name == "clean" or name in ("cut", "gap", "garbage first"):  # (a flipped byte in a
+            assert (chain is not None) == (name == "clean"), name  # payload leaves the framing as it was)
+        if chain is not None:
+            np.testing.assert_array_equal(chain[0], ref[0])
+            assert (chain[1], chain[2], len(data) - chain[3]) == tuple(ref[1:])
+        assert len(buf) == len(data)
+
+
 @pytest.mark.parametrize("block", [1, 3, 7, 4096])
 def test_fmt_search_by_blocks_finds_every_header_a_whole_file_search_finds(tmp_path, monkeypatch, block):
     log = make_log(duration_s=2.0)

@@ -687,6 +687,33 @@ def test_a_compressed_chunk_failing_its_crc_is_read_as_far_as_its_message_index_
         mcap_ros.crc_damage_content(bad, data, off)
 
 
+def test_the_python_mcap_record_walk_equals_the_compiled_one(big_files):
+    """mcap_ros._walk_py (the plain Python code's walk of a chunk's records: offsets in the loop, channel
+    ids and log times gathered after it) against the compiled _walk on a real chunk: whole, cut inside a
+    record, a length made to run past the end, an opcode zeroed: the same messages, records and error."""
+    import struct
+
+    numba = pytest.importorskip("numba")
+    data = open(big_files["mcap"], "rb").read()
+    off, ln = _mcap_chunks(data)[1]
+    content = mcap_ros.inflate_chunk(data, off, off + 9 + ln)
+    m, _cid, _t, s, *_ = mcap_ros._walk_kernel()(np.frombuffer(content, np.uint8), 0, len(content))
+    rec = (s[:m] - 31).tolist()
+    long_len = bytearray(content)
+    struct.pack_into("<Q", long_len, rec[m // 2] + 1, len(content))
+    zero_op = bytearray(content)
+    zero_op[rec[m // 3]] = 0
+    compiled = numba.njit(cache=True)(mcap_ros._walk)
+    for name, b in (("whole", content), ("cut", content[:rec[m // 2] + 20]), ("long", bytes(long_len)),
+                    ("opcode", bytes(zero_op)), ("tail", content[rec[5]:])):
+        want = compiled(np.frombuffer(b, np.uint8), 0, len(b))
+        got = mcap_ros._walk_py(b, 0, len(b))
+        k_want, k_got = want[0], got[0]
+        assert k_want == k_got and want[5] == got[5] and want[9:] == got[9:], name
+        for a, c, n in zip(want[1:5] + want[6:9], got[1:5] + got[6:9], (k_want,) * 4 + (want[5],) * 3):
+            np.testing.assert_array_equal(a[:n], c[:n], err_msg=name)
+
+
 def test_mcap_zeroed_stretch_goes_on_at_the_next_chunk_the_summary_lists(big_files, tmp_path):
     """4 KiB zeroed across the end of a chunk and the records after it: the walk met opcode 0 and ignored the
     rest of the file. It now goes on at the next chunk the summary's chunk index lists (parse and export)."""
