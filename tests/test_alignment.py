@@ -222,6 +222,16 @@ def test_the_reference_loops_scalar_helpers_equal_the_kernels():
             sd.nav_step_np(qn, v, llh, dq, dv, 0.01, *out2)
             for o1, o2 in zip(out1, out2):
                 assert np.allclose(o1, o2, rtol=1e-15, atol=1e-15)
+        # the forms worked out for every epoch or segment before the reference loop: its scalar helpers'
+        # numbers bit for bit
+        qs = rng.normal(size=(40, 4)) * np.r_[1.0, scale, scale, scale]
+        rvs = rng.normal(size=(40, 3)) * scale
+        qns = qs / np.linalg.norm(qs, axis=1)[:, None]
+        turns, rots, dcms = kfm._exp_so3_many(rvs), kfm._rotvec_many(qns), kfm.dcm_from_quat(qs)
+        for k in range(40):
+            assert np.array_equal(turns[k], mdl.exp_so3_np(rvs[k]))
+            assert np.array_equal(rots[k], kfm._rotvec_np(qns[k]))
+            assert np.array_equal(dcms[k], kfm._dcm_np(qs[k]))
 
 
 @pytest.mark.parametrize("n,m,predict", [(18, 6, True), (21, 3, True), (12, 6, False)])
@@ -250,6 +260,26 @@ def test_the_filter_loops_workspace_step_equals_the_allocating_one_bit_for_bit(n
         nis1 = kfm.kf_step_nb(x1, p1, phi, qd, z, H, r, e1)
         nis2 = kfm.kf_step_ws(x2, p2, phi, qd, z, H, r, e2, ws)
         assert nis1 == nis2 and np.array_equal(x1, x2) and np.array_equal(p1, p2) and np.array_equal(e1, e2)
+
+
+def test_the_masters_samples_at_every_epoch_at_once_are_its_samples_one_by_one():
+    """MasterSeries.sample_epochs (the reference loop's master where the delay is not a state) against
+    sample() and usable() at each instant, bit for bit: inside, beyond both ends (clamped fractions), on a
+    stamp, with invalid samples and the gyro on its own stamps."""
+    rng = np.random.default_rng(11)
+    t = np.cumsum(rng.uniform(0.01, 0.03, 300))
+    q = rng.normal(size=(300, 4))
+    valid = rng.random(300) > 0.1
+    w_t = np.cumsum(rng.uniform(0.002, 0.006, 1500))
+    ms = kfm.MasterSeries(t, q, rng.normal(size=(300, 3)), rng.normal(size=(300, 3)), rng.normal(size=(1500, 3)),
+                          valid=valid, w_t_s=w_t)
+    at = np.r_[t[0] - 0.5, rng.uniform(t[0], t[-1], 200), t[37], t[-1] + 0.2]
+    usable, cols = ms.sample_epochs(at)
+    for k, tk in enumerate(at.tolist()):
+        one = ms.sample(tk)
+        assert usable[k] == ms.usable(tk)
+        for a, b in zip(cols, one):
+            assert np.array_equal(a[k], b)
 
 
 @pytest.mark.parametrize("n,m,predict", [(18, 6, True), (24, 6, True), (12, 3, False)])

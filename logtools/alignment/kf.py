@@ -28,8 +28,7 @@ from logtools.strapdown import HAVE_NUMBA, _WIE, _radii, nav_step, nav_step_np, 
 from .options import FilterKind
 from .model import (StateLayout, _discretise_np, _discretise_ws, _fill_dynamics, _fill_h, att_residual_np,
                     discretise_step, discretise_workspace, discretise_workspace_np, exp_so3, exp_so3_np,
-                    exp_so3_xyz,
-                    fill_dynamics_np, fill_h_np, rotvec_small)
+                    exp_so3_xyz, fill_dynamics_np, fill_h_np, rotvec_small)
 
 
 
@@ -227,18 +226,6 @@ def _dcm_np(q: np.ndarray) -> np.ndarray:
                      [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
 
 
-def _dcm_many(q: np.ndarray) -> np.ndarray:
-    """:func:`_dcm_np` of each row of ``q`` (K, 4): (K, 3, 3), the same operations element by element."""
-    w, x, y, z = q.T
-    nn = np.sqrt(w * w + x * x + y * y + z * z)
-    w, x, y, z = w / nn, x / nn, y / nn, z / nn
-    m = np.empty((len(q), 3, 3))
-    m[:, 0, 0], m[:, 0, 1], m[:, 0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
-    m[:, 1, 0], m[:, 1, 1], m[:, 1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
-    m[:, 2, 0], m[:, 2, 1], m[:, 2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
-    return m
-
-
 def _q_left_rotvec_np(rv: np.ndarray, q: np.ndarray) -> np.ndarray:
     """:func:`_q_left_rotvec` for the reference loop."""
     return _q_left_rotvec_xyz(*rv.tolist(), q)
@@ -335,7 +322,7 @@ class MasterSeries:
         usable = np.ones(len(t), bool) if self.valid is None else (self.valid[i] & self.valid[i + 1])
         c_nm = v = acc = w = None
         if self.quat is not None:
-            c_nm = _dcm_many(b * self.quat[i] + a * self.quat[i + 1])
+            c_nm = dcm_from_quat(b * self.quat[i] + a * self.quat[i + 1])  # (_dcm_np's numbers)
         if self.vel is not None:
             v = b * self.vel[i] + a * self.vel[i + 1]
             acc = b * self.acc[i] + a * self.acc[i + 1]
@@ -767,11 +754,6 @@ def _measurement(st: _LoopState, inp: AlignInputs, lay: StateLayout, att_only_fe
     fill_h_np(st.h_buf, st.off, c_ref, c_nm if c_nm is not None else eye3, w_m if w_m is not None else z3,
               w_ns_n, a_m if a_m is not None else z3, constant=first)
     return z, st.h_buf
-
-
-def _diag_view(a: np.ndarray) -> np.ndarray:
-    """The diagonal of a C-contiguous square matrix as a writable view."""
-    return a.reshape(-1)[:: a.shape[0] + 1]
 
 
 def kf_step_np(x, P, phi, qd, z, H, r_diag, e_out, ws=None):
