@@ -78,10 +78,61 @@ DEFAULT_TIME = "message"
 
 
 # ---- pymavlink message definitions -> numpy --------------------------------------------------
+DIALECT_MODULE = "pymavlink.dialects.v20.ardupilotmega"
+_TABLE_LAYOUT = 1  # (the cached table's layout: a new one is made when this changes)
+
+
 @lru_cache(maxsize=1)
 def _dialect():
     from pymavlink.dialects.v20 import ardupilotmega
     return ardupilotmega
+
+
+def dialect_table_from_module(mod) -> dict:
+    """What the reader takes from pymavlink's dialect: {"by_id": {id: (name, CRC extra, struct format,
+    field names)}, "by_name": {name: id}} (the MAVLINK_MSG_ID_ constants)."""
+    by_id = {int(mid): (cls.msgname, int(cls.crc_extra), cls.unpacker.format, list(cls.ordered_fieldnames))
+             for mid, cls in mod.mavlink_map.items()}
+    by_name = {k[len("MAVLINK_MSG_ID_"):]: int(v) for k, v in vars(mod).items()
+               if k.startswith("MAVLINK_MSG_ID_") and isinstance(v, int)}
+    return {"by_id": by_id, "by_name": by_name}
+
+
+@lru_cache(maxsize=1)
+def _table() -> dict:
+    """:func:`dialect_table_from_module` of pymavlink's dialect, kept in tapost's cache directory and keyed
+    on the dialect module's file (path, size, modification time): importing the dialect costs about 30 ms of
+    every run that reads a tlog, the table's file about 1 ms. Made (and written, atomically) where it is
+    missing or stale; where the directory cannot be written, made every time."""
+    import importlib.util
+    import json
+    import os
+
+    from logtools import jit
+
+    try:
+        origin = importlib.util.find_spec(DIALECT_MODULE).origin
+        st = os.stat(origin)
+        key = f"{_TABLE_LAYOUT}|{origin}|{st.st_size}|{st.st_mtime_ns}"
+    except (ImportError, AttributeError, OSError, ValueError):
+        return dialect_table_from_module(_dialect())
+    path = os.path.join(jit._cache_home(), "mavlink-dialect.json")
+    try:
+        with open(path) as fh:
+            saved = json.load(fh)
+        if saved.get("key") == key:
+            return {"by_id": {int(k): tuple(v) for k, v in saved["by_id"].items()}, "by_name": saved["by_name"]}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        pass
+    table = dialect_table_from_module(_dialect())
+    try:
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        with atomic_path(path) as tmp, open(tmp, "w") as fh:
+            json.dump({"key": key, "by_id": {str(k): list(v) for k, v in table["by_id"].items()},
+                       "by_name": table["by_name"]}, fh)
+    except OSError:
+        pass
+    return table
 
 
 @dataclass(frozen=True)
@@ -95,16 +146,17 @@ class MsgDef:
 
 @lru_cache(maxsize=None)
 def msgdef_by_id(msgid: int) -> MsgDef | None:
-    cls = _dialect().mavlink_map.get(int(msgid))
-    if cls is None:
+    d = _table()["by_id"].get(int(msgid))
+    if d is None:
         return None
-    dt = dtype_from_struct(cls.unpacker.format, list(cls.ordered_fieldnames))
-    return MsgDef(cls.id, cls.msgname, int(cls.crc_extra), dt, dt.itemsize)
+    name, crc_extra, fmt, names = d
+    dt = dtype_from_struct(fmt, list(names))
+    return MsgDef(int(msgid), name, int(crc_extra), dt, dt.itemsize)
 
 
 @lru_cache(maxsize=None)
 def msgdef(name: str) -> MsgDef:
-    mid = getattr(_dialect(), f"MAVLINK_MSG_ID_{name}", None)
+    mid = _table()["by_name"].get(name)
     d = msgdef_by_id(mid) if mid is not None else None
     if d is None:
         raise KeyError(name)
@@ -113,9 +165,10 @@ def msgdef(name: str) -> MsgDef:
 
 @lru_cache(maxsize=1)
 def _crc_extra_table() -> np.ndarray:
-    tab = np.full(max(_dialect().mavlink_map) + 1, -1, dtype=np.int16)
-    for mid, cls in _dialect().mavlink_map.items():
-        tab[mid] = cls.crc_extra
+    by_id = _table()["by_id"]
+    tab = np.full(max(by_id) + 1, -1, dtype=np.int16)
+    for mid, d in by_id.items():
+        tab[mid] = d[1]
     return tab
 
 

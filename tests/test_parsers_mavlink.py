@@ -828,3 +828,36 @@ def test_a_telemetry_streams_bursts_are_no_gaps_a_dropout_is():
     t = np.concatenate([t[:100], t[100:] + 4.0])
     assert gap_warning("quat (AHRS2)", np.diff(np.round(t * 1e9))) == \
         "quat (AHRS2): 1 gap(s) in stamps, longest 4.461 s"
+
+
+def test_the_dialect_table_is_pymavlinks_read_from_the_cache_and_made_anew_when_stale(tmp_path, monkeypatch):
+    """The reader's table of pymavlink's dialect (id -> name, CRC extra, wire format, field names) is kept in
+    tapost's cache directory (importing the dialect costs about 30 ms a run): made and written the first time,
+    read back as the same table, made anew where the file is stale or unreadable, the message layouts and
+    CRC extras those of pymavlink's classes."""
+    from pymavlink.dialects.v20 import ardupilotmega
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    want = T.dialect_table_from_module(ardupilotmega)
+    path = tmp_path / "tapost" / "mavlink-dialect.json"
+    try:
+        T._table.cache_clear()
+        assert T._table() == want and path.exists()
+        T._table.cache_clear()
+        assert T._table() == want  # (read from the file)
+        for junk in ('{"key": "stale", "by_id": {}, "by_name": {}}', "{not json"):
+            path.write_text(junk)
+            T._table.cache_clear()
+            assert T._table() == want and "stale" not in path.read_text()
+        for cls in (ardupilotmega.MAVLink_highres_imu_message, ardupilotmega.MAVLink_attitude_quaternion_message):
+            T.msgdef.cache_clear()
+            T.msgdef_by_id.cache_clear()
+            d = T.msgdef(cls.msgname)
+            assert (d.id, d.crc_extra, d.wire_len) == (cls.id, cls.crc_extra, C.dtype_from_struct(
+                cls.unpacker.format, list(cls.ordered_fieldnames)).itemsize)
+        T._crc_extra_table.cache_clear()
+        tab = T._crc_extra_table()
+        assert all(tab[mid] == cls.crc_extra for mid, cls in ardupilotmega.mavlink_map.items())
+    finally:
+        for f in (T._table, T.msgdef, T.msgdef_by_id, T._crc_extra_table):
+            f.cache_clear()
