@@ -315,7 +315,7 @@ def _field_tables(n_ids: int):
     from parsers import mavlink_tlog as tl
 
     o = {f: np.full(n_ids, -1, np.int64) for f in ("time_usec", "time_boot_ms", "time_unix_usec")}
-    for mid, cls in tl._dialect().mavlink_map.items():
+    for mid in tl._table()["by_id"]:  # (the dialect's messages, from the reader's cached table)
         d = tl.msgdef_by_id(mid)
         if d is None:
             continue
