@@ -453,7 +453,7 @@ def _walk_tlog_chain(buf, i, stop, in_sync, prev_t, found):
     careful walk's time a record); None where anything else is met (then the careful walk decides, from
     the same place). Its result is the careful walk's wherever it gives one (tests/test_parsers_mavlink.py)."""
     n = len(buf)
-    i0, starts = i, []
+    starts = []
     while i < stop:
         if n - i < 16:
             return None
@@ -471,20 +471,20 @@ def _walk_tlog_chain(buf, i, stop, in_sync, prev_t, found):
     if not starts:
         return np.zeros(0, np.int64), 0, 0, i, in_sync, prev_t
     at = np.asarray(starts, np.int64)
-    t = np.frombuffer(buf, np.uint8)[at[:, None] + np.arange(8)].view(">u8")[:, 0].astype(np.int64)
+    t = gather_rows_np(np.frombuffer(buf, np.uint8), at, 8).view(">u8")[:, 0].astype(np.int64)
     if t.max() >= (1 << 62) or t.min() < 0:
         return None
     back = np.diff(t) if prev_t < 0 else np.diff(t, prepend=prev_t)
     if len(back) and (back.min() < -MAX_BACK_US or back.max() > MAX_BACK_US):
         return None
-    if not in_sync:  # the first record out of sync: the careful walk looks at the next one too
-        j = int(at[0]) + (int(at[1]) - int(at[0]) if len(at) > 1 else i - i0)
-        if j < n and len(at) == 1:
-            if _tlog_frame_size(buf, j, n) < 0:
-                return None
-            t2 = _tlog_stamp(buf, j)
-            if prev_t < 0 and not (int(t[0]) - MAX_BACK_US <= t2 <= int(t[0]) + MAX_FWD_US):
-                return None
+    if not in_sync and len(at) == 1 and i < n:
+        # the first record out of sync: the careful walk looks at the next one too (here, where the chain
+        # ended; a second record of the chain passed the same tests above)
+        if _tlog_frame_size(buf, i, n) < 0:
+            return None
+        t2 = _tlog_stamp(buf, i)
+        if prev_t < 0 and not (int(t[0]) - MAX_BACK_US <= t2 <= int(t[0]) + MAX_FWD_US):
+            return None
     return at, 0, int(not in_sync and found), i, True, int(t[-1])
 
 

@@ -116,7 +116,7 @@ def _table() -> dict:
         key = f"{_TABLE_LAYOUT}|{origin}|{st.st_size}|{st.st_mtime_ns}"
     except (ImportError, AttributeError, OSError, ValueError):
         return dialect_table_from_module(_dialect())
-    path = os.path.join(jit._cache_home(), "mavlink-dialect.json")
+    path = os.path.join(jit.cache_home(), "mavlink-dialect.json")
     try:
         with open(path) as fh:
             saved = json.load(fh)

@@ -406,9 +406,11 @@ def _walk_py(b, start, end):
     for arr, vals in ((s, ms), (e, me), (oop, oo), (ooff, of), (onxt, on)):
         arr[:len(vals)] = vals
     if m:  # channel id (u16 at +9) and log time (i64 at +15) of every message, then its data's start
+        from parsers.restamp import get_bytes
+
         raw = np.frombuffer(b, np.uint8)
-        cid[:m] = raw[s[:m, None] + np.arange(9, 11)].view("<u2")[:, 0]
-        t[:m] = raw[s[:m, None] + np.arange(15, 23)].view("<i8")[:, 0]
+        cid[:m] = get_bytes(raw, s[:m] + 9, 2).view("<u2")[:, 0]
+        t[:m] = get_bytes(raw, s[:m] + 15, 8).view("<i8")[:, 0]
         s[:m] += 31
     return m, cid, t, s, e, k, oop, ooff, onxt, err, eoff
 

@@ -297,8 +297,8 @@ def get_bytes(buf: np.ndarray, offs: np.ndarray, width: int) -> np.ndarray:
     offs = np.asarray(offs, dtype=np.int64)
     if not len(offs):
         return np.zeros((0, width), np.uint8)
-    if not jit.compiled():
-        return np.ascontiguousarray(buf[offs[:, None] + np.arange(width)])
+    if not jit.compiled() or not buf.flags.writeable:  # (the kernel is compiled for writable arrays: a
+        return np.ascontiguousarray(buf[offs[:, None] + np.arange(width)])  # read-only one would compile it)
     _in_bounds(buf, offs, width)
     block = np.empty((len(offs), width), np.uint8)
     _kernel("_get_bytes")(buf, offs, block)

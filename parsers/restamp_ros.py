@@ -935,10 +935,7 @@ def _payload_heads(arr: np.ndarray, s: np.ndarray) -> np.ndarray:
     bytes gets what follows it (or zeros): such a message has no Header (:func:`_apply` skips it)."""
     if len(arr) < 12:
         return np.zeros((len(s), 12), np.uint8)
-    at = np.minimum(s, len(arr) - 12)
-    if not arr.flags.writeable:  # (a cut chunk's inflated bytes: the kernel is compiled for the writable arrays)
-        return np.ascontiguousarray(arr[at[:, None] + np.arange(12)])
-    return get_bytes(arr, at, 12)
+    return get_bytes(arr, np.minimum(s, len(arr) - 12), 12)  # (a cut chunk's inflated bytes: read-only)
 
 
 def _scan_mcap(path: str) -> _McapScan:

@@ -17,9 +17,10 @@ from logtools.latency.prepare import Ctx
 from logtools.resample import Interpolant
 
 
-def _gaps(t_ok: np.ndarray) -> np.ndarray:
-    """Where the instants ``t_ok`` (sorted, s) have a gap: a step beyond max(1 s, 10 of their median steps)."""
-    return np.flatnonzero(np.diff(t_ok) > max(1.0, 10.0 * median_step_s(t_ok)))
+def _gaps(t_ok: np.ndarray, dt: float | None = None) -> np.ndarray:
+    """Where the instants ``t_ok`` (sorted, s) have a gap: a step beyond max(1 s, 10 of their median steps;
+    ``dt``: that median, where the caller has it)."""
+    return np.flatnonzero(np.diff(t_ok) > max(1.0, 10.0 * (median_step_s(t_ok) if dt is None else dt)))
 
 
 def _has_gap(t_ok: np.ndarray) -> bool:
@@ -37,7 +38,7 @@ def drift_windows(ctx: Ctx, t0: float, t1: float, t_ok: np.ndarray | None = None
     if t_ok is not None and len(t_ok) > 1:
         dt = median_step_s(t_ok)
         if in_runs or len(t_ok) * dt < cfg.windows.window_data_fraction * T:
-            cut = _gaps(t_ok)
+            cut = _gaps(t_ok, dt)
             runs = [(float(t_ok[a]), float(t_ok[b])) for a, b in
                     zip(np.concatenate([[0], cut + 1]), np.concatenate([cut, [len(t_ok) - 1]]))]
             runs = [r for r in runs if r[1] - r[0] >= cfg.windows.min_window_s]
