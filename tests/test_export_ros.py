@@ -1233,3 +1233,105 @@ def test_time_field_kernels_equal_the_numpy_code(monkeypatch):
     got = run(True)
     for a, b in zip(got, want):
         np.testing.assert_array_equal(a, b)
+
+
+# ---- the Header stamps' fast path and the chunk-by-chunk stamp writes -----------------------------------
+@pytest.mark.parametrize("n_streams", [4, 40])
+def test_messages_by_stream_are_flatnonzero_of_each_stream(n_streams):
+    conn = np.random.default_rng(n_streams).integers(0, n_streams, 5000)
+    conn[conn == 2] = 1  # (a stream without messages)
+    order, sls, where = rr._by_stream(conn, n_streams)
+    for k in range(n_streams):
+        want = np.flatnonzero(conn == k)
+        assert np.array_equal(where[k], want) and np.array_equal(order[sls[k]], want)
+    assert sls[-1].stop == len(conn)
+
+
+def _apply_both_ways(path: str, shift: ClockShift, monkeypatch, change=None):
+    """``_apply`` on ``path``'s messages (``change(msgs)`` first) as it runs, and with the all-stamped fast
+    path turned off: (new record times, payload bytes after the stamps are written, notes) of each, and
+    whether the fast path answered."""
+    from rosbags.typesys import Stores, get_typestore
+
+    out = []
+    for fast in (True, False):
+        sc = rr._scan_mcap(path)
+        ts = get_typestore(Stores.EMPTY)
+        cids, streams = rr._mcap_streams(sc, ts)
+        msgs, _layout = rr._mcap_msgs(sc, cids)
+        if change is not None:
+            change(msgs)
+        calls = []
+        real = rr._all_stamped
+        monkeypatch.setattr(rr, "_all_stamped", (lambda *a: calls.append(r := real(*a)) or r) if fast
+                            else (lambda *a: None))
+        later: list = []
+        new_log, got, notes = rr._apply(streams, msgs, ts, shift, None, path, later)
+        for patch in later:  # (as the writer writes them, chunk by chunk)
+            for a in range(0, len(got.log_ns), 997):
+                patch.write(got.buf, got.starts, slice(a, min(a + 997, len(got.log_ns))))
+        out.append((new_log, got.buf.copy(), notes, bool(calls) and calls[0] is not None))
+    return out
+
+
+def test_all_stamped_fast_path_gives_the_general_numbers(big, monkeypatch):
+    """An IMU log's topics (every message Header-first, stamped, on one clock): the fast path answers, with
+    the record times, payload bytes and notes of the general path (stream order, medians)."""
+    (a_log, a_buf, a_notes, used), (b_log, b_buf, b_notes, _) = _apply_both_ways(
+        big["mcap"], _shift_for(big["log"]), monkeypatch)
+    assert used
+    assert np.array_equal(a_log, b_log) and np.array_equal(a_buf, b_buf) and a_notes == b_notes
+
+
+def _put_stamp(msgs, i: np.ndarray, value_ns: int) -> None:
+    """Message ``i``'s Header stamp set to ``value_ns`` (little-endian CDR), in its payload and in the scan's
+    heads."""
+    sec, nsec = divmod(int(value_ns), 1_000_000_000)
+    b = np.frombuffer(struct.pack("<II", sec, nsec), np.uint8)
+    for j in np.atleast_1d(i):
+        msgs.buf[msgs.starts[j] + 4:msgs.starts[j] + 12] = b
+        if msgs.heads is not None:
+            msgs.heads[j, 4:12] = b
+
+
+@pytest.mark.parametrize("case", ["an unset stamp", "a stamp a day off", "a topic 20 s off", "stamps 9 s apart"])
+def test_all_stamped_fast_path_declines_what_the_medians_decide(big, monkeypatch, case):
+    """Where a stamp is unset (0), damaged (a day from its record time), or a topic is on another clock, the
+    fast path does not answer and the general path decides as before; stamps within 9 s of one another (the
+    medians' decisions known without them): it answers, with the same numbers."""
+    def change(msgs):
+        k = np.flatnonzero(msgs.conn == msgs.conn[0])
+        if case == "an unset stamp":
+            _put_stamp(msgs, k[5], 0)
+        elif case == "a stamp a day off":
+            _put_stamp(msgs, k[5], int(msgs.log_ns[k[5]]) + 2 * 86_400_000_000_000)
+        elif case == "a topic 20 s off":
+            other = np.flatnonzero(msgs.conn == (msgs.conn[0] + 1) % 3)
+            stamps = rr.rcw.header_stamps(msgs.buf, msgs.starts[other], True)[0]
+            for j, s in zip(other.tolist(), stamps.tolist()):
+                _put_stamp(msgs, j, s + 20_000_000_000)
+        else:
+            stamps = rr.rcw.header_stamps(msgs.buf, msgs.starts[k[:50]], True)[0]
+            for j, s in zip(k[:50].tolist(), stamps.tolist()):
+                _put_stamp(msgs, j, s + 9_000_000_000)
+
+    (a_log, a_buf, a_notes, used), (b_log, b_buf, b_notes, _) = _apply_both_ways(
+        big["mcap"], _shift_for(big["log"]), monkeypatch, change)
+    assert used is (case == "stamps 9 s apart")
+    assert np.array_equal(a_log, b_log) and np.array_equal(a_buf, b_buf) and a_notes == b_notes
+    if case == "a stamp a day off":
+        assert any("more than a day" in n for n in a_notes)
+
+
+def test_mcap_export_input_is_mapped_copy_on_write(tmp_path, slave):
+    """The scan's writable view of the input (uncompressed chunks are patched in it) is a private
+    copy-on-write map: the export of an uncompressed MCAP leaves the file's bytes as they were."""
+    src = str(tmp_path / "plain.mcap")
+    mcap_ros.write(src, slave, compression="none")
+    before = _digest(src)
+    view = rr._private_map(src)
+    assert view.flags.writeable
+    view[:64] = 0
+    st = rr.restamp_mcap(src, str(tmp_path / "out.mcap"), _shift_for(slave))
+    assert _digest(src) == before and st.records > 0 and not st.damage
+    assert rr._private_map(str(tmp_path / "out.mcap")).tobytes()[:8] == mcap_ros.MAGIC
