@@ -1337,8 +1337,9 @@ def run(args: argparse.Namespace) -> int:
     config = read_config(args.config) if args.config else None
     opts, out = options_from({**cli_values(args), "out": args.out}, config)
     progress = Progress()
+    size = input_bytes("analyze", [args.master, args.slave])
+    parallel.small_pair_malloc(size)  # (freed arrays reused from the heap, for the parse too)
     if opts.recording:  # the recording's imports in a child, beside the parse (small inputs: pipelines.parallel)
-        size = input_bytes("analyze", [args.master, args.slave])
         if size is not None and size <= parallel.PREPARED_MAX_INPUT_BYTES:
             parallel.prepare("recording", OUTPUT_MODULES["recording"], setup=RECORDING_CHILD_SETUP)
     out_dir = out or "tapost_out"

@@ -522,8 +522,10 @@ def test_large_inputs_parse_the_larger_file_in_a_child_with_the_same_log(forking
 
 
 def test_large_pairs_fix_the_mmap_threshold_and_the_user_setting_wins(monkeypatch):
-    """From LARGE_PAIR_ROWS rows on, glibc's mmap threshold is fixed at MMAP_THRESHOLD_BYTES; below, or where
-    the user exported MALLOC_MMAP_THRESHOLD_, malloc's policy is left alone; malloc_trim between stages."""
+    """From LARGE_PAIR_ROWS rows on, glibc's mmap threshold is fixed at MMAP_THRESHOLD_BYTES; below, in the
+    CLI's process (forking enabled), at SMALL_PAIR_MMAP_BYTES with the trim threshold at SMALL_PAIR_TRIM_BYTES,
+    and in a Python API caller's process malloc's policy is left alone; where the user exported
+    MALLOC_MMAP_THRESHOLD_ or MALLOC_TRIM_THRESHOLD_, it is left alone too; malloc_trim between stages."""
     calls = []
 
     class FakeLibc:
@@ -535,14 +537,52 @@ def test_large_pairs_fix_the_mmap_threshold_and_the_user_setting_wins(monkeypatc
 
     monkeypatch.setattr(parallel, "_libc", lambda: FakeLibc())
     monkeypatch.delenv("MALLOC_MMAP_THRESHOLD_", raising=False)
+    monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)
+    monkeypatch.setitem(parallel._ENABLED, "on", False)
     parallel.large_arrays_mmapped(parallel.LARGE_PAIR_ROWS - 1)
     assert calls == []
+    parallel.small_pair_malloc(1000)
+    assert calls == []
     parallel.large_arrays_mmapped(parallel.LARGE_PAIR_ROWS)
-    assert calls == [("mallopt", parallel.M_MMAP_THRESHOLD, parallel.MMAP_THRESHOLD_BYTES)]
-    monkeypatch.setenv("MALLOC_MMAP_THRESHOLD_", "131072")
-    parallel.large_arrays_mmapped(10 * parallel.LARGE_PAIR_ROWS)
-    parallel.release_freed_memory()
-    assert calls[1:] == [("malloc_trim", 0)]
+    large = [("mallopt", parallel.M_MMAP_THRESHOLD, parallel.MMAP_THRESHOLD_BYTES),
+             ("mallopt", parallel.M_TRIM_THRESHOLD, parallel.GLIBC_TRIM_THRESHOLD_BYTES)]
+    assert calls == large
+    monkeypatch.setitem(parallel._ENABLED, "on", True)
+    small = [("mallopt", parallel.M_MMAP_THRESHOLD, parallel.SMALL_PAIR_MMAP_BYTES),
+             ("mallopt", parallel.M_TRIM_THRESHOLD, parallel.SMALL_PAIR_TRIM_BYTES)]
+    parallel.large_arrays_mmapped(parallel.LARGE_PAIR_ROWS - 1)
+    assert calls[2:] == small
+    del calls[:]
+    parallel.small_pair_malloc(parallel.SMALL_PAIR_MAX_INPUT_BYTES + 1)
+    parallel.small_pair_malloc(None)
+    assert calls == []
+    parallel.small_pair_malloc(parallel.SMALL_PAIR_MAX_INPUT_BYTES)
+    assert calls == small
+    for name in ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_"):
+        del calls[:]
+        monkeypatch.setenv(name, "131072")
+        parallel.large_arrays_mmapped(10 * parallel.LARGE_PAIR_ROWS)
+        parallel.large_arrays_mmapped(parallel.LARGE_PAIR_ROWS - 1)
+        parallel.release_freed_memory()
+        assert calls == [("malloc_trim", 0)]
+        monkeypatch.delenv(name)
+
+
+def test_malloc_settings_are_accepted_by_glibc():
+    """glibc takes both settings (mallopt returns 1; 32 MB is its largest mmap threshold on 64-bit)."""
+    from parsers.base import glibc
+
+    libc = glibc()
+    if libc is None:
+        pytest.skip("not glibc")
+    import ctypes
+
+    mallopt = libc.mallopt
+    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+    assert ctypes.sizeof(ctypes.c_void_p) != 8 or mallopt(parallel.M_MMAP_THRESHOLD,
+                                                           parallel.SMALL_PAIR_MMAP_BYTES) == 1
+    assert mallopt(parallel.M_TRIM_THRESHOLD, parallel.SMALL_PAIR_TRIM_BYTES) == 1
+    mallopt(parallel.M_TRIM_THRESHOLD, 128 * 1024)  # (back near glibc's default for this test process)
 
 
 @posix_fork
