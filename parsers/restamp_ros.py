@@ -296,7 +296,7 @@ def _apply(streams: list[_Stream], msgs: _Msgs, typestore, shift: ClockShift, se
         ok = msgs.lens[where[k]] >= 12 if short else None
         if ok is not None and not ok.all():
             notes.append(f"{s.topic}: {int((~ok).sum())} messages too short for a header; kept unchanged")
-            pos = np.arange(pos.start, pos.stop)[ok]
+            pos = _positions(pos)[ok]
             if not len(pos):
                 continue
         idx = order[pos]

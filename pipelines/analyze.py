@@ -921,7 +921,7 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
     # -- parse
     t = time.perf_counter()
     master, slave = parse_pair(master_arg, slave_arg, prog, meanwhile=_import_numerics)
-    parallel.large_arrays_mmapped(master.n_imu + master.n_nav + slave.n_imu + slave.n_nav)
+    parallel.malloc_policy(master.n_imu + master.n_nav + slave.n_imu + slave.n_nav)
     parallel.release_freed_memory()  # (each stage's freed temporaries: not carried into the next stage)
     tim["parse"] = time.perf_counter() - t
     relation = stream_relation(master, slave)  # (one comparison of the rates for both checks)

@@ -142,10 +142,10 @@ SMALL_PAIR_MAX_INPUT_BYTES = 400_000_000
 
 
 def small_pair_malloc(input_bytes: int | None) -> None:
-    """The small-pair malloc policy (``large_arrays_mmapped``) from now on, where the inputs' bytes are known
-    and at most SMALL_PAIR_MAX_INPUT_BYTES (the CLI's analyze, before its parse)."""
+    """The small-pair malloc policy (:func:`malloc_policy`) from now on, where the inputs' bytes are known
+    and at most SMALL_PAIR_MAX_INPUT_BYTES (the CLI's analyze, before its parse: its rows not known yet)."""
     if input_bytes is not None and input_bytes <= SMALL_PAIR_MAX_INPUT_BYTES:
-        large_arrays_mmapped(0)
+        malloc_policy(0)  # (no rows known: below LARGE_PAIR_ROWS)
 
 
 def _fork() -> int:
@@ -161,7 +161,7 @@ def _fork() -> int:
             signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
-def large_arrays_mmapped(rows: int) -> None:
+def malloc_policy(rows: int) -> None:
     """glibc's malloc policy for a pair of ``rows`` rows, unless the user set one (``MALLOC_MMAP_THRESHOLD_``
     or ``MALLOC_TRIM_THRESHOLD_``): from LARGE_PAIR_ROWS rows on, MMAP_THRESHOLD_BYTES as its fixed mmap
     threshold; below, in the CLI's own process (``enable``: not a Python API caller's), SMALL_PAIR_MMAP_BYTES

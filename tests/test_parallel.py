@@ -539,18 +539,18 @@ def test_large_pairs_fix_the_mmap_threshold_and_the_user_setting_wins(monkeypatc
     monkeypatch.delenv("MALLOC_MMAP_THRESHOLD_", raising=False)
     monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)
     monkeypatch.setitem(parallel._ENABLED, "on", False)
-    parallel.large_arrays_mmapped(parallel.LARGE_PAIR_ROWS - 1)
+    parallel.malloc_policy(parallel.LARGE_PAIR_ROWS - 1)
     assert calls == []
     parallel.small_pair_malloc(1000)
     assert calls == []
-    parallel.large_arrays_mmapped(parallel.LARGE_PAIR_ROWS)
+    parallel.malloc_policy(parallel.LARGE_PAIR_ROWS)
     large = [("mallopt", parallel.M_MMAP_THRESHOLD, parallel.MMAP_THRESHOLD_BYTES),
              ("mallopt", parallel.M_TRIM_THRESHOLD, parallel.GLIBC_TRIM_THRESHOLD_BYTES)]
     assert calls == large
     monkeypatch.setitem(parallel._ENABLED, "on", True)
     small = [("mallopt", parallel.M_MMAP_THRESHOLD, parallel.SMALL_PAIR_MMAP_BYTES),
              ("mallopt", parallel.M_TRIM_THRESHOLD, parallel.SMALL_PAIR_TRIM_BYTES)]
-    parallel.large_arrays_mmapped(parallel.LARGE_PAIR_ROWS - 1)
+    parallel.malloc_policy(parallel.LARGE_PAIR_ROWS - 1)
     assert calls[2:] == small
     del calls[:]
     parallel.small_pair_malloc(parallel.SMALL_PAIR_MAX_INPUT_BYTES + 1)
@@ -561,8 +561,8 @@ def test_large_pairs_fix_the_mmap_threshold_and_the_user_setting_wins(monkeypatc
     for name in ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_"):
         del calls[:]
         monkeypatch.setenv(name, "131072")
-        parallel.large_arrays_mmapped(10 * parallel.LARGE_PAIR_ROWS)
-        parallel.large_arrays_mmapped(parallel.LARGE_PAIR_ROWS - 1)
+        parallel.malloc_policy(10 * parallel.LARGE_PAIR_ROWS)
+        parallel.malloc_policy(parallel.LARGE_PAIR_ROWS - 1)
         parallel.release_freed_memory()
         assert calls == [("malloc_trim", 0)]
         monkeypatch.delenv(name)
