@@ -25,6 +25,13 @@ _MODULES = (
 
 HEAD_BYTES = 8192
 
+#: what a file's extension says it is, for a file whose content is another format (said, not decided on:
+#: detection is by content). Known without importing the format modules (a Parquet reader would import
+#: pandas, a tlog reader a MAVLink dialect); each module's EXTENSIONS are here (test_registry)
+NAMED_BY_EXTENSION = {".mcap": "mcap", ".bag": "rosbag1", ".db3": "rosbag2", ".yaml": "rosbag2", ".zstd": "rosbag2",
+                      ".ulg": "ulog", ".bin": "dataflash", ".tlog": "tlog", ".parquet": "parquet",
+                      ".pq": "parquet", ".csv": "CSV", ".txt": "CSV"}
+
 
 def iter_formats():
     """The format modules in sniffing order, each imported when it is reached (detecting an MCAP file
@@ -140,6 +147,19 @@ def _named_formats(path: str) -> list[ModuleType]:
     return [m for m in formats() if ext and ext.lower() in (e.lower() for e in m.EXTENSIONS)]
 
 
+def _named_otherwise(path: str, mod: ModuleType) -> str | None:
+    """What to say where a file read as ``mod`` (by its content) is named like another format
+    (``NAMED_BY_EXTENSION``): a log renamed by hand, or another file than the one meant. Not for a ROS 2 bag's
+    storage file (named .mcap or .db3 as its storage plugin writes it)."""
+    ext = os.path.splitext(path)[1].lower()
+    said = NAMED_BY_EXTENSION.get(ext)
+    if (said is None or os.path.isdir(path) or mod.NAME == "rosbag2"
+            or ext in (e.lower() for e in getattr(mod, "EXTENSIONS", ()))):
+        return None
+    return (f"read as {mod.NAME} by its content, though its name ({os.path.basename(path)}) says {said}: "
+            "another file than the one meant?")
+
+
 def _named_like(path: str) -> str:
     """What the file's name suggests, where its content is not that format (a damaged start, mostly)."""
     named = _named_formats(path)
@@ -161,7 +181,9 @@ def load(arg) -> InsLog:
     path, selector = parse_log_arg(arg)
     mod = detect(path)
     try:
-        return mod.load(path, selector)
+        log = mod.load(path, selector)
+        other = _named_otherwise(path, mod)
+        return log.with_streams(meta=log.meta.with_warning(other)) if other else log
     except InputError:
         raise
     except (MemoryError, KeyboardInterrupt):

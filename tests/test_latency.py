@@ -796,6 +796,26 @@ def test_a_latency_beyond_max_lag_is_not_a_confident_wrong_number(scenario, late
     assert "search_widened" not in estimate(ok.master, ok.slave, compare=False).quality
 
 
+def test_a_chance_match_in_the_whole_overlap_is_no_latency():
+    """Two unrelated simulated vehicles (a ship, a car) whose logs overlap: the +-2 s search fits nowhere (cost
+    0.81), and the whole overlap's best lag, 179 s away on 20 s of overlap, fits "far better" at 0.23: a chance
+    match among its many lags, which used to come out as a latency of -179 s with status ok. A widened result
+    must fit as a right lag does (``whole_overlap_max_cost``); the failure says what the wider search found. So
+    must the best lag of a search of the whole overlap asked for (--max-lag auto)."""
+    from logtools import sim
+
+    ship = sim.simulate(sim.scenario_config("ship", seed=3959, duration_s=199.0, master_imu_rate_hz=50.0,
+                                            master_nav_rate_hz=10.0))
+    car = sim.simulate(sim.scenario_config("vehicle", seed=2340, duration_s=80.0, master_imu_rate_hz=100.0,
+                                           master_nav_rate_hz=25.0))
+    with pytest.raises(AnalysisError, match=r"match at no lag searched .*the whole overlap, searched as well, fits "
+                                            r"better at -179\.\d+ s but still poorly .*which is not taken"):
+        estimate(ship.master, car.master, compare=False)
+    with pytest.raises(AnalysisError, match=r"match at no lag of the whole overlap \(the best, -179\.\d+ s, fits "
+                                            r"poorly: normalised cost 0\.23 over 20 s of overlap"):
+        estimate(ship.master, car.master, compare=False, max_lag_s=None)
+
+
 def test_a_physically_impossible_latency_is_an_analysis_error():
     """The final plausibility bound: a latency no two clocks can differ by (a damaged ULog's stamps wrapped
     int64 and --max-lag auto reported -2**64 ns = -1.8e10 s with exit 0), a NaN, or one outside the lags at

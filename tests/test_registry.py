@@ -472,3 +472,27 @@ def test_the_rate_of_a_bursty_stream_is_its_mean_rate_not_the_rate_in_a_burst():
     assert rate_of(regular) == pytest.approx(100.0, rel=0.01)
     gap = np.concatenate([np.arange(1000) * 0.01, 600 + np.arange(200) * 0.01])  # most of the span a gap
     assert rate_of(gap) == pytest.approx(100.0, rel=1e-6)
+
+
+@pytest.mark.parametrize("name", ["unit.mcap", "unit.tlog", "unit.bag", "unit.ulg", "unit.BIN"])
+def test_a_log_named_like_another_format_is_read_by_its_content_and_said(tmp_path, name):
+    """A vendor CSV saved under another format's extension (renamed by hand, or another file than the one
+    meant): read by its content, and its log says so (report.json's warnings); a CSV named .csv says nothing."""
+    for fname in (name, "unit.csv"):
+        p = tmp_path / fname
+        p.write_text(_vendor_text())
+        log = registry.load(str(p))
+        said = [w for w in log.meta.warnings if "by its content" in w]
+        if fname == "unit.csv":
+            assert said == []
+        else:
+            assert said == [f"read as csv-vendor by its content, though its name ({fname}) says "
+                            f"{registry.NAMED_BY_EXTENSION[p.suffix.lower()]}: another file than the one meant?"]
+
+
+def test_every_formats_extensions_are_named():
+    """NAMED_BY_EXTENSION (what a name says, known without importing the readers) holds every reader's
+    extensions, each under that reader's name (CSV for the two CSV readers)."""
+    for mod in registry.formats():
+        for ext in mod.EXTENSIONS:
+            assert registry.NAMED_BY_EXTENSION[ext.lower()] == ("CSV" if mod.NAME.startswith("csv") else mod.NAME)

@@ -95,6 +95,12 @@ class SearchConfig:
     #: a wrong lag 0.1-0.9) -- test_latency
     search_suspect_cost: float = 0.05
     search_widen_gain: float = 0.5  # the whole-overlap result replaces the bounded one below this x its cost
+    #: a whole-overlap search's best lag (--max-lag auto, clocks that cannot be compared, or the widened search
+    #: above, whose result replaces the bounded one only so) is a match only at a cost below this: the whole
+    #: overlap holds far more lags than a bounded window, and a chance match among them is likelier (unrelated
+    #: simulated vehicles matched at 0.23, 0.39 and 0.47 over 20 s of overlap at the lag found), so it must fit
+    #: as a right lag does (the real pairs 1e-4 to 0.065, the worst a car's wheel odometry) -- test_latency
+    whole_overlap_max_cost: float = 0.15
     #: the best lag leaves more than this fraction of the variance unexplained: no match (real pairs 1e-4 to 0.065,
     #: logs of different vehicles 0.91) -- test_latency
     no_match_cost: float = 0.5

@@ -252,7 +252,8 @@ def widened(res: LatencyResult, ctx: Ctx) -> LatencyResult:
     c1 = float(wide.quality.get("vector_cost_min", np.nan)) if wide is not None else np.nan
     # (the bounded search's refinement may walk past the window: where it ended, said as such)
     where = (f"ended at {res.latency_s * 1e3:+.1f} ms" + (", past its edge" if abs(res.latency_s) > max_lag_s else ""))
-    if wide is not None and c1 < ctx.cfg.search.search_widen_gain * c0:
+    better = wide is not None and c1 < ctx.cfg.search.search_widen_gain * c0
+    if better and c1 <= ctx.cfg.search.whole_overlap_max_cost:
         q = dict(wide.quality)
         q["warnings"] = list(q.get("warnings", [])) + [
             f"the search within +-{max_lag_s:g} s {where} and fitted the rates poorly (cost {c0:.3g}) or lay at "
@@ -262,8 +263,15 @@ def widened(res: LatencyResult, ctx: Ctx) -> LatencyResult:
         return replace(wide, quality=q)
     q = dict(res.quality)
     q["search_widened"] = False
-    note = (f"the whole overlap, searched as well, fits no better (cost {c1:.3g} at {wide.latency_s:+.4f} s)"
-            if wide is not None else f"a whole-overlap search could not run ({why})")
+    if better:  # (a far better fit, yet not one a right lag gives: a chance match in the wider search)
+        ov = wide.quality.get("overlap_s")
+        note = (f"the whole overlap, searched as well, fits better at {wide.latency_s:+.4f} s but still poorly (cost "
+                f"{c1:.3g}" + (f" over {ov:.0f} s of overlap" if ov is not None else "") + "; a right lag fits below "
+                f"{ctx.cfg.search.whole_overlap_max_cost:g}), which is not taken")
+        q["search_widened_rejected"] = note
+    else:
+        note = (f"the whole overlap, searched as well, fits no better (cost {c1:.3g} at {wide.latency_s:+.4f} s)"
+                if wide is not None else f"a whole-overlap search could not run ({why})")
     q["warnings"] = list(q.get("warnings", [])) + [
         f"the search within +-{max_lag_s:g} s {where}, at its edge or fitting the rates poorly (cost {c0:.3g}); "
         + note]
@@ -363,9 +371,19 @@ def estimate(master: InsLog, slave: InsLog, *, method: str = "tapost", max_lag_s
                 head = widened(head, ctx)
             cost = float(head.quality.get("vector_cost_min", 0.0))
             if cost > config.search.no_match_cost:
+                wider = head.quality.get("search_widened_rejected")
                 raise AnalysisError(
                     f"the two units' angular rates match at no lag searched (best normalised cost {cost:.2f}; "
-                    "0 = identical, 1 = unrelated): logs of different vehicles or of different times?")
+                    "0 = identical, 1 = unrelated)" + (f"; {wider}" if wider else "")
+                    + ": logs of different vehicles or of different times?")
+            if max_lag_s is None and cost > config.search.whole_overlap_max_cost:
+                ov = head.quality.get("overlap_s")
+                raise AnalysisError(
+                    f"the two units' angular rates match at no lag of the whole overlap (the best, "
+                    f"{head.latency_s:+.4f} s, fits poorly: normalised cost {cost:.2f}"
+                    + (f" over {ov:.0f} s of overlap" if ov is not None else "")
+                    + f"; a right lag fits below {config.search.whole_overlap_max_cost:g}, 0 = identical, 1 = "
+                    "unrelated): logs of different vehicles or of different times?")
             methods[Method.TAPOST.value] = MethodEstimate(head.latency_s, head.sigma_s, "")
     except BaseException:
         for pending in beside_started:
