@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import importlib
 import os
+from dataclasses import replace
 from types import ModuleType
 
 from logtools.errors import InputError
@@ -199,7 +200,9 @@ def inspect_log(path) -> Inventory:
     path = path_arg(path, "the log file", selector=False)
     mod = detect(path)
     try:
-        return mod.inventory(path)
+        inv = mod.inventory(path)
+        other = _named_otherwise(path, mod)
+        return replace(inv, warnings=inv.warnings + (other,)) if other else inv
     except InputError:
         raise
     except Exception as exc:

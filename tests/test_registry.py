@@ -477,17 +477,16 @@ def test_the_rate_of_a_bursty_stream_is_its_mean_rate_not_the_rate_in_a_burst():
 @pytest.mark.parametrize("name", ["unit.mcap", "unit.tlog", "unit.bag", "unit.ulg", "unit.BIN"])
 def test_a_log_named_like_another_format_is_read_by_its_content_and_said(tmp_path, name):
     """A vendor CSV saved under another format's extension (renamed by hand, or another file than the one
-    meant): read by its content, and its log says so (report.json's warnings); a CSV named .csv says nothing."""
+    meant): read by its content, and its log says so (report.json's warnings), as does ``tapost inspect``; a
+    CSV named .csv says nothing."""
     for fname in (name, "unit.csv"):
         p = tmp_path / fname
         p.write_text(_vendor_text())
-        log = registry.load(str(p))
-        said = [w for w in log.meta.warnings if "by its content" in w]
-        if fname == "unit.csv":
-            assert said == []
-        else:
-            assert said == [f"read as csv-vendor by its content, though its name ({fname}) says "
-                            f"{registry.NAMED_BY_EXTENSION[p.suffix.lower()]}: another file than the one meant?"]
+        want = ([] if fname == "unit.csv" else
+                [f"read as csv-vendor by its content, though its name ({fname}) says "
+                 f"{registry.NAMED_BY_EXTENSION[p.suffix.lower()]}: another file than the one meant?"])
+        assert [w for w in registry.load(str(p)).meta.warnings if "by its content" in w] == want
+        assert [w for w in registry.inspect_log(str(p)).warnings if "by its content" in w] == want
 
 
 def test_every_formats_extensions_are_named():
