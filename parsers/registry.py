@@ -148,6 +148,10 @@ def _named_formats(path: str) -> list[ModuleType]:
     return [m for m in formats() if ext and ext.lower() in (e.lower() for e in m.EXTENSIONS)]
 
 
+#: the words of :func:`_named_otherwise`'s warning that mark it (analyze repeats it in a failure's line)
+NAMED_OTHERWISE = "by its content, though its name"
+
+
 def _named_otherwise(path: str, mod: ModuleType) -> str | None:
     """What to say where a file read as ``mod`` (by its content) is named like another format
     (``NAMED_BY_EXTENSION``): a log renamed by hand, or another file than the one meant. Not for a ROS 2 bag's
@@ -157,8 +161,8 @@ def _named_otherwise(path: str, mod: ModuleType) -> str | None:
     if (said is None or os.path.isdir(path) or mod.NAME == "rosbag2"
             or ext in (e.lower() for e in getattr(mod, "EXTENSIONS", ()))):
         return None
-    return (f"read as {mod.NAME} by its content, though its name ({os.path.basename(path)}) says {said}: "
-            "another file than the one meant?")
+    return (f"read as {mod.NAME} {NAMED_OTHERWISE} ({os.path.basename(path)}) says {said}: another file than the "
+            "one meant?")
 
 
 def _named_like(path: str) -> str:

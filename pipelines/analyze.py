@@ -987,6 +987,13 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
                             "fields")
     if failure and units:
         failure += f"; but {'; '.join(units)}"
+    if failure:  # (a log read as another format than its name says: another file than the one meant?)
+        from parsers.registry import NAMED_OTHERWISE
+
+        renamed = [f"the {role} {w}" for role, log in (("master", master), ("slave", slave))
+                   for w in log.meta.warnings if NAMED_OTHERWISE in w]
+        if renamed:
+            failure += "; " + "; ".join(renamed)
     an.failure = failure
     disagrees = _chosen_method_disagrees(an.latency)
     if disagrees:

@@ -167,6 +167,20 @@ def test_explicit_match_the_data_cannot_support(tmp_path, fake_numerics):
     assert "needs the master's attitude" in rep["alignment"]["compensated"]["skipped"]
 
 
+def test_a_failure_names_a_log_read_as_another_format_than_its_name(tmp_path, fake_numerics, capsys):
+    """A slave CSV saved as .mcap (another file than the one meant?): read by its content, and where the latency
+    then fails, the failure's one line says so beside the warning in report.json."""
+    m, s = write_fake_pair(tmp_path, slave_offset_ns=-1_699_999_000 * 10**9)
+    renamed = tmp_path / "slave_unit.mcap"
+    os.replace(s, renamed)
+    rc = main(["analyze", m, str(renamed), "-o", str(tmp_path / "o"), "--no-recording"])
+    err = capsys.readouterr().err.strip().splitlines()
+    said = "the slave read as csv by its content, though its name (slave_unit.mcap) says mcap"
+    assert rc == 1 and len(err) == 1 and "latency failed" in err[0] and said in err[0]
+    rep = json.loads((tmp_path / "o" / "report.json").read_text())
+    assert any(w["stage"] == "parse" and "slave: read as csv by its content" in w["text"] for w in rep["warnings"])
+
+
 def test_no_motion_is_exit_1_one_line(tmp_path, fake_numerics, capsys):
     an = make_fake_analysis(duration_s=20, with_alignment=False)
     still = InsLog(imu=an.master.imu * 0.0, nav=an.master.nav, meta=an.master.meta)
