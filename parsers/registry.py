@@ -187,8 +187,6 @@ def load(arg) -> InsLog:
     mod = detect(path)
     try:
         log = mod.load(path, selector)
-        other = _named_otherwise(path, mod)
-        return log.with_streams(meta=log.meta.with_warning(other)) if other else log
     except InputError:
         raise
     except (MemoryError, KeyboardInterrupt):
@@ -197,6 +195,8 @@ def load(arg) -> InsLog:
         raise InputError(f"cannot read as {mod.NAME}: {type(exc).__name__}: {exc}", path) from exc
     finally:
         release_free_memory()  # the parse's temporaries: not held into the next stage
+    other = _named_otherwise(path, mod)
+    return log.with_streams(meta=log.meta.with_warning(other)) if other else log
 
 
 def inspect_log(path) -> Inventory:
@@ -205,12 +205,12 @@ def inspect_log(path) -> Inventory:
     mod = detect(path)
     try:
         inv = mod.inventory(path)
-        other = _named_otherwise(path, mod)
-        return replace(inv, warnings=inv.warnings + (other,)) if other else inv
     except InputError:
         raise
     except Exception as exc:
         raise InputError(f"cannot read as {mod.NAME}: {type(exc).__name__}: {exc}", path) from exc
+    other = _named_otherwise(path, mod)
+    return replace(inv, warnings=inv.warnings + (other,)) if other else inv
 
 
 def write(path, log: InsLog, fmt: str, **options) -> None:
