@@ -343,11 +343,16 @@ def glitches(old: np.ndarray, unit_ns: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def nonneg_or_glitch(old: np.ndarray, new: np.ndarray, unit_ns: int, what: str, path: str, damage: list[str],
-                     clock: str = "this field's clock") -> np.ndarray:
+                     clock: str = "this field's clock", nbytes: int = 8) -> np.ndarray:
     """``new`` (a time field of one message type, in file order, shifted) where every value is >= 0. A
     negative one at a record whose field is a glitch (:func:`glitches`) keeps its ``old`` value and is
     counted in ``damage``; any other negative value is the clock's limit (the master's clock starting later
-    than ``clock`` can express): one clear error."""
+    than ``clock`` can express): one clear error. So is a value beyond the field's ``nbytes`` (a uint32
+    millisecond field cannot hold UNIX time: a boot-clocked slave put on a master's UNIX clock), which would
+    be written wrapped."""
+    if nbytes < 8 and len(new) and int(new.max()) > (1 << (8 * nbytes)) - 1:
+        raise InputError(f"native export: shifted {what} would be beyond its field ({8 * nbytes}-bit: the "
+                         f"master's clock lies where {clock} cannot express it; export csv/parquet instead)", path)
     neg = new < 0
     if not len(new) or not neg.any():
         return new

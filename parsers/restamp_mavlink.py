@@ -106,7 +106,7 @@ def restamp_dataflash(src: str, dst: str, shift: ClockShift, *, selector=None) -
                 fields_done.add(f"{f.name}.TimeUS")
             if "T" in cols and "TimeUS" not in cols:
                 old = get_le(buf, at("T"), 4)
-                new = nonneg_or_glitch(old, old - k_ms, MS_NS, f"{f.name}.T", src, glitch_notes)
+                new = nonneg_or_glitch(old, old - k_ms, MS_NS, f"{f.name}.T", src, glitch_notes, nbytes=4)
                 put_le(buf, at("T"), new, 4)
                 fields_done.add(f"{f.name}.T")
             for wk_col, ms_col in (("GWk", "GMS"), ("Week", "TimeMS")):
@@ -124,7 +124,7 @@ def restamp_dataflash(src: str, dst: str, shift: ClockShift, *, selector=None) -
         elif "TimeMS" in cols:
             old = get_le(buf, at("TimeMS"), 4)
             new = nonneg_or_glitch(old, old - shift.shift_units(t_a, MS_NS), MS_NS, f"{f.name}.TimeMS", src,
-                                    glitch_notes)
+                                    glitch_notes, nbytes=4)
             put_le(buf, at("TimeMS"), new, 4)
             fields_done.add("TimeMS")
     write_bytes_atomic(dst, buf)
@@ -208,7 +208,8 @@ def _crc_in_buf(buf: np.ndarray, starts: np.ndarray, lengths: np.ndarray, extra:
 def _tlog_kernel(buf, starts, pay, plen, status, msgid, v2, o_usec, o_boot, o_unix, extra, sys_id,
                  lag, add0, add1, receive, lat_s, d, t_ref, thr_us, table):  # pragma: no cover - compiled
     """One pass over the records: receive stamp, message time fields, CRC of changed frames.
-    Returns (changed frames, signed changed frames, first record index whose new stamp is negative or -1,
+    Returns (changed frames, signed changed frames, first record index whose new stamp is negative or beyond its
+    field (time_boot_ms: uint32 ms) or -1,
     fields rewritten as bits: 1 time_usec, 2 time_boot_ms, 4 SYSTEM_TIME)."""
     n = starts.shape[0]
     changed_n = 0
@@ -247,7 +248,7 @@ def _tlog_kernel(buf, starts, pay, plen, status, msgid, v2, o_usec, o_boot, o_un
                 sh = np.int64(np.rint((lat_s + d * ((t_a - t_ref) * 1e-9)) / (1.0 + d) * 1e9))
                 k_ms = (sh + 500000) // 1000000
                 nb = boot - k_ms
-                if nb < 0 and negative < 0:
+                if (nb < 0 or nb > 0xFFFFFFFF) and negative < 0:  # (a uint32 field: beyond it, no wrap)
                     negative = i
                 for k in range(4):
                     buf[p0 + ob + k] = np.uint8((nb >> (8 * k)) & 0xFF)
@@ -276,7 +277,7 @@ def _tlog_kernel(buf, starts, pay, plen, status, msgid, v2, o_usec, o_boot, o_un
                     unit = np.int64(1000000)
                 sh = np.int64(np.rint((lat_s + d * ((t_a - t_ref) * 1e-9)) / (1.0 + d) * 1e9))
                 nv = v - (sh + unit // 2) // unit
-                if nv < 0 and negative < 0:
+                if (nv < 0 or (size == 4 and nv > 0xFFFFFFFF)) and negative < 0:  # (time_boot_ms: uint32)
                     negative = i
                 for k in range(size):
                     buf[p0 + o + k] = np.uint8((nv >> (8 * k)) & 0xFF)
@@ -392,9 +393,9 @@ def restamp_tlog(src: str, dst: str, shift: ClockShift, *, selector=None) -> Res
                         fh.close()
                 buf = out = None  # (no array left viewing the map: it closes as the block ends)
             if negative >= 0:
-                raise InputError(f"native export: a shifted stamp of record {negative} would be negative (the "
-                                 "master's clock starts later than the field's clock can express; export csv/parquet "
-                                 "instead)", src)
+                raise InputError(f"native export: a shifted stamp of record {negative} would be negative or beyond "
+                                 "its field (the master's clock lies where the field's clock cannot express it: a "
+                                 "time_boot_ms holds 49.7 days of milliseconds; export csv/parquet instead)", src)
         finally:
             threads.drain([copied])
     u, c = np.unique(ids[stat == 0], return_counts=True)

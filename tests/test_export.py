@@ -445,6 +445,39 @@ def test_tlog_runs_in_threads_write_the_same_bytes(slaves, pair, tmp_path, monke
     assert not (tmp_path / "neg.tlog").exists()
 
 
+def test_tlog_time_boot_ms_is_never_wrapped(tmp_path):
+    """A slave on its boot clock against a master on UNIX time (the latency ~ -1.7e9 s): its time_boot_ms
+    fields (uint32 ms, 49.7 days) cannot hold the master's clock. The native export used to write them
+    wrapped modulo 2**32; it now refuses with one line (as where a field would go negative), and the CSV is the
+    way out."""
+    from parsers import restamp_mavlink
+
+    boot = sim.simulate(sim.scenario_config("ship", duration_s=12.0, seed=3, latency_s=LAT_S, slave_clock="boot"))
+    src = tmp_path / "boot.tlog"
+    registry.write(str(src), boot.slave, "tlog")
+    before = sha(src)
+    t = boot.truth
+    with pytest.raises(InputError, match="beyond its field .*time_boot_ms holds 49.7 days"):
+        restamp_mavlink.restamp_tlog(str(src), str(tmp_path / "out.tlog"), ClockShift(t.latency_s, 0.0,
+                                                                                      int(t.t_mid_ns)))
+    assert not (tmp_path / "out.tlog").exists() and sha(src) == before
+    assert t.latency_s < -1e9  # (the boot clock's offset from UNIX time: what the fields cannot take)
+
+
+def test_a_shifted_millisecond_field_beyond_32_bits_is_refused():
+    """DataFlash's old TimeMS and GPS T (uint32 ms): a shifted value beyond the field is one clear error, never
+    a value written wrapped (``put_le`` would keep its low 32 bits); within it, the values as they are."""
+    from parsers.restamp import nonneg_or_glitch
+    from parsers.restamp_mavlink import MS_NS
+
+    old = np.array([50_000, 50_010, 50_020], np.int64)
+    ok = nonneg_or_glitch(old, old + 1_000, MS_NS, "IMU.TimeMS", "x.bin", [], nbytes=4)
+    assert ok.tolist() == [51_000, 51_010, 51_020]
+    with pytest.raises(InputError, match=r"x\.bin: native export: shifted IMU\.TimeMS would be beyond its field "
+                                         r"\(32-bit"):
+        nonneg_or_glitch(old, old + 1_700_000_000_000, MS_NS, "IMU.TimeMS", "x.bin", [], nbytes=4)
+
+
 @pytest.mark.parametrize("damaged", [False, True])
 def test_tlog_patched_in_a_mapped_copy_or_written_gives_the_same_bytes(slaves, pair, tmp_path, monkeypatch, damaged):
     """The tlog export patches a kernel-made copy of the input where it lies (a shared map); where the copy
