@@ -18,6 +18,7 @@ import json
 import math
 import numbers
 import os
+import re
 import sys
 import time
 from collections.abc import Callable
@@ -559,18 +560,36 @@ def _has_board_states(res) -> bool:
     return isinstance(res, AlignmentResult) and res.has_board_states
 
 
+def _as_the_latency_read(master: InsLog, slave: InsLog, an: rp.Analysis, opts: AnalyzeOptions
+                         ) -> tuple[InsLog, InsLog | None, InsLog]:
+    """(master, compensated slave, slave at face value) for the alignment and the IMU-to-IMU fit: the logs with
+    the samples the latency replaced as corrupt (``latency.quality.replaced_samples``, ``logtools.latency.spikes``)
+    replaced there too (one gyro sample 0.54 rad/s off put a simulated pair's mounting sigma at 26 arcmin and its
+    lever arm 0.7 m off; 0.018 arcmin and 4 mm without it); else the logs themselves. The outputs (report
+    plots, recording, exports) keep the logs' own values."""
+    replaced = (an.latency.quality or {}).get("replaced_samples") if an.latency is not None else None
+    if not replaced or an.slave_comp is None:
+        return master, an.slave_comp, an.slave_face_value()
+    from logtools.latency.spikes import mend
+
+    master_m, slave_m = mend(master, slave, replaced)
+    return (master_m, numerics_stage("compensate")(slave_m, an.latency, master_m, method=opts.compensation),
+            slave_m.rebased(master_m.meta.t0_ns))
+
+
 def _wants_imu_to_imu(master: InsLog, slave: InsLog) -> bool:
     """The contract: the IMU-to-IMU rotation only where both units log an IMU."""
     return bool((master.has_gyro or master.has_accel) and (slave.has_gyro or slave.has_accel))
 
 
 def _imu_to_imu_sections(master: InsLog, an: rp.Analysis, align_sections: dict, extra: dict,
-                         fit=None) -> None:
+                         fit=None, slave_comp: InsLog | None = None) -> None:
     """``alignment.imu_to_imu`` and ``alignment.consistency`` (DESIGN.md) where both units log an IMU: the
     slave's triads against the master's, on the compensated slave (``fit``: already computed, while the
-    forked child ran); a disagreement with the compensated nav-referenced mounting beyond 3 combined sigma is a
-    warning naming the likely cause."""
-    slave = an.slave_comp
+    forked child ran; ``slave_comp``: the compensated slave as the latency read it, ``_as_the_latency_read``); a
+    disagreement with the compensated nav-referenced mounting beyond 3 combined sigma is a warning naming the
+    likely cause."""
+    slave = an.slave_comp if slave_comp is None else slave_comp
     if not _wants_imu_to_imu(master, an.slave):
         return
     from logtools.alignment.imu_to_imu import consistency, imu_to_imu
@@ -605,6 +624,10 @@ def _fmt_ms(x: float | None) -> str:
 
 #: warnings printed in the summary (all of them are in report.json and report.html)
 SUMMARY_WARNINGS = 8
+
+
+#: the alignment's note of residuals beyond its noise model (``alignment.run``), its factor
+_RESIDUALS_X = re.compile(r"^residuals ([0-9.]+)x larger than the noise model")
 
 
 def summary_lines(rep: dict, paths: dict[str, str | None]) -> list[str]:
@@ -661,6 +684,11 @@ def summary_lines(rep: dict, paths: dict[str, str | None]) -> list[str]:
                 else "settled" if a.get("still_converging") is False else "not converged")
         out.append(f"mounting ({run}, {a['filter']}/{a['match']}): roll pitch yaw = {rpy} deg "
                    f"+/- {sig} (arcmin, 1 sigma), {conv}")
+        far = next((m.group(1) for n in a.get("notes", []) if run == "uncompensated"
+                    for m in [_RESIDUALS_X.search(n)] if m), None)
+        if far is not None:  # (a 1.2 s delay left in put a mounting 160 deg off at a sigma of 0.5 deg)
+            out.append(f"        residuals {far}x its noise model: the delay left in distorts this run; its mounting "
+                       "and sigma show what the delay does, not the mounting")
         if a.get("mounting_not_determined"):
             out.append(f"        not determined (n/a): {', '.join(a['mounting_not_determined'])}: not observable "
                        "with this motion (the value would be its prior)")
@@ -1016,24 +1044,24 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
             extra["compensation"] = {"method": opts.compensation, "skipped": exc.problem}
     tim["compensate"] = time.perf_counter() - t
     t = time.perf_counter()
-    face = an.slave_face_value()
+    master_al, slave_comp_al, face = _as_the_latency_read(master, slave, an, opts)
     runs = {"uncompensated": (face, sub(0.5, 0.7, "alignment (uncompensated)")),
-            "compensated": (an.slave_comp, sub(0.7, 0.9, "alignment (compensated)"))}
+            "compensated": (slave_comp_al, sub(0.7, 0.9, "alignment (compensated)"))}
     run_opts = {"uncompensated": _uncompensated_options(opts, an.slave_comp is not None), "compensated": opts}
     pending = {}
     decision: _BoardDecision | None = None
-    n_imu = master.n_imu + an.slave.n_imu
+    n_imu = master_al.n_imu + an.slave.n_imu
     forked = (runs["uncompensated"][0] is not None and runs["compensated"][0] is not None and parallel.available()
               and n_imu <= parallel.FORK_ALIGNMENT_MAX_SAMPLES)
     imu_fit = None
-    if forked and _wants_imu_to_imu(master, an.slave) and n_imu <= parallel.FORK_IMU_TO_IMU_MAX_SAMPLES:
+    if forked and _wants_imu_to_imu(master_al, an.slave) and n_imu <= parallel.FORK_IMU_TO_IMU_MAX_SAMPLES:
         # the IMU-to-IMU fit in a forked child beside the two runs (the uncompensated one in a second child, the
         # compensated one here), when the logs are short enough for its arrays to sit beside theirs
         # (parallel.FORK_IMU_TO_IMU_MAX_SAMPLES); else here once the runs are done. Forked first: it is the
         # stage's longest part (5 s of the 1 h pair's 11 s of CPU) and needs none of the runs' master series
         from logtools.alignment.imu_to_imu import imu_to_imu
 
-        imu_fit = parallel.submit(imu_to_imu, master, an.slave_comp)
+        imu_fit = parallel.submit(imu_to_imu, master_al, slave_comp_al)
     if forked:
         # the two runs share nothing but their inputs: the uncompensated one in a forked child (CLI only),
         # the master's series prepared before (the child shares them instead of preparing its own). That
@@ -1042,18 +1070,18 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
         # and the run's three passes are the alignment stage's critical path (the sample pair's first run:
         # 0.72 s of Python passes; with the kernels compiled, 0.15 s, while this process, done with the
         # compensated run, only starts the recording: 0.765 -> 0.744 s, medians of 16 whole runs)
-        _prepare_master(master)
+        _prepare_master(master_al)
         if run_opts["uncompensated"] is not opts and _numerics.run_alignment is None:
             # --board-errors auto: the compensated run decides the board's states; the uncompensated one
             # follows its decision in the child (the filter with them, if they join, on the child's own
             # preparation, beside the compensated run's second filter; not rerun here after the children:
             # a consumer board's 1 h pair spent 4.8 s so at the stage's end)
             decision = _BoardDecision()
-            pending["uncompensated"] = parallel.submit(_alignment, master, face, "uncompensated", opts,
+            pending["uncompensated"] = parallel.submit(_alignment, master_al, face, "uncompensated", opts,
                                                        null_progress, an.latency, None, decision, parallel.submit)
             decision.after_fork()
         else:
-            pending["uncompensated"] = parallel.submit(_alignment, master, face, "uncompensated",
+            pending["uncompensated"] = parallel.submit(_alignment, master_al, face, "uncompensated",
                                                        run_opts["uncompensated"], null_progress, an.latency,
                                                        beside=parallel.submit)
     for run, (slog, p) in runs.items():
@@ -1065,7 +1093,7 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
             p(0.0, "")
             decided = decision.send if decision is not None and run == "compensated" else None
             try:
-                pending[run] = _alignment(master, slog, run, run_opts[run], p, an.latency, decided)
+                pending[run] = _alignment(master_al, slog, run, run_opts[run], p, an.latency, decided)
             finally:
                 if decided is not None:
                     decided(False)  # (no decision made: the run failed, or never reached it; else ignored)
@@ -1095,9 +1123,9 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
             board = _has_board_states(pending.get("compensated"))
             if decision is not None:  # (the child followed the decision)
                 if decision.on and not board:
-                    res = _alignment(master, face, run, run_opts[run], null_progress, an.latency)
+                    res = _alignment(master_al, face, run, run_opts[run], null_progress, an.latency)
             elif board and isinstance(res, AlignmentResult):
-                res = _alignment(master, face, run, replace(opts, board_errors="on"), null_progress, an.latency)
+                res = _alignment(master_al, face, run, replace(opts, board_errors="on"), null_progress, an.latency)
         if isinstance(res, AlignmentResult):
             an.alignment[run] = res
             an.align_sections[run] = res
@@ -1106,15 +1134,15 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
             # a master and a slave whose stamps do not overlap at face value (UNIX time against time since
             # boot, or two units' boot clocks) have nothing to align uncompensated: the run does not apply
             # there, which is no shortcoming of the analysis
-            applies = not (run == "uncompensated" and face is not None and not _overlap_s(master, face) > 0)
+            applies = not (run == "uncompensated" and face is not None and not _overlap_s(master_al, face) > 0)
             an.align_sections[run] = rp.alignment_skipped(res, opts.filter, opts.match, applies=applies)
     if "logtools.alignment.run" in sys.modules:  # the runs are done: their master series go
-        sys.modules["logtools.alignment.run"].forget_master(master)
+        sys.modules["logtools.alignment.run"].forget_master(master_al)
     parallel.release_freed_memory()
     if when_aligned is not None and isinstance(imu_fit, parallel.Pending) and not early:
         when_aligned(an)
-    _imu_to_imu_sections(master, an, an.align_sections, extra,
-                         imu_fit.result() if isinstance(imu_fit, parallel.Pending) else None)
+    _imu_to_imu_sections(master_al, an, an.align_sections, extra,
+                         imu_fit.result() if isinstance(imu_fit, parallel.Pending) else None, slave_comp_al)
     parallel.release_freed_memory()
     tim["alignment"] = time.perf_counter() - t
     tim["total"] = time.perf_counter() - t_all

@@ -76,6 +76,11 @@ def test_findings_split_warnings_from_notes_and_merge_a_gap_on_all_channels():
     assert any(t.startswith("compensated: flexure states added") for t in ntext)
     assert len(warns) == 3 and len(notes) == 5
     assert all(set(w) == {"stage", "text"} for w in warns + notes)
+    # ... and the summary says under its mounting that the delay distorts it (not the compensated run)
+    lines = summary_lines({**_report(), "warnings": warns, "notes": notes}, {})
+    i = next(k for k, ln in enumerate(lines) if ln.startswith("mounting (uncompensated"))
+    assert lines[i + 1].strip().startswith("residuals 9.0x its noise model: the delay left in distorts this run")
+    assert sum("the delay left in distorts" in ln for ln in lines) == 1
 
 
 def test_findings_say_too_little_motion_and_not_determined_in_words():

@@ -619,7 +619,7 @@ def test_a_failed_headline_ends_the_comparison_child(forking, monkeypatch):
         started.append(job)
         return job
 
-    def fail(ctx, prog, overlap=False, threads_done=None):
+    def fail(ctx, prog, overlap=False, threads_done=None, co=None):
         threads_done()  # (where the child is forked: no thread of the headline's left)
         raise AnalysisError("the headline's own failure")
 

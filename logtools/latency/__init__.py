@@ -21,6 +21,8 @@ module                open it to change
 ``inputs``            how a unit's angular rate is obtained (gyro, attitude + earth/transport rate), its
                       noise level and motion band, the motion check's figures
 ``prepare``           grids, the common low-pass cutoff, stamp statistics, which sources are used (``Ctx``)
+``spikes``            one unit's isolated IMU samples that the other unit does not show at the coarse lag
+                      (corrupt values), replaced for the fit and said (``estimator.despiked``)
 ``coarse``            the integer-lag search: |w| cross-correlation ("xcorr-norm"), the rotation-solved
                       full-vector cost, periodic alternatives, a window's own search
 ``fit``               the delay problem (``Fit``, Jacobian, residuals) and the first Gauss-Newton fit
@@ -44,7 +46,8 @@ module                open it to change
 ====================  ====================================================================================
 
 tapost's method: (0) each unit's rate on its own uniform grid, zero-phase low-passed at 3x the motion's
-band (at least 4 Hz for the flexure fit, at most a fifth of the common rate); (1) normalised
+band (at least 4 Hz for the flexure fit, at most a fifth of the common rate); (0b) a sample of one unit far
+off its neighbours with nothing alike in the other unit at the coarse lag replaced; (1) normalised
 cross-correlation of |w| (candidates); (2) the rotation- and bias-solved vector cost at every integer lag
 from 18 FFT correlations and a batched Wahba solution; (3) Gauss-Newton on the continuous delay (cubic
 B-spline of the slave), R and b re-solved at each step, the delay's curvature from the cleaner unit's

@@ -65,6 +65,26 @@ class PrepareConfig:
 
 
 @dataclass(frozen=True)
+class SpikeConfig:
+    """Isolated spikes: one unit's IMU sample far off its neighbours while the other unit, at the same instant,
+    shows nothing alike: replaced by its neighbours' mean for the latency (``spikes``)."""
+
+    enabled: bool = True
+    #: a sample's second difference this many robust sigmas above its neighbourhood's (and the whole series'):
+    #: a candidate. The real logs' largest one-unit features stand at 31 (the elevator log's IMU2; its IMU at 4.8
+    #: there), flipped bits of a float at 96-41467 -- test_latency_spikes
+    min_sigmas: float = 50.0
+    #: ... and this many times both neighbours' (an isolated spike's are half its own, of the other sign)
+    isolation: float = 1.5
+    half_width: int = 10  # the neighbourhood: this many samples each side
+    #: the other unit's largest local z near the same instant at most this: nothing there (real impacts stand
+    #: 27-137 high in the other unit too; its noise alone below 5) -- test_latency_spikes
+    other_max_sigmas: float = 6.0
+    #: "near": within this many steps of the slower unit (the coarse lag is good to a grid step)
+    tolerance_steps: float = 2.0
+
+
+@dataclass(frozen=True)
 class SearchConfig:
     """The coarse search, periodic motion and the widened search (``coarse``, ``estimator``)."""
 
@@ -324,6 +344,7 @@ class Stages:
 @dataclass(frozen=True)
 class LatencyConfig:
     prepare: PrepareConfig = field(default_factory=PrepareConfig)
+    spikes: SpikeConfig = field(default_factory=SpikeConfig)
     search: SearchConfig = field(default_factory=SearchConfig)
     refine: RefineConfig = field(default_factory=RefineConfig)
     accel: AccelConfig = field(default_factory=AccelConfig)

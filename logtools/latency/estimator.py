@@ -10,6 +10,7 @@ from logtools.conventions import euler_from_dcm
 from logtools.errors import AnalysisError
 from logtools.inslog import InsLog
 from logtools.latency.beside import Beside
+from logtools.latency import spikes
 from logtools.latency.candidates import fit_all
 from logtools.latency.coarse import Coarse, coarse, xcorr_estimate
 from logtools.latency.config import DEFAULT, LatencyConfig
@@ -153,26 +154,27 @@ def best_instant(rs: RateSigma, V: np.ndarray | None, smp: Samples, fit_drift: b
     return t_best, lat_best, v_best
 
 
-def tapost(ctx: Ctx, progress: Progress, *, overlap: bool = False, threads_done: Callable[[], None] | None = None
-           ) -> tuple[LatencyResult, Coarse]:
+def tapost(ctx: Ctx, progress: Progress, *, overlap: bool = False, threads_done: Callable[[], None] | None = None,
+           co: Coarse | None = None) -> tuple[LatencyResult, Coarse]:
     """tapost's method, stage by stage (the package map names each stage's module). ``overlap``: the velocity
     pair (its interpolants and lever-arm rows: a third of the stage) made in a thread beside the rate fit,
     which it does not need (the same numbers, sooner where a core is free). ``threads_done``: called once no
     thread of this call runs any more (at the velocity stage; at once without the thread), before the rest of
-    the stage: a caller may fork there."""
+    the stage: a caller may fork there. ``co``: the coarse search of this ``ctx`` where it was made already
+    (``despiked``)."""
     pair = Beside(_velocity_pair, ctx) if overlap and ctx.vel_src is not None else None
     if pair is None and threads_done is not None:
         threads_done()
         threads_done = None
     try:
-        return _tapost(ctx, progress, pair, threads_done)
+        return _tapost(ctx, progress, pair, threads_done, co)
     finally:
         if pair is not None:  # (an error before the pair was used: the thread ends before the caller goes on)
             pair.join()
 
 
-def _tapost(ctx: Ctx, progress: Progress, pair: Beside | None, threads_done: Callable[[], None] | None
-            ) -> tuple[LatencyResult, Coarse]:
+def _tapost(ctx: Ctx, progress: Progress, pair: Beside | None, threads_done: Callable[[], None] | None,
+            co: Coarse | None = None) -> tuple[LatencyResult, Coarse]:
     ctx0 = ctx
 
     def prog(f: float, stage: str) -> None:
@@ -182,7 +184,7 @@ def _tapost(ctx: Ctx, progress: Progress, pair: Beside | None, threads_done: Cal
     cfg = ctx.cfg
     motion = check_motion(ctx)
     prog(0.1, "coarse |w| and rotation-solved cost")
-    co = coarse(ctx)
+    co = coarse(ctx) if co is None else co
     prog(0.35, "refinement")
     smp = analysed_window(ctx, co)
     ctx, smp, d_center, noise = first_fit(ctx, co, smp)
@@ -229,6 +231,32 @@ def _tapost(ctx: Ctx, progress: Progress, pair: Beside | None, threads_done: Cal
         cost_lag_s=c_lag, cost=c_val,
         window_centers_s=centers, window_latency_s=lats, mounting_rpy_deg=rpy, t_mid_rel_s=float(t_mid))
     return res, co
+
+
+def despiked(ctx: Ctx, master: InsLog, slave: InsLog, max_lag_s: float | None, *, accelerometers: bool,
+             velocity: bool, cfg: LatencyConfig, threads: bool
+             ) -> tuple[Ctx, InsLog, InsLog, Coarse | None, list[dict]]:
+    """Stage 1b (``spikes``): the IMU samples of one unit far off their neighbours, with nothing alike in the
+    other unit at the coarse lag, replaced by their neighbours' mean, and the pair prepared again from them
+    (said in the warnings); else the same pair. Returns (ctx, master, slave, the coarse search of ctx or None,
+    the replaced samples' records: ``spikes.records``)."""
+    try:
+        check_motion(ctx)
+        co = coarse(ctx)
+    except AnalysisError:  # (tapost's own stages say why)
+        return ctx, master, slave, None, []
+    if co.best_cost > cfg.search.no_match_cost or ctx.master.source != "gyro" or ctx.slave.source != "gyro":
+        return ctx, master, slave, co, []  # (no match: no instant of one unit is known in the other)
+    found = spikes.find(master, slave.rebased(master.meta.t0_ns), co.d0_s, cfg.spikes)
+    if not found:
+        return ctx, master, slave, co, []
+    notes = [spikes.describe(role, found, log.t_imu_s(), log.t0_s)
+             for role, log in (("master", master), ("slave", slave)) if any(r == role for r, _ in found)]
+    replaced = spikes.records(found, {"master": master, "slave": slave})
+    master, slave = spikes.mend(master, slave, replaced)
+    ctx = prepare(master, slave, max_lag_s, accelerometers=accelerometers, velocity=velocity, cfg=cfg,
+                  threads=threads)
+    return replace(ctx, warnings=ctx.warnings + tuple(notes)), master, slave, None, replaced
 
 
 def suspect(res: LatencyResult, max_lag_s: float, cfg: LatencyConfig = DEFAULT) -> bool:
@@ -352,6 +380,10 @@ def estimate(master: InsLog, slave: InsLog, *, method: str = "tapost", max_lag_s
     prog(0.0, "preparing")
     ctx = prepare(master, slave, max_lag_s, accelerometers=accelerometers, velocity=velocity, cfg=config,
                   threads=overlap)
+    co, replaced = None, []
+    if method == Method.TAPOST and config.spikes.enabled:  # (the comparison methods read the same samples)
+        ctx, master, slave, co, replaced = despiked(ctx, master, slave, max_lag_s, accelerometers=accelerometers,
+                                                    velocity=velocity, cfg=config, threads=overlap)
     others = [x for x in METHODS if x != method] if compare else []
     beside_started: list = []
     start_beside = None
@@ -365,7 +397,7 @@ def estimate(master: InsLog, slave: InsLog, *, method: str = "tapost", max_lag_s
     try:
         if method == Method.TAPOST:
             head, _ = tapost(ctx, lambda f, st: prog(0.05 + 0.75 * f, st), overlap=overlap,
-                             threads_done=start_beside)
+                             threads_done=start_beside, co=co)
             if max_lag_s is not None and config.search.search_widen and suspect(head, max_lag_s, config):
                 prog(0.78, "whole-overlap search")
                 head = widened(head, ctx)
@@ -411,5 +443,7 @@ def estimate(master: InsLog, slave: InsLog, *, method: str = "tapost", max_lag_s
                                                              "run at one rate; the compensation applies none)"},
                              t_mid_rel_s=float(0.5 * (g.t_s[0] + g.t_s[-1])))
     check_plausible(head.latency_s, ctx)
+    if replaced:  # (the later stages read the logs so too: ``spikes.mend``)
+        head = replace(head, quality={**head.quality, "replaced_samples": replaced})
     prog(1.0, "done")
     return replace(head, methods={k: methods[k] for k in METHODS if k in methods})
