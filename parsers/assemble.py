@@ -22,6 +22,14 @@ GAP_FACTOR = 5.0
 STRAY_GAP_S = 60.0
 STRAY_GAP_PERIODS = 1000.0
 STRAY_MAX_SAMPLES = 3
+#: ... or of at most this fraction of the stream's samples: a compressed chunk (LZ4, zstd) repeats earlier bytes
+#: by reference, so one flipped bit in a stamp can come out in several messages (an LZ4 ROS 1 bag: 7
+#: consecutive IMU samples 1.0e9 s before the rest of a 7796-sample stream, which the analysis then refused as
+#: "spread over 1004176466 s"); a run so small beyond a minute's gap holds nothing an analysis could use ...
+STRAY_MAX_FRACTION = 0.002
+#: ... and of at most this many samples whatever the stream's length (0.2 % of 4 h at 200 Hz would be 29 s of
+#: data: a stretch recorded before a pause, not a stamp a compressor repeated)
+STRAY_MAX_RUN = 64
 
 
 @dataclass(frozen=True)
@@ -524,10 +532,12 @@ def drop_stray(t_ns: np.ndarray, label: str, warnings: list[str], steps: np.ndar
 
 
 def not_stray(t_ns: np.ndarray, steps: np.ndarray | None = None) -> np.ndarray:
-    """False for samples in runs of at most STRAY_MAX_SAMPLES cut off from longer runs by steps longer
-    than STRAY_GAP_S and STRAY_GAP_PERIODS median periods (``t_ns`` sorted, unique)."""
+    """False for samples in runs of at most max(STRAY_MAX_SAMPLES, STRAY_MAX_FRACTION of the samples up to
+    STRAY_MAX_RUN) cut off from
+    longer runs by steps longer than STRAY_GAP_S and STRAY_GAP_PERIODS median periods (``t_ns`` sorted, unique)."""
     keep = np.ones(len(t_ns), dtype=bool)
-    if len(t_ns) <= STRAY_MAX_SAMPLES + 1:
+    small = max(STRAY_MAX_SAMPLES, min(STRAY_MAX_RUN, int(STRAY_MAX_FRACTION * len(t_ns))))
+    if len(t_ns) <= small + 1:
         return keep
     d = np.diff(t_ns) if steps is None else steps
     thr = max(STRAY_GAP_S * 1e9, STRAY_GAP_PERIODS * float(np.median(d)))
@@ -536,10 +546,10 @@ def not_stray(t_ns: np.ndarray, steps: np.ndarray | None = None) -> np.ndarray:
         return keep
     bounds = np.concatenate([[0], cut, [len(t_ns)]])
     sizes = np.diff(bounds)
-    if sizes.max() <= STRAY_MAX_SAMPLES:
+    if sizes.max() <= small:
         return keep  # nothing but small runs: nothing to tell the stray ones by
     for a, b in zip(bounds[:-1], bounds[1:]):
-        if b - a <= STRAY_MAX_SAMPLES:
+        if b - a <= small:
             keep[a:b] = False
     return keep
 

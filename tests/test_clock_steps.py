@@ -145,6 +145,30 @@ def test_reordering_and_stray_stamps_are_no_clock_step():
     assert any(CLOCK_STEP_WORDS in x and "at sample 12000" in x for x in warns)
 
 
+def test_a_corrupt_stamp_repeated_by_a_compressor_is_stray_too():
+    """One flipped bit of an LZ4 ROS 1 bag came out in 7 consecutive IMU stamps, 1.0e9 s before the other
+    7789 (the compressor copies earlier bytes by reference); the analysis then refused the slave as "spread over
+    1004176466 s". A run that small (at most 0.2 % of the stream) a minute or more from the rest is stray; a
+    run larger than that beyond a pause is kept (logs joined across a pause)."""
+    t = np.arange(7796, dtype=np.int64) * 5_000_000 + T0_NS  # 200 Hz
+    bad = t.copy()
+    bad[:7] -= 1_004_176_466 * 10**9
+    warns: list[str] = []
+    out = clean_stream("gyro", Stream(bad, np.zeros((len(t), 3)), "IMU"), warns)
+    assert np.array_equal(out.t_ns, t[7:])
+    assert any("7 sample(s) with stray stamps dropped" in w for w in warns)
+    paused = t.copy()
+    paused[:40] -= 120 * 10**9  # 0.2 s of data two minutes before the rest: kept (a gap, not stray)
+    warns = []
+    out = clean_stream("gyro", Stream(paused, np.zeros((len(t), 3)), "IMU"), warns)
+    assert len(out.t_ns) == len(t) and not any("stray" in w for w in warns)
+    long = np.arange(200_000, dtype=np.int64) * 5_000_000 + T0_NS  # 1000 s: 0.2 % would be 400 samples
+    long[:100] -= 120 * 10**9  # half a second two minutes before the rest: beyond 64 samples, kept
+    warns = []
+    out = clean_stream("gyro", Stream(long, np.zeros((len(long), 3)), "IMU"), warns)
+    assert len(out.t_ns) == len(long) and not any("stray" in w for w in warns)
+
+
 def test_a_corrupt_stamp_is_dropped_not_taken_for_a_clock_step():
     """One flipped byte of a DataFlash TimeUS put a sample 3.5 s ahead; the stamps after it were taken for a
     clock stepping back, and the part before kept: a quarter of the log lost (bench_damage: DataFlash 0.63,
