@@ -52,6 +52,19 @@ def damage(orig: bytes, kind: str, n: int, rng) -> bytes:
     return bytes(b)
 
 
+def written(d: str, name: str, slave, fmt: str, opts: dict) -> tuple[str, str, bytes]:
+    """The slave written as ``name`` in ``d``: (its path, the file to damage (a ROS 2 bag's storage file), that
+    file's bytes)."""
+    from parsers import registry
+
+    src = os.path.join(d, name)
+    registry.write(src, slave, fmt, **opts)
+    files = ([os.path.join(src, f) for f in os.listdir(src) if not f.endswith(".yaml")]
+             if os.path.isdir(src) else [src])
+    target = max(files, key=os.path.getsize)
+    return src, target, Path(target).read_bytes()
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--copies", type=int, default=20)
@@ -63,19 +76,14 @@ def main(argv=None) -> int:
         return latency_main(a)
     from logtools import sim
     from logtools.errors import InputError
-    from parsers import load, registry
+    from parsers import load
 
     pair = sim.simulate(sim.scenario_config("aircraft", duration_s=40.0, seed=5))
     n_ref = len(pair.slave.imu)
     out: dict = {"copies": a.copies, "kind": a.kind, "bytes": a.bytes, "formats": {}}
     with tempfile.TemporaryDirectory() as d:
         for fmt, name, opts in CASES:
-            src = os.path.join(d, name)
-            registry.write(src, pair.slave, fmt, **opts)
-            files = ([os.path.join(src, f) for f in os.listdir(src) if not f.endswith(".yaml")]
-                     if os.path.isdir(src) else [src])
-            target = max(files, key=os.path.getsize)
-            orig = Path(target).read_bytes()
+            src, target, orig = written(d, name, pair.slave, fmt, opts)
             kept = []
             for seed in range(a.copies):
                 Path(target).write_bytes(damage(orig, a.kind, a.bytes, np.random.default_rng(seed)))
@@ -102,7 +110,7 @@ def latency_main(a) -> int:
     from logtools import sim
     from logtools.errors import AnalysisError, InputError
     from logtools.latency import LatencyConfig, estimate
-    from parsers import load, registry
+    from parsers import load
 
     on = LatencyConfig()
     configs = {"spikes_on": on, "spikes_off": replace(on, spikes=replace(on.spikes, enabled=False))}
@@ -117,12 +125,7 @@ def latency_main(a) -> int:
     out: dict = {"copies": a.copies, "kind": a.kind, "bytes": a.bytes, "formats": {}}
     with tempfile.TemporaryDirectory() as d:
         for fmt, name, opts in CASES:
-            src = os.path.join(d, name)
-            registry.write(src, pair.slave, fmt, **opts)
-            files = ([os.path.join(src, f) for f in os.listdir(src) if not f.endswith(".yaml")]
-                     if os.path.isdir(src) else [src])
-            target = max(files, key=os.path.getsize)
-            orig = Path(target).read_bytes()
+            src, target, orig = written(d, name, pair.slave, fmt, opts)
             ref = {k: estimate(pair.master, load(src), compare=False, config=c) for k, c in configs.items()}
             rows = {k: {"z_truth": [], "drift_error_ppm": [], "moved_sigmas": [], "spike_warnings": 0}
                     for k in configs}
