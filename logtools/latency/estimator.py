@@ -9,8 +9,8 @@ import numpy as np
 from logtools.conventions import euler_from_dcm
 from logtools.errors import AnalysisError
 from logtools.inslog import InsLog
-from logtools.latency.beside import Beside
 from logtools.latency import spikes
+from logtools.latency.beside import Beside
 from logtools.latency.candidates import fit_all
 from logtools.latency.coarse import Coarse, coarse, xcorr_estimate
 from logtools.latency.config import DEFAULT, LatencyConfig
