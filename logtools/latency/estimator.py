@@ -240,14 +240,19 @@ def despiked(ctx: Ctx, master: InsLog, slave: InsLog, max_lag_s: float | None, *
     other unit at the coarse lag, replaced by their neighbours' mean, and the pair prepared again from them
     (said in the warnings); else the same pair. Returns (ctx, master, slave, the coarse search of ctx or None,
     the replaced samples' records: ``spikes.records``)."""
+    if ctx.master.source != "gyro" or ctx.slave.source != "gyro":
+        return ctx, master, slave, None, []
+    cands = spikes.candidates(master, slave.rebased(master.meta.t0_ns), cfg.spikes)
+    if not cands:  # (the common case: no coarse search here, tapost's own runs beside its velocity pair)
+        return ctx, master, slave, None, []
     try:
         check_motion(ctx)
         co = coarse(ctx)
     except AnalysisError:  # (tapost's own stages say why)
         return ctx, master, slave, None, []
-    if co.best_cost > cfg.search.no_match_cost or ctx.master.source != "gyro" or ctx.slave.source != "gyro":
-        return ctx, master, slave, co, []  # (no match: no instant of one unit is known in the other)
-    found = spikes.find(master, slave.rebased(master.meta.t0_ns), co.d0_s, cfg.spikes)
+    if co.best_cost > cfg.search.no_match_cost:  # no match: no instant of one unit is known in the other
+        return ctx, master, slave, co, []
+    found = spikes.alone(cands, co.d0_s, cfg.spikes)
     if not found:
         return ctx, master, slave, co, []
     notes = [spikes.describe(role, found, log.t_imu_s(), log.t0_s)

@@ -131,28 +131,54 @@ def _columns(log: InsLog, names: tuple[str, ...]) -> tuple:
     return tuple(log.imu_columns.data[c] for c in names)
 
 
-def find(master: InsLog, slave: InsLog, lag_s: float, cfg: SpikeConfig
-         ) -> dict[tuple[str, tuple[str, ...]], Spikes]:
-    """Each unit's isolated spikes (gyro; accelerometers where both units have them) that the other unit
-    does not show at the same instant: {(role, triad): Spikes}. ``slave`` on the master's relative clock,
-    where the slave's instant t is the master's t - ``lag_s``."""
+@dataclass(frozen=True)
+class Candidate:
+    """One unit's isolated spikes in one triad, before the other unit is asked (``alone``)."""
+
+    role: str  # "master" | "slave"
+    names: tuple[str, ...]  # the triad's columns (GYRO, ACCEL)
+    own: Triad
+    other: Triad  # the other unit's same triad
+    spikes: Spikes
+
+
+def candidates(master: InsLog, slave: InsLog, cfg: SpikeConfig) -> list[Candidate]:
+    """Each unit's isolated spikes (gyro; accelerometers where both units have them), judged on the unit
+    alone: no lag needed, so none is searched where there are none (the common case). ``slave`` on the master's
+    relative clock."""
     names = [GYRO] + ([ACCEL] if master.has_accel and slave.has_accel else [])
     tm, ts = master.t_imu_s(), slave.t_imu_s()
     if len(tm) < 5 or len(ts) < 5:
-        return {}
-    found = {}
+        return []
+    out = []
     for triad_names in names:
         trm, trs = triad(tm, _columns(master, triad_names)), triad(ts, _columns(slave, triad_names))
-        tol = cfg.tolerance_steps * max(trm.step_s, trs.step_s)
-        for role, own, other, shift in (("master", trm, trs, lag_s), ("slave", trs, trm, -lag_s)):
+        for role, own, other in (("master", trm, trs), ("slave", trs, trm)):
             sp = isolated(own, cfg)
-            if not len(sp.rows):
-                continue
-            zo = other_z(other, own.t[sp.rows] + shift, tol, cfg)
-            alone = zo <= cfg.other_max_sigmas
-            if alone.any():
-                found[(role, triad_names)] = Spikes(sp.rows[alone], sp.z[alone])
+            if len(sp.rows):
+                out.append(Candidate(role, triad_names, own, other, sp))
+    return out
+
+
+def alone(cands: list[Candidate], lag_s: float, cfg: SpikeConfig) -> dict[tuple[str, tuple[str, ...]], Spikes]:
+    """The candidates the other unit does not show at the same instant, where the slave's instant t is the
+    master's t - ``lag_s``: {(role, triad): Spikes}."""
+    found = {}
+    for c in cands:
+        tol = cfg.tolerance_steps * max(c.own.step_s, c.other.step_s)
+        shift = lag_s if c.role == "master" else -lag_s
+        zo = other_z(c.other, c.own.t[c.spikes.rows] + shift, tol, cfg)
+        keep = zo <= cfg.other_max_sigmas
+        if keep.any():
+            found[(c.role, c.names)] = Spikes(c.spikes.rows[keep], c.spikes.z[keep])
     return found
+
+
+def find(master: InsLog, slave: InsLog, lag_s: float, cfg: SpikeConfig
+         ) -> dict[tuple[str, tuple[str, ...]], Spikes]:
+    """``alone(candidates(...))``: each unit's isolated spikes the other unit does not show at the same
+    instant. ``slave`` on the master's relative clock, where the slave's instant t is the master's t - ``lag_s``."""
+    return alone(candidates(master, slave, cfg), lag_s, cfg)
 
 
 def replaced_rows(log: InsLog, spikes: dict[tuple[str, ...], Spikes]) -> InsLog:
