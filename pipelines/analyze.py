@@ -573,8 +573,35 @@ def _as_the_latency_read(master: InsLog, slave: InsLog, an: rp.Analysis, opts: A
     from logtools.latency.spikes import mend
 
     master_m, slave_m = mend(master, slave, replaced)
-    return (master_m, numerics_stage("compensate")(slave_m, an.latency, master_m, method=opts.compensation),
-            slave_m.rebased(master_m.meta.t0_ns))
+    try:
+        comp = numerics_stage("compensate")(slave_m, an.latency, master_m, method=opts.compensation)
+    except AnalysisError:  # (it compensated the slave as logged: the logs themselves then)
+        return master, an.slave_comp, an.slave_face_value()
+    return master_m, comp, slave_m.rebased(master_m.meta.t0_ns)
+
+
+def _velocity_mended(master: InsLog) -> tuple[InsLog, str | None]:
+    """The master with its isolated corrupt velocity samples (``AlignmentConfig.vel_spike_sigmas``,
+    ``vel_spike_min_m_s``) replaced by their neighbours' mean, for the alignment, and the warning that says so;
+    else the master itself and None."""
+    if not master.has_vel:
+        return master, None
+    from logtools.inslog import VEL, Columns
+    from logtools.latency.spikes import isolated_samples
+
+    t, v = master.t_nav_s(), master.nav_columns.values(VEL)
+    rows = isolated_samples(t, v, ALIGNMENT_CONFIG.vel_spike_sigmas, ALIGNMENT_CONFIG.vel_spike_min_m_s)
+    if not len(rows):
+        return master, None
+    off = np.max(np.abs(v[rows] - 0.5 * (v[rows - 1] + v[rows + 1])), axis=1)
+    v[rows] = 0.5 * (v[rows - 1] + v[rows + 1])
+    data = dict(master.nav_columns.data)
+    data.update(zip(VEL, v.T))
+    at = ", ".join(f"{t[i] + master.t0_s:.3f} s" for i in rows[:3]) + (" ..." if len(rows) > 3 else "")
+    return (master.with_streams(nav=Columns(t, data)),
+            f"master: {len(rows)} velocity sample(s) (at {at}; up to {float(off.max()):.3g} m/s) off their "
+            "neighbours and back within one sample, replaced by their neighbours' mean for the alignment "
+            "(corrupt values?)")
 
 
 def _wants_imu_to_imu(master: InsLog, slave: InsLog) -> bool:
@@ -1045,6 +1072,9 @@ def compute(master_arg: str | InsLog, slave_arg: str | InsLog, opts: AnalyzeOpti
     tim["compensate"] = time.perf_counter() - t
     t = time.perf_counter()
     master_al, slave_comp_al, face = _as_the_latency_read(master, slave, an, opts)
+    master_al, said = _velocity_mended(master_al)
+    if said:
+        extra.setdefault("warnings", []).append({"stage": "alignment", "text": said})
     runs = {"uncompensated": (face, sub(0.5, 0.7, "alignment (uncompensated)")),
             "compensated": (slave_comp_al, sub(0.7, 0.9, "alignment (compensated)"))}
     run_opts = {"uncompensated": _uncompensated_options(opts, an.slave_comp is not None), "compensated": opts}

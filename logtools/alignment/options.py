@@ -239,6 +239,15 @@ class AlignmentConfig:
     #: attitude restarts from it at the gap's end
     gap_reset_min_deg: float = JUMP_MIN_DEG
     gap_reset_scale: float = 0.05
+    #: a master velocity sample this many robust sigmas of its stream's second differences above its
+    #: neighbourhood's level (``logtools.latency.spikes.isolated``: and isolated, 1.5x both neighbours'), and at
+    #: least vel_spike_min_m_s off its neighbours' mean, is a corrupt value (no vehicle changes its velocity so
+    #: within one sample and back) and replaced by that mean for the alignment (``pipelines.analyze``). One
+    #: sample 3 m/s off (a flipped mantissa bit, within the parsers' 50 m/s limit) put a simulated pair's
+    #: mounting sigma at 3.9' against 0.028' (the board's states taken on to explain it); the real logs' master
+    #: velocities (every selector of tests/test_realdata_selectors.py) have none -- tests/test_latency_spikes.py
+    vel_spike_sigmas: float = 50.0
+    vel_spike_min_m_s: float = 0.5
     #: a master whose navigation stamps' typical step (conventions.typical_step_s) is beyond this many of
     #: their median step comes in bursts (receive-time stamps, pairs of messages): its noise is measured from
     #: third divided differences at its stamps (run._nav_noise); a regular stream's (ratio about 1, also

@@ -32,9 +32,9 @@ class Triad:
     scale of its second differences."""
 
     t: np.ndarray
-    cols: tuple[np.ndarray, np.ndarray, np.ndarray]
+    cols: tuple[np.ndarray, ...]  # (a triad's three; any k columns of one stream: a quaternion's four)
     step_s: float  # median stamp step
-    scale: np.ndarray  # (3,)
+    scale: np.ndarray  # (k,)
 
 
 def _subsample(n: int) -> int:
@@ -50,7 +50,7 @@ def triad(t: np.ndarray, cols) -> Triad:
     n = len(t)
     k = _subsample(n)
     step = float(np.median(np.diff(t[::k]))) / k if n > 2 * k else float("nan")
-    scale = np.full(3, np.inf)
+    scale = np.full(len(cols), np.inf)
     if n >= 5 and step > 0:
         r = np.arange(1, n - 1, k)
         for j, x in enumerate(cols):
@@ -64,13 +64,13 @@ def triad(t: np.ndarray, cols) -> Triad:
 
 
 def _abs_d2(tr: Triad, rows: np.ndarray) -> np.ndarray:
-    """(len(rows), 3) |second differences| / scale at the given rows (1 .. N-2); 0 where the three stamps
+    """(len(rows), k) |second differences| / scale at the given rows (1 .. N-2); 0 where the three stamps
     around a row are not regular or a value is not finite."""
     t = tr.t
     dt0, dt1 = t[rows] - t[rows - 1], t[rows + 1] - t[rows]
     lo, hi = 0.5 * tr.step_s, 1.5 * tr.step_s
     reg = (dt0 > lo) & (dt0 < hi) & (dt1 > lo) & (dt1 < hi)
-    out = np.empty((len(rows), 3))
+    out = np.empty((len(rows), len(tr.cols)))
     for j, x in enumerate(tr.cols):
         out[:, j] = np.abs(x[rows] - 0.5 * (x[rows - 1] + x[rows + 1])) / tr.scale[j]
     out[~reg | ~np.all(np.isfinite(out), axis=1)] = 0.0
@@ -82,7 +82,7 @@ def _local_z(tr: Triad, rows: np.ndarray, half: int) -> np.ndarray:
     neighbours, which a spike of its own raises, left out), that level at least the series' scale."""
     offs = np.r_[-half:-1, 2:half + 1]
     a = _abs_d2(tr, rows)
-    win = _abs_d2(tr, (rows[:, None] + offs[None, :]).ravel()).reshape(len(rows), len(offs), 3)
+    win = _abs_d2(tr, (rows[:, None] + offs[None, :]).ravel()).reshape(len(rows), len(offs), len(tr.cols))
     loc = np.maximum(1.4826 * np.median(win, axis=1), 1.0)
     return np.max(a / loc, axis=1)
 
@@ -105,11 +105,24 @@ def isolated(tr: Triad, cfg: SpikeConfig) -> Spikes:
     c = c[(c >= h + 1) & (c < n - h - 1)]
     if not len(c):
         return Spikes(c, np.zeros(0))
-    z3 = np.max(_abs_d2(tr, np.concatenate([c - 1, c, c + 1])).reshape(3, len(c), 3), axis=2)
+    z3 = np.max(_abs_d2(tr, np.concatenate([c - 1, c, c + 1])).reshape(3, len(c), len(tr.cols)), axis=2)
     c = c[(z3[1] >= cfg.min_sigmas) & (z3[1] >= cfg.isolation * z3[0]) & (z3[1] >= cfg.isolation * z3[2])]
     zl = _local_z(tr, c, h) if len(c) else np.zeros(0)
     keep = zl >= cfg.min_sigmas
     return Spikes(c[keep], zl[keep])
+
+
+def isolated_samples(t: np.ndarray, values: np.ndarray, min_sigmas: float, min_size: float) -> np.ndarray:
+    """The rows of one stream's samples ``values`` (N, k) at ``t`` that :func:`isolated` finds (at
+    ``min_sigmas``, the default isolation and neighbourhood) and that stand at least ``min_size`` (the values'
+    unit) off their two neighbours' mean: a corrupt value of a quantity that cannot jump and come back
+    within one sample (a navigation output's velocity)."""
+    v = np.asarray(values, dtype=float)
+    if len(v) < 5:
+        return np.zeros(0, dtype=np.intp)
+    rows = isolated(triad(t, tuple(v.T)), SpikeConfig(min_sigmas=min_sigmas)).rows
+    off = np.max(np.abs(v[rows] - 0.5 * (v[rows - 1] + v[rows + 1])), axis=1) if len(rows) else np.zeros(0)
+    return rows[off >= min_size]
 
 
 def other_z(tr: Triad, t_q: np.ndarray, tol_s: float, cfg: SpikeConfig) -> np.ndarray:
