@@ -590,10 +590,9 @@ def _velocity_mended(master: InsLog) -> tuple[InsLog, str | None]:
     from logtools.latency.spikes import isolated_samples
 
     t, v = master.t_nav_s(), master.nav_columns.values(VEL)
-    rows = isolated_samples(t, v, ALIGNMENT_CONFIG.vel_spike_sigmas, ALIGNMENT_CONFIG.vel_spike_min_m_s)
+    rows, off = isolated_samples(t, v, ALIGNMENT_CONFIG.vel_spike_sigmas, ALIGNMENT_CONFIG.vel_spike_min_m_s)
     if not len(rows):
         return master, None
-    off = np.max(np.abs(v[rows] - 0.5 * (v[rows - 1] + v[rows + 1])), axis=1)
     v[rows] = 0.5 * (v[rows - 1] + v[rows + 1])
     data = dict(master.nav_columns.data)
     data.update(zip(VEL, v.T))

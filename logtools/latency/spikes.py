@@ -112,17 +112,19 @@ def isolated(tr: Triad, cfg: SpikeConfig) -> Spikes:
     return Spikes(c[keep], zl[keep])
 
 
-def isolated_samples(t: np.ndarray, values: np.ndarray, min_sigmas: float, min_size: float) -> np.ndarray:
-    """The rows of one stream's samples ``values`` (N, k) at ``t`` that :func:`isolated` finds (at
+def isolated_samples(t: np.ndarray, values: np.ndarray, min_sigmas: float, min_size: float
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, how far off) of one stream's samples ``values`` (N, k) at ``t`` that :func:`isolated` finds (at
     ``min_sigmas``, the default isolation and neighbourhood) and that stand at least ``min_size`` (the values'
-    unit) off their two neighbours' mean: a corrupt value of a quantity that cannot jump and come back
-    within one sample (a navigation output's velocity)."""
+    unit, the largest column) off their two neighbours' mean: corrupt values of a quantity that cannot jump
+    and come back within one sample (a navigation output's velocity)."""
     v = np.asarray(values, dtype=float)
     if len(v) < 5:
-        return np.zeros(0, dtype=np.intp)
+        return np.zeros(0, dtype=np.intp), np.zeros(0)
     rows = isolated(triad(t, tuple(v.T)), SpikeConfig(min_sigmas=min_sigmas)).rows
     off = np.max(np.abs(v[rows] - 0.5 * (v[rows - 1] + v[rows + 1])), axis=1) if len(rows) else np.zeros(0)
-    return rows[off >= min_size]
+    keep = off >= min_size
+    return rows[keep], off[keep]
 
 
 def other_z(tr: Triad, t_q: np.ndarray, tol_s: float, cfg: SpikeConfig) -> np.ndarray:
