@@ -154,28 +154,56 @@ def test_the_alignment_reads_the_mended_logs_and_the_outputs_the_logs_own_values
     assert an.slave_comp.gyro_rad_s()[i, 2] == pytest.approx(g[i, 2])
 
 
-def test_a_corrupt_master_velocity_sample_is_replaced_for_the_alignment():
-    """One master velocity sample 3 m/s off (a flipped mantissa bit: within the parsers' 50 m/s limit) put the
-    compensated mounting's sigma at 3.9' against 0.028' (the board's states taken on to explain it). It is
-    replaced by its neighbours' mean for the alignment, with a warning; the undamaged pair's result is back."""
+def test_a_corrupt_master_velocity_or_attitude_sample_leaves_the_alignment_as_it_was():
+    """One master velocity sample 3 m/s off (a flipped mantissa bit: within the parsers' 50 m/s limit), or one
+    quaternion component 0.05 off (5.7 deg out and back), put the compensated mounting's sigma at 3.9' against
+    0.028' (the board's states taken on to explain the innovations; the attitude's two jumps taken for two EKF
+    resets). The velocity sample is replaced by its neighbours' mean for the alignment, with a warning; the
+    attitude sample is one invalid sample (an update skipped), no reset. The undamaged pair's result is back."""
     from logtools import sim
-    from logtools.inslog import VEL, Columns
+    from logtools.inslog import QUAT, VEL, Columns
     from pipelines.analyze import AnalyzeOptions, compute
 
     p = sim.simulate(sim.scenario_config("aircraft", duration_s=60.0, seed=11, latency_s=0.25, drift_ppm=15.0))
     m = p.master
-    nav = dict(m.nav_columns.data)
     i = len(m.t_nav_s()) // 2
-    vn = np.array(nav[VEL[0]], dtype=float)
-    vn[i] += 3.0
-    nav[VEL[0]] = vn
-    bad = m.with_streams(nav=Columns(m.t_nav_s(), nav))
     opts = AnalyzeOptions(compare=False)
-    ref, an = compute(m, p.slave, opts), compute(bad, p.slave, opts)
-    a, b = ref.alignment["compensated"], an.alignment["compensated"]
-    assert np.allclose(a.mounting_sigma_deg, b.mounting_sigma_deg, rtol=0.05)
-    assert np.allclose(a.mounting_rpy_deg, b.mounting_rpy_deg, atol=0.1 * min(a.mounting_sigma_deg))
-    (w,) = [x["text"] for x in an.extra["warnings"] if "velocity sample" in x["text"]]
-    assert w.startswith("master: 1 velocity sample(s)") and "up to 3 m/s" in w
+    ref = compute(m, p.slave, opts)
+    a = ref.alignment["compensated"]
     assert not [x for x in ref.extra.get("warnings", []) if "velocity sample" in x["text"]]
-    assert an.master.vel_ned_m_s()[1][i, 0] == pytest.approx(vn[i])  # the outputs' master: its own value
+    for cols, delta in ((VEL, 3.0), (QUAT, 0.05)):
+        nav = dict(m.nav_columns.data)
+        x = np.array(nav[cols[1]], dtype=float)
+        x[i] += delta
+        nav[cols[1]] = x
+        an = compute(m.with_streams(nav=Columns(m.t_nav_s(), nav)), p.slave, opts)
+        b = an.alignment["compensated"]
+        assert np.allclose(a.mounting_sigma_deg, b.mounting_sigma_deg, rtol=0.05), cols
+        assert np.allclose(a.mounting_rpy_deg, b.mounting_rpy_deg, atol=0.1 * min(a.mounting_sigma_deg)), cols
+        said = [x["text"] for x in an.extra["warnings"] if "velocity sample" in x["text"]]
+        if cols == VEL:
+            assert len(said) == 1 and said[0].startswith("master: 1 velocity sample(s)") and "up to 3 m/s" in said[0]
+            assert an.master.vel_ned_m_s()[1][i, 1] == pytest.approx(x[i])  # the outputs' master: its own value
+        else:
+            assert not said  # (the attitude is not mended: one update skipped, no reset)
+            assert any(n.startswith("1 of") and "updates skipped" in n for n in b.notes), b.notes
+
+
+def test_an_attitude_sample_off_both_ways_is_one_invalid_sample_not_two_resets():
+    from logtools.conventions import quat_from_rotvec, quat_mul
+    from logtools.navcheck import output_validity
+
+    t = np.arange(0.0, 10.0, 0.02)
+    yaw_rate = 0.3
+    q = quat_from_rotvec(np.column_stack([np.zeros_like(t), np.zeros_like(t), yaw_rate * t]))
+    rate = np.full(len(t) - 1, yaw_rate)
+    valid, resets = output_validity(t, q, rate_at_mid=rate)
+    assert valid.all() and len(resets) == 0
+    off = q.copy()
+    off[200] = quat_mul(q[200:201], quat_from_rotvec(np.array([[0.1, 0.0, 0.0]])))[0]  # 5.7 deg, one sample
+    valid, resets = output_validity(t, off, rate_at_mid=rate)
+    assert np.flatnonzero(~valid).tolist() == [200] and len(resets) == 0
+    step = q.copy()
+    step[200:] = quat_mul(q[200:], quat_from_rotvec(np.tile([[0.1, 0.0, 0.0]], (len(t) - 200, 1))))  # a reset
+    valid, resets = output_validity(t, step, rate_at_mid=rate)
+    assert len(resets) == 1 and abs(resets[0] - 0.5 * (t[199] + t[200])) < 1e-9
