@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from logtools.conventions import DEG, quat_conj, quat_mul, rotvec_from_quat, typical_step_s
+from logtools.conventions import DEG, angle_between_quats, typical_step_s
 from logtools.rows import by_rows
 
 JUMP_MIN_DEG = 2.0
@@ -59,8 +59,7 @@ def output_validity(t: np.ndarray, quat: np.ndarray | None, vel: np.ndarray | No
     valid &= ~run3
     resets = np.zeros(0)
     if quat is not None and n > 3:
-        dq = by_rows(lambda q0, q1: np.linalg.norm(rotvec_from_quat(quat_mul(quat_conj(q0), q1)), axis=1),
-                     quat[:-1], quat[1:])
+        dq = by_rows(angle_between_quats, quat[:-1], quat[1:])
         if rate_at_mid is not None:
             d = np.abs(dq - rate_at_mid * np.diff(t))
             if gap is not None:
@@ -81,8 +80,7 @@ def output_validity(t: np.ndarray, quat: np.ndarray | None, vel: np.ndarray | No
             # sample (a flipped bit of a quaternion), not two resets (which restarted the slave's attitude
             # twice: a simulated pair's mounting sigma 3.9' against 0.028')
             k = np.flatnonzero(jump[:-1] & jump[1:])
-            a02 = by_rows(lambda q0, q2: np.linalg.norm(rotvec_from_quat(quat_mul(quat_conj(q0), q2)), axis=1),
-                          quat[k], quat[k + 2])
+            a02 = by_rows(angle_between_quats, quat[k], quat[k + 2])
             turned = (rate_at_mid[k] * (t[k + 1] - t[k]) + rate_at_mid[k + 1] * (t[k + 2] - t[k + 1]))
             back = k[np.abs(a02 - turned) <= thr]  # (a scalar with a rate)
             valid[back + 1] = False

@@ -533,8 +533,8 @@ def drop_stray(t_ns: np.ndarray, label: str, warnings: list[str], steps: np.ndar
 
 def not_stray(t_ns: np.ndarray, steps: np.ndarray | None = None) -> np.ndarray:
     """False for samples in runs of at most max(STRAY_MAX_SAMPLES, STRAY_MAX_FRACTION of the samples up to
-    STRAY_MAX_RUN) cut off from
-    longer runs by steps longer than STRAY_GAP_S and STRAY_GAP_PERIODS median periods (``t_ns`` sorted, unique)."""
+    STRAY_MAX_RUN) cut off from longer runs by steps longer than STRAY_GAP_S and STRAY_GAP_PERIODS median periods
+    (``t_ns`` sorted, unique)."""
     keep = np.ones(len(t_ns), dtype=bool)
     small = max(STRAY_MAX_SAMPLES, min(STRAY_MAX_RUN, int(STRAY_MAX_FRACTION * len(t_ns))))
     if len(t_ns) <= small + 1:

@@ -586,21 +586,18 @@ def _velocity_mended(master: InsLog) -> tuple[InsLog, str | None]:
     else the master itself and None."""
     if not master.has_vel:
         return master, None
-    from logtools.inslog import VEL, Columns
-    from logtools.latency.spikes import isolated_samples
+    from logtools.inslog import VEL
+    from logtools.latency.spikes import Spikes, instants, isolated_samples, replaced_rows
 
-    t, v = master.t_nav_s(), master.nav_columns.values(VEL)
-    rows, off = isolated_samples(t, v, ALIGNMENT_CONFIG.vel_spike_sigmas, ALIGNMENT_CONFIG.vel_spike_min_m_s)
+    t = master.t_nav_s()
+    rows, off = isolated_samples(t, master.nav_columns.values(VEL), ALIGNMENT_CONFIG.vel_spike_sigmas,
+                                 ALIGNMENT_CONFIG.vel_spike_min_m_s)
     if not len(rows):
         return master, None
-    v[rows] = 0.5 * (v[rows - 1] + v[rows + 1])
-    data = dict(master.nav_columns.data)
-    data.update(zip(VEL, v.T))
-    at = ", ".join(f"{t[i] + master.t0_s:.3f} s" for i in rows[:3]) + (" ..." if len(rows) > 3 else "")
-    return (master.with_streams(nav=Columns(t, data)),
-            f"master: {len(rows)} velocity sample(s) (at {at}; up to {float(off.max()):.3g} m/s) off their "
-            "neighbours and back within one sample, replaced by their neighbours' mean for the alignment "
-            "(corrupt values?)")
+    return (replaced_rows(master, {VEL: Spikes(rows, np.zeros(len(rows)))}, stream="nav"),
+            f"master: {len(rows)} velocity sample(s) (at {instants(t, rows, master.t0_s)}; up to "
+            f"{float(off.max()):.3g} m/s) off their neighbours and back within one sample, replaced by their "
+            "neighbours' mean for the alignment (corrupt values?)")
 
 
 def _wants_imu_to_imu(master: InsLog, slave: InsLog) -> bool:

@@ -196,16 +196,22 @@ def find(master: InsLog, slave: InsLog, lag_s: float, cfg: SpikeConfig
     return alone(candidates(master, slave, cfg), lag_s, cfg)
 
 
-def replaced_rows(log: InsLog, spikes: dict[tuple[str, ...], Spikes]) -> InsLog:
-    """The log with each spike's sample replaced by its two neighbours' mean, per triad ({triad: Spikes})."""
-    imu = log.imu_columns
-    data = dict(imu.data)
-    for triad, sp in spikes.items():
-        for c in triad:
+def replaced_rows(log: InsLog, spikes: dict[tuple[str, ...], Spikes], stream: str = "imu") -> InsLog:
+    """The log with each spike's sample replaced by its two neighbours' mean, per set of columns of ``stream``
+    ("imu" or "nav") ({columns: Spikes})."""
+    cols = log.imu_columns if stream == "imu" else log.nav_columns
+    data = dict(cols.data)
+    for names, sp in spikes.items():
+        for c in names:
             col = np.array(data[c], dtype=float)
             col[sp.rows] = 0.5 * (col[sp.rows - 1] + col[sp.rows + 1])
             data[c] = col
-    return log.with_streams(imu=Columns(imu.t_s, data))
+    return log.with_streams(**{stream: Columns(cols.t_s, data)})
+
+
+def instants(t_s: np.ndarray, rows: np.ndarray, t0_s: float) -> str:
+    """The first three rows' instants on the log's own clock ("at" in a warning)."""
+    return ", ".join(f"{t_s[i] + t0_s:.3f} s" for i in rows[:3]) + (" ..." if len(rows) > 3 else "")
 
 
 SENSORS = {"gyro": GYRO, "accel": ACCEL}
@@ -244,7 +250,7 @@ def describe(role: str, found: dict[tuple[str, tuple[str, ...]], Spikes], t_rel:
         if r != role:
             continue
         what = "gyro" if triad == GYRO else "accelerometer"
-        at = ", ".join(f"{t_rel[i] + t0_s:.3f} s" for i in sp.rows[:3]) + (" ..." if len(sp.rows) > 3 else "")
-        parts.append(f"{len(sp.rows)} {what} sample(s) (at {at}; up to {float(np.max(sp.z)):.0f} local sigmas)")
+        parts.append(f"{len(sp.rows)} {what} sample(s) (at {instants(t_rel, sp.rows, t0_s)}; up to "
+                     f"{float(np.max(sp.z)):.0f} local sigmas)")
     return (f"{role}: " + " and ".join(parts) + " far off their neighbours, with nothing alike in the other unit "
             "at the same instant, replaced by their neighbours' mean in the analysis (corrupt values?)")
