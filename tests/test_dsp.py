@@ -233,6 +233,11 @@ api.xp_capabilities(capabilities_table=table, cpu_only=True)(f)
 print(api.FunctionDoc.__name__, f in table, repr(f.__doc__))
 import scipy.fft
 print(scipy.fft.fft.__doc__.startswith("Compute the 1-D discrete Fourier Transform."))
+from scipy._lib import _util
+import numpy as np, scipy.linalg
+batched = scipy.linalg.det(np.stack([np.eye(2) * 2, np.eye(2) * 4]))
+print(_util.FunctionDoc.__name__, np.allclose(batched, [4.0, 16.0]),
+      "Solve the equation" in scipy.linalg.solve.__doc__)
 '''
 
 _STRICT = '''
@@ -252,11 +257,13 @@ print(api.FunctionDoc is real)
 
 def test_scipys_docstrings_are_kept_as_they_are_in_a_log_commands_process():
     """``cli.keep_scipy_docstrings``: scipy's array-API decorator still records a function's capabilities but
-    leaves its docstring as written (no scraping); where the decorator is not the one known (here: one that
-    reads a section the stand-in does not have), scipy's own scraper is put back."""
+    leaves its docstring as written (no scraping), and its batching decorator still batches (scipy.linalg);
+    where the decorator is not the one known (here: one that reads a section the stand-in does not have),
+    scipy's own scraper is put back."""
     p = subprocess.run([sys.executable, "-c", _PROBE], capture_output=True, text=True, timeout=120)
     assert p.returncode == 0, p.stderr
-    assert p.stdout.strip().splitlines() == ["_DocAsIs True 'One line.\\n\\n    More.\\n    '", "True"]
+    assert p.stdout.strip().splitlines() == ["_DocAsIs True 'One line.\\n\\n    More.\\n    '", "True",
+                                             "_DocAsIs True True"]
     p = subprocess.run([sys.executable, "-c", _STRICT], capture_output=True, text=True, timeout=120)
     assert p.returncode == 0, p.stderr
     assert p.stdout.strip() == "True"
