@@ -85,6 +85,19 @@ def output_validity(t: np.ndarray, quat: np.ndarray | None, vel: np.ndarray | No
             back = k[np.abs(a02 - turned) <= thr]  # (a scalar with a rate)
             valid[back + 1] = False
             jump[back] = jump[back + 1] = False
+        elif rate_at_mid is None and n > 4 and (jump[:-2] & jump[2:]).any():
+            # without a rate, the same sample shows as a change of the increments' size into it and out of it:
+            # jumps on the intervals before and after it (two resets, the sample itself kept). Where its
+            # neighbours' rotation over the two steps is what their own increments make it, it is that one
+            # sample's corruption
+            k = np.flatnonzero(jump[:-2] & jump[2:])
+            k = k[(k >= 1) & (k + 3 <= n - 1)]  # (the neighbours' own increments, k-1 and k+2, exist)
+            a02 = by_rows(angle_between_quats, quat[k], quat[k + 2])
+            turned = dq[k - 1] + dq[k + 2]
+            off = np.minimum(dq[k], dq[k + 1]) > a02 + np.maximum(thr[k], thr[k + 2])  # (out and back)
+            back = k[off & (np.abs(a02 - turned) <= np.maximum(thr[k], thr[k + 2]))]
+            valid[back + 1] = False
+            jump[back] = jump[back + 1] = jump[back + 2] = False
         if jump.any():
             k = np.nonzero(jump)[0]
             resets = 0.5 * (t[k] + t[k + 1])

@@ -207,3 +207,53 @@ def test_an_attitude_sample_off_both_ways_is_one_invalid_sample_not_two_resets()
     step[200:] = quat_mul(q[200:], quat_from_rotvec(np.tile([[0.1, 0.0, 0.0]], (len(t) - 200, 1))))  # a reset
     valid, resets = output_validity(t, step, rate_at_mid=rate)
     assert len(resets) == 1 and abs(resets[0] - 0.5 * (t[199] + t[200])) < 1e-9
+
+
+def test_without_a_gyro_an_attitude_sample_off_both_ways_is_one_invalid_sample_too():
+    """A master that logs no gyro: the attitude's increments alone show the corrupt sample (their size changes
+    into it and out of it: two resets around it, the sample itself kept). Where its neighbours' rotation over
+    the two steps is what their own increments make it, it is one invalid sample; a step stays a reset."""
+    from logtools.conventions import quat_from_rotvec, quat_mul
+    from logtools.navcheck import output_validity
+
+    t = np.arange(0.0, 10.0, 0.02)
+    rv = np.column_stack([0.2 * np.sin(2 * np.pi * 0.5 * t), 0.1 * np.sin(2 * np.pi * 0.3 * t), 0.3 * t])
+    q = quat_from_rotvec(rv)
+    valid, resets = output_validity(t, q)
+    assert valid.all() and len(resets) == 0
+    for i in (2, 300, len(t) - 3):
+        off = q.copy()
+        off[i] = quat_mul(q[i:i + 1], quat_from_rotvec(np.array([[0.0, 0.1, 0.0]])))[0]  # 5.7 deg, one sample
+        valid, resets = output_validity(t, off)
+        assert np.flatnonzero(~valid).tolist() == [i] and len(resets) == 0, i
+    step = q.copy()
+    step[300:] = quat_mul(q[300:], quat_from_rotvec(np.tile([[0.1, 0.0, 0.0]], (len(t) - 300, 1))))
+    valid, resets = output_validity(t, step)
+    assert len(resets) >= 1 and np.min(np.abs(resets - 0.5 * (t[299] + t[300]))) < 1e-9
+
+
+def test_a_corrupt_attitude_sample_of_a_master_without_gyro_leaves_the_alignment_as_it_was():
+    """The pipeline with a navigation-only master (attitude, velocity, position; no IMU) and one quaternion
+    component 0.05 off: one update skipped, no EKF reset, the undamaged pair's mounting and sigma (two resets
+    before: sigma 0.0278' against 0.0276')."""
+    from logtools import sim
+    from logtools.inslog import QUAT, Columns, InsLog
+    from pipelines.analyze import AnalyzeOptions, compute
+
+    p = sim.simulate(sim.scenario_config("aircraft", duration_s=60.0, seed=11, latency_s=0.25, drift_ppm=15.0))
+    t, q = p.master.quat_wxyz()
+    m = InsLog.from_arrays(p.master.meta, t_nav_s=t, quat_wxyz=q, vel_ned_m_s=p.master.vel_ned_m_s()[1],
+                           lat_lon_alt=p.master.lat_lon_alt()[1])
+    assert not m.has_gyro
+    opts = AnalyzeOptions(compare=False)
+    a = compute(m, p.slave, opts).alignment["compensated"]
+    nav = dict(m.nav_columns.data)
+    x = np.array(nav[QUAT[1]], dtype=float)
+    x[len(t) // 2] += 0.05
+    nav[QUAT[1]] = x
+    b = compute(m.with_streams(nav=Columns(m.t_nav_s(), nav)), p.slave, opts).alignment["compensated"]
+    assert not [n for n in b.notes if "reset" in n]
+    assert any(n.startswith("1 of") and "updates skipped" in n for n in b.notes), b.notes
+    assert np.allclose(a.mounting_sigma_deg, b.mounting_sigma_deg, rtol=0.002)
+    # (the latency moves within its sigma, the compensation with it: the mounting within half its sigma)
+    assert np.allclose(a.mounting_rpy_deg, b.mounting_rpy_deg, atol=0.5 * min(a.mounting_sigma_deg))
