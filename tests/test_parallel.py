@@ -521,6 +521,30 @@ def test_large_inputs_parse_the_larger_file_in_a_child_with_the_same_log(forking
     assert waited == [1, 1]
 
 
+@posix_fork
+def test_small_inputs_parse_both_files_in_a_child_with_the_same_logs(forking, tmp_path):
+    """Below FORK_PARSE_MIN_INPUT_BYTES ``analyze.run`` forks one child that parses both files, and parse_pair
+    calls ``meanwhile`` before it takes the answer: the same InsLogs as parsed here; with both files bad, the
+    master's error, as in turn."""
+    from logtools.errors import InputError
+    from parsers.registry import load
+    from pipelines import analyze
+
+    m, s = str(SAMPLE / "master.mcap"), str(SAMPLE / "slave.tlog")
+    waited = []
+    master, slave = analyze.parse_pair(m, s, meanwhile=lambda: waited.append(1),
+                                       there=parallel.submit(analyze._parse_both, m, s))
+    for got, want in ((master, load(m)), (slave, load(s))):
+        assert got.imu.equals(want.imu) and got.nav.equals(want.nav) and got.meta == want.meta
+    assert waited == [1]
+    bad_m, bad_s = tmp_path / "m.mcap", tmp_path / "s.tlog"
+    bad_m.write_bytes(b"\x00" * 100)
+    bad_s.write_bytes(b"\x00" * 4096)
+    with pytest.raises(InputError) as err:
+        analyze.parse_pair(str(bad_m), str(bad_s), there=parallel.submit(analyze._parse_both, str(bad_m), str(bad_s)))
+    assert str(bad_m) in str(err.value)
+
+
 def test_large_pairs_fix_the_mmap_threshold_and_the_user_setting_wins(monkeypatch):
     """From LARGE_PAIR_ROWS rows on, glibc's mmap threshold is fixed at MMAP_THRESHOLD_BYTES; below, in the
     CLI's process (forking enabled), at SMALL_PAIR_MMAP_BYTES with the trim threshold at SMALL_PAIR_TRIM_BYTES,
