@@ -915,6 +915,16 @@ def _one_imu(master: InsLog, slave: InsLog, same_file: bool) -> bool:
                                             slave.t_imu_s() * 1e9 + slave.meta.t0_ns))
 
 
+def _parse_child_sets_up_nothing() -> bool:
+    """A parse in a forked child costs no kernel set-up there: the reference code, or the compiled kernels
+    served by the ahead-of-time extension (loaded here first: the child's by fork). Kernels served from numba's
+    cache (no C compiler, ``TAPOST_AOT=0``) would set numba up in the child again (0.4-0.5 s of CPU,
+    docs/performance.md), beside this process's own."""
+    from logtools import jit
+
+    return not jit.compiled() or jit.aot_table() is not None
+
+
 def _parse_both(master_arg: str, slave_arg: str) -> tuple[InsLog, InsLog]:
     """Both logs parsed, the master first (its error first)."""
     return load(master_arg), load(slave_arg)
@@ -1422,7 +1432,8 @@ def run(args: argparse.Namespace) -> int:
     # (before the work; a bad path or selector is said by the parse, in its order)
     _refuse_an_input_folder(out_dir, [str(a).partition("::")[0] for a in (args.master, args.slave)])
     there = None
-    if parallel.available() and size is not None and size <= parallel.FORK_PARSE_MIN_INPUT_BYTES:
+    if (parallel.available() and size is not None and size <= parallel.FORK_PARSE_MIN_INPUT_BYTES
+            and _parse_child_sets_up_nothing()):
         # both logs parsed in a forked child while this process imports the analysis' modules (parse_pair)
         there = parallel.submit(_parse_both, args.master, args.slave)
     started: list = []  # the recording, started while the IMU-to-IMU fit ends

@@ -545,6 +545,18 @@ def test_small_inputs_parse_both_files_in_a_child_with_the_same_logs(forking, tm
     assert str(bad_m) in str(err.value)
 
 
+def test_the_parse_goes_to_a_child_only_where_it_sets_up_no_kernels_there(monkeypatch):
+    """The reference code or the ahead-of-time extension: the child's parse sets nothing up; kernels from
+    numba's cache would be set up in the child again, so the parse stays in the analysing process."""
+    from logtools import jit
+    from pipelines import analyze
+
+    for compiled, table, child in ((False, None, True), (True, {"k": 1}, True), (True, None, False)):
+        monkeypatch.setattr(jit, "compiled", lambda c=compiled: c)
+        monkeypatch.setattr(jit, "aot_table", lambda t=table: t)
+        assert analyze._parse_child_sets_up_nothing() is child
+
+
 def test_large_pairs_fix_the_mmap_threshold_and_the_user_setting_wins(monkeypatch):
     """From LARGE_PAIR_ROWS rows on, glibc's mmap threshold is fixed at MMAP_THRESHOLD_BYTES; below, in the
     CLI's process (forking enabled), at SMALL_PAIR_MMAP_BYTES with the trim threshold at SMALL_PAIR_TRIM_BYTES,
