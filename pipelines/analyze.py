@@ -915,6 +915,29 @@ def _one_imu(master: InsLog, slave: InsLog, same_file: bool) -> bool:
                                             slave.t_imu_s() * 1e9 + slave.meta.t0_ns))
 
 
+def _skip_reason(exc: BaseException) -> str:
+    """Why an output was skipped: ``Type: message``, and the file and line that raised it where that file is
+    neither tapost's nor the Python installation's (a stray ``attr.py`` in the working directory, run as the
+    attrs package rerun imports, made "FileNotFoundError: [Errno 2] No such file or directory: 'analyze'"
+    out of the recording, naming nothing the user could find)."""
+    import site
+    import traceback
+
+    text = f"{type(exc).__name__}: {exc}"
+    frames = traceback.extract_tb(exc.__traceback__) if exc.__traceback__ is not None else []
+    if not frames:
+        return text
+    if frames[-1].filename.startswith("<"):  # (frozen or generated code)
+        return text
+    where = os.path.abspath(frames[-1].filename)
+    ours = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # (the folder of pipelines/, logtools/)
+    homes = {os.path.abspath(p) for p in (sys.prefix, sys.base_prefix, sys.exec_prefix, ours,
+                                           *site.getsitepackages(), site.getusersitepackages())}
+    if any(where == h or where.startswith(h + os.sep) for h in homes):
+        return text
+    return f"{text} (raised in {where}, line {frames[-1].lineno}: a file there named like a library shadows it?)"
+
+
 def _parse_child_sets_up_nothing() -> bool:
     """A parse in a forked child costs no kernel set-up there: the reference code, or the compiled kernels
     served by the ahead-of-time extension (loaded here first: the child's by fork). Kernels served from numba's
@@ -1307,7 +1330,7 @@ def write_outputs(an: Analysis, out_dir: str, progress=None, recording=None) -> 
                 recording = parallel.start_prepared("recording", write_recording, paths["recording"], an, rep,
                                                     max_rows=opts.recording_max_rows)
         except (ImportError, OSError, RuntimeError, ValueError) as exc:
-            an.skipped_steps["recording"] = f"{type(exc).__name__}: {exc}"
+            an.skipped_steps["recording"] = _skip_reason(exc)
             paths["recording"] = None
     elif opts.recording:
         paths["recording"] = None
@@ -1340,7 +1363,7 @@ def write_outputs(an: Analysis, out_dir: str, progress=None, recording=None) -> 
                 an.extra["recording"] = write_recording(paths["recording"], an, an.build_report(
                     {**tim, "report": 0.0, "recording": 0.0}, paths), max_rows=opts.recording_max_rows)
         except (ImportError, OSError, RuntimeError, ValueError) as exc:
-            an.skipped_steps["recording"] = f"{type(exc).__name__}: {exc}"
+            an.skipped_steps["recording"] = _skip_reason(exc)
             paths["recording"] = None
     tim["recording"] += time.perf_counter() - t
 

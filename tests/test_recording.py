@@ -161,3 +161,25 @@ def test_a_recording_started_before_the_uncompensated_run_ends_is_the_same_recor
     assert read_entities(str(tmp_path / "early.rrd")) == read_entities(str(tmp_path / "whole.rrd"))
     assert read_properties(str(tmp_path / "early.rrd")) == read_properties(str(tmp_path / "whole.rrd"))
 
+
+
+def test_a_recording_skipped_by_a_stray_file_named_like_a_library_names_that_file(tmp_path):
+    """A file named like a library in the working directory (``python -m`` puts it first on the path) is run
+    when rerun imports that library; the recording is skipped (the analysis still ends, exit 0) and the reason
+    names the file and line that raised, not only the exception (a stray ``attr.py`` reading its argv said
+    "No such file or directory: 'analyze'" and nothing more)."""
+    import json
+    import os
+    import subprocess
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    stray = tmp_path / "attr.py"
+    stray.write_text("raise RuntimeError('not the attrs package')\n")
+    out = tmp_path / "out"
+    p = subprocess.run([sys.executable, "-m", "pipelines.cli", "analyze", os.path.join(root, "sample_logs", "master.mcap"),
+                        os.path.join(root, "sample_logs", "slave.tlog"), "-o", str(out)],
+                       cwd=str(tmp_path), capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    why = json.loads((out / "report.json").read_text())["skipped"]["recording"]
+    assert why.startswith("RuntimeError: not the attrs package") and f"raised in {stray}, line 1" in why
+    assert f"raised in {stray}" in p.stdout + p.stderr
