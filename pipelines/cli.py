@@ -264,6 +264,11 @@ def _main(argv: list[str] | None) -> int:
         gc.set_threshold(*GC_THRESHOLDS)
         from pipelines.firstrun import LOG_COMMANDS, announce_compiling, early_notice
 
+        if command in LOG_COMMANDS:  # (before the modules that make dataclasses are imported)
+            from pipelines import codecache
+
+            codecache.install()
+
         early_notice(command, argv)
         if command in LOG_COMMANDS:
             defer_numpy_submodules()

@@ -112,6 +112,14 @@ def _in_child(own: int) -> None:
     _CHILDREN_FDS.clear()
 
 
+def _child_done() -> None:
+    """In a child that has answered, before it leaves by os._exit (no exit handlers): what it compiled of the
+    generated code kept for later runs (pipelines.codecache, where the CLI installed it)."""
+    cache = sys.modules.get("pipelines.codecache")
+    if cache is not None:
+        cache.save()
+
+
 def enable(on: bool = True) -> None:
     """Allow forking in this process (the CLI's ``analyze``)."""
     _ENABLED["on"] = bool(on)
@@ -276,6 +284,7 @@ class Pending:
                 if self._awaiting:
                     kwargs = {**kwargs, "later": Later(os.fdopen(later_r, "rb"))}
                 _answer(self._fn, self._args, kwargs, wfd, memfd)
+                _child_done()
             except BaseException:  # noqa: BLE001
                 code = 1
             finally:
@@ -508,6 +517,7 @@ def prepare(name: str, modules: tuple[str, ...], setup: tuple[str, str] | None =
                 if awaiting:  # (the later object follows the call on the same pipe)
                     kwargs = {**kwargs, "later": Later(fh)}
                 _answer(fn, args, kwargs, res_w, memfd)
+                _child_done()
         except BaseException:  # noqa: BLE001 - an interrupt, a broken pipe: the parent runs the call itself
             code = 1
         finally:
