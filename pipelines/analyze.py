@@ -1459,6 +1459,9 @@ def run(args: argparse.Namespace) -> int:
             and _parse_child_sets_up_nothing()):
         # both logs parsed in a forked child while this process imports the analysis' modules (parse_pair)
         there = parallel.submit(_parse_both, args.master, args.slave)
+    before_numerics = getattr(args, "_before_numerics", None)  # (the CLI's: cli.keep_scipy_docstrings)
+    if before_numerics is not None:
+        before_numerics()
     started: list = []  # the recording, started while the IMU-to-IMU fit ends
 
     def aligned(a: Analysis) -> None:

@@ -269,6 +269,31 @@ def test_scipys_docstrings_are_kept_as_they_are_in_a_log_commands_process():
     assert p.stdout.strip() == "True"
 
 
+_ANALYZE_DOCS = '''
+import atexit, sys
+def said():
+    import scipy.fft, scipy.linalg
+    from scipy._lib import _array_api as api
+    print(api.FunctionDoc.__name__, "Array API Standard Support" in (scipy.fft.fft.__doc__ or ""),
+          "Array API Standard Support" in (scipy.linalg.solve.__doc__ or ""))
+atexit.register(said)
+from pipelines import cli
+sys.argv = ["tapost", "analyze"] + sys.argv[1:]
+cli.script()
+'''
+
+
+def test_scipys_docstrings_are_kept_in_an_analyze_process(tmp_path):
+    """``tapost analyze`` keeps them once it has forked its parse's and recording's children (not before its
+    first imports, as the other log commands): scipy's modules, imported after, still have them as written."""
+    sample = ROOT / "sample_logs"
+    p = subprocess.run([sys.executable, "-c", _ANALYZE_DOCS, str(sample / "master.mcap"), str(sample / "slave.tlog"),
+                        "-o", str(tmp_path / "out"), "--no-recording", "--no-html"], capture_output=True, text=True,
+                       timeout=300, env={**os.environ, "TAPOST_WARMUP": "0"})
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.strip().splitlines()[-1] == "_DocAsIs False False"
+
+
 @pytest.mark.parametrize("k", [1, 3, 9])
 def test_weighted_rows_is_numpys_broadcast_expression_bit_for_bit(k):
     """The B-spline evaluation's weighted sum of four coefficient rows (logtools.resample.Interpolant):
