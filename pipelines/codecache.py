@@ -80,7 +80,8 @@ def _future_flags(module) -> int:
 
 
 def _compiled(source: str, filename: str, mode: str, flags: int):
-    key = hashlib.blake2b(f"{flags}\0{mode}\0{filename}\0{source}".encode(), digest_size=16).digest()
+    key = hashlib.blake2b(f"{flags}\0{sys.flags.optimize}\0{mode}\0{filename}\0{source}".encode(),
+                          digest_size=16).digest()  # (-O: the code Python compiles then differs)
     code = _CODES.get(key)
     if code is None:
         code = compile(source, filename, mode, flags=flags, dont_inherit=True)
