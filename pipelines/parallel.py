@@ -22,6 +22,7 @@ threads of its own may not fork safely): ``analyze`` turns it on for its own pro
 """
 from __future__ import annotations
 
+import gc
 import importlib
 import mmap
 import os
@@ -160,7 +161,17 @@ def small_pair_malloc(input_bytes: int | None) -> None:
 def _fork() -> int:
     """os.fork with SIGINT held through it: a Ctrl-C landing in the interpreter's at-fork handlers (logging's
     lock release) was printed as an ignored exception with a traceback, and lost; held, it arrives just
-    after the fork, where the command's one-line handler takes it (tests/test_first_hour.py)."""
+    after the fork, where the command's one-line handler takes it (tests/test_first_hour.py).
+
+    The garbage collector's objects are frozen first (``gc.freeze``, as Python's documentation advises
+    before a fork without exec): the collections of both processes then skip the millions of objects the
+    imports made (a child's would have written into every one's header, copying its pages), and they are
+    still freed when their last reference goes; only a reference cycle among them stays. The sample pair,
+    whole processes alternated (frozen before the first fork only: 24 and 30 pairs): CPU 1.042 -> 1.009 s and
+    1.073 -> 1.042 s, wall 0.605 -> 0.596 s and 0.630 -> 0.625 s; before every fork (24 pairs): CPU 1.140 ->
+    1.118 s, wall 0.669 -> 0.660 s. A simulated 1 h pair: the same CPU and peak memory (13.3 s, 696 MB), the
+    same report.json."""
+    gc.freeze()
     hold = hasattr(signal, "pthread_sigmask")
     old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT}) if hold else None
     try:

@@ -772,3 +772,25 @@ def test_where_the_boards_filter_does_not_follow_the_uncompensated_run_stays_wit
     assert not an.alignment["uncompensated"].has_board_states
     a, b = an.alignment["uncompensated"], ref.alignment["uncompensated"]
     assert a.mounting_rpy_deg == pytest.approx(b.mounting_rpy_deg, rel=1e-12, abs=1e-12) and a.notes == b.notes
+
+
+def _freeze_count() -> int:
+    import gc
+
+    return gc.get_freeze_count()
+
+
+def test_a_fork_freezes_the_collectors_objects_first(monkeypatch):
+    """parallel's forks freeze the garbage collector's objects first (gc.freeze, as Python advises before a fork
+    without exec): the child's collections neither scan nor copy the pages of what the parent made."""
+    import gc
+
+    monkeypatch.setitem(parallel._ENABLED, "on", True)
+    if not parallel.available():
+        pytest.skip("no fork here")
+    try:
+        job = parallel.submit(_freeze_count)
+        assert job.result() > 0
+        assert gc.get_freeze_count() > 0
+    finally:
+        gc.unfreeze()
