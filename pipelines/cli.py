@@ -120,60 +120,57 @@ def keep_scipy_docstrings() -> None:
     numpydoc's scraper and written back with a table appended. That is about 50 ms of every analyze (about
     200 functions in scipy.fft, linalg, ndimage, special), for docstrings a command never shows. In this
     process the decorator still records each function's capabilities and leaves its docstring as it is.
-    Checked on a probe function first; when scipy's decorator is not the one known, nothing is changed."""
+    The same for scipy's batching decorator (``scipy._lib._util._apply_over_batch``), which scrapes the
+    docstrings of about 70 scipy.linalg functions to append a note on batched arguments: 20-40 ms of the
+    imports the latency stage waits for (measured in a fresh process after the parse: the analysis' imports
+    0.108-0.17 s -> 0.087-0.11 s). Each checked on a probe function first (:func:`_scraper_as_is`)."""
+
+    def capabilities_kept(decorator) -> bool:
+        def probe():
+            """Probe.
+
+            Text.
+            """
+
+        doc = probe.__doc__
+        decorator(capabilities_table={})(probe)
+        return probe.__doc__ == doc
+
+    def batching_kept(decorator) -> bool:
+        def probe(a):
+            """Probe.
+
+            Text.
+            """
+            return a
+
+        doc = probe.__doc__
+        wrapped = decorator(("a", 1))(probe)
+        return wrapped.__doc__ == doc and list(wrapped([1.0, 2.0])) == [1.0, 2.0]
+
+    _scraper_as_is("scipy._lib._array_api", "xp_capabilities", capabilities_kept)
+    _scraper_as_is("scipy._lib._util", "_apply_over_batch", batching_kept)
+
+
+def _scraper_as_is(module_name: str, decorator: str, works) -> None:
+    """``module_name``'s docstring scraper (its ``FunctionDoc``) replaced by :class:`_DocAsIs` where
+    ``works(module.<decorator>)`` says the decorator still does its job with it (on a probe function); when
+    it says not, or raises (not the decorator known), or the module has another layout, scipy's own scraper
+    stays."""
     try:
-        from scipy._lib import _array_api as api
+        module = importlib.import_module(module_name)
     except Exception:  # noqa: BLE001 - no scipy, or another layout: nothing to do
         return
-    real = getattr(api, "FunctionDoc", None)
-    if real is None or not callable(getattr(api, "xp_capabilities", None)):
+    real, deco = getattr(module, "FunctionDoc", None), getattr(module, decorator, None)
+    if real is None or not callable(deco):
         return
-
-    def probe():
-        """Probe.
-
-        Text.
-        """
-
-    api.FunctionDoc = _DocAsIs
+    module.FunctionDoc = _DocAsIs
     try:
-        api.xp_capabilities(capabilities_table={})(probe)
-        ok = probe.__doc__ == "Probe.\n\n        Text.\n        "
-    except Exception:  # noqa: BLE001 - not the decorator known: scipy's own scraper stays
+        ok = bool(works(deco))
+    except Exception:  # noqa: BLE001 - not the decorator known
         ok = False
     if not ok:
-        api.FunctionDoc = real
-    _keep_batch_docstrings()
-
-
-def _keep_batch_docstrings() -> None:
-    """The same for scipy's batching decorator (``scipy._lib._util._apply_over_batch``, scipy 1.15 and later),
-    which scrapes the docstrings of about 70 scipy.linalg functions to append a note on batched arguments:
-    20-40 ms of the imports the latency stage waits for (measured in a fresh process after the parse: the
-    analysis' imports 0.108-0.17 s -> 0.087-0.11 s). Checked on a probe function the same way."""
-    try:
-        from scipy._lib import _util
-    except Exception:  # noqa: BLE001 - another layout: nothing to do
-        return
-    real, batch = getattr(_util, "FunctionDoc", None), getattr(_util, "_apply_over_batch", None)
-    if real is None or not callable(batch):
-        return
-
-    def probe(a):
-        """Probe.
-
-        Text.
-        """
-        return a
-
-    _util.FunctionDoc = _DocAsIs
-    try:
-        wrapped = batch(("a", 1))(probe)
-        ok = wrapped.__doc__ == "Probe.\n\n        Text.\n        " and list(wrapped([1.0, 2.0])) == [1.0, 2.0]
-    except Exception:  # noqa: BLE001 - not the decorator known: scipy's own scraper stays
-        ok = False
-    if not ok:
-        _util.FunctionDoc = real
+        module.FunctionDoc = real
 
 
 def output_path(text: str) -> str:
