@@ -94,8 +94,9 @@ def output_validity(t: np.ndarray, quat: np.ndarray | None, vel: np.ndarray | No
             k = k[(k >= 1) & (k + 3 <= n - 1)]  # (the neighbours' own increments, k-1 and k+2, exist)
             a02 = by_rows(angle_between_quats, quat[k], quat[k + 2])
             turned = dq[k - 1] + dq[k + 2]
-            off = np.minimum(dq[k], dq[k + 1]) > a02 + np.maximum(thr[k], thr[k + 2])  # (out and back)
-            back = k[off & (np.abs(a02 - turned) <= np.maximum(thr[k], thr[k + 2]))]
+            tol = np.maximum(thr[k], thr[k + 2])
+            off = np.minimum(dq[k], dq[k + 1]) > a02 + tol  # (out and back)
+            back = k[off & (np.abs(a02 - turned) <= tol)]
             valid[back + 1] = False
             jump[back] = jump[back + 1] = jump[back + 2] = False
         if jump.any():
