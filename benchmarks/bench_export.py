@@ -16,9 +16,12 @@ bags with sqlite3 and with mcap storage). In the same run, for each file:
   what the export costs against reading the file with the tool a user has (context for the target, which
   compares with tapost's own parse).
 Both run with numpy's environment of a ``tapost`` process (``pipelines.cli.set_numpy_environment``: one
-BLAS thread, no huge pages). Parse and export run ``--repeat`` times interleaved, after one warm-up run of
-each (numba caches loaded): the figures are the best of each and the median of the ratios of neighbouring
-runs (this 2-core machine's run-to-run scatter is +-30 %). Both run the compiled kernels
+BLAS thread, no huge pages), its garbage collector's thresholds (``pipelines.cli.GC_THRESHOLDS``) and the
+malloc policy ``tapost restamp`` and ``tapost analyze`` set for such a file
+(``pipelines.parallel.small_pair_malloc``: freed arrays reused from the heap). Parse and export run
+``--repeat`` times interleaved, after one warm-up run of each (numba caches loaded): the figures are the
+best of each and the median of the ratios of neighbouring runs (this 2-core machine's run-to-run scatter
+is +-30 %). Both run the compiled kernels
 (``TAPOST_KERNELS=compiled`` unless set), as every run after the first does.
 
     python benchmarks/bench_export.py            # 1 h logs
@@ -41,9 +44,12 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 os.environ.setdefault("TAPOST_KERNELS", "compiled")  # a warm installation's speed (see logtools.jit)
 sys.path.insert(0, str(ROOT))
-from pipelines.cli import set_numpy_environment  # noqa: E402
+import gc  # noqa: E402
+
+from pipelines.cli import GC_THRESHOLDS, set_numpy_environment  # noqa: E402
 
 set_numpy_environment()  # numpy's threads and pages as in a tapost process (before numpy loads)
+gc.set_threshold(*GC_THRESHOLDS)  # (as a tapost process's)
 import numpy as np  # noqa: E402
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from bench_parse_ulog_csv import best_of  # noqa: E402 (one timing helper for the parse and export benchmarks)
@@ -121,7 +127,9 @@ def main(argv=None) -> int:
 
     from parsers import registry
     from parsers.restamp import ClockShift
-    from pipelines import export
+    from pipelines import export, parallel
+
+    parallel.own_malloc()  # (this process as a tapost command's own: its malloc policy set below, as theirs)
 
     duration = 600.0 if args.quick else 3600.0
     log = synthetic_log(duration)
@@ -135,6 +143,7 @@ def main(argv=None) -> int:
             fmt, name, opts = FORMATS[case]
             src = d / name
             registry.write(str(src), log, fmt, **opts)
+            parallel.small_pair_malloc(int(_size_mb(src) * 1e6))  # (as tapost restamp: every file here is small)
             dst = d / f"exported_{name}"
             parsed = registry.load(str(src))  # warm-up (numba caches)
             export.write_native(str(src), str(dst), fmt, shift, parsed.meta.selector)
@@ -160,7 +169,8 @@ def main(argv=None) -> int:
                 out["csv_export_s"], out["parquet_export_s"] = t_csv, t_pq
             out["formats"][case] = row
             print(f"{case:16s} {row['file_mb']:8.1f} MB  parse {t_parse:7.2f} s  export {t_exp:7.2f} s  "
-                  f"ratio {row['ratio_export_over_parse']:.2f} (median of pairs {row['ratio_median_of_pairs']:.2f})"
+                  f"ratio {row['ratio_export_over_parse']:.2f} (median of pairs {row['ratio_median_of_pairs']:.2f}: "
+                  + ", ".join(f"{r:.2f}" for r in ratios) + ")"
                   + (f"  library read {row['library_read_s']:7.2f} s" if "library_read_s" in row else ""),
                   flush=True)
             _remove(src)

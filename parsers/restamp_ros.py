@@ -163,8 +163,14 @@ class _Msgs:
     #: while its chunk was in the cache (:func:`_payload_heads`), where the Header stamps are read; None: read
     #: from ``buf``
     heads: np.ndarray | None = None
+    #: where ``buf`` does not hold the payloads (an MCAP scan that streamed its chunks: ``buf`` is empty,
+    #: ``starts`` count in the chunks one after another): the payloads the scan kept, by message (the first
+    #: _UNIT_SAMPLE of each channel, what :func:`_unit` reads)
+    kept: dict[int, bytes] | None = None
 
     def payload(self, i: int) -> bytes:
+        if self.kept is not None:
+            return self.kept[i]
         a = int(self.starts[i])
         return self.buf[a:a + int(self.lens[i])].tobytes()
 
@@ -173,6 +179,8 @@ class _Msgs:
         return [mv[a:a + n] for a, n in zip(self.starts.tolist(), self.lens.tolist())]
 
     def take(self, keep: np.ndarray) -> "_Msgs":
+        if self.kept is not None:
+            raise ValueError("_Msgs.take: the payloads are not in buf (a streamed scan)")
         return _Msgs(self.conn[keep], self.log_ns[keep], self.buf, self.starts[keep], self.lens[keep],
                      None if self.heads is None else self.heads[keep])
 
@@ -182,6 +190,10 @@ def _pack(conn: np.ndarray, log_ns: np.ndarray, parts: list) -> _Msgs:
     buf = np.frombuffer(bytearray(b"".join(parts)), np.uint8)
     starts = np.cumsum(lens) - lens
     return _Msgs(np.asarray(conn, np.int64), np.asarray(log_ns, np.int64), buf, starts, lens)
+
+
+#: messages of each stream whose payloads :func:`_unit` reads (as the readers plan a unit from a topic's first few)
+_UNIT_SAMPLE = 20
 
 
 def _unit(streams: list[_Stream], msgs: _Msgs, typestore, selector: str | None, path: str,
@@ -195,7 +207,7 @@ def _unit(streams: list[_Stream], msgs: _Msgs, typestore, selector: str | None, 
         if s.msgtype in rc.SUPPORTED and s.encoding in mcap_ros.READ_ENCODINGS and s.topic not in topics:
             idx = where[k]
             topics[s.topic] = rc.RawTopic(s.topic, s.msgtype, s.encoding, logs[k],
-                                          [msgs.payload(i) for i in idx[:20].tolist()])
+                                          [msgs.payload(i) for i in idx[:_UNIT_SAMPLE].tolist()])
     raw = rc.RawLog(path=path, fmt="", topics=topics, typestore=typestore)
     try:
         plan, _ = rc.plan_unit(raw, sel)
@@ -440,16 +452,17 @@ class _StampPatch:
     def put(self, idx: np.ndarray, new: np.ndarray, be: np.ndarray) -> None:
         self.on[idx], self.new[idx], self.be[idx] = True, new, be
 
-    def write(self, buf: np.ndarray, starts: np.ndarray, sel: slice = slice(None)) -> None:
+    def write(self, buf: np.ndarray, starts: np.ndarray, sel: slice = slice(None), base: int = 0) -> None:
         """The stamps of messages ``sel`` (a slice of consecutive messages) written into their payloads, which
-        lie at ``starts`` in ``buf``."""
+        lie at ``starts`` less ``base`` in ``buf``."""
         if self.on is None:
-            rcw.put_header_stamps(buf, starts[sel], self.new[sel], self.be[sel])
+            at = starts[sel]
+            rcw.put_header_stamps(buf, at - base if base else at, self.new[sel], self.be[sel])
             return
         i = np.flatnonzero(self.on[sel])
         if sel.start:
             i += sel.start
-        rcw.put_header_stamps(buf, starts[i], self.new[i], self.be[i])
+        rcw.put_header_stamps(buf, starts[i] - base if base else starts[i], self.new[i], self.be[i])
 
 
 def _all_stamped(streams: list[_Stream], msgs: _Msgs, unit: set[str], present: list[bool], shift: ClockShift,
@@ -985,6 +998,15 @@ class _McapScan:
         self.chunk_size = 0
         #: the channel ids defined so far, as a mask over all 65536 (set as each is defined, checked per chunk)
         self.known = np.zeros(1 << 16, bool)
+        #: False: a streamed scan (:func:`_scan_mcap` with ``keep=False``): the chunks' bytes are not kept,
+        #: each block holds its size instead, ``spans`` its chunk record (None: not a whole chunk's) for the
+        #: writer to inflate again, ``kept`` the payloads of each channel's first _UNIT_SAMPLE messages
+        self.keep = True
+        self.spans: list[tuple[int, int] | None] = []
+        self.kept: dict[int, bytes] = {}
+        self.n = 0  # messages so far
+        self._left = np.full(1 << 16, _UNIT_SAMPLE, np.int32)  # (payloads still to keep, by channel)
+        self._at: tuple[int, int] | None = None  # (the chunk record being walked)
 
     def schema(self, buf, off):
         (sid,) = _U16.unpack_from(buf, off)
@@ -1015,10 +1037,27 @@ class _McapScan:
             raise mcap_ros._Damage(f"{where}: messages for undefined channel(s) {sorted(unknown)}")
         self.cid.append(cid.copy())
         self.log.append(t[:m].copy())
-        self.blocks.append((arr[start:end], s - start, e - s))
+        if self.keep:
+            self.blocks.append((arr[start:end], s - start, e - s))
+        else:
+            self.blocks.append((end - start, s - start, e - s))
+            self.spans.append(self._at if whole_chunk else None)
+            self._keep_first(arr, cid, s, e)
         self.heads.append(_payload_heads(arr, s))
         self.whole.append(whole_chunk)
+        self.n += m
         return m
+
+    def _keep_first(self, arr: np.ndarray, cid: np.ndarray, s: np.ndarray, e: np.ndarray) -> None:
+        """The payloads of the block's messages among the first _UNIT_SAMPLE of their channel, kept."""
+        left = self._left[cid]
+        if not left.any():
+            return
+        for c in np.unique(cid[left > 0]).tolist():
+            idx = np.flatnonzero(cid == c)[:int(self._left[c])]
+            for j in idx.tolist():
+                self.kept[self.n + j] = arr[s[j]:e[j]].tobytes()
+            self._left[c] -= len(idx)
 
     @property
     def count(self) -> int:
@@ -1029,6 +1068,7 @@ class _McapScan:
         comp, _o = mcap_ros._string(buf, off + 9 + 28)
         if self.compression is None:
             self.compression, self.chunk_size = comp, usize
+        self._at = (off, nxt)
         try:
             content = chunks.get((off, nxt)) if chunks is not None else mcap_ros.inflate_chunk(buf, off, nxt)
         except mcap_ros._Undecodable as exc:  # the complete messages before the damaged block are kept
@@ -1093,7 +1133,10 @@ def _private_map(path: str) -> np.ndarray:
             return np.fromfile(fh, np.uint8)
 
 
-def _scan_mcap(path: str) -> _McapScan:
+def _scan_mcap(path: str, keep: bool = True) -> _McapScan:
+    """Every record of the MCAP file ``path`` the export needs (:class:`_McapScan`). ``keep=False``: where
+    every chunk is zstd (as :func:`mcap_ros.chunk_arena` plans them), a streamed scan, which keeps each
+    chunk's bytes only while it walks them (``sc.keep`` says which it was)."""
     check_readable(path)
     file = _private_map(path)  # (uncompressed chunks are patched in it: the file's pages copied where written)
     buf = memoryview(file)
@@ -1133,12 +1176,15 @@ def _scan_mcap(path: str) -> _McapScan:
             (sc.schema if op == _OP["schema"] else sc.channel)(buf, at + 9)
         except (mcap_ros._Damage, struct.error, UnicodeDecodeError):
             pass
-    # zstd chunks decompressed into one buffer (the messages' buffer of the export: not held twice)
     starts = mcap_ros.summary_chunk_starts(buf, inner)  # where the walk picks up again after a damaged stretch
-    sc.arena = mcap_ros.chunk_arena(buf, off, starts=starts)
+    sc.keep = keep or mcap_ros.chunk_places(buf, off, starts=starts) is None
+    # kept: zstd chunks decompressed into one buffer (the messages' buffer of the export: not held twice);
+    # streamed: each into an array of its own, let go once walked
+    sc.arena = mcap_ros.chunk_arena(buf, off, starts=starts) if sc.keep else None
     last = off
     indexes = mcap_ros.IndexCheck()  # (damaged ones: the output's are written anew)
-    with mcap_ros.chunk_prefetch(buf, off, sc.arena, starts) as chunks:  # decompression and CRC ahead, in threads
+    # (decompression and CRC ahead, in threads)
+    with mcap_ros.chunk_prefetch(buf, off, sc.arena if sc.keep else "own", starts) as chunks:
         while off < end:
             if off + 9 > end:
                 sc.damage.append(f"file truncated at byte {off} of {end} (no footer)")
@@ -1226,12 +1272,14 @@ def _mcap_msgs(sc: _McapScan, cids: list[int]) -> tuple[_Msgs, rcw.ChunkLayout |
     lut = np.zeros(max(cids, default=0) + 1, np.int64)
     lut[cids] = np.arange(len(cids))
     conn = lut[cat(sc.cid)]
-    blens = [len(b[0]) for b in sc.blocks]
+    blens = [b[0] if not sc.keep else len(b[0]) for b in sc.blocks]
     base = buf = None
+    if not sc.keep:  # (a streamed scan: the chunks one after another, in no buffer)
+        base, buf = (np.cumsum(blens) - blens).tolist(), np.zeros(0, np.uint8)
     # blocks that all view one buffer are patched there: the file's bytes (uncompressed chunks) or the buffer
     # the zstd chunks were inflated into
     for cand in (sc.file, sc.arena[0] if sc.arena is not None else None):
-        if cand is not None and (base := _views_of(cand, sc.blocks)) is not None:
+        if base is None and cand is not None and (base := _views_of(cand, sc.blocks)) is not None:
             buf = cand
             break
     if base is None:
@@ -1244,7 +1292,16 @@ def _mcap_msgs(sc: _McapScan, cids: list[int]) -> tuple[_Msgs, rcw.ChunkLayout |
         layout = rcw.ChunkLayout(np.asarray(base, np.int64), np.asarray(blens, np.int64),
                                  np.asarray([len(c) for c in sc.cid], np.int64))
     heads = np.concatenate(sc.heads) if sc.heads else np.zeros((0, 12), np.uint8)
-    return _Msgs(conn, cat(sc.log), buf, starts, lens, heads), layout
+    return _Msgs(conn, cat(sc.log), buf, starts, lens, heads, None if sc.keep else sc.kept), layout
+
+
+def _streamed_ok(sc: _McapScan, streams: list[_Stream]) -> bool:
+    """Whether a streamed scan is all the export needs: every message in a whole, sound chunk, each chunk
+    walked once, and no stream whose payloads are read or rewritten beyond their Header stamps (JSON text,
+    nested Headers: those take the chunks kept)."""
+    return (not sc.keep and not sc.damage and bool(sc.blocks) and all(sc.whole)
+            and len(sc.spans) == len(sc.blocks) and None not in sc.spans and len(set(sc.spans)) == len(sc.spans)
+            and all(s.kind in (_FIRST, _NONE, "unknown") for s in streams))
 
 
 def _mcap_heads(msgs: _Msgs) -> tuple[np.ndarray, np.ndarray]:
@@ -1285,9 +1342,15 @@ def restamp_mcap(src: str, dst: str, shift: ClockShift, *, selector: str | None 
 def _restamp_mcap(src: str, dst: str, shift: ClockShift, selector: str | None) -> RestampStats:
     from rosbags.typesys import Stores, get_typestore
 
-    sc = _scan_mcap(src)
+    # first a streamed scan (each chunk's bytes let go once walked; the writer inflates them again, one by
+    # one into each thread's buffer); where it is not enough (damage, payloads to rewrite), the chunks kept
+    sc = _scan_mcap(src, keep=False)
     typestore = get_typestore(Stores.EMPTY)
     cids, streams = _mcap_streams(sc, typestore)
+    if not sc.keep and not _streamed_ok(sc, streams):
+        sc = _scan_mcap(src)
+        typestore = get_typestore(Stores.EMPTY)
+        cids, streams = _mcap_streams(sc, typestore)
     msgs0, layout = _mcap_msgs(sc, cids)
     later: list[_StampPatch] = []  # (the Header stamps, written by the writer's threads chunk by chunk)
     new_log, msgs, notes = _apply(streams, msgs0, typestore, shift, selector, src, later)  # (payloads only)
@@ -1302,9 +1365,10 @@ def _restamp_mcap(src: str, dst: str, shift: ClockShift, selector: str | None) -
     if stamps is not None and layout is None:  # (laid out anew: from payloads that carry their stamps)
         stamps.write(msgs.buf, msgs.starts)
         stamps = None
+    inflate = None if sc.keep else mcap_ros.chunk_inflater(memoryview(sc.file), sc.spans)
     with atomic_path(dst) as tmp, open(tmp, "wb") as fh:
         rcw.write_mcap(fh, sc, cids, msgs, new_log, new_pub, seq, comp, _chunk_bytes(sc), layout=layout, delta=delta,
-                       stamps=stamps)
+                       stamps=stamps, inflate=inflate)
     return RestampStats(path=dst, format="mcap", how="tapost's vectorised MCAP writer (chunk compression kept, "
                         "CRCs, message indexes and summary rebuilt); Header stamps patched in the payload "
                         "bytes (nested Headers through rosbags (de)serialisation; JSON-encoded messages: the "

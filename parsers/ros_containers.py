@@ -408,7 +408,7 @@ def _mmap(d: dict[str, str]) -> bytes:
 
 def write_mcap(fh, sc, cids: list[int], msgs, log_ns: np.ndarray, pub_ns: np.ndarray | None,
                 seq: np.ndarray | None, comp: str, chunk_bytes: int, layout: ChunkLayout | None = None,
-                delta: np.ndarray | None = None, stamps=None) -> None:
+                delta: np.ndarray | None = None, stamps=None, inflate=None) -> None:
     """An MCAP file: header, schemas and channels, chunks of message records (each followed by its message
     indexes), metadata and attachments, data end; summary (schemas, channels, statistics, chunk, metadata
     and attachment indexes), summary offsets, footer. Ids as in the input.
@@ -419,7 +419,10 @@ def write_mcap(fh, sc, cids: list[int], msgs, log_ns: np.ndarray, pub_ns: np.nda
     chunk by chunk), and each chunk is compressed as it lies (``pub_ns`` and ``seq`` are not read). Without
     it, the records are laid out anew in chunks of ``chunk_bytes`` with publish times ``pub_ns`` and sequence
     numbers ``seq``. ``stamps`` (with ``layout``): Header stamps to write into the payloads as well, chunk by
-    chunk (``write(buf, starts, slice)``: ``restamp_ros._StampPatch``)."""
+    chunk (``write(buf, starts, slice, base)``: ``restamp_ros._StampPatch``). ``inflate`` (with ``layout``):
+    ``inflate(i)`` gives the input's chunk ``i`` (in a buffer of the calling thread's own, valid until its
+    next call), whose place in ``msgs.buf`` ``layout`` counts but ``msgs.buf`` does not hold (a streamed
+    scan)."""
     if stamps is not None and layout is None:
         raise ValueError("write_mcap: Header stamps are written chunk by chunk in the input's chunks (layout)")
     comp = comp if comp in ("", "zstd", "lz4") else "zstd"
@@ -471,18 +474,21 @@ def write_mcap(fh, sc, cids: list[int], msgs, log_ns: np.ndarray, pub_ns: np.nda
         put(r)
     chunk_index = []
 
-    def work(job: tuple[slice, tuple[int, int] | None]) -> tuple[int, int, bytes, list]:  # in the writer's threads
-        sl, span = job
+    def work(job: tuple[slice, tuple[int, int] | None, int]) -> tuple[int, int, bytes, list]:  # in the writer's threads
+        sl, span, i = job
         if span is None:
             body = _records(pre[sl], msgs, sl)
-        else:
-            patch_mcap_times(msgs.buf, msgs.starts[sl], log_ns[sl], delta[sl])
+        else:  # (the chunk's bytes; its messages' offsets in them: their offsets in msgs.buf less its place)
+            body = inflate(i) if inflate is not None else msgs.buf[span[0]:span[0] + span[1]]
+            patch_mcap_times(body, msgs.starts[sl] - span[0], log_ns[sl], delta[sl])
             if stamps is not None:
-                stamps.write(msgs.buf, msgs.starts, sl)
-            body = msgs.buf[span[0]:span[0] + span[1]]
-        return len(body), zlib.crc32(body), compress_chunk(comp, body), _by_key(key[sl])
+                stamps.write(body, msgs.starts, sl, span[0])
+        data = compress_chunk(comp, body)
+        if inflate is not None and data is body:  # (an uncompressed output: not the thread's reused buffer)
+            data = body.tobytes()
+        return len(body), zlib.crc32(body), data, _by_key(key[sl])
 
-    jobs = list(zip(slices, spans))
+    jobs = list(zip(slices, spans, range(len(slices))))
     for sl, (body_len, crc, data, by_channel) in zip(slices, threads.ordered(work, jobs)):
         t = log_ns[sl]
         t0, t1 = (int(t.min()), int(t.max())) if len(t) else (0, 0)

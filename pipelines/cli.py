@@ -276,6 +276,10 @@ def _main(argv: list[str] | None) -> int:
             from pipelines import parallel
 
             parallel.enable()
+        elif command == "restamp":  # (its malloc policy is tapost's: pipelines.restamp_cmd)
+            from pipelines import parallel
+
+            parallel.own_malloc()
     parser = build_parser(command if command in COMMANDS else None)
     args = parser.parse_args(glue_vector_values(argv))
     if fresh and command == "analyze":

@@ -33,7 +33,8 @@ from typing import Any, Callable
 
 from parsers.base import glibc as _libc  # (glibc, for its malloc controls; None elsewhere: their own policy)
 
-_ENABLED = {"on": False}
+#: "on": forking allowed (the CLI's analyze); "malloc": glibc's policy set here (a tapost command's process)
+_ENABLED = {"on": False, "malloc": False}
 #: name -> (pid, request write fd, result read fd, result memfd or -1)
 _PREPARED: dict[str, tuple[int, int, int, int]] = {}
 
@@ -122,8 +123,14 @@ def _child_done() -> None:
 
 
 def enable(on: bool = True) -> None:
-    """Allow forking in this process (the CLI's ``analyze``)."""
+    """Allow forking in this process (the CLI's ``analyze``; its malloc policy is then tapost's too)."""
     _ENABLED["on"] = bool(on)
+
+
+def own_malloc() -> None:
+    """This process is a tapost command's own, not a Python API caller's: :func:`malloc_policy` may set
+    glibc's policy in it (the CLI's ``restamp``, which forks nothing)."""
+    _ENABLED["malloc"] = True
 
 
 #: a pair with this many rows in its four tables (IMU and navigation of both units; about 1.7 h of 200 Hz)
@@ -184,11 +191,11 @@ def _fork() -> int:
 def malloc_policy(rows: int) -> None:
     """glibc's malloc policy for a pair of ``rows`` rows, unless the user set one (``MALLOC_MMAP_THRESHOLD_``
     or ``MALLOC_TRIM_THRESHOLD_``): from LARGE_PAIR_ROWS rows on, MMAP_THRESHOLD_BYTES as its fixed mmap
-    threshold; below, in the CLI's own process (``enable``: not a Python API caller's), SMALL_PAIR_MMAP_BYTES
-    and SMALL_PAIR_TRIM_BYTES (freed arrays reused from the heap)."""
+    threshold; below, in the CLI's own process (``enable``, ``own_malloc``: not a Python API caller's),
+    SMALL_PAIR_MMAP_BYTES and SMALL_PAIR_TRIM_BYTES (freed arrays reused from the heap)."""
     if "MALLOC_MMAP_THRESHOLD_" in os.environ or "MALLOC_TRIM_THRESHOLD_" in os.environ:
         return
-    if rows < LARGE_PAIR_ROWS and not _ENABLED["on"]:
+    if rows < LARGE_PAIR_ROWS and not (_ENABLED["on"] or _ENABLED["malloc"]):
         return
     libc = _libc()
     if libc is None:

@@ -16,7 +16,8 @@ from logtools.errors import InputError
 from parsers import load
 from parsers.registry import detect, parse_log_arg
 from parsers.restamp import ClockShift
-from pipelines import export
+from pipelines import export, parallel
+from pipelines.firstrun import input_bytes
 from pipelines.report import log_section
 
 
@@ -105,6 +106,9 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise InputError(str(exc), report_path) from None
     path, sel = parse_log_arg(args.slave)
+    # freed arrays reused from the heap, not faulted in anew (the native exports' column and chunk buffers:
+    # a 1 h MCAP slave's export 0.47 -> 0.40 s; pipelines.parallel.malloc_policy), in tapost's own process
+    parallel.small_pair_malloc(input_bytes("restamp", [path]))
     slave_rep = rep.get("slave") or {}
     if not sel and slave_rep.get("format"):  # (before the report's selector is tried on another format's file)
         fmt = detect(path).NAME

@@ -604,6 +604,7 @@ def test_zstd_chunks_are_inflated_into_the_messages_buffer(big, tmp_path, monkey
     msgs = rr._mcap_msgs(sc, sorted(sc.channels))[0]
     assert msgs.buf is sc.arena[0]
     shift = _shift_for(big["log"])
+    monkeypatch.setattr(rr, "_streamed_ok", lambda *a: False)  # (the export's path that keeps the chunks)
     rr.restamp_mcap(src, str(tmp_path / "arena.mcap"), shift)
     monkeypatch.setattr(rr.mcap_ros, "chunk_arena", lambda *a, **k: None)
     assert rr._scan_mcap(src).arena is None
@@ -616,6 +617,55 @@ def test_zstd_chunks_are_inflated_into_the_messages_buffer(big, tmp_path, monkey
     assert rr._scan_mcap(bad).arena is not None
     st = rr.restamp_mcap(bad, str(tmp_path / "flip_out.mcap"), shift)
     assert len(st.damage) == 1 and f"chunk at byte {off}" in st.damage[0]
+
+
+@pytest.mark.parametrize("selector", [None, "time=log"])
+def test_zstd_mcap_export_streams_its_chunks_with_the_bytes_of_the_path_that_keeps_them(big, tmp_path, monkeypatch,
+                                                                                       selector):
+    """A sound zstd MCAP of Header-first messages is exported from a streamed scan: no chunk's bytes are kept
+    once walked (no buffer for the whole decompressed file: 316 MB for a 1 h IMU log), only the payloads the
+    unit's planning reads (each channel's first 20, equal to the file's); the writer inflates each chunk again
+    into its thread's buffer. The output is byte for byte that of the path that keeps every chunk, with
+    several worker threads or one. A damaged file's streamed scan is not enough (the kept path then)."""
+    from rosbags.typesys import Stores, get_typestore
+
+    src = big["mcap"]
+    shift = _shift_for(big["log"])
+    sc = rr._scan_mcap(src, keep=False)
+    assert sc.keep is False and sc.arena is None and all(isinstance(b[0], int) for b in sc.blocks)
+    cids, streams = rr._mcap_streams(sc, get_typestore(Stores.EMPTY))
+    assert rr._streamed_ok(sc, streams)
+    streamed, kept = rr._mcap_msgs(sc, cids)[0], rr._mcap_msgs(rr._scan_mcap(src), cids)[0]
+    assert len(streamed.buf) == 0 and streamed.kept
+    assert all(streamed.payload(i) == kept.payload(i) for i in streamed.kept)
+    per_channel = np.bincount(streamed.conn[sorted(streamed.kept)], minlength=len(cids))
+    np.testing.assert_array_equal(per_channel, np.minimum(np.bincount(kept.conn, minlength=len(cids)),
+                                                          rr._UNIT_SAMPLE))
+    inflaters = []
+    real = mcap_ros.chunk_inflater
+    monkeypatch.setattr(mcap_ros, "chunk_inflater", lambda *a: inflaters.append(a) or real(*a))
+    outs = {}
+    for name, threads in (("streamed", None), ("streamed_one_thread", "1")):
+        if threads:
+            monkeypatch.setenv("TAPOST_IO_THREADS", threads)
+        outs[name] = str(tmp_path / f"{name}.mcap")
+        rr.restamp_mcap(src, outs[name], shift, selector=selector)
+    assert len(inflaters) == 2
+    monkeypatch.delenv("TAPOST_IO_THREADS")
+    monkeypatch.setattr(rr, "_streamed_ok", lambda *a: False)
+    outs["kept"] = str(tmp_path / "kept.mcap")
+    rr.restamp_mcap(src, outs["kept"], shift, selector=selector)
+    assert len(inflaters) == 2  # (the kept path inflates nothing again)
+    assert len({_digest(p) for p in outs.values()}) == 1
+    back = parsers.load(outs["streamed"] + ("::time=log" if selector else ""))
+    parsed = parsers.load(src + ("::time=log" if selector else ""))
+    np.testing.assert_array_equal(_t_ns(back, back.imu), shift.to_master_ns(_t_ns(parsed, parsed.imu)))
+    monkeypatch.undo()
+    data, _off = mcap_with_a_flipped_chunk(src, 1)
+    bad = str(tmp_path / "flip.mcap")
+    open(bad, "wb").write(data)
+    sc = rr._scan_mcap(bad, keep=False)
+    assert sc.damage and not rr._streamed_ok(sc, rr._mcap_streams(sc, get_typestore(Stores.EMPTY))[1])
 
 
 @pytest.mark.parametrize("fmt", ["mcap", "rosbag1"])

@@ -604,6 +604,29 @@ def test_large_pairs_fix_the_mmap_threshold_and_the_user_setting_wins(monkeypatc
         monkeypatch.delenv(name)
 
 
+def test_a_restamp_process_takes_the_small_pair_malloc_policy(monkeypatch):
+    """``tapost restamp`` forks nothing but its process is tapost's own (``own_malloc``): the small-pair
+    policy is set there as in analyze's (a Python API caller's process: left alone)."""
+    calls = []
+
+    class FakeLibc:
+        def mallopt(self, param, value):
+            calls.append((param, value))
+
+    monkeypatch.setattr(parallel, "_libc", lambda: FakeLibc())
+    monkeypatch.delenv("MALLOC_MMAP_THRESHOLD_", raising=False)
+    monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)
+    monkeypatch.setitem(parallel._ENABLED, "on", False)
+    monkeypatch.setitem(parallel._ENABLED, "malloc", False)
+    parallel.small_pair_malloc(1000)
+    assert calls == []
+    parallel.own_malloc()
+    assert parallel._ENABLED == {"on": False, "malloc": True}  # (forking still not allowed)
+    parallel.small_pair_malloc(1000)
+    assert calls == [(parallel.M_MMAP_THRESHOLD, parallel.SMALL_PAIR_MMAP_BYTES),
+                     (parallel.M_TRIM_THRESHOLD, parallel.SMALL_PAIR_TRIM_BYTES)]
+
+
 def test_malloc_settings_are_accepted_by_glibc():
     """glibc takes both settings (mallopt returns 1; 32 MB is its largest mmap threshold on 64-bit)."""
     from parsers.base import glibc
