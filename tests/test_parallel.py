@@ -817,3 +817,53 @@ def test_a_fork_freezes_the_collectors_objects_first(monkeypatch):
         assert gc.get_freeze_count() > 0
     finally:
         gc.unfreeze()
+
+
+_ANALYZE_MA = r"""
+import importlib.abc
+import os
+import sys
+
+me = os.getpid()
+
+
+class Hook(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name == "numpy.ma.core":
+            sys.stderr.write(f"numpy.ma.core imported in the {'analysing process' if os.getpid() == me else 'child'}\n")
+        return None
+
+
+sys.meta_path.insert(0, Hook())
+real_fork = os.fork
+
+
+def fork():
+    pid = real_fork()
+    if pid:
+        sys.stderr.write("forked\n")
+    return pid
+
+
+os.fork = fork
+from pipelines import cli
+
+sys.argv = ["tapost", "analyze", *sys.argv[1:]]
+cli.script()
+"""
+
+
+def test_analyze_loads_numpy_ma_once_before_its_children_fork(tmp_path):
+    """numpy.ma, which the analysing process loads anyway, is loaded there before the parse's and the
+    recording's children fork (``cli.preload_numpy_ma``): neither child loads it again."""
+    sample = ROOT / "sample_logs"
+    p = subprocess.run([sys.executable, "-c", _ANALYZE_MA, str(sample / "master.mcap"), str(sample / "slave.tlog"),
+                        "-o", str(tmp_path / "out"), "--no-html"], capture_output=True, text=True, timeout=300,
+                       env={**os.environ, "TAPOST_WARMUP": "0"}, cwd=str(tmp_path))
+    assert p.returncode == 0, p.stderr
+    lines = [ln for ln in p.stderr.splitlines() if ln.startswith(("numpy.ma", "forked"))]
+    assert lines and lines[0] == "numpy.ma.core imported in the analysing process", p.stderr
+    assert "numpy.ma.core imported in the child" not in lines
+    if (os.cpu_count() or 1) > 1:
+        assert "forked" in lines  # (the children this is about were there)
+    assert (tmp_path / "out" / "recording.rrd").exists()
