@@ -1004,7 +1004,6 @@ class _McapScan:
         self.keep = True
         self.spans: list[tuple[int, int] | None] = []
         self.kept: dict[int, bytes] = {}
-        self.n = 0  # messages so far
         self._left = np.full(1 << 16, _UNIT_SAMPLE, np.int32)  # (payloads still to keep, by channel)
         self._at: tuple[int, int] | None = None  # (the chunk record being walked)
 
@@ -1045,18 +1044,19 @@ class _McapScan:
             self._keep_first(arr, cid, s, e)
         self.heads.append(_payload_heads(arr, s))
         self.whole.append(whole_chunk)
-        self.n += m
         return m
 
     def _keep_first(self, arr: np.ndarray, cid: np.ndarray, s: np.ndarray, e: np.ndarray) -> None:
-        """The payloads of the block's messages among the first _UNIT_SAMPLE of their channel, kept."""
+        """The payloads of the block's messages (the last block's) among the first _UNIT_SAMPLE of their
+        channel, kept."""
         left = self._left[cid]
         if not left.any():
             return
+        at = self.count - len(cid)  # (the block's first message)
         for c in np.unique(cid[left > 0]).tolist():
             idx = np.flatnonzero(cid == c)[:int(self._left[c])]
             for j in idx.tolist():
-                self.kept[self.n + j] = arr[s[j]:e[j]].tobytes()
+                self.kept[at + j] = arr[s[j]:e[j]].tobytes()
             self._left[c] -= len(idx)
 
     @property
@@ -1178,9 +1178,10 @@ def _scan_mcap(path: str, keep: bool = True) -> _McapScan:
             pass
     starts = mcap_ros.summary_chunk_starts(buf, inner)  # where the walk picks up again after a damaged stretch
     sc.keep = keep or mcap_ros.chunk_places(buf, off, starts=starts) is None
-    # kept: zstd chunks decompressed into one buffer (the messages' buffer of the export: not held twice);
-    # streamed: each into an array of its own, let go once walked
-    sc.arena = mcap_ros.chunk_arena(buf, off, starts=starts) if sc.keep else None
+    # kept: zstd chunks decompressed into one buffer (the messages' buffer of the export: not held twice;
+    # None where chunk_places is: a streamed scan that found none keeps its chunks one by one); streamed: each
+    # into an array of its own, let go once walked
+    sc.arena = mcap_ros.chunk_arena(buf, off, starts=starts) if keep else None
     last = off
     indexes = mcap_ros.IndexCheck()  # (damaged ones: the output's are written anew)
     # (decompression and CRC ahead, in threads)
@@ -1276,12 +1277,12 @@ def _mcap_msgs(sc: _McapScan, cids: list[int]) -> tuple[_Msgs, rcw.ChunkLayout |
     base = buf = None
     if not sc.keep:  # (a streamed scan: the chunks one after another, in no buffer)
         base, buf = (np.cumsum(blens) - blens).tolist(), np.zeros(0, np.uint8)
-    # blocks that all view one buffer are patched there: the file's bytes (uncompressed chunks) or the buffer
-    # the zstd chunks were inflated into
-    for cand in (sc.file, sc.arena[0] if sc.arena is not None else None):
-        if base is None and cand is not None and (base := _views_of(cand, sc.blocks)) is not None:
-            buf = cand
-            break
+    else:  # blocks that all view one buffer are patched there: the file's bytes (uncompressed chunks) or the
+        # buffer the zstd chunks were inflated into
+        for cand in (sc.file, sc.arena[0] if sc.arena is not None else None):
+            if cand is not None and (base := _views_of(cand, sc.blocks)) is not None:
+                buf = cand
+                break
     if base is None:
         base = (np.cumsum(blens) - blens).tolist() if sc.blocks else []
         buf = np.concatenate([b[0] for b in sc.blocks]) if sc.blocks else np.zeros(0, np.uint8)

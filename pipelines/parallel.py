@@ -302,7 +302,6 @@ class Pending:
                 if self._awaiting:
                     kwargs = {**kwargs, "later": Later(os.fdopen(later_r, "rb"))}
                 _answer(self._fn, self._args, kwargs, wfd, memfd)
-                _child_done()
             except BaseException:  # noqa: BLE001
                 code = 1
             finally:
@@ -404,13 +403,14 @@ def submit_awaiting(fn: Callable, *args, **kwargs) -> Pending:
 def _answer(fn: Callable, args: tuple, kwargs: dict, wfd: int, memfd: int = -1) -> None:
     """In a child: run the call and write (True, its value) or (False, its exception), pickled, to ``wfd``; its
     arrays of OOB_MIN_BYTES and more into ``memfd`` (where there is one), the pickle then wrapped with their
-    places there (:func:`_read_answer` maps them)."""
+    places there (:func:`_read_answer` maps them). Then, the answer written, :func:`_child_done`."""
     try:
         payload = _dumps((True, fn(*args, **kwargs)), memfd)
     except BaseException as exc:  # noqa: BLE001 - the parent re-raises it
         payload = pickle.dumps((False, exc), protocol=5)
     with os.fdopen(wfd, "wb") as fh:
         fh.write(payload)
+    _child_done()
 
 
 def _dumps(answer: tuple, memfd: int) -> bytes:
@@ -535,7 +535,6 @@ def prepare(name: str, modules: tuple[str, ...], setup: tuple[str, str] | None =
                 if awaiting:  # (the later object follows the call on the same pipe)
                     kwargs = {**kwargs, "later": Later(fh)}
                 _answer(fn, args, kwargs, res_w, memfd)
-                _child_done()
         except BaseException:  # noqa: BLE001 - an interrupt, a broken pipe: the parent runs the call itself
             code = 1
         finally:
